@@ -1,0 +1,387 @@
+// The only torch-aware file: argument checks, output allocation, dispatch to the CPU or CUDA launchers
+// (csrc/include/rgs/kernels.h), and the pybind11 module `retinexgs._C`.
+#include <omp.h>
+#include <torch/extension.h>
+
+#include <tuple>
+#include <vector>
+
+#include "rgs/kernels.h"
+#ifdef RGS_WITH_CUDA
+#include <c10/cuda/CUDAGuard.h>
+#include <c10/cuda/CUDAStream.h>
+
+#include "rgs/kernels_cuda.h"
+#endif
+
+namespace {
+
+using torch::Tensor;
+int g_num_threads = 0;  // 0: OpenMP's default
+
+int num_threads() { return g_num_threads > 0 ? g_num_threads : omp_get_max_threads(); }
+
+// ---- checks ------------------------------------------------------------------------------------
+void check_tensor(const Tensor& t, const char* name, std::vector<int64_t> shape, const Tensor& like) {
+    TORCH_CHECK_TYPE(t.scalar_type() == like.scalar_type(), name, " must have dtype ", like.scalar_type(),
+                     ", got ", t.scalar_type());
+    TORCH_CHECK_VALUE(t.device() == like.device(), name, " must be on ", like.device(), ", got ", t.device());
+    TORCH_CHECK_VALUE(t.dim() == int64_t(shape.size()), name, " must have ", shape.size(), " dims, got shape ",
+                      t.sizes());
+    for (size_t i = 0; i < shape.size(); ++i)
+        TORCH_CHECK_VALUE(shape[i] < 0 || t.size(i) == shape[i], name, " has shape ", t.sizes(),
+                          ", expected size ", shape[i], " at dim ", i);
+}
+
+void check_index(const Tensor& t, const char* name, std::vector<int64_t> shape, const Tensor& like) {
+    TORCH_CHECK_TYPE(t.scalar_type() == torch::kInt32, name, " must be int32, got ", t.scalar_type());
+    TORCH_CHECK_VALUE(t.device() == like.device(), name, " must be on ", like.device());
+    TORCH_CHECK_VALUE(t.dim() == int64_t(shape.size()), name, " has shape ", t.sizes());
+    for (size_t i = 0; i < shape.size(); ++i)
+        TORCH_CHECK_VALUE(shape[i] < 0 || t.size(i) == shape[i], name, " has shape ", t.sizes(),
+                          ", expected size ", shape[i], " at dim ", i);
+}
+
+void check_float(const Tensor& t, const char* name) {
+    TORCH_CHECK_TYPE(t.scalar_type() == torch::kFloat32 || t.scalar_type() == torch::kFloat64, name,
+                     " must be float32 or float64, got ", t.scalar_type());
+}
+
+void check_image(int width, int height) {
+    TORCH_CHECK_VALUE(width > 0 && height > 0, "width and height must be positive, got ", width, "x", height);
+}
+
+template <typename T>
+rgs::Camera<T> make_camera(const std::vector<double>& viewmat, double fx, double fy, double cx, double cy,
+                           int width, int height, double near_plane, double far_plane) {
+    TORCH_CHECK_VALUE(viewmat.size() == 16, "viewmat must have 16 entries, got ", viewmat.size());
+    for (double v : viewmat) TORCH_CHECK_VALUE(std::isfinite(v), "viewmat must be finite");
+    TORCH_CHECK_VALUE(std::isfinite(fx) && std::isfinite(fy) && fx > 0 && fy > 0,
+                      "fx and fy must be finite and positive, got ", fx, ", ", fy);
+    TORCH_CHECK_VALUE(std::isfinite(cx) && std::isfinite(cy), "cx and cy must be finite, got ", cx, ", ", cy);
+    TORCH_CHECK_VALUE(near_plane > 0 && far_plane > near_plane, "need 0 < near < far, got ", near_plane, ", ",
+                      far_plane);
+    check_image(width, height);
+    rgs::Camera<T> cam;
+    for (int i = 0; i < 16; ++i) cam.viewmat[i] = T(viewmat[i]);
+    cam.fx = T(fx);
+    cam.fy = T(fy);
+    cam.cx = T(cx);
+    cam.cy = T(cy);
+    cam.width = width;
+    cam.height = height;
+    cam.near_plane = T(near_plane);
+    cam.far_plane = T(far_plane);
+    return cam;
+}
+
+#ifdef RGS_WITH_CUDA
+#define RGS_CUDA_STREAM(t) (at::cuda::getCurrentCUDAStream((t).device().index()).stream())
+#define RGS_DEVICE_GUARD(t) const at::cuda::OptionalCUDAGuard device_guard(device_of(t))
+#else
+#define RGS_DEVICE_GUARD(t) ((void)0)
+#endif
+
+[[noreturn]] void no_cuda() {
+    TORCH_CHECK_VALUE(false, "retinexgs._C was built without CUDA kernels; reinstall with a CUDA build of "
+                             "torch and a CUDA toolkit, or pass CPU tensors");
+}
+
+// ---- projection --------------------------------------------------------------------------------
+std::tuple<Tensor, Tensor, Tensor, Tensor> project_forward(Tensor means, Tensor quats, Tensor scales,
+                                                           Tensor opacities, std::vector<double> viewmat,
+                                                           double fx, double fy, double cx, double cy, int width,
+                                                           int height, double near_plane, double far_plane) {
+    check_float(means, "means");
+    const int64_t N = means.size(0);
+    check_tensor(means, "means", {N, 3}, means);
+    check_tensor(quats, "quats", {N, 4}, means);
+    check_tensor(scales, "scales", {N, 3}, means);
+    check_tensor(opacities, "opacities", {N}, means);
+    means = means.contiguous(), quats = quats.contiguous(), scales = scales.contiguous();
+    opacities = opacities.contiguous();
+    auto opts = means.options();
+    Tensor means2d = torch::empty({N, 2}, opts), depths = torch::empty({N}, opts);
+    Tensor conics = torch::empty({N, 3}, opts);
+    Tensor radii = torch::empty({N, 2}, opts.dtype(torch::kInt32));
+    RGS_DEVICE_GUARD(means);
+    AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project_forward", [&] {
+        auto cam = make_camera<scalar_t>(viewmat, fx, fy, cx, cy, width, height, near_plane, far_plane);
+        if (means.is_cuda()) {
+#ifdef RGS_WITH_CUDA
+            rgs::project_forward_cuda<scalar_t>(N, means.data_ptr<scalar_t>(), quats.data_ptr<scalar_t>(),
+                                                scales.data_ptr<scalar_t>(), opacities.data_ptr<scalar_t>(), cam,
+                                                means2d.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(),
+                                                conics.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(),
+                                                RGS_CUDA_STREAM(means));
+#else
+            no_cuda();
+#endif
+        } else {
+            rgs::project_forward_cpu<scalar_t>(N, means.data_ptr<scalar_t>(), quats.data_ptr<scalar_t>(),
+                                               scales.data_ptr<scalar_t>(), opacities.data_ptr<scalar_t>(), cam,
+                                               means2d.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(),
+                                               conics.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(),
+                                               num_threads());
+        }
+    });
+    return {means2d, depths, conics, radii};
+}
+
+std::tuple<Tensor, Tensor, Tensor> project_backward(Tensor means, Tensor quats, Tensor scales,
+                                                    std::vector<double> viewmat, double fx, double fy, double cx,
+                                                    double cy, int width, int height, double near_plane,
+                                                    double far_plane, Tensor radii, Tensor v_means2d,
+                                                    Tensor v_depths, Tensor v_conics) {
+    check_float(means, "means");
+    const int64_t N = means.size(0);
+    check_tensor(means, "means", {N, 3}, means);
+    check_tensor(quats, "quats", {N, 4}, means);
+    check_tensor(scales, "scales", {N, 3}, means);
+    check_index(radii, "radii", {N, 2}, means);
+    check_tensor(v_means2d, "v_means2d", {N, 2}, means);
+    check_tensor(v_depths, "v_depths", {N}, means);
+    check_tensor(v_conics, "v_conics", {N, 3}, means);
+    means = means.contiguous(), quats = quats.contiguous(), scales = scales.contiguous();
+    radii = radii.contiguous(), v_means2d = v_means2d.contiguous(), v_depths = v_depths.contiguous();
+    v_conics = v_conics.contiguous();
+    Tensor v_means = torch::empty_like(means), v_quats = torch::empty_like(quats);
+    Tensor v_scales = torch::empty_like(scales);
+    RGS_DEVICE_GUARD(means);
+    AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project_backward", [&] {
+        auto cam = make_camera<scalar_t>(viewmat, fx, fy, cx, cy, width, height, near_plane, far_plane);
+        if (means.is_cuda()) {
+#ifdef RGS_WITH_CUDA
+            rgs::project_backward_cuda<scalar_t>(
+                N, means.data_ptr<scalar_t>(), quats.data_ptr<scalar_t>(), scales.data_ptr<scalar_t>(), cam,
+                radii.data_ptr<int32_t>(), v_means2d.data_ptr<scalar_t>(), v_depths.data_ptr<scalar_t>(),
+                v_conics.data_ptr<scalar_t>(), v_means.data_ptr<scalar_t>(), v_quats.data_ptr<scalar_t>(),
+                v_scales.data_ptr<scalar_t>(), RGS_CUDA_STREAM(means));
+#else
+            no_cuda();
+#endif
+        } else {
+            rgs::project_backward_cpu<scalar_t>(
+                N, means.data_ptr<scalar_t>(), quats.data_ptr<scalar_t>(), scales.data_ptr<scalar_t>(), cam,
+                radii.data_ptr<int32_t>(), v_means2d.data_ptr<scalar_t>(), v_depths.data_ptr<scalar_t>(),
+                v_conics.data_ptr<scalar_t>(), v_means.data_ptr<scalar_t>(), v_quats.data_ptr<scalar_t>(),
+                v_scales.data_ptr<scalar_t>(), num_threads());
+        }
+    });
+    return {v_means, v_quats, v_scales};
+}
+
+// ---- tile binning ------------------------------------------------------------------------------
+std::tuple<Tensor, Tensor> bin_gaussians(Tensor means2d, Tensor radii, Tensor depths, int width, int height) {
+    check_float(means2d, "means2d");
+    check_image(width, height);
+    const int64_t N = means2d.size(0);
+    check_tensor(means2d, "means2d", {N, 2}, means2d);
+    check_index(radii, "radii", {N, 2}, means2d);
+    check_tensor(depths, "depths", {N}, means2d);
+    means2d = means2d.contiguous(), radii = radii.contiguous(), depths = depths.contiguous();
+    const rgs::TileGrid grid = rgs::make_tile_grid(width, height);
+    auto iopts = means2d.options().dtype(torch::kInt32);
+    Tensor tile_ranges = torch::empty({grid.count(), 2}, iopts);
+    Tensor gauss_ids;
+    RGS_DEVICE_GUARD(means2d);
+    AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "bin_gaussians", [&] {
+        if (means2d.is_cuda()) {
+#ifdef RGS_WITH_CUDA
+            gauss_ids = rgs_bin_gaussians_cuda<scalar_t>(means2d, radii, depths, grid, tile_ranges);
+#else
+            no_cuda();
+#endif
+        } else {
+            Tensor offsets = torch::empty({N + 1}, means2d.options().dtype(torch::kInt64));
+            const int64_t M = rgs::count_tile_pairs_cpu<scalar_t>(N, means2d.data_ptr<scalar_t>(),
+                                                                  radii.data_ptr<int32_t>(), grid,
+                                                                  offsets.data_ptr<int64_t>(), num_threads());
+            TORCH_CHECK_VALUE(M < (int64_t(1) << 31), "too many tile/Gaussian pairs (", M, ") for int32 indices");
+            gauss_ids = torch::empty({M}, iopts);
+            rgs::bin_tile_pairs_cpu<scalar_t>(N, means2d.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(),
+                                              depths.data_ptr<scalar_t>(), grid, offsets.data_ptr<int64_t>(), M,
+                                              gauss_ids.data_ptr<int32_t>(), tile_ranges.data_ptr<int32_t>(),
+                                              num_threads());
+        }
+    });
+    return {gauss_ids, tile_ranges};
+}
+
+// ---- compositing -------------------------------------------------------------------------------
+void check_raster_inputs(const Tensor& means2d, const Tensor& conics, const Tensor& colors, const Tensor& opacities,
+                         const Tensor& gauss_ids, const Tensor& tile_ranges, int width, int height) {
+    check_float(means2d, "means2d");
+    check_image(width, height);
+    const int64_t N = means2d.size(0);
+    check_tensor(means2d, "means2d", {N, 2}, means2d);
+    check_tensor(conics, "conics", {N, 3}, means2d);
+    check_tensor(colors, "colors", {N, -1}, means2d);
+    TORCH_CHECK_VALUE(colors.size(1) >= 1, "colors must have at least one channel");
+    check_tensor(opacities, "opacities", {N}, means2d);
+    check_index(gauss_ids, "gauss_ids", {-1}, means2d);
+    check_index(tile_ranges, "tile_ranges", {rgs::make_tile_grid(width, height).count(), 2}, means2d);
+}
+
+std::tuple<Tensor, Tensor, Tensor> rasterize_forward(Tensor means2d, Tensor conics, Tensor colors,
+                                                     Tensor opacities, Tensor gauss_ids, Tensor tile_ranges,
+                                                     int width, int height) {
+    check_raster_inputs(means2d, conics, colors, opacities, gauss_ids, tile_ranges, width, height);
+    means2d = means2d.contiguous(), conics = conics.contiguous(), colors = colors.contiguous();
+    opacities = opacities.contiguous(), gauss_ids = gauss_ids.contiguous(), tile_ranges = tile_ranges.contiguous();
+    const int64_t N = means2d.size(0);
+    const int C = int(colors.size(1));
+    auto opts = means2d.options();
+    Tensor image = torch::empty({height, width, C}, opts);
+    Tensor transmittance = torch::empty({height, width}, opts);
+    Tensor last_ids = torch::empty({height, width}, opts.dtype(torch::kInt32));
+    RGS_DEVICE_GUARD(means2d);
+    AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "rasterize_forward", [&] {
+        if (means2d.is_cuda()) {
+#ifdef RGS_WITH_CUDA
+            rgs::rasterize_forward_cuda<scalar_t>(
+                N, C, width, height, means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
+                colors.data_ptr<scalar_t>(), opacities.data_ptr<scalar_t>(), gauss_ids.data_ptr<int32_t>(),
+                tile_ranges.data_ptr<int32_t>(), image.data_ptr<scalar_t>(), transmittance.data_ptr<scalar_t>(),
+                last_ids.data_ptr<int32_t>(), RGS_CUDA_STREAM(means2d));
+#else
+            no_cuda();
+#endif
+        } else {
+            rgs::rasterize_forward_cpu<scalar_t>(
+                N, C, width, height, means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
+                colors.data_ptr<scalar_t>(), opacities.data_ptr<scalar_t>(), gauss_ids.data_ptr<int32_t>(),
+                tile_ranges.data_ptr<int32_t>(), image.data_ptr<scalar_t>(), transmittance.data_ptr<scalar_t>(),
+                last_ids.data_ptr<int32_t>(), num_threads());
+        }
+    });
+    return {image, transmittance, last_ids};
+}
+
+std::tuple<Tensor, Tensor, Tensor, Tensor> rasterize_backward(Tensor means2d, Tensor conics, Tensor colors,
+                                                              Tensor opacities, Tensor gauss_ids,
+                                                              Tensor tile_ranges, int width, int height,
+                                                              Tensor transmittance, Tensor last_ids,
+                                                              Tensor v_image, Tensor v_transmittance) {
+    check_raster_inputs(means2d, conics, colors, opacities, gauss_ids, tile_ranges, width, height);
+    const int64_t N = means2d.size(0);
+    const int C = int(colors.size(1));
+    check_tensor(transmittance, "transmittance", {height, width}, means2d);
+    check_index(last_ids, "last_ids", {height, width}, means2d);
+    check_tensor(v_image, "v_image", {height, width, C}, means2d);
+    check_tensor(v_transmittance, "v_transmittance", {height, width}, means2d);
+    means2d = means2d.contiguous(), conics = conics.contiguous(), colors = colors.contiguous();
+    opacities = opacities.contiguous(), gauss_ids = gauss_ids.contiguous(), tile_ranges = tile_ranges.contiguous();
+    transmittance = transmittance.contiguous(), last_ids = last_ids.contiguous();
+    v_image = v_image.contiguous(), v_transmittance = v_transmittance.contiguous();
+    Tensor v_means2d = torch::empty_like(means2d), v_conics = torch::empty_like(conics);
+    Tensor v_colors = torch::empty_like(colors), v_opacities = torch::empty_like(opacities);
+    const int64_t M = gauss_ids.size(0);
+    RGS_DEVICE_GUARD(means2d);
+    AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "rasterize_backward", [&] {
+        if (means2d.is_cuda()) {
+#ifdef RGS_WITH_CUDA
+            rgs::rasterize_backward_cuda<scalar_t>(
+                N, C, width, height, means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
+                colors.data_ptr<scalar_t>(), opacities.data_ptr<scalar_t>(), gauss_ids.data_ptr<int32_t>(),
+                tile_ranges.data_ptr<int32_t>(), M, transmittance.data_ptr<scalar_t>(),
+                last_ids.data_ptr<int32_t>(), v_image.data_ptr<scalar_t>(), v_transmittance.data_ptr<scalar_t>(),
+                v_means2d.data_ptr<scalar_t>(), v_conics.data_ptr<scalar_t>(), v_colors.data_ptr<scalar_t>(),
+                v_opacities.data_ptr<scalar_t>(), RGS_CUDA_STREAM(means2d));
+#else
+            no_cuda();
+#endif
+        } else {
+            rgs::rasterize_backward_cpu<scalar_t>(
+                N, C, width, height, means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
+                colors.data_ptr<scalar_t>(), opacities.data_ptr<scalar_t>(), gauss_ids.data_ptr<int32_t>(),
+                tile_ranges.data_ptr<int32_t>(), M, transmittance.data_ptr<scalar_t>(),
+                last_ids.data_ptr<int32_t>(), v_image.data_ptr<scalar_t>(), v_transmittance.data_ptr<scalar_t>(),
+                v_means2d.data_ptr<scalar_t>(), v_conics.data_ptr<scalar_t>(), v_colors.data_ptr<scalar_t>(),
+                v_opacities.data_ptr<scalar_t>(), num_threads());
+        }
+    });
+    return {v_means2d, v_conics, v_colors, v_opacities};
+}
+
+// ---- spherical harmonics -----------------------------------------------------------------------
+void check_sh_inputs(int degree, const Tensor& dirs, const Tensor& coeffs) {
+    check_float(coeffs, "coeffs");
+    TORCH_CHECK_VALUE(degree >= 0 && degree <= 3, "sh degree must be in 0..3, got ", degree);
+    const int64_t N = coeffs.size(0);
+    check_tensor(coeffs, "coeffs", {N, -1, -1}, coeffs);
+    TORCH_CHECK_VALUE(coeffs.size(1) >= (degree + 1) * (degree + 1), "coeffs has ", coeffs.size(1),
+                      " bases, degree ", degree, " needs ", (degree + 1) * (degree + 1));
+    check_tensor(dirs, "dirs", {N, 3}, coeffs);
+}
+
+Tensor sh_forward(int degree, Tensor dirs, Tensor coeffs) {
+    check_sh_inputs(degree, dirs, coeffs);
+    dirs = dirs.contiguous(), coeffs = coeffs.contiguous();
+    const int64_t N = coeffs.size(0);
+    const int K = int(coeffs.size(1)), D = int(coeffs.size(2));
+    Tensor colors = torch::empty({N, D}, coeffs.options());
+    RGS_DEVICE_GUARD(coeffs);
+    AT_DISPATCH_FLOATING_TYPES(coeffs.scalar_type(), "sh_forward", [&] {
+        if (coeffs.is_cuda()) {
+#ifdef RGS_WITH_CUDA
+            rgs::sh_forward_cuda<scalar_t>(N, degree, K, D, dirs.data_ptr<scalar_t>(), coeffs.data_ptr<scalar_t>(),
+                                           colors.data_ptr<scalar_t>(), RGS_CUDA_STREAM(coeffs));
+#else
+            no_cuda();
+#endif
+        } else {
+            rgs::sh_forward_cpu<scalar_t>(N, degree, K, D, dirs.data_ptr<scalar_t>(), coeffs.data_ptr<scalar_t>(),
+                                          colors.data_ptr<scalar_t>(), num_threads());
+        }
+    });
+    return colors;
+}
+
+std::tuple<Tensor, Tensor> sh_backward(int degree, Tensor dirs, Tensor coeffs, Tensor v_colors) {
+    check_sh_inputs(degree, dirs, coeffs);
+    const int64_t N = coeffs.size(0);
+    const int K = int(coeffs.size(1)), D = int(coeffs.size(2));
+    check_tensor(v_colors, "v_colors", {N, D}, coeffs);
+    dirs = dirs.contiguous(), coeffs = coeffs.contiguous(), v_colors = v_colors.contiguous();
+    Tensor v_dirs = torch::empty_like(dirs), v_coeffs = torch::empty_like(coeffs);
+    RGS_DEVICE_GUARD(coeffs);
+    AT_DISPATCH_FLOATING_TYPES(coeffs.scalar_type(), "sh_backward", [&] {
+        if (coeffs.is_cuda()) {
+#ifdef RGS_WITH_CUDA
+            rgs::sh_backward_cuda<scalar_t>(N, degree, K, D, dirs.data_ptr<scalar_t>(),
+                                            coeffs.data_ptr<scalar_t>(), v_colors.data_ptr<scalar_t>(),
+                                            v_dirs.data_ptr<scalar_t>(), v_coeffs.data_ptr<scalar_t>(),
+                                            RGS_CUDA_STREAM(coeffs));
+#else
+            no_cuda();
+#endif
+        } else {
+            rgs::sh_backward_cpu<scalar_t>(N, degree, K, D, dirs.data_ptr<scalar_t>(), coeffs.data_ptr<scalar_t>(),
+                                           v_colors.data_ptr<scalar_t>(), v_dirs.data_ptr<scalar_t>(),
+                                           v_coeffs.data_ptr<scalar_t>(), num_threads());
+        }
+    });
+    return {v_dirs, v_coeffs};
+}
+
+}  // namespace
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+    m.doc() = "RetinexGS kernel library: projection, tile binning, compositing and SH (CPU/OpenMP and CUDA)";
+    m.def("project_forward", &project_forward);
+    m.def("project_backward", &project_backward);
+    m.def("bin_gaussians", &bin_gaussians);
+    m.def("rasterize_forward", &rasterize_forward);
+    m.def("rasterize_backward", &rasterize_backward);
+    m.def("sh_forward", &sh_forward);
+    m.def("sh_backward", &sh_backward);
+    m.def("set_num_threads", [](int n) { g_num_threads = n; }, "OpenMP threads for the CPU kernels (0: default)");
+    m.def("get_num_threads", &num_threads);
+#ifdef RGS_WITH_CUDA
+    m.attr("has_cuda") = true;
+#else
+    m.attr("has_cuda") = false;
+#endif
+    m.attr("tile_size") = rgs::kTileSize;
+}

@@ -1,0 +1,96 @@
+// Launcher declarations of every kernel, one block per pipeline stage. Arguments are raw pointers to
+// contiguous row-major arrays; shapes are given in the comments (N Gaussians, C channels, K SH bases,
+// D SH channels, M tile/Gaussian intersections, H x W image). Only csrc/bindings.cpp knows torch.
+// The CPU launchers are instantiated for float and double; the CUDA ones take a cudaStream_t as void*.
+#pragma once
+#include <cstdint>
+
+#include "rgs/types.h"
+
+namespace rgs {
+
+// ---- projection ------------------------------------------------------------------------------
+template <typename T>
+void project_forward_cpu(int64_t N,
+                         const T* means,      // [N, 3] world space
+                         const T* quats,      // [N, 4] (w, x, y, z), any norm
+                         const T* scales,     // [N, 3] standard deviations along the local axes
+                         const T* opacities,  // [N] in [0, 1]
+                         const Camera<T>& cam,
+                         T* means2d,          // [N, 2] out, pixels
+                         T* depths,           // [N] out, camera z
+                         T* conics,           // [N, 3] out, inverse 2D covariance (A, B, C)
+                         int32_t* radii,      // [N, 2] out, pixel half extents; 0 = culled
+                         int num_threads);
+
+template <typename T>
+void project_backward_cpu(int64_t N, const T* means, const T* quats, const T* scales, const Camera<T>& cam,
+                          const int32_t* radii,    // [N, 2] from the forward
+                          const T* v_means2d,      // [N, 2]
+                          const T* v_depths,       // [N]
+                          const T* v_conics,       // [N, 3]
+                          T* v_means,              // [N, 3] out
+                          T* v_quats,              // [N, 4] out
+                          T* v_scales,             // [N, 3] out
+                          int num_threads);
+
+// ---- tile binning ----------------------------------------------------------------------------
+// Counts the (tile, Gaussian) pairs of every Gaussian; returns the total M.
+template <typename T>
+int64_t count_tile_pairs_cpu(int64_t N, const T* means2d, const int32_t* radii, TileGrid grid,
+                             int64_t* offsets,  // [N + 1] out, exclusive prefix sum of the counts
+                             int num_threads);
+
+// Fills the pairs ordered by tile, then depth, then Gaussian index.
+template <typename T>
+void bin_tile_pairs_cpu(int64_t N, const T* means2d, const int32_t* radii, const T* depths, TileGrid grid,
+                        const int64_t* offsets,  // [N + 1] from count_tile_pairs_cpu
+                        int64_t M,
+                        int32_t* gauss_ids,      // [M] out, Gaussian index of each pair
+                        int32_t* tile_ranges,    // [tiles, 2] out, [begin, end) of each tile's pairs
+                        int num_threads);
+
+// ---- compositing -----------------------------------------------------------------------------
+template <typename T>
+void rasterize_forward_cpu(int64_t N, int C, int width, int height,
+                           const T* means2d,           // [N, 2]
+                           const T* conics,            // [N, 3]
+                           const T* colors,            // [N, C]
+                           const T* opacities,         // [N]
+                           const int32_t* gauss_ids,   // [M]
+                           const int32_t* tile_ranges, // [tiles, 2]
+                           T* image,                   // [H, W, C] out
+                           T* transmittance,           // [H, W] out, T after the last contributor
+                           int32_t* last_ids,          // [H, W] out, end of the contributing pairs
+                           int num_threads);
+
+template <typename T>
+void rasterize_backward_cpu(int64_t N, int C, int width, int height, const T* means2d, const T* conics,
+                            const T* colors, const T* opacities, const int32_t* gauss_ids,
+                            const int32_t* tile_ranges, int64_t M,
+                            const T* transmittance,     // [H, W] from the forward
+                            const int32_t* last_ids,    // [H, W] from the forward
+                            const T* v_image,           // [H, W, C]
+                            const T* v_transmittance,   // [H, W] (or nullptr)
+                            T* v_means2d,               // [N, 2] out
+                            T* v_conics,                // [N, 3] out
+                            T* v_colors,                // [N, C] out
+                            T* v_opacities,             // [N] out
+                            int num_threads);
+
+// ---- spherical harmonics ---------------------------------------------------------------------
+template <typename T>
+void sh_forward_cpu(int64_t N, int degree, int K, int D,
+                    const T* dirs,    // [N, 3] view directions, any norm
+                    const T* coeffs,  // [N, K, D]
+                    T* colors,        // [N, D] out
+                    int num_threads);
+
+template <typename T>
+void sh_backward_cpu(int64_t N, int degree, int K, int D, const T* dirs, const T* coeffs,
+                     const T* v_colors,  // [N, D]
+                     T* v_dirs,          // [N, 3] out
+                     T* v_coeffs,        // [N, K, D] out (bases above the degree get 0)
+                     int num_threads);
+
+}  // namespace rgs

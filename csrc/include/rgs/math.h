@@ -1,0 +1,533 @@
+// The per-Gaussian and per-pixel math of Gaussian splatting, written once and called by both the
+// OpenMP (csrc/cpu) and CUDA (csrc/cuda) schedulers. Every forward function has its vector-Jacobian
+// product (`*_vjp`) next to it. Equation numbers refer to Kerbl et al., "3D Gaussian Splatting for
+// Real-Time Radiance Field Rendering" (SIGGRAPH 2023) and Zwicker et al., "EWA Splatting" (2002).
+#pragma once
+#include <cmath>
+
+#include "rgs/types.h"
+
+namespace rgs {
+
+// ---------------------------------------------------------------------------------------------
+// Small fixed-size linear algebra (row-major).
+// ---------------------------------------------------------------------------------------------
+template <typename T>
+struct Vec2 { T x, y; };
+template <typename T>
+struct Vec3 { T x, y, z; };
+template <typename T>
+struct Mat2 { T a, b, c, d; };  // [[a, b], [c, d]]
+template <typename T>
+struct Mat3 { T m[3][3]; };
+
+template <typename T>
+RGS_HD Mat3<T> mat3_zero() {
+    Mat3<T> r;
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) r.m[i][j] = T(0);
+    return r;
+}
+
+template <typename T>
+RGS_HD Mat3<T> matmul(const Mat3<T>& A, const Mat3<T>& B) {
+    Mat3<T> r;
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j)
+            r.m[i][j] = A.m[i][0] * B.m[0][j] + A.m[i][1] * B.m[1][j] + A.m[i][2] * B.m[2][j];
+    return r;
+}
+
+template <typename T>
+RGS_HD Mat3<T> transpose(const Mat3<T>& A) {
+    Mat3<T> r;
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) r.m[i][j] = A.m[j][i];
+    return r;
+}
+
+template <typename T>
+RGS_HD Vec3<T> matvec(const Mat3<T>& A, const Vec3<T>& v) {
+    return {A.m[0][0] * v.x + A.m[0][1] * v.y + A.m[0][2] * v.z,
+            A.m[1][0] * v.x + A.m[1][1] * v.y + A.m[1][2] * v.z,
+            A.m[2][0] * v.x + A.m[2][1] * v.y + A.m[2][2] * v.z};
+}
+
+template <typename T>
+RGS_HD Vec3<T> matTvec(const Mat3<T>& A, const Vec3<T>& v) {  // A^T v
+    return {A.m[0][0] * v.x + A.m[1][0] * v.y + A.m[2][0] * v.z,
+            A.m[0][1] * v.x + A.m[1][1] * v.y + A.m[2][1] * v.z,
+            A.m[0][2] * v.x + A.m[1][2] * v.y + A.m[2][2] * v.z};
+}
+
+// Rotation part and translation of a row-major 4x4 world-to-camera matrix.
+template <typename T>
+RGS_HD Mat3<T> viewmat_rotation(const T* vm) {
+    Mat3<T> R;
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) R.m[i][j] = vm[4 * i + j];
+    return R;
+}
+
+template <typename T>
+RGS_HD Vec3<T> world_to_camera(const T* vm, const Vec3<T>& p) {
+    return {vm[0] * p.x + vm[1] * p.y + vm[2] * p.z + vm[3],
+            vm[4] * p.x + vm[5] * p.y + vm[6] * p.z + vm[7],
+            vm[8] * p.x + vm[9] * p.y + vm[10] * p.z + vm[11]};
+}
+
+// ---------------------------------------------------------------------------------------------
+// Quaternion (w, x, y, z), not necessarily normalised -> rotation matrix. A zero quaternion maps to
+// the identity (q / max(|q|, eps) = 0 gives R = I) and receives no gradient.
+// ---------------------------------------------------------------------------------------------
+template <typename T>
+RGS_HD T quat_norm(const T* q) {
+    return sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+}
+
+template <typename T>
+RGS_HD Mat3<T> quat_to_rotmat(const T* q) {
+    const T n = quat_norm(q);
+    const T inv = n > T(1e-12) ? T(1) / n : T(0);
+    const T w = q[0] * inv, x = q[1] * inv, y = q[2] * inv, z = q[3] * inv;
+    Mat3<T> R;
+    R.m[0][0] = T(1) - T(2) * (y * y + z * z);
+    R.m[0][1] = T(2) * (x * y - w * z);
+    R.m[0][2] = T(2) * (x * z + w * y);
+    R.m[1][0] = T(2) * (x * y + w * z);
+    R.m[1][1] = T(1) - T(2) * (x * x + z * z);
+    R.m[1][2] = T(2) * (y * z - w * x);
+    R.m[2][0] = T(2) * (x * z - w * y);
+    R.m[2][1] = T(2) * (y * z + w * x);
+    R.m[2][2] = T(1) - T(2) * (x * x + y * y);
+    return R;
+}
+
+// v_q (4) from v_R = dL/dR, through the normalisation q / |q|.
+template <typename T>
+RGS_HD void quat_to_rotmat_vjp(const T* q, const Mat3<T>& G, T* v_q) {
+    const T n = quat_norm(q);
+    if (!(n > T(1e-12))) {
+        v_q[0] = v_q[1] = v_q[2] = v_q[3] = T(0);
+        return;
+    }
+    const T inv = T(1) / n;
+    const T w = q[0] * inv, x = q[1] * inv, y = q[2] * inv, z = q[3] * inv;
+    const auto& g = G.m;
+    // dL/d(normalised q): contract G with dR/dw, dR/dx, dR/dy, dR/dz.
+    const T vw = T(2) * (-z * g[0][1] + y * g[0][2] + z * g[1][0] - x * g[1][2] - y * g[2][0] + x * g[2][1]);
+    const T vx = T(2) * (y * g[0][1] + z * g[0][2] + y * g[1][0] - T(2) * x * g[1][1] - w * g[1][2] +
+                         z * g[2][0] + w * g[2][1] - T(2) * x * g[2][2]);
+    const T vy = T(2) * (-T(2) * y * g[0][0] + x * g[0][1] + w * g[0][2] + x * g[1][0] + z * g[1][2] -
+                         w * g[2][0] + z * g[2][1] - T(2) * y * g[2][2]);
+    const T vz = T(2) * (-T(2) * z * g[0][0] - w * g[0][1] + x * g[0][2] + w * g[1][0] - T(2) * z * g[1][1] +
+                         y * g[1][2] + x * g[2][0] + y * g[2][1]);
+    // Through the normalisation: (I - q̂ q̂ᵀ) v / |q|.
+    const T dot = w * vw + x * vx + y * vy + z * vz;
+    v_q[0] = (vw - w * dot) * inv;
+    v_q[1] = (vx - x * dot) * inv;
+    v_q[2] = (vy - y * dot) * inv;
+    v_q[3] = (vz - z * dot) * inv;
+}
+
+// ---------------------------------------------------------------------------------------------
+// 3D covariance Σ = R S Sᵀ Rᵀ (3DGS eq. 6), S = diag(scale).
+// ---------------------------------------------------------------------------------------------
+template <typename T>
+RGS_HD Mat3<T> covariance_3d(const Mat3<T>& R, const T* s) {
+    Mat3<T> M;  // M = R S
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) M.m[i][j] = R.m[i][j] * s[j];
+    return matmul(M, transpose(M));
+}
+
+// From v_Σ (any 3x3) to v_R and v_s (3).
+template <typename T>
+RGS_HD void covariance_3d_vjp(const Mat3<T>& R, const T* s, const Mat3<T>& v_sigma, Mat3<T>& v_R, T* v_s) {
+    Mat3<T> M;
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) M.m[i][j] = R.m[i][j] * s[j];
+    // Σ = M Mᵀ  =>  v_M = (v_Σ + v_Σᵀ) M
+    Mat3<T> sym;
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) sym.m[i][j] = v_sigma.m[i][j] + v_sigma.m[j][i];
+    const Mat3<T> v_M = matmul(sym, M);
+    for (int j = 0; j < 3; ++j) {
+        v_s[j] = T(0);
+        for (int i = 0; i < 3; ++i) {
+            v_R.m[i][j] = v_M.m[i][j] * s[j];
+            v_s[j] += v_M.m[i][j] * R.m[i][j];
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// EWA projection (3DGS eq. 5, EWA eq. 31): Σ' = J W Σ Wᵀ Jᵀ + 0.3 I, with J the Jacobian of the
+// perspective map at the camera-space mean. x/z and y/z are clamped to a guard band 1.3x the image
+// half-extent (measured from the principal point) so Gaussians far off-screen do not explode.
+// ---------------------------------------------------------------------------------------------
+template <typename T>
+struct Jacobian {
+    T j00, j02, j11, j12;   // J = [[j00, 0, j02], [0, j11, j12]]
+    bool clamp_x, clamp_y;  // x/z or y/z hit the guard band (their gradient is then zero)
+};
+
+template <typename T>
+RGS_HD Jacobian<T> perspective_jacobian(const Camera<T>& cam, const Vec3<T>& p) {
+    const T lim_xn = T(kGuardBand) * cam.cx / cam.fx;
+    const T lim_xp = T(kGuardBand) * (T(cam.width) - cam.cx) / cam.fx;
+    const T lim_yn = T(kGuardBand) * cam.cy / cam.fy;
+    const T lim_yp = T(kGuardBand) * (T(cam.height) - cam.cy) / cam.fy;
+    const T rz = T(1) / p.z;
+    T u = p.x * rz, v = p.y * rz;
+    Jacobian<T> J;
+    J.clamp_x = u < -lim_xn || u > lim_xp;
+    J.clamp_y = v < -lim_yn || v > lim_yp;
+    u = u < -lim_xn ? -lim_xn : (u > lim_xp ? lim_xp : u);
+    v = v < -lim_yn ? -lim_yn : (v > lim_yp ? lim_yp : v);
+    J.j00 = cam.fx * rz;
+    J.j02 = -cam.fx * u * rz;
+    J.j11 = cam.fy * rz;
+    J.j12 = -cam.fy * v * rz;
+    return J;
+}
+
+// Σ2 = J Σc Jᵀ (2x2, before the low-pass), returned as its three distinct entries (xx, xy, yy).
+template <typename T>
+RGS_HD Vec3<T> ewa_covariance_2d(const Jacobian<T>& J, const Mat3<T>& S) {
+    // rows of J: r0 = (j00, 0, j02), r1 = (0, j11, j12)
+    const T a0 = J.j00 * S.m[0][0] + J.j02 * S.m[2][0];
+    const T a1 = J.j00 * S.m[0][1] + J.j02 * S.m[2][1];
+    const T a2 = J.j00 * S.m[0][2] + J.j02 * S.m[2][2];
+    const T b1 = J.j11 * S.m[1][1] + J.j12 * S.m[2][1];
+    const T b2 = J.j11 * S.m[1][2] + J.j12 * S.m[2][2];
+    return {a0 * J.j00 + a2 * J.j02, a1 * J.j11 + a2 * J.j12, b1 * J.j11 + b2 * J.j12};
+}
+
+// From v_Σ2 (given as the symmetric 2x2 [[gxx, gxy], [gxy, gyy]]) to v_Σc (3x3) and the camera-space
+// mean's gradient through J (added into v_p).
+template <typename T>
+RGS_HD void ewa_covariance_2d_vjp(const Camera<T>& cam, const Vec3<T>& p, const Jacobian<T>& J, const Mat3<T>& S,
+                                  T gxx, T gxy, T gyy, Mat3<T>& v_S, Vec3<T>& v_p) {
+    // J as a full 2x3 matrix.
+    const T Jm[2][3] = {{J.j00, T(0), J.j02}, {T(0), J.j11, J.j12}};
+    const T G[2][2] = {{gxx, gxy}, {gxy, gyy}};
+    // v_Σc = Jᵀ G J
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) {
+            T acc = T(0);
+            for (int a = 0; a < 2; ++a)
+                for (int b = 0; b < 2; ++b) acc += Jm[a][i] * G[a][b] * Jm[b][j];
+            v_S.m[i][j] = acc;
+        }
+    // v_J = G J Σcᵀ + Gᵀ J Σc = 2 G J Σc (G and Σc symmetric)
+    T JS[2][3];
+    for (int a = 0; a < 2; ++a)
+        for (int j = 0; j < 3; ++j) JS[a][j] = Jm[a][0] * S.m[0][j] + Jm[a][1] * S.m[1][j] + Jm[a][2] * S.m[2][j];
+    T vJ[2][3];
+    for (int a = 0; a < 2; ++a)
+        for (int j = 0; j < 3; ++j) vJ[a][j] = T(2) * (G[a][0] * JS[0][j] + G[a][1] * JS[1][j]);
+    const T rz = T(1) / p.z, rz2 = rz * rz;
+    // j00 = fx/z ; j02 = -fx*u/z with u = x/z (or a clamped constant)
+    v_p.z += -cam.fx * rz2 * vJ[0][0] - cam.fy * rz2 * vJ[1][1];
+    if (!J.clamp_x) {
+        v_p.x += -cam.fx * rz2 * vJ[0][2];
+        v_p.z += T(2) * cam.fx * p.x * rz2 * rz * vJ[0][2];
+    } else {
+        v_p.z += -J.j02 * rz * vJ[0][2];  // d(-fx*u/z)/dz = fx*u/z^2 = -j02/z
+    }
+    if (!J.clamp_y) {
+        v_p.y += -cam.fy * rz2 * vJ[1][2];
+        v_p.z += T(2) * cam.fy * p.y * rz2 * rz * vJ[1][2];
+    } else {
+        v_p.z += -J.j12 * rz * vJ[1][2];
+    }
+}
+
+// Conic = inverse of the low-passed 2D covariance, stored as (A, B, C) = (inv_xx, inv_xy, inv_yy).
+template <typename T>
+RGS_HD bool conic_from_cov2d(const Vec3<T>& cov, Vec3<T>& conic) {
+    const T det = cov.x * cov.z - cov.y * cov.y;
+    if (!(det > T(0))) return false;
+    const T inv = T(1) / det;
+    conic = {cov.z * inv, -cov.y * inv, cov.x * inv};
+    return true;
+}
+
+// From v_conic (vA, vB, vC) to v_cov2d as a symmetric matrix (gxx, gxy, gyy):
+// d(Σ⁻¹) = -Σ⁻¹ dΣ Σ⁻¹, with B counted once (so it contributes vB/2 to both off-diagonals).
+template <typename T>
+RGS_HD Vec3<T> conic_from_cov2d_vjp(const Vec3<T>& conic, const Vec3<T>& v_conic) {
+    const T A = conic.x, B = conic.y, C = conic.z;
+    const T ga = v_conic.x, gb = T(0.5) * v_conic.y, gc = v_conic.z;
+    // -[[A,B],[B,C]] [[ga,gb],[gb,gc]] [[A,B],[B,C]]
+    const T m00 = A * ga + B * gb, m01 = A * gb + B * gc;
+    const T m10 = B * ga + C * gb, m11 = B * gb + C * gc;
+    return {-(m00 * A + m01 * B), -(m00 * B + m01 * C), -(m10 * B + m11 * C)};
+}
+
+// Screen-space half extents (pixels) of the region where alpha >= 1/255: the ellipse
+// dᵀ Σ'⁻¹ d <= 2 ln(255 o) has an axis-aligned bounding box of half widths k sqrt(Σ'_xx), k sqrt(Σ'_yy).
+template <typename T>
+RGS_HD bool opacity_aware_extent(const Vec3<T>& cov, T opacity, T& ext_x, T& ext_y) {
+    // α = min(0.99, o G) >= 1/255  <=>  o G >= 1/255, so the 0.99 clamp does not enter here.
+    const T level = T(255) * opacity;
+    if (!(level > T(1))) return false;
+    const T k = sqrt(T(2) * log(level));
+    ext_x = k * sqrt(cov.x);
+    ext_y = k * sqrt(cov.z);
+    return true;
+}
+
+// Tiles touched by the pixel-centre box [mx - ex, mx + ex] x [my - ey, my + ey].
+template <typename T>
+RGS_HD TileRect tile_rect(T mx, T my, T ex, T ey, const TileGrid& grid) {
+    // Pixel i has its centre at i + 0.5, so the box covers pixels floor(m - e - 0.5) .. floor(m + e - 0.5);
+    // one pixel of margin on each side keeps rounding from dropping an edge pixel.
+    const T ts = T(kTileSize);
+    T fx0 = floor((mx - ex - T(1.5)) / ts), fx1 = floor((mx + ex + T(0.5)) / ts) + T(1);
+    T fy0 = floor((my - ey - T(1.5)) / ts), fy1 = floor((my + ey + T(0.5)) / ts) + T(1);
+    // Clamp in floating point first: huge Gaussians must not overflow int.
+    const T gx = T(grid.tiles_x), gy = T(grid.tiles_y);
+    fx0 = fx0 < T(0) ? T(0) : (fx0 > gx ? gx : fx0);
+    fx1 = fx1 < T(0) ? T(0) : (fx1 > gx ? gx : fx1);
+    fy0 = fy0 < T(0) ? T(0) : (fy0 > gy ? gy : fy0);
+    fy1 = fy1 < T(0) ? T(0) : (fy1 > gy ? gy : fy1);
+    TileRect r{int(fx0), int(fy0), int(fx1), int(fy1)};
+    if (r.x1 < r.x0) r.x1 = r.x0;
+    if (r.y1 < r.y0) r.y1 = r.y0;
+    return r;
+}
+
+// ---------------------------------------------------------------------------------------------
+// One Gaussian's projection: world-space mean/quat/scale/opacity -> 2D mean, depth, conic, extents.
+// Returns false (and the caller writes zero radii) when the Gaussian is culled.
+// ---------------------------------------------------------------------------------------------
+template <typename T>
+struct Projected {
+    Vec2<T> mean2d;
+    T depth;
+    Vec3<T> conic;
+    int radius_x, radius_y;
+};
+
+template <typename T>
+RGS_HD bool project_gaussian(const T* mean, const T* quat, const T* scale, T opacity, const Camera<T>& cam,
+                             Projected<T>& out) {
+    const Vec3<T> p = world_to_camera(cam.viewmat, Vec3<T>{mean[0], mean[1], mean[2]});
+    if (!(p.z >= cam.near_plane && p.z <= cam.far_plane)) return false;  // also rejects NaN
+    const Mat3<T> W = viewmat_rotation(cam.viewmat);
+    const Mat3<T> sigma = covariance_3d(quat_to_rotmat(quat), scale);
+    const Mat3<T> sigma_cam = matmul(matmul(W, sigma), transpose(W));
+    const Jacobian<T> J = perspective_jacobian(cam, p);
+    Vec3<T> cov = ewa_covariance_2d(J, sigma_cam);
+    cov.x += T(kLowPass);
+    cov.z += T(kLowPass);
+    if (!conic_from_cov2d(cov, out.conic)) return false;
+    T ex, ey;
+    if (!opacity_aware_extent(cov, opacity, ex, ey)) return false;
+    const T rz = T(1) / p.z;
+    out.mean2d = {cam.fx * p.x * rz + cam.cx, cam.fy * p.y * rz + cam.cy};
+    out.depth = p.z;
+    // Entirely off-screen?
+    if (out.mean2d.x + ex <= T(0) || out.mean2d.x - ex >= T(cam.width) || out.mean2d.y + ey <= T(0) ||
+        out.mean2d.y - ey >= T(cam.height))
+        return false;
+    if (!(ex < T(1e7) && ey < T(1e7))) return false;  // non-finite or absurd
+    out.radius_x = int(ceil(ex));
+    out.radius_y = int(ceil(ey));
+    return out.radius_x > 0 && out.radius_y > 0;
+}
+
+// Gradients of one visible Gaussian's projection: (v_mean2d, v_depth, v_conic) -> (v_mean, v_quat, v_scale).
+template <typename T>
+RGS_HD void project_gaussian_vjp(const T* mean, const T* quat, const T* scale, const Camera<T>& cam,
+                                 const T* v_mean2d, T v_depth, const T* v_conic, T* v_mean, T* v_quat, T* v_scale) {
+    const Vec3<T> p = world_to_camera(cam.viewmat, Vec3<T>{mean[0], mean[1], mean[2]});
+    const Mat3<T> W = viewmat_rotation(cam.viewmat);
+    const Mat3<T> R = quat_to_rotmat(quat);
+    const Mat3<T> sigma = covariance_3d(R, scale);
+    const Mat3<T> sigma_cam = matmul(matmul(W, sigma), transpose(W));
+    const Jacobian<T> J = perspective_jacobian(cam, p);
+    Vec3<T> cov = ewa_covariance_2d(J, sigma_cam);
+    cov.x += T(kLowPass);
+    cov.z += T(kLowPass);
+    Vec3<T> conic;
+    conic_from_cov2d(cov, conic);
+
+    const Vec3<T> g = conic_from_cov2d_vjp(conic, Vec3<T>{v_conic[0], v_conic[1], v_conic[2]});
+    Vec3<T> v_p{T(0), T(0), v_depth};
+    const T rz = T(1) / p.z;
+    v_p.x += cam.fx * rz * v_mean2d[0];
+    v_p.y += cam.fy * rz * v_mean2d[1];
+    v_p.z += -(cam.fx * p.x * v_mean2d[0] + cam.fy * p.y * v_mean2d[1]) * rz * rz;
+    Mat3<T> v_sigma_cam;
+    ewa_covariance_2d_vjp(cam, p, J, sigma_cam, g.x, g.y, g.z, v_sigma_cam, v_p);
+    // Σc = W Σ Wᵀ  =>  v_Σ = Wᵀ v_Σc W
+    const Mat3<T> v_sigma = matmul(matmul(transpose(W), v_sigma_cam), W);
+    Mat3<T> v_R;
+    covariance_3d_vjp(R, scale, v_sigma, v_R, v_scale);
+    quat_to_rotmat_vjp(quat, v_R, v_quat);
+    // p = W mean + t  =>  v_mean = Wᵀ v_p
+    const Vec3<T> vm = matTvec(W, v_p);
+    v_mean[0] = vm.x;
+    v_mean[1] = vm.y;
+    v_mean[2] = vm.z;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Per-pixel alpha (3DGS eq. 2 with the 2D Gaussian G' of eq. 5): α = min(0.99, o exp(-σ)),
+// σ = ½ dᵀ Σ'⁻¹ d, d = pixel centre - mean2d. Returns 0 when the contribution is skipped (α < 1/255).
+// ---------------------------------------------------------------------------------------------
+template <typename T>
+struct PixelAlpha {
+    T alpha;    // 0 when skipped
+    T gauss;    // exp(-σ)
+    T dx, dy;   // pixel centre - mean2d
+    bool clamped;
+};
+
+template <typename T>
+RGS_HD PixelAlpha<T> pixel_alpha(const Vec3<T>& conic, T mx, T my, T opacity, T px, T py) {
+    PixelAlpha<T> r;
+    r.dx = px - mx;
+    r.dy = py - my;
+    const T sigma = T(0.5) * (conic.x * r.dx * r.dx + conic.z * r.dy * r.dy) + conic.y * r.dx * r.dy;
+    r.gauss = exp(-sigma);
+    T a = opacity * r.gauss;
+    r.clamped = a > T(kAlphaMax);
+    if (r.clamped) a = T(kAlphaMax);
+    r.alpha = (sigma < T(0) || !(a >= T(kAlphaMin))) ? T(0) : a;
+    return r;
+}
+
+// v_alpha -> (v_mean2d, v_conic, v_opacity), accumulated.
+template <typename T>
+RGS_HD void pixel_alpha_vjp(const PixelAlpha<T>& pa, const Vec3<T>& conic, T opacity, T v_alpha, T* v_mean2d,
+                            T* v_conic, T& v_opacity) {
+    if (pa.clamped) return;  // α = 0.99 is constant there
+    v_opacity += pa.gauss * v_alpha;
+    const T v_sigma = -opacity * pa.gauss * v_alpha;
+    v_conic[0] += T(0.5) * pa.dx * pa.dx * v_sigma;
+    v_conic[1] += pa.dx * pa.dy * v_sigma;
+    v_conic[2] += T(0.5) * pa.dy * pa.dy * v_sigma;
+    // dσ/dmean = -dσ/dd
+    v_mean2d[0] -= (conic.x * pa.dx + conic.y * pa.dy) * v_sigma;
+    v_mean2d[1] -= (conic.y * pa.dx + conic.z * pa.dy) * v_sigma;
+}
+
+// Axis-aligned pixel box (inclusive, clamped to [lo, hi)) where a Gaussian can reach alpha >= 1/255,
+// recovered from its conic and opacity. Used to skip pixels inside a tile; one pixel of margin.
+template <typename T>
+RGS_HD bool pixel_box(const Vec3<T>& conic, T mx, T my, T opacity, int x_lo, int y_lo, int x_hi, int y_hi,
+                      int& x0, int& y0, int& x1, int& y1) {
+    const T det = conic.x * conic.z - conic.y * conic.y;
+    if (!(det > T(0))) return false;
+    const Vec3<T> cov{conic.z / det, -conic.y / det, conic.x / det};
+    T ex, ey;
+    if (!opacity_aware_extent(cov, opacity, ex, ey)) return false;
+    // Pixel i is inside when |i + 0.5 - m| <= e.
+    T fx0 = floor(mx - ex - T(0.5)) - T(1), fx1 = ceil(mx + ex - T(0.5)) + T(1);
+    T fy0 = floor(my - ey - T(0.5)) - T(1), fy1 = ceil(my + ey - T(0.5)) + T(1);
+    fx0 = fx0 < T(x_lo) ? T(x_lo) : fx0;
+    fy0 = fy0 < T(y_lo) ? T(y_lo) : fy0;
+    fx1 = fx1 > T(x_hi - 1) ? T(x_hi - 1) : fx1;
+    fy1 = fy1 > T(y_hi - 1) ? T(y_hi - 1) : fy1;
+    if (fx0 > fx1 || fy0 > fy1) return false;
+    x0 = int(fx0);
+    x1 = int(fx1);
+    y0 = int(fy0);
+    y1 = int(fy1);
+    return true;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Real spherical harmonics up to degree 3 (the basis 3DGS uses), on the normalised direction.
+// ---------------------------------------------------------------------------------------------
+namespace sh {
+constexpr double C0 = 0.28209479177387814;
+constexpr double C1 = 0.4886025119029199;
+constexpr double C2[5] = {1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792,
+                          0.5462742152960396};
+constexpr double C3[7] = {-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
+                          -0.4570457994644658, 1.445305721320277, -0.5900435899266435};
+}  // namespace sh
+
+RGS_HD int sh_num_bases(int degree) { return (degree + 1) * (degree + 1); }
+
+// Basis values B[0 .. (degree+1)^2) at the unit direction (x, y, z).
+template <typename T>
+RGS_HD void sh_basis(int degree, T x, T y, T z, T* B) {
+    B[0] = T(sh::C0);
+    if (degree < 1) return;
+    B[1] = -T(sh::C1) * y;
+    B[2] = T(sh::C1) * z;
+    B[3] = -T(sh::C1) * x;
+    if (degree < 2) return;
+    const T xx = x * x, yy = y * y, zz = z * z;
+    B[4] = T(sh::C2[0]) * x * y;
+    B[5] = T(sh::C2[1]) * y * z;
+    B[6] = T(sh::C2[2]) * (T(2) * zz - xx - yy);
+    B[7] = T(sh::C2[3]) * x * z;
+    B[8] = T(sh::C2[4]) * (xx - yy);
+    if (degree < 3) return;
+    B[9] = T(sh::C3[0]) * y * (T(3) * xx - yy);
+    B[10] = T(sh::C3[1]) * x * y * z;
+    B[11] = T(sh::C3[2]) * y * (T(4) * zz - xx - yy);
+    B[12] = T(sh::C3[3]) * z * (T(2) * zz - T(3) * xx - T(3) * yy);
+    B[13] = T(sh::C3[4]) * x * (T(4) * zz - xx - yy);
+    B[14] = T(sh::C3[5]) * z * (xx - yy);
+    B[15] = T(sh::C3[6]) * x * (xx - T(3) * yy);
+}
+
+// v_dir (at the unit direction) from v_B, the gradient with respect to each basis value.
+template <typename T>
+RGS_HD void sh_basis_vjp(int degree, T x, T y, T z, const T* vB, T& vx, T& vy, T& vz) {
+    vx = vy = vz = T(0);
+    if (degree < 1) return;
+    vx += -T(sh::C1) * vB[3];
+    vy += -T(sh::C1) * vB[1];
+    vz += T(sh::C1) * vB[2];
+    if (degree < 2) return;
+    const T xx = x * x, yy = y * y, zz = z * z;
+    vx += T(sh::C2[0]) * y * vB[4] - T(2 * sh::C2[2]) * x * vB[6] + T(sh::C2[3]) * z * vB[7] +
+          T(2 * sh::C2[4]) * x * vB[8];
+    vy += T(sh::C2[0]) * x * vB[4] + T(sh::C2[1]) * z * vB[5] - T(2 * sh::C2[2]) * y * vB[6] -
+          T(2 * sh::C2[4]) * y * vB[8];
+    vz += T(sh::C2[1]) * y * vB[5] + T(4 * sh::C2[2]) * z * vB[6] + T(sh::C2[3]) * x * vB[7];
+    if (degree < 3) return;
+    vx += T(6 * sh::C3[0]) * x * y * vB[9] + T(sh::C3[1]) * y * z * vB[10] - T(2 * sh::C3[2]) * x * y * vB[11] -
+          T(6 * sh::C3[3]) * x * z * vB[12] + T(sh::C3[4]) * (T(4) * zz - T(3) * xx - yy) * vB[13] +
+          T(2 * sh::C3[5]) * x * z * vB[14] + T(sh::C3[6]) * (T(3) * xx - T(3) * yy) * vB[15];
+    vy += T(sh::C3[0]) * (T(3) * xx - T(3) * yy) * vB[9] + T(sh::C3[1]) * x * z * vB[10] +
+          T(sh::C3[2]) * (T(4) * zz - xx - T(3) * yy) * vB[11] - T(6 * sh::C3[3]) * y * z * vB[12] -
+          T(2 * sh::C3[4]) * x * y * vB[13] - T(2 * sh::C3[5]) * y * z * vB[14] - T(6 * sh::C3[6]) * x * y * vB[15];
+    vz += T(sh::C3[1]) * x * y * vB[10] + T(8 * sh::C3[2]) * y * z * vB[11] +
+          T(sh::C3[3]) * (T(6) * zz - T(3) * xx - T(3) * yy) * vB[12] + T(8 * sh::C3[4]) * x * z * vB[13] +
+          T(sh::C3[5]) * (xx - yy) * vB[14];
+}
+
+// Unit direction of d, and the map of a gradient at the unit direction back to d.
+template <typename T>
+RGS_HD T normalize3(const T* d, T& x, T& y, T& z) {
+    const T n = sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
+    const T inv = n > T(1e-12) ? T(1) / n : T(0);
+    x = d[0] * inv;
+    y = d[1] * inv;
+    z = d[2] * inv;
+    return n;
+}
+
+template <typename T>
+RGS_HD void normalize3_vjp(T n, T x, T y, T z, T vx, T vy, T vz, T* v_d) {
+    if (!(n > T(1e-12))) {
+        v_d[0] = v_d[1] = v_d[2] = T(0);
+        return;
+    }
+    const T dot = x * vx + y * vy + z * vz;
+    v_d[0] = (vx - x * dot) / n;
+    v_d[1] = (vy - y * dot) / n;
+    v_d[2] = (vz - z * dot) / n;
+}
+
+}  // namespace rgs

@@ -1,0 +1,47 @@
+// Plain types and constants shared by the CPU and CUDA schedulers. No torch, no STL containers.
+#pragma once
+#include <cstdint>
+
+#if defined(__CUDACC__)
+#define RGS_HD __host__ __device__ __forceinline__
+#else
+#define RGS_HD inline
+#endif
+
+namespace rgs {
+
+constexpr int kTileSize = 16;               // tiles are kTileSize x kTileSize pixels
+constexpr double kAlphaMax = 0.99;          // 3DGS: alpha = min(0.99, o * G)
+constexpr double kAlphaMin = 1.0 / 255.0;   // contributions below this are skipped
+constexpr double kTransmittanceMin = 1e-4;  // a pixel stops once T would fall below this
+constexpr double kLowPass = 0.3;            // EWA anti-aliasing: +0.3 on the 2D covariance diagonal
+constexpr double kGuardBand = 1.3;          // J clamps x/z, y/z to 1.3x the image's half-extent
+constexpr int kMaxShCoeffs = 16;            // SH degree <= 3
+
+// Pinhole camera. viewmat is world-to-camera, row-major 4x4, OpenCV axes (x right, y down, z forward).
+// Pixel (i, j) has its centre at (i + 0.5, j + 0.5) in the coordinates that (cx, cy) use.
+template <typename T>
+struct Camera {
+    T viewmat[16];
+    T fx, fy, cx, cy;
+    int width, height;
+    T near_plane, far_plane;
+};
+
+// Tile grid of an image.
+struct TileGrid {
+    int tiles_x, tiles_y;
+    RGS_HD int count() const { return tiles_x * tiles_y; }
+};
+
+RGS_HD TileGrid make_tile_grid(int width, int height) {
+    return TileGrid{(width + kTileSize - 1) / kTileSize, (height + kTileSize - 1) / kTileSize};
+}
+
+// Half-open rectangle of tiles [x0, x1) x [y0, y1).
+struct TileRect {
+    int x0, y0, x1, y1;
+    RGS_HD int area() const { return (x1 - x0) * (y1 - y0); }
+};
+
+}  // namespace rgs

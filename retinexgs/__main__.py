@@ -1,0 +1,5 @@
+import sys
+
+from retinexgs.cli import main
+
+sys.exit(main())

@@ -1,0 +1,57 @@
+"""The ``retinexgs`` command line: one entry point, one sub-command per stage.
+
+Each stage module exposes ``register(subparsers)`` which adds its sub-command(s) and sets ``func`` on the
+parsed namespace. Errors meant for the user are raised as :class:`retinexgs.errors.UserError` and printed
+as one paragraph with a non-zero exit code, never as a traceback.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from typing import List, Optional
+
+from retinexgs.errors import UserError
+
+# Stage modules that contribute sub-commands, in the order ``--help`` lists them.
+_COMMAND_MODULES = [
+    "retinexgs.render.command",
+    "retinexgs.retinex.command",
+    "retinexgs.data.command",
+]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Build the top-level parser with every available sub-command."""
+    parser = argparse.ArgumentParser(prog="retinexgs", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in _COMMAND_MODULES:
+        try:
+            module = importlib.import_module(name)
+        except ModuleNotFoundError as exc:
+            if exc.name == name:  # stage not present in this build
+                continue
+            raise
+        module.register(sub)
+    return parser
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    """Run the command line; returns the process exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except UserError as exc:
+        print(f"retinexgs {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"retinexgs {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,86 @@
+"""``torch.autograd.Function`` wrappers of the kernels: each forward calls ``retinexgs._C``, each backward
+calls the matching analytic gradient kernel. Shapes: N Gaussians, C channels, K SH bases, D SH channels."""
+from __future__ import annotations
+
+from typing import Tuple
+
+import torch
+from torch import Tensor
+from torch.autograd.function import once_differentiable
+
+from retinexgs.render._backend import kernels
+from retinexgs.render.camera import Camera
+
+
+class ProjectGaussians(torch.autograd.Function):
+    """(means [N,3], quats [N,4], scales [N,3], opacities [N]) -> means2d [N,2], depths [N], conics [N,3],
+    radii [N,2] int32. Differentiable in means, quats and scales (opacity only sets the extent)."""
+
+    @staticmethod
+    def forward(ctx, means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, camera: Camera):
+        means2d, depths, conics, radii = kernels().project_forward(means, quats, scales, opacities,
+                                                                   *camera.kernel_args)
+        ctx.camera = camera
+        ctx.save_for_backward(means, quats, scales, radii)
+        ctx.mark_non_differentiable(radii)
+        return means2d, depths, conics, radii
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, v_means2d: Tensor, v_depths: Tensor, v_conics: Tensor, _v_radii):
+        means, quats, scales, radii = ctx.saved_tensors
+        v_means, v_quats, v_scales = kernels().project_backward(
+            means, quats, scales, *ctx.camera.kernel_args, radii, v_means2d, v_depths, v_conics)
+        return v_means, v_quats, v_scales, None, None
+
+
+def bin_gaussians(means2d: Tensor, radii: Tensor, depths: Tensor, width: int, height: int) -> Tuple[Tensor, Tensor]:
+    """Tile binning (not differentiable): the Gaussian index of every (tile, Gaussian) pair, ordered by tile
+    then depth, [M] int32; and each tile's [begin, end) range into it, [tiles, 2] int32."""
+    return kernels().bin_gaussians(means2d.detach(), radii, depths.detach(), width, height)
+
+
+class RasterizeGaussians(torch.autograd.Function):
+    """Alpha compositing of binned 2D Gaussians into an [H,W,C] image and its [H,W,1] alpha."""
+
+    @staticmethod
+    def forward(ctx, means2d: Tensor, conics: Tensor, colors: Tensor, opacities: Tensor, gauss_ids: Tensor,
+                tile_ranges: Tensor, width: int, height: int):
+        image, transmittance, last_ids = kernels().rasterize_forward(means2d, conics, colors, opacities,
+                                                                     gauss_ids, tile_ranges, width, height)
+        ctx.size = (width, height)
+        ctx.save_for_backward(means2d, conics, colors, opacities, gauss_ids, tile_ranges, transmittance, last_ids)
+        return image, (1.0 - transmittance).unsqueeze(-1)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, v_image: Tensor, v_alpha: Tensor):
+        means2d, conics, colors, opacities, gauss_ids, tile_ranges, transmittance, last_ids = ctx.saved_tensors
+        width, height = ctx.size
+        if v_image is None:
+            v_image = torch.zeros(height, width, colors.shape[1], dtype=colors.dtype, device=colors.device)
+        if v_alpha is None:
+            v_transmittance = torch.zeros_like(transmittance)
+        else:
+            v_transmittance = -v_alpha.squeeze(-1)  # alpha = 1 - T
+        v_means2d, v_conics, v_colors, v_opacities = kernels().rasterize_backward(
+            means2d, conics, colors, opacities, gauss_ids, tile_ranges, width, height, transmittance, last_ids,
+            v_image, v_transmittance)
+        return v_means2d, v_conics, v_colors, v_opacities, None, None, None, None
+
+
+class SphericalHarmonics(torch.autograd.Function):
+    """Colours [N,D] from SH coefficients [N,K,D] of degree <= 3 at view directions [N,3] (any norm)."""
+
+    @staticmethod
+    def forward(ctx, degree: int, dirs: Tensor, coeffs: Tensor):
+        ctx.degree = degree
+        ctx.save_for_backward(dirs, coeffs)
+        return kernels().sh_forward(degree, dirs, coeffs)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, v_colors: Tensor):
+        dirs, coeffs = ctx.saved_tensors
+        v_dirs, v_coeffs = kernels().sh_backward(ctx.degree, dirs, coeffs, v_colors)
+        return None, v_dirs, v_coeffs

@@ -1,0 +1,108 @@
+"""The public rendering API: :func:`rasterize_gaussians` and :func:`spherical_harmonics`."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import torch
+from torch import Tensor
+
+from retinexgs.render.camera import Camera
+from retinexgs.render.functions import ProjectGaussians, RasterizeGaussians, SphericalHarmonics, bin_gaussians
+from retinexgs.render.validate import check_gaussians, check_tensor
+
+
+@dataclass
+class RenderOutput:
+    """What one render returns.
+
+    Attributes:
+        image: [H, W, C] composited channels (plus ``(1 - alpha) * background`` when a background is given).
+        alpha: [H, W, 1] accumulated opacity.
+        depth: [H, W, 1] alpha-weighted camera depth Σ wᵢ zᵢ (divide by alpha for the expected depth), or None.
+        means2d: [N, 2] projected centres in pixels; its ``.grad`` after backward is the screen-space gradient
+            used by densification (kept with ``retain_grad`` when it requires grad).
+        radii: [N, 2] int32 pixel half extents; 0 marks Gaussians culled in this view.
+        num_pairs: number of (tile, Gaussian) pairs rasterized.
+    """
+
+    image: Tensor
+    alpha: Tensor
+    depth: Optional[Tensor]
+    means2d: Tensor
+    radii: Tensor
+    num_pairs: int
+
+    @property
+    def visible(self) -> Tensor:
+        """[N] bool mask of the Gaussians that were not culled."""
+        return (self.radii > 0).all(dim=-1)
+
+
+def rasterize_gaussians(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    camera: Camera,
+    *,
+    background: Optional[Tensor] = None,
+    render_depth: bool = False,
+) -> RenderOutput:
+    """Render N 3D Gaussians with C-channel colours from one camera, differentiably.
+
+    Runs projection (EWA splatting with the 0.3 low-pass), 16×16 tile binning and front-to-back alpha
+    compositing on the tensors' device: the OpenMP CPU kernels for CPU tensors, the CUDA kernels for CUDA
+    tensors. Gradients flow to ``means``, ``quats``, ``scales``, ``opacities`` and ``colors``.
+
+    Args:
+        means: [N, 3] centres in world space (float32 or float64; all inputs share dtype and device).
+        quats: [N, 4] rotations as (w, x, y, z); normalised inside, a zero quaternion means identity.
+        scales: [N, 3] standard deviations along the Gaussian's axes (already exponentiated).
+        opacities: [N] in [0, 1] (already through a sigmoid).
+        colors: [N, C] per-Gaussian channels, any C >= 1 (e.g. 3 for RGB; RetinexGS renders 6).
+        camera: the :class:`~retinexgs.render.Camera` (world-to-camera, intrinsics, size, near/far).
+        background: optional [C] colour composited behind the Gaussians.
+        render_depth: also render the alpha-weighted depth map.
+
+    Returns:
+        A :class:`RenderOutput` with ``image`` [H, W, C], ``alpha`` [H, W, 1], ``depth`` [H, W, 1] or None,
+        ``means2d``, ``radii`` and ``num_pairs``.
+    """
+    check_gaussians(means, quats, scales, opacities, colors, camera)
+    if background is not None:
+        check_tensor(background, "background", (colors.shape[1],), means)
+    means2d, depths, conics, radii = ProjectGaussians.apply(means, quats, scales, opacities, camera)
+    if means2d.requires_grad:
+        means2d.retain_grad()
+    gauss_ids, tile_ranges = bin_gaussians(means2d, radii, depths, camera.width, camera.height)
+    channels = torch.cat([colors, depths.unsqueeze(-1)], dim=-1) if render_depth else colors
+    image, alpha = RasterizeGaussians.apply(means2d, conics, channels, opacities, gauss_ids, tile_ranges,
+                                            camera.width, camera.height)
+    depth = None
+    if render_depth:
+        image, depth = image[..., :-1], image[..., -1:]
+    if background is not None:
+        image = image + (1.0 - alpha) * background
+    return RenderOutput(image, alpha, depth, means2d, radii, int(gauss_ids.shape[0]))
+
+
+def spherical_harmonics(degree: int, dirs: Tensor, coeffs: Tensor) -> Tensor:
+    """Evaluate real spherical harmonics (the 3DGS basis) of ``degree`` 0..3.
+
+    Args:
+        degree: active SH degree; only the first (degree + 1)² bases of ``coeffs`` are used.
+        dirs: [N, 3] view directions (normalised inside; gradients flow through the normalisation).
+        coeffs: [N, K, D] coefficients, K >= (degree + 1)².
+
+    Returns:
+        [N, D] values Σₖ Bₖ(dir) coeffs[:, k]. (3DGS adds 0.5 and clamps at 0 to get a colour.)
+    """
+    if isinstance(degree, bool) or not isinstance(degree, int) or not 0 <= degree <= 3:
+        raise ValueError(f"degree must be an integer in 0..3, got {degree!r}")
+    check_tensor(coeffs, "coeffs", (None, None, None))
+    if coeffs.shape[1] < (degree + 1) ** 2:
+        raise ValueError(f"coeffs has {coeffs.shape[1]} bases but degree {degree} needs {(degree + 1) ** 2}")
+    check_tensor(dirs, "dirs", (coeffs.shape[0], 3), coeffs)
+    return SphericalHarmonics.apply(degree, dirs, coeffs)

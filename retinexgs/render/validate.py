@@ -1,0 +1,43 @@
+"""Argument checks of the public rendering API: clear ``TypeError``/``ValueError`` naming the argument."""
+from __future__ import annotations
+
+from typing import Optional, Sequence
+
+import torch
+from torch import Tensor
+
+from retinexgs.render.camera import Camera
+
+
+def check_tensor(value, name: str, shape: Sequence[Optional[int]], like: Optional[Tensor] = None) -> Tensor:
+    """Check that ``value`` is a float32/float64 tensor of ``shape`` (None = any size), matching ``like``."""
+    if not isinstance(value, Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
+    if value.dtype not in (torch.float32, torch.float64):
+        raise TypeError(f"{name} must be float32 or float64, got {value.dtype}")
+    if like is not None and value.dtype != like.dtype:
+        raise TypeError(f"{name} has dtype {value.dtype} but means has {like.dtype}; use one dtype")
+    if like is not None and value.device != like.device:
+        raise ValueError(f"{name} is on {value.device} but means is on {like.device}; use one device")
+    if value.dim() != len(shape) or any(s is not None and value.shape[i] != s for i, s in enumerate(shape)):
+        want = "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
+        raise ValueError(f"{name} must have shape {want}, got {tuple(value.shape)}")
+    if value.device.type not in ("cpu", "cuda"):
+        raise ValueError(f"{name} is on {value.device}; only cpu and cuda tensors are supported")
+    return value
+
+
+def check_gaussians(means, quats, scales, opacities, colors, camera) -> None:
+    """Validate one render call's inputs; raises TypeError/ValueError naming the offending argument."""
+    check_tensor(means, "means", (None, 3))
+    n = means.shape[0]
+    if n == 0:
+        raise ValueError("means is empty: there are no Gaussians to render (N = 0)")
+    check_tensor(quats, "quats", (n, 4), means)
+    check_tensor(scales, "scales", (n, 3), means)
+    check_tensor(opacities, "opacities", (n,), means)
+    check_tensor(colors, "colors", (n, None), means)
+    if colors.shape[1] < 1:
+        raise ValueError("colors must have at least one channel, got shape " f"{tuple(colors.shape)}")
+    if not isinstance(camera, Camera):
+        raise TypeError(f"camera must be a retinexgs.render.Camera, got {type(camera).__name__}")

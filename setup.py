@@ -1,0 +1,63 @@
+"""Build RetinexGS and its kernel library ``retinexgs._C``.
+
+The CPU (OpenMP) kernels always build. The CUDA kernels build too when torch is a CUDA build and a CUDA
+toolkit is found (``TORCH_CUDA_ARCH_LIST`` is respected). Set ``RETINEXGS_CPU_ONLY=1`` to skip CUDA.
+"""
+import glob
+import os
+import sys
+
+from setuptools import find_packages, setup
+from torch.utils.cpp_extension import CUDA_HOME, BuildExtension, CppExtension, CUDAExtension
+import torch
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+
+
+def _sources(pattern: str) -> list:
+    # Relative paths keep object names distinct per folder (csrc/cpu/x.o vs csrc/cuda/x.o).
+    return sorted(os.path.relpath(p, HERE) for p in glob.glob(os.path.join(HERE, pattern)))
+
+
+def _extension():
+    cpu_sources = ["csrc/bindings.cpp"] + _sources("csrc/cpu/*.cpp")
+    include_dirs = [os.path.join(HERE, "csrc", "include")]
+    cxx_flags = ["-O3", "-std=c++17", "-fopenmp"]
+    link_flags = ["-fopenmp"]
+    want_cuda = os.environ.get("RETINEXGS_CPU_ONLY", "0") != "1"
+    has_cuda = want_cuda and torch.version.cuda is not None and CUDA_HOME is not None
+    if has_cuda:
+        print(f"[retinexgs] building CPU+CUDA kernels (CUDA {torch.version.cuda}, toolkit {CUDA_HOME})")
+        return CUDAExtension(
+            "retinexgs._C",
+            cpu_sources + _sources("csrc/cuda/*.cu"),
+            include_dirs=include_dirs,
+            define_macros=[("RGS_WITH_CUDA", "1")],
+            extra_compile_args={"cxx": cxx_flags, "nvcc": ["-O3", "-std=c++17", "--use_fast_math"]},
+            extra_link_args=link_flags,
+        )
+    why = "disabled by RETINEXGS_CPU_ONLY" if not want_cuda else (
+        "torch is a CPU build" if torch.version.cuda is None else "no CUDA toolkit found")
+    print(f"[retinexgs] building CPU-only kernels ({why})")
+    return CppExtension("retinexgs._C", cpu_sources, include_dirs=include_dirs,
+                        extra_compile_args={"cxx": cxx_flags}, extra_link_args=link_flags)
+
+
+setup(
+    name="retinexgs",
+    version="0.1.0",
+    description="3D Retinex Gaussian splatting: normally-lit, 3D-consistent novel views from dark photos",
+    packages=find_packages(include=["retinexgs", "retinexgs.*"]),
+    package_data={"retinexgs": ["configs/*.yaml"]},
+    python_requires=">=3.9",
+    install_requires=["torch>=2.1", "numpy", "pyyaml", "tqdm", "pillow"],
+    extras_require={
+        "test": ["pytest", "hypothesis"],
+        "data": ["pycolmap", "opencv-contrib-python-headless"],
+        "io": ["imageio[ffmpeg]", "plyfile", "tensorboard"],
+    },
+    entry_points={"console_scripts": ["retinexgs=retinexgs.cli:main"]},
+    ext_modules=[_extension()],
+    cmdclass={"build_ext": BuildExtension.with_options(use_ninja=True)},
+    zip_safe=False,
+)

@@ -1,0 +1,46 @@
+"""Random Gaussian scenes and cameras for the tests (built here; no data files)."""
+from __future__ import annotations
+
+import math
+
+import torch
+
+from retinexgs.render import Camera
+
+
+def look_at(eye, target, up=(0.0, -1.0, 0.0)) -> torch.Tensor:
+    """World-to-camera [4,4] float64 for an OpenCV camera at ``eye`` looking at ``target``."""
+    eye, target, up = (torch.tensor(v, dtype=torch.float64) for v in (eye, target, up))
+    z = target - eye
+    z = z / z.norm()
+    x = torch.linalg.cross(z, up)
+    if x.norm() < 1e-9:
+        x = torch.linalg.cross(z, torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64))
+    x = x / x.norm()
+    y = torch.linalg.cross(z, x)
+    R = torch.stack([x, y, z])
+    vm = torch.eye(4, dtype=torch.float64)
+    vm[:3, :3] = R
+    vm[:3, 3] = -R @ eye
+    return vm
+
+
+def make_camera(width=45, height=37, fov_deg=60.0, eye=(0.3, -0.2, -4.0), target=(0.0, 0.0, 0.0),
+                near=0.01, cx_shift=0.0) -> Camera:
+    f = 0.5 * width / math.tan(math.radians(fov_deg) / 2)
+    return Camera(look_at(eye, target), f, f * 1.05, width / 2 + cx_shift, height / 2 - 0.7, width, height,
+                  near=near)
+
+
+def random_gaussians(n: int, C: int = 3, seed: int = 0, dtype=torch.float64, spread: float = 1.2,
+                     scale_range=(-3.0, -1.0), opacity_range=(0.05, 0.98)):
+    """means, quats, scales, opacities, colors for n Gaussians around the origin."""
+    g = torch.Generator().manual_seed(seed)
+    means = (torch.rand(n, 3, generator=g, dtype=dtype) * 2 - 1) * spread
+    quats = torch.randn(n, 4, generator=g, dtype=dtype)
+    lo, hi = scale_range
+    scales = torch.exp(torch.rand(n, 3, generator=g, dtype=dtype) * (hi - lo) + lo)
+    olo, ohi = opacity_range
+    opacities = torch.rand(n, generator=g, dtype=dtype) * (ohi - olo) + olo
+    colors = torch.rand(n, C, generator=g, dtype=dtype)
+    return means, quats, scales, opacities, colors
