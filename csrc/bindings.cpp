@@ -82,6 +82,40 @@ rgs::Camera<T> make_camera(const std::vector<double>& viewmat, double fx, double
 #define RGS_DEVICE_GUARD(t) ((void)0)
 #endif
 
+#ifdef RGS_WITH_CUDA
+// Scratch memory for the CUDA launchers, from torch's caching allocator; released when the call returns
+// (safe: later work on the same stream is ordered after the kernels that use it).
+struct TorchScratch {
+    std::vector<Tensor> buffers;
+    torch::Device device;
+};
+
+void* scratch_alloc(size_t bytes, void* ctx) {
+    auto* s = static_cast<TorchScratch*>(ctx);
+    s->buffers.push_back(torch::empty({int64_t(bytes > 0 ? bytes : 1)},
+                                      torch::TensorOptions().dtype(torch::kUInt8).device(s->device)));
+    return s->buffers.back().data_ptr();
+}
+
+template <typename scalar_t>
+Tensor rgs_bin_gaussians_cuda(const Tensor& means2d, const Tensor& radii, const Tensor& depths, rgs::TileGrid grid,
+                              Tensor& tile_ranges) {
+    const int64_t N = means2d.size(0);
+    TorchScratch scratch{{}, means2d.device()};
+    const rgs::DeviceAllocator alloc{scratch_alloc, &scratch};
+    auto stream = RGS_CUDA_STREAM(means2d);
+    Tensor offsets = torch::empty({N > 0 ? N : 1}, means2d.options().dtype(torch::kInt64));
+    const int64_t M = rgs::count_tile_pairs_cuda<scalar_t>(N, means2d.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(),
+                                                           grid, offsets.data_ptr<int64_t>(), alloc, stream);
+    TORCH_CHECK_VALUE(M < (int64_t(1) << 31), "too many tile/Gaussian pairs (", M, ") for int32 indices");
+    Tensor gauss_ids = torch::empty({M}, means2d.options().dtype(torch::kInt32));
+    rgs::bin_tile_pairs_cuda<scalar_t>(N, means2d.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(),
+                                       depths.data_ptr<scalar_t>(), grid, offsets.data_ptr<int64_t>(), M,
+                                       gauss_ids.data_ptr<int32_t>(), tile_ranges.data_ptr<int32_t>(), alloc, stream);
+    return gauss_ids;
+}
+#endif
+
 [[noreturn]] void no_cuda() {
     TORCH_CHECK_VALUE(false, "retinexgs._C was built without CUDA kernels; reinstall with a CUDA build of "
                              "torch and a CUDA toolkit, or pass CPU tensors");
@@ -221,6 +255,10 @@ void check_raster_inputs(const Tensor& means2d, const Tensor& conics, const Tens
     check_tensor(opacities, "opacities", {N}, means2d);
     check_index(gauss_ids, "gauss_ids", {-1}, means2d);
     check_index(tile_ranges, "tile_ranges", {rgs::make_tile_grid(width, height).count(), 2}, means2d);
+#ifdef RGS_WITH_CUDA
+    TORCH_CHECK_VALUE(!means2d.is_cuda() || colors.size(1) <= rgs::kMaxCudaChannels, "colors has ", colors.size(1),
+                      " channels; the CUDA compositing supports at most ", rgs::kMaxCudaChannels);
+#endif
 }
 
 std::tuple<Tensor, Tensor, Tensor> rasterize_forward(Tensor means2d, Tensor conics, Tensor colors,
@@ -274,8 +312,9 @@ std::tuple<Tensor, Tensor, Tensor, Tensor> rasterize_backward(Tensor means2d, Te
     opacities = opacities.contiguous(), gauss_ids = gauss_ids.contiguous(), tile_ranges = tile_ranges.contiguous();
     transmittance = transmittance.contiguous(), last_ids = last_ids.contiguous();
     v_image = v_image.contiguous(), v_transmittance = v_transmittance.contiguous();
-    Tensor v_means2d = torch::empty_like(means2d), v_conics = torch::empty_like(conics);
-    Tensor v_colors = torch::empty_like(colors), v_opacities = torch::empty_like(opacities);
+    // The CUDA kernel accumulates with atomics into zeroed buffers; the CPU kernel writes every entry.
+    auto make = [&](const Tensor& t) { return means2d.is_cuda() ? torch::zeros_like(t) : torch::empty_like(t); };
+    Tensor v_means2d = make(means2d), v_conics = make(conics), v_colors = make(colors), v_opacities = make(opacities);
     const int64_t M = gauss_ids.size(0);
     RGS_DEVICE_GUARD(means2d);
     AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "rasterize_backward", [&] {

@@ -11,16 +11,10 @@
 namespace rgs {
 
 template <typename T>
-static TileRect rect_of(int64_t i, const T* means2d, const int32_t* radii, TileGrid grid) {
-    if (radii[2 * i] <= 0 || radii[2 * i + 1] <= 0) return TileRect{0, 0, 0, 0};
-    return tile_rect(means2d[2 * i], means2d[2 * i + 1], T(radii[2 * i]), T(radii[2 * i + 1]), grid);
-}
-
-template <typename T>
 int64_t count_tile_pairs_cpu(int64_t N, const T* means2d, const int32_t* radii, TileGrid grid, int64_t* offsets,
                              int num_threads) {
 #pragma omp parallel for schedule(static) num_threads(num_threads)
-    for (int64_t i = 0; i < N; ++i) offsets[i + 1] = rect_of(i, means2d, radii, grid).area();
+    for (int64_t i = 0; i < N; ++i) offsets[i + 1] = gaussian_tile_rect(means2d + 2 * i, radii + 2 * i, grid).area();
     offsets[0] = 0;
     for (int64_t i = 0; i < N; ++i) offsets[i + 1] += offsets[i];
     return offsets[N];
@@ -34,7 +28,7 @@ void bin_tile_pairs_cpu(int64_t N, const T* means2d, const int32_t* radii, const
     std::vector<int32_t> pair_tile(M), pair_gauss(M);
 #pragma omp parallel for schedule(static) num_threads(num_threads)
     for (int64_t i = 0; i < N; ++i) {
-        const TileRect r = rect_of(i, means2d, radii, grid);
+        const TileRect r = gaussian_tile_rect(means2d + 2 * i, radii + 2 * i, grid);
         int64_t k = offsets[i];
         for (int ty = r.y0; ty < r.y1; ++ty)
             for (int tx = r.x0; tx < r.x1; ++tx, ++k) {

@@ -21,8 +21,11 @@ void rasterize_backward_cpu(int64_t N, int C, int width, int height, const T* me
     std::vector<T> slots(size_t(M) * S, T(0));
 #pragma omp parallel num_threads(num_threads)
     {
-        // Per-pixel running state of the tile: T after the current Gaussian and the colour behind it.
-        std::vector<T> T_run(kTileSize * kTileSize), behind(size_t(kTileSize) * kTileSize * C);
+        // Per-pixel running state of the tile: T after the current Gaussian, the colour behind it, and the
+        // pixel's own inputs copied once.
+        constexpr int P = kTileSize * kTileSize;
+        std::vector<T> T_run(P), T_final(P), v_T(P), behind(size_t(P) * C), v_img(size_t(P) * C);
+        std::vector<int32_t> last(P);
 #pragma omp for schedule(dynamic, 1)
         for (int t = 0; t < grid.count(); ++t) {
             const int tx0 = (t % grid.tiles_x) * kTileSize, ty0 = (t / grid.tiles_x) * kTileSize;
@@ -34,9 +37,14 @@ void rasterize_backward_cpu(int64_t N, int C, int width, int height, const T* me
                 for (int x = tx0; x < tx1; ++x) {
                     const int64_t pix = int64_t(y) * width + x;
                     const int l = (y - ty0) * kTileSize + (x - tx0);
-                    T_run[l] = transmittance[pix];
-                    for (int c = 0; c < C; ++c) behind[size_t(l) * C + c] = T(0);
-                    if (last_ids[pix] > end) end = last_ids[pix];
+                    T_run[l] = T_final[l] = transmittance[pix];
+                    v_T[l] = v_transmittance ? v_transmittance[pix] : T(0);
+                    last[l] = last_ids[pix];
+                    for (int c = 0; c < C; ++c) {
+                        behind[size_t(l) * C + c] = T(0);
+                        v_img[size_t(l) * C + c] = v_image[pix * C + c];
+                    }
+                    if (last[l] > end) end = last[l];
                 }
             for (int k = end - 1; k >= begin; --k) {
                 const int32_t g = gauss_ids[k];
@@ -44,19 +52,24 @@ void rasterize_backward_cpu(int64_t N, int C, int width, int height, const T* me
                 const T mx = means2d[2 * g], my = means2d[2 * g + 1], o = opacities[g];
                 int x0, y0, x1, y1;
                 if (!pixel_box(conic, mx, my, o, tx0, ty0, tx1, ty1, x0, y0, x1, y1)) continue;
+                const T cut = sigma_cutoff(o);
                 const T* col = colors + int64_t(g) * C;
                 T* slot = slots.data() + size_t(k) * S;
-                for (int y = y0; y <= y1; ++y)
-                    for (int x = x0; x <= x1; ++x) {
-                        const int64_t pix = int64_t(y) * width + x;
-                        if (k >= last_ids[pix]) continue;
-                        const PixelAlpha<T> pa = pixel_alpha(conic, mx, my, o, T(x) + T(0.5), T(y) + T(0.5));
-                        if (pa.alpha == T(0)) continue;
+                for (int y = y0; y <= y1; ++y) {
+                    const T dy = T(y) + T(0.5) - my;
+                    int xa, xb;
+                    if (!row_span(conic, cut, mx, dy, x0, x1, xa, xb)) continue;
+                    for (int x = xa; x <= xb; ++x) {
                         const int l = (y - ty0) * kTileSize + (x - tx0);
+                        const T dx = T(x) + T(0.5) - mx;
+                        const T sigma = pixel_sigma(conic, dx, dy);
+                        if (sigma > cut || k >= last[l]) continue;
+                        const PixelAlpha<T> pa = alpha_from_sigma(sigma, o, dx, dy);
+                        if (pa.alpha == T(0)) continue;
                         const T one_minus = T(1) - pa.alpha;
                         const T Ti = T_run[l] / one_minus;  // T before this Gaussian
                         const T w = pa.alpha * Ti;
-                        const T* vimg = v_image + pix * C;
+                        const T* vimg = v_img.data() + size_t(l) * C;
                         T* bh = behind.data() + size_t(l) * C;
                         // dC/dα_i = T_i c_i - (Σ_{j>i} w_j c_j) / (1 - α_i)
                         T v_alpha = T(0);
@@ -66,10 +79,11 @@ void rasterize_backward_cpu(int64_t N, int C, int width, int height, const T* me
                             bh[c] += w * col[c];
                         }
                         // T_final = Π (1 - α_j)  =>  dT_final/dα_i = -T_final / (1 - α_i)
-                        if (v_transmittance) v_alpha -= v_transmittance[pix] * transmittance[pix] / one_minus;
+                        v_alpha -= v_T[l] * T_final[l] / one_minus;
                         pixel_alpha_vjp(pa, conic, o, v_alpha, slot, slot + 2, slot[5]);
                         T_run[l] = Ti;
                     }
+                }
             }
         }
         // Sum the slots per Gaussian in pair order; Gaussians are split between threads, not pairs.

@@ -1,6 +1,9 @@
 // Front-to-back alpha compositing on the CPU (3DGS eq. 3). One OpenMP task per 16x16 tile; inside a tile the
-// Gaussians are the outer loop so each is read once, and only the pixels of its alpha >= 1/255 box are visited.
+// Gaussians are the outer loop so each is read once, only the pixels of its alpha >= 1/255 box are visited,
+// and exp() runs only where σ is below the Gaussian's cutoff. Pixel state stays in tile-local arrays.
 #include <omp.h>
+
+#include <vector>
 
 #include "rgs/kernels.h"
 #include "rgs/math.h"
@@ -13,50 +16,66 @@ void rasterize_forward_cpu(int64_t N, int C, int width, int height, const T* mea
                            const int32_t* tile_ranges, T* image, T* transmittance, int32_t* last_ids,
                            int num_threads) {
     (void)N;
+    constexpr int P = kTileSize * kTileSize;
     const TileGrid grid = make_tile_grid(width, height);
-#pragma omp parallel for schedule(dynamic, 1) num_threads(num_threads)
-    for (int t = 0; t < grid.count(); ++t) {
-        const int tx0 = (t % grid.tiles_x) * kTileSize, ty0 = (t / grid.tiles_x) * kTileSize;
-        const int tx1 = tx0 + kTileSize < width ? tx0 + kTileSize : width;
-        const int ty1 = ty0 + kTileSize < height ? ty0 + kTileSize : height;
-        const int begin = tile_ranges[2 * t], end = tile_ranges[2 * t + 1];
-        bool done[kTileSize * kTileSize];
-        int active = 0;
-        for (int y = ty0; y < ty1; ++y)
-            for (int x = tx0; x < tx1; ++x) {
-                const int64_t pix = int64_t(y) * width + x;
-                transmittance[pix] = T(1);
-                last_ids[pix] = begin;
-                for (int c = 0; c < C; ++c) image[pix * C + c] = T(0);
-                done[(y - ty0) * kTileSize + (x - tx0)] = false;
-                ++active;
+#pragma omp parallel num_threads(num_threads)
+    {
+        std::vector<T> Tr(P), acc(size_t(P) * C);
+        std::vector<int32_t> last(P);
+        std::vector<unsigned char> done(P);
+#pragma omp for schedule(dynamic, 1)
+        for (int t = 0; t < grid.count(); ++t) {
+            const int tx0 = (t % grid.tiles_x) * kTileSize, ty0 = (t / grid.tiles_x) * kTileSize;
+            const int tx1 = tx0 + kTileSize < width ? tx0 + kTileSize : width;
+            const int ty1 = ty0 + kTileSize < height ? ty0 + kTileSize : height;
+            const int begin = tile_ranges[2 * t], end = tile_ranges[2 * t + 1];
+            int active = (tx1 - tx0) * (ty1 - ty0);
+            for (int l = 0; l < P; ++l) {
+                Tr[l] = T(1);
+                last[l] = begin;
+                done[l] = 0;
             }
-        for (int k = begin; k < end && active > 0; ++k) {
-            const int32_t g = gauss_ids[k];
-            const Vec3<T> conic{conics[3 * g], conics[3 * g + 1], conics[3 * g + 2]};
-            const T mx = means2d[2 * g], my = means2d[2 * g + 1], o = opacities[g];
-            int x0, y0, x1, y1;
-            if (!pixel_box(conic, mx, my, o, tx0, ty0, tx1, ty1, x0, y0, x1, y1)) continue;
-            const T* col = colors + int64_t(g) * C;
-            for (int y = y0; y <= y1; ++y)
-                for (int x = x0; x <= x1; ++x) {
-                    bool& pdone = done[(y - ty0) * kTileSize + (x - tx0)];
-                    if (pdone) continue;
-                    const PixelAlpha<T> pa = pixel_alpha(conic, mx, my, o, T(x) + T(0.5), T(y) + T(0.5));
-                    if (pa.alpha == T(0)) continue;
-                    const int64_t pix = int64_t(y) * width + x;
-                    const T Tr = transmittance[pix];
-                    const T next_T = Tr * (T(1) - pa.alpha);
-                    if (next_T < T(kTransmittanceMin)) {  // saturated: this Gaussian is not composited
-                        pdone = true;
-                        --active;
-                        continue;
+            for (size_t i = 0; i < acc.size(); ++i) acc[i] = T(0);
+            for (int k = begin; k < end && active > 0; ++k) {
+                const int32_t g = gauss_ids[k];
+                const Vec3<T> conic{conics[3 * g], conics[3 * g + 1], conics[3 * g + 2]};
+                const T mx = means2d[2 * g], my = means2d[2 * g + 1], o = opacities[g];
+                int x0, y0, x1, y1;
+                if (!pixel_box(conic, mx, my, o, tx0, ty0, tx1, ty1, x0, y0, x1, y1)) continue;
+                const T cut = sigma_cutoff(o);
+                const T* col = colors + int64_t(g) * C;
+                for (int y = y0; y <= y1; ++y) {
+                    const T dy = T(y) + T(0.5) - my;
+                    int xa, xb;
+                    if (!row_span(conic, cut, mx, dy, x0, x1, xa, xb)) continue;
+                    for (int x = xa; x <= xb; ++x) {
+                        const int l = (y - ty0) * kTileSize + (x - tx0);
+                        const T dx = T(x) + T(0.5) - mx;
+                        const T sigma = pixel_sigma(conic, dx, dy);
+                        if (sigma > cut || done[l]) continue;
+                        const PixelAlpha<T> pa = alpha_from_sigma(sigma, o, dx, dy);
+                        if (pa.alpha == T(0)) continue;
+                        const T next_T = Tr[l] * (T(1) - pa.alpha);
+                        if (next_T < T(kTransmittanceMin)) {  // saturated: this Gaussian is not composited
+                            done[l] = 1;
+                            --active;
+                            continue;
+                        }
+                        const T w = pa.alpha * Tr[l];
+                        T* a = acc.data() + size_t(l) * C;
+                        for (int c = 0; c < C; ++c) a[c] += w * col[c];
+                        Tr[l] = next_T;
+                        last[l] = k + 1;
                     }
-                    const T w = pa.alpha * Tr;
-                    T* out = image + pix * C;
-                    for (int c = 0; c < C; ++c) out[c] += w * col[c];
-                    transmittance[pix] = next_T;
-                    last_ids[pix] = k + 1;
+                }
+            }
+            for (int y = ty0; y < ty1; ++y)
+                for (int x = tx0; x < tx1; ++x) {
+                    const int l = (y - ty0) * kTileSize + (x - tx0);
+                    const int64_t pix = int64_t(y) * width + x;
+                    transmittance[pix] = Tr[l];
+                    last_ids[pix] = last[l];
+                    for (int c = 0; c < C; ++c) image[pix * C + c] = acc[size_t(l) * C + c];
                 }
         }
     }

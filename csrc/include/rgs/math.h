@@ -299,6 +299,14 @@ RGS_HD TileRect tile_rect(T mx, T my, T ex, T ey, const TileGrid& grid) {
     return r;
 }
 
+// Tile rectangle of a projected Gaussian from its integer radii (empty when culled). Binning uses this on both
+// schedulers, so the CPU and CUDA paths produce the same (tile, Gaussian) pairs.
+template <typename T>
+RGS_HD TileRect gaussian_tile_rect(const T* mean2d, const int32_t* radius, const TileGrid& grid) {
+    if (radius[0] <= 0 || radius[1] <= 0) return TileRect{0, 0, 0, 0};
+    return tile_rect(mean2d[0], mean2d[1], T(radius[0]), T(radius[1]), grid);
+}
+
 // ---------------------------------------------------------------------------------------------
 // One Gaussian's projection: world-space mean/quat/scale/opacity -> 2D mean, depth, conic, extents.
 // Returns false (and the caller writes zero radii) when the Gaussian is culled.
@@ -387,18 +395,52 @@ struct PixelAlpha {
     bool clamped;
 };
 
+// σ = ½ dᵀ Σ'⁻¹ d for d = (dx, dy).
 template <typename T>
-RGS_HD PixelAlpha<T> pixel_alpha(const Vec3<T>& conic, T mx, T my, T opacity, T px, T py) {
+RGS_HD T pixel_sigma(const Vec3<T>& conic, T dx, T dy) {
+    return T(0.5) * (conic.x * dx * dx + conic.z * dy * dy) + conic.y * dx * dy;
+}
+
+// A σ above which α < 1/255 for sure (the margin absorbs rounding), so exp() can be skipped there;
+// below it the exact test in alpha_from_sigma decides.
+template <typename T>
+RGS_HD T sigma_cutoff(T opacity) {
+    return log(T(255) * opacity) + T(1e-3);
+}
+
+template <typename T>
+RGS_HD PixelAlpha<T> alpha_from_sigma(T sigma, T opacity, T dx, T dy) {
     PixelAlpha<T> r;
-    r.dx = px - mx;
-    r.dy = py - my;
-    const T sigma = T(0.5) * (conic.x * r.dx * r.dx + conic.z * r.dy * r.dy) + conic.y * r.dx * r.dy;
+    r.dx = dx;
+    r.dy = dy;
     r.gauss = exp(-sigma);
     T a = opacity * r.gauss;
     r.clamped = a > T(kAlphaMax);
     if (r.clamped) a = T(kAlphaMax);
     r.alpha = (sigma < T(0) || !(a >= T(kAlphaMin))) ? T(0) : a;
     return r;
+}
+
+template <typename T>
+RGS_HD PixelAlpha<T> pixel_alpha(const Vec3<T>& conic, T mx, T my, T opacity, T px, T py) {
+    const T dx = px - mx, dy = py - my;
+    return alpha_from_sigma(pixel_sigma(conic, dx, dy), opacity, dx, dy);
+}
+
+// Pixels x in [x_lo, x_hi] of the row with offset dy where σ can be <= cut: σ is a quadratic in dx, so the
+// span is the interval between its roots (one pixel of margin; the exact test still runs per pixel).
+template <typename T>
+RGS_HD bool row_span(const Vec3<T>& conic, T cut, T mx, T dy, int x_lo, int x_hi, int& xa, int& xb) {
+    // ½A dx² + B dy dx + (½C dy² - cut) <= 0
+    const T A = conic.x, b = conic.y * dy;
+    const T disc = b * b - A * (conic.z * dy * dy - T(2) * cut);
+    if (!(disc >= T(0)) || !(A > T(0))) return false;
+    const T root = sqrt(disc);
+    const T lo = floor(mx - T(0.5) + (-b - root) / A) - T(1);
+    const T hi = ceil(mx - T(0.5) + (-b + root) / A) + T(1);
+    xa = lo < T(x_lo) ? x_lo : int(lo);
+    xb = hi > T(x_hi) ? x_hi : int(hi);
+    return xa <= xb;
 }
 
 // v_alpha -> (v_mean2d, v_conic, v_opacity), accumulated.
@@ -445,12 +487,14 @@ RGS_HD bool pixel_box(const Vec3<T>& conic, T mx, T my, T opacity, int x_lo, int
 // Real spherical harmonics up to degree 3 (the basis 3DGS uses), on the normalised direction.
 // ---------------------------------------------------------------------------------------------
 namespace sh {
+// Scalars rather than arrays: namespace-scope constexpr scalars are usable in CUDA device code.
 constexpr double C0 = 0.28209479177387814;
 constexpr double C1 = 0.4886025119029199;
-constexpr double C2[5] = {1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792,
-                          0.5462742152960396};
-constexpr double C3[7] = {-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
-                          -0.4570457994644658, 1.445305721320277, -0.5900435899266435};
+constexpr double C2_0 = 1.0925484305920792, C2_1 = -1.0925484305920792, C2_2 = 0.31539156525252005,
+                 C2_3 = -1.0925484305920792, C2_4 = 0.5462742152960396;
+constexpr double C3_0 = -0.5900435899266435, C3_1 = 2.890611442640554, C3_2 = -0.4570457994644658,
+                 C3_3 = 0.3731763325901154, C3_4 = -0.4570457994644658, C3_5 = 1.445305721320277,
+                 C3_6 = -0.5900435899266435;
 }  // namespace sh
 
 RGS_HD int sh_num_bases(int degree) { return (degree + 1) * (degree + 1); }
@@ -465,19 +509,19 @@ RGS_HD void sh_basis(int degree, T x, T y, T z, T* B) {
     B[3] = -T(sh::C1) * x;
     if (degree < 2) return;
     const T xx = x * x, yy = y * y, zz = z * z;
-    B[4] = T(sh::C2[0]) * x * y;
-    B[5] = T(sh::C2[1]) * y * z;
-    B[6] = T(sh::C2[2]) * (T(2) * zz - xx - yy);
-    B[7] = T(sh::C2[3]) * x * z;
-    B[8] = T(sh::C2[4]) * (xx - yy);
+    B[4] = T(sh::C2_0) * x * y;
+    B[5] = T(sh::C2_1) * y * z;
+    B[6] = T(sh::C2_2) * (T(2) * zz - xx - yy);
+    B[7] = T(sh::C2_3) * x * z;
+    B[8] = T(sh::C2_4) * (xx - yy);
     if (degree < 3) return;
-    B[9] = T(sh::C3[0]) * y * (T(3) * xx - yy);
-    B[10] = T(sh::C3[1]) * x * y * z;
-    B[11] = T(sh::C3[2]) * y * (T(4) * zz - xx - yy);
-    B[12] = T(sh::C3[3]) * z * (T(2) * zz - T(3) * xx - T(3) * yy);
-    B[13] = T(sh::C3[4]) * x * (T(4) * zz - xx - yy);
-    B[14] = T(sh::C3[5]) * z * (xx - yy);
-    B[15] = T(sh::C3[6]) * x * (xx - T(3) * yy);
+    B[9] = T(sh::C3_0) * y * (T(3) * xx - yy);
+    B[10] = T(sh::C3_1) * x * y * z;
+    B[11] = T(sh::C3_2) * y * (T(4) * zz - xx - yy);
+    B[12] = T(sh::C3_3) * z * (T(2) * zz - T(3) * xx - T(3) * yy);
+    B[13] = T(sh::C3_4) * x * (T(4) * zz - xx - yy);
+    B[14] = T(sh::C3_5) * z * (xx - yy);
+    B[15] = T(sh::C3_6) * x * (xx - T(3) * yy);
 }
 
 // v_dir (at the unit direction) from v_B, the gradient with respect to each basis value.
@@ -490,21 +534,21 @@ RGS_HD void sh_basis_vjp(int degree, T x, T y, T z, const T* vB, T& vx, T& vy, T
     vz += T(sh::C1) * vB[2];
     if (degree < 2) return;
     const T xx = x * x, yy = y * y, zz = z * z;
-    vx += T(sh::C2[0]) * y * vB[4] - T(2 * sh::C2[2]) * x * vB[6] + T(sh::C2[3]) * z * vB[7] +
-          T(2 * sh::C2[4]) * x * vB[8];
-    vy += T(sh::C2[0]) * x * vB[4] + T(sh::C2[1]) * z * vB[5] - T(2 * sh::C2[2]) * y * vB[6] -
-          T(2 * sh::C2[4]) * y * vB[8];
-    vz += T(sh::C2[1]) * y * vB[5] + T(4 * sh::C2[2]) * z * vB[6] + T(sh::C2[3]) * x * vB[7];
+    vx += T(sh::C2_0) * y * vB[4] - T(2 * sh::C2_2) * x * vB[6] + T(sh::C2_3) * z * vB[7] +
+          T(2 * sh::C2_4) * x * vB[8];
+    vy += T(sh::C2_0) * x * vB[4] + T(sh::C2_1) * z * vB[5] - T(2 * sh::C2_2) * y * vB[6] -
+          T(2 * sh::C2_4) * y * vB[8];
+    vz += T(sh::C2_1) * y * vB[5] + T(4 * sh::C2_2) * z * vB[6] + T(sh::C2_3) * x * vB[7];
     if (degree < 3) return;
-    vx += T(6 * sh::C3[0]) * x * y * vB[9] + T(sh::C3[1]) * y * z * vB[10] - T(2 * sh::C3[2]) * x * y * vB[11] -
-          T(6 * sh::C3[3]) * x * z * vB[12] + T(sh::C3[4]) * (T(4) * zz - T(3) * xx - yy) * vB[13] +
-          T(2 * sh::C3[5]) * x * z * vB[14] + T(sh::C3[6]) * (T(3) * xx - T(3) * yy) * vB[15];
-    vy += T(sh::C3[0]) * (T(3) * xx - T(3) * yy) * vB[9] + T(sh::C3[1]) * x * z * vB[10] +
-          T(sh::C3[2]) * (T(4) * zz - xx - T(3) * yy) * vB[11] - T(6 * sh::C3[3]) * y * z * vB[12] -
-          T(2 * sh::C3[4]) * x * y * vB[13] - T(2 * sh::C3[5]) * y * z * vB[14] - T(6 * sh::C3[6]) * x * y * vB[15];
-    vz += T(sh::C3[1]) * x * y * vB[10] + T(8 * sh::C3[2]) * y * z * vB[11] +
-          T(sh::C3[3]) * (T(6) * zz - T(3) * xx - T(3) * yy) * vB[12] + T(8 * sh::C3[4]) * x * z * vB[13] +
-          T(sh::C3[5]) * (xx - yy) * vB[14];
+    vx += T(6 * sh::C3_0) * x * y * vB[9] + T(sh::C3_1) * y * z * vB[10] - T(2 * sh::C3_2) * x * y * vB[11] -
+          T(6 * sh::C3_3) * x * z * vB[12] + T(sh::C3_4) * (T(4) * zz - T(3) * xx - yy) * vB[13] +
+          T(2 * sh::C3_5) * x * z * vB[14] + T(sh::C3_6) * (T(3) * xx - T(3) * yy) * vB[15];
+    vy += T(sh::C3_0) * (T(3) * xx - T(3) * yy) * vB[9] + T(sh::C3_1) * x * z * vB[10] +
+          T(sh::C3_2) * (T(4) * zz - xx - T(3) * yy) * vB[11] - T(6 * sh::C3_3) * y * z * vB[12] -
+          T(2 * sh::C3_4) * x * y * vB[13] - T(2 * sh::C3_5) * y * z * vB[14] - T(6 * sh::C3_6) * x * y * vB[15];
+    vz += T(sh::C3_1) * x * y * vB[10] + T(8 * sh::C3_2) * y * z * vB[11] +
+          T(sh::C3_3) * (T(6) * zz - T(3) * xx - T(3) * yy) * vB[12] + T(8 * sh::C3_4) * x * z * vB[13] +
+          T(sh::C3_5) * (xx - yy) * vB[14];
 }
 
 // Unit direction of d, and the map of a gradient at the unit direction back to d.

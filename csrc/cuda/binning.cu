@@ -1,0 +1,100 @@
+// Tile binning on the GPU: count pairs per Gaussian, prefix-sum them, write 64-bit (tile | depth) keys, radix sort
+// only the bits in use, and mark each tile's range in the sorted list.
+#include <cub/cub.cuh>
+
+#include "common.cuh"
+#include "rgs/kernels_cuda.h"
+#include "rgs/math.h"
+
+namespace rgs {
+
+template <typename T>
+__global__ void count_pairs_kernel(int64_t N, const T* __restrict__ means2d,    // [N, 2]
+                                   const int32_t* __restrict__ radii,          // [N, 2]
+                                   TileGrid grid, int64_t* __restrict__ counts) {  // [N]
+    const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
+    if (i >= N) return;
+    counts[i] = gaussian_tile_rect(means2d + 2 * i, radii + 2 * i, grid).area();
+}
+
+template <typename T>
+__global__ void write_keys_kernel(int64_t N, const T* __restrict__ means2d, const int32_t* __restrict__ radii,
+                                  const T* __restrict__ depths,             // [N]
+                                  TileGrid grid, const int64_t* __restrict__ offsets,  // [N] inclusive
+                                  uint64_t* __restrict__ keys,              // [M]
+                                  int32_t* __restrict__ ids) {              // [M]
+    const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
+    if (i >= N) return;
+    const TileRect r = gaussian_tile_rect(means2d + 2 * i, radii + 2 * i, grid);
+    if (r.area() == 0) return;
+    int64_t k = i == 0 ? 0 : offsets[i - 1];
+    // Depths are >= near > 0, so the float's bit pattern orders like the value.
+    const uint64_t depth_bits = __float_as_uint(float(depths[i]));
+    for (int ty = r.y0; ty < r.y1; ++ty)
+        for (int tx = r.x0; tx < r.x1; ++tx, ++k) {
+            keys[k] = (uint64_t(ty * grid.tiles_x + tx) << 32) | depth_bits;
+            ids[k] = int32_t(i);
+        }
+}
+
+__global__ void tile_ranges_kernel(int64_t M, const uint64_t* __restrict__ keys,  // [M] sorted
+                                   int32_t* __restrict__ ranges) {                // [tiles, 2], zeroed
+    const int64_t k = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
+    if (k >= M) return;
+    const int32_t tile = int32_t(keys[k] >> 32);
+    if (k == 0 || int32_t(keys[k - 1] >> 32) != tile) ranges[2 * tile] = int32_t(k);
+    if (k == M - 1 || int32_t(keys[k + 1] >> 32) != tile) ranges[2 * tile + 1] = int32_t(k + 1);
+}
+
+template <typename T>
+int64_t count_tile_pairs_cuda(int64_t N, const T* means2d, const int32_t* radii, TileGrid grid, int64_t* offsets,
+                              DeviceAllocator alloc, void* stream_) {
+    if (N == 0) return 0;
+    cudaStream_t stream = (cudaStream_t)stream_;
+    int64_t* counts = static_cast<int64_t*>(alloc(sizeof(int64_t) * N));
+    count_pairs_kernel<T><<<num_blocks(N, 256), 256, 0, stream>>>(N, means2d, radii, grid, counts);
+    RGS_CHECK_LAUNCH("count_pairs");
+    size_t temp_bytes = 0;
+    check_cuda(cub::DeviceScan::InclusiveSum(nullptr, temp_bytes, counts, offsets, N, stream), "scan size");
+    void* temp = alloc(temp_bytes);
+    check_cuda(cub::DeviceScan::InclusiveSum(temp, temp_bytes, counts, offsets, N, stream), "scan");
+    int64_t M = 0;
+    check_cuda(cudaMemcpyAsync(&M, offsets + N - 1, sizeof(int64_t), cudaMemcpyDeviceToHost, stream), "copy M");
+    check_cuda(cudaStreamSynchronize(stream), "sync M");
+    return M;
+}
+
+template <typename T>
+void bin_tile_pairs_cuda(int64_t N, const T* means2d, const int32_t* radii, const T* depths, TileGrid grid,
+                         const int64_t* offsets, int64_t M, int32_t* gauss_ids, int32_t* tile_ranges,
+                         DeviceAllocator alloc, void* stream_) {
+    cudaStream_t stream = (cudaStream_t)stream_;
+    check_cuda(cudaMemsetAsync(tile_ranges, 0, sizeof(int32_t) * 2 * grid.count(), stream), "zero ranges");
+    if (M == 0) return;
+    uint64_t* keys = static_cast<uint64_t*>(alloc(sizeof(uint64_t) * M));
+    uint64_t* keys_sorted = static_cast<uint64_t*>(alloc(sizeof(uint64_t) * M));
+    int32_t* ids = static_cast<int32_t*>(alloc(sizeof(int32_t) * M));
+    write_keys_kernel<T><<<num_blocks(N, 256), 256, 0, stream>>>(N, means2d, radii, depths, grid, offsets, keys, ids);
+    RGS_CHECK_LAUNCH("write_keys");
+    int tile_bits = 1;
+    while ((1ll << tile_bits) < grid.count()) ++tile_bits;
+    size_t temp_bytes = 0;
+    check_cuda(cub::DeviceRadixSort::SortPairs(nullptr, temp_bytes, keys, keys_sorted, ids, gauss_ids, M, 0,
+                                               32 + tile_bits, stream), "sort size");
+    void* temp = alloc(temp_bytes);
+    check_cuda(cub::DeviceRadixSort::SortPairs(temp, temp_bytes, keys, keys_sorted, ids, gauss_ids, M, 0,
+                                               32 + tile_bits, stream), "sort");
+    tile_ranges_kernel<<<num_blocks(M, 256), 256, 0, stream>>>(M, keys_sorted, tile_ranges);
+    RGS_CHECK_LAUNCH("tile_ranges");
+}
+
+#define RGS_INSTANTIATE(T)                                                                                      \
+    template int64_t count_tile_pairs_cuda<T>(int64_t, const T*, const int32_t*, TileGrid, int64_t*,             \
+                                              DeviceAllocator, void*);                                           \
+    template void bin_tile_pairs_cuda<T>(int64_t, const T*, const int32_t*, const T*, TileGrid, const int64_t*,  \
+                                         int64_t, int32_t*, int32_t*, DeviceAllocator, void*);
+RGS_INSTANTIATE(float)
+RGS_INSTANTIATE(double)
+#undef RGS_INSTANTIATE
+
+}  // namespace rgs

@@ -1,0 +1,65 @@
+// CUDA launcher declarations (csrc/cuda). Same arguments and shapes as the CPU launchers in kernels.h, with the
+// CUDA stream (a cudaStream_t, passed as void* so this header needs no CUDA include) instead of a thread count.
+// Launchers that need scratch memory take a DeviceAllocator so the caller (torch's caching allocator in
+// bindings.cpp) owns every allocation; all memory must stay valid until the launcher returns.
+#pragma once
+#include <cstddef>
+#include <cstdint>
+
+#include "rgs/types.h"
+
+namespace rgs {
+
+struct DeviceAllocator {
+    void* (*alloc)(size_t bytes, void* ctx);
+    void* ctx;
+    void* operator()(size_t bytes) const { return alloc(bytes, ctx); }
+};
+
+constexpr int kMaxCudaChannels = 64;  // compositing on the GPU supports 1..64 channels
+
+template <typename T>
+void project_forward_cuda(int64_t N, const T* means, const T* quats, const T* scales, const T* opacities,
+                          const Camera<T>& cam, T* means2d, T* depths, T* conics, int32_t* radii, void* stream);
+
+template <typename T>
+void project_backward_cuda(int64_t N, const T* means, const T* quats, const T* scales, const Camera<T>& cam,
+                           const int32_t* radii, const T* v_means2d, const T* v_depths, const T* v_conics,
+                           T* v_means, T* v_quats, T* v_scales, void* stream);
+
+// Counts each Gaussian's tile pairs into offsets [N] as an inclusive prefix sum and returns the total M
+// (one device-to-host copy: the only synchronisation of a render).
+template <typename T>
+int64_t count_tile_pairs_cuda(int64_t N, const T* means2d, const int32_t* radii, TileGrid grid,
+                              int64_t* offsets,  // [N] out, inclusive prefix sum
+                              DeviceAllocator alloc, void* stream);
+
+// Writes 64-bit (tile << 32 | float depth bits) keys, radix-sorts them with the Gaussian indices (stable, so ties
+// keep index order), and fills the tile ranges.
+template <typename T>
+void bin_tile_pairs_cuda(int64_t N, const T* means2d, const int32_t* radii, const T* depths, TileGrid grid,
+                         const int64_t* offsets, int64_t M, int32_t* gauss_ids, int32_t* tile_ranges,
+                         DeviceAllocator alloc, void* stream);
+
+template <typename T>
+void rasterize_forward_cuda(int64_t N, int C, int width, int height, const T* means2d, const T* conics,
+                            const T* colors, const T* opacities, const int32_t* gauss_ids,
+                            const int32_t* tile_ranges, T* image, T* transmittance, int32_t* last_ids,
+                            void* stream);
+
+// Gradient outputs must be zero-filled by the caller (the kernel accumulates with atomics).
+template <typename T>
+void rasterize_backward_cuda(int64_t N, int C, int width, int height, const T* means2d, const T* conics,
+                             const T* colors, const T* opacities, const int32_t* gauss_ids,
+                             const int32_t* tile_ranges, int64_t M, const T* transmittance, const int32_t* last_ids,
+                             const T* v_image, const T* v_transmittance, T* v_means2d, T* v_conics, T* v_colors,
+                             T* v_opacities, void* stream);
+
+template <typename T>
+void sh_forward_cuda(int64_t N, int degree, int K, int D, const T* dirs, const T* coeffs, T* colors, void* stream);
+
+template <typename T>
+void sh_backward_cuda(int64_t N, int degree, int K, int D, const T* dirs, const T* coeffs, const T* v_colors,
+                      T* v_dirs, T* v_coeffs, void* stream);
+
+}  // namespace rgs

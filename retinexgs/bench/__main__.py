@@ -1,0 +1,22 @@
+"""``python -m retinexgs.bench NAME [options]``: run one benchmark script (raster, lr3m, fps, ...)."""
+import importlib
+import sys
+
+BENCHES = {"raster": "retinexgs.bench.raster", "lr3m": "retinexgs.bench.lr3m", "fps": "retinexgs.bench.fps"}
+
+
+def main() -> int:
+    if len(sys.argv) < 2 or sys.argv[1] not in BENCHES:
+        print(f"usage: python -m retinexgs.bench {{{','.join(BENCHES)}}} [options]", file=sys.stderr)
+        return 2
+    name = sys.argv[1]
+    try:
+        module = importlib.import_module(BENCHES[name])
+    except ModuleNotFoundError:
+        print(f"benchmark {name!r} is not part of this build", file=sys.stderr)
+        return 2
+    return int(module.main(sys.argv[2:]) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,90 @@
+"""CUDA kernels against the CPU kernels (run on a GPU machine; skipped cleanly where there is none)."""
+import pytest
+import torch
+
+from retinexgs.render import has_cuda, rasterize_gaussians, spherical_harmonics
+from scenes import make_camera, random_gaussians
+from test_raster_forward import edge_case_scene
+
+pytestmark = pytest.mark.skipif(not (torch.cuda.is_available() and has_cuda()),
+                                reason="needs a CUDA GPU and retinexgs built with its CUDA kernels")
+
+
+def rel_err(a, b):
+    return float((a.double() - b.double()).norm() / b.double().norm().clamp_min(1e-30))
+
+
+def run(args, cam, device, dtype, seed=0):
+    args = tuple(a.detach().to(device=device, dtype=dtype).requires_grad_() for a in args)
+    out = rasterize_gaussians(*args, cam, render_depth=True)
+    g = torch.Generator().manual_seed(seed)
+    wi = torch.randn(out.image.shape, generator=g, dtype=torch.float64).to(device=device, dtype=dtype)
+    wa = torch.randn(out.alpha.shape, generator=g, dtype=torch.float64).to(device=device, dtype=dtype)
+    loss = (out.image * wi).sum() + (out.alpha * wa).sum() + 0.1 * out.depth.sum()
+    grads = torch.autograd.grad(loss, args)
+    return (out.image, out.alpha, out.depth, out.radii, out.num_pairs) + grads
+
+
+SCENES = {
+    "edge_cases": lambda C: edge_case_scene(C),
+    "dense": lambda C: (random_gaussians(4000, C, seed=9, dtype=torch.float64),
+                        make_camera(width=173, height=91)),
+}
+
+
+@pytest.mark.parametrize("C", [1, 3, 6, 33, 64])
+@pytest.mark.parametrize("scene", sorted(SCENES))
+def test_cuda_matches_cpu_float32(C, scene):
+    args, cam = SCENES[scene](C)
+    cpu = run(args, cam, "cpu", torch.float32)
+    gpu = run(args, cam, "cuda", torch.float32)
+    assert gpu[4] == cpu[4], "different number of tile pairs"
+    assert torch.equal(gpu[3].cpu(), cpu[3])
+    for name, a, b in zip(("image", "alpha", "depth"), gpu[:3], cpu[:3]):
+        assert rel_err(a.cpu(), b) < 1e-4, name
+    for name, a, b in zip(("means", "quats", "scales", "opacities", "colors"), gpu[5:], cpu[5:]):
+        assert torch.isfinite(a).all(), name
+        assert rel_err(a.cpu(), b) < 1e-3, name
+
+
+def test_cuda_matches_cpu_float64():
+    args, cam = edge_case_scene(6)
+    cpu = run(args, cam, "cpu", torch.float64)
+    gpu = run(args, cam, "cuda", torch.float64)
+    for a, b in zip(gpu[:3] + gpu[5:], cpu[:3] + cpu[5:]):
+        assert rel_err(a.cpu(), b) < 1e-9
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_cuda_sh_matches_cpu(degree):
+    g = torch.Generator().manual_seed(degree)
+    dirs = torch.randn(1000, 3, generator=g)
+    coeffs = torch.randn(1000, 16, 3, generator=g)
+    v = torch.randn(1000, 3, generator=g)
+    res = {}
+    for dev in ("cpu", "cuda"):
+        d, c = dirs.to(dev).requires_grad_(), coeffs.to(dev).requires_grad_()
+        out = spherical_harmonics(degree, d, c)
+        res[dev] = (out,) + torch.autograd.grad((out * v.to(dev)).sum(), (d, c))
+    for a, b in zip(res["cuda"], res["cpu"]):
+        assert rel_err(a.cpu(), b) < 1e-5
+
+
+def test_cuda_memory_does_not_grow():
+    args, cam = SCENES["dense"](7)
+    args = tuple(a.float().cuda().requires_grad_() for a in args)
+    sizes = []
+    for _ in range(6):
+        out = rasterize_gaussians(*args, cam, render_depth=True)
+        out.image.sum().backward()
+        del out
+        torch.cuda.synchronize()
+        sizes.append(torch.cuda.memory_allocated())
+    assert len(set(sizes[1:])) == 1, sizes
+
+
+def test_cuda_rejects_too_many_channels():
+    args, cam = SCENES["dense"](65)
+    args = tuple(a.float().cuda() for a in args)
+    with pytest.raises(ValueError, match="at most 64"):
+        rasterize_gaussians(*args, cam)
