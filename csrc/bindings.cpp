@@ -77,7 +77,8 @@ rgs::Camera<T> make_camera(const std::vector<double>& viewmat, double fx, double
 
 #ifdef RGS_WITH_CUDA
 #define RGS_CUDA_STREAM(t) (at::cuda::getCurrentCUDAStream((t).device().index()).stream())
-#define RGS_DEVICE_GUARD(t) const at::cuda::OptionalCUDAGuard device_guard(device_of(t))
+#define RGS_DEVICE_GUARD(t) \
+    const at::cuda::OptionalCUDAGuard device_guard((t).is_cuda() ? std::optional<at::Device>((t).device()) : std::nullopt)
 #else
 #define RGS_DEVICE_GUARD(t) ((void)0)
 #endif
