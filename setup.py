@@ -22,7 +22,8 @@ def _sources(pattern: str) -> list:
 def _extension():
     cpu_sources = ["csrc/bindings.cpp"] + _sources("csrc/cpu/*.cpp")
     include_dirs = [os.path.join(HERE, "csrc", "include")]
-    cxx_flags = ["-O3", "-std=c++17", "-fopenmp"]
+    # No -std flag: torch picks the standard its headers (and its c10::Error layout) were built with.
+    cxx_flags = ["-O3", "-fopenmp"]
     link_flags = ["-fopenmp"]
     want_cuda = os.environ.get("RETINEXGS_CPU_ONLY", "0") != "1"
     has_cuda = want_cuda and torch.version.cuda is not None and CUDA_HOME is not None
@@ -33,7 +34,7 @@ def _extension():
             cpu_sources + _sources("csrc/cuda/*.cu"),
             include_dirs=include_dirs,
             define_macros=[("RGS_WITH_CUDA", "1")],
-            extra_compile_args={"cxx": cxx_flags, "nvcc": ["-O3", "-std=c++17", "--use_fast_math"]},
+            extra_compile_args={"cxx": cxx_flags, "nvcc": ["-O3", "--use_fast_math"]},
             extra_link_args=link_flags,
         )
     why = "disabled by RETINEXGS_CPU_ONLY" if not want_cuda else (

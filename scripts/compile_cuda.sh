@@ -8,7 +8,7 @@ srcs=(csrc/cuda/*.cu)
 if [ ${#srcs[@]} -eq 0 ]; then echo "no CUDA sources"; exit 0; fi
 out=$(mktemp -d)
 for f in "${srcs[@]}"; do
-  nvcc -std=c++17 -O3 -Icsrc/include -gencode arch=compute_89,code=sm_89 -gencode arch=compute_90,code=sm_90 \
+  nvcc -std=c++20 -O3 -Icsrc/include -gencode arch=compute_89,code=sm_89 -gencode arch=compute_90,code=sm_90 \
        -Xcompiler -Wall -c "$f" -o "$out/$(basename "${f%.cu}").o"
   echo "nvcc ok: $f (sm_89, sm_90)"
 done
