@@ -3,6 +3,8 @@
 #include <omp.h>
 #include <torch/extension.h>
 
+#include <sstream>
+#include <string>
 #include <tuple>
 #include <vector>
 
@@ -17,49 +19,62 @@
 namespace {
 
 using torch::Tensor;
+
+// Argument errors are raised as pybind11's own ValueError/TypeError rather than c10::Error: on some torch builds
+// (seen with torch 2.11 + gcc 13) a c10::Error thrown from an extension crashes the process instead of raising.
+template <typename... Args>
+std::string cat(const Args&... args) {
+    std::ostringstream s;
+    (s << ... << args);
+    return s.str();
+}
+#define RGS_CHECK_VALUE(cond, ...) \
+    if (!(cond)) throw pybind11::value_error(cat(__VA_ARGS__))
+#define RGS_CHECK_TYPE(cond, ...) \
+    if (!(cond)) throw pybind11::type_error(cat(__VA_ARGS__))
 int g_num_threads = 0;  // 0: OpenMP's default
 
 int num_threads() { return g_num_threads > 0 ? g_num_threads : omp_get_max_threads(); }
 
 // ---- checks ------------------------------------------------------------------------------------
 void check_tensor(const Tensor& t, const char* name, std::vector<int64_t> shape, const Tensor& like) {
-    TORCH_CHECK_TYPE(t.scalar_type() == like.scalar_type(), name, " must have dtype ", like.scalar_type(),
+    RGS_CHECK_TYPE(t.scalar_type() == like.scalar_type(), name, " must have dtype ", like.scalar_type(),
                      ", got ", t.scalar_type());
-    TORCH_CHECK_VALUE(t.device() == like.device(), name, " must be on ", like.device(), ", got ", t.device());
-    TORCH_CHECK_VALUE(t.dim() == int64_t(shape.size()), name, " must have ", shape.size(), " dims, got shape ",
+    RGS_CHECK_VALUE(t.device() == like.device(), name, " must be on ", like.device(), ", got ", t.device());
+    RGS_CHECK_VALUE(t.dim() == int64_t(shape.size()), name, " must have ", shape.size(), " dims, got shape ",
                       t.sizes());
     for (size_t i = 0; i < shape.size(); ++i)
-        TORCH_CHECK_VALUE(shape[i] < 0 || t.size(i) == shape[i], name, " has shape ", t.sizes(),
+        RGS_CHECK_VALUE(shape[i] < 0 || t.size(i) == shape[i], name, " has shape ", t.sizes(),
                           ", expected size ", shape[i], " at dim ", i);
 }
 
 void check_index(const Tensor& t, const char* name, std::vector<int64_t> shape, const Tensor& like) {
-    TORCH_CHECK_TYPE(t.scalar_type() == torch::kInt32, name, " must be int32, got ", t.scalar_type());
-    TORCH_CHECK_VALUE(t.device() == like.device(), name, " must be on ", like.device());
-    TORCH_CHECK_VALUE(t.dim() == int64_t(shape.size()), name, " has shape ", t.sizes());
+    RGS_CHECK_TYPE(t.scalar_type() == torch::kInt32, name, " must be int32, got ", t.scalar_type());
+    RGS_CHECK_VALUE(t.device() == like.device(), name, " must be on ", like.device());
+    RGS_CHECK_VALUE(t.dim() == int64_t(shape.size()), name, " has shape ", t.sizes());
     for (size_t i = 0; i < shape.size(); ++i)
-        TORCH_CHECK_VALUE(shape[i] < 0 || t.size(i) == shape[i], name, " has shape ", t.sizes(),
+        RGS_CHECK_VALUE(shape[i] < 0 || t.size(i) == shape[i], name, " has shape ", t.sizes(),
                           ", expected size ", shape[i], " at dim ", i);
 }
 
 void check_float(const Tensor& t, const char* name) {
-    TORCH_CHECK_TYPE(t.scalar_type() == torch::kFloat32 || t.scalar_type() == torch::kFloat64, name,
+    RGS_CHECK_TYPE(t.scalar_type() == torch::kFloat32 || t.scalar_type() == torch::kFloat64, name,
                      " must be float32 or float64, got ", t.scalar_type());
 }
 
 void check_image(int width, int height) {
-    TORCH_CHECK_VALUE(width > 0 && height > 0, "width and height must be positive, got ", width, "x", height);
+    RGS_CHECK_VALUE(width > 0 && height > 0, "width and height must be positive, got ", width, "x", height);
 }
 
 template <typename T>
 rgs::Camera<T> make_camera(const std::vector<double>& viewmat, double fx, double fy, double cx, double cy,
                            int width, int height, double near_plane, double far_plane) {
-    TORCH_CHECK_VALUE(viewmat.size() == 16, "viewmat must have 16 entries, got ", viewmat.size());
-    for (double v : viewmat) TORCH_CHECK_VALUE(std::isfinite(v), "viewmat must be finite");
-    TORCH_CHECK_VALUE(std::isfinite(fx) && std::isfinite(fy) && fx > 0 && fy > 0,
+    RGS_CHECK_VALUE(viewmat.size() == 16, "viewmat must have 16 entries, got ", viewmat.size());
+    for (double v : viewmat) RGS_CHECK_VALUE(std::isfinite(v), "viewmat must be finite");
+    RGS_CHECK_VALUE(std::isfinite(fx) && std::isfinite(fy) && fx > 0 && fy > 0,
                       "fx and fy must be finite and positive, got ", fx, ", ", fy);
-    TORCH_CHECK_VALUE(std::isfinite(cx) && std::isfinite(cy), "cx and cy must be finite, got ", cx, ", ", cy);
-    TORCH_CHECK_VALUE(near_plane > 0 && far_plane > near_plane, "need 0 < near < far, got ", near_plane, ", ",
+    RGS_CHECK_VALUE(std::isfinite(cx) && std::isfinite(cy), "cx and cy must be finite, got ", cx, ", ", cy);
+    RGS_CHECK_VALUE(near_plane > 0 && far_plane > near_plane, "need 0 < near < far, got ", near_plane, ", ",
                       far_plane);
     check_image(width, height);
     rgs::Camera<T> cam;
@@ -108,7 +123,7 @@ Tensor rgs_bin_gaussians_cuda(const Tensor& means2d, const Tensor& radii, const 
     Tensor offsets = torch::empty({N > 0 ? N : 1}, means2d.options().dtype(torch::kInt64));
     const int64_t M = rgs::count_tile_pairs_cuda<scalar_t>(N, means2d.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(),
                                                            grid, offsets.data_ptr<int64_t>(), alloc, stream);
-    TORCH_CHECK_VALUE(M < (int64_t(1) << 31), "too many tile/Gaussian pairs (", M, ") for int32 indices");
+    RGS_CHECK_VALUE(M < (int64_t(1) << 31), "too many tile/Gaussian pairs (", M, ") for int32 indices");
     Tensor gauss_ids = torch::empty({M}, means2d.options().dtype(torch::kInt32));
     rgs::bin_tile_pairs_cuda<scalar_t>(N, means2d.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(),
                                        depths.data_ptr<scalar_t>(), grid, offsets.data_ptr<int64_t>(), M,
@@ -118,8 +133,8 @@ Tensor rgs_bin_gaussians_cuda(const Tensor& means2d, const Tensor& radii, const 
 #endif
 
 [[noreturn]] void no_cuda() {
-    TORCH_CHECK_VALUE(false, "retinexgs._C was built without CUDA kernels; reinstall with a CUDA build of "
-                             "torch and a CUDA toolkit, or pass CPU tensors");
+    throw pybind11::value_error("retinexgs._C was built without CUDA kernels; reinstall with a CUDA build of "
+                                "torch and a CUDA toolkit, or pass CPU tensors");
 }
 
 // ---- projection --------------------------------------------------------------------------------
@@ -232,7 +247,7 @@ std::tuple<Tensor, Tensor> bin_gaussians(Tensor means2d, Tensor radii, Tensor de
             const int64_t M = rgs::count_tile_pairs_cpu<scalar_t>(N, means2d.data_ptr<scalar_t>(),
                                                                   radii.data_ptr<int32_t>(), grid,
                                                                   offsets.data_ptr<int64_t>(), num_threads());
-            TORCH_CHECK_VALUE(M < (int64_t(1) << 31), "too many tile/Gaussian pairs (", M, ") for int32 indices");
+            RGS_CHECK_VALUE(M < (int64_t(1) << 31), "too many tile/Gaussian pairs (", M, ") for int32 indices");
             gauss_ids = torch::empty({M}, iopts);
             rgs::bin_tile_pairs_cpu<scalar_t>(N, means2d.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(),
                                               depths.data_ptr<scalar_t>(), grid, offsets.data_ptr<int64_t>(), M,
@@ -252,12 +267,12 @@ void check_raster_inputs(const Tensor& means2d, const Tensor& conics, const Tens
     check_tensor(means2d, "means2d", {N, 2}, means2d);
     check_tensor(conics, "conics", {N, 3}, means2d);
     check_tensor(colors, "colors", {N, -1}, means2d);
-    TORCH_CHECK_VALUE(colors.size(1) >= 1, "colors must have at least one channel");
+    RGS_CHECK_VALUE(colors.size(1) >= 1, "colors must have at least one channel");
     check_tensor(opacities, "opacities", {N}, means2d);
     check_index(gauss_ids, "gauss_ids", {-1}, means2d);
     check_index(tile_ranges, "tile_ranges", {rgs::make_tile_grid(width, height).count(), 2}, means2d);
 #ifdef RGS_WITH_CUDA
-    TORCH_CHECK_VALUE(!means2d.is_cuda() || colors.size(1) <= rgs::kMaxCudaChannels, "colors has ", colors.size(1),
+    RGS_CHECK_VALUE(!means2d.is_cuda() || colors.size(1) <= rgs::kMaxCudaChannels, "colors has ", colors.size(1),
                       " channels; the CUDA compositing supports at most ", rgs::kMaxCudaChannels);
 #endif
 }
@@ -347,10 +362,10 @@ std::tuple<Tensor, Tensor, Tensor, Tensor> rasterize_backward(Tensor means2d, Te
 // ---- spherical harmonics -----------------------------------------------------------------------
 void check_sh_inputs(int degree, const Tensor& dirs, const Tensor& coeffs) {
     check_float(coeffs, "coeffs");
-    TORCH_CHECK_VALUE(degree >= 0 && degree <= 3, "sh degree must be in 0..3, got ", degree);
+    RGS_CHECK_VALUE(degree >= 0 && degree <= 3, "sh degree must be in 0..3, got ", degree);
     const int64_t N = coeffs.size(0);
     check_tensor(coeffs, "coeffs", {N, -1, -1}, coeffs);
-    TORCH_CHECK_VALUE(coeffs.size(1) >= (degree + 1) * (degree + 1), "coeffs has ", coeffs.size(1),
+    RGS_CHECK_VALUE(coeffs.size(1) >= (degree + 1) * (degree + 1), "coeffs has ", coeffs.size(1),
                       " bases, degree ", degree, " needs ", (degree + 1) * (degree + 1));
     check_tensor(dirs, "dirs", {N, 3}, coeffs);
 }
