@@ -11,6 +11,8 @@ from retinexgs.render.camera import Camera
 from retinexgs.render.functions import ProjectGaussians, RasterizeGaussians, SphericalHarmonics, bin_gaussians
 from retinexgs.render.validate import check_gaussians, check_tensor
 
+MAX_CUDA_CHANNELS = 64  # rgs::kMaxCudaChannels: register-resident accumulators of the CUDA compositing
+
 
 @dataclass
 class RenderOutput:
@@ -78,6 +80,9 @@ def rasterize_gaussians(
         means2d.retain_grad()
     gauss_ids, tile_ranges = bin_gaussians(means2d, radii, depths, camera.width, camera.height)
     channels = torch.cat([colors, depths.unsqueeze(-1)], dim=-1) if render_depth else colors
+    if means.is_cuda and channels.shape[1] > MAX_CUDA_CHANNELS:
+        raise ValueError(f"colors has {colors.shape[1]} channels{' + depth' if render_depth else ''}; the CUDA "
+                         f"compositing supports at most {MAX_CUDA_CHANNELS} (render in chunks of channels)")
     image, alpha = RasterizeGaussians.apply(means2d, conics, channels, opacities, gauss_ids, tile_ranges,
                                             camera.width, camera.height)
     depth = None
