@@ -1,0 +1,218 @@
+"""COLMAP sparse models: finding them, reading them (pycolmap when installed, else the pure-Python
+reader in :mod:`retinexgs.data.colmap_files`), and turning one into views.
+
+The COLMAP reader looks for images next to the model: the folder given, else ``<scene>/images``, else
+``<scene>/low`` (LOM layout), else the scene folder itself; the first folder holding every registered
+image's file wins. When that folder is ``low/`` and a sibling ``high/`` exists, views are paired with it.
+Views are split into train/test by ``<scene>/split.json`` ({"train": [...], "test": [...]}) when present,
+else every ``test_every``-th view (sorted by name) is a test view, else all views are train views.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from retinexgs.data import colmap_files
+from retinexgs.data.camera import Camera, c2w_from_w2c, camera_from_colmap, qvec_to_rotmat
+from retinexgs.data.raw import RawScene, RawView
+from retinexgs.errors import UserError
+
+# Where load_scene looks for a model inside a scene folder, in order.
+MODEL_SUBDIRS = (".", "sparse/0", "sparse", "colmap_sparse/0", "colmap_sparse", "colmap/sparse/0")
+
+
+@dataclass
+class ColmapImage:
+    """A registered image: file name, camera id and camera-to-world (OpenCV axes)."""
+
+    name: str
+    camera_id: int
+    c2w: np.ndarray
+
+
+@dataclass
+class ColmapModel:
+    """The parts of a COLMAP reconstruction RetinexGS uses."""
+
+    path: Path
+    cameras: Dict[int, Camera]
+    images: Dict[int, ColmapImage]  # registered images only
+    points: np.ndarray  # [P,3] float64
+    colors: np.ndarray  # [P,3] uint8
+
+
+def find_model_dir(path: Path) -> Optional[Path]:
+    """The first folder under ``path`` (see MODEL_SUBDIRS) holding cameras.bin or cameras.txt."""
+    for sub in MODEL_SUBDIRS:
+        d = (Path(path) / sub)
+        if colmap_files.model_format(d):
+            return d
+    return None
+
+
+def _have_pycolmap() -> bool:
+    try:
+        import pycolmap  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def read_model(model_dir: Path, use_pycolmap: Optional[bool] = None) -> ColmapModel:
+    """Read a COLMAP model folder (binary or text). ``use_pycolmap=None`` uses pycolmap when installed."""
+    model_dir = Path(model_dir)
+    if not colmap_files.model_format(model_dir):
+        raise UserError(f"{model_dir} holds no COLMAP model (cameras.bin or cameras.txt)")
+    if use_pycolmap is None:
+        use_pycolmap = _have_pycolmap()
+    where = str(model_dir)
+    cameras: Dict[int, Camera] = {}
+    images: Dict[int, ColmapImage] = {}
+    if use_pycolmap:
+        import pycolmap
+        try:
+            rec = pycolmap.Reconstruction(str(model_dir))
+        except Exception as exc:
+            raise UserError(f"cannot read COLMAP model {model_dir}: {exc}") from None
+        for cid, c in rec.cameras.items():
+            cameras[int(cid)] = camera_from_colmap(c.model.name, c.width, c.height, list(c.params), where)
+        for iid, im in rec.images.items():
+            if not im.has_pose:
+                continue
+            m = np.asarray(im.cam_from_world().matrix(), np.float64)
+            images[int(iid)] = ColmapImage(im.name, int(im.camera_id), c2w_from_w2c(m[:, :3], m[:, 3]))
+        pts = [rec.points3D[i] for i in sorted(rec.points3D.keys())]  # id order, like the file reader
+        points = np.asarray([p.xyz for p in pts], np.float64).reshape(-1, 3)
+        colors = np.asarray([p.color for p in pts], np.uint8).reshape(-1, 3)
+    else:
+        raw_cams, raw_images, points, colors = colmap_files.read_model_files(model_dir)
+        for cid, c in raw_cams.items():
+            cameras[cid] = camera_from_colmap(c.model, c.width, c.height, c.params, where)
+        for iid, im in raw_images.items():
+            if not np.all(np.isfinite(im.qvec + im.tvec)):  # unregistered image in newer formats
+                continue
+            images[iid] = ColmapImage(im.name, im.camera_id, c2w_from_w2c(qvec_to_rotmat(im.qvec), im.tvec))
+    for im in images.values():
+        if im.camera_id not in cameras:
+            raise UserError(f"COLMAP model {model_dir}: image {im.name} uses missing camera {im.camera_id}")
+    return ColmapModel(model_dir, cameras, images, points, colors)
+
+
+def similarity_from_centres(src: np.ndarray, dst: np.ndarray) -> Tuple[float, np.ndarray, np.ndarray]:
+    """Least-squares similarity (s, R, t) with dst ≈ s R src + t (Umeyama's closed form)."""
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    a, b = src - mu_s, dst - mu_d
+    var = (a ** 2).sum() / len(src)
+    U, S, Vt = np.linalg.svd(b.T @ a / len(src))
+    D = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        D[2, 2] = -1
+    R = U @ D @ Vt
+    s = float(np.trace(np.diag(S) @ D) / var) if var > 0 else 1.0
+    return s, R, mu_d - s * R @ mu_s
+
+
+def points_in_frame_of(model: ColmapModel, views: Sequence[RawView]) -> np.ndarray:
+    """The model's points expressed in the world frame of ``views`` (matched to model images by file name).
+
+    LOM and instant-ngp JSON poses may be a re-centred/rotated/scaled copy of the COLMAP frame; the
+    similarity between matched camera centres maps the points across. With fewer than 3 matches the
+    frames are assumed equal.
+    """
+    by_name = {Path(im.name).name: im for im in model.images.values()}
+    src, dst = [], []
+    for v in views:
+        im = by_name.get(v.image.name) or by_name.get(Path(v.name).name)
+        if im is not None:
+            src.append(im.c2w[:3, 3])
+            dst.append(v.c2w[:3, 3])
+    if len(src) < 3:
+        return model.points
+    src_a, dst_a = np.asarray(src), np.asarray(dst)
+    if np.allclose(src_a, dst_a, atol=1e-6 * (1 + np.abs(dst_a).max())):
+        return model.points
+    s, R, t = similarity_from_centres(src_a, dst_a)
+    return s * model.points @ R.T + t
+
+
+def read_split(root: Path) -> Optional[Dict[str, List[str]]]:
+    """``root/split.json`` as {"train": [...], "test": [...], ...}, or None when absent."""
+    path = Path(root) / "split.json"
+    if not path.is_file():
+        return None
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as exc:
+        raise UserError(f"{path} is not valid JSON: {exc}") from None
+    if not isinstance(data, dict) or not all(isinstance(v, list) for v in data.values()):
+        raise UserError(f"{path} must map split names to lists of file names")
+    return {k: [Path(str(n)).name for n in v] for k, v in data.items()}
+
+
+def split_views(views: List[RawView], root: Path, test_every: int) -> Tuple[List[RawView], List[RawView]]:
+    """Split views into (train, test) by split.json, or every ``test_every``-th view, or all train."""
+    views = sorted(views, key=lambda v: v.name)
+    split = read_split(root)
+    if split is not None and "train" in split:
+        train_names, test_names = set(split["train"]), set(split.get("test", []))
+        train = [v for v in views if Path(v.name).name in train_names]
+        test = [v for v in views if Path(v.name).name in test_names]
+        if train:
+            return train, test
+    if test_every and test_every > 0:
+        return ([v for i, v in enumerate(views) if i % test_every != 0],
+                [v for i, v in enumerate(views) if i % test_every == 0])
+    return views, []
+
+
+def choose_image_dir(root: Path, names: Sequence[str], given: Optional[Path], where: str) -> Path:
+    """The folder holding every file in ``names`` (see the module docstring for the search order)."""
+    if given is not None:
+        given = Path(given)
+        cands = [given if given.is_absolute() else Path(root) / given]
+    else:
+        cands = [Path(root) / "images", Path(root) / "low", Path(root)]
+    best, best_missing = None, None
+    for d in cands:
+        if not d.is_dir():
+            continue
+        missing = [n for n in names if not (d / n).is_file()]
+        if not missing:
+            return d
+        if best_missing is None or len(missing) < len(best_missing):
+            best, best_missing = d, missing
+    if best is None:
+        raise UserError(f"no image folder found for COLMAP model {where}: looked in "
+                        f"{', '.join(str(c) for c in cands)}; pass the folder with images=...")
+    shown = ", ".join(best_missing[:5]) + (" ..." if len(best_missing) > 5 else "")
+    raise UserError(f"COLMAP model {where} registers images missing from {best}: {shown}")
+
+
+def read_colmap_scene(root: Path, model_dir: Optional[Path] = None, images: Optional[Path] = None,
+                      test_every: int = 0, reader: str = "colmap") -> RawScene:
+    """Read a scene folder with a COLMAP model into a :class:`RawScene`."""
+    from retinexgs.data.pairing import check_same_files
+
+    root = Path(root)
+    model_dir = Path(model_dir) if model_dir is not None else find_model_dir(root)
+    if model_dir is None:
+        raise UserError(f"no COLMAP model (cameras.bin/.txt in {root}, sparse/0, colmap_sparse/0) found")
+    model = read_model(model_dir)
+    if not model.images:
+        raise UserError(f"COLMAP model {model_dir} has no registered images")
+    names = [im.name for im in model.images.values()]
+    image_dir = choose_image_dir(root, names, images, str(model_dir))
+    high = image_dir.parent / "high"
+    paired = image_dir.name == "low" and high.is_dir()
+    if paired:
+        check_same_files(image_dir, high)
+    views = []
+    for im in model.images.values():
+        views.append(RawView(im.name, image_dir / im.name, model.cameras[im.camera_id], im.c2w,
+                             high / im.name if paired else None))
+    train, test = split_views(views, root, test_every)
+    return RawScene(root, reader, train, test, [], model.points, model.colors, "colmap")

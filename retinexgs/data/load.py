@@ -1,0 +1,201 @@
+"""``load_scene``: detect the input format, read it, undistort/resize images into the cache, normalise.
+
+Auto-detection (``reader="auto"``), first match wins:
+1. ``transforms_train.json`` or ``transforms.json`` in the folder -> "transforms" (instant-ngp / LOM);
+2. a COLMAP model (``.``, ``sparse/0``, ``sparse``, ``colmap_sparse/0``, ...) -> "colmap";
+3. photos in ``images/`` (or the ``images`` folder given), ``low/``, or directly in the folder -> "sfm" (pycolmap
+   SfM, cached in ``<scene>/retinexgs_sfm``).
+
+Caches (the only files written into the scene folder; ``cache_dir=`` moves them elsewhere):
+``<scene>/retinexgs_cache/{undistorted,downscaled}/...`` for processed images and
+``<scene>/retinexgs_sfm/`` (or ``<cache_dir>/sfm``) for the SfM model.
+
+Without input points (a transforms JSON with no COLMAP model), initial points are random: points along
+random train-camera rays at depths uniform in [0.05, 2.5] (normalised units, i.e. up to 2.5 times the
+largest camera distance from the rig centre), kept only when inside the frustum of at least two train
+views (of all, if fewer); colour mid-grey.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable, Dict, List, Optional, Tuple, Union
+
+import numpy as np
+import torch
+
+from retinexgs.data.camera import Camera
+from retinexgs.data.images import image_size, list_images
+from retinexgs.data.raw import RawScene, RawView
+from retinexgs.data.scene import Normalization, Scene, View
+from retinexgs.data.undistort import output_camera, plan_paths, process_all
+from retinexgs.errors import UserError
+
+READERS = ("auto", "transforms", "colmap", "sfm")
+PathLike = Union[str, Path]
+
+
+def detect_reader(root: Path, images: Optional[PathLike] = None) -> str:
+    """The reader that fits ``root`` (see the module docstring); UserError when none does."""
+    from retinexgs.data.colmap import find_model_dir
+    from retinexgs.data.transforms_json import has_transforms
+
+    if has_transforms(root):
+        return "transforms"
+    if find_model_dir(root) is not None:
+        return "colmap"
+    if _sfm_image_dir(root, images) is not None:
+        return "sfm"
+    raise UserError(f"{root} holds no photos, transforms_*.json or COLMAP model; nothing to load")
+
+
+def _sfm_image_dir(root: Path, images: Optional[PathLike]) -> Optional[Path]:
+    if images is not None:
+        d = Path(images) if Path(images).is_absolute() else root / images
+        return d if list_images(d) else None
+    for d in (root / "images", root / "low", root):
+        if list_images(d):
+            return d
+    return None
+
+
+def _fit_camera(view: RawView) -> Camera:
+    """The view's camera adjusted to the actual image size (same aspect ratio), else UserError."""
+    w, h = image_size(view.image)
+    cam = view.camera
+    if view.paired is not None and image_size(view.paired) != (w, h):
+        raise UserError(f"paired images differ in size: {view.image} is {w}x{h}, "
+                        f"{view.paired} is {image_size(view.paired)[0]}x{image_size(view.paired)[1]}")
+    if (w, h) == (cam.width, cam.height):
+        return cam
+    if abs(w / h - cam.width / cam.height) > 0.01 * cam.width / cam.height:
+        raise UserError(f"image {view.image} is {w}x{h} pixels but its camera is {cam.width}x{cam.height}")
+    return cam.scaled(w, h)
+
+
+def _normalization(train: List[RawView]) -> Normalization:
+    centres = np.stack([v.c2w[:3, 3] for v in train])
+    centre = centres.mean(0)
+    radius = float(np.linalg.norm(centres - centre, axis=1).max())
+    scale = 1.0 / radius if radius > 1e-12 else 1.0
+    return Normalization(torch.tensor(centre, dtype=torch.float64), scale)
+
+
+def random_frustum_points(views: List[View], n: int, seed: int = 0) -> np.ndarray:
+    """``n`` random points seen by at least min(2, len(views)) views (see the module docstring)."""
+    rng = np.random.default_rng(seed)
+    need = min(2, len(views))
+    kept: List[np.ndarray] = []
+    total = 0
+    for _ in range(20):
+        m = max(4 * n, 1000)
+        idx = rng.integers(0, len(views), m)
+        pts = np.empty((m, 3))
+        for i in np.unique(idx):
+            sel = idx == i
+            v = views[i]
+            k = int(sel.sum())
+            u = rng.uniform(0, v.width, k)
+            w = rng.uniform(0, v.height, k)
+            d = rng.uniform(0.05, 2.5, k)
+            cam = np.stack([(u - v.cx) / v.fx * d, (w - v.cy) / v.fy * d, d], -1)
+            c2w = v.camera_to_world.numpy()
+            pts[sel] = cam @ c2w[:3, :3].T + c2w[:3, 3]
+        seen = np.zeros(m, dtype=np.int64)
+        for v in views:
+            uvz = v.project(pts).numpy()
+            seen += ((uvz[:, 2] > 1e-6) & (uvz[:, 0] >= 0) & (uvz[:, 0] < v.width)
+                     & (uvz[:, 1] >= 0) & (uvz[:, 1] < v.height))
+        good = pts[seen >= need]
+        kept.append(good)
+        total += len(good)
+        if total >= n:
+            break
+    out = np.concatenate(kept)[:n]
+    return out
+
+
+def build_scene(raw: RawScene, downscale: float = 1, cache_dir: Optional[PathLike] = None,
+                normalize: bool = True, num_random_points: int = 50_000, seed: int = 0) -> Scene:
+    """Turn a reader's :class:`RawScene` into a :class:`Scene` (images processed into the cache)."""
+    if downscale < 1:
+        raise UserError(f"downscale must be >= 1, got {downscale}")
+    root = Path(raw.root)
+    cache = Path(cache_dir) if cache_dir is not None else root / "retinexgs_cache"
+    jobs: List[Tuple[Path, Path, Camera, Camera]] = []
+    split_views: Dict[str, List[View]] = {}
+    all_raw = raw.train + raw.test + raw.val
+    cams = {id(v): _fit_camera(v) for v in all_raw}
+    norm = _normalization(raw.train) if normalize else Normalization.identity()
+    for split, rv in (("train", raw.train), ("test", raw.test), ("val", raw.val)):
+        views = []
+        for v in rv:
+            cam = cams[id(v)]
+            srcs = [v.image] + ([v.paired] if v.paired is not None else [])
+            mapping = plan_paths(srcs, root, cache, cam, downscale, jobs)
+            oc = output_camera(cam, downscale)
+            c2w = norm.pose_to_normalized(torch.tensor(v.c2w, dtype=torch.float64))
+            views.append(View(v.name, mapping[v.image], oc.fx, oc.fy, oc.cx, oc.cy, oc.width, oc.height, c2w,
+                              mapping[v.paired] if v.paired is not None else None, v.image))
+        split_views[split] = views
+    if jobs:
+        try:
+            cache.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise UserError(f"cannot create the cache folder {cache}: {exc}; pass cache_dir=...") from None
+        process_all(jobs)
+    if raw.points is not None and len(raw.points):
+        pts = norm.to_normalized(np.asarray(raw.points, np.float64))
+        points = torch.tensor(pts, dtype=torch.float32)
+        colors = torch.tensor(np.asarray(raw.colors, np.float32) / 255.0)
+        source = raw.points_source
+    else:
+        pts = random_frustum_points(split_views["train"], num_random_points, seed)
+        points = torch.tensor(pts, dtype=torch.float32)
+        colors = torch.full_like(points, 0.5)
+        source = "random"
+    return Scene(root, raw.reader, split_views["train"], split_views["test"], points, colors, norm, source,
+                 split_views["val"])
+
+
+def load_scene(path: PathLike, reader: str = "auto", downscale: float = 1, *, images: Optional[PathLike] = None,
+               cache_dir: Optional[PathLike] = None, normalize: bool = True, test_every: int = 0,
+               num_random_points: int = 50_000, seed: int = 0, sfm_options: Optional[dict] = None,
+               progress: Optional[Callable[[str], None]] = None) -> Scene:
+    """Load a scene folder in any supported format (see the module docstring).
+
+    ``reader``: "auto", "transforms", "colmap" or "sfm". ``downscale``: resize factor (>= 1) applied to
+    images and intrinsics. ``images``: image folder for the colmap/sfm readers (relative to ``path`` or
+    absolute). ``test_every``: for colmap/sfm scenes without split.json, hold out every N-th view.
+    ``sfm_options``: keyword arguments for :func:`retinexgs.data.sfm.run_sfm`.
+    """
+    root = Path(path)
+    if not root.exists():
+        raise UserError(f"scene folder {root} does not exist")
+    if not root.is_dir():
+        raise UserError(f"{root} is not a folder; pass the scene folder")
+    if reader not in READERS:
+        raise UserError(f"unknown reader {reader!r}; choose one of {', '.join(READERS)}")
+    if reader == "auto":
+        reader = detect_reader(root, images)
+    if reader == "transforms":
+        from retinexgs.data.transforms_json import read_transforms_scene
+        raw = read_transforms_scene(root)
+    elif reader == "colmap":
+        from retinexgs.data.colmap import read_colmap_scene
+        raw = read_colmap_scene(root, images=images, test_every=test_every)
+    else:
+        from retinexgs.data.colmap import read_colmap_scene
+        from retinexgs.data.sfm import run_sfm
+        image_dir = _sfm_image_dir(root, images)
+        if image_dir is None:
+            where = images if images is not None else f"{root} or {root / 'images'}"
+            raise UserError(f"no photos found in {where}")
+        out = Path(cache_dir) / "sfm" if cache_dir is not None else root / "retinexgs_sfm"
+        kwargs = dict(sfm_options or {})
+        if progress is not None:
+            kwargs.setdefault("progress", progress)
+        result = run_sfm(image_dir, out, **kwargs)
+        raw = read_colmap_scene(root, result.model_dir, images=image_dir.resolve(), test_every=test_every,
+                                reader="sfm")
+        raw.points_source = "sfm"
+    return build_scene(raw, downscale, cache_dir, normalize, num_random_points, seed)

@@ -1,0 +1,36 @@
+"""What readers hand to :func:`retinexgs.data.load_scene` before images are processed and the world is
+normalised: views with their original (possibly distorted) cameras and world-frame poses."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import List, Optional
+
+import numpy as np
+
+from retinexgs.data.camera import Camera
+
+
+@dataclass
+class RawView:
+    """A view as read from disk: source image, camera as declared, camera-to-world (OpenCV axes, world frame)."""
+
+    name: str
+    image: Path
+    camera: Camera
+    c2w: np.ndarray
+    paired: Optional[Path] = None
+
+
+@dataclass
+class RawScene:
+    """A reader's output: views per split, and world-frame points (None when the input has none)."""
+
+    root: Path
+    reader: str
+    train: List[RawView]
+    test: List[RawView] = field(default_factory=list)
+    val: List[RawView] = field(default_factory=list)
+    points: Optional[np.ndarray] = None  # [P,3] float64
+    colors: Optional[np.ndarray] = None  # [P,3] uint8
+    points_source: str = "colmap"

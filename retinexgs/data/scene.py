@@ -1,0 +1,181 @@
+"""The :class:`Scene` every reader returns: views with pinhole cameras and poses, initial points, and the
+world normalisation that maps between the scene's working frame and the input's world frame.
+
+Normalisation (applied by :func:`retinexgs.data.load_scene` unless ``normalize=False``): the centre is the
+mean of the *train* camera centres and the scale makes the largest distance from that centre to a train
+camera equal to 1 (scale 1 if all train cameras coincide). A world point ``x`` becomes
+``(x - center) * scale``; camera rotations are unchanged, camera centres are mapped like points.
+:meth:`Normalization.to_world` undoes it for exports.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import List, Optional, Union
+
+import numpy as np
+import torch
+
+from retinexgs.data.camera import Camera
+
+ArrayLike = Union[np.ndarray, torch.Tensor]
+
+
+@dataclass
+class Normalization:
+    """Similarity from the input world frame to the working frame: ``x_norm = (x_world - center) * scale``."""
+
+    center: torch.Tensor  # [3] float64, in world units
+    scale: float
+
+    @staticmethod
+    def identity() -> "Normalization":
+        """The normalisation that changes nothing."""
+        return Normalization(torch.zeros(3, dtype=torch.float64), 1.0)
+
+    def to_world(self, xyz: ArrayLike) -> ArrayLike:
+        """Map [...,3] normalised points back to the input's world frame (same type and dtype as given)."""
+        if isinstance(xyz, torch.Tensor):
+            c = self.center.to(device=xyz.device, dtype=xyz.dtype)
+            return xyz / self.scale + c
+        a = np.asarray(xyz)
+        return (a / self.scale + self.center.numpy()).astype(a.dtype if a.dtype.kind == "f" else np.float64)
+
+    def to_normalized(self, xyz: ArrayLike) -> ArrayLike:
+        """Map [...,3] world points into the normalised frame (same type as given)."""
+        if isinstance(xyz, torch.Tensor):
+            c = self.center.to(device=xyz.device, dtype=xyz.dtype)
+            return (xyz - c) * self.scale
+        a = np.asarray(xyz)
+        return ((a - self.center.numpy()) * self.scale).astype(a.dtype if a.dtype.kind == "f" else np.float64)
+
+    def pose_to_normalized(self, c2w: torch.Tensor) -> torch.Tensor:
+        """Map a 4x4 camera-to-world matrix into the normalised frame (rotation kept, centre moved/scaled)."""
+        out = c2w.clone()
+        out[:3, 3] = (c2w[:3, 3] - self.center.to(c2w.dtype)) * self.scale
+        return out
+
+    def pose_to_world(self, c2w: torch.Tensor) -> torch.Tensor:
+        """Map a normalised 4x4 camera-to-world matrix back to the input's world frame."""
+        out = c2w.clone()
+        out[:3, 3] = c2w[:3, 3] / self.scale + self.center.to(c2w.dtype)
+        return out
+
+
+@dataclass
+class View:
+    """One photo with its camera.
+
+    ``image_path`` is the file the pixels are read from (a cached undistorted/resized copy when the
+    input needed it); ``source_path`` is the user's original file. ``paired_path`` is the normal-light
+    image of the same view when the dataset has one (LOM's ``high/``), preprocessed like the input.
+    Intrinsics are pinhole, in pixels, centre of pixel (0,0) at (0.5, 0.5). ``camera_to_world`` is 4x4
+    float64 in OpenCV axes (x right, y down, z forward), in the scene's normalised frame.
+    """
+
+    name: str
+    image_path: Path
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    camera_to_world: torch.Tensor
+    paired_path: Optional[Path] = None
+    source_path: Optional[Path] = None
+    _image: Optional[torch.Tensor] = field(default=None, repr=False, compare=False)
+    _paired: Optional[torch.Tensor] = field(default=None, repr=False, compare=False)
+
+    @property
+    def image(self) -> torch.Tensor:
+        """The input image as float32 [H,W,3] in [0,1], read on first use and kept."""
+        if self._image is None:
+            self._image = self.load_image()
+        return self._image
+
+    @property
+    def paired_image(self) -> Optional[torch.Tensor]:
+        """The paired normal-light image as float32 [H,W,3] in [0,1], or None when there is none."""
+        if self.paired_path is None:
+            return None
+        if self._paired is None:
+            from retinexgs.data.images import load_image_tensor
+            self._paired = load_image_tensor(self.paired_path)
+        return self._paired
+
+    def load_image(self) -> torch.Tensor:
+        """Read the input image from disk (not cached) as float32 [H,W,3] in [0,1]."""
+        from retinexgs.data.images import load_image_tensor
+        return load_image_tensor(self.image_path)
+
+    def release_images(self) -> None:
+        """Drop the cached image tensors (they are read again on next use)."""
+        self._image = None
+        self._paired = None
+
+    @property
+    def camera(self) -> Camera:
+        """The view's pinhole camera."""
+        return Camera(self.width, self.height, self.fx, self.fy, self.cx, self.cy)
+
+    def K(self) -> torch.Tensor:
+        """3x3 float64 intrinsics matrix (pixel-centre convention)."""
+        return torch.tensor(self.camera.K(), dtype=torch.float64)
+
+    def world_to_camera(self) -> torch.Tensor:
+        """4x4 float64 world-to-camera matrix (inverse of ``camera_to_world``, computed in closed form)."""
+        R = self.camera_to_world[:3, :3]
+        t = self.camera_to_world[:3, 3]
+        out = torch.eye(4, dtype=torch.float64)
+        out[:3, :3] = R.T
+        out[:3, 3] = -R.T @ t
+        return out
+
+    @property
+    def camera_center(self) -> torch.Tensor:
+        """[3] float64 camera centre in the scene frame."""
+        return self.camera_to_world[:3, 3]
+
+    def project(self, points: ArrayLike) -> torch.Tensor:
+        """Project [N,3] scene points to [N,2] float64 pixel positions and return them with depth as [N,3]."""
+        p = torch.as_tensor(np.asarray(points) if not isinstance(points, torch.Tensor) else points,
+                            dtype=torch.float64)
+        w2c = self.world_to_camera()
+        pc = p @ w2c[:3, :3].T + w2c[:3, 3]
+        z = pc[:, 2]
+        u = self.fx * pc[:, 0] / z + self.cx
+        v = self.fy * pc[:, 1] / z + self.cy
+        return torch.stack([u, v, z], dim=-1)
+
+
+@dataclass
+class Scene:
+    """A loaded scene: train/test (and optional val) views, initial points and the world normalisation.
+
+    ``points`` is [P,3] float32 and ``colors`` [P,3] float32 in [0,1], both in the normalised frame.
+    ``points_source`` says where the points came from ("colmap", "sfm" or "random").
+    """
+
+    root: Path
+    reader: str
+    train: List[View]
+    test: List[View]
+    points: torch.Tensor
+    colors: torch.Tensor
+    normalization: Normalization
+    points_source: str = "colmap"
+    val: List[View] = field(default_factory=list)
+
+    @property
+    def views(self) -> List[View]:
+        """Train views followed by test views."""
+        return list(self.train) + list(self.test)
+
+    def summary(self) -> str:
+        """One line describing the scene (counts and resolution)."""
+        sizes = sorted({(v.width, v.height) for v in self.views})
+        res = ", ".join(f"{w}x{h}" for w, h in sizes)
+        paired = sum(v.paired_path is not None for v in self.test)
+        return (f"{self.root} [{self.reader}]: {len(self.train)} train / {len(self.test)} test views "
+                f"({paired} test views paired), {res}, {len(self.points)} {self.points_source} points")

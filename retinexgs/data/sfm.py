@@ -1,0 +1,222 @@
+"""Structure-from-motion on a plain folder of photos with pycolmap, cached on disk.
+
+Pipeline: SIFT extraction (one shared camera, SIMPLE_RADIAL by default, when all photos have one size),
+exhaustive matching for up to ``EXHAUSTIVE_MAX`` photos else sequential matching (overlap 15), incremental
+mapping; the largest model is kept. Dark folders (median luma < 0.25) are first copied to
+``<out>/enhanced/`` brightened and denoised (:mod:`retinexgs.data.enhance`) and features are extracted
+from those copies; the mapper reads point colours from the originals.
+
+Output folder (default ``<scene>/retinexgs_sfm``): ``sparse/0`` (binary model), ``database.db``,
+``enhanced/`` and ``retinexgs_sfm.json`` (the inputs and options of the run). A later call with the same
+photos (names, sizes, modification times) and options reuses the model. The model and database are
+built in a temporary folder and moved into place with ``os.replace``.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import sys
+import tempfile
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, List, Optional, Union
+
+from retinexgs.data.images import image_size, is_fresh, list_images, read_image, write_image_atomic
+from retinexgs.errors import UserError
+
+EXHAUSTIVE_MAX = 100
+Progress = Callable[[str], None]
+
+
+@dataclass
+class SfmResult:
+    """What :func:`run_sfm` produced."""
+
+    model_dir: Path
+    image_dir: Path
+    num_images: int
+    registered: List[str]
+    num_points: int
+    seconds: float
+    enhanced: bool
+    cached: bool = False
+    matching: str = ""
+    stage_seconds: dict = field(default_factory=dict)
+
+    @property
+    def num_registered(self) -> int:
+        """Number of registered photos."""
+        return len(self.registered)
+
+
+def _pycolmap():
+    try:
+        import pycolmap
+    except ImportError:
+        raise UserError("structure-from-motion needs pycolmap: pip install pycolmap") from None
+    return pycolmap
+
+
+def _stderr_progress(msg: str) -> None:
+    print(f"[sfm] {msg}", file=sys.stderr, flush=True)
+
+
+def default_sfm_dir(image_dir: Path) -> Path:
+    """``<scene>/retinexgs_sfm`` where the scene is the photo folder, or its parent if it is named images/."""
+    image_dir = Path(image_dir)
+    root = image_dir.parent if image_dir.name == "images" else image_dir
+    return root / "retinexgs_sfm"
+
+
+def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *, matching: str = "auto",
+            enhance: Union[str, bool] = "auto", camera_model: str = "SIMPLE_RADIAL", single_camera: bool = True,
+            max_num_features: int = 8192, max_image_size: int = 3200, num_threads: int = -1, seed: int = 0,
+            force: bool = False, progress: Optional[Progress] = _stderr_progress) -> SfmResult:
+    """Run SfM on the photos directly inside ``images``; the model goes to ``<out>/sparse/0``.
+
+    ``matching`` is "auto", "exhaustive" or "sequential"; ``enhance`` is "auto" (dark folders only), True
+    or False. Returns a :class:`SfmResult`; reuses a cached model unless ``force``. Raises UserError for
+    an empty folder, unreadable photos, or when no model can be built.
+    """
+    say = progress or (lambda _msg: None)
+    image_dir = Path(images)
+    if not image_dir.is_dir():
+        raise UserError(f"image folder {image_dir} does not exist")
+    paths = list_images(image_dir)
+    if not paths:
+        raise UserError(f"image folder {image_dir} is empty (no .jpg/.png/... files)")
+    if len(paths) < 2:
+        raise UserError(f"image folder {image_dir} holds only one photo; SfM needs at least two")
+    if matching not in ("auto", "exhaustive", "sequential"):
+        raise UserError(f"matching must be auto, exhaustive or sequential, not {matching!r}")
+    if matching == "auto":
+        matching = "exhaustive" if len(paths) <= EXHAUSTIVE_MAX else "sequential"
+    out_dir = Path(out) if out is not None else default_sfm_dir(image_dir)
+    sizes = {p.name: image_size(p) for p in paths}  # also rejects unreadable files early
+    from retinexgs.data.enhance import METHOD as enhance_method
+    options = dict(matching=matching, enhance=str(enhance), enhance_method=enhance_method, camera_model=camera_model,
+                   single_camera=single_camera, max_num_features=max_num_features,
+                   max_image_size=max_image_size, seed=seed)
+    signature = dict(options=options, images=[[p.name, list(sizes[p.name]), p.stat().st_mtime_ns]
+                                              for p in paths])
+    meta_path = out_dir / "retinexgs_sfm.json"
+    model_dir = out_dir / "sparse" / "0"
+    if not force and model_dir.is_dir() and meta_path.is_file():
+        try:
+            meta = json.loads(meta_path.read_text())
+        except (OSError, json.JSONDecodeError):
+            meta = None
+        if meta and meta.get("signature") == signature:
+            say(f"using cached model {model_dir}")
+            r = meta["result"]
+            return SfmResult(model_dir, image_dir, len(paths), r["registered"], r["num_points"],
+                             r["seconds"], r["enhanced"], True, matching, r.get("stage_seconds", {}))
+
+    pycolmap = _pycolmap()
+    t0 = time.perf_counter()
+    stages = {}
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"cannot create SfM output folder {out_dir}: {exc}") from None
+
+    # 1. brightened + denoised copies for feature extraction
+    from retinexgs.data.enhance import enhance_for_features, folder_is_dark  # noqa: E402 (lazy: cv2)
+    do_enhance = folder_is_dark(paths) if enhance == "auto" else bool(enhance)
+    feature_dir = image_dir
+    if do_enhance:
+        feature_dir = out_dir / "enhanced"
+        say(f"brightening and denoising {len(paths)} dark photos into {feature_dir}")
+
+        def work(p: Path) -> None:
+            dst = feature_dir / p.name
+            if not is_fresh(dst, p):
+                write_image_atomic(dst, enhance_for_features(read_image(p)), quality=97)
+
+        with ThreadPoolExecutor(max_workers=min(8, os.cpu_count() or 1)) as pool:
+            list(pool.map(work, paths))
+        stages["enhance"] = time.perf_counter() - t0
+
+    same_size = len(set(sizes.values())) == 1
+    names = [p.name for p in paths]
+    tmp = Path(tempfile.mkdtemp(prefix=".tmp-sfm-", dir=out_dir))
+    old_level = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = 2  # COLMAP's INFO/WARNING lines would drown the progress display
+    try:
+        db = tmp / "database.db"
+        t = time.perf_counter()
+        say(f"extracting features from {len(paths)} photos")
+        ext = pycolmap.FeatureExtractionOptions()
+        ext.num_threads = num_threads
+        ext.max_image_size = max_image_size
+        ext.sift.max_num_features = max_num_features
+        reader = pycolmap.ImageReaderOptions()
+        reader.camera_model = camera_model
+        mode = pycolmap.CameraMode.SINGLE if (single_camera and same_size) else pycolmap.CameraMode.AUTO
+        pycolmap.extract_features(db, feature_dir, image_names=names, camera_mode=mode, reader_options=reader,
+                                  extraction_options=ext, device=pycolmap.Device.cpu)
+        stages["extract"] = time.perf_counter() - t
+
+        t = time.perf_counter()
+        say(f"{matching} matching")
+        mopt = pycolmap.FeatureMatchingOptions()
+        mopt.num_threads = num_threads
+        if matching == "exhaustive":
+            pycolmap.match_exhaustive(db, matching_options=mopt, device=pycolmap.Device.cpu)
+        else:
+            pair = pycolmap.SequentialPairingOptions()
+            pair.overlap = 15
+            pycolmap.match_sequential(db, matching_options=mopt, pairing_options=pair, device=pycolmap.Device.cpu)
+        stages["match"] = time.perf_counter() - t
+
+        t = time.perf_counter()
+        popt = pycolmap.IncrementalPipelineOptions()
+        popt.num_threads = num_threads
+        popt.random_seed = seed
+        popt.min_model_size = min(popt.min_model_size, max(2, len(paths) // 2))
+        count = [0]
+
+        def initial_pair() -> None:
+            count[0] += 2
+            say(f"mapping: initial pair, {count[0]}/{len(paths)} photos")
+
+        def next_image() -> None:
+            count[0] += 1
+            say(f"mapping: {count[0]}/{len(paths)} photos")
+
+        say("incremental mapping")
+        models = pycolmap.incremental_mapping(db, image_dir, tmp / "models", options=popt,
+                                              initial_image_pair_callback=initial_pair,
+                                              next_image_callback=next_image)
+        stages["map"] = time.perf_counter() - t
+        if not models:
+            raise UserError(f"SfM could not build a model from the {len(paths)} photos in {image_dir} "
+                            f"(too few matching features); try brighter or more overlapping photos")
+        best = max(models.values(), key=lambda r: r.num_reg_images())
+        (tmp / "sparse" / "0").mkdir(parents=True)
+        best.write_binary(str(tmp / "sparse" / "0"))
+        registered = sorted(best.images[i].name for i in best.reg_image_ids())
+        num_points = best.num_points3D()
+        seconds = time.perf_counter() - t0
+
+        # move into place: old model aside, new one in, then drop the old one
+        (out_dir / "sparse").mkdir(exist_ok=True)
+        if model_dir.exists():
+            trash = tmp / "old_model"
+            os.replace(model_dir, trash)
+        os.replace(tmp / "sparse" / "0", model_dir)
+        os.replace(db, out_dir / "database.db")
+        result = dict(registered=registered, num_points=num_points, seconds=seconds, enhanced=do_enhance,
+                      stage_seconds=stages)
+        meta_tmp = tmp / "meta.json"
+        meta_tmp.write_text(json.dumps(dict(signature=signature, result=result), indent=1))
+        os.replace(meta_tmp, meta_path)
+    finally:
+        pycolmap.logging.minloglevel = old_level
+        shutil.rmtree(tmp, ignore_errors=True)
+    say(f"registered {len(registered)}/{len(paths)} photos, {num_points} points, {seconds:.1f} s -> {model_dir}")
+    return SfmResult(model_dir, image_dir, len(paths), registered, num_points, seconds, do_enhance, False,
+                     matching, stages)

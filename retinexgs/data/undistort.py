@@ -1,0 +1,131 @@
+"""Undistortion and downscaling of input images into the scene's cache.
+
+A distorted camera (any non-zero OpenCV coefficient) is replaced by a pinhole camera of the same size
+whose intrinsics come from OpenCV's ``getOptimalNewCameraMatrix`` with ``alpha=0``: every output pixel
+sees real image content (no black borders), at the price of a slight crop. Images are remapped with
+bilinear interpolation, then (for ``downscale > 1``) box-filtered to ``round(size / downscale)``; the
+intrinsics are scaled by new_size / old_size in the pixel-centre convention.
+
+Results are cached as PNG under ``<cache>/undistorted/<camera-key>_x<downscale>/`` (or
+``<cache>/downscaled/...`` when only resizing), mirroring the source's path relative to the scene
+folder, written atomically and reused while newer than their source.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
+from functools import lru_cache
+from pathlib import Path
+from typing import Dict, List, Optional, Tuple
+
+import numpy as np
+
+from retinexgs.data.camera import Camera
+from retinexgs.data.images import is_fresh, read_image, resize_image, write_image_atomic
+from retinexgs.errors import UserError
+
+
+def _cv2():
+    try:
+        import cv2
+    except ImportError:
+        raise UserError("undistorting images needs OpenCV: pip install opencv-contrib-python-headless "
+                        "(or opencv-python-headless)") from None
+    return cv2
+
+
+def undistorted_camera(cam: Camera) -> Camera:
+    """The pinhole camera (same size) that :func:`undistort_rgb` produces for ``cam``."""
+    if not cam.is_distorted:
+        return replace(cam, dist=())
+    cv2 = _cv2()
+    size = (cam.width, cam.height)
+    newK, _ = cv2.getOptimalNewCameraMatrix(cam.K_opencv(), np.asarray(cam.dist, np.float64), size, 0.0, size)
+    # back from OpenCV's integer-centre convention to pixel-centre convention
+    return Camera(cam.width, cam.height, float(newK[0, 0]), float(newK[1, 1]),
+                  float(newK[0, 2]) + 0.5, float(newK[1, 2]) + 0.5, ())
+
+
+@lru_cache(maxsize=8)
+def _maps(cam: Camera, new_cam: Camera) -> Tuple[np.ndarray, np.ndarray]:
+    cv2 = _cv2()
+    return cv2.initUndistortRectifyMap(cam.K_opencv(), np.asarray(cam.dist, np.float64), None,
+                                       new_cam.K_opencv(), (new_cam.width, new_cam.height), cv2.CV_32FC1)
+
+
+def undistort_rgb(rgb: np.ndarray, cam: Camera, new_cam: Camera) -> np.ndarray:
+    """Remap a distorted uint8 RGB image taken by ``cam`` to the pinhole camera ``new_cam``."""
+    cv2 = _cv2()
+    if rgb.shape[:2] != (cam.height, cam.width):
+        raise ValueError(f"image is {rgb.shape[1]}x{rgb.shape[0]}, camera is {cam.width}x{cam.height}")
+    map1, map2 = _maps(cam, new_cam)
+    return cv2.remap(rgb, map1, map2, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
+def output_camera(cam: Camera, downscale: float) -> Camera:
+    """Pinhole camera of the cached images: undistorted, then resized by ``1/downscale``."""
+    out = undistorted_camera(cam)
+    if downscale != 1:
+        w = max(1, int(round(cam.width / downscale)))
+        h = max(1, int(round(cam.height / downscale)))
+        out = out.scaled(w, h)
+    return out
+
+
+def needs_processing(cam: Camera, downscale: float) -> bool:
+    """True when images of ``cam`` must be rewritten (distorted, or resized)."""
+    return cam.is_distorted or downscale != 1
+
+
+def cache_path_for(src: Path, root: Path, cache_dir: Path, cam: Camera, downscale: float) -> Path:
+    """Where the processed copy of ``src`` lives in the cache (PNG, mirrors the path under ``root``)."""
+    kind = "undistorted" if cam.is_distorted else "downscaled"
+    tag = f"{cam.key()}_x{downscale:g}"
+    src = Path(src).resolve()
+    try:
+        rel = src.relative_to(Path(root).resolve())
+    except ValueError:  # image outside the scene folder: keep names apart by their folder's hash
+        rel = Path("external") / hashlib.sha1(str(src.parent).encode()).hexdigest()[:10] / src.name
+    return Path(cache_dir) / kind / tag / rel.with_suffix(".png")
+
+
+def process_image(src: Path, dst: Path, cam: Camera, out_cam: Camera) -> None:
+    """Undistort/resize ``src`` (taken by ``cam``) into ``dst`` for ``out_cam``, unless a fresh copy exists."""
+    if is_fresh(dst, src):
+        return
+    rgb = read_image(src)
+    if rgb.shape[:2] != (cam.height, cam.width):
+        raise UserError(f"image {src} is {rgb.shape[1]}x{rgb.shape[0]} pixels but its camera says "
+                        f"{cam.width}x{cam.height}")
+    if cam.is_distorted:
+        rgb = undistort_rgb(rgb, cam, undistorted_camera(cam))
+    rgb = resize_image(rgb, out_cam.width, out_cam.height)
+    write_image_atomic(dst, rgb)
+
+
+def process_all(jobs: List[Tuple[Path, Path, Camera, Camera]], workers: Optional[int] = None) -> None:
+    """Run :func:`process_image` on (src, dst, cam, out_cam) jobs, a few threads at a time."""
+    unique = {j[1]: j for j in jobs}  # the same file may be listed by two splits
+    jobs = [j for j in unique.values() if not is_fresh(j[1], j[0])]
+    if not jobs:
+        return
+    workers = workers or min(8, os.cpu_count() or 1)
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        for f in [pool.submit(process_image, *j) for j in jobs]:
+            f.result()
+
+
+def plan_paths(paths: List[Path], root: Path, cache_dir: Path, cam: Camera, downscale: float,
+               jobs: List[Tuple[Path, Path, Camera, Camera]]) -> Dict[Path, Path]:
+    """Map each source path to the path to read (itself, or its cache copy, queued on ``jobs``)."""
+    if not needs_processing(cam, downscale):
+        return {p: p for p in paths}
+    out_cam = output_camera(cam, downscale)
+    mapping = {}
+    for p in paths:
+        dst = cache_path_for(p, root, cache_dir, cam, downscale)
+        jobs.append((p, dst, cam, out_cam))
+        mapping[p] = dst
+    return mapping
