@@ -15,7 +15,7 @@ from retinexgs.errors import UserError
 
 # Stage modules that contribute sub-commands, in the order ``--help`` lists them.
 _COMMAND_MODULES = [
-    "retinexgs.render.command",
+    "retinexgs.train.command",
     "retinexgs.retinex.command",
     "retinexgs.data.command",
 ]

@@ -1,0 +1,1 @@
+"""Synthetic demo scenes (analytic ray caster) for tests and quick runs."""

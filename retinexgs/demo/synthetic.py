@@ -1,0 +1,437 @@
+"""A small synthetic dark multi-view scene, rendered by an analytic ray caster (no Gaussian renderer).
+
+Scene (world units, y up): a 6×6 checkered ground square at y = 0 with a smooth colour gradient, three
+textured spheres (stripes, a smooth colour gradient, a latitude/longitude checker) and a box with
+gridded faces. Shading, in linear light: a warm directional light with hard shadows from the spheres and
+the box, a cool ambient term, and a smooth spatial falloff (brighter near the scene centre) so the
+illumination is not constant. Rays that miss everything see a dim sky gradient.
+
+Per view, ``high/NNNN.png`` is the normal-light image (2×2 supersampled, sRGB, 8-bit) and
+``low/NNNN.png`` the dark one, made like LOM-style synthetic darkening: in linear light x·k·gain_c
+(k ≈ ``dark_level`` ± ``dark_jitter`` per view, channel gains for a slight blue cast), Poisson shot noise
+(``full_well`` electrons at 1.0) plus Gaussian read noise (``read_noise`` electrons), sRGB, 8-bit.
+The default k = 0.03 makes the low images ~7–8× darker than the high ones in sRGB (mean ratio ≈ 0.13);
+k ≈ 0.06–0.1 gives a ratio of only ~0.2–0.3 after the sRGB curve.
+
+Files written to ``out_dir`` (LOM layout, read by ``retinexgs.data.load_scene``):
+    low/NNNN.png, high/NNNN.png          every view, identical names
+    transforms_train.json                 frames list "low/NNNN.png"
+    transforms_test.json                  frames list "high/NNNN.png"
+        keys: camera_angle_x, camera_angle_y, fl_x, fl_y, cx, cy, w, h, frames[{file_path,
+        transform_matrix}], transform_matrix = camera-to-world 4×4, OpenGL/Blender axes (x right,
+        y up, z backward); cx, cy in the pixel-centre convention (pixel (0,0)'s centre is (0.5, 0.5)).
+    split.json                            {"train": [names], "test": [names]}
+    points3d.npy                          [P,6] float32: xyz (world) + rgb in [0,1] (surface albedo)
+    colmap_sparse/0/{cameras,images,points3D}.txt
+                                          the same cameras (PINHOLE) and points as a COLMAP text model,
+                                          so the ordinary loader picks up the initial points.
+
+Ground truth for tests: :func:`demo_cameras` rebuilds the cameras of a call with the same arguments,
+:meth:`DemoCamera.pixel_rays` gives the caster's rays, :func:`cast_rays` intersects rays with the scene.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Dict, List, Sequence, Tuple, Union
+
+import numpy as np
+from PIL import Image
+
+__all__ = ["DemoCamera", "demo_cameras", "cast_rays", "render_linear", "make_demo_scene",
+           "srgb_to_linear", "linear_to_srgb", "SCENE_CENTER"]
+
+# ----------------------------------------------------------------------------------------------------
+# Scene description (fixed geometry; the seed only moves cameras and draws noise).
+GROUND_HALF = 3.0
+SPHERES = (  # centre, radius, texture id
+    ((-0.65, 0.45, 0.15), 0.45, "stripes"),
+    ((0.75, 0.35, -0.35), 0.35, "gradient"),
+    ((0.15, 0.25, -1.05), 0.25, "checker"),
+)
+BOX = ((0.05, 0.0, 0.75), (0.55, 0.6, 1.25))  # min corner, max corner (axis aligned)
+LIGHT_DIR = np.array([0.45, 1.0, 0.35]) / np.linalg.norm([0.45, 1.0, 0.35])
+LIGHT_RGB = np.array([1.0, 0.93, 0.82]) * 0.95
+AMBIENT_RGB = np.array([0.55, 0.62, 0.75]) * 0.35
+SCENE_CENTER = np.array([0.0, 0.35, 0.0])
+# Object ids returned by cast_rays.
+MISS, GROUND, BOX_ID = -1, 0, 100  # spheres are 1, 2, 3
+
+
+def srgb_to_linear(c: np.ndarray) -> np.ndarray:
+    """sRGB-encoded [0,1] -> linear light."""
+    c = np.clip(c, 0.0, 1.0)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+
+def linear_to_srgb(x: np.ndarray) -> np.ndarray:
+    """Linear light -> sRGB-encoded [0,1] (clipped)."""
+    x = np.clip(x, 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055)
+
+
+# ----------------------------------------------------------------------------------------------------
+# Cameras
+
+@dataclass
+class DemoCamera:
+    """A pinhole camera of the demo scene. ``c2w_gl``: camera-to-world 4×4, OpenGL axes (as in the JSON)."""
+
+    name: str
+    split: str
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    c2w_gl: np.ndarray
+
+    @property
+    def center(self) -> np.ndarray:
+        return self.c2w_gl[:3, 3].copy()
+
+    def pixel_rays(self, offsets: Sequence[Tuple[float, float]] = ((0.5, 0.5),)) -> Tuple[np.ndarray, np.ndarray]:
+        """Ray origins and unit directions [S,H,W,3] through pixel (row i, col j) at (j + ox, i + oy).
+
+        The default offset (0.5, 0.5) is the pixel centre. Image rows go down (−up), columns go right.
+        """
+        right, up, back = self.c2w_gl[:3, 0], self.c2w_gl[:3, 1], self.c2w_gl[:3, 2]
+        j = np.arange(self.width, dtype=np.float64)
+        i = np.arange(self.height, dtype=np.float64)
+        dirs = []
+        for ox, oy in offsets:
+            xn = (j[None, :] + ox - self.cx) / self.fx
+            yn = (i[:, None] + oy - self.cy) / self.fy
+            d = (-back)[None, None] + xn[..., None] * right + (-yn[..., None]) * up
+            dirs.append(d / np.linalg.norm(d, axis=-1, keepdims=True))
+        d = np.stack(dirs)
+        return np.broadcast_to(self.center, d.shape).copy(), d
+
+    def project(self, points: np.ndarray) -> np.ndarray:
+        """World points [N,3] -> [N,3] (u, v, depth), pixel-centre convention (pixel (0,0) centre = (0.5,0.5))."""
+        R, C = self.c2w_gl[:3, :3], self.c2w_gl[:3, 3]
+        pc = (np.asarray(points, np.float64) - C) @ R  # camera coords, GL axes
+        z = -pc[:, 2]
+        return np.stack([self.fx * pc[:, 0] / z + self.cx, self.cy - self.fy * pc[:, 1] / z, z], axis=-1)
+
+
+def _look_at_gl(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
+    fwd = target - eye
+    fwd = fwd / np.linalg.norm(fwd)
+    right = np.cross(fwd, np.array([0.0, 1.0, 0.0]))
+    right = right / np.linalg.norm(right)
+    up = np.cross(right, fwd)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, up, -fwd, eye
+    return m
+
+
+def _test_indices(n_total: int, n_test: int) -> List[int]:
+    if n_test <= 0:
+        return []
+    return sorted({int(round((k + 0.5) * n_total / n_test)) % n_total for k in range(n_test)})
+
+
+def demo_cameras(n_train: int = 12, n_test: int = 4, width: int = 96, height: int = 72, seed: int = 0,
+                 fov_x_deg: float = 60.0, radius: float = 3.2, cam_height: float = 1.6) -> List[DemoCamera]:
+    """The cameras :func:`make_demo_scene` uses for the same arguments, in file-name order.
+
+    Views sit evenly on a circle of ``radius`` around the scene centre (heights jittered by ±0.15 and
+    angles by ±3° from ``seed``), all looking at :data:`SCENE_CENTER`; every (n/n_test)-th view is a
+    test view.
+    """
+    n = n_train + n_test
+    if n_train < 1 or n_test < 0:
+        raise ValueError("need n_train >= 1 and n_test >= 0")
+    rng = np.random.default_rng([seed, 1])
+    test = set(_test_indices(n, n_test))
+    if len(test) != n_test:
+        raise ValueError("n_test too large for the number of views")
+    fx = 0.5 * width / math.tan(math.radians(fov_x_deg) / 2)
+    cams = []
+    for k in range(n):
+        a = 2 * math.pi * k / n + math.radians(rng.uniform(-3, 3))
+        h = cam_height + rng.uniform(-0.15, 0.15)
+        eye = np.array([radius * math.sin(a), h, radius * math.cos(a)])
+        cams.append(DemoCamera(f"{k:04d}.png", "test" if k in test else "train", width, height,
+                               fx, fx, width / 2.0, height / 2.0, _look_at_gl(eye, SCENE_CENTER)))
+    return cams
+
+
+# ----------------------------------------------------------------------------------------------------
+# Ray casting
+
+def _hit_spheres(o: np.ndarray, d: np.ndarray, tmin: float = 1e-6):
+    """Nearest sphere hit: t [N] (inf on miss), sphere index [N] (-1 on miss)."""
+    t_best = np.full(o.shape[0], np.inf)
+    idx = np.full(o.shape[0], -1)
+    for s, (c, r, _) in enumerate(SPHERES):
+        oc = o - np.asarray(c)
+        b = np.einsum("ij,ij->i", oc, d)
+        disc = b * b - (np.einsum("ij,ij->i", oc, oc) - r * r)
+        sq = np.sqrt(np.maximum(disc, 0.0))
+        t0, t1 = -b - sq, -b + sq
+        t = np.where(t0 > tmin, t0, np.where(t1 > tmin, t1, np.inf))
+        t = np.where(disc >= 0, t, np.inf)
+        better = t < t_best
+        t_best = np.where(better, t, t_best)
+        idx = np.where(better, s, idx)
+    return t_best, idx
+
+
+def _hit_box(o: np.ndarray, d: np.ndarray, tmin: float = 1e-6):
+    """Box hit (slab method): t [N] (inf on miss) and the axis of the entry face [N]."""
+    lo, hi = np.asarray(BOX[0]), np.asarray(BOX[1])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / np.where(d == 0, 1e-30, d)
+        ta, tb = (lo - o) * inv, (hi - o) * inv
+    tnear = np.minimum(ta, tb)
+    tfar = np.maximum(ta, tb)
+    t0 = tnear.max(1)
+    axis = tnear.argmax(1)
+    t1 = tfar.min(1)
+    hit = (t0 <= t1) & (t0 > tmin)
+    return np.where(hit, t0, np.inf), axis
+
+
+def _hit_ground(o: np.ndarray, d: np.ndarray, tmin: float = 1e-6) -> np.ndarray:
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = -o[:, 1] / d[:, 1]
+    p = o + t[:, None] * d
+    ok = (d[:, 1] < 0) & (t > tmin) & (np.abs(p[:, 0]) <= GROUND_HALF) & (np.abs(p[:, 2]) <= GROUND_HALF)
+    return np.where(ok, t, np.inf)
+
+
+def cast_rays(origins: np.ndarray, dirs: np.ndarray) -> Dict[str, np.ndarray]:
+    """Intersect rays [...,3] (unit ``dirs``) with the scene.
+
+    Returns a dict of arrays with the rays' leading shape: ``t`` (inf on miss), ``point`` [...,3],
+    ``normal`` [...,3], ``obj`` (:data:`MISS` = -1, ground 0, spheres 1..3, box 100) and ``albedo``
+    [...,3] (sRGB-encoded texture colour, 0 on miss).
+    """
+    shape = origins.shape[:-1]
+    o = np.asarray(origins, np.float64).reshape(-1, 3)
+    d = np.asarray(dirs, np.float64).reshape(-1, 3)
+    ts, si = _hit_spheres(o, d)
+    tb, axis = _hit_box(o, d)
+    tg = _hit_ground(o, d)
+    t = np.minimum(np.minimum(ts, tb), tg)
+    obj = np.full(o.shape[0], MISS)
+    obj = np.where(np.isfinite(tg) & (tg == t), GROUND, obj)
+    obj = np.where(np.isfinite(tb) & (tb == t), BOX_ID, obj)
+    obj = np.where(np.isfinite(ts) & (ts == t), si + 1, obj)
+    p = o + np.where(np.isfinite(t), t, 0.0)[:, None] * d
+    n = np.zeros_like(p)
+    n[obj == GROUND] = (0.0, 1.0, 0.0)
+    for s, (c, r, _) in enumerate(SPHERES):
+        m = obj == s + 1
+        n[m] = (p[m] - np.asarray(c)) / r
+    m = obj == BOX_ID
+    if m.any():
+        nb = np.zeros((int(m.sum()), 3))
+        ax = axis[m]
+        nb[np.arange(len(ax)), ax] = -np.sign(d[m][np.arange(len(ax)), ax])
+        n[m] = nb
+    albedo = _albedo(p, n, obj)
+    out = {"t": t, "point": p, "normal": n, "obj": obj, "albedo": albedo}
+    return {k: v.reshape(shape + v.shape[1:]) for k, v in out.items()}
+
+
+def _albedo(p: np.ndarray, n: np.ndarray, obj: np.ndarray) -> np.ndarray:
+    """Procedural sRGB albedo at surface points."""
+    a = np.zeros_like(p)
+    m = obj == GROUND
+    if m.any():
+        q = p[m]
+        chk = (np.floor(q[:, 0] / 0.5) + np.floor(q[:, 2] / 0.5)) % 2
+        u = (q[:, 0] / GROUND_HALF + 1) / 2
+        base = np.stack([0.55 + 0.25 * u, 0.5 - 0.1 * u, 0.35 + 0.2 * (1 - u)], -1)
+        a[m] = base * (0.6 + 0.4 * chk)[:, None]
+    for s, (c, r, tex) in enumerate(SPHERES):
+        m = obj == s + 1
+        if not m.any():
+            continue
+        q = (p[m] - np.asarray(c)) / r
+        lon = np.arctan2(q[:, 2], q[:, 0])
+        lat = np.arcsin(np.clip(q[:, 1], -1, 1))
+        if tex == "stripes":
+            st = (np.floor(lon / (np.pi / 6)) % 2)[:, None]
+            a[m] = st * np.array([0.85, 0.2, 0.15]) + (1 - st) * np.array([0.95, 0.85, 0.6])
+        elif tex == "gradient":
+            a[m] = np.clip(0.25 + 0.6 * (q * 0.5 + 0.5)[:, [1, 2, 0]], 0, 1)
+        else:
+            chk = ((np.floor(lon / (np.pi / 4)) + np.floor(lat / (np.pi / 6))) % 2)[:, None]
+            a[m] = chk * np.array([0.15, 0.45, 0.8]) + (1 - chk) * np.array([0.9, 0.9, 0.85])
+    m = obj == BOX_ID
+    if m.any():
+        q = p[m]
+        grid = ((np.abs(((q / 0.1) % 1.0) - 0.5) > 0.4) & (np.abs(n[m]) < 0.5)).any(1)
+        base = np.array([0.3, 0.7, 0.35])
+        a[m] = np.where(grid[:, None], np.array([0.1, 0.15, 0.1]), base)
+    return a
+
+
+def _shadowed(p: np.ndarray, n: np.ndarray) -> np.ndarray:
+    o = p + 1e-4 * n
+    d = np.broadcast_to(LIGHT_DIR, o.shape)
+    ts, _ = _hit_spheres(o, d)
+    tb, _ = _hit_box(o, d)
+    return np.isfinite(ts) | np.isfinite(tb)
+
+
+def render_linear(cam: DemoCamera, supersample: int = 2) -> np.ndarray:
+    """Normal-light linear radiance [H,W,3] of ``cam`` (``supersample``² rays per pixel, box-filtered)."""
+    ss = max(1, int(supersample))
+    offs = [((a + 0.5) / ss, (b + 0.5) / ss) for b in range(ss) for a in range(ss)]
+    o, d = cam.pixel_rays(offs)
+    hit = cast_rays(o, d)
+    obj = hit["obj"].reshape(-1)
+    p, n = hit["point"].reshape(-1, 3), hit["normal"].reshape(-1, 3)
+    albedo = srgb_to_linear(hit["albedo"].reshape(-1, 3))
+    lit = obj != MISS
+    ndl = np.clip(n @ LIGHT_DIR, 0.0, None)
+    vis = np.ones_like(ndl)
+    if lit.any():
+        vis[lit] = ~_shadowed(p[lit], n[lit])
+    r2 = p[:, 0] ** 2 + p[:, 2] ** 2
+    falloff = 0.55 + 0.45 * np.exp(-r2 / 4.0)  # smooth, spatially varying illumination
+    irr = (AMBIENT_RGB[None] + LIGHT_RGB[None] * (ndl * vis)[:, None]) * falloff[:, None]
+    rad = albedo * irr
+    dd = d.reshape(-1, 3)
+    sky = (0.06 + 0.10 * np.clip(dd[:, 1], 0, 1))[:, None] * np.array([0.8, 0.9, 1.2])
+    rad = np.where(lit[:, None], rad, sky)
+    return rad.reshape(ss * ss, cam.height, cam.width, 3).mean(0)
+
+
+# ----------------------------------------------------------------------------------------------------
+# Points and files
+
+def _sample_points(n: int, rng: np.random.Generator) -> np.ndarray:
+    """[n,6] surface points (xyz, sRGB albedo in [0,1]) on the ground, spheres (above ground) and box."""
+    n_ground = n // 2
+    g = np.stack([rng.uniform(-GROUND_HALF, GROUND_HALF, n_ground), np.zeros(n_ground),
+                  rng.uniform(-GROUND_HALF, GROUND_HALF, n_ground)], -1)
+    pts, normals, objs = [g], [np.tile([0.0, 1.0, 0.0], (n_ground, 1))], [np.full(n_ground, GROUND)]
+    rest = n - n_ground
+    per = rest // (len(SPHERES) + 1)
+    for s, (c, r, _) in enumerate(SPHERES):
+        v = rng.normal(size=(4 * per, 3))
+        v /= np.linalg.norm(v, axis=1, keepdims=True)
+        q = np.asarray(c) + r * v
+        keep = q[:, 1] > 0.0
+        q, v = q[keep][:per], v[keep][:per]
+        pts.append(q), normals.append(v), objs.append(np.full(len(q), s + 1))
+    nb = n - sum(len(x) for x in pts)
+    lo, hi = np.asarray(BOX[0]), np.asarray(BOX[1])
+    q = rng.uniform(lo, hi, size=(nb, 3))
+    ax = rng.choice([0, 1, 2, 0, 2], size=nb)  # faces: ±x, top, ±z (no bottom)
+    side = rng.integers(0, 2, nb)
+    side[ax == 1] = 1
+    q[np.arange(nb), ax] = np.where(side == 1, hi[ax], lo[ax])
+    nrm = np.zeros((nb, 3))
+    nrm[np.arange(nb), ax] = np.where(side == 1, 1.0, -1.0)
+    pts.append(q), normals.append(nrm), objs.append(np.full(nb, BOX_ID))
+    p, nn, o = np.concatenate(pts), np.concatenate(normals), np.concatenate(objs)
+    return np.concatenate([p, _albedo(p, nn, o)], 1)
+
+
+def _rotmat_to_qvec(R: np.ndarray) -> np.ndarray:
+    """Rotation matrix -> unit quaternion (w, x, y, z) with w ≥ 0."""
+    K = np.array([
+        [R[0, 0] - R[1, 1] - R[2, 2], R[1, 0] + R[0, 1], R[2, 0] + R[0, 2], R[2, 1] - R[1, 2]],
+        [R[1, 0] + R[0, 1], R[1, 1] - R[0, 0] - R[2, 2], R[2, 1] + R[1, 2], R[0, 2] - R[2, 0]],
+        [R[2, 0] + R[0, 2], R[2, 1] + R[1, 2], R[2, 2] - R[0, 0] - R[1, 1], R[1, 0] - R[0, 1]],
+        [R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1], R[0, 0] + R[1, 1] + R[2, 2]],
+    ]) / 3.0
+    w, v = np.linalg.eigh(K)
+    q = v[[3, 0, 1, 2], np.argmax(w)]
+    return q if q[0] >= 0 else -q
+
+
+def _write_colmap_text(model_dir: Path, cams: List[DemoCamera], points: np.ndarray) -> None:
+    """The cameras (PINHOLE, world-to-camera in OpenCV axes) and points as a COLMAP text model."""
+    model_dir.mkdir(parents=True, exist_ok=True)
+    c = cams[0]
+    (model_dir / "cameras.txt").write_text(
+        "# CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n"
+        f"1 PINHOLE {c.width} {c.height} {float(c.fx)!r} {float(c.fy)!r} {float(c.cx)!r} {float(c.cy)!r}\n")
+    lines = ["# IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME", "# POINTS2D[] as (X, Y, POINT3D_ID)"]
+    for k, cam in enumerate(cams):
+        c2w = cam.c2w_gl.copy()
+        c2w[:3, 1:3] *= -1.0  # OpenGL -> OpenCV axes
+        R = c2w[:3, :3].T
+        t = -R @ c2w[:3, 3]
+        vals = " ".join(repr(float(x)) for x in (*_rotmat_to_qvec(R), *t))
+        lines += [f"{k + 1} {vals} 1 {cam.name}", ""]
+    (model_dir / "images.txt").write_text("\n".join(lines) + "\n")
+    rgb = np.clip(np.round(points[:, 3:] * 255), 0, 255).astype(int)
+    pl = ["# POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)"]
+    for i, (p, c8) in enumerate(zip(points[:, :3], rgb)):
+        x, y, z = (repr(float(v)) for v in p)
+        pl.append(f"{i + 1} {x} {y} {z} {int(c8[0])} {int(c8[1])} {int(c8[2])} 0.0")
+    (model_dir / "points3D.txt").write_text("\n".join(pl) + "\n")
+
+
+def _transforms_json(cams: List[DemoCamera], folder: str) -> dict:
+    c = cams[0]
+    return {
+        "camera_angle_x": 2 * math.atan(c.width / (2 * c.fx)),
+        "camera_angle_y": 2 * math.atan(c.height / (2 * c.fy)),
+        "fl_x": c.fx, "fl_y": c.fy, "cx": c.cx, "cy": c.cy, "w": c.width, "h": c.height,
+        "frames": [{"file_path": f"{folder}/{cam.name}", "transform_matrix": cam.c2w_gl.tolist()}
+                   for cam in cams],
+    }
+
+
+def _to_u8(x: np.ndarray) -> np.ndarray:
+    return np.clip(np.round(x * 255.0), 0, 255).astype(np.uint8)
+
+
+def make_demo_scene(out_dir: Union[str, Path], n_train: int = 12, n_test: int = 4, width: int = 96,
+                    height: int = 72, seed: int = 0, n_points: int = 4000, dark_level: float = 0.03,
+                    dark_jitter: float = 0.1, color_cast: Tuple[float, float, float] = (0.92, 0.97, 1.1),
+                    full_well: float = 2000.0, read_noise: float = 3.0, supersample: int = 2,
+                    exposure: float = 1.6) -> Path:
+    """Render and write a dark multi-view demo scene to ``out_dir`` (see the module docstring).
+
+    Args:
+        n_train, n_test: numbers of train and test views (all views get low/ and high/ images).
+        width, height: image size in pixels.
+        seed: fixes camera jitter, per-view darkening and noise, and the sampled points.
+        n_points: number of initial surface points.
+        dark_level, dark_jitter: k = dark_level·(1 + U(−dark_jitter, dark_jitter)) per view (linear light).
+        color_cast: per-channel gains of the dark images (also jittered ±3 % per view).
+        full_well, read_noise: sensor model in electrons (shot noise at full_well for linear 1.0).
+        supersample: rays per pixel side for anti-aliasing.
+        exposure: linear gain of the normal-light rendering.
+
+    Returns:
+        ``Path(out_dir)``. Ground-truth cameras: ``demo_cameras(n_train, n_test, width, height, seed)``.
+    """
+    out = Path(out_dir)
+    (out / "low").mkdir(parents=True, exist_ok=True)
+    (out / "high").mkdir(parents=True, exist_ok=True)
+    cams = demo_cameras(n_train, n_test, width, height, seed)
+    rng = np.random.default_rng([seed, 2])
+    for cam in cams:
+        lin = np.clip(render_linear(cam, supersample) * exposure, 0.0, 1.0)
+        Image.fromarray(_to_u8(linear_to_srgb(lin))).save(out / "high" / cam.name)
+        k = dark_level * (1.0 + rng.uniform(-dark_jitter, dark_jitter))
+        gains = np.asarray(color_cast) * (1.0 + rng.uniform(-0.03, 0.03, 3))
+        electrons = lin * k * gains * full_well
+        noisy = rng.poisson(electrons).astype(np.float64) + rng.normal(0.0, read_noise, lin.shape)
+        low = linear_to_srgb(np.clip(noisy / full_well, 0.0, 1.0))
+        Image.fromarray(_to_u8(low)).save(out / "low" / cam.name)
+    train = [c for c in cams if c.split == "train"]
+    test = [c for c in cams if c.split == "test"]
+    (out / "transforms_train.json").write_text(json.dumps(_transforms_json(train, "low"), indent=2))
+    (out / "transforms_test.json").write_text(json.dumps(_transforms_json(test, "high"), indent=2))
+    (out / "split.json").write_text(json.dumps({"train": [c.name for c in train], "test": [c.name for c in test]},
+                                               indent=2))
+    pts = _sample_points(n_points, np.random.default_rng([seed, 3]))
+    np.save(out / "points3d.npy", pts.astype(np.float32))
+    _write_colmap_text(out / "colmap_sparse" / "0", cams, pts)
+    return out

@@ -1,0 +1,1 @@
+"""Evaluation metrics: PSNR, SSIM and (when available locally) LPIPS."""

@@ -1,0 +1,93 @@
+"""Evaluate a trained model on the scene's test views: PSNR / SSIM (and LPIPS when available) of the enhanced
+renders against the normal-light images, side-by-side PNGs, and ``metrics.json`` (written atomically)."""
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Callable, Dict, List, Optional
+
+import numpy as np
+import torch
+from PIL import Image
+
+from retinexgs.data import Scene
+from retinexgs.evaluate.metrics import lpips_metric, psnr, ssim_metric
+
+
+def to_uint8(img: torch.Tensor) -> np.ndarray:
+    """[H,W,C] float in [0,1] (C = 1 or 3) -> [H,W,3] uint8."""
+    x = img.detach().float().clamp(0, 1).cpu()
+    if x.shape[-1] == 1:
+        x = x.expand(*x.shape[:-1], 3)
+    return (x.numpy() * 255 + 0.5).astype(np.uint8)
+
+
+def save_png(img: torch.Tensor, path: Path) -> None:
+    """Write an [H,W,C] image in [0,1] as PNG, atomically."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".png", dir=path.parent)
+    os.close(fd)
+    try:
+        Image.fromarray(to_uint8(img)).save(tmp, format="PNG")
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def atomic_json(obj: Dict, path: Path) -> None:
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    with os.fdopen(fd, "w") as f:
+        json.dump(obj, f, indent=2)
+    os.replace(tmp, path)
+
+
+def evaluate(render_fn: Callable, scene: Scene, out_dir: Path, use_lpips: bool = True,
+             log: Callable[[str], None] = print) -> Optional[Dict]:
+    """Render every test view with ``render_fn(view) -> dict`` (key ``rgb``, optional ``R``, ``L``), compare
+    with its paired normal-light image, write ``out_dir/renders/test/*.png`` and ``out_dir/metrics.json``.
+
+    Returns the metrics, or None (with the reason logged and written) when there is nothing to compare.
+    """
+    views = [v for v in scene.test if v.paired_path is not None]
+    if not views:
+        reason = ("the scene has no test views" if not scene.test else
+                  "the test views have no paired normal-light images")
+        log(f"evaluation skipped: {reason}")
+        atomic_json({"skipped": reason}, out_dir / "metrics.json")
+        return None
+    rows: List[Dict] = []
+    lpips_reason = ""
+    for view in views:
+        with torch.no_grad():
+            res = render_fn(view)
+        gt = view.paired_image
+        low = view.image
+        rgb = res["rgb"].float().cpu()
+        row = {"view": view.name, "psnr": psnr(rgb, gt), "ssim": ssim_metric(rgb, gt),
+               "low_psnr": psnr(low, gt), "low_ssim": ssim_metric(low, gt)}
+        if use_lpips:
+            value, lpips_reason = lpips_metric(rgb, gt)
+            if value is not None:
+                row["lpips"] = value
+        rows.append(row)
+        panels = [low, rgb]
+        if "R" in res:
+            L = res["L"].float().cpu()
+            panels += [res["R"].float().cpu(), L / L.amax().clamp_min(1e-6)]
+        panels.append(gt)
+        save_png(torch.cat([p.float().cpu()[..., :3] if p.shape[-1] >= 3 else p.float().cpu().expand(
+            *p.shape[:-1], 3) for p in panels], dim=1), out_dir / "renders" / "test" / f"{Path(view.name).stem}.png")
+    mean = {k: float(np.mean([r[k] for r in rows])) for k in rows[0] if k != "view"}
+    metrics = {"mean": mean, "views": rows, "panels": "low input | output | R̂ | L̂ (normalised) | ground truth"
+               if "R" in res else "low input | output | ground truth"}
+    if use_lpips and "lpips" not in mean:
+        metrics["lpips_unavailable"] = lpips_reason
+        log(f"LPIPS not reported: {lpips_reason}")
+    atomic_json(metrics, out_dir / "metrics.json")
+    log(f"test views: PSNR {mean['psnr']:.2f} dB, SSIM {mean['ssim']:.3f}"
+        + (f", LPIPS {mean['lpips']:.3f}" if "lpips" in mean else "")
+        + f"  (low input: PSNR {mean['low_psnr']:.2f} dB, SSIM {mean['low_ssim']:.3f})")
+    return metrics

@@ -1,0 +1,127 @@
+"""Image-quality metrics for evaluating rendered test views against the normal-light references.
+
+All functions take two images of the same shape, [H,W,3] (or [H,W]) float tensors or arrays in [0,1]
+(data range 1), compared as given: no colour alignment, no cropping, as peers report on LOM.
+Metrics are computed in float64 on the CPU side of the caller's device.
+
+- :func:`psnr`: 10·log10(1 / MSE) in dB (inf for identical images).
+- :func:`ssim_metric`: the standard evaluation SSIM (Wang et al. 2004): 11×11 Gaussian window,
+  σ = 1.5, C1 = 0.01², C2 = 0.03², "valid" filtering (no padding), population covariances, computed per
+  RGB channel and averaged over channels and positions. This is what skimage's
+  ``structural_similarity(..., gaussian_weights=True, use_sample_covariance=False, data_range=1,
+  channel_axis=-1)`` and the NeRF-family evaluation code compute.
+- :func:`lpips_metric`: LPIPS when the ``lpips`` package, its linear-layer weights and the torchvision
+  backbone weights are already on this machine; never downloads. Returns (value, "") or (None, reason).
+"""
+from __future__ import annotations
+
+import importlib.util
+import math
+from pathlib import Path
+from typing import Dict, Optional, Tuple, Union
+
+import numpy as np
+import torch
+
+from retinexgs.train.losses import ssim as _ssim
+
+__all__ = ["psnr", "ssim_metric", "lpips_metric", "lpips_available"]
+
+ImageLike = Union[torch.Tensor, np.ndarray]
+
+# torchvision's backbone checkpoints that lpips loads (file names as torchvision stores them).
+_BACKBONE_FILES = {
+    "alex": "alexnet-owt-7be5be79.pth",
+    "vgg": "vgg16-397923af.pth",
+    "squeeze": "squeezenet1_1-b8a52dc0.pth",
+}
+_LPIPS_CACHE: Dict[Tuple[str, str], object] = {}
+
+
+def _as_pair(x: ImageLike, y: ImageLike) -> Tuple[torch.Tensor, torch.Tensor]:
+    x = torch.as_tensor(np.asarray(x) if not isinstance(x, torch.Tensor) else x).detach()
+    y = torch.as_tensor(np.asarray(y) if not isinstance(y, torch.Tensor) else y).detach()
+    if x.shape != y.shape:
+        raise ValueError(f"shape mismatch {tuple(x.shape)} vs {tuple(y.shape)}")
+    if x.dim() == 2:
+        x, y = x[..., None], y[..., None]
+    if x.dim() != 3:
+        raise ValueError(f"expected [H,W,3] or [H,W] images, got shape {tuple(x.shape)}")
+    return x.to("cpu", torch.float64), y.to("cpu", torch.float64)
+
+
+def psnr(x: ImageLike, y: ImageLike) -> float:
+    """PSNR in dB of two [H,W,C] images in [0,1] (data range 1): 10·log10(1/MSE); inf when equal."""
+    a, b = _as_pair(x, y)
+    mse = float(((a - b) ** 2).mean())
+    return math.inf if mse == 0.0 else 10.0 * math.log10(1.0 / mse)
+
+
+def ssim_metric(x: ImageLike, y: ImageLike) -> float:
+    """Evaluation SSIM of two [H,W,C] images in [0,1] (see the module docstring); H, W ≥ 11."""
+    a, b = _as_pair(x, y)
+    a = a.permute(2, 0, 1)[None]
+    b = b.permute(2, 0, 1)[None]
+    return float(_ssim(a, b, window=11, sigma=1.5, padding="valid", data_range=1.0))
+
+
+def _hub_checkpoint_dir() -> Path:
+    """torch.hub's checkpoint folder (TORCH_HOME respected), without touching the network."""
+    return Path(torch.hub.get_dir()) / "checkpoints"
+
+
+def lpips_available(net: str = "alex") -> Tuple[bool, str]:
+    """Whether :func:`lpips_metric` can run offline for ``net``; the reason when not."""
+    if net not in _BACKBONE_FILES:
+        return False, f"unknown LPIPS network {net!r} (use one of {sorted(_BACKBONE_FILES)})"
+    spec = importlib.util.find_spec("lpips")
+    if spec is None or spec.origin is None:
+        return False, "the 'lpips' package is not installed"
+    if importlib.util.find_spec("torchvision") is None:
+        return False, "the 'lpips' package needs torchvision, which is not installed"
+    lin = Path(spec.origin).parent / "weights" / "v0.1" / f"{net}.pth"
+    if not lin.is_file():
+        return False, f"LPIPS linear weights not found at {lin}"
+    backbone = _hub_checkpoint_dir() / _BACKBONE_FILES[net]
+    if not backbone.is_file():
+        return False, (f"{net} backbone weights not found at {backbone} "
+                       "(not downloaded: copy them there to enable LPIPS)")
+    return True, ""
+
+
+def _lpips_model(net: str, device: torch.device):
+    key = (net, str(device))
+    model = _LPIPS_CACHE.get(key)
+    if model is None:
+        import lpips  # imported only when the weights are known to be local
+
+        # lpips_available() has checked every file it loads, so this constructor does not download.
+        model = lpips.LPIPS(net=net, verbose=False).to(device).eval()
+        _LPIPS_CACHE[key] = model
+    return model
+
+
+def lpips_metric(x: ImageLike, y: ImageLike, net: str = "alex",
+                 device: Optional[Union[str, torch.device]] = None) -> Tuple[Optional[float], str]:
+    """LPIPS distance of two [H,W,3] images in [0,1]; returns (value, "") or (None, reason).
+
+    ``net``: "alex" (Luminance-GS reports this) or "vgg" (Aleth-NeRF reports this). Nothing is ever
+    downloaded: when the package or any weight file is missing the reason says which.
+    """
+    ok, reason = lpips_available(net)
+    if not ok:
+        return None, reason
+    a, b = _as_pair(x, y)
+    if a.shape[-1] != 3:
+        return None, "LPIPS needs RGB images"
+    dev = torch.device(device) if device is not None else (
+        x.device if isinstance(x, torch.Tensor) else torch.device("cpu"))
+    try:
+        model = _lpips_model(net, dev)
+        with torch.no_grad():
+            # lpips expects [B,3,H,W] in [-1, 1].
+            ta = (a.permute(2, 0, 1)[None].float().to(dev) * 2 - 1)
+            tb = (b.permute(2, 0, 1)[None].float().to(dev) * 2 - 1)
+            return float(model(ta, tb).mean()), ""
+    except Exception as exc:  # a broken local install must not stop an evaluation run
+        return None, f"LPIPS failed: {type(exc).__name__}: {exc}"

@@ -1,0 +1,1 @@
+"""Scene models of RetinexGS: the illumination field and the enhancement network."""

@@ -1,0 +1,1 @@
+"""Training of RetinexGS: losses and the optimisation loop."""

@@ -1,0 +1,70 @@
+"""Atomic checkpoints in ``RUN/checkpoints/step_XXXXX.pt`` (temporary file + rename; never a partial file)."""
+from __future__ import annotations
+
+import os
+import re
+import tempfile
+from pathlib import Path
+from typing import Any, Dict, List, Optional
+
+import torch
+
+from retinexgs.errors import UserError
+
+_PATTERN = re.compile(r"step_(\d+)\.pt$")
+
+
+def checkpoint_dir(run: Path) -> Path:
+    return Path(run) / "checkpoints"
+
+
+def list_checkpoints(run: Path) -> List[Path]:
+    """Complete checkpoints of a run, oldest first."""
+    d = checkpoint_dir(run)
+    if not d.is_dir():
+        return []
+    found = [(int(m.group(1)), p) for p in d.iterdir() if (m := _PATTERN.search(p.name))]
+    return [p for _, p in sorted(found)]
+
+
+def atomic_save(obj: Any, path: Path) -> None:
+    """torch.save to a temporary file in the same folder, fsync, then rename over ``path``."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            torch.save(obj, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def save_checkpoint(run: Path, step: int, state: Dict[str, Any], keep: int = 2) -> Path:
+    """Write ``step_XXXXX.pt`` atomically and delete all but the newest ``keep`` checkpoints."""
+    path = checkpoint_dir(run) / f"step_{step:06d}.pt"
+    atomic_save(state, path)
+    for old in list_checkpoints(run)[:-keep] if keep > 0 else []:
+        old.unlink(missing_ok=True)
+    return path
+
+
+def load_checkpoint(path: Path, map_location: str = "cpu") -> Dict[str, Any]:
+    """Load a checkpoint with an error that names the file when it is unreadable or truncated."""
+    try:
+        state = torch.load(path, map_location=map_location, weights_only=False)
+    except Exception as exc:  # truncated zip, wrong format, ...
+        raise UserError(f"checkpoint {path} is unreadable ({type(exc).__name__}: {exc}); delete it to fall back "
+                        "to the previous one") from exc
+    if not isinstance(state, dict) or "step" not in state or "model" not in state:
+        raise UserError(f"checkpoint {path} is not a RetinexGS checkpoint")
+    return state
+
+
+def latest_checkpoint(run: Path) -> Optional[Path]:
+    found = list_checkpoints(run)
+    return found[-1] if found else None

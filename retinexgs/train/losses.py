@@ -1,0 +1,242 @@
+"""Training losses of RetinexGS (paper Sec. II.D, Eqs. 3–10). Pure torch, all differentiable.
+
+Layout: every image argument is a [B,C,H,W] float tensor (use :func:`to_bchw` for a rendered [H,W,C]
+map). Every loss returns a scalar tensor averaged over the batch.
+
+Decomposition loss (weights from the paper):
+    L_decomp = L_sup + 0.01·L_TV + 0.01·L_SH
+    L_sup    = 0.5·Ls(R̂, R) + 0.5·Ls(L̂, L) + 1·Ls(R̂∘L̂, S)                     (Eq. 4)
+    Ls(x, y) = (1−λ)·|x−y|₁ + λ·(1 − SSIM(x, y)), λ = 0.2                   (3DGS's 0.8/0.2)
+Enhancement loss on S_enh = R̂∘L̂^g, switched on after step 3000 (the trainer decides):
+    L_enhance = 0.1·L_spa + 1·L_exp + 0.5·L_col                             (Eq. 7)
+
+Choices where the paper and the Zero-DCE reference code differ (documented per function):
+    - L_spa: Zero-DCE's squared differences of 4×4-pooled neighbour gradients (the paper's Eq. 8 writes
+      an L1 of full-resolution gradient differences).
+    - L_exp: Zero-DCE's squared deviation of 16×16-pooled brightness from E (the paper's Eq. 9 writes |·|).
+    - L_col: the paper's Σ(m_p − m_q)² by default; Zero-DCE's sqrt(Σ d^4) on request (it has an
+      infinite gradient at a perfectly grey image, so it gets an eps inside the root).
+    - L_SH: mean of squares, not the sum of Eq. 6, so that its weight does not scale with the number
+      of Gaussians.
+"""
+from __future__ import annotations
+
+from typing import Dict, Tuple
+
+import torch
+import torch.nn.functional as F
+
+__all__ = [
+    "to_bchw", "gaussian_window", "ssim", "l1_ssim", "supervision_loss", "tv_loss", "sh_sparsity_loss",
+    "spatial_consistency_loss", "exposure_loss", "color_constancy_loss", "enhancement_loss",
+]
+
+Terms = Dict[str, torch.Tensor]
+
+
+def to_bchw(x: torch.Tensor) -> torch.Tensor:
+    """[H,W,C] -> [1,C,H,W] (a [B,C,H,W] tensor is returned unchanged)."""
+    if x.dim() == 4:
+        return x
+    if x.dim() == 3:
+        return x.permute(2, 0, 1).unsqueeze(0)
+    raise ValueError(f"expected [H,W,C] or [B,C,H,W], got shape {tuple(x.shape)}")
+
+
+def _check4(*xs: torch.Tensor) -> None:
+    for x in xs:
+        if x.dim() != 4:
+            raise ValueError(f"expected a [B,C,H,W] tensor, got shape {tuple(x.shape)}")
+
+
+def gaussian_window(size: int = 11, sigma: float = 1.5, dtype: torch.dtype = torch.float32,
+                    device=None) -> torch.Tensor:
+    """Normalised 1D Gaussian [size] centred on the middle tap."""
+    r = torch.arange(size, dtype=torch.float64) - (size - 1) / 2.0
+    g = torch.exp(-(r ** 2) / (2.0 * sigma ** 2))
+    return (g / g.sum()).to(dtype=dtype, device=device)
+
+
+def _filter(x: torch.Tensor, g: torch.Tensor, pad: int) -> torch.Tensor:
+    """Separable depthwise Gaussian filter of [B,C,H,W] with zero padding ``pad``."""
+    c = x.shape[1]
+    k = g.numel()
+    x = F.conv2d(x, g.reshape(1, 1, 1, k).expand(c, 1, 1, k), padding=(0, pad), groups=c)
+    return F.conv2d(x, g.reshape(1, 1, k, 1).expand(c, 1, k, 1), padding=(pad, 0), groups=c)
+
+
+def ssim(x: torch.Tensor, y: torch.Tensor, window: int = 11, sigma: float = 1.5, padding: str = "same",
+         data_range: float = 1.0, reduction: str = "mean") -> torch.Tensor:
+    """Structural similarity (Wang et al. 2004) with a Gaussian window, per channel.
+
+    SSIM = (2μxμy + C1)(2σxy + C2) / ((μx² + μy² + C1)(σx² + σy² + C2)), C1 = (0.01·R)², C2 = (0.03·R)²,
+    where μ, σ², σxy are Gaussian-weighted local moments (population, not sample, covariance).
+
+    Args:
+        x, y: [B,C,H,W].
+        window, sigma: Gaussian window size (odd) and standard deviation.
+        padding: "same" = zero padding of window//2 (3DGS's training SSIM; the map has the input size)
+                 or "valid" = no padding (the standard evaluation SSIM; needs H, W ≥ window).
+        data_range: R, the dynamic range of the images (1 for [0,1]).
+        reduction: "mean" (scalar over everything) or "none" (the SSIM map).
+    """
+    _check4(x, y)
+    if x.shape != y.shape:
+        raise ValueError(f"shape mismatch {tuple(x.shape)} vs {tuple(y.shape)}")
+    if window % 2 != 1:
+        raise ValueError("window must be odd")
+    if padding not in ("same", "valid"):
+        raise ValueError("padding must be 'same' or 'valid'")
+    if padding == "valid" and min(x.shape[-2:]) < window:
+        raise ValueError(f"image {tuple(x.shape[-2:])} smaller than the {window}x{window} window")
+    pad = window // 2 if padding == "same" else 0
+    g = gaussian_window(window, sigma, x.dtype, x.device)
+    c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
+    mx, my = _filter(x, g, pad), _filter(y, g, pad)
+    sxx = _filter(x * x, g, pad) - mx * mx
+    syy = _filter(y * y, g, pad) - my * my
+    sxy = _filter(x * y, g, pad) - mx * my
+    s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
+    if reduction == "none":
+        return s
+    if reduction == "mean":
+        return s.mean()
+    raise ValueError("reduction must be 'mean' or 'none'")
+
+
+def l1_ssim(x: torch.Tensor, y: torch.Tensor, lambda_ssim: float = 0.2) -> torch.Tensor:
+    """Ls(x, y) = (1−λ)·mean|x−y| + λ·(1 − SSIM(x, y)) (3DGS's photometric loss; SSIM with "same" padding).
+
+    ``y`` may have 1 channel where ``x`` has C (or vice versa): it is broadcast.
+    """
+    _check4(x, y)
+    if x.shape != y.shape:
+        x, y = torch.broadcast_tensors(x, y)
+    l1 = (x - y).abs().mean()
+    if lambda_ssim == 0:
+        return l1
+    return (1.0 - lambda_ssim) * l1 + lambda_ssim * (1.0 - ssim(x, y))
+
+
+def supervision_loss(R_hat: torch.Tensor, L_hat: torch.Tensor, R: torch.Tensor, L: torch.Tensor,
+                     S: torch.Tensor, w_r: float = 0.5, w_l: float = 0.5, w_s: float = 1.0,
+                     lambda_ssim: float = 0.2) -> Tuple[torch.Tensor, Terms]:
+    """L_sup of Eq. 4: w_r·Ls(R̂, R) + w_l·Ls(L̂, L) + w_s·Ls(R̂∘L̂, S).
+
+    Args:
+        R_hat, L_hat: rendered reflectance and illumination maps [B,3,H,W] (L̂ may be [B,1,H,W]).
+        R, L, S: the 2D decomposer's reflectance and illumination and the low-light input; L may have
+            1 channel (broadcast against L̂).
+
+    Returns:
+        (total, {"sup_r", "sup_l", "sup_rec"}) — the unweighted terms, for logging.
+    """
+    _check4(R_hat, L_hat, R, L, S)
+    terms = {
+        "sup_r": l1_ssim(R_hat, R, lambda_ssim),
+        "sup_l": l1_ssim(L_hat, L, lambda_ssim),
+        "sup_rec": l1_ssim(R_hat * L_hat, S, lambda_ssim),
+    }
+    total = w_r * terms["sup_r"] + w_l * terms["sup_l"] + w_s * terms["sup_rec"]
+    return total, terms
+
+
+def tv_loss(R_hat: torch.Tensor) -> torch.Tensor:
+    """L_TV of Eq. 5: mean|R̂[..., i, j+1] − R̂[..., i, j]| + mean|R̂[..., i+1, j] − R̂[..., i, j]|.
+
+    Anisotropic L1 of forward differences, each direction averaged over its own (B·C·H·(W−1) or
+    B·C·(H−1)·W) entries, so the value does not depend on the image size.
+    """
+    _check4(R_hat)
+    dx = (R_hat[..., :, 1:] - R_hat[..., :, :-1]).abs()
+    dy = (R_hat[..., 1:, :] - R_hat[..., :-1, :]).abs()
+    zero = R_hat.new_zeros(())
+    return (dx.mean() if dx.numel() else zero) + (dy.mean() if dy.numel() else zero)
+
+
+def sh_sparsity_loss(sh_rest: torch.Tensor, reduction: str = "mean") -> torch.Tensor:
+    """L_SH of Eq. 6 on the higher-order SH coefficients c_{>0} (any shape, e.g. [N,15,3]).
+
+    ``reduction="mean"`` (default) averages the squares over all entries: Eq. 6's sum would grow with
+    the number of Gaussians (~1e5–1e6) and swamp the other terms at weight 0.01. ``"sum"`` gives Eq. 6.
+    """
+    if sh_rest.numel() == 0:
+        return sh_rest.new_zeros(())
+    sq = sh_rest.square()
+    if reduction == "mean":
+        return sq.mean()
+    if reduction == "sum":
+        return sq.sum()
+    raise ValueError("reduction must be 'mean' or 'sum'")
+
+
+def _neighbour_diffs(y: torch.Tensor):
+    """Differences to the 4 neighbours (left, right, up, down) of [B,1,h,w], zero outside the image."""
+    p = F.pad(y, (1, 1, 1, 1))
+    h, w = y.shape[-2:]
+    return (y - p[..., 1:h + 1, 0:w], y - p[..., 1:h + 1, 2:w + 2],
+            y - p[..., 0:h, 1:w + 1], y - p[..., 2:h + 2, 1:w + 1])
+
+
+def spatial_consistency_loss(enh: torch.Tensor, orig: torch.Tensor, pool: int = 4) -> torch.Tensor:
+    """L_spa (Eq. 8, Zero-DCE form): keeps the local contrast structure of ``orig`` in ``enh``.
+
+    Both images are averaged over channels and ``pool``×``pool``-average-pooled (region means Y);
+    for each region k and each of its 4 neighbours j (zero outside the image),
+    D_kj = Y_k − Y_j. Loss = mean over k and batch of Σ_j (D_kj(enh) − D_kj(orig))².
+    """
+    _check4(enh, orig)
+    ye = F.avg_pool2d(enh.mean(1, keepdim=True), pool)
+    yo = F.avg_pool2d(orig.mean(1, keepdim=True), pool)
+    total = 0.0
+    for de, do in zip(_neighbour_diffs(ye), _neighbour_diffs(yo)):
+        total = total + (de - do).square()
+    return total.mean()
+
+
+def exposure_loss(enh: torch.Tensor, E: float = 0.6, patch: int = 16) -> torch.Tensor:
+    """L_exp (Eq. 9, Zero-DCE form): mean over non-overlapping ``patch``² regions of (Y_k − E)².
+
+    Y_k = mean brightness (channel mean, then patch average; a partial border patch is dropped).
+    """
+    _check4(enh)
+    y = F.avg_pool2d(enh.mean(1, keepdim=True), patch)
+    return (y - E).square().mean()
+
+
+def color_constancy_loss(enh: torch.Tensor, mode: str = "paper", eps: float = 1e-12) -> torch.Tensor:
+    """L_col (Eq. 10): gray-world penalty on the per-image channel means m_r, m_g, m_b; batch mean.
+
+    mode="paper": (m_r−m_g)² + (m_r−m_b)² + (m_g−m_b)² (the 3 unordered pairs of Eq. 10).
+    mode="zero_dce": sqrt((m_r−m_g)^4 + (m_r−m_b)^4 + (m_g−m_b)^4 + eps) (Zero-DCE's code; eps keeps
+    the gradient finite at a grey image).
+    """
+    _check4(enh)
+    if enh.shape[1] != 3:
+        raise ValueError("color_constancy_loss needs 3 channels")
+    m = enh.mean(dim=(2, 3))
+    drg = (m[:, 0] - m[:, 1]).square()
+    drb = (m[:, 0] - m[:, 2]).square()
+    dgb = (m[:, 1] - m[:, 2]).square()
+    if mode == "paper":
+        return (drg + drb + dgb).mean()
+    if mode == "zero_dce":
+        return torch.sqrt(drg.square() + drb.square() + dgb.square() + eps).mean()
+    raise ValueError("mode must be 'paper' or 'zero_dce'")
+
+
+def enhancement_loss(enh: torch.Tensor, orig: torch.Tensor, w_spa: float = 0.1, w_exp: float = 1.0,
+                     w_col: float = 0.5, E: float = 0.6,
+                     color_mode: str = "paper") -> Tuple[torch.Tensor, Terms]:
+    """L_enhance of Eq. 7 on S_enh = R̂∘L_enh with the low-light input (or R̂∘L̂) as ``orig``.
+
+    Returns:
+        (w_spa·L_spa + w_exp·L_exp + w_col·L_col, {"spa", "exp", "col"}) — unweighted terms.
+    """
+    terms = {
+        "spa": spatial_consistency_loss(enh, orig),
+        "exp": exposure_loss(enh, E),
+        "col": color_constancy_loss(enh, color_mode),
+    }
+    total = w_spa * terms["spa"] + w_exp * terms["exp"] + w_col * terms["col"]
+    return total, terms

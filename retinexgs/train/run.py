@@ -1,0 +1,112 @@
+"""Run folders: create, train, resume, reload and evaluate (what the train / eval / demo commands call)."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable, Dict, Iterable, Optional, Tuple
+
+import torch
+import yaml
+
+from retinexgs.data import Scene, View, load_scene
+from retinexgs.errors import UserError
+from retinexgs.evaluate.evaluate import evaluate
+from retinexgs.model.gaussians import GaussianModel
+from retinexgs.model.retinex_model import RetinexGSModel
+from retinexgs.train.checkpoint import latest_checkpoint, load_checkpoint
+from retinexgs.train.config import load_config, read_yaml
+from retinexgs.train.trainer import Trainer, view_camera, write_run_config
+
+
+def pick_device(device: Optional[str]) -> str:
+    """``cuda`` when available unless told otherwise; a clear error for an unavailable CUDA."""
+    if device in (None, "auto"):
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise UserError("--device cuda was given but torch sees no CUDA GPU (use --device cpu)")
+    if device != "cpu" and not device.startswith("cuda"):
+        raise UserError(f"--device must be cpu, cuda or auto, got {device!r}")
+    return device
+
+
+def open_scene(path: Path, cfg: Dict) -> Scene:
+    d = cfg["data"]
+    return load_scene(path, reader=d["reader"], downscale=d["downscale"],
+                      cache_dir=d["cache_dir"] and Path(d["cache_dir"]) / "scene")
+
+
+def train_run(scene_path: Path, run_dir: Path, config_files: Iterable[str] = (), overrides: Iterable[str] = (),
+              device: Optional[str] = None, resume: bool = False, progress: bool = True,
+              log: Callable[[str], None] = print) -> Optional[Dict]:
+    """Train (or resume) a run and evaluate it; returns the test metrics (None when there are none)."""
+    run_dir = Path(run_dir)
+    device = pick_device(device)
+    if resume:
+        if not (run_dir / "config.yaml").is_file():
+            raise UserError(f"--resume: {run_dir} is not a run folder (no config.yaml)")
+        cfg = read_yaml(run_dir / "config.yaml")
+        scene_path = Path(cfg.pop("scene"))
+        cfg = load_config(overrides=overrides, base=cfg)
+    else:
+        if run_dir.exists() and any(run_dir.iterdir()):
+            raise UserError(f"run folder {run_dir} already exists and is not empty; pass --resume to continue it "
+                            "or choose another --out")
+        cfg = load_config(config_files, overrides)
+    scene = open_scene(Path(scene_path), cfg)
+    log(scene.summary())
+    run_dir.mkdir(parents=True, exist_ok=True)
+    if not resume:
+        write_run_config(run_dir, cfg, scene_path)
+    trainer = Trainer(cfg, scene, run_dir, device, resume=resume, progress=progress, log=log)
+    if trainer.step >= cfg["steps"]:
+        log(f"{run_dir} has already finished its {cfg['steps']} steps")
+    else:
+        values = trainer.train()
+        log(f"trained {cfg['steps']} steps in {values['seconds']:.0f} s, {len(trainer.model.gaussians)} Gaussians")
+    return evaluate(render_function(trainer.model, cfg, trainer.active_degree(cfg["steps"])), scene, run_dir,
+                    cfg["eval"]["lpips"], log)
+
+
+def render_function(model: RetinexGSModel, cfg: Dict, degree: int, exposure: Optional[float] = None,
+                    gamma: Optional[float] = None) -> Callable[[View], Dict]:
+    """view -> the model's output maps; for the post-enhancement baseline, LR3M enhances the render."""
+    model.eval()
+
+    def fn(view: View) -> Dict:
+        with torch.no_grad():
+            res = model.render(view_camera(view), degree, exposure=exposure, gamma=gamma)
+            if cfg["method"] == "post":
+                from retinexgs.retinex import decompose, enhance_for_viewing
+                method = cfg["decomposer"]["method"] if cfg["decomposer"]["method"] != "none" else "lr3m"
+                R, L = decompose(res["rgb"].clamp(0, 1), method, **cfg["decomposer"]["params"])
+                res = dict(res, rgb=enhance_for_viewing(R, L))
+        return res
+
+    return fn
+
+
+def load_run(run_dir: Path, device: Optional[str] = None) -> Tuple[Dict, Scene, RetinexGSModel, int]:
+    """(config, scene, model on device, step) of a saved run, from its newest checkpoint."""
+    run_dir = Path(run_dir)
+    if not (run_dir / "config.yaml").is_file():
+        raise UserError(f"{run_dir} is not a run folder (no config.yaml)")
+    ckpt = latest_checkpoint(run_dir)
+    if ckpt is None:
+        raise UserError(f"run folder {run_dir} has no checkpoint (checkpoints/step_*.pt); train it first")
+    cfg = read_yaml(run_dir / "config.yaml")
+    scene_path = Path(cfg.pop("scene"))
+    state = load_checkpoint(ckpt)
+    gstate = {k[len("gaussians."):]: v for k, v in state["model"].items() if k.startswith("gaussians.")}
+    model = RetinexGSModel(GaussianModel.empty_like_state(gstate, cfg["model"]["sh_degree"]), cfg["model"],
+                           cfg["method"] == "retinexgs")
+    model.load_state_dict(state["model"])
+    model.to(pick_device(device))
+    scene = open_scene(scene_path, cfg)
+    return cfg, scene, model, int(state["step"])
+
+
+def eval_run(run_dir: Path, device: Optional[str] = None, log: Callable[[str], None] = print) -> Optional[Dict]:
+    """Re-evaluate a saved run (rewrites metrics.json and renders/test)."""
+    cfg, scene, model, step = load_run(run_dir, device)
+    every = max(int(cfg["model"]["sh_degree_every"]), 1)
+    degree = min(cfg["model"]["sh_degree"], step // every)
+    return evaluate(render_function(model, cfg, degree), scene, Path(run_dir), cfg["eval"]["lpips"], log)

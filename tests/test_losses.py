@@ -1,0 +1,260 @@
+"""Losses of retinexgs.train.losses against hand-computed values and straightforward loop versions."""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from retinexgs.train import losses as Lo
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    """Tiny tensors: one thread avoids oversubscription stalls on a shared machine."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def _rand(*shape, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return torch.rand(*shape, generator=g, dtype=torch.float64)
+
+
+# ------------------------------------------------------------------------------------------ SSIM
+
+def _ssim_loop(x: np.ndarray, y: np.ndarray, win: int, sigma: float) -> float:
+    """Valid-window Gaussian SSIM of [C,H,W] arrays, written as plain loops."""
+    r = np.arange(win) - (win - 1) / 2
+    g1 = np.exp(-r ** 2 / (2 * sigma ** 2))
+    w = np.outer(g1, g1)
+    w /= w.sum()
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    vals = []
+    C, H, W = x.shape
+    for c in range(C):
+        for i in range(H - win + 1):
+            for j in range(W - win + 1):
+                a = x[c, i:i + win, j:j + win]
+                b = y[c, i:i + win, j:j + win]
+                ma, mb = (w * a).sum(), (w * b).sum()
+                va = (w * (a - ma) ** 2).sum()
+                vb = (w * (b - mb) ** 2).sum()
+                cov = (w * (a - ma) * (b - mb)).sum()
+                vals.append((2 * ma * mb + c1) * (2 * cov + c2) / ((ma ** 2 + mb ** 2 + c1) * (va + vb + c2)))
+    return float(np.mean(vals))
+
+
+def test_gaussian_window_normalised_and_symmetric():
+    g = Lo.gaussian_window(11, 1.5, torch.float64)
+    assert g.shape == (11,)
+    assert torch.isclose(g.sum(), torch.tensor(1.0, dtype=torch.float64))
+    assert torch.allclose(g, g.flip(0))
+    assert g.argmax() == 5
+
+
+def test_ssim_matches_loop_valid():
+    x, y = _rand(1, 2, 9, 10, seed=1), _rand(1, 2, 9, 10, seed=2)
+    y = 0.6 * x + 0.4 * y  # correlated, so SSIM is well away from 0
+    got = float(Lo.ssim(x, y, window=5, sigma=1.0, padding="valid"))
+    want = _ssim_loop(x[0].numpy(), y[0].numpy(), 5, 1.0)
+    assert got == pytest.approx(want, abs=1e-10)
+
+
+def test_ssim_same_padding_matches_loop_on_zero_padded_input():
+    x, y = _rand(1, 1, 6, 7, seed=3), _rand(1, 1, 6, 7, seed=4)
+    got = float(Lo.ssim(x, y, window=3, sigma=0.8, padding="same"))
+    xp = np.pad(x[0].numpy(), ((0, 0), (1, 1), (1, 1)))
+    yp = np.pad(y[0].numpy(), ((0, 0), (1, 1), (1, 1)))
+    assert got == pytest.approx(_ssim_loop(xp, yp, 3, 0.8), abs=1e-10)
+
+
+def test_ssim_identical_is_one_and_map_shape():
+    x = _rand(2, 3, 16, 16)
+    assert float(Lo.ssim(x, x)) == pytest.approx(1.0, abs=1e-12)
+    assert Lo.ssim(x, x, reduction="none").shape == x.shape
+    assert Lo.ssim(x, x, padding="valid", reduction="none").shape == (2, 3, 6, 6)
+
+
+@pytest.mark.parametrize("a,b", [(0.2, 0.5), (0.1, 0.1), (0.9, 0.3)])
+def test_ssim_constant_images_closed_form(a, b):
+    # Constant images: no variance, so SSIM = (2ab + C1) / (a² + b² + C1) at every valid position.
+    x = torch.full((1, 3, 12, 12), a, dtype=torch.float64)
+    y = torch.full((1, 3, 12, 12), b, dtype=torch.float64)
+    c1 = 0.01 ** 2
+    want = (2 * a * b + c1) / (a * a + b * b + c1)
+    assert float(Lo.ssim(x, y, padding="valid")) == pytest.approx(want, abs=1e-12)
+
+
+def test_ssim_bad_inputs():
+    x = _rand(1, 3, 8, 8)
+    with pytest.raises(ValueError):
+        Lo.ssim(x, x, padding="valid")  # smaller than the 11×11 window
+    with pytest.raises(ValueError):
+        Lo.ssim(x[0], x[0])
+    with pytest.raises(ValueError):
+        Lo.ssim(x, x, window=4)
+
+
+# ------------------------------------------------------------------------------------------ Ls, L_sup
+
+def test_l1_ssim_constant_offset():
+    x = torch.full((1, 3, 8, 8), 0.3, dtype=torch.float64)
+    y = x + 0.1
+    # "same" zero padding: local means shrink near the border, so compute SSIM via the loop reference.
+    s = _ssim_loop(np.pad(x[0].numpy(), ((0, 0), (5, 5), (5, 5))),
+                   np.pad(y[0].numpy(), ((0, 0), (5, 5), (5, 5))), 11, 1.5)
+    want = 0.8 * 0.1 + 0.2 * (1 - s)
+    assert float(Lo.l1_ssim(x, y)) == pytest.approx(want, abs=1e-10)
+    assert float(Lo.l1_ssim(x, y, lambda_ssim=0.0)) == pytest.approx(0.1, abs=1e-12)
+    assert float(Lo.l1_ssim(x, x)) == pytest.approx(0.0, abs=1e-12)
+
+
+def test_supervision_loss_values_and_broadcast():
+    R_hat = torch.full((1, 3, 8, 8), 0.5, dtype=torch.float64)
+    L_hat = torch.full((1, 3, 8, 8), 0.2, dtype=torch.float64)
+    R = R_hat.clone()
+    L1c = torch.full((1, 1, 8, 8), 0.2, dtype=torch.float64)  # 1-channel target, broadcast
+    S = torch.full((1, 3, 8, 8), 0.13, dtype=torch.float64)  # R̂∘L̂ = 0.1
+    total, terms = Lo.supervision_loss(R_hat, L_hat, R, L1c, S, lambda_ssim=0.0)
+    assert float(terms["sup_r"]) == pytest.approx(0.0, abs=1e-12)
+    assert float(terms["sup_l"]) == pytest.approx(0.0, abs=1e-12)
+    assert float(terms["sup_rec"]) == pytest.approx(0.03, abs=1e-12)
+    assert float(total) == pytest.approx(0.03, abs=1e-12)
+    total2, _ = Lo.supervision_loss(R_hat, L_hat, R + 0.1, L1c, S, w_r=2.0, w_s=0.0, lambda_ssim=0.0)
+    assert float(total2) == pytest.approx(0.2, abs=1e-12)
+
+
+def test_supervision_loss_gradients_finite():
+    R_hat = _rand(1, 3, 16, 16, seed=5).requires_grad_()
+    L_hat = (0.05 + 0.2 * _rand(1, 3, 16, 16, seed=6)).requires_grad_()
+    R, L, S = _rand(1, 3, 16, 16, seed=7), 0.2 * _rand(1, 1, 16, 16, seed=8), 0.1 * _rand(1, 3, 16, 16, seed=9)
+    total, _ = Lo.supervision_loss(R_hat, L_hat, R, L, S)
+    total.backward()
+    assert torch.isfinite(R_hat.grad).all() and R_hat.grad.abs().sum() > 0
+    assert torch.isfinite(L_hat.grad).all() and L_hat.grad.abs().sum() > 0
+
+
+# ------------------------------------------------------------------------------------------ TV, SH
+
+def test_tv_loss_hand_2x2():
+    x = torch.tensor([[[[0.0, 1.0], [3.0, 7.0]]]], dtype=torch.float64)
+    # horizontal |1-0|, |7-3| -> mean 2.5; vertical |3-0|, |7-1| -> mean 4.5
+    assert float(Lo.tv_loss(x)) == pytest.approx(7.0)
+    assert float(Lo.tv_loss(torch.full((2, 3, 5, 4), 0.7))) == 0.0
+
+
+def test_tv_loss_matches_loop_and_grad():
+    x = _rand(2, 3, 5, 6, seed=10).requires_grad_()
+    a = x.detach().numpy()
+    h = np.mean([abs(a[b, c, i, j + 1] - a[b, c, i, j]) for b in range(2) for c in range(3)
+                 for i in range(5) for j in range(5)])
+    v = np.mean([abs(a[b, c, i + 1, j] - a[b, c, i, j]) for b in range(2) for c in range(3)
+                 for i in range(4) for j in range(6)])
+    t = Lo.tv_loss(x)
+    assert float(t.detach()) == pytest.approx(h + v, abs=1e-12)
+    t.backward()
+    assert torch.isfinite(x.grad).all()
+
+
+def test_sh_sparsity():
+    c = torch.tensor([[[1.0, -2.0, 0.0], [0.5, 0.5, 1.0]]])
+    assert float(Lo.sh_sparsity_loss(c)) == pytest.approx((1 + 4 + 0 + 0.25 + 0.25 + 1) / 6)
+    assert float(Lo.sh_sparsity_loss(c, reduction="sum")) == pytest.approx(6.5)
+    assert float(Lo.sh_sparsity_loss(torch.zeros(0, 15, 3))) == 0.0
+
+
+# ------------------------------------------------------------------------------------------ Zero-DCE terms
+
+def _spa_loop(enh: np.ndarray, orig: np.ndarray, pool: int = 4) -> float:
+    """Spatial consistency with explicit pooling and neighbour loops, [B,C,H,W] arrays."""
+    def pooled(x):
+        y = x.mean(1)
+        B, H, W = y.shape
+        h, w = H // pool, W // pool
+        out = np.zeros((B, h, w))
+        for b in range(B):
+            for i in range(h):
+                for j in range(w):
+                    out[b, i, j] = y[b, i * pool:(i + 1) * pool, j * pool:(j + 1) * pool].mean()
+        return out
+
+    def at(y, b, i, j):
+        return y[b, i, j] if 0 <= i < y.shape[1] and 0 <= j < y.shape[2] else 0.0
+
+    ye, yo = pooled(enh), pooled(orig)
+    vals = []
+    for b in range(ye.shape[0]):
+        for i in range(ye.shape[1]):
+            for j in range(ye.shape[2]):
+                s = 0.0
+                for di, dj in ((0, -1), (0, 1), (-1, 0), (1, 0)):
+                    de = ye[b, i, j] - at(ye, b, i + di, j + dj)
+                    do = yo[b, i, j] - at(yo, b, i + di, j + dj)
+                    s += (de - do) ** 2
+                vals.append(s)
+    return float(np.mean(vals))
+
+
+def test_spatial_consistency_matches_loop():
+    enh, orig = _rand(2, 3, 12, 16, seed=11), 0.1 * _rand(2, 3, 12, 16, seed=12)
+    got = float(Lo.spatial_consistency_loss(enh, orig))
+    assert got == pytest.approx(_spa_loop(enh.numpy(), orig.numpy()), abs=1e-12)
+
+
+def test_spatial_consistency_hand_8x8():
+    # Pooled enh = [[1,0],[0,0]], orig all zero. Region (0,0): left/up see zero padding (diff 1 each),
+    # right/down see 0 (diff 1 each) -> 4. Region (0,1): left neighbour 1 -> diff -1 -> 1; (1,0): up -> 1;
+    # (1,1): 0. Mean over 4 regions = (4 + 1 + 1 + 0) / 4 = 1.5.
+    enh = torch.zeros(1, 3, 8, 8, dtype=torch.float64)
+    enh[..., :4, :4] = 1.0
+    assert float(Lo.spatial_consistency_loss(enh, torch.zeros_like(enh))) == pytest.approx(1.5)
+    x = _rand(1, 3, 8, 8, seed=13)
+    assert float(Lo.spatial_consistency_loss(x, x)) == 0.0
+    # A constant offset keeps interior differences; only the zero-padded border sees it:
+    # 2×2 regions, each with 2 border directions of diff 0.1 -> Σ = 2·0.01 per region.
+    assert float(Lo.spatial_consistency_loss(x + 0.1, x)) == pytest.approx(0.02, abs=1e-12)
+
+
+def test_exposure_loss():
+    x = torch.full((1, 3, 32, 32), 0.2, dtype=torch.float64)
+    assert float(Lo.exposure_loss(x)) == pytest.approx(0.16)  # (0.2 - 0.6)²
+    assert float(Lo.exposure_loss(x + 0.4)) == pytest.approx(0.0, abs=1e-12)
+    # Two patches at 0.5 and 0.9 (channel mean), E = 0.6: ((0.1)² + (0.3)²) / 2 = 0.05.
+    y = torch.zeros(1, 3, 16, 32, dtype=torch.float64)
+    y[..., :16] = 0.5
+    y[:, 0, :, 16:] = 0.9 * 3  # channel mean 0.9
+    assert float(Lo.exposure_loss(y)) == pytest.approx(0.05)
+
+
+def test_color_constancy():
+    x = torch.zeros(1, 3, 4, 4, dtype=torch.float64)
+    x[:, 0], x[:, 1], x[:, 2] = 0.5, 0.3, 0.2
+    drg, drb, dgb = 0.2 ** 2, 0.3 ** 2, 0.1 ** 2
+    assert float(Lo.color_constancy_loss(x)) == pytest.approx(drg + drb + dgb)
+    z = float(Lo.color_constancy_loss(x, mode="zero_dce", eps=0.0))
+    assert z == pytest.approx(math.sqrt(drg ** 2 + drb ** 2 + dgb ** 2))
+    grey = torch.full((2, 3, 4, 4), 0.4, dtype=torch.float64, requires_grad=True)
+    assert float(Lo.color_constancy_loss(grey.detach())) == 0.0
+    Lo.color_constancy_loss(grey, mode="zero_dce").backward()
+    assert torch.isfinite(grey.grad).all()
+
+
+def test_enhancement_loss_weights_and_grad():
+    orig = 0.05 * _rand(1, 3, 32, 32, seed=14)
+    enh = (orig * 8).requires_grad_()
+    total, terms = Lo.enhancement_loss(enh, orig)
+    want = 0.1 * terms["spa"] + 1.0 * terms["exp"] + 0.5 * terms["col"]
+    assert float(total.detach()) == pytest.approx(float(want.detach()))
+    assert float(terms["exp"].detach()) == pytest.approx(float(Lo.exposure_loss(enh.detach(), 0.6)))
+    total.backward()
+    assert torch.isfinite(enh.grad).all() and enh.grad.abs().sum() > 0
+
+
+def test_to_bchw():
+    x = _rand(5, 7, 3)
+    y = Lo.to_bchw(x)
+    assert y.shape == (1, 3, 5, 7)
+    assert torch.equal(y[0, 2], x[..., 2])
+    assert Lo.to_bchw(y) is y

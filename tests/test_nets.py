@@ -1,0 +1,129 @@
+"""IlluminationField and EnhancementNet: shapes, ranges, initial values, gradients, a tiny fit."""
+import math
+
+import pytest
+import torch
+
+from retinexgs.model.enhancement import EnhancementNet
+from retinexgs.model.illumination import IlluminationField, encoded_dim, positional_encoding
+from retinexgs.train.losses import exposure_loss
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    """Tiny tensors: one thread avoids oversubscription stalls on a shared machine."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def test_positional_encoding_layout_and_values():
+    x = torch.tensor([[0.25, -0.5, 1.0]], dtype=torch.float64)
+    e = positional_encoding(x, 2)
+    assert e.shape == (1, encoded_dim(3, 2)) == (1, 15)
+    assert torch.equal(e[0, :3], x[0])
+    # sines: freq π for the 3 coords, then 2π; cosines likewise.
+    want_sin = [math.sin(math.pi * v) for v in (0.25, -0.5, 1.0)] + [math.sin(2 * math.pi * v) for v in (0.25, -0.5, 1.0)]
+    want_cos = [math.cos(math.pi * v) for v in (0.25, -0.5, 1.0)] + [math.cos(2 * math.pi * v) for v in (0.25, -0.5, 1.0)]
+    assert torch.allclose(e[0, 3:9], torch.tensor(want_sin, dtype=torch.float64), atol=1e-12)
+    assert torch.allclose(e[0, 9:], torch.tensor(want_cos, dtype=torch.float64), atol=1e-12)
+    assert positional_encoding(x, 0).shape == (1, 3)
+    assert positional_encoding(x, 3, include_input=False).shape == (1, 18)
+
+
+def test_illumination_field_shape_range_init():
+    torch.manual_seed(0)
+    f = IlluminationField()
+    xyz = torch.rand(500, 3) * 3 - 1.5
+    d = torch.randn(500, 3) * 5  # not unit: normalised inside
+    out = f(xyz, d)
+    assert out.shape == (500, 3)
+    assert (out > 0).all() and (out < 1).all()
+    assert torch.allclose(out, torch.full_like(out, 0.1), atol=0.01)  # starts near init_value
+    assert torch.allclose(f(xyz, d), f(xyz, d / 7.0))  # direction length does not matter
+    with pytest.raises(ValueError):
+        f(xyz, d[:10])
+
+
+def test_illumination_field_gradients_and_fit():
+    torch.manual_seed(0)
+    f = IlluminationField(hidden=32, depth=2)
+    xyz = torch.rand(256, 3) * 2 - 1
+    d = torch.nn.functional.normalize(torch.randn(256, 3), dim=-1)
+    # Smooth dark target in the decomposer's range (0.02–0.3), RGB-dependent.
+    target = 0.02 + 0.28 * torch.sigmoid(torch.stack([xyz[:, 0] * 2, xyz[:, 1] * 2, -xyz[:, 2] * 2], -1))
+    opt = torch.optim.Adam(f.parameters(), lr=5e-3)
+    first = None
+    for _ in range(150):
+        loss = (f(xyz, d) - target).abs().mean()
+        if first is None:
+            loss.backward()
+            assert all(torch.isfinite(p.grad).all() for p in f.parameters())
+            assert all(p.grad.abs().sum() > 0 for p in f.parameters())
+            opt.zero_grad()
+            first = float(loss.detach())
+            continue
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert float(loss.detach()) < 0.3 * first
+
+
+def test_illumination_view_dirs():
+    xyz = torch.tensor([[1.0, 0.0, 0.0], [0.0, 2.0, 0.0]])
+    d = IlluminationField.view_dirs(xyz, torch.zeros(3))
+    assert torch.allclose(d, torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]))
+
+
+@pytest.mark.parametrize("shape", [(1, 3, 37, 53), (2, 3, 300, 200), (1, 3, 4, 4)])
+def test_enhancement_shapes_range_init(shape):
+    torch.manual_seed(0)
+    net = EnhancementNet()
+    L = 0.02 + 0.28 * torch.rand(*shape)
+    g = net(L)
+    assert g.shape == (shape[0], 3, 1, 1)
+    assert torch.allclose(g, torch.full_like(g, 0.4), atol=1e-6)  # initial gamma for any input
+    enh = net.enhance(L, g)
+    assert enh.shape == L.shape
+    assert (enh >= L).all() and (enh <= 1).all()  # g <= 1 lifts illumination in (0,1)
+
+
+def test_enhancement_range_bounds_and_enhance_eps():
+    net = EnhancementNet(gamma_range=(0.2, 0.8), init_gamma=0.5)
+    with torch.no_grad():
+        net.out.bias.fill_(100.0)
+    assert torch.allclose(net(torch.rand(1, 3, 16, 16)), torch.tensor(0.8))
+    with torch.no_grad():
+        net.out.bias.fill_(-100.0)
+    assert torch.allclose(net(torch.rand(1, 3, 16, 16)), torch.tensor(0.2))
+    L = torch.zeros(1, 3, 2, 2, requires_grad=True)
+    out = net.enhance(L, torch.tensor(0.5))
+    assert torch.allclose(out, torch.full_like(out, math.sqrt(net.eps)))
+    with pytest.raises(ValueError):
+        net(torch.rand(3, 16, 16))
+    with pytest.raises(ValueError):
+        EnhancementNet(gamma_range=(0.1, 1.0), init_gamma=1.0)
+
+
+def test_enhancement_learns_content_adaptive_gamma():
+    """Trained only with the exposure loss, a dark map gets a smaller gamma than a brighter one."""
+    torch.manual_seed(0)
+    net = EnhancementNet(widths=(8, 16, 16))
+    dark = 0.03 + 0.02 * torch.rand(1, 3, 32, 32)
+    bright = 0.25 + 0.05 * torch.rand(1, 3, 32, 32)
+    batch = torch.cat([dark, bright])
+    opt = torch.optim.Adam(net.parameters(), lr=1e-2)
+    g0 = net(batch).detach()
+    for step in range(120):
+        g = net(batch)
+        loss = exposure_loss(net.enhance(batch, g), E=0.6, patch=8)
+        opt.zero_grad()
+        loss.backward()
+        if step == 0:
+            assert all(torch.isfinite(p.grad).all() for p in net.parameters())
+        opt.step()
+    g = net(batch).detach()
+    # Ideal gammas: log(0.6)/log(0.04) ≈ 0.16 and log(0.6)/log(0.275) ≈ 0.39.
+    assert g[0].mean() < g[1].mean() - 0.1
+    assert float(loss.detach()) < float(exposure_loss(net.enhance(batch, g0), E=0.6, patch=8))
