@@ -24,8 +24,9 @@ def test_positional_encoding_layout_and_values():
     assert e.shape == (1, encoded_dim(3, 2)) == (1, 15)
     assert torch.equal(e[0, :3], x[0])
     # sines: freq π for the 3 coords, then 2π; cosines likewise.
-    want_sin = [math.sin(math.pi * v) for v in (0.25, -0.5, 1.0)] + [math.sin(2 * math.pi * v) for v in (0.25, -0.5, 1.0)]
-    want_cos = [math.cos(math.pi * v) for v in (0.25, -0.5, 1.0)] + [math.cos(2 * math.pi * v) for v in (0.25, -0.5, 1.0)]
+    vals = (0.25, -0.5, 1.0)
+    want_sin = [math.sin(f * math.pi * v) for f in (1, 2) for v in vals]
+    want_cos = [math.cos(f * math.pi * v) for f in (1, 2) for v in vals]
     assert torch.allclose(e[0, 3:9], torch.tensor(want_sin, dtype=torch.float64), atol=1e-12)
     assert torch.allclose(e[0, 9:], torch.tensor(want_cos, dtype=torch.float64), atol=1e-12)
     assert positional_encoding(x, 0).shape == (1, 3)

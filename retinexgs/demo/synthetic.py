@@ -312,8 +312,11 @@ def render_linear(cam: DemoCamera, supersample: int = 2) -> np.ndarray:
 def _sample_points(n: int, rng: np.random.Generator) -> np.ndarray:
     """[n,6] surface points (xyz, sRGB albedo in [0,1]) on the ground, spheres (above ground) and box."""
     n_ground = n // 2
-    g = np.stack([rng.uniform(-GROUND_HALF, GROUND_HALF, n_ground), np.zeros(n_ground),
-                  rng.uniform(-GROUND_HALF, GROUND_HALF, n_ground)], -1)
+    g = np.stack([rng.uniform(-GROUND_HALF, GROUND_HALF, 2 * n_ground), np.zeros(2 * n_ground),
+                  rng.uniform(-GROUND_HALF, GROUND_HALF, 2 * n_ground)], -1)
+    lo, hi = np.asarray(BOX[0]), np.asarray(BOX[1])
+    under_box = (g[:, 0] >= lo[0]) & (g[:, 0] <= hi[0]) & (g[:, 2] >= lo[2]) & (g[:, 2] <= hi[2])
+    g = g[~under_box][:n_ground]  # hidden under the box: never observed
     pts, normals, objs = [g], [np.tile([0.0, 1.0, 0.0], (n_ground, 1))], [np.full(n_ground, GROUND)]
     rest = n - n_ground
     per = rest // (len(SPHERES) + 1)
@@ -325,7 +328,6 @@ def _sample_points(n: int, rng: np.random.Generator) -> np.ndarray:
         q, v = q[keep][:per], v[keep][:per]
         pts.append(q), normals.append(v), objs.append(np.full(len(q), s + 1))
     nb = n - sum(len(x) for x in pts)
-    lo, hi = np.asarray(BOX[0]), np.asarray(BOX[1])
     q = rng.uniform(lo, hi, size=(nb, 3))
     ax = rng.choice([0, 1, 2, 0, 2], size=nb)  # faces: ±x, top, ±z (no bottom)
     side = rng.integers(0, 2, nb)

@@ -45,7 +45,7 @@ def atomic_json(obj: Dict, path: Path) -> None:
 
 
 def evaluate(render_fn: Callable, scene: Scene, out_dir: Path, use_lpips: bool = True,
-             log: Callable[[str], None] = print) -> Optional[Dict]:
+             log: Callable[[str], None] = print, extra: Optional[Dict] = None) -> Optional[Dict]:
     """Render every test view with ``render_fn(view) -> dict`` (key ``rgb``, optional ``R``, ``L``), compare
     with its paired normal-light image, write ``out_dir/renders/test/*.png`` and ``out_dir/metrics.json``.
 
@@ -56,7 +56,7 @@ def evaluate(render_fn: Callable, scene: Scene, out_dir: Path, use_lpips: bool =
         reason = ("the scene has no test views" if not scene.test else
                   "the test views have no paired normal-light images")
         log(f"evaluation skipped: {reason}")
-        atomic_json({"skipped": reason}, out_dir / "metrics.json")
+        atomic_json({"skipped": reason, **(extra or {})}, out_dir / "metrics.json")
         return None
     rows: List[Dict] = []
     lpips_reason = ""
@@ -83,6 +83,7 @@ def evaluate(render_fn: Callable, scene: Scene, out_dir: Path, use_lpips: bool =
     mean = {k: float(np.mean([r[k] for r in rows])) for k in rows[0] if k != "view"}
     metrics = {"mean": mean, "views": rows, "panels": "low input | output | R̂ | L̂ (normalised) | ground truth"
                if "R" in res else "low input | output | ground truth"}
+    metrics.update(extra or {})
     if use_lpips and "lpips" not in mean:
         metrics["lpips_unavailable"] = lpips_reason
         log(f"LPIPS not reported: {lpips_reason}")

@@ -41,6 +41,14 @@ class DensityController:
         self.count: Optional[Tensor] = None
         self.max_radius: Optional[Tensor] = None
 
+    def state_dict(self) -> Dict[str, Optional[Tensor]]:
+        return {"grad_accum": self.grad_accum, "count": self.count, "max_radius": self.max_radius}
+
+    def load_state_dict(self, state: Dict[str, Optional[Tensor]], device: torch.device) -> None:
+        for key in ("grad_accum", "count", "max_radius"):
+            value = state.get(key)
+            setattr(self, key, None if value is None else value.to(device))
+
     def _ensure(self, n: int, device: torch.device) -> None:
         if self.grad_accum is None or self.grad_accum.shape[0] != n:
             self.grad_accum = torch.zeros(n, device=device)

@@ -105,7 +105,8 @@ class IlluminationField(nn.Module):
     def forward(self, xyz: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
         """Illumination at ``xyz`` [N,3] seen along ``dirs`` [N,3] (any length, not all zero) -> [N,3] in (0,1)."""
         if xyz.shape[-1] != 3 or dirs.shape[-1] != 3 or xyz.shape[:-1] != dirs.shape[:-1]:
-            raise ValueError(f"expected xyz and dirs of shape [N,3], got {tuple(xyz.shape)} and {tuple(dirs.shape)}")
+            raise ValueError(f"expected xyz and dirs of shape [N,3], got {tuple(xyz.shape)} "
+                             f"and {tuple(dirs.shape)}")
         dtype = self.trunk[0].weight.dtype
         x = xyz.to(dtype) / self.bound
         d = F.normalize(dirs.to(dtype), dim=-1, eps=1e-12)

@@ -69,8 +69,9 @@ def ssim(x: torch.Tensor, y: torch.Tensor, window: int = 11, sigma: float = 1.5,
          data_range: float = 1.0, reduction: str = "mean") -> torch.Tensor:
     """Structural similarity (Wang et al. 2004) with a Gaussian window, per channel.
 
-    SSIM = (2μxμy + C1)(2σxy + C2) / ((μx² + μy² + C1)(σx² + σy² + C2)), C1 = (0.01·R)², C2 = (0.03·R)²,
-    where μ, σ², σxy are Gaussian-weighted local moments (population, not sample, covariance).
+    SSIM = (2μxμy + C1)(2σxy + C2) / ((μx² + μy² + C1)(σx² + σy² + C2)),
+    C1 = (0.01·R)², C2 = (0.03·R)², where μ, σ², σxy are Gaussian-weighted local moments
+    (population, not sample, covariance).
 
     Args:
         x, y: [B,C,H,W].
@@ -105,7 +106,7 @@ def ssim(x: torch.Tensor, y: torch.Tensor, window: int = 11, sigma: float = 1.5,
 
 
 def l1_ssim(x: torch.Tensor, y: torch.Tensor, lambda_ssim: float = 0.2) -> torch.Tensor:
-    """Ls(x, y) = (1−λ)·mean|x−y| + λ·(1 − SSIM(x, y)) (3DGS's photometric loss; SSIM with "same" padding).
+    """Ls(x, y) = (1−λ)·mean|x−y| + λ·(1 − SSIM(x, y)): 3DGS's photometric loss, SSIM with "same" padding.
 
     ``y`` may have 1 channel where ``x`` has C (or vice versa): it is broadcast.
     """

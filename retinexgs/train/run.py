@@ -56,14 +56,22 @@ def train_run(scene_path: Path, run_dir: Path, config_files: Iterable[str] = (),
     run_dir.mkdir(parents=True, exist_ok=True)
     if not resume:
         write_run_config(run_dir, cfg, scene_path)
+    if device.startswith("cuda"):
+        torch.cuda.reset_peak_memory_stats()
     trainer = Trainer(cfg, scene, run_dir, device, resume=resume, progress=progress, log=log)
+    stats: Dict = {"device": torch.cuda.get_device_name() if device.startswith("cuda") else "cpu"}
     if trainer.step >= cfg["steps"]:
         log(f"{run_dir} has already finished its {cfg['steps']} steps")
     else:
         values = trainer.train()
-        log(f"trained {cfg['steps']} steps in {values['seconds']:.0f} s, {len(trainer.model.gaussians)} Gaussians")
+        stats.update(train_seconds=round(values["seconds"], 1), steps=cfg["steps"])
+        if device.startswith("cuda"):
+            stats["peak_gpu_memory_gb"] = round(torch.cuda.max_memory_allocated() / 2**30, 3)
+        log(f"trained {cfg['steps']} steps in {values['seconds']:.0f} s, {len(trainer.model.gaussians)} Gaussians"
+            + (f", peak GPU memory {stats['peak_gpu_memory_gb']:.2f} GB" if "peak_gpu_memory_gb" in stats else ""))
+    stats["gaussians"] = len(trainer.model.gaussians)
     return evaluate(render_function(trainer.model, cfg, trainer.active_degree(cfg["steps"])), scene, run_dir,
-                    cfg["eval"]["lpips"], log)
+                    cfg["eval"]["lpips"], log, extra={"train": stats})
 
 
 def render_function(model: RetinexGSModel, cfg: Dict, degree: int, exposure: Optional[float] = None,

@@ -80,6 +80,7 @@ class Trainer:
         self.views = self._prepare_views()
         self.extent = scene_extent(scene)
         self.step = 0
+        self.order: List[int] = []  # the rest of this epoch's view order (saved, so resume continues it)
         state = None
         if resume:
             ckpt = latest_checkpoint(self.run)
@@ -148,6 +149,8 @@ class Trainer:
             self.step = int(state["step"])
             torch.set_rng_state(state["rng"])
             random.setstate(state["py_rng"])
+            self.order = list(state.get("order", []))
+            self.density.load_state_dict(state.get("density", {}), self.device)
 
     # ---- one step ----------------------------------------------------------------------------------------
     def _means_lr(self, step: int) -> float:
@@ -216,7 +219,7 @@ class Trainer:
     def checkpoint_state(self) -> Dict:
         return {"step": self.step, "config": self.cfg, "model": self.model.state_dict(),
                 "optimizer": self.optimizer.state_dict(), "rng": torch.get_rng_state(),
-                "py_rng": random.getstate(), "normalization": {
+                "py_rng": random.getstate(), "order": list(self.order), "density": self.density.state_dict(), "normalization": {
                     "center": self.scene.normalization.center, "scale": self.scene.normalization.scale},
                 "scene_root": str(self.scene.root)}
 
@@ -231,17 +234,16 @@ class Trainer:
         end = total_steps if stop_after is None else min(total_steps, self.step + stop_after)
         writer = self._tensorboard()
         log_path = self.run / "train_log.jsonl"
-        order: List[int] = []
         values: Dict[str, float] = {}
         t0 = time.time()
         bar = tqdm(total=end, initial=self.step, disable=not self.progress, desc="train", dynamic_ncols=True)
         with open(log_path, "a") as log_file:
             while self.step < end:
-                if not order:
-                    order = list(range(len(self.views)))
-                    random.shuffle(order)
+                if not self.order:
+                    self.order = list(range(len(self.views)))
+                    random.shuffle(self.order)
                 self.step += 1
-                values = self.train_step(self.step, self.views[order.pop()])
+                values = self.train_step(self.step, self.views[self.order.pop()])
                 event = values.pop("event", None)
                 if event:
                     log_file.write(json.dumps({"step": self.step, "event": event, "gaussians": len(self.model.gaussians)}) + "\n")

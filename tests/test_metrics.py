@@ -1,0 +1,115 @@
+"""Evaluation metrics: PSNR, SSIM (against an independent scipy version) and the offline LPIPS check."""
+import importlib.util
+import math
+import sys
+
+import numpy as np
+import pytest
+import torch
+from scipy.signal import correlate2d
+
+from retinexgs.evaluate import metrics as M
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def _ssim_scipy(x: np.ndarray, y: np.ndarray) -> float:
+    """Wang et al. SSIM, 11×11 Gaussian σ=1.5, valid filtering, per channel then mean ([H,W,C])."""
+    r = np.arange(11) - 5.0
+    g = np.exp(-r ** 2 / (2 * 1.5 ** 2))
+    w = np.outer(g, g) / np.outer(g, g).sum()
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    out = []
+    for c in range(x.shape[2]):
+        a, b = x[..., c], y[..., c]
+        f = lambda z: correlate2d(z, w, mode="valid")  # noqa: E731
+        ma, mb = f(a), f(b)
+        va, vb, cov = f(a * a) - ma ** 2, f(b * b) - mb ** 2, f(a * b) - ma * mb
+        out.append(((2 * ma * mb + c1) * (2 * cov + c2)) / ((ma ** 2 + mb ** 2 + c1) * (va + vb + c2)))
+    return float(np.mean(out))
+
+
+def test_psnr_known_values():
+    x = torch.full((8, 8, 3), 0.5)
+    assert M.psnr(x, x + 0.1) == pytest.approx(20.0, abs=1e-5)
+    assert M.psnr(x, x - 0.01) == pytest.approx(40.0, abs=1e-3)
+    assert M.psnr(x, x) == math.inf
+    # 2 of 8 values off by 1: MSE = 0.25.
+    a = np.zeros((2, 2, 2))
+    b = a.copy()
+    b[0, :, 0] = 1.0
+    assert M.psnr(a, b) == pytest.approx(10 * math.log10(4.0))
+
+
+def test_ssim_metric_matches_scipy_and_properties():
+    rng = np.random.default_rng(0)
+    x = rng.random((24, 30, 3))
+    y = np.clip(x + rng.normal(0, 0.1, x.shape), 0, 1)
+    assert M.ssim_metric(torch.tensor(x), torch.tensor(y)) == pytest.approx(_ssim_scipy(x, y), abs=1e-10)
+    assert M.ssim_metric(x, x) == pytest.approx(1.0, abs=1e-12)
+    s_small = M.ssim_metric(x, np.clip(x + rng.normal(0, 0.02, x.shape), 0, 1))
+    s_big = M.ssim_metric(x, np.clip(x + rng.normal(0, 0.2, x.shape), 0, 1))
+    assert 1.0 > s_small > s_big
+    # Constant images: (2ab + C1)/(a² + b² + C1).
+    a = np.full((16, 16, 3), 0.3)
+    assert M.ssim_metric(a, a + 0.2) == pytest.approx((2 * 0.3 * 0.5 + 1e-4) / (0.09 + 0.25 + 1e-4))
+
+
+def test_metrics_reject_bad_shapes():
+    with pytest.raises(ValueError):
+        M.psnr(torch.zeros(4, 4, 3), torch.zeros(4, 5, 3))
+    with pytest.raises(ValueError):
+        M.ssim_metric(torch.zeros(1, 16, 16, 3), torch.zeros(1, 16, 16, 3))
+
+
+def test_lpips_offline_check(monkeypatch):
+    x = torch.rand(32, 32, 3)
+    value, reason = M.lpips_metric(x, x)
+    if importlib.util.find_spec("lpips") is None:
+        assert value is None and "not installed" in reason
+    else:
+        assert (value is None) == bool(reason)
+    # Simulate a machine without the package: never raises, never downloads.
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "lpips" else real(name, *a))
+    assert M.lpips_metric(x, x) == (None, "the 'lpips' package is not installed")
+    ok, why = M.lpips_available("nope")
+    assert not ok and "unknown" in why
+
+
+def test_lpips_runs_when_everything_is_local(tmp_path, monkeypatch):
+    """With a (fake) lpips package, its weights and the backbone checkpoint present, a value comes back."""
+    pkg = tmp_path / "site" / "lpips"
+    (pkg / "weights" / "v0.1").mkdir(parents=True)
+    (pkg / "weights" / "v0.1" / "alex.pth").write_bytes(b"")
+    (pkg / "__init__.py").write_text(
+        "import torch\n"
+        "class LPIPS(torch.nn.Module):\n"
+        "    def __init__(self, net='alex', verbose=True):\n"
+        "        super().__init__()\n"
+        "    def forward(self, a, b):\n"
+        "        assert a.min() >= -1 and a.max() <= 1 and a.shape[1] == 3\n"
+        "        return ((a - b) ** 2).mean(dim=(1, 2, 3), keepdim=True)\n")
+    hub = tmp_path / "hub"
+    (hub / "checkpoints").mkdir(parents=True)
+    monkeypatch.syspath_prepend(str(tmp_path / "site"))
+    monkeypatch.setattr(torch.hub, "get_dir", lambda: str(hub))
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec",
+                        lambda name, *a: real("json") if name == "torchvision" else real(name, *a))
+    monkeypatch.setattr(M, "_LPIPS_CACHE", {})
+    x = torch.zeros(8, 8, 3)
+    try:
+        value, reason = M.lpips_metric(x, x + 0.25)
+        assert value is None and "backbone weights not found" in reason
+        (hub / "checkpoints" / "alexnet-owt-7be5be79.pth").write_bytes(b"")
+        value, reason = M.lpips_metric(x, x + 0.25)
+        assert reason == "" and value == pytest.approx(0.25)  # inputs mapped to [-1,1]: difference 0.5
+    finally:
+        sys.modules.pop("lpips", None)  # the fake must not leak into other tests

@@ -1,0 +1,153 @@
+"""Training on a tiny generated scene: parameter updates, the loss schedule, checkpoints/resume, the demo
+pipeline end to end, and the bad-input cases of issue 6."""
+import json
+import shutil
+
+import pytest
+import torch
+
+from retinexgs.data import load_scene
+from retinexgs.demo.synthetic import make_demo_scene
+from retinexgs.errors import UserError
+from retinexgs.train.config import load_config
+from retinexgs.train.run import eval_run, load_run, train_run
+from retinexgs.train.trainer import Trainer, TrainingDiverged
+
+TINY = ["steps=6", "checkpoint.every=3", "log.every=1", "log.tensorboard=false", "model.sh_degree=1",
+        "model.sh_degree_every=2", "model.max_init_points=300", "loss.enhance_from=4", "density.start=1",
+        "density.every=2", "density.stop=5", "decomposer.method=lime"]
+
+
+@pytest.fixture(scope="module")
+def scene_dir(tmp_path_factory):
+    return make_demo_scene(tmp_path_factory.mktemp("scene") / "demo", n_train=4, n_test=2, width=40, height=30,
+                           n_points=400)
+
+
+def trainer_for(scene_dir, run, overrides=(), method="retinexgs"):
+    cfg = load_config(["demo"], list(TINY) + [f"method={method}"] + list(overrides))
+    scene = load_scene(scene_dir)
+    run.mkdir(parents=True, exist_ok=True)
+    return Trainer(cfg, scene, run, "cpu", progress=False, log=lambda s: None)
+
+
+def test_one_step_changes_every_parameter_group(scene_dir, tmp_path):
+    tr = trainer_for(scene_dir, tmp_path / "run", ["loss.enhance_from=1", "density.start=100",
+                                                   "model.sh_degree_every=1"])
+    with torch.no_grad():  # anisotropic Gaussians (rotation matters) and non-zero higher-order SH
+        tr.model.gaussians.log_scales.add_(torch.randn_like(tr.model.gaussians.log_scales) * 0.3)
+        tr.model.gaussians.sh_rest.normal_(0, 0.05)
+    before = {n: p.detach().clone() for n, p in tr.model.named_parameters()}
+    tr.step = 2
+    tr.train_step(2, tr.views[0])
+    changed = {n for n, p in tr.model.named_parameters() if not torch.equal(p.detach(), before[n])}
+    groups = {"gaussians.means", "gaussians.quats", "gaussians.log_scales", "gaussians.opacity_logits",
+              "gaussians.sh_dc", "gaussians.sh_rest"}
+    assert groups <= changed, groups - changed
+    assert any(n.startswith("illumination.") for n in changed)
+    assert any(n.startswith("enhancement.") for n in changed)
+
+
+def test_enhancement_losses_switch_on_at_enhance_from(scene_dir, tmp_path):
+    tr = trainer_for(scene_dir, tmp_path / "run")
+    res = tr.model.render(tr.views[0].camera, 0)
+    before = tr.loss(res, tr.views[0], step=3)
+    after = tr.loss(res, tr.views[0], step=4)
+    assert not {"spa", "exp", "col"} & set(before)
+    assert {"spa", "exp", "col"} <= set(after)
+    extra = tr.cfg["loss"]["w_spa"] * after["spa"] + tr.cfg["loss"]["w_exp"] * after["exp"] \
+        + tr.cfg["loss"]["w_col"] * after["col"]
+    torch.testing.assert_close(after["total"], before["total"] + extra)
+
+
+def test_checkpoint_resume_gives_the_same_parameters(scene_dir, tmp_path):
+    run = tmp_path / "run"
+    tr = trainer_for(scene_dir, run)
+    tr.train(stop_after=3)
+    saved = {k: v.clone() for k, v in tr.model.state_dict().items()}
+    resumed = Trainer(tr.cfg, tr.scene, run, "cpu", resume=True, progress=False, log=lambda s: None)
+    assert resumed.step == 3
+    for k, v in resumed.model.state_dict().items():
+        assert torch.equal(v, saved[k]), k
+    # Training on from the checkpoint matches training straight through.
+    resumed.train()
+    straight = trainer_for(scene_dir, tmp_path / "straight")
+    straight.train()
+    for k, v in straight.model.state_dict().items():
+        torch.testing.assert_close(resumed.model.state_dict()[k], v, rtol=1e-4, atol=1e-5, msg=k)
+
+
+def test_train_run_end_to_end_and_eval(scene_dir, tmp_path):
+    run = tmp_path / "run"
+    metrics = train_run(scene_dir, run, ["demo"], TINY, "cpu", progress=False, log=lambda s: None)
+    assert (run / "config.yaml").is_file() and (run / "metrics.json").is_file()
+    assert len(list((run / "renders" / "test").glob("*.png"))) == 2
+    assert metrics["mean"]["psnr"] > 0 and 0 < metrics["mean"]["ssim"] <= 1
+    assert json.loads((run / "metrics.json").read_text())["mean"]["psnr"] == pytest.approx(metrics["mean"]["psnr"])
+    again = eval_run(run, "cpu", log=lambda s: None)
+    assert again["mean"]["psnr"] == pytest.approx(metrics["mean"]["psnr"], abs=1e-6)
+    cfg, scene, model, step = load_run(run, "cpu")
+    assert step == 6 and len(model.gaussians) > 0
+
+
+@pytest.mark.parametrize("method", ["3dgs", "pre", "post"])
+def test_baselines_run(scene_dir, tmp_path, method):
+    metrics = train_run(scene_dir, tmp_path / method, ["demo"], TINY + [f"method={method}"], "cpu",
+                        progress=False, log=lambda s: None)
+    assert metrics["mean"]["psnr"] > 0
+
+
+def test_existing_run_folder_is_refused(scene_dir, tmp_path):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "mine.txt").write_text("keep me")
+    with pytest.raises(UserError, match="already exists"):
+        train_run(scene_dir, run, ["demo"], TINY, "cpu", progress=False, log=lambda s: None)
+    assert (run / "mine.txt").read_text() == "keep me"
+
+
+def test_scene_without_test_views_trains_and_says_why(scene_dir, tmp_path):
+    scene = tmp_path / "notest"
+    shutil.copytree(scene_dir, scene)
+    (scene / "transforms_test.json").unlink()
+    split = scene / "split.json"
+    if split.exists():
+        data = json.loads(split.read_text())
+        data["test"] = []
+        split.write_text(json.dumps(data))
+    logs = []
+    metrics = train_run(scene, tmp_path / "run", ["demo"], TINY, "cpu", progress=False, log=logs.append)
+    assert metrics is None
+    assert any("evaluation skipped" in line for line in logs)
+    assert "skipped" in json.loads((tmp_path / "run" / "metrics.json").read_text())
+
+
+def test_nan_loss_stops_with_the_term_and_step(scene_dir, tmp_path, monkeypatch):
+    run = tmp_path / "run"
+    tr = trainer_for(scene_dir, run)
+    tr.train(stop_after=3)  # checkpoint at step 3
+    good = sorted((run / "checkpoints").glob("*.pt"))
+    real_loss = tr.loss
+
+    def poisoned(res, tv, step):
+        terms = real_loss(res, tv, step)
+        terms["tv"] = terms["tv"] * float("nan")
+        terms["total"] = terms["total"] + terms["tv"]
+        return terms
+
+    monkeypatch.setattr(tr, "loss", poisoned)
+    with pytest.raises(TrainingDiverged, match=r"tv .* step 4"):
+        tr.train()
+    assert sorted((run / "checkpoints").glob("*.pt")) == good
+    assert Trainer(tr.cfg, tr.scene, run, "cpu", resume=True, progress=False, log=lambda s: None).step == 3
+
+
+def test_bad_config_values_are_named(tmp_path):
+    with pytest.raises(UserError, match="unknown config key"):
+        load_config(overrides=["loss.w_typo=1"])
+    with pytest.raises(UserError, match="method"):
+        load_config(overrides=["method=magic"])
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("loss: [1, 2\n")
+    with pytest.raises(UserError, match="bad.yaml"):
+        load_config([str(bad)])
