@@ -33,7 +33,7 @@ def trainer_for(scene_dir, run, overrides=(), method="retinexgs"):
 
 def test_one_step_changes_every_parameter_group(scene_dir, tmp_path):
     tr = trainer_for(scene_dir, tmp_path / "run", ["loss.enhance_from=1", "density.start=100",
-                                                   "model.sh_degree_every=1"])
+                                                   "model.sh_degree_every=1", "loss.enhance_trains_scene=true"])
     with torch.no_grad():  # anisotropic Gaussians (rotation matters) and non-zero higher-order SH
         tr.model.gaussians.log_scales.add_(torch.randn_like(tr.model.gaussians.log_scales) * 0.3)
         tr.model.gaussians.sh_rest.normal_(0, 0.05)
@@ -46,6 +46,16 @@ def test_one_step_changes_every_parameter_group(scene_dir, tmp_path):
     assert groups <= changed, groups - changed
     assert any(n.startswith("illumination.") for n in changed)
     assert any(n.startswith("enhancement.") for n in changed)
+
+
+def test_enhancement_loss_trains_only_the_enhancement_net_by_default(scene_dir, tmp_path):
+    tr = trainer_for(scene_dir, tmp_path / "run", ["loss.enhance_from=1"])
+    res = tr.model.render(tr.views[0].camera, 0)
+    terms = tr.loss(res, tr.views[0], step=5)
+    enh = tr.cfg["loss"]["w_exp"] * terms["exp"]
+    enh.backward()
+    assert tr.model.gaussians.means.grad is None or float(tr.model.gaussians.means.grad.abs().sum()) == 0
+    assert any(float(p.grad.abs().sum()) > 0 for p in tr.model.enhancement.parameters() if p.grad is not None)
 
 
 def test_enhancement_losses_switch_on_at_enhance_from(scene_dir, tmp_path):

@@ -68,7 +68,7 @@ class LR3MParams:
     stride: int = 6           # reference grid stride
     search_radius: int = 25   # block-matching window ±px
     search_step: int = 2      # candidate grid step inside the window (published: dense, 1)
-    group_size: int = 40      # patches per group
+    group_size: int = 32      # patches per group (published 40; 32 lets CUDA batch the 32x32 eighs: 14 s -> 0.06 s per image on an H100)
     c1: float = 2.9 * math.sqrt(2.0)  # SVT weight constant
     # --- not published: implementation choices
     illum_eps: float = 1e-3   # ε in a_d = β/(|∇L̂|+ε) on the normalised L̂

@@ -95,5 +95,7 @@ def validate(cfg: Config) -> None:
     if not 0 <= cfg["model"]["sh_degree"] <= 3:
         raise UserError("model.sh_degree must be in 0..3")
     for k, v in cfg["loss"].items():
+        if isinstance(v, bool):
+            continue
         if not isinstance(v, (int, float)) or v < 0:
             raise UserError(f"loss.{k} must be a non-negative number, got {v!r}")

@@ -181,7 +181,14 @@ class Trainer:
         terms["sh"] = losses.sh_sparsity_loss(self.model.gaussians.sh_rest)
         total = sup + c["w_tv"] * terms["tv"] + c["w_sh"] * terms["sh"]
         if step >= c["enhance_from"]:
-            enh, enh_terms = losses.enhancement_loss(to_bchw(res["rgb"]), S, c["w_spa"], c["w_exp"], c["w_col"],
+            S_enh = to_bchw(res["rgb"])
+            if not c["enhance_trains_scene"]:
+                # The paper trains the EnhancementNet alone with L_enhance: without this the exposure term would
+                # flatten R̂ and L̂ towards E instead of adjusting the gamma.
+                enh_net = self.model.enhancement
+                L_d = L_hat.detach()
+                S_enh = (R_hat.detach() * enh_net.enhance(L_d, enh_net(L_d))).clamp(0.0, 1.0)
+            enh, enh_terms = losses.enhancement_loss(S_enh, S, c["w_spa"], c["w_exp"], c["w_col"],
                                                      c["exposure_E"])
             terms.update(enh_terms)
             total = total + enh
