@@ -2,7 +2,7 @@
 
 Per view: reflectance colours (SH, albedo) and illumination (MLP on PE(x), PE(d)) of every Gaussian are
 rasterized together as 6 channels, giving R̂ and L̂; the low-light reconstruction is R̂∘L̂ and the enhanced
-output S_enh = clip(R̂∘L̂^g, 0, 1) with g predicted by the EnhancementNet from L̂ (per image and channel).
+output S_enh = clip(R̂∘L̂^g, 0, 1) with g predicted by the EnhancementNet from L̂ (one g per image by default).
 The plain-3DGS baselines use the same Gaussians with 3 colour channels and no illumination or enhancement.
 """
 from __future__ import annotations
@@ -29,7 +29,14 @@ class RetinexGSModel(nn.Module):
             self.illumination = IlluminationField(**model_cfg["illumination"])
             enh = dict(model_cfg["enhancement"])
             enh["gamma_range"] = tuple(enh["gamma_range"])
+            self.per_channel_gamma = bool(enh.pop("per_channel", False))
             self.enhancement = EnhancementNet(channels=3, **enh)
+
+    def predict_gamma(self, L_bchw: Tensor) -> Tensor:
+        """The EnhancementNet's gamma for L̂ [1,3,H,W]: one per image (the paper's single g, the default) or
+        one per channel (``model.enhancement.per_channel``), as [1,C,1,1]."""
+        g = self.enhancement(L_bchw)
+        return g if self.per_channel_gamma else g.mean(dim=1, keepdim=True).expand_as(g)
 
     def render(self, camera: Camera, active_degree: int, exposure: Optional[float] = None,
                gamma: Optional[float] = None) -> Dict[str, Tensor]:
@@ -49,7 +56,7 @@ class RetinexGSModel(nn.Module):
             return {"out": out, "rgb": out.image}
         R, L = out.image[..., :3], out.image[..., 3:6]
         L_bchw = L.permute(2, 0, 1).unsqueeze(0)
-        g_pred = self.enhancement(L_bchw)
+        g_pred = self.predict_gamma(L_bchw)
         if gamma is not None:
             g_pred = torch.full_like(g_pred, float(gamma))
         elif exposure is not None:

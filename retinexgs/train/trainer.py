@@ -187,7 +187,7 @@ class Trainer:
                 # flatten R̂ and L̂ towards E instead of adjusting the gamma.
                 enh_net = self.model.enhancement
                 L_d = L_hat.detach()
-                S_enh = (R_hat.detach() * enh_net.enhance(L_d, enh_net(L_d))).clamp(0.0, 1.0)
+                S_enh = (R_hat.detach() * enh_net.enhance(L_d, self.model.predict_gamma(L_d))).clamp(0.0, 1.0)
             enh, enh_terms = losses.enhancement_loss(S_enh, S, c["w_spa"], c["w_exp"], c["w_col"],
                                                      c["exposure_E"])
             terms.update(enh_terms)
