@@ -53,7 +53,7 @@ setup(
     python_requires=">=3.9",
     install_requires=["torch>=2.1", "numpy", "pyyaml", "tqdm", "pillow", "opencv-contrib-python-headless>=4.8"],
     extras_require={
-        "test": ["pytest", "hypothesis", "pycolmap>=4.0", "opencv-contrib-python-headless>=4.8", "plyfile",
+        "test": ["pytest", "hypothesis", "scipy", "pycolmap>=4.0", "opencv-contrib-python-headless>=4.8", "plyfile",
                  "imageio[ffmpeg]"],
         "data": ["pycolmap>=4.0", "opencv-contrib-python-headless>=4.8"],
         "io": ["imageio[ffmpeg]", "plyfile", "tensorboard"],
