@@ -161,3 +161,19 @@ def test_bad_config_values_are_named(tmp_path):
     bad.write_text("loss: [1, 2\n")
     with pytest.raises(UserError, match="bad.yaml"):
         load_config([str(bad)])
+
+
+def test_cli_resume_needs_no_data_and_train_without_data_is_refused(scene_dir, tmp_path, capsys):
+    from retinexgs.cli import main
+    from retinexgs.train.checkpoint import latest_checkpoint
+
+    run = tmp_path / "run"
+    sets = [a for s in TINY + ["steps=3"] for a in ("--set", s)]
+    assert main(["train", "--data", str(scene_dir), "--out", str(run), "--config", "demo", "--quiet",
+                 "--device", "cpu", *sets]) == 0
+    assert latest_checkpoint(run).name.endswith("3.pt") or "000003" in latest_checkpoint(run).name
+    assert main(["train", "--out", str(run), "--resume", "--set", "steps=6", "--quiet", "--device", "cpu"]) == 0
+    assert "000006" in latest_checkpoint(run).name or latest_checkpoint(run).name.endswith("6.pt")
+    assert main(["train", "--out", str(tmp_path / "other"), "--quiet"]) == 2
+    assert "--data SCENE is required" in capsys.readouterr().err
+    assert not (tmp_path / "other").exists()

@@ -19,7 +19,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description="Train on SCENE (LOM/transforms JSON, COLMAP or a folder of photos) into RUN: "
                                    "decomposes the views (cached), trains, checkpoints, then evaluates the "
                                    "test views (metrics.json, renders/test/*.png).")
-    p.add_argument("--data", required=True, type=Path, help="scene folder")
+    p.add_argument("--data", type=Path, help="scene folder (not needed with --resume)")
     p.add_argument("--out", required=True, type=Path, help="run folder (must not exist unless --resume)")
     p.add_argument("--config", action="append", default=[],
                    help="override file or name in configs/ (e.g. ablations/no_tv); repeatable")
@@ -45,6 +45,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _train(args: argparse.Namespace) -> int:
     from retinexgs.train.run import train_run
 
+    if args.data is None and not args.resume:
+        raise UserError("--data SCENE is required (only --resume can do without it: the run knows its scene)")
     train_run(args.data, args.out, args.config, args.set, args.device, args.resume, progress=not args.quiet)
     return 0
 
