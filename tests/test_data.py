@@ -564,3 +564,31 @@ def test_unsupported_camera_model(small_scene, tmp_path):
     p.write_text(p.read_text().replace("OPENCV 80 60", "FOV 80 60").rsplit(" ", 3)[0] + "\n")
     with pytest.raises(UserError, match=r"FOV is not supported"):
         read_model(root / "sparse" / "0", use_pycolmap=False)
+
+
+def test_atomic_write_keeps_the_old_file_on_error_and_sets_usual_permissions(tmp_path):
+    import os
+
+    from retinexgs.fileio import atomic_write, atomic_write_text
+
+    target = tmp_path / "sub" / "a.txt"
+    atomic_write_text(target, "first")
+    assert target.read_text() == "first"
+    assert (target.stat().st_mode & 0o777) == (0o666 & ~_current_umask())
+
+    def broken(f):
+        f.write(b"half")
+        raise RuntimeError("disk on fire")
+
+    with pytest.raises(RuntimeError):
+        atomic_write(target, broken)
+    assert target.read_text() == "first"
+    assert sorted(os.listdir(target.parent)) == ["a.txt"]
+
+
+def _current_umask() -> int:
+    import os
+
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask

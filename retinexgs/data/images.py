@@ -5,8 +5,6 @@ as COLMAP ignores it, so poses and pixels stay consistent).
 """
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 from typing import List, Tuple
 
@@ -14,6 +12,7 @@ import numpy as np
 import torch
 
 from retinexgs.errors import UserError
+from retinexgs.fileio import atomic_write
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp")
 
@@ -80,17 +79,13 @@ def write_image_atomic(path: Path, rgb: np.ndarray, quality: int = 95) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fmt = {".jpg": "JPEG", ".jpeg": "JPEG", ".png": "PNG", ".bmp": "BMP", ".tif": "TIFF", ".tiff": "TIFF",
            ".webp": "WEBP"}.get(path.suffix.lower(), "PNG")
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=path.suffix, dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            # fast PNG compression: caches are rewritten rarely but read often, size matters little
-            kwargs = {"quality": quality} if fmt in ("JPEG", "WEBP") else {"compress_level": 1} if fmt == "PNG" else {}
-            Image.fromarray(np.ascontiguousarray(rgb, dtype=np.uint8), "RGB").save(f, format=fmt, **kwargs)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+
+    def write(f) -> None:
+        # fast PNG compression: caches are rewritten rarely but read often, size matters little
+        kwargs = {"quality": quality} if fmt in ("JPEG", "WEBP") else {"compress_level": 1} if fmt == "PNG" else {}
+        Image.fromarray(np.ascontiguousarray(rgb, dtype=np.uint8), "RGB").save(f, format=fmt, **kwargs)
+
+    atomic_write(path, write)
 
 
 def resize_image(rgb: np.ndarray, width: int, height: int) -> np.ndarray:

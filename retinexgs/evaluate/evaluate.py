@@ -3,8 +3,6 @@ renders against the normal-light images, side-by-side PNGs, and ``metrics.json``
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from pathlib import Path
 from typing import Callable, Dict, List, Optional
 
@@ -14,6 +12,7 @@ from PIL import Image
 
 from retinexgs.data import Scene
 from retinexgs.evaluate.metrics import lpips_metric, psnr, ssim_metric
+from retinexgs.fileio import atomic_write, atomic_write_text
 
 
 def to_uint8(img: torch.Tensor) -> np.ndarray:
@@ -26,22 +25,13 @@ def to_uint8(img: torch.Tensor) -> np.ndarray:
 
 def save_png(img: torch.Tensor, path: Path) -> None:
     """Write an [H,W,C] image in [0,1] as PNG, atomically."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".png", dir=path.parent)
-    os.close(fd)
-    try:
-        Image.fromarray(to_uint8(img)).save(tmp, format="PNG")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    arr = to_uint8(img)
+    atomic_write(path, lambda f: Image.fromarray(arr).save(f, format="PNG"))
 
 
 def atomic_json(obj: Dict, path: Path) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    with os.fdopen(fd, "w") as f:
-        json.dump(obj, f, indent=2)
-    os.replace(tmp, path)
+    """Write ``obj`` as indented JSON, atomically."""
+    atomic_write_text(path, json.dumps(obj, indent=2))
 
 
 def evaluate(render_fn: Callable, scene: Scene, out_dir: Path, use_lpips: bool = True,

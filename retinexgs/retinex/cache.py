@@ -15,7 +15,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import tempfile
 import time
 from pathlib import Path
 from typing import Any, Dict, Iterable, List, Optional, Sequence, Tuple, Union
@@ -24,11 +23,12 @@ import numpy as np
 import torch
 
 from retinexgs.errors import UserError
+from retinexgs.fileio import TMP_PREFIX, atomic_write
 from retinexgs.retinex.base import enhance_for_viewing, get_decomposer, params_to_dict
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png")
 CACHE_DIRNAME = "retinex_cache"
-_TMP_PREFIX = ".tmp-"
+_TMP_PREFIX = TMP_PREFIX
 _STALE_TMP_SECONDS = 3600.0
 # Folder names that hold a scene's photos; the default cache goes next to them, in the scene folder.
 _IMAGE_FOLDER_NAMES = {"low", "high", "images", "over_exp", "input", "rgb"}
@@ -80,19 +80,7 @@ def _source_meta(image_path: Path, key: str, method: str) -> Dict[str, Any]:
 
 def _atomic_write(path: Path, write) -> None:
     """Write via a temp file in the same folder + fsync + os.replace; the temp file never survives an error."""
-    fd, tmp = tempfile.mkstemp(prefix=_TMP_PREFIX, suffix=path.suffix, dir=str(path.parent))
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+    atomic_write(path, write)
 
 
 def save_entry(path: Path, r: torch.Tensor, l: torch.Tensor, meta: Dict[str, Any]) -> None:
