@@ -11,12 +11,7 @@ from scipy.signal import correlate2d
 from retinexgs.evaluate import metrics as M
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _ssim_scipy(x: np.ndarray, y: np.ndarray) -> float:

@@ -9,13 +9,7 @@ from retinexgs.model.illumination import IlluminationField, encoded_dim, positio
 from retinexgs.train.losses import exposure_loss
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Tiny tensors: one thread avoids oversubscription stalls on a shared machine."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def test_positional_encoding_layout_and_values():
