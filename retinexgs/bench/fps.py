@@ -1,0 +1,148 @@
+"""Frame rate of a trained run: the full enhanced render against the rasterization alone, side by side.
+
+    python -m retinexgs.bench fps --run RUN [--width W --height H] [--frames 100] [--device cuda] [--vs gsplat]
+
+"full" is what a viewer pays per frame: SH colours + the illumination MLP on every Gaussian, one 6-channel
+rasterization, the EnhancementNet and R̂·L̂^g. "raster" renders the same Gaussians with those 6 channels
+precomputed, so the difference is the MLP/network share. Cameras are the run's test views (train views when
+it has none), cycled; ``--width/--height`` resize them (intrinsics scaled per axis).
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from pathlib import Path
+from typing import Callable, Dict, List, Optional
+
+import torch
+
+from retinexgs.render import Camera, rasterize_gaussians
+
+STAGES = ("full", "raster")
+
+
+def resize_camera(cam: Camera, width: Optional[int], height: Optional[int]) -> Camera:
+    """``cam`` for an image of ``width`` x ``height`` (each axis scaled on its own; None keeps it)."""
+    w, h = width or cam.width, height or cam.height
+    sx, sy = w / cam.width, h / cam.height
+    return Camera(cam.viewmat, cam.fx * sx, cam.fy * sy, cam.cx * sx, cam.cy * sy, w, h, cam.near, cam.far)
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def time_frames(fn: Callable[[int], object], frames: int, warmup: int, device: torch.device) -> List[float]:
+    """Wall time in ms of each of ``frames`` calls ``fn(i)`` after ``warmup`` untimed ones (synchronised)."""
+    for i in range(warmup):
+        fn(i)
+    times = []
+    for i in range(frames):
+        _sync(device)
+        t0 = time.perf_counter()
+        fn(i)
+        _sync(device)
+        times.append((time.perf_counter() - t0) * 1e3)
+    return times
+
+
+def _gsplat_raster(means, quats, scales, opacities, colors, cam: Camera):
+    import gsplat
+
+    dev = means.device
+    K = torch.tensor([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1]], dtype=torch.float32, device=dev)
+    return gsplat.rasterization(means, quats, scales, opacities, colors,
+                               cam.viewmat.to(device=dev, dtype=torch.float32)[None], K[None], cam.width,
+                               cam.height, near_plane=cam.near, rasterize_mode="classic")[0]
+
+
+def benchmark(run: Path, device: Optional[str] = None, width: Optional[int] = None, height: Optional[int] = None,
+              frames: int = 100, warmup: int = 10, vs_gsplat: bool = False) -> Dict[str, object]:
+    """Median ms / FPS of the full enhanced render and of the rasterization alone for ``run``."""
+    from retinexgs.errors import UserError
+    from retinexgs.train.run import load_run
+    from retinexgs.train.trainer import view_camera
+
+    cfg, scene, model, step = load_run(run, device)
+    model.eval()
+    views = scene.test or scene.train
+    cams = [resize_camera(view_camera(v), width, height) for v in views]
+    every = max(int(cfg["model"]["sh_degree_every"]), 1)
+    degree = min(cfg["model"]["sh_degree"], step // every)
+    g = model.gaussians
+    dev = g.means.device
+    if len(g) == 0:
+        raise UserError(f"run {run} has no Gaussians to render")
+
+    def full(i: int) -> None:
+        model.render(cams[i % len(cams)], degree)
+
+    # The 6 channels of every view, computed once: the rasterizer alone then sees exactly the same work.
+    with torch.no_grad():
+        means, quats, scales, opac = g.means, g.quats, g.scales, g.opacities
+        channels = []
+        for cam in cams:
+            colors = g.colors(cam.center.to(means), degree)
+            if model.decomposed:
+                from retinexgs.model.illumination import IlluminationField
+                center = cam.center.to(means)
+                colors = torch.cat([colors, model.illumination(means, IlluminationField.view_dirs(means, center))
+                                    .to(colors)], dim=-1)
+            channels.append(colors.contiguous())
+
+    def raster(i: int) -> None:
+        rasterize_gaussians(means, quats, scales, opac, channels[i % len(cams)], cams[i % len(cams)])
+
+    stages: Dict[str, Callable[[int], None]] = {"full": full, "raster": raster}
+    if vs_gsplat:
+        def gs(i: int) -> None:
+            _gsplat_raster(means, quats, scales, opac, channels[i % len(cams)], cams[i % len(cams)])
+        stages["raster (gsplat)"] = gs
+    out: Dict[str, object] = {"gaussians": len(g), "width": cams[0].width, "height": cams[0].height,
+                              "channels": int(channels[0].shape[1]), "frames": frames,
+                              "device": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu"}
+    with torch.no_grad():
+        for name, fn in stages.items():
+            ms = statistics.median(time_frames(fn, frames, warmup, dev))
+            out[name] = {"ms": ms, "fps": 1e3 / ms}
+    return out
+
+
+def format_result(r: Dict[str, object]) -> str:
+    """The side-by-side table of :func:`benchmark`'s result."""
+    lines = [f"{r['device']}: {r['gaussians']} Gaussians, {r['width']}x{r['height']}, {r['channels']} channels, "
+             f"median of {r['frames']} frames"]
+    full = r["full"]["ms"]  # type: ignore[index]
+    for name in [k for k in r if isinstance(r[k], dict)]:
+        ms = r[name]["ms"]  # type: ignore[index]
+        lines.append(f"  {name:<16} {ms:8.3f} ms  {1e3 / ms:8.1f} FPS  ({ms / full:5.2f} of full)")
+    raster = r["raster"]["ms"]  # type: ignore[index]
+    lines.append(f"  MLP + EnhancementNet + SH share of the full render: {100 * (full - raster) / full:.0f} %")
+    return "\n".join(lines)
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m retinexgs.bench fps", description=__doc__.splitlines()[0])
+    parser.add_argument("--run", required=True, type=Path, help="a trained run folder")
+    parser.add_argument("--device", default="auto", help="cpu, cuda or auto")
+    parser.add_argument("--width", type=int, default=None)
+    parser.add_argument("--height", type=int, default=None)
+    parser.add_argument("--frames", type=int, default=100, help="timed frames (default 100)")
+    parser.add_argument("--warmup", type=int, default=10)
+    parser.add_argument("--vs", choices=["gsplat"], default=None, help="also time gsplat's rasterization")
+    args = parser.parse_args(argv)
+    from retinexgs.errors import UserError
+
+    try:
+        print(format_result(benchmark(args.run, args.device, args.width, args.height, args.frames, args.warmup,
+                                      args.vs == "gsplat")))
+    except UserError as exc:
+        print(f"bench fps: error: {exc}")
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,42 @@
+"""The FPS benchmark on a tiny trained run (CPU): both stages timed on the same Gaussians, bad runs named."""
+import pytest
+import torch
+
+from retinexgs.bench.fps import benchmark, format_result, main, resize_camera
+from retinexgs.demo.synthetic import make_demo_scene
+from retinexgs.render import Camera
+from retinexgs.train.run import train_run
+
+TINY = ["steps=4", "checkpoint.every=4", "log.tensorboard=false", "model.sh_degree=1", "model.sh_degree_every=2",
+        "model.max_init_points=300", "density.start=100", "decomposer.method=lime"]
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+    root = tmp_path_factory.mktemp("fps")
+    scene = make_demo_scene(root / "scene", n_train=3, n_test=2, width=40, height=30, n_points=300)
+    train_run(scene, root / "run", ["demo"], TINY, "cpu", progress=False, log=lambda m: None)
+    return root / "run"
+
+
+def test_fps_times_full_and_raster_on_resized_cameras(run_dir):
+    r = benchmark(run_dir, "cpu", width=50, height=20, frames=3, warmup=1)
+    assert (r["width"], r["height"], r["channels"]) == (50, 20, 6)
+    assert r["gaussians"] > 0
+    for stage in ("full", "raster"):
+        assert r[stage]["ms"] > 0 and r[stage]["fps"] == pytest.approx(1e3 / r[stage]["ms"])
+    text = format_result(r)
+    assert "full" in text and "raster" in text and "share" in text
+
+
+def test_resize_camera_scales_each_axis():
+    cam = Camera(torch.eye(4), 100.0, 80.0, 32.0, 24.0, 64, 48)
+    c = resize_camera(cam, 32, 96)
+    assert (c.width, c.height, c.fx, c.cx, c.fy, c.cy) == (32, 96, 50.0, 16.0, 160.0, 48.0)
+    same = resize_camera(cam, None, None)
+    assert (same.width, same.height, same.fx, same.fy) == (64, 48, 100.0, 80.0)
+
+
+def test_fps_on_a_folder_that_is_not_a_run(tmp_path, capsys):
+    assert main(["--run", str(tmp_path), "--device", "cpu"]) == 2
+    assert "not a run folder" in capsys.readouterr().out
