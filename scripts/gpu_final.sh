@@ -6,14 +6,14 @@
 set -uo pipefail
 OUT=${OUT:-gpu_out}; mkdir -p "$OUT"
 export PYTHONUNBUFFERED=1 PYTHONPATH="$PWD" MAX_JOBS=16 TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0}
-STEPS=${STEPS:-5000}
+STEPS=${STEPS:-4000}
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$OUT/gpu.txt"
 t0=$(date +%s)
 python3 setup.py build_ext --inplace > "$OUT/build.log" 2>&1 || { tail -30 "$OUT/build.log"; exit 1; }
 echo "build: $(( $(date +%s) - t0 )) s"
 if [ -f scripts/fuzz_cuda.py ]; then
   t0=$(date +%s)
-  timeout ${FUZZ_TIMEOUT:-45} python3 scripts/fuzz_cuda.py ${FUZZ_ARGS:-} > "$OUT/fuzz_cuda.log" 2>&1
+  timeout ${FUZZ_TIMEOUT:-30} python3 scripts/fuzz_cuda.py ${FUZZ_ARGS:---cases 200} > "$OUT/fuzz_cuda.log" 2>&1
   echo "fuzz_cuda: exit $? in $(( $(date +%s) - t0 )) s"; tail -8 "$OUT/fuzz_cuda.log"
 fi
 [ -d /tmp/fox-dark ] || cp -r .data/fox-dark /tmp/fox-dark
