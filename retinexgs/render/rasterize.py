@@ -60,21 +60,23 @@ def rasterize_gaussians(
 
     Args:
         means: [N, 3] centres in world space (float32 or float64; all inputs share dtype and device).
-        quats: [N, 4] rotations as (w, x, y, z); normalised inside, a zero quaternion means identity.
+        quats: [N, 4] rotations as (w, x, y, z); normalised inside, so any non-zero norm works; a zero
+            quaternion means the identity rotation and gets a zero gradient.
         scales: [N, 3] standard deviations along the Gaussian's axes (already exponentiated).
-        opacities: [N] in [0, 1] (already through a sigmoid).
+        opacities: [N] in [0, 1] (already through a sigmoid); alpha is clamped to 0.99, and a Gaussian with
+            opacity <= 1/255 is culled.
         colors: [N, C] per-Gaussian channels, any C >= 1 (e.g. 3 for RGB; RetinexGS renders 6).
         camera: the :class:`~retinexgs.render.Camera` (world-to-camera, intrinsics, size, near/far).
         background: optional [C] colour composited behind the Gaussians.
         render_depth: also render the alpha-weighted depth map.
 
+    Every tensor must be finite: a NaN or inf anywhere raises a ValueError naming the argument.
+
     Returns:
         A :class:`RenderOutput` with ``image`` [H, W, C], ``alpha`` [H, W, 1], ``depth`` [H, W, 1] or None,
         ``means2d``, ``radii`` and ``num_pairs``.
     """
-    check_gaussians(means, quats, scales, opacities, colors, camera)
-    if background is not None:
-        check_tensor(background, "background", (colors.shape[1],), means)
+    check_gaussians(means, quats, scales, opacities, colors, camera, background)
     means2d, depths, conics, radii = ProjectGaussians.apply(means, quats, scales, opacities, camera)
     if means2d.requires_grad:
         means2d.retain_grad()

@@ -124,7 +124,7 @@ def rasterize_gaussians_reference(means: Tensor, quats: Tensor, scales: Tensor, 
                                   camera: Camera, *, background: Optional[Tensor] = None,
                                   render_depth: bool = False) -> RenderOutput:
     """Pure-torch version of :func:`retinexgs.render.rasterize_gaussians` (same arguments and outputs)."""
-    check_gaussians(means, quats, scales, opacities, colors, camera)
+    check_gaussians(means, quats, scales, opacities, colors, camera, background)
     means2d, depths, conics, radii = project_reference(means, quats, scales, opacities, camera)
     channels = torch.cat([colors, depths.unsqueeze(-1)], -1) if render_depth else colors
     image, alpha = composite_reference(means2d, conics, channels, opacities, depths, radii, camera.width,

@@ -27,8 +27,31 @@ def check_tensor(value, name: str, shape: Sequence[Optional[int]], like: Optiona
     return value
 
 
-def check_gaussians(means, quats, scales, opacities, colors, camera) -> None:
-    """Validate one render call's inputs; raises TypeError/ValueError naming the offending argument."""
+def check_finite(named: Sequence) -> None:
+    """Raise a ValueError naming the first of ``(name, tensor)`` pairs holding a NaN or an infinity.
+
+    One reduction and one host sync for all of them (the kernels would otherwise cull such Gaussians
+    silently, or let a NaN colour through to the image)."""
+    tensors = [t for _, t in named if t is not None and t.numel()]
+    if not tensors:
+        return
+    with torch.no_grad():
+        ok = torch.stack([torch.isfinite(t).all() for t in tensors]).all()
+    if bool(ok):
+        return
+    for name, t in named:
+        if t is not None and not bool(torch.isfinite(t.detach()).all()):
+            bad = int((~torch.isfinite(t.detach())).sum())
+            raise ValueError(f"{name} contains non-finite values (NaN or inf) in {bad} of {t.numel()} entries; "
+                             "the renderer needs finite inputs")
+
+
+def check_gaussians(means, quats, scales, opacities, colors, camera, background=None) -> None:
+    """Validate one render call's inputs; raises TypeError/ValueError naming the offending argument.
+
+    Every tensor must be finite (a NaN or inf is a ValueError). A zero quaternion is allowed and means the
+    identity rotation (it gets a zero gradient); opacities outside [0, 1] are allowed (alpha is clamped to
+    0.99, a non-positive opacity culls the Gaussian)."""
     check_tensor(means, "means", (None, 3))
     n = means.shape[0]
     if n == 0:
@@ -41,3 +64,7 @@ def check_gaussians(means, quats, scales, opacities, colors, camera) -> None:
         raise ValueError("colors must have at least one channel, got shape " f"{tuple(colors.shape)}")
     if not isinstance(camera, Camera):
         raise TypeError(f"camera must be a retinexgs.render.Camera, got {type(camera).__name__}")
+    if background is not None:
+        check_tensor(background, "background", (colors.shape[1],), means)
+    check_finite([("means", means), ("quats", quats), ("scales", scales), ("opacities", opacities),
+                  ("colors", colors), ("background", background)])
