@@ -64,8 +64,9 @@ class DensityController:
         visible = out.visible
         # Pixel gradients -> NDC gradients (the unit 3DGS's threshold is defined in).
         ndc = grad.detach() * torch.tensor([width / 2.0, height / 2.0], device=grad.device, dtype=grad.dtype)
-        self.grad_accum[visible] += ndc[visible].norm(dim=-1).float()
-        self.count[visible] += 1
+        # Masked arithmetic, not boolean indexing: indexing would sync with the GPU every step.
+        self.grad_accum += torch.where(visible, ndc.norm(dim=-1).float(), 0.0)
+        self.count += visible.float()
         r = out.radii.max(dim=-1).values.float()
         self.max_radius = torch.maximum(self.max_radius, torch.where(visible, r, torch.zeros_like(r)))
 

@@ -2,7 +2,16 @@
 
 Per view: reflectance colours (SH, albedo) and illumination (MLP on PE(x), PE(d)) of every Gaussian are
 rasterized together as 6 channels, giving R̂ and L̂; the low-light reconstruction is R̂∘L̂ and the enhanced
-output S_enh = clip(R̂∘L̂^g, 0, 1) with g predicted by the EnhancementNet from L̂ (one g per image by default).
+output S_enh = clip(R̂∘(L̂/L_ref)^g, 0, 1) with g predicted by the EnhancementNet from L̂/L_ref (one g per image
+by default).
+
+Why L_ref: L̂ lives in the photos' exposure scale (the 2D prior L is "in the scale of S", ~0.1-0.3 for a dark
+scene), and a gamma curve only brightens with the right contrast on an illumination normalised to [0, 1]
+(1 = the brightest light in the scene) — the same normalisation as LR3M's display rule R∘(L/max L)^{1/γ}.
+Without it no g reaches a normal exposure: on fox-dark's LR3M maps the best R∘L^g is 17.8 dB against the
+normal-light photo, R∘(L/L_ref)^g reaches 25 dB. L_ref is one scene-wide constant (a buffer saved with the
+model: the median over training views of the 99th percentile of the 2D prior L, set by the trainer), not a
+per-view maximum, so the enhancement stays 3D-consistent.
 The plain-3DGS baselines use the same Gaussians with 3 colour channels and no illumination or enhancement.
 """
 from __future__ import annotations
@@ -31,19 +40,39 @@ class RetinexGSModel(nn.Module):
             enh["gamma_range"] = tuple(enh["gamma_range"])
             self.per_channel_gamma = bool(enh.pop("per_channel", False))
             self.enhancement = EnhancementNet(channels=3, **enh)
+            self.register_buffer("illum_ref", torch.ones(()))  # L_ref; set by the trainer from the 2D priors
+
+    def normalized_illumination(self, L: Tensor) -> Tensor:
+        """L̂ / L_ref clamped to [0, 1]: the illumination the gamma acts on (any shape)."""
+        return (L / self.illum_ref.to(L)).clamp(0.0, 1.0)
+
+    def enhance(self, R: Tensor, L: Tensor, exposure: Optional[float] = None,
+                gamma: Optional[float] = None) -> Dict[str, Tensor]:
+        """S_enh = clip(R̂ ∘ (L̂/L_ref)^g, 0, 1) for [H,W,3] maps ``R``, ``L``; returns ``rgb``, ``L_enh`` [H,W,3]
+        and ``gamma`` (flattened). ``exposure`` scales the predicted g (< 1 brighter); ``gamma`` replaces it."""
+        L_bchw = self.normalized_illumination(L).permute(2, 0, 1).unsqueeze(0)
+        g = self.predict_gamma(L_bchw)
+        if gamma is not None:
+            g = torch.full_like(g, float(gamma))
+        elif exposure is not None:
+            g = g * float(exposure)
+        L_enh = self.enhancement.enhance(L_bchw, g)[0].permute(1, 2, 0)
+        return {"rgb": (R * L_enh).clamp(0.0, 1.0), "L_enh": L_enh, "gamma": g.reshape(-1)}
 
     def predict_gamma(self, L_bchw: Tensor) -> Tensor:
-        """The EnhancementNet's gamma for L̂ [1,3,H,W]: one per image (the paper's single g, the default) or
+        """The EnhancementNet's gamma for a normalised L̂/L_ref [1,3,H,W]: one per image (the paper's single g, the default) or
         one per channel (``model.enhancement.per_channel``), as [1,C,1,1]."""
         g = self.enhancement(L_bchw)
         return g if self.per_channel_gamma else g.mean(dim=1, keepdim=True).expand_as(g)
 
     def render(self, camera: Camera, active_degree: int, exposure: Optional[float] = None,
-               gamma: Optional[float] = None) -> Dict[str, Tensor]:
+               gamma: Optional[float] = None, validate: bool = True) -> Dict[str, Tensor]:
         """Render one view. Returns ``out`` (RenderOutput) and [H,W,3] maps: ``rgb`` (the model's output
         image: S_enh, or the plain render for baselines), and for RetinexGS ``R``, ``L``, ``S_rec``, ``gamma``.
 
         ``exposure`` scales the predicted gamma (< 1 brighter, > 1 darker); ``gamma`` replaces it.
+        ``validate=False`` skips the renderer's input checks (one host sync), for loops that check their
+        parameters themselves.
         """
         g = self.gaussians
         center = camera.center.to(g.means)
@@ -51,17 +80,8 @@ class RetinexGSModel(nn.Module):
         if self.decomposed:
             illum = self.illumination(g.means, IlluminationField.view_dirs(g.means, center))
             colors = torch.cat([colors, illum.to(colors)], dim=-1)
-        out = rasterize_gaussians(g.means, g.quats, g.scales, g.opacities, colors, camera)
+        out = rasterize_gaussians(g.means, g.quats, g.scales, g.opacities, colors, camera, validate=validate)
         if not self.decomposed:
             return {"out": out, "rgb": out.image}
         R, L = out.image[..., :3], out.image[..., 3:6]
-        L_bchw = L.permute(2, 0, 1).unsqueeze(0)
-        g_pred = self.predict_gamma(L_bchw)
-        if gamma is not None:
-            g_pred = torch.full_like(g_pred, float(gamma))
-        elif exposure is not None:
-            g_pred = g_pred * float(exposure)
-        L_enh = self.enhancement.enhance(L_bchw, g_pred)[0].permute(1, 2, 0)
-        S_enh = (R * L_enh).clamp(0.0, 1.0)
-        return {"out": out, "rgb": S_enh, "R": R, "L": L, "S_rec": R * L, "L_enh": L_enh,
-                "gamma": g_pred.reshape(-1)}
+        return {"out": out, "R": R, "L": L, "S_rec": R * L, **self.enhance(R, L, exposure, gamma)}

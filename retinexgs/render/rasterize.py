@@ -51,6 +51,7 @@ def rasterize_gaussians(
     *,
     background: Optional[Tensor] = None,
     render_depth: bool = False,
+    validate: bool = True,
 ) -> RenderOutput:
     """Render N 3D Gaussians with C-channel colours from one camera, differentiably.
 
@@ -70,13 +71,15 @@ def rasterize_gaussians(
         background: optional [C] colour composited behind the Gaussians.
         render_depth: also render the alpha-weighted depth map.
 
-    Every tensor must be finite: a NaN or inf anywhere raises a ValueError naming the argument.
+        validate: check that every tensor is finite (a NaN or inf anywhere raises a ValueError naming the
+            argument). The check costs one host-device sync on the GPU; a loop that checks its parameters
+            itself (the trainer does, every step) passes False. Shapes, dtypes and devices are always checked.
 
     Returns:
         A :class:`RenderOutput` with ``image`` [H, W, C], ``alpha`` [H, W, 1], ``depth`` [H, W, 1] or None,
         ``means2d``, ``radii`` and ``num_pairs``.
     """
-    check_gaussians(means, quats, scales, opacities, colors, camera, background)
+    check_gaussians(means, quats, scales, opacities, colors, camera, background, finite=validate)
     means2d, depths, conics, radii = ProjectGaussians.apply(means, quats, scales, opacities, camera)
     if means2d.requires_grad:
         means2d.retain_grad()

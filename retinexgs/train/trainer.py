@@ -16,6 +16,7 @@ from torch import Tensor
 
 from retinexgs.data import Scene, View
 from retinexgs.errors import UserError
+from retinexgs.fileio import atomic_write_text
 from retinexgs.model.density import DensityController
 from retinexgs.model.gaussians import PARAM_NAMES, GaussianModel
 from retinexgs.model.retinex_model import RetinexGSModel
@@ -84,10 +85,11 @@ class Trainer:
         state = None
         if resume:
             ckpt = latest_checkpoint(self.run)
-            if ckpt is None:
-                raise UserError(f"--resume: {self.run} has no checkpoint to resume from")
-            state = load_checkpoint(ckpt)
-            self.log(f"resuming from {ckpt} (step {state['step']})")
+            if ckpt is None:  # stopped before its first checkpoint (e.g. killed while decomposing)
+                self.log(f"{self.run} has no checkpoint yet: starting from step 0")
+            else:
+                state = load_checkpoint(ckpt)
+                self.log(f"resuming from {ckpt} (step {state['step']})")
         self._build(state)
 
     # ---- set-up ----------------------------------------------------------------------------------------
@@ -126,6 +128,8 @@ class Trainer:
             gstate = {k[len("gaussians."):]: v for k, v in state["model"].items() if k.startswith("gaussians.")}
             gaussians = GaussianModel.empty_like_state(gstate, mcfg["sh_degree"])
         self.model = RetinexGSModel(gaussians, mcfg, self.decomposed).to(self.device)
+        if self.decomposed and state is None:
+            self.model.illum_ref.fill_(self.illumination_reference())
         lr = self.cfg["lr"]
         g = self.model.gaussians
         groups = [
@@ -151,6 +155,17 @@ class Trainer:
             random.setstate(state["py_rng"])
             self.order = list(state.get("order", []))
             self.density.load_state_dict(state.get("density", {}), self.device)
+
+    def illumination_reference(self) -> float:
+        """L_ref, the scene's "full light" level that the enhancement normalises L̂ by: the median over the
+        training views of the 99th percentile of the 2D prior L (of max-RGB of S without priors, the usual
+        initial illumination estimate)."""
+        per_view = []
+        for tv in self.views:
+            L = tv.L if tv.L is not None else tv.S.amax(dim=-1)
+            flat = L.reshape(-1).float()
+            per_view.append(flat.kthvalue(max(1, int(0.99 * flat.numel()))).values)
+        return float(torch.stack(per_view).median().clamp_min(1e-3))
 
     # ---- one step ----------------------------------------------------------------------------------------
     def _means_lr(self, step: int) -> float:
@@ -185,9 +200,7 @@ class Trainer:
             if not c["enhance_trains_scene"]:
                 # The paper trains the EnhancementNet alone with L_enhance: without this the exposure term would
                 # flatten R̂ and L̂ towards E instead of adjusting the gamma.
-                enh_net = self.model.enhancement
-                L_d = L_hat.detach()
-                S_enh = (R_hat.detach() * enh_net.enhance(L_d, self.model.predict_gamma(L_d))).clamp(0.0, 1.0)
+                S_enh = to_bchw(self.model.enhance(res["R"].detach(), res["L"].detach())["rgb"])
             enh, enh_terms = losses.enhancement_loss(S_enh, S, c["w_spa"], c["w_exp"], c["w_col"],
                                                      c["exposure_E"])
             terms.update(enh_terms)
@@ -199,21 +212,27 @@ class Trainer:
         for group in self.optimizer.param_groups:
             if group["name"] == "means":
                 group["lr"] = self._means_lr(step)
-        res = self.model.render(tv.camera, self.active_degree(step))
+        res = self.model.render(tv.camera, self.active_degree(step), validate=False)
         terms = self.loss(res, tv, step)
-        values = {k: float(v.detach()) for k, v in terms.items()}
+        terms["total"].backward()
+        self.density.update(res["out"], tv.camera.width, tv.camera.height)
+        self.optimizer.step()
+        self.optimizer.zero_grad(set_to_none=True)
+        # One host sync per step for every loss value and the finiteness of every parameter: syncs stall the
+        # GPU queue, and this loop is launch-bound. A non-finite loss or parameter raises before the next
+        # checkpoint, so the last checkpoint on disk is always a good one.
+        names = list(terms)
+        params = [getattr(self.model.gaussians, name) for name in PARAM_NAMES]
+        checks = torch.stack([terms[k].detach().float() for k in names]
+                             + [torch.isfinite(p).all().float() for p in params]).tolist()
+        values = dict(zip(names, checks[:len(names)]))
         bad = [k for k, v in values.items() if not math.isfinite(v)]
         if bad:
             raise TrainingDiverged(f"loss term {bad[0]} became {values[bad[0]]} at step {step}; the last good "
                                    f"checkpoint in {self.run / 'checkpoints'} is intact (lower the learning "
                                    "rates or resume from it)")
-        terms["total"].backward()
-        self.density.update(res["out"], tv.camera.width, tv.camera.height)
-        self.optimizer.step()
-        self.optimizer.zero_grad(set_to_none=True)
-        for name in PARAM_NAMES:
-            p = getattr(self.model.gaussians, name)
-            if not bool(torch.isfinite(p).all()):
+        for name, ok in zip(PARAM_NAMES, checks[len(names):]):
+            if not ok:
                 raise TrainingDiverged(f"Gaussian parameter {name} became non-finite at step {step}; the last "
                                        f"good checkpoint in {self.run / 'checkpoints'} is intact")
         size = max(tv.camera.width, tv.camera.height)
@@ -254,12 +273,14 @@ class Trainer:
                 event = values.pop("event", None)
                 if event:
                     log_file.write(json.dumps({"step": self.step, "event": event, "gaussians": len(self.model.gaussians)}) + "\n")
+                    log_file.flush()
                 if self.step % self.cfg["log"]["every"] == 0 or self.step == end:
                     n = len(self.model.gaussians)
                     bar.set_postfix({k: f"{v:.4f}" for k, v in values.items() if k in
                                      ("total", "sup_rec", "sup_r", "sup_l", "exp", "rgb")} | {"N": n})
                     log_file.write(json.dumps({"step": self.step, "gaussians": n, "seconds": time.time() - t0,
                                                **values}) + "\n")
+                    log_file.flush()  # whole lines on disk: a killed run leaves no cut line
                     if writer:
                         for k, v in values.items():
                             writer.add_scalar(f"loss/{k}", v, self.step)
@@ -289,4 +310,4 @@ def write_run_config(run: Path, cfg: Dict, scene_path: Path) -> None:
     """The resolved config of a run (what resume, eval, render and export read back)."""
     data = dict(cfg)
     data["scene"] = str(Path(scene_path).resolve())
-    (run / "config.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
+    atomic_write_text(run / "config.yaml", yaml.safe_dump(data, sort_keys=False))
