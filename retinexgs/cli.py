@@ -18,6 +18,7 @@ _COMMAND_MODULES = [
     "retinexgs.train.command",
     "retinexgs.retinex.command",
     "retinexgs.data.command",
+    "retinexgs.export.command",
 ]
 
 

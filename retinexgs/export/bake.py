@@ -1,0 +1,145 @@
+"""Bake a trained RetinexGS scene into plain 3DGS Gaussians (SH colours only) for standard viewers.
+
+The enhanced image of RetinexGS is S_enh = clip(R̂ ∘ E(L̂), 0, 1): R̂ comes from the Gaussians' SH (albedo),
+L̂ from an MLP evaluated per Gaussian and view direction, and E(L) = max(min(L / L_ref, 1), eps)^g is the
+model's enhancement (L_ref a scene-wide illumination reference, g from the EnhancementNet). A standard
+viewer can only evaluate SH, so for every Gaussian the enhanced colour
+
+    c(d) = clip(R(d) · E(L(x, d)), 0, 1)
+
+is evaluated from ``directions`` unit directions d (a Fibonacci sphere; d points from the camera to the
+Gaussian, the convention of both the SH and the illumination field) and SH coefficients of the model's
+degree D are fitted to c(d) − 0.5 by least squares (colour = max(SH(d) + 0.5, 0) in 3DGS). E is the model's
+own code (``normalized_illumination`` and ``enhancement.enhance``), so the bake follows the render. g is the
+mean of the gammas the EnhancementNet predicts over the training views (per channel when the model predicts
+per channel), optionally scaled by an exposure factor or replaced by a fixed gamma.
+
+What the bake cannot reproduce exactly (also said in the README): the model composites R̂ and L̂
+*before* raising L̂ to g and multiplying, the bake multiplies per Gaussian and lets the viewer composite.
+The two agree where one opaque Gaussian dominates a pixel; where several semi-transparent Gaussians mix, or
+coverage is partial (alpha < 1), they differ: a pixel of alpha a shows a·R·E(L) in the viewer instead of
+the model's a·R·E(a·L), i.e. the PLY is brighter there. On the tiny test run, whose coverage is like a
+trained scene's, the PLY renders at 36–38 dB PSNR against the full model (tests/test_export.py); on one
+with half-transparent coverage, about 27 dB. The per-view gamma becomes one gamma for all views, and a
+degree-D SH only approximates the illumination's view dependence.
+
+The world mapping itself is exact up to float32 rounding: the scene normalisation is a translation and a
+uniform scale, which move and resize the Gaussians but change no direction, so the SH colours need no
+change. What stays in the normalised frame is only implicit: the illumination field was evaluated at the
+normalised positions before baking, and the rasterizer's near plane (0.01) is in normalised units.
+"""
+from __future__ import annotations
+
+import math
+from typing import Callable, Dict, Iterable, Optional
+
+import torch
+from torch import Tensor
+
+from retinexgs.data.scene import Normalization
+from retinexgs.model.gaussians import PARAM_NAMES
+from retinexgs.model.retinex_model import RetinexGSModel
+from retinexgs.render import Camera, spherical_harmonics
+
+
+def fibonacci_sphere(n: int, dtype: torch.dtype = torch.float64) -> Tensor:
+    """``n`` nearly uniform unit directions [n,3] (golden-angle spiral)."""
+    i = torch.arange(n, dtype=dtype) + 0.5
+    z = 1.0 - 2.0 * i / n
+    r = torch.sqrt((1.0 - z * z).clamp_min(0.0))
+    phi = i * math.pi * (3.0 - math.sqrt(5.0))
+    return torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], dim=-1)
+
+
+def sh_basis(degree: int, dirs: Tensor) -> Tensor:
+    """[n, (degree+1)²] SH basis values at ``dirs`` [n,3], from the renderer's own SH (so the fit uses the
+    exact basis the rasterizer and the viewers evaluate)."""
+    k = (degree + 1) ** 2
+    eye = torch.eye(k, dtype=dirs.dtype, device=dirs.device).expand(dirs.shape[0], k, k).contiguous()
+    return spherical_harmonics(degree, dirs, eye)
+
+
+def mean_gamma(model: RetinexGSModel, cameras: Iterable[Camera], degree: int) -> Tensor:
+    """The mean gamma [3] the EnhancementNet predicts over ``cameras`` (one value repeated unless per channel)."""
+    gammas = []
+    with torch.no_grad():
+        for cam in cameras:
+            gammas.append(model.render(cam, degree)["gamma"].reshape(-1, 3).mean(0).double().cpu())
+    if not gammas:
+        raise ValueError("mean_gamma needs at least one camera")
+    return torch.stack(gammas).mean(0)
+
+
+def bake_enhanced_sh(model: RetinexGSModel, active_degree: int, gamma: Tensor, directions: int = 64,
+                     chunk: int = 4096, progress: Optional[Callable[[int], None]] = None) -> Dict[str, Tensor]:
+    """SH coefficients (``sh_dc`` [N,1,3], ``sh_rest`` [N,K-1,3], K = (model degree + 1)²) that least-squares fit
+    each Gaussian's enhanced colour clip(R(d)·E(L(x,d)), 0, 1) (module docstring) over ``directions`` Fibonacci
+    directions.
+
+    R is evaluated at ``active_degree`` (what the model renders with); the fit uses the model's full degree,
+    which the PLY stores. ``gamma`` is a scalar or [3]. ``progress(n)`` is called after each chunk of n.
+    """
+    g = model.gaussians
+    degree = g.sh_degree
+    k = (degree + 1) ** 2
+    if directions < k:
+        raise ValueError(f"--directions must be at least {k} to fit degree-{degree} SH, got {directions}")
+    device = g.means.device
+    dirs = fibonacci_sphere(directions).to(device)
+    fit = torch.linalg.pinv(sh_basis(degree, dirs))                      # [K, n_dirs], float64
+    act = min(active_degree, degree)
+    basis_act = sh_basis(act, dirs).float()                              # [n_dirs, K_act]
+    dirs32 = dirs.float()
+    gamma = torch.as_tensor(gamma, dtype=torch.float32, device=device).reshape(-1)
+    # The model's own steps (L̂ -> min(L̂/L_ref, 1) -> max(., eps)^g), so the bake follows the enhanced render;
+    # a model without an illumination reference applies the gamma to L̂ itself.
+    normalize = getattr(model, "normalized_illumination", lambda L: L)
+    coeffs = torch.cat([g.sh_dc, g.sh_rest], dim=1).detach()[:, :(act + 1) ** 2]
+    out = torch.empty(len(g), k, 3, dtype=torch.float32, device=device)
+    with torch.no_grad():
+        for s in range(0, len(g), chunk):
+            means = g.means[s:s + chunk]
+            n = means.shape[0]
+            R = (torch.einsum("dk,nkc->ndc", basis_act, coeffs[s:s + chunk]) + 0.5).clamp_min(0.0)
+            # The same field and direction convention as RetinexGSModel.render: d from the camera to the Gaussian.
+            L = model.illumination(means.repeat_interleave(directions, 0), dirs32.repeat(n, 1)).reshape(n, -1, 3)
+            target = (R * model.enhancement.enhance(normalize(L.float()), gamma)).clamp(0.0, 1.0)
+            out[s:s + n] = torch.einsum("kd,ndc->nkc", fit, (target - 0.5).double()).float()
+            if progress is not None:
+                progress(n)
+    return {"sh_dc": out[:, :1].contiguous(), "sh_rest": out[:, 1:].contiguous()}
+
+
+def reflectance_sh(model: RetinexGSModel, active_degree: int) -> Dict[str, Tensor]:
+    """R̂'s SH as stored, with the bands above ``active_degree`` zeroed: the model renders without them, and a
+    viewer would otherwise add whatever they hold."""
+    g = model.gaussians
+    rest = g.sh_rest.detach().clone()
+    rest[:, (min(active_degree, g.sh_degree) + 1) ** 2 - 1:] = 0.0
+    return {"sh_dc": g.sh_dc.detach().clone(), "sh_rest": rest}
+
+
+def to_world(params: Dict[str, Tensor], norm: Normalization) -> Dict[str, Tensor]:
+    """Gaussians from the normalised working frame to the input's world frame: centres through
+    ``norm.to_world`` and standard deviations divided by ``norm.scale`` (log-scales shifted); rotations,
+    opacities and SH are unchanged (a translation plus uniform scale changes no direction)."""
+    out = dict(params)
+    out["means"] = norm.to_world(params["means"].detach().double()).float()
+    out["log_scales"] = (params["log_scales"].detach().double() - math.log(norm.scale)).float()
+    return out
+
+
+def to_normalized(params: Dict[str, Tensor], norm: Normalization) -> Dict[str, Tensor]:
+    """The inverse of :func:`to_world` (e.g. to render an exported PLY in the run's frame)."""
+    out = dict(params)
+    out["means"] = norm.to_normalized(params["means"].detach().double()).float()
+    out["log_scales"] = (params["log_scales"].detach().double() + math.log(norm.scale)).float()
+    return out
+
+
+def export_params(model: RetinexGSModel, norm: Normalization, sh: Dict[str, Tensor]) -> Dict[str, Tensor]:
+    """The model's Gaussians with the SH of ``sh``, mapped to the world frame, on the CPU (the PLY's content)."""
+    g = model.gaussians
+    params = {name: getattr(g, name).detach() for name in PARAM_NAMES}
+    params.update(sh)
+    return {name: t.cpu() for name, t in to_world(params, norm).items()}

@@ -1,0 +1,63 @@
+"""The ``render`` and ``export`` sub-commands."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from retinexgs.export import DEFAULT_DIRECTIONS, PATH_KINDS
+
+
+def _add_common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--run", required=True, type=Path, help="a trained run folder")
+    p.add_argument("--device", default="auto", help="cpu, cuda or auto (default: cuda when available)")
+    p.add_argument("--force", action="store_true", help="overwrite existing output files")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--exposure", type=float, help="scale the predicted gamma (< 1 brighter, > 1 darker)")
+    g.add_argument("--gamma", type=float, help="use this gamma instead of the predicted one")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("render", help="render a trained run's views or a camera path to PNG/MP4",
+                       description="Render the enhanced image (and on request R̂, L̂, depth and the low-light "
+                                   "reconstruction) of RUN's test or train views to OUT/<map>/<view>.png, or "
+                                   "along a smooth camera path to an MP4. Existing files are kept unless --force.")
+    _add_common(p)
+    # No argparse choices for --views/--path/--format: a bad value then exits through UserError (code 2,
+    # one paragraph) like every other input problem, and nothing is loaded first.
+    p.add_argument("--views", default=None, help="test (default), train, or path (a camera path; see --path)")
+    p.add_argument("--out", type=Path, help="output folder (views, PNG frames) or .mp4 file (path); default "
+                                             "RUN/renders/<views> or RUN/renders/path_<kind>.mp4")
+    p.add_argument("--maps", default="enhanced", help="comma-separated: enhanced,R,L,depth,low (default enhanced)")
+    p.add_argument("--path", default=None, help=f"camera path: {' or '.join(PATH_KINDS)} (implies --views path)")
+    p.add_argument("--frames", type=int, default=120, help="frames of the path (default 120)")
+    p.add_argument("--fps", type=float, default=30.0, help="frames per second of the video (default 30)")
+    p.add_argument("--format", default="mp4", help="mp4 (default) or png: how a path is written")
+    p.set_defaults(func=_render)
+
+    p = sub.add_parser("export", help="export a trained run as a standard 3DGS PLY (enhancement baked in)",
+                       description="Write RUN's Gaussians to an INRIA 3DGS PLY in the input's world frame, with "
+                                   "the illumination and enhancement baked into the SH colours by a least-squares "
+                                   "fit over view directions (or R̂ alone with --reflectance-only).")
+    _add_common(p)
+    p.add_argument("--out", required=True, type=Path, help="the .ply file to write")
+    p.add_argument("--reflectance-only", action="store_true", help="export R̂'s SH without illumination")
+    p.add_argument("--directions", type=int, default=DEFAULT_DIRECTIONS,
+                   help=f"view directions of the SH fit (default {DEFAULT_DIRECTIONS})")
+    p.set_defaults(func=_export)
+
+
+def _render(args: argparse.Namespace) -> int:
+    from retinexgs.export.renders import parse_maps, render_run
+
+    render_run(args.run, args.views, args.out, parse_maps(args.maps), args.exposure, args.gamma, args.path,
+               args.frames, args.fps, args.format, args.device, args.force, progress=not args.quiet)
+    return 0
+
+
+def _export(args: argparse.Namespace) -> int:
+    from retinexgs.export.export import export_run
+
+    export_run(args.run, args.out, args.reflectance_only, args.directions, args.exposure, args.gamma,
+               args.device, args.force, progress=not args.quiet)
+    return 0

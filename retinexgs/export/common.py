@@ -1,0 +1,48 @@
+"""Checks shared by ``render`` and ``export``: run config, enhancement flags, output overwrites, SH degree."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Dict, Iterable, Optional
+
+from retinexgs.errors import UserError
+from retinexgs.train.config import read_yaml
+
+
+def read_run_config(run_dir: Path) -> Dict:
+    """The run's saved config, read before the (slower) model and scene load so flags fail fast."""
+    path = Path(run_dir) / "config.yaml"
+    if not path.is_file():
+        raise UserError(f"{run_dir} is not a run folder (no config.yaml)")
+    return read_yaml(path)
+
+
+def check_enhancement_flags(cfg: Dict, run_dir: Path, exposure: Optional[float], gamma: Optional[float]) -> None:
+    """``--exposure`` / ``--gamma`` need a RetinexGS run (the baselines have no illumination to re-expose)."""
+    if exposure is None and gamma is None:
+        return
+    flag = "--exposure" if exposure is not None else "--gamma"
+    if exposure is not None and gamma is not None:
+        raise UserError("--exposure scales the predicted gamma and --gamma replaces it: give one of them")
+    if cfg.get("method") != "retinexgs":
+        raise UserError(f"{flag} needs a RetinexGS run, but {run_dir} was trained with method="
+                        f"{cfg.get('method')} (a plain-3DGS baseline has no illumination or gamma to change)")
+    value = exposure if exposure is not None else gamma
+    if not value > 0:
+        raise UserError(f"{flag} must be a positive number, got {value}")
+
+
+def refuse_existing(paths: Iterable[Path], force: bool) -> None:
+    """Refuse to overwrite existing outputs unless ``force``: name the first one (and count the rest)."""
+    existing = [p for p in paths if Path(p).exists()]
+    if existing and not force:
+        more = f" (and {len(existing) - 1} more output files)" if len(existing) > 1 else ""
+        raise UserError(f"{existing[0]} already exists{more}; pass --force to overwrite, or choose another --out")
+    for p in existing:
+        if Path(p).is_dir():
+            raise UserError(f"{p} is a folder; --out must name a file here")
+
+
+def active_degree(cfg: Dict, step: int) -> int:
+    """The SH degree the model renders with after ``step`` steps (as in training and ``eval_run``)."""
+    every = max(int(cfg["model"]["sh_degree_every"]), 1)
+    return min(int(cfg["model"]["sh_degree"]), step // every)

@@ -1,0 +1,72 @@
+"""``retinexgs export``: a trained run as a standard INRIA 3DGS PLY in the input's world frame.
+
+For RetinexGS runs the illumination and the enhancement are baked into the SH colours (see
+:mod:`retinexgs.export.bake` for the method and what it cannot reproduce); ``reflectance_only`` exports
+R̂'s SH instead. For the plain-3DGS baselines the Gaussians' SH already are the rendered colours and are
+exported as they are (the ``post`` baseline's 2D LR3M enhancement cannot go into a PLY and is left out).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable, Optional
+
+import torch
+
+from retinexgs.errors import UserError
+from retinexgs.export import DEFAULT_DIRECTIONS
+from retinexgs.export.bake import bake_enhanced_sh, export_params, mean_gamma, reflectance_sh
+from retinexgs.export.common import active_degree, check_enhancement_flags, read_run_config, refuse_existing
+from retinexgs.export.ply import write_ply
+from retinexgs.train.run import load_run
+from retinexgs.train.trainer import view_camera
+
+def export_run(run_dir: Path, out: Path, reflectance_only: bool = False, directions: int = DEFAULT_DIRECTIONS,
+               exposure: Optional[float] = None, gamma: Optional[float] = None, device: Optional[str] = None,
+               force: bool = False, progress: bool = True, log: Callable[[str], None] = print) -> Path:
+    """Write the run's Gaussians to the PLY ``out`` (refused if it exists unless ``force``); returns ``out``.
+
+    The baked gamma is the mean the EnhancementNet predicts over the training views, scaled by ``exposure``
+    or replaced by ``gamma``; ``directions`` is the number of view directions of the SH fit.
+    """
+    run_dir, out = Path(run_dir), Path(out)
+    cfg = read_run_config(run_dir)
+    check_enhancement_flags(cfg, run_dir, exposure, gamma)
+    bake = cfg.get("method") == "retinexgs" and not reflectance_only
+    if reflectance_only and (exposure is not None or gamma is not None):
+        raise UserError("--reflectance-only exports R̂ without illumination; --exposure/--gamma do not apply")
+    k = (int(cfg["model"]["sh_degree"]) + 1) ** 2
+    if bake and directions < k:
+        raise UserError(f"--directions must be at least {k} to fit the run's degree-{cfg['model']['sh_degree']} "
+                        f"SH ({k} coefficients), got {directions}")
+    refuse_existing([out], force)
+
+    cfg, scene, model, step = load_run(run_dir, device)
+    degree = active_degree(cfg, step)
+    comments = [f"retinexgs export of {run_dir.name} (step {step}, method {cfg['method']})",
+                f"world frame: normalisation undone (center {scene.normalization.center.tolist()}, "
+                f"scale {scene.normalization.scale})"]
+    if bake:
+        if gamma is not None:
+            g = torch.full((3,), float(gamma), dtype=torch.float64)
+        else:
+            if not scene.train:
+                raise UserError(f"the scene of {run_dir} has no train views to average the gamma over; "
+                                "pass --gamma G")
+            g = mean_gamma(model, (view_camera(v) for v in scene.train), degree) * (exposure or 1.0)
+        from tqdm import tqdm
+        with tqdm(total=len(model.gaussians), desc="bake", unit="gaussian", disable=not progress,
+                  dynamic_ncols=True) as bar:
+            sh = bake_enhanced_sh(model, degree, g, directions, progress=bar.update)
+        gtext = ", ".join(f"{x:.4f}" for x in g.tolist())
+        comments.append(f"colour: enhanced R*L^g baked into SH by least squares over {directions} directions, "
+                        f"g = ({gtext})")
+    else:
+        sh = reflectance_sh(model, degree)
+        comments.append("colour: reflectance R (SH as trained)" if cfg["method"] == "retinexgs" else
+                        f"colour: the {cfg['method']} baseline's SH as trained")
+        if cfg["method"] == "post":
+            log("note: the post baseline's 2D LR3M enhancement is applied to images and is not in the PLY")
+    params = export_params(model, scene.normalization, sh)
+    write_ply(out, params, comments)
+    log(f"wrote {len(model.gaussians)} Gaussians (SH degree {model.gaussians.sh_degree}) to {out}")
+    return out

@@ -1,0 +1,198 @@
+"""``retinexgs render``: a trained run's maps for its test/train views (PNG) or along a camera path (MP4/PNG).
+
+Maps (``--maps``, comma-separated): ``enhanced`` (the model's output, S_enh; the default), ``R`` (R̂),
+``L`` (L̂, as rendered: dark), ``low`` (the low-light reconstruction R̂·L̂, the model's ``S_rec``) and
+``depth`` (inverse depth, white = near, black = far or empty, on one range for all frames of a call so
+videos do not flicker). ``R``, ``L`` and ``low`` exist only for RetinexGS runs.
+
+Files: views go to ``OUT/<map>/<view name>.png`` (default OUT = ``RUN/renders/<test|train>``). A path goes
+to ``OUT`` (default ``RUN/renders/path_<kind>.mp4``) for the first map and ``OUT`` with ``_<map>`` before
+the suffix for the others; with ``--format png`` to ``OUT/<map>/<frame>.png`` (default OUT =
+``RUN/renders/path_<kind>``). Existing files are kept unless ``force``; every file is written atomically.
+"""
+from __future__ import annotations
+
+import importlib.util
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Callable, Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from retinexgs.data.scene import View
+from retinexgs.errors import UserError
+from retinexgs.evaluate.evaluate import save_png, to_uint8
+from retinexgs.export.common import active_degree, check_enhancement_flags, read_run_config, refuse_existing
+from retinexgs.export import PATH_KINDS
+from retinexgs.export.paths import camera_path
+from retinexgs.fileio import TMP_PREFIX, atomic_write
+from retinexgs.render import rasterize_gaussians
+from retinexgs.train.run import load_run, render_function
+from retinexgs.train.trainer import view_camera
+
+MAPS = ("enhanced", "R", "L", "depth", "low")
+DECOMPOSED_MAPS = ("R", "L", "low")
+_KEYS = {"enhanced": "rgb", "R": "R", "L": "L", "low": "S_rec"}  # map name -> key of RetinexGSModel.render
+VIEW_SETS = ("test", "train", "path")
+FORMATS = ("mp4", "png")
+
+
+def parse_maps(text: str) -> List[str]:
+    """``enhanced,R`` -> ["enhanced", "R"]; unknown names raise a UserError listing the known ones."""
+    names: List[str] = []
+    for name in (t.strip() for t in text.split(",")):
+        if name not in MAPS:
+            raise UserError(f"unknown map {name!r} in --maps; choose from {', '.join(MAPS)}")
+        if name not in names:
+            names.append(name)
+    return names
+
+
+def _need_ffmpeg() -> None:
+    if importlib.util.find_spec("imageio") is None or importlib.util.find_spec("imageio_ffmpeg") is None:
+        raise UserError("writing MP4 needs imageio with its ffmpeg plugin: pip install imageio[ffmpeg] "
+                        "(or pass --format png to write the frames as PNG files)")
+
+
+def depth_range(model, views: Sequence[View]) -> Tuple[float, float]:
+    """(near, far): the 2nd and 98th percentiles of the visible Gaussian centres' depths over all views."""
+    g = model.gaussians
+    keep = g.opacities.detach() > 0.05
+    means = (g.means.detach()[keep] if bool(keep.any()) else g.means.detach()).double().cpu()
+    lo, hi = [], []
+    for v in views:
+        w2c = v.world_to_camera()
+        z = means @ w2c[2, :3] + w2c[2, 3]
+        z = z[z > 0.01]
+        if len(z):
+            lo.append(float(torch.quantile(z, 0.02)))
+            hi.append(float(torch.quantile(z, 0.98)))
+    if not lo:
+        return 0.1, 10.0
+    near, far = max(min(lo), 1e-3), max(hi)
+    return near, max(far, near * 1.01)
+
+
+def render_depth(model, view: View, near: float, far: float) -> Tensor:
+    """[H,W,1] inverse depth mapped to [0,1] between 1/far (0) and 1/near (1); empty pixels 0."""
+    g = model.gaussians
+    with torch.no_grad():
+        ones = torch.ones(len(g), 1, dtype=g.means.dtype, device=g.means.device)
+        out = rasterize_gaussians(g.means, g.quats, g.scales, g.opacities, ones, view_camera(view),
+                                  render_depth=True)
+    alpha = out.alpha.float().cpu()
+    z = out.depth.float().cpu() / alpha.clamp_min(1e-6)
+    disp = (1.0 / z.clamp_min(1e-6) - 1.0 / far) / (1.0 / near - 1.0 / far)
+    return torch.where(alpha > 1e-3, disp.clamp(0, 1), torch.zeros_like(disp))
+
+
+def _frame_maps(fn: Callable, model, view: View, maps: Sequence[str], zrange: Tuple[float, float]) -> Dict:
+    res = fn(view)
+    out = {}
+    for name in maps:
+        out[name] = render_depth(model, view, *zrange) if name == "depth" else res[_KEYS[name]].float().cpu()
+    return out
+
+
+def _suffixed(path: Path, name: str, first: bool) -> Path:
+    return path if first else path.with_name(f"{path.stem}_{name}{path.suffix}")
+
+
+def _even(frame: np.ndarray) -> np.ndarray:
+    # yuv420p (what players expect from H.264) needs even sides: repeat the last row/column when odd.
+    h, w = frame.shape[:2]
+    return np.pad(frame, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge")
+
+
+def render_run(run_dir: Path, views: Optional[str] = None, out: Optional[Path] = None,
+               maps: Sequence[str] = ("enhanced",), exposure: Optional[float] = None, gamma: Optional[float] = None,
+               path: Optional[str] = None, frames: int = 120, fps: float = 30.0, fmt: str = "mp4",
+               device: Optional[str] = None, force: bool = False, progress: bool = True,
+               log: Callable[[str], None] = print) -> List[Path]:
+    """Render ``maps`` of a run for its ``views`` (``test``, ``train``) or a camera ``path`` (``orbit``,
+    ``interpolate``; ``views="path"`` alone means an orbit); see the module docstring for the files.
+
+    ``exposure`` scales the predicted gamma (< 1 brighter), ``gamma`` replaces it (RetinexGS runs only).
+    Everything is checked before anything is written. Returns the files written.
+    """
+    run_dir = Path(run_dir)
+    views = views if views is not None else ("path" if path else "test")
+    if views not in VIEW_SETS:
+        raise UserError(f"unknown --views {views!r}; choose from {', '.join(VIEW_SETS)}")
+    if path is not None and views != "path":
+        raise UserError(f"--path renders a camera path; it cannot be combined with --views {views}")
+    path = path or ("orbit" if views == "path" else None)
+    if path is not None and path not in PATH_KINDS:
+        raise UserError(f"unknown --path {path!r}; choose from {', '.join(PATH_KINDS)}")
+    if fmt not in FORMATS:
+        raise UserError(f"unknown --format {fmt!r}; choose from {', '.join(FORMATS)}")
+    if path is not None and (frames < 1 or not fps > 0):
+        raise UserError(f"--frames must be at least 1 and --fps positive, got {frames} and {fps}")
+    maps = list(maps)
+    if not maps:
+        raise UserError("--maps is empty; choose from " + ", ".join(MAPS))
+    cfg = read_run_config(run_dir)
+    check_enhancement_flags(cfg, run_dir, exposure, gamma)
+    if cfg.get("method") != "retinexgs" and set(maps) & set(DECOMPOSED_MAPS):
+        bad = ", ".join(m for m in maps if m in DECOMPOSED_MAPS)
+        raise UserError(f"--maps {bad}: {run_dir} is a method={cfg.get('method')} baseline with no R̂/L̂ "
+                        "decomposition; it has only enhanced and depth")
+    video = path is not None and fmt == "mp4"
+    if video:
+        _need_ffmpeg()
+
+    cfg, scene, model, step = load_run(run_dir, device)
+    if path is None:
+        frames_views = list(scene.test if views == "test" else scene.train)
+        if not frames_views:
+            raise UserError(f"the scene of {run_dir} has no {views} views; try --views "
+                            + ("train" if views == "test" else "test") + " or --views path")
+        out = Path(out) if out is not None else run_dir / "renders" / views
+    else:
+        if not scene.train:
+            raise UserError(f"the scene of {run_dir} has no train views to build a camera path from")
+        frames_views = camera_path(path, scene.train, frames, model.gaussians.means.detach())
+        default = run_dir / "renders" / (f"path_{path}.mp4" if video else f"path_{path}")
+        out = Path(out) if out is not None else default
+    if video:
+        targets = [_suffixed(out, name, i == 0) for i, name in enumerate(maps)]
+    else:
+        if out.exists() and not out.is_dir():
+            raise UserError(f"--out {out} is a file; PNG renders need a folder")
+        targets = [out / name / f"{Path(v.name).stem}.png" for name in maps for v in frames_views]
+    refuse_existing(targets, force)
+
+    fn = render_function(model, cfg, active_degree(cfg, step), exposure=exposure, gamma=gamma)
+    zrange = depth_range(model, frames_views) if "depth" in maps else (0.1, 10.0)
+    from tqdm import tqdm
+    bar = tqdm(frames_views, desc=f"render {path or views}", unit="frame", disable=not progress, dynamic_ncols=True)
+    if not video:
+        for view in bar:
+            for name, img in _frame_maps(fn, model, view, maps, zrange).items():
+                save_png(img, out / name / f"{Path(view.name).stem}.png")
+        log(f"wrote {len(targets)} PNG files to {out}/<{'|'.join(maps)}>/")
+        return targets
+
+    import imageio
+    out.parent.mkdir(parents=True, exist_ok=True)
+    # ffmpeg writes to a file name: encode into a temporary folder next to the output, then copy each video
+    # through atomic_write, so an interrupted render never leaves a truncated MP4 under the final name.
+    with tempfile.TemporaryDirectory(prefix=TMP_PREFIX, dir=out.parent) as tmp:
+        tmp_files = [Path(tmp) / f"{i}.mp4" for i in range(len(maps))]
+        writers = [imageio.get_writer(str(f), format="FFMPEG", mode="I", fps=fps, codec="libx264", quality=8,
+                                      macro_block_size=1, ffmpeg_log_level="error") for f in tmp_files]
+        try:
+            for view in bar:
+                for writer, img in zip(writers, _frame_maps(fn, model, view, maps, zrange).values()):
+                    writer.append_data(_even(to_uint8(img)))
+        finally:
+            for writer in writers:
+                writer.close()
+        for src, dst in zip(tmp_files, targets):
+            with open(src, "rb") as f_in:
+                atomic_write(dst, lambda f_out: shutil.copyfileobj(f_in, f_out))
+    log(f"wrote {len(frames_views)} frames at {fps:g} fps to " + ", ".join(str(t) for t in targets))
+    return targets
