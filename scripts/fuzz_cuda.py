@@ -1,135 +1,273 @@
-"""Fuzz the CUDA rasterizer against the CPU kernels (device machine): degenerate Gaussians and cameras.
+"""Fuzz the CUDA rasterizer against the CPU kernels (device machine), over the shared corpus of
+``tests/fuzz_corpus.py`` (the one the CPU hypothesis tests in ``tests/test_fuzz_raster.py`` draw from).
 
-    python scripts/fuzz_cuda.py [--cases 300] [--seed 0]
+    python scripts/fuzz_cuda.py [--cases 300] [--seed 0] [--max-gaussians 40]
+    python scripts/fuzz_cuda.py --dry-run --cases 5     # no GPU: build the cases, run only the CPU side
+    python scripts/fuzz_cuda.py --case 1234 --show      # replay one case by its seed, print its recipe
 
-Each case mixes ordinary Gaussians with edge cases (zero / 1e-8 / 1e4 scales, zero and unnormalised
-quaternions, opacities 0 and 1, centres behind the camera, on the near plane, far outside the image, a
-thousand stacked on one pixel) on images from 1x1 to odd sizes, with 1-64 channels. Checked per case: CUDA
-outputs and gradients finite, alpha in [0, 1], colour within the inputs' range, and CUDA equal to the CPU
-kernels (image/alpha abs 1e-4 + rel 1e-4; gradients relative to their scale, 1e-3). Prints one summary line
-and each failing case; exit 1 on any failure.
+Case ``i`` is ``random_recipe(seed * 1000003 + i)`` (degenerate scales and quaternions, opacities 0 and 1,
+centres behind the camera / on the near plane / far outside the image / at the camera, thousands stacked on
+one pixel, 1x1 and odd-sized images, backgrounds, depth), in float32, and in about a third of the cases
+widened from the corpus' 1-7 channels to 8-64 (the CUDA compositing supports 1-64 channels, depth
+included). Checked per case:
+
+* the invariants of ``fuzz_corpus.invariant_problems`` on the CUDA outputs and gradients (finite, alpha in
+  [0, 1], colour within the inputs' range, depth within [0, alpha * max depth]);
+* CUDA == CPU kernels: image, alpha, depth within abs 1e-4 + rel 1e-4 (elementwise); the gradients of
+  every input (means, quats, scales, opacities, colors, background) of the same random linear loss
+  (``fuzz_corpus.linear_loss``) within 1e-3 of their scale (the largest CPU gradient of that input).
+
+Where the two devices cull a Gaussian differently (a rounding-level tie of the near plane or the opacity
+and extent tests) that is noted, not failed, and the comparison is redone without those Gaussians (radii
+must then agree exactly). An exception on either device is a failure.
+
+Prints each failing case (seed, shape, edge cases, problems) and one summary line: cases, failures, culling
+notes and how many cases hit each edge case. Exit status 1 on any failure, 2 without a CUDA device (unless
+``--dry-run``).
 """
 from __future__ import annotations
 
 import argparse
-import math
+import json
+import random
 import sys
-from typing import Dict, List
+import time
+from collections import Counter
+from pathlib import Path
+from typing import Dict, List, Optional, Tuple
 
 import torch
 
-sys.path.insert(0, "tests")
-from scenes import make_camera  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+from fuzz_corpus import (ARG_NAMES, build_case, invariant_problems, linear_loss,  # noqa: E402
+                         random_recipe, render_case)
 
-from retinexgs.render import rasterize_gaussians  # noqa: E402
+from retinexgs.render import has_cuda  # noqa: E402
 
-EDGES = ["scale0", "scale_tiny", "scale_huge", "quat0", "quat_big", "opacity0", "opacity1", "behind", "near",
-         "outside", "stack"]
-
-
-def make_case(seed: int) -> Dict:
-    g = torch.Generator().manual_seed(seed)
-    r = lambda *s: torch.rand(*s, generator=g, dtype=torch.float64)  # noqa: E731
-    sizes = [(1, 1), (1, 7), (13, 1), (17, 9), (45, 37), (64, 48), (97, 61)]
-    w, h = sizes[int(r(1) * len(sizes))]
-    C = [1, 3, 6, 7, 33, 64][int(r(1) * 6)]
-    n = int(20 + r(1) * 300)
-    means = (r(n, 3) * 2 - 1) * 1.2
-    quats = torch.randn(n, 4, generator=g, dtype=torch.float64)
-    scales = torch.exp(r(n, 3) * 2 - 3)
-    opac = r(n) * 0.9 + 0.05
-    colors = r(n, C)
-    cam = make_camera(width=w, height=h)
-    vm = cam.viewmat
-    edges = [e for e in EDGES if r(1) < 0.35]
-    k = max(1, n // 10)
-    for e in edges:
-        idx = torch.randperm(n, generator=g)[:k]
-        if e == "scale0":
-            scales[idx] = 0.0
-        elif e == "scale_tiny":
-            scales[idx] = 1e-8
-        elif e == "scale_huge":
-            scales[idx] = 1e4
-        elif e == "quat0":
-            quats[idx] = 0.0
-        elif e == "quat_big":
-            quats[idx] *= 1e6
-        elif e == "opacity0":
-            opac[idx] = 0.0
-        elif e == "opacity1":
-            opac[idx] = 1.0
-        elif e in ("behind", "near"):
-            # camera-space point -> world: x_w = R^T (x_c - t)
-            zc = -1.0 if e == "behind" else cam.near
-            pc = torch.cat([(r(k, 2) - 0.5) * 0.02, torch.full((k, 1), zc, dtype=torch.float64)], 1)
-            means[idx] = (pc - vm[:3, 3]) @ vm[:3, :3]
-        elif e == "outside":
-            means[idx] = means[idx] + 1e3
-        elif e == "stack":
-            means[idx] = means[0].clone()
-    return dict(means=means, quats=quats, scales=scales, opac=opac, colors=colors, cam=cam, edges=edges, C=C)
+MAX_CUDA_CHANNELS = 64  # depth included
+WIDE_CHANNELS = (8, 15, 16, 31, 32, 33, 48, 63, 64)
+WIDE_FRACTION = 0.35
+SEED_STRIDE = 1000003
+FWD_TOL = (1e-4, 1e-4)  # abs, rel
+GRAD_TOL = 1e-3         # relative to the scale of the CPU gradient
+EDGES = ("scale_zero", "scale_tiny", "scale_huge", "quat_zero", "quat_unnormalised", "opacity_zero",
+         "opacity_one", "behind", "near_plane", "outside", "far_outside", "at_camera", "stack", "image_1x1",
+         "odd_size", "channels_gt_7", "channels_64", "background", "depth", "random_view")
 
 
-def render(case: Dict, device: str):
-    args = [case[k].to(device=device, dtype=torch.float32).clone().requires_grad_(True)
-            for k in ("means", "quats", "scales", "opac", "colors")]
-    out = rasterize_gaussians(*args, case["cam"])
-    w = torch.linspace(0.5, 1.5, out.image.numel(), device=device, dtype=torch.float32).reshape(out.image.shape)
-    ((out.image * w).sum() + out.alpha.sum()).backward()
-    return out.image.detach().cpu(), out.alpha.detach().cpu(), [a.grad.detach().cpu() for a in args]
+# ---- cases ------------------------------------------------------------------------------------------------
+
+def case_seed(seed: int, i: int) -> int:
+    return seed * SEED_STRIDE + i
 
 
-def check(case: Dict) -> List[str]:
+def make_recipe(s: int, max_gaussians: int = 40) -> Dict:
+    """The corpus recipe of seed ``s``, in float32, widened to 8-64 channels for some seeds."""
+    r = random_recipe(s, max_gaussians=max_gaussians)
+    r["dtype"] = "float32"
+    rng = random.Random(f"channels-{s}")
+    if rng.random() < WIDE_FRACTION:
+        C = rng.choice(WIDE_CHANNELS)
+        if r["render_depth"]:
+            C = min(C, MAX_CUDA_CHANNELS - 1)
+        for g in r["gaussians"]:
+            g["color"] = [rng.uniform(-1, 2) for _ in range(C)]
+        if r["background"] is not None:
+            r["background"] = [rng.uniform(-1, 2) for _ in range(C)]
+    return r
+
+
+def edges_of(r: Dict) -> List[str]:
+    """The edge cases a recipe contains."""
+    gs = r["gaussians"]
+    C = len(gs[0]["color"])
+    hit = set()
+    for g in gs:
+        for s in g["scale"]:
+            if s == 0.0:
+                hit.add("scale_zero")
+            elif s <= 1e-8:
+                hit.add("scale_tiny")
+            elif s >= 1e4:
+                hit.add("scale_huge")
+        n = sum(q * q for q in g["quat"]) ** 0.5
+        if n == 0.0:
+            hit.add("quat_zero")
+        elif not 1e-3 < n < 1e3:
+            hit.add("quat_unnormalised")
+        if g["opacity"] == 0.0:
+            hit.add("opacity_zero")
+        elif g["opacity"] == 1.0:
+            hit.add("opacity_one")
+        hit.add({"behind": "behind", "near": "near_plane", "outside": "outside", "far_outside": "far_outside",
+                 "at_camera": "at_camera"}.get(g["place"], ""))
+    if r.get("stack"):
+        hit.add("stack")
+    if r["width"] == 1 and r["height"] == 1:
+        hit.add("image_1x1")
+    if r["width"] % 2 or r["height"] % 2:
+        hit.add("odd_size")
+    if C > 7:
+        hit.add("channels_gt_7")
+    if C + bool(r["render_depth"]) == MAX_CUDA_CHANNELS:
+        hit.add("channels_64")
+    if r["background"] is not None:
+        hit.add("background")
+    if r["render_depth"]:
+        hit.add("depth")
+    if r["view"]["kind"] == "random":
+        hit.add("random_view")
+    hit.discard("")
+    return [e for e in EDGES if e in hit]
+
+
+def describe(r: Dict, case: Dict) -> str:
+    return (f"{r['width']}x{r['height']} C={case['colors'].shape[1]} N={case['means'].shape[0]} "
+            f"depth={bool(r['render_depth'])} bg={r['background'] is not None} view={r['view']['kind']}")
+
+
+def subset(case: Dict, keep: torch.Tensor) -> Dict:
+    """The case without the Gaussians where ``keep`` is False."""
+    out = dict(case)
+    for k in ARG_NAMES:
+        out[k] = case[k][keep.to(case[k].device)]
+    return out
+
+
+# ---- comparison --------------------------------------------------------------------------------------------
+
+def compare(out_gpu, grads_gpu: Dict, out_cpu, grads_cpu: Dict, notes: List[str]) -> List[str]:
+    """CUDA vs CPU: forward abs+rel 1e-4 elementwise, gradients 1e-3 of their scale; radii equal (a radius one
+    pixel apart, a rounding tie of the extent, is only noted in ``notes``)."""
     problems = []
-    img_c, a_c, g_c = render(case, "cuda")
-    img_h, a_h, g_h = render(case, "cpu")
-    if not (torch.isfinite(img_c).all() and torch.isfinite(a_c).all()):
-        problems.append("non-finite CUDA output")
-    if not all(torch.isfinite(x).all() for x in g_c):
-        problems.append("non-finite CUDA gradient")
-    if a_c.min() < 0 or a_c.max() > 1 + 1e-6:
-        problems.append(f"alpha out of [0,1]: {float(a_c.min())}..{float(a_c.max())}")
-    lo, hi = min(0.0, float(case["colors"].min())), float(case["colors"].max())
-    if img_c.min() < lo - 1e-5 or img_c.max() > hi + 1e-5:
-        problems.append("colour outside the inputs' range")
-    for name, x, y in [("image", img_c, img_h), ("alpha", a_c, a_h)]:
-        err = float((x - y).abs().max()) if x.numel() else 0.0
-        if err > 1e-4 + 1e-4 * float(y.abs().max() if y.numel() else 0):
-            problems.append(f"{name} CUDA vs CPU max abs diff {err:.2e}")
-    for name, x, y in zip(("means", "quats", "scales", "opacities", "colors"), g_c, g_h):
-        scale = float(y.abs().max()) if y.numel() else 0.0
-        err = float((x - y).abs().max()) if y.numel() else 0.0
-        if err > 1e-3 * max(scale, 1e-3):
-            problems.append(f"grad {name} CUDA vs CPU max diff {err:.2e} (scale {scale:.2e})")
+    rg, rc = out_gpu.radii.cpu().long(), out_cpu.radii.long()
+    if rg.shape != rc.shape:
+        problems.append(f"radii shape {tuple(rg.shape)} vs {tuple(rc.shape)}")
+    elif rg.numel() and not torch.equal(rg, rc):
+        d = int((rg - rc).abs().max())
+        n = int((rg != rc).any(-1).sum())
+        (problems if d > 1 else notes).append(f"radii differ for {n} Gaussians (by up to {d} px)")
+    atol, rtol = FWD_TOL
+    for name in ("image", "alpha", "depth"):
+        a, b = getattr(out_gpu, name), getattr(out_cpu, name)
+        if a is None or b is None:
+            if (a is None) != (b is None):
+                problems.append(f"{name} missing on one device")
+            continue
+        a, b = a.detach().double().cpu(), b.detach().double()
+        if a.shape != b.shape:
+            problems.append(f"{name} shape {tuple(a.shape)} vs {tuple(b.shape)}")
+            continue
+        if not a.numel():
+            continue
+        excess = (a - b).abs() - (atol + rtol * b.abs())
+        if bool((excess > 0).any()) or not bool(torch.isfinite(a).all()):
+            i = int(excess.nan_to_num(float("inf")).argmax())
+            problems.append(f"{name} CUDA vs CPU: max abs diff {float((a - b).abs().max()):.3e} "
+                            f"(at flat index {i}: {float(a.view(-1)[i]):.6g} vs {float(b.view(-1)[i]):.6g})")
+    for name, gc in grads_cpu.items():
+        gg = grads_gpu.get(name)
+        if gg is None:
+            problems.append(f"grad {name} missing on CUDA")
+            continue
+        gg, gc = gg.double().cpu(), gc.double()
+        if not gc.numel():
+            continue
+        scale = float(gc.abs().max())
+        err = float((gg - gc).abs().max()) if bool(torch.isfinite(gg).all()) else float("inf")
+        if err > GRAD_TOL * max(scale, 1e-6):
+            i = int((gg - gc).abs().nan_to_num(float("inf")).argmax())
+            problems.append(f"grad {name} CUDA vs CPU: max diff {err:.3e}, scale {scale:.3e} "
+                            f"(at flat index {i}: {float(gg.view(-1)[i]):.6g} vs {float(gc.view(-1)[i]):.6g})")
     return problems
 
 
-def main() -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--cases", type=int, default=300)
-    p.add_argument("--seed", type=int, default=0)
-    args = p.parse_args()
-    if not torch.cuda.is_available():
-        print("no CUDA device")
-        return 2
-    failures = 0
-    edge_counts = {e: 0 for e in EDGES}
-    for i in range(args.cases):
-        case = make_case(args.seed * 100003 + i)
-        for e in case["edges"]:
-            edge_counts[e] += 1
+def check_case(r: Dict, s: int, dry_run: bool) -> Tuple[List[str], List[str], str]:
+    """(problems, notes, description) of one recipe. ``dry_run``: the CPU side only (render, invariants)."""
+    notes: List[str] = []
+    case_cpu = build_case(r, "cpu")
+    desc = describe(r, case_cpu)
+    try:
+        out_cpu, grads_cpu = render_case(case_cpu, s)
+    except Exception as exc:  # noqa: BLE001 - any exception is a finding
+        return [f"CPU raised {type(exc).__name__}: {str(exc)[:300]}"], notes, desc
+    if dry_run:
+        return [f"CPU {p}" for p in invariant_problems(case_cpu, out_cpu, grads_cpu)], notes, desc
+    try:
+        case_gpu = build_case(r, "cuda")
+        out_gpu, grads_gpu = render_case(case_gpu, s)
+        torch.cuda.synchronize()
+    except Exception as exc:  # noqa: BLE001
+        return [f"CUDA raised {type(exc).__name__}: {str(exc)[:300]}"], notes, desc
+    problems = [f"CUDA {p}" for p in invariant_problems(case_gpu, out_gpu, grads_gpu)]
+    vis_gpu, vis_cpu = out_gpu.visible.cpu(), out_cpu.visible
+    flips = vis_gpu != vis_cpu
+    if bool(flips.any()):
+        # A rounding-level tie of a culling test decided differently: note it, compare the rest.
+        notes.append(f"culling differs for {int(flips.sum())} of {flips.numel()} Gaussians")
+        keep = ~flips
+        if not bool(keep.any()):  # nothing left to compare (the renderer refuses N = 0)
+            return problems, notes, desc
         try:
-            problems = check(case)
-        except Exception as exc:  # a raised error is a finding too (unless it is a clear ValueError)
-            problems = [f"{type(exc).__name__}: {str(exc)[:200]}"]
+            out_cpu, grads_cpu = render_case(subset(case_cpu, keep), s)
+            out_gpu, grads_gpu = render_case(subset(case_gpu, keep), s)
+            torch.cuda.synchronize()
+        except Exception as exc:  # noqa: BLE001
+            return problems + [f"re-render without the flipped Gaussians raised {type(exc).__name__}: "
+                               f"{str(exc)[:300]}"], notes, desc
+    if out_gpu.num_pairs != out_cpu.num_pairs:
+        notes.append(f"tile pairs {out_gpu.num_pairs} (CUDA) vs {out_cpu.num_pairs} (CPU)")
+    problems += compare(out_gpu, grads_gpu, out_cpu, grads_cpu, notes)
+    return problems, notes, desc
+
+
+# ---- main --------------------------------------------------------------------------------------------------
+
+def run(cases: int, seed: int = 0, dry_run: bool = False, max_gaussians: int = 40, only: Optional[int] = None,
+        show: bool = False, out=print) -> int:
+    """Run the fuzz; returns the exit status (0 all held, 1 failures, 2 no CUDA device)."""
+    if not dry_run and not (torch.cuda.is_available() and has_cuda()):
+        out("fuzz_cuda: no CUDA device (or retinexgs built without its CUDA kernels); use --dry-run for the "
+            "CPU side")
+        return 2
+    seeds = [only] if only is not None else [case_seed(seed, i) for i in range(cases)]
+    failures = 0
+    edge_counts: Counter = Counter()
+    noted = 0
+    t0 = time.time()
+    for s in seeds:
+        r = make_recipe(s, max_gaussians)
+        edges = edges_of(r)
+        edge_counts.update(edges)
+        if show:
+            out(json.dumps(r))
+        problems, notes, desc = check_case(r, s, dry_run)
+        noted += bool(notes)
         if problems:
             failures += 1
-            w, h = case["cam"].width, case["cam"].height
-            print(f"case {i}: {w}x{h} C={case['C']} N={case['means'].shape[0]} edges={case['edges']}: "
-                  + "; ".join(problems))
-    print(f"fuzz_cuda: {args.cases} cases, {failures} failing; edge cases used: {edge_counts}")
+            out(f"FAIL case seed {s}: {desc} edges={','.join(edges)}: " + "; ".join(problems)
+                + (f" [notes: {'; '.join(notes)}]" if notes else ""))
+        elif show and notes:
+            out(f"note case seed {s}: {'; '.join(notes)}")
+    mode = "dry run (CPU only)" if dry_run else "CUDA vs CPU, float32"
+    hit = ", ".join(f"{e} {edge_counts[e]}" for e in EDGES)
+    out(f"fuzz_cuda [{mode}]: {len(seeds)} cases, {failures} failing, {noted} with culling/radius/pair notes, "
+        f"{time.time() - t0:.0f} s; edge cases hit (cases): {hit}")
+    if failures:
+        out(f"replay one: python scripts/fuzz_cuda.py --case SEED --show{' --dry-run' if dry_run else ''}")
     return 1 if failures else 0
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--cases", type=int, default=300)
+    p.add_argument("--seed", type=int, default=0, help="case i uses the corpus seed SEED*1000003+i")
+    p.add_argument("--max-gaussians", type=int, default=40, help="per recipe, besides any stack (default 40)")
+    p.add_argument("--case", type=int, default=None, metavar="SEED", help="run only the case of this corpus seed")
+    p.add_argument("--show", action="store_true", help="print each recipe (JSON) and the notes")
+    p.add_argument("--dry-run", action="store_true", help="no GPU: build the cases and check only the CPU side")
+    a = p.parse_args(argv)
+    return run(a.cases, a.seed, a.dry_run, a.max_gaussians, a.case, a.show)
 
 
 if __name__ == "__main__":

@@ -1,4 +1,7 @@
-"""Atomic checkpoints in ``RUN/checkpoints/step_XXXXX.pt`` (temporary file + rename; never a partial file)."""
+"""Atomic checkpoints in ``RUN/checkpoints/step_XXXXX.pt`` (temporary file + rename; never a partial file).
+
+A save interrupted by a kill leaves at worst a hidden ``.step_XXXXX.pt.*.tmp``: never listed or loaded, and
+removed by the run's next save (one run folder has one trainer at a time)."""
 from __future__ import annotations
 
 import os
@@ -12,6 +15,7 @@ import torch
 from retinexgs.errors import UserError
 
 _PATTERN = re.compile(r"step_(\d+)\.pt$")
+_TEMP_PATTERN = re.compile(r"^\.step_\d+\.pt\..*\.tmp$")  # what atomic_save leaves when killed mid-write
 
 
 def checkpoint_dir(run: Path) -> Path:
@@ -50,6 +54,9 @@ def save_checkpoint(run: Path, step: int, state: Dict[str, Any], keep: int = 2) 
     atomic_save(state, path)
     for old in list_checkpoints(run)[:-keep] if keep > 0 else []:
         old.unlink(missing_ok=True)
+    for stale in checkpoint_dir(run).iterdir():  # temporaries of a save interrupted by a kill (never listed)
+        if _TEMP_PATTERN.match(stale.name):
+            stale.unlink(missing_ok=True)
     return path
 
 

@@ -64,6 +64,10 @@ def _demo(args: argparse.Namespace) -> int:
 
     out = args.out
     marker = out / ".retinexgs-demo"
+    if args.steps is not None and args.steps < 1:  # checked before anything is written
+        raise UserError(f"--steps must be a positive number of training steps, got {args.steps}")
+    if out.exists() and not out.is_dir():
+        raise UserError(f"--out {out} is a file; the demo needs a folder (choose another --out)")
     if out.exists() and any(out.iterdir()):
         if not (args.overwrite and marker.exists()):
             raise UserError(f"{out} already exists; choose another --out"
@@ -74,7 +78,7 @@ def _demo(args: argparse.Namespace) -> int:
     t0 = time.time()
     scene = make_demo_scene(out / "scene")
     print(f"demo scene written to {scene} ({time.time() - t0:.1f} s)")
-    overrides = [f"steps={args.steps}"] if args.steps else []
+    overrides = [f"steps={args.steps}"] if args.steps is not None else []
     metrics = train_run(scene, out / "run", ["demo"], overrides, args.device, progress=not args.quiet)
     if metrics:
         m = metrics["mean"]

@@ -66,7 +66,11 @@ def parse_override(text: str) -> Config:
     if "=" not in text:
         raise UserError(f"override {text!r} must look like key.sub=value")
     key, value = text.split("=", 1)
-    out: Config = yaml.safe_load(value) if value.strip() else None
+    try:
+        out: Config = yaml.safe_load(value) if value.strip() else None
+    except yaml.YAMLError as exc:
+        raise UserError(f"--set {text}: the value is not valid YAML ({' '.join(str(exc).split())}); quote "
+                        "strings that contain YAML syntax") from None
     for part in reversed(key.strip().split(".")):
         out = {part: out}
     return out

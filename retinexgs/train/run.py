@@ -10,6 +10,7 @@ import yaml
 from retinexgs.data import Scene, View, load_scene
 from retinexgs.errors import UserError
 from retinexgs.evaluate.evaluate import evaluate
+from retinexgs.fileio import TMP_PREFIX
 from retinexgs.model.gaussians import GaussianModel
 from retinexgs.model.retinex_model import RetinexGSModel
 from retinexgs.train.checkpoint import latest_checkpoint, load_checkpoint
@@ -47,18 +48,19 @@ def train_run(scene_path: Path, run_dir: Path, config_files: Iterable[str] = (),
         scene_path = Path(cfg.pop("scene"))
         cfg = load_config(overrides=overrides, base=cfg)
     else:
-        if run_dir.exists() and any(run_dir.iterdir()):
+        if run_dir.exists() and any(not p.name.startswith(TMP_PREFIX) for p in run_dir.iterdir()):
             raise UserError(f"run folder {run_dir} already exists and is not empty; pass --resume to continue it "
                             "or choose another --out")
         cfg = load_config(config_files, overrides)
     scene = open_scene(Path(scene_path), cfg)
     log(scene.summary())
+    if device.startswith("cuda"):
+        torch.cuda.reset_peak_memory_stats()
+    # The trainer reads every image and decomposition first: bad input fails before the run folder is made.
+    trainer = Trainer(cfg, scene, run_dir, device, resume=resume, progress=progress, log=log)
     run_dir.mkdir(parents=True, exist_ok=True)
     if not resume:
         write_run_config(run_dir, cfg, scene_path)
-    if device.startswith("cuda"):
-        torch.cuda.reset_peak_memory_stats()
-    trainer = Trainer(cfg, scene, run_dir, device, resume=resume, progress=progress, log=log)
     stats: Dict = {"device": torch.cuda.get_device_name() if device.startswith("cuda") else "cpu"}
     if trainer.step >= cfg["steps"]:
         log(f"{run_dir} has already finished its {cfg['steps']} steps")

@@ -222,7 +222,10 @@ class Trainer:
         # GPU queue, and this loop is launch-bound. A non-finite loss or parameter raises before the next
         # checkpoint, so the last checkpoint on disk is always a good one.
         names = list(terms)
-        params = [getattr(self.model.gaussians, name) for name in PARAM_NAMES]
+        # The networks' parameters too: a non-finite MLP weight would otherwise reach the step's checkpoint
+        # before the next step's loss showed it.
+        nets = [(n, p) for n, p in self.model.named_parameters() if not n.startswith("gaussians.")]
+        params = [getattr(self.model.gaussians, name) for name in PARAM_NAMES] + [p for _, p in nets]
         checks = torch.stack([terms[k].detach().float() for k in names]
                              + [torch.isfinite(p).all().float() for p in params]).tolist()
         values = dict(zip(names, checks[:len(names)]))
@@ -231,10 +234,11 @@ class Trainer:
             raise TrainingDiverged(f"loss term {bad[0]} became {values[bad[0]]} at step {step}; the last good "
                                    f"checkpoint in {self.run / 'checkpoints'} is intact (lower the learning "
                                    "rates or resume from it)")
-        for name, ok in zip(PARAM_NAMES, checks[len(names):]):
+        labels = [f"Gaussian parameter {n}" for n in PARAM_NAMES] + [f"network parameter {n}" for n, _ in nets]
+        for name, ok in zip(labels, checks[len(names):]):
             if not ok:
-                raise TrainingDiverged(f"Gaussian parameter {name} became non-finite at step {step}; the last "
-                                       f"good checkpoint in {self.run / 'checkpoints'} is intact")
+                raise TrainingDiverged(f"{name} became non-finite at step {step}; the last good checkpoint in "
+                                       f"{self.run / 'checkpoints'} is intact")
         size = max(tv.camera.width, tv.camera.height)
         event = self.density.step(step, self.model.gaussians, self.optimizer, size)
         if event:

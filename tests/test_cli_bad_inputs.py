@@ -1,0 +1,339 @@
+"""Bad inputs at the command line: every command, given a missing path, an empty folder, a corrupt image, a
+truncated checkpoint, a malformed transforms JSON or YAML config, an unknown ``--set`` key, ..., exits with
+code 2 and one paragraph on stderr naming the file or the problem, no traceback, and writes nothing.
+
+The cases are one table, ``CASES``: add a row per new case (``Case(id, argv, expect)``, with ``{placeholders}``
+for the prepared inputs of ``SETUPS``). They run in-process through ``retinexgs.cli.main(argv)`` (fast);
+``subprocess=True`` runs the real ``python -m retinexgs`` instead (exit code and stderr of the process).
+"Writes nothing": the test folder's tree (names, sizes, modification times) is the same before and after,
+except the documented caches a case lists in ``allow`` (none do today).
+"""
+import os
+import shutil
+import subprocess
+import sys
+import traceback
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Dict, List, Tuple
+
+import pytest
+import torch
+import yaml
+
+from retinexgs.cli import build_parser, main
+from retinexgs.demo.synthetic import make_demo_scene
+from retinexgs.train.checkpoint import latest_checkpoint
+from retinexgs.train.run import train_run
+
+REPO = Path(__file__).resolve().parent.parent
+TINY = ["steps=3", "checkpoint.every=3", "log.every=1", "log.tensorboard=false", "model.sh_degree=1",
+        "model.max_init_points=300", "decomposer.method=lime", "eval.lpips=false"]
+NOT_AN_IMAGE = b"these bytes are not an image\n" * 4
+
+
+# ---- prepared inputs ---------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def originals(tmp_path_factory):
+    """A tiny scene and a tiny trained run (3 steps), copied into each case's folder as needed."""
+    base = tmp_path_factory.mktemp("originals")
+    scene = make_demo_scene(base / "scene", n_train=3, n_test=1, width=24, height=18, n_points=200)
+    run = base / "run"
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        train_run(scene, run, ["demo"], TINY, "cpu", progress=False, log=lambda s: None)
+    finally:
+        torch.set_num_threads(n)
+    return {"scene": scene, "run": run}
+
+
+def _scene(root: Path, o: Dict) -> Path:
+    """A copy of the scene as a user has it: without the caches the trained run left in it."""
+    dst = root / "scene"
+    shutil.copytree(o["scene"], dst, ignore=shutil.ignore_patterns("retinex_cache", "retinexgs_cache"))
+    return dst
+
+
+def _run(root: Path, o: Dict, scene: Path = None) -> Path:
+    """A copy of the trained run (pointing at ``scene`` when given, else at the original scene)."""
+    dst = root / "run"
+    shutil.copytree(o["run"], dst)
+    if scene is not None:
+        cfg = yaml.safe_load((dst / "config.yaml").read_text())
+        cfg["scene"] = str(scene)
+        (dst / "config.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
+    return dst
+
+
+def _corrupt_image(path: Path) -> None:
+    path.write_bytes(NOT_AN_IMAGE)
+
+
+def setup_corrupt_scene(root, o):
+    _corrupt_image(_scene(root, o) / "low" / "0000.png")
+
+
+def setup_truncated_image(root, o):
+    """A photo cut short (an interrupted copy): its header reads, its pixels do not."""
+    img = _scene(root, o) / "low" / "0000.png"
+    data = img.read_bytes()
+    img.write_bytes(data[: len(data) // 2])
+
+
+def setup_truncated_checkpoint(root, o):
+    ckpt = latest_checkpoint(_run(root, o))
+    data = ckpt.read_bytes()
+    ckpt.write_bytes(data[: len(data) // 2])
+
+
+def setup_foreign_checkpoint(root, o):
+    ckpt = latest_checkpoint(_run(root, o))
+    torch.save([1, 2, 3], ckpt)
+
+
+def setup_run_with_corrupt_scene(root, o):
+    """The run's scene copied, with the normal-light image of its test view corrupt."""
+    scene = _scene(root, o)
+    _run(root, o, scene)
+    _corrupt_image(scene / "high" / "0003.png")
+
+
+def setup_photos(root, o, n=2, corrupt=False):
+    photos = root / "photos"
+    photos.mkdir()
+    for i in range(n):
+        shutil.copy(o["scene"] / "low" / f"{i:04d}.png", photos / f"{i:04d}.png")
+    if corrupt:
+        (photos / "9999.jpg").write_bytes(NOT_AN_IMAGE)
+
+
+SETUPS: Dict[str, Callable[[Path, Dict], None]] = {
+    "nothing": lambda root, o: None,
+    "empty_dir": lambda root, o: (root / "empty").mkdir(),
+    "a_file": lambda root, o: (root / "afile.txt").write_text("not a folder\n"),
+    "scene": lambda root, o: _scene(root, o),
+    "corrupt_scene": setup_corrupt_scene,
+    "truncated_image": setup_truncated_image,
+    "bad_json": lambda root, o: (_scene(root, o) / "transforms_train.json").write_text('{"frames": [ {"file_pa'),
+    "json_without_frames": lambda root, o: (_scene(root, o) / "transforms_train.json").write_text('{"frame": []}'),
+    "json_missing_image": lambda root, o: (_scene(root, o) / "low" / "0001.png").unlink(),
+    "bad_yaml": lambda root, o: (_scene(root, o), (root / "bad.yaml").write_text("loss: [1, 2\n  w_tv: 0\n")),
+    "yaml_not_a_mapping": lambda root, o: (_scene(root, o), (root / "list.yaml").write_text("- steps\n- 3\n")),
+    "busy_out": lambda root, o: (_scene(root, o), (root / "busy").mkdir(), (root / "busy" / "mine.txt")
+                                 .write_text("keep me\n")),
+    "run": lambda root, o: _run(root, o),
+    "truncated_checkpoint": setup_truncated_checkpoint,
+    "foreign_checkpoint": setup_foreign_checkpoint,
+    "run_bad_config": lambda root, o: (_run(root, o) / "config.yaml").write_text("method: [retinexgs\n"),
+    "run_without_checkpoint": lambda root, o: shutil.rmtree(_run(root, o) / "checkpoints"),
+    "run_corrupt_scene": setup_run_with_corrupt_scene,
+    "run_scene_gone": lambda root, o: _run(root, o, root / "deleted_scene"),
+    "photos_empty": lambda root, o: (root / "photos").mkdir(),
+    "photos_one": lambda root, o: setup_photos(root, o, n=1),
+    "photos_corrupt": lambda root, o: setup_photos(root, o, n=2, corrupt=True),
+}
+
+
+# ---- the table ---------------------------------------------------------------------------------------------
+
+@dataclass
+class Case:
+    id: str
+    argv: List[str]          # {root} = the case's folder, {scene}, {run}, ... as prepared by ``setup``
+    expect: str              # a distinctive substring of the error paragraph
+    setup: str = "nothing"
+    code: int = 2
+    subprocess: bool = False
+    allow: Tuple[str, ...] = ()  # documented caches the command may write even when it fails
+
+
+T = ["--device", "cpu", "--quiet"]
+SETS = [a for s in TINY for a in ("--set", s)]
+TRAIN = ["train", "--out", "{root}/out", *T, "--config", "demo", *SETS]
+
+CASES: List[Case] = [
+    # train
+    Case("train-missing-scene", TRAIN + ["--data", "{root}/missing"], "{root}/missing does not exist"),
+    Case("train-missing-scene-subprocess", TRAIN + ["--data", "{root}/missing"], "{root}/missing does not exist",
+         subprocess=True),
+    Case("train-empty-folder", TRAIN + ["--data", "{root}/empty"], "holds no photos", "empty_dir"),
+    Case("train-scene-is-a-file", TRAIN + ["--data", "{root}/afile.txt"], "is not a folder", "a_file"),
+    Case("train-corrupt-image", TRAIN + ["--data", "{root}/scene"], "cannot read image {root}/scene/low/0000.png",
+         "corrupt_scene"),
+    Case("train-truncated-image", TRAIN + ["--data", "{root}/scene"], "cannot read image {root}/scene/low/0000.png",
+         "truncated_image"),
+    Case("train-malformed-transforms", TRAIN + ["--data", "{root}/scene"], "transforms_train.json is not valid JSON",
+         "bad_json"),
+    Case("train-transforms-without-frames", TRAIN + ["--data", "{root}/scene"], "expected an object with a 'frames'",
+         "json_without_frames"),
+    Case("train-transforms-missing-image", TRAIN + ["--data", "{root}/scene"], "0001", "json_missing_image"),
+    Case("train-malformed-yaml", TRAIN + ["--data", "{root}/scene", "--config", "{root}/bad.yaml"],
+         "{root}/bad.yaml is not valid YAML", "bad_yaml"),
+    Case("train-yaml-not-a-mapping", TRAIN + ["--data", "{root}/scene", "--config", "{root}/list.yaml"],
+         "must be a mapping", "yaml_not_a_mapping"),
+    Case("train-missing-config", TRAIN + ["--data", "{root}/scene", "--config", "{root}/nosuch.yaml"],
+         "nosuch.yaml' not found", "scene"),
+    Case("train-unknown-set-key", TRAIN + ["--data", "{root}/scene", "--set", "loss.w_typo=1"],
+         "unknown config key --set loss.'w_typo'", "scene"),
+    Case("train-set-without-equals", TRAIN + ["--data", "{root}/scene", "--set", "steps"],
+         "must look like key.sub=value", "scene"),
+    Case("train-set-malformed-value", TRAIN + ["--data", "{root}/scene", "--set", "steps=[1"],
+         "--set steps=[1", "scene"),
+    Case("train-set-bad-value", TRAIN + ["--data", "{root}/scene", "--set", "steps=-3"],
+         "steps must be a positive integer", "scene"),
+    Case("train-bad-device", TRAIN + ["--data", "{root}/scene", "--device", "tpu"], "--device must be cpu",
+         "scene"),
+    Case("train-out-not-empty", ["train", "--data", "{root}/scene", "--out", "{root}/busy", *T], "already exists",
+         "busy_out"),
+    Case("train-no-data", ["train", "--out", "{root}/out", *T], "--data SCENE is required"),
+    Case("train-no-out", ["train", "--data", "{root}/scene", *T], "the following arguments are required: --out",
+         "scene"),
+    Case("resume-missing-run", ["train", "--out", "{root}/missing", "--resume", *T], "is not a run folder"),
+    Case("resume-truncated-checkpoint", ["train", "--out", "{root}/run", "--resume", *T],
+         "step_000003.pt is unreadable", "truncated_checkpoint"),
+    Case("resume-foreign-checkpoint", ["train", "--out", "{root}/run", "--resume", *T],
+         "is not a RetinexGS checkpoint", "foreign_checkpoint"),
+    Case("resume-malformed-config", ["train", "--out", "{root}/run", "--resume", *T],
+         "{root}/run/config.yaml is not valid YAML", "run_bad_config"),
+    Case("resume-unknown-set-key", ["train", "--out", "{root}/run", "--resume", "--set", "typo=1", *T],
+         "unknown config key --set 'typo'", "run"),
+    # eval
+    Case("eval-missing-run", ["eval", "--run", "{root}/missing", "--device", "cpu"], "is not a run folder"),
+    Case("eval-empty-folder", ["eval", "--run", "{root}/empty", "--device", "cpu"], "no config.yaml", "empty_dir"),
+    Case("eval-truncated-checkpoint", ["eval", "--run", "{root}/run", "--device", "cpu"],
+         "step_000003.pt is unreadable", "truncated_checkpoint"),
+    Case("eval-truncated-checkpoint-subprocess", ["eval", "--run", "{root}/run", "--device", "cpu"],
+         "step_000003.pt is unreadable", "truncated_checkpoint", subprocess=True),
+    Case("eval-foreign-checkpoint", ["eval", "--run", "{root}/run", "--device", "cpu"],
+         "is not a RetinexGS checkpoint", "foreign_checkpoint"),
+    Case("eval-malformed-config", ["eval", "--run", "{root}/run", "--device", "cpu"], "is not valid YAML",
+         "run_bad_config"),
+    Case("eval-no-checkpoint", ["eval", "--run", "{root}/run", "--device", "cpu"], "has no checkpoint",
+         "run_without_checkpoint"),
+    Case("eval-corrupt-image", ["eval", "--run", "{root}/run", "--device", "cpu"],
+         "cannot read image {root}/scene/high/0003.png", "run_corrupt_scene"),
+    Case("eval-scene-gone", ["eval", "--run", "{root}/run", "--device", "cpu"], "deleted_scene does not exist",
+         "run_scene_gone"),
+    # demo (only the refusals: a real demo trains for minutes)
+    Case("demo-out-is-a-file", ["demo", "--out", "{root}/afile.txt", *T], "--out {root}/afile.txt is a file", "a_file"),
+    Case("demo-out-not-empty", ["demo", "--out", "{root}/busy", *T], "already exists", "busy_out"),
+    Case("demo-zero-steps", ["demo", "--out", "{root}/demo", "--steps", "0", *T], "--steps must be a positive"),
+    Case("demo-negative-steps", ["demo", "--out", "{root}/demo", "--steps", "-5", *T], "--steps must be a positive"),
+    # decompose
+    Case("decompose-missing-scene", ["decompose", "--data", "{root}/missing", "--quiet"], "not found: {root}/missing"),
+    Case("decompose-empty-folder", ["decompose", "--data", "{root}/empty", "--quiet"], "no images", "empty_dir"),
+    Case("decompose-scene-is-a-file", ["decompose", "--data", "{root}/afile.txt", "--quiet"], "got a file",
+         "a_file"),
+    Case("decompose-corrupt-image", ["decompose", "--data", "{root}/scene", "--method", "lime", "--quiet"],
+         "cannot read image {root}/scene/low/0000.png", "corrupt_scene"),
+    Case("decompose-truncated-image", ["decompose", "--data", "{root}/scene", "--method", "lime", "--quiet"],
+         "cannot read image {root}/scene/low/0000.png", "truncated_image"),
+    Case("decompose-malformed-transforms", ["decompose", "--data", "{root}/scene", "--quiet"],
+         "transforms_train.json is not a valid transforms file", "bad_json"),
+    Case("decompose-transforms-missing-image", ["decompose", "--data", "{root}/scene", "--quiet"],
+         "are missing: {root}/scene/low/0001.png", "json_missing_image"),
+    Case("decompose-bad-device", ["decompose", "--data", "{root}/scene", "--device", "tpu", "--quiet"],
+         "invalid choice: 'tpu'", "scene"),
+    # sfm
+    Case("sfm-missing-folder", ["sfm", "--images", "{root}/missing", "--quiet"], "{root}/missing does not exist"),
+    Case("sfm-empty-folder", ["sfm", "--images", "{root}/photos", "--quiet"], "is empty", "photos_empty"),
+    Case("sfm-one-photo", ["sfm", "--images", "{root}/photos", "--quiet"], "only one photo", "photos_one"),
+    Case("sfm-corrupt-photo", ["sfm", "--images", "{root}/photos", "--quiet"],
+         "cannot read image {root}/photos/9999.jpg", "photos_corrupt"),
+    Case("sfm-images-is-a-file", ["sfm", "--images", "{root}/afile.txt", "--quiet"], "afile.txt", "a_file"),
+]
+
+# ---- render / export (retinexgs.export; rows used only while those commands exist) ----------------------------
+# Add rows here as the commands grow (e.g. a bad --maps, --path or --format value).
+RENDER_EXPORT_CASES: List[Case] = [
+    Case("render-missing-run", ["render", "--run", "{root}/missing", *T], "is not a run folder"),
+    Case("render-truncated-checkpoint", ["render", "--run", "{root}/run", *T], "step_000003.pt is unreadable",
+         "truncated_checkpoint"),
+    Case("render-malformed-config", ["render", "--run", "{root}/run", *T], "is not valid YAML", "run_bad_config"),
+    Case("export-missing-run", ["export", "--run", "{root}/missing", "--out", "{root}/x.ply", *T],
+         "is not a run folder"),
+    Case("export-truncated-checkpoint", ["export", "--run", "{root}/run", "--out", "{root}/x.ply", *T],
+         "step_000003.pt is unreadable", "truncated_checkpoint"),
+    Case("export-malformed-config", ["export", "--run", "{root}/run", "--out", "{root}/x.ply", *T],
+         "is not valid YAML", "run_bad_config"),
+]
+
+
+def _commands() -> set:
+    parser = build_parser()
+    sub = next(a for a in parser._actions if a.dest == "command")
+    return set(sub.choices)
+
+
+_PRESENT = _commands()
+ALL_CASES = CASES + [c for c in RENDER_EXPORT_CASES if c.argv[0] in _PRESENT]
+
+
+# ---- the check ---------------------------------------------------------------------------------------------
+
+def snapshot(root: Path) -> Dict[str, Tuple]:
+    """Every file and folder under ``root``: relative path -> (kind, size, mtime_ns)."""
+    out = {}
+    for dirpath, dirnames, filenames in os.walk(root):
+        for name in dirnames + filenames:
+            p = Path(dirpath) / name
+            st = p.lstat()
+            out[str(p.relative_to(root))] = ("dir" if p.is_dir() else "file", 0 if p.is_dir() else st.st_size,
+                                             0 if p.is_dir() else st.st_mtime_ns)
+    return out
+
+
+def _run_in_process(argv: List[str], capsys) -> Tuple[int, str, str]:
+    try:
+        code = main(argv)
+    except SystemExit as exc:  # argparse errors
+        code = exc.code if isinstance(exc.code, int) else 1
+    except BaseException:  # noqa: BLE001 - a traceback is exactly what this test looks for
+        captured = capsys.readouterr()
+        return -1, captured.out, captured.err + "\nTraceback (escaped main):\n" + traceback.format_exc()
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+def _run_subprocess(argv: List[str], cwd: Path) -> Tuple[int, str, str]:
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    env["PYTHONPATH"] = os.pathsep.join([str(REPO)] + [p for p in [env.get("PYTHONPATH")] if p])
+    p = subprocess.run([sys.executable, "-m", "retinexgs", *argv], cwd=cwd, env=env, capture_output=True,
+                       text=True, timeout=120)
+    return p.returncode, p.stdout, p.stderr
+
+
+@pytest.mark.parametrize("case", ALL_CASES, ids=[c.id for c in ALL_CASES])
+def test_bad_input(case, originals, tmp_path, capsys, monkeypatch, one_thread):
+    root = tmp_path / "case"
+    root.mkdir()
+    SETUPS[case.setup](root, originals)
+    monkeypatch.chdir(root)
+    argv = [a.format(root=root) for a in case.argv]
+    expect = case.expect.format(root=root)
+    before = snapshot(root)
+    before_originals = snapshot(originals["scene"].parent)
+    capsys.readouterr()
+    if case.subprocess:
+        code, out, err = _run_subprocess(argv, root)
+    else:
+        code, out, err = _run_in_process(argv, capsys)
+    report = f"argv {argv}\nexit {code}\nstdout:\n{out}\nstderr:\n{err}"
+    assert "Traceback" not in out + err, report
+    assert code == case.code, report
+    err = err.strip()
+    assert expect in err, f"expected {expect!r} in stderr\n{report}"
+    assert "\n\n" not in err, f"stderr is more than one paragraph\n{report}"
+    after = snapshot(root)
+    changed = sorted(k for k in set(before) | set(after) if before.get(k) != after.get(k)
+                     and not any(k == a or k.startswith(a + os.sep) or f"{os.sep}{a}" in k for a in case.allow))
+    assert not changed, f"the failed command wrote or changed {changed}\n{report}"
+    assert snapshot(originals["scene"].parent) == before_originals, "the shared scene or run was modified"
+
+
+def test_table_covers_every_command():
+    """Every sub-command of the CLI has rows in the table (a new command needs its bad-input rows)."""
+    covered = {c.argv[0] for c in ALL_CASES}
+    assert _PRESENT <= covered, f"commands without bad-input cases: {sorted(_PRESENT - covered)}"
