@@ -252,3 +252,16 @@ def test_to_bchw():
     assert y.shape == (1, 3, 5, 7)
     assert torch.equal(y[0, 2], x[..., 2])
     assert Lo.to_bchw(y) is y
+
+
+def test_supervision_loss_equals_three_separate_terms():
+    """The channel-stacked L_sup gives exactly the three separate Ls values (incl. the 1-channel L prior)."""
+    g = torch.Generator().manual_seed(3)
+    R_hat, L_hat, R, S = (torch.rand(2, 3, 23, 31, generator=g, dtype=torch.float64) for _ in range(4))
+    L = torch.rand(2, 1, 23, 31, generator=g, dtype=torch.float64)
+    total, terms = Lo.supervision_loss(R_hat, L_hat, R, L, S, w_r=0.3, w_l=0.7, w_s=1.1)
+    want = {"sup_r": Lo.l1_ssim(R_hat, R), "sup_l": Lo.l1_ssim(L_hat, L), "sup_rec": Lo.l1_ssim(R_hat * L_hat, S)}
+    for k, v in want.items():
+        assert float(terms[k]) == pytest.approx(float(v), rel=1e-12, abs=1e-14), k
+    assert float(total) == pytest.approx(0.3 * float(want["sup_r"]) + 0.7 * float(want["sup_l"])
+                                         + 1.1 * float(want["sup_rec"]), rel=1e-12)

@@ -66,13 +66,14 @@ class RetinexGSModel(nn.Module):
         return g if self.per_channel_gamma else g.mean(dim=1, keepdim=True).expand_as(g)
 
     def render(self, camera: Camera, active_degree: int, exposure: Optional[float] = None,
-               gamma: Optional[float] = None, validate: bool = True) -> Dict[str, Tensor]:
+               gamma: Optional[float] = None, validate: bool = True, enhance: bool = True) -> Dict[str, Tensor]:
         """Render one view. Returns ``out`` (RenderOutput) and [H,W,3] maps: ``rgb`` (the model's output
         image: S_enh, or the plain render for baselines), and for RetinexGS ``R``, ``L``, ``S_rec``, ``gamma``.
 
         ``exposure`` scales the predicted gamma (< 1 brighter, > 1 darker); ``gamma`` replaces it.
         ``validate=False`` skips the renderer's input checks (one host sync), for loops that check their
-        parameters themselves.
+        parameters themselves. ``enhance=False`` skips the EnhancementNet (no ``rgb``, ``L_enh``, ``gamma``):
+        training needs only R̂ and L̂ until the enhancement losses start.
         """
         g = self.gaussians
         center = camera.center.to(g.means)
@@ -84,4 +85,5 @@ class RetinexGSModel(nn.Module):
         if not self.decomposed:
             return {"out": out, "rgb": out.image}
         R, L = out.image[..., :3], out.image[..., 3:6]
-        return {"out": out, "R": R, "L": L, "S_rec": R * L, **self.enhance(R, L, exposure, gamma)}
+        maps = {"out": out, "R": R, "L": L, "S_rec": R * L}
+        return {**maps, **self.enhance(R, L, exposure, gamma)} if enhance else maps
