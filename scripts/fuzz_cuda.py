@@ -14,8 +14,8 @@ included). Checked per case, each recipe run three ways:
 * float32 (what training uses): the invariants of ``fuzz_corpus.invariant_problems`` on the CUDA outputs
   and gradients (finite, alpha in [0, 1], colour within the inputs' range, depth within [0, alpha * max
   depth]);
-* CUDA == CPU kernels, in float64 and in float32, on the *conditioned* recipe (huge 1e4 scales replaced by
-  10, Gaussians on the near plane or at the camera at most 1e-2 large): image, alpha, depth within abs 1e-4
+* CUDA == CPU kernels, in float64 and in float32, on the *conditioned* recipe (no Gaussian axis longer than
+  its distance to the camera, so at most ~10 px per unit of focal length): image, alpha, depth within abs 1e-4
   + rel 1e-4 (elementwise); the gradients of every input (means, quats, scales, opacities, colors,
   background) of the same random linear loss (``fuzz_corpus.linear_loss``) within 1e-3 of their scale (the
   largest CPU gradient of that input). Why conditioned: a 1e4-long Gaussian by the camera spans millions
@@ -68,13 +68,12 @@ def case_seed(seed: int, i: int) -> int:
 
 
 def conditioned(r: Dict) -> Dict:
-    """The recipe with every huge (>= 1e4) scale replaced by 10, and the Gaussians on the near plane or at the
-    camera no larger than 1e-2 (see the module docstring)."""
+    """The recipe with no Gaussian axis longer than its distance to the camera (see the module docstring)."""
     r = json.loads(json.dumps(r))
     for g in r["gaussians"]:
-        g["scale"] = [10.0 if v >= 1e4 else v for v in g["scale"]]
-        if g["place"] in ("near", "at_camera"):
-            g["scale"] = [min(v, 1e-2) for v in g["scale"]]
+        # No axis longer than the Gaussian's distance to the camera: at most ~10 px per unit of focal here.
+        depth = {"near": r["near"], "at_camera": 1e-3 * r["near"]}.get(g["place"], g["depth"])
+        g["scale"] = [min(v, depth) for v in g["scale"]]
     return r
 
 
