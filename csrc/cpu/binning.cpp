@@ -47,7 +47,7 @@ void bin_tile_pairs_cpu(int64_t N, const T* means2d, const int32_t* radii, const
         tile_ranges[2 * t] = int32_t(start[t]);
         tile_ranges[2 * t + 1] = int32_t(start[t + 1]);
         std::stable_sort(gauss_ids + start[t], gauss_ids + start[t + 1],
-                         [depths](int32_t a, int32_t b) { return depths[a] < depths[b]; });
+                         [depths](int32_t a, int32_t b) { return sort_depth(depths[a]) < sort_depth(depths[b]); });
     }
 }
 

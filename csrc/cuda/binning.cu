@@ -29,7 +29,7 @@ __global__ void write_keys_kernel(int64_t N, const T* __restrict__ means2d, cons
     if (r.area() == 0) return;
     int64_t k = i == 0 ? 0 : offsets[i - 1];
     // Depths are >= near > 0, so the float's bit pattern orders like the value.
-    const uint64_t depth_bits = __float_as_uint(float(depths[i]));
+    const uint64_t depth_bits = __float_as_uint(sort_depth(depths[i]));  // > 0: bits order like values
     for (int ty = r.y0; ty < r.y1; ++ty)
         for (int tx = r.x0; tx < r.x1; ++tx, ++k) {
             keys[k] = (uint64_t(ty * grid.tiles_x + tx) << 32) | depth_bits;

@@ -8,6 +8,7 @@ from typing import Optional, Tuple
 
 import torch
 from torch import Tensor
+from torch.utils.checkpoint import checkpoint
 
 from retinexgs.render.camera import Camera
 from retinexgs.render.rasterize import RenderOutput
@@ -91,9 +92,12 @@ def tile_rects(means2d: Tensor, radii: Tensor, width: int, height: int) -> Tenso
 
 def composite_reference(means2d: Tensor, conics: Tensor, colors: Tensor, opacities: Tensor, depths: Tensor,
                         radii: Tensor, width: int, height: int,
-                        chunk: int = 4096) -> Tuple[Tensor, Tensor]:
-    """Dense front-to-back compositing: image [H,W,C] and alpha [H,W,1]. ``chunk`` pixels at a time."""
-    order = torch.argsort(depths.detach(), stable=True)
+                        chunk: Optional[int] = None) -> Tuple[Tensor, Tensor]:
+    """Dense front-to-back compositing: image [H,W,C] and alpha [H,W,1]. ``chunk`` pixels at a time (default:
+    about 2^20 pixel-Gaussian entries per intermediate, small enough for the allocator to reuse memory
+    instead of mapping fresh pages for every chunk)."""
+    # float32 depth, ties by index: the kernels' sort order (rgs::sort_depth), in every dtype.
+    order = torch.argsort(depths.detach().float(), stable=True)
     visible = (radii > 0).all(-1)
     order = order[visible[order]]
     m, cn, col, op = means2d[order], conics[order], colors[order], opacities[order]
@@ -101,23 +105,39 @@ def composite_reference(means2d: Tensor, conics: Tensor, colors: Tensor, opaciti
     ys, xs = torch.meshgrid(torch.arange(height, device=m.device), torch.arange(width, device=m.device),
                             indexing="ij")
     xs, ys = xs.reshape(-1), ys.reshape(-1)
+    if chunk is None:
+        chunk = max(16, (1 << 20) // max(1, int(m.shape[0])))
     images, alphas = [], []
+    # Under autograd each chunk is checkpointed (recomputed in backward): otherwise every chunk's
+    # [pixels x Gaussians] intermediates stay alive until backward, which for 1e4 Gaussians at 500x375 is
+    # over 100 GB.
+    needs_grad = torch.is_grad_enabled() and any(t.requires_grad for t in (m, cn, col, op))
     for s in range(0, xs.shape[0], chunk):
         px, py = xs[s:s + chunk], ys[s:s + chunk]
-        tx, ty = (px // TILE).unsqueeze(1), (py // TILE).unsqueeze(1)
-        in_tile = (tx >= rect[:, 0]) & (tx < rect[:, 2]) & (ty >= rect[:, 1]) & (ty < rect[:, 3])
-        dx = px.to(m.dtype).unsqueeze(1) + 0.5 - m[:, 0]
-        dy = py.to(m.dtype).unsqueeze(1) + 0.5 - m[:, 1]
-        sigma = 0.5 * (cn[:, 0] * dx * dx + cn[:, 2] * dy * dy) + cn[:, 1] * dx * dy
-        alpha = torch.clamp(op * torch.exp(-sigma), max=ALPHA_MAX)
-        alpha = torch.where(in_tile & (sigma >= 0) & (alpha >= ALPHA_MIN), alpha, torch.zeros_like(alpha))
-        T_before = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1]], 1), 1)
-        stops = (T_before * (1 - alpha) < T_MIN) & (alpha > 0)
-        included = torch.cumsum(stops.int(), 1) == 0
-        w = torch.where(included, alpha * T_before, torch.zeros_like(alpha))
-        images.append(w @ col)
-        alphas.append(w.sum(1, keepdim=True))
+        if needs_grad:
+            image, alpha = checkpoint(_composite_chunk, px, py, m, cn, col, op, rect, use_reentrant=False)
+        else:
+            image, alpha = _composite_chunk(px, py, m, cn, col, op, rect)
+        images.append(image)
+        alphas.append(alpha)
     return torch.cat(images).reshape(height, width, -1), torch.cat(alphas).reshape(height, width, 1)
+
+
+def _composite_chunk(px: Tensor, py: Tensor, m: Tensor, cn: Tensor, col: Tensor, op: Tensor,
+                     rect: Tensor) -> Tuple[Tensor, Tensor]:
+    """Colour [P,C] and alpha [P,1] of pixels (px, py) [P] over depth-sorted Gaussians (dense)."""
+    tx, ty = (px // TILE).unsqueeze(1), (py // TILE).unsqueeze(1)
+    in_tile = (tx >= rect[:, 0]) & (tx < rect[:, 2]) & (ty >= rect[:, 1]) & (ty < rect[:, 3])
+    dx = px.to(m.dtype).unsqueeze(1) + 0.5 - m[:, 0]
+    dy = py.to(m.dtype).unsqueeze(1) + 0.5 - m[:, 1]
+    sigma = 0.5 * (cn[:, 0] * dx * dx + cn[:, 2] * dy * dy) + cn[:, 1] * dx * dy
+    alpha = torch.clamp(op * torch.exp(-sigma), max=ALPHA_MAX)
+    alpha = torch.where(in_tile & (sigma >= 0) & (alpha >= ALPHA_MIN), alpha, torch.zeros_like(alpha))
+    T_before = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1]], 1), 1)
+    stops = (T_before * (1 - alpha) < T_MIN) & (alpha > 0)
+    included = torch.cumsum(stops.int(), 1) == 0
+    w = torch.where(included, alpha * T_before, torch.zeros_like(alpha))
+    return w @ col, w.sum(1, keepdim=True)
 
 
 def rasterize_gaussians_reference(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor,

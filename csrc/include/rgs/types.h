@@ -28,6 +28,13 @@ struct Camera {
     T near_plane, far_plane;
 };
 
+// The depth that orders a tile's Gaussians: float32 precision for every scalar type, ties broken by Gaussian
+// index. The GPU sorts 64-bit (tile << 32 | float bits) keys, so the CPU (and the reference) must order by the
+// same float32 value, or float64 renders of Gaussians at depths equal to float32 precision would composite
+// in different orders on the two devices.
+template <typename T>
+RGS_HD float sort_depth(T depth) { return static_cast<float>(depth); }
+
 // Tile grid of an image.
 struct TileGrid {
     int tiles_x, tiles_y;
