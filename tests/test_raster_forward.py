@@ -141,3 +141,19 @@ def test_background_and_blank_view():
     blank = rasterize_gaussians(means, *args[1:], away, background=bg)
     assert blank.num_pairs == 0 and float(blank.alpha.abs().max()) == 0.0
     torch.testing.assert_close(blank.image, bg.expand(30, 40, 3))
+
+
+def test_depth_order_is_float32_then_index_in_every_dtype():
+    """Gaussians whose depths are equal to float32 precision composite in index order, in float64 too (the GPU
+    sorts float32 depth keys; the CPU kernels and the reference use the same order)."""
+    cam = Camera(torch.eye(4, dtype=torch.float64), 20.0, 20.0, 8.0, 6.0, 16, 12)
+    means = torch.tensor([[0.0, 0.0, 2.0 + 1e-12], [0.0, 0.0, 2.0]], dtype=torch.float64)  # 2nd is nearer
+    quats = torch.tensor([[1.0, 0, 0, 0]] * 2, dtype=torch.float64)
+    scales = torch.full((2, 3), 0.3, dtype=torch.float64)
+    opac = torch.tensor([0.9, 0.9], dtype=torch.float64)
+    colors = torch.tensor([[1.0, 0.0], [0.0, 1.0]], dtype=torch.float64)
+    out = rasterize_gaussians(means, quats, scales, opac, colors, cam)
+    ref = rasterize_gaussians_reference(means, quats, scales, opac, colors, cam)
+    torch.testing.assert_close(out.image, ref.image, rtol=1e-12, atol=1e-12)
+    centre = out.image[6, 8]
+    assert float(centre[0]) > float(centre[1])  # index 0 in front: the 1e-12 depth difference is a tie

@@ -177,3 +177,22 @@ def test_cli_resume_needs_no_data_and_train_without_data_is_refused(scene_dir, t
     assert main(["train", "--out", str(tmp_path / "other"), "--quiet"]) == 2
     assert "--data SCENE is required" in capsys.readouterr().err
     assert not (tmp_path / "other").exists()
+
+
+def test_enhancement_normalises_by_the_scene_illumination_level(scene_dir, tmp_path):
+    """L_ref is the median over training views of the 99th percentile of the prior L, saved with the model, and
+    the output is clip(R̂ ∘ (L̂/L_ref)^g, 0, 1): a gamma of 1 gives back R̂ where L̂ = L_ref."""
+    tr = trainer_for(scene_dir, tmp_path / "run")
+    per_view = torch.stack([tv.L.reshape(-1).quantile(0.99) for tv in tr.views])
+    ref = float(tr.model.illum_ref)
+    assert ref == pytest.approx(float(per_view.median()), rel=2e-2)
+    assert 0.0 < ref < 1.0 and "illum_ref" in tr.model.state_dict()
+    R = torch.rand(5, 7, 3)
+    L = torch.full((5, 7, 3), ref)
+    assert torch.allclose(tr.model.enhance(R, L, gamma=1.0)["rgb"], R.clamp(0, 1), atol=1e-6)
+    half = tr.model.enhance(R, L * 0.25, gamma=0.5)["rgb"]
+    assert torch.allclose(half, (R * 0.5).clamp(0, 1), atol=1e-5)
+    # Exposure scales the predicted gamma: < 1 brighter.
+    Ld = L * 0.2
+    bright, base = tr.model.enhance(R, Ld, exposure=0.5)["rgb"], tr.model.enhance(R, Ld)["rgb"]
+    assert float(bright.mean()) > float(base.mean())
