@@ -5,9 +5,11 @@ toolkit is found (``TORCH_CUDA_ARCH_LIST`` is respected). Set ``RETINEXGS_CPU_ON
 """
 import glob
 import os
+import shutil
 import sys
 
 from setuptools import find_packages, setup
+from setuptools.command.build_py import build_py
 from torch.utils.cpp_extension import CUDA_HOME, BuildExtension, CppExtension, CUDAExtension
 import torch
 
@@ -44,12 +46,22 @@ def _extension():
                         extra_compile_args={"cxx": cxx_flags}, extra_link_args=link_flags)
 
 
+class BuildPyWithConfigs(build_py):
+    """Also ship the top-level configs/ inside the package (retinexgs/configs), so that an installed copy finds
+    default.yaml, demo.yaml and the ablations without the source tree."""
+
+    def run(self):
+        super().run()
+        if not self.dry_run:
+            shutil.copytree(os.path.join(HERE, "configs"), os.path.join(self.build_lib, "retinexgs", "configs"),
+                            dirs_exist_ok=True)
+
+
 setup(
     name="retinexgs",
     version="0.1.0",
     description="3D Retinex Gaussian splatting: normally-lit, 3D-consistent novel views from dark photos",
     packages=find_packages(include=["retinexgs", "retinexgs.*"]),
-    package_data={"retinexgs": ["configs/*.yaml"]},
     python_requires=">=3.9",
     install_requires=["torch>=2.1", "numpy", "pyyaml", "tqdm", "pillow", "opencv-contrib-python-headless>=4.8"],
     extras_require={
@@ -60,6 +72,6 @@ setup(
     },
     entry_points={"console_scripts": ["retinexgs=retinexgs.cli:main"]},
     ext_modules=[_extension()],
-    cmdclass={"build_ext": BuildExtension.with_options(use_ninja=True)},
+    cmdclass={"build_ext": BuildExtension.with_options(use_ninja=True), "build_py": BuildPyWithConfigs},
     zip_safe=False,
 )

@@ -91,9 +91,7 @@ def bake_enhanced_sh(model: RetinexGSModel, active_degree: int, gamma: Tensor, d
     basis_act = sh_basis(act, dirs).float()                              # [n_dirs, K_act]
     dirs32 = dirs.float()
     gamma = torch.as_tensor(gamma, dtype=torch.float32, device=device).reshape(-1)
-    # The model's own steps (L̂ -> min(L̂/L_ref, 1) -> max(., eps)^g), so the bake follows the enhanced render;
-    # a model without an illumination reference applies the gamma to L̂ itself.
-    normalize = getattr(model, "normalized_illumination", lambda L: L)
+    # The model's own steps (L̂ -> min(L̂/L_ref, 1) -> max(., eps)^g), so the bake follows the enhanced render.
     coeffs = torch.cat([g.sh_dc, g.sh_rest], dim=1).detach()[:, :(act + 1) ** 2]
     out = torch.empty(len(g), k, 3, dtype=torch.float32, device=device)
     with torch.no_grad():
@@ -103,7 +101,8 @@ def bake_enhanced_sh(model: RetinexGSModel, active_degree: int, gamma: Tensor, d
             R = (torch.einsum("dk,nkc->ndc", basis_act, coeffs[s:s + chunk]) + 0.5).clamp_min(0.0)
             # The same field and direction convention as RetinexGSModel.render: d from the camera to the Gaussian.
             L = model.illumination(means.repeat_interleave(directions, 0), dirs32.repeat(n, 1)).reshape(n, -1, 3)
-            target = (R * model.enhancement.enhance(normalize(L.float()), gamma)).clamp(0.0, 1.0)
+            L_enh = model.enhancement.enhance(model.normalized_illumination(L.float()), gamma)
+            target = (R * L_enh).clamp(0.0, 1.0)
             out[s:s + n] = torch.einsum("kd,ndc->nkc", fit, (target - 0.5).double()).float()
             if progress is not None:
                 progress(n)

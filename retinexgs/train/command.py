@@ -60,6 +60,7 @@ def _eval(args: argparse.Namespace) -> int:
 
 def _demo(args: argparse.Namespace) -> int:
     from retinexgs.demo.synthetic import make_demo_scene
+    from retinexgs.train.config import load_config
     from retinexgs.train.run import train_run
 
     out = args.out
@@ -73,12 +74,13 @@ def _demo(args: argparse.Namespace) -> int:
             raise UserError(f"{out} already exists; choose another --out"
                             + (" or pass --overwrite to replace the earlier demo" if marker.exists() else ""))
         shutil.rmtree(out)
+    overrides = [f"steps={args.steps}"] if args.steps is not None else []
+    load_config(["demo"], overrides)  # a missing or broken config fails here, before anything is written
     out.mkdir(parents=True, exist_ok=True)
     marker.write_text("made by `retinexgs demo`; safe to delete\n")
     t0 = time.time()
     scene = make_demo_scene(out / "scene")
     print(f"demo scene written to {scene} ({time.time() - t0:.1f} s)")
-    overrides = [f"steps={args.steps}"] if args.steps is not None else []
     metrics = train_run(scene, out / "run", ["demo"], overrides, args.device, progress=not args.quiet)
     if metrics:
         m = metrics["mean"]
