@@ -60,8 +60,8 @@ class RetinexGSModel(nn.Module):
         return {"rgb": (R * L_enh).clamp(0.0, 1.0), "L_enh": L_enh, "gamma": g.reshape(-1)}
 
     def predict_gamma(self, L_bchw: Tensor) -> Tensor:
-        """The EnhancementNet's gamma for a normalised L̂/L_ref [1,3,H,W]: one per image (the paper's single g, the default) or
-        one per channel (``model.enhancement.per_channel``), as [1,C,1,1]."""
+        """The EnhancementNet's gamma for a normalised L̂/L_ref [1,3,H,W]: one per image (the paper's single g,
+        the default) or one per channel (``model.enhancement.per_channel``), as [1,C,1,1]."""
         g = self.enhancement(L_bchw)
         return g if self.per_channel_gamma else g.mean(dim=1, keepdim=True).expand_as(g)
 

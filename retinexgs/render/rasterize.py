@@ -70,7 +70,6 @@ def rasterize_gaussians(
         camera: the :class:`~retinexgs.render.Camera` (world-to-camera, intrinsics, size, near/far).
         background: optional [C] colour composited behind the Gaussians.
         render_depth: also render the alpha-weighted depth map.
-
         validate: check that every tensor is finite (a NaN or inf anywhere raises a ValueError naming the
             argument). The check costs one host-device sync on the GPU; a loop that checks its parameters
             itself (the trainer does, every step) passes False. Shapes, dtypes and devices are always checked.

@@ -60,13 +60,14 @@ def list_scene_images(scene: Path, images_subdir: str = "low") -> List[Path]:
 
 def run(args: argparse.Namespace) -> int:
     """Entry point of ``retinexgs decompose``."""
-    from retinexgs.retinex.cache import CACHE_DIRNAME, decompose_images
-
     from retinexgs.data.images import read_image
+    from retinexgs.retinex.cache import CACHE_DIRNAME, decompose_images
 
     scene = Path(args.data).expanduser()
     paths = list_scene_images(scene, args.images_subdir)
-    for p in paths:  # an unreadable or truncated photo is refused before the cache folder is created
+    # An unreadable or truncated photo is refused before the cache folder is created (one extra decode per
+    # photo; the decomposition itself costs far more).
+    for p in paths:
         read_image(p)
     cache_root = Path(args.cache).expanduser() if args.cache else scene / CACHE_DIRNAME
     _, report = decompose_images(paths, args.method, None, cache_root, args.device, keep=False,

@@ -18,7 +18,7 @@ from retinexgs.data import Scene, View
 from retinexgs.errors import UserError
 from retinexgs.fileio import atomic_write_text
 from retinexgs.model.density import DensityController
-from retinexgs.model.gaussians import PARAM_NAMES, GaussianModel
+from retinexgs.model.gaussians import GaussianModel
 from retinexgs.model.retinex_model import RetinexGSModel
 from retinexgs.render import Camera
 from retinexgs.train import losses
@@ -227,13 +227,11 @@ class Trainer:
         # GPU queue, and this loop is launch-bound. A non-finite loss or parameter raises before the next
         # checkpoint, so the last checkpoint on disk is always a good one.
         names = list(terms)
-        # The networks' parameters too: a non-finite MLP weight would otherwise reach the step's checkpoint
-        # before the next step's loss showed it.
-        nets = [(n, p) for n, p in self.model.named_parameters() if not n.startswith("gaussians.")]
-        params = [getattr(self.model.gaussians, name) for name in PARAM_NAMES] + [p for _, p in nets]
-        # A NaN or inf anywhere in a tensor makes its norm non-finite; the multi-tensor norm is a couple of
-        # kernels for all of them.
-        norms = torch._foreach_norm([p.detach() for p in params])
+        # Every parameter, the networks' too: a non-finite MLP weight would otherwise reach the step's
+        # checkpoint before the next step's loss showed it. A NaN or inf anywhere in a tensor makes its norm
+        # non-finite; the multi-tensor norm is a couple of kernels for all of them.
+        params = list(self.model.named_parameters())
+        norms = torch._foreach_norm([p.detach() for _, p in params])
         checks = torch.stack([terms[k].detach().float() for k in names] + [v.float() for v in norms]).tolist()
         values = dict(zip(names, checks[:len(names)]))
         bad = [k for k, v in values.items() if not math.isfinite(v)]
@@ -241,10 +239,11 @@ class Trainer:
             raise TrainingDiverged(f"loss term {bad[0]} became {values[bad[0]]} at step {step}; the last good "
                                    f"checkpoint in {self.run / 'checkpoints'} is intact (lower the learning "
                                    "rates or resume from it)")
-        labels = [f"Gaussian parameter {n}" for n in PARAM_NAMES] + [f"network parameter {n}" for n, _ in nets]
-        for name, norm in zip(labels, checks[len(names):]):
+        for (name, _), norm in zip(params, checks[len(names):]):
             if not math.isfinite(norm):
-                raise TrainingDiverged(f"{name} became non-finite at step {step}; the last good checkpoint in "
+                label = (f"Gaussian parameter {name[len('gaussians.'):]}" if name.startswith("gaussians.")
+                         else f"network parameter {name}")
+                raise TrainingDiverged(f"{label} became non-finite at step {step}; the last good checkpoint in "
                                        f"{self.run / 'checkpoints'} is intact")
         size = max(tv.camera.width, tv.camera.height)
         event = self.density.step(step, self.model.gaussians, self.optimizer, size)
