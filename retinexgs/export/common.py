@@ -1,4 +1,4 @@
-"""Checks shared by ``render`` and ``export``: run config, enhancement flags, output overwrites, SH degree."""
+"""Checks shared by ``render`` and ``export``: run config, enhancement flags, output overwrites."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -41,8 +41,3 @@ def refuse_existing(paths: Iterable[Path], force: bool) -> None:
         if Path(p).is_dir():
             raise UserError(f"{p} is a folder; --out must name a file here")
 
-
-def active_degree(cfg: Dict, step: int) -> int:
-    """The SH degree the model renders with after ``step`` steps (as in training and ``eval_run``)."""
-    every = max(int(cfg["model"]["sh_degree_every"]), 1)
-    return min(int(cfg["model"]["sh_degree"]), step // every)

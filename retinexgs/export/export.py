@@ -15,10 +15,11 @@ import torch
 from retinexgs.errors import UserError
 from retinexgs.export import DEFAULT_DIRECTIONS
 from retinexgs.export.bake import bake_enhanced_sh, export_params, mean_gamma, reflectance_sh
-from retinexgs.export.common import active_degree, check_enhancement_flags, read_run_config, refuse_existing
+from retinexgs.export.common import check_enhancement_flags, read_run_config, refuse_existing
 from retinexgs.export.ply import write_ply
 from retinexgs.train.run import load_run
-from retinexgs.train.trainer import view_camera
+from retinexgs.train.trainer import active_sh_degree, view_camera
+
 
 def export_run(run_dir: Path, out: Path, reflectance_only: bool = False, directions: int = DEFAULT_DIRECTIONS,
                exposure: Optional[float] = None, gamma: Optional[float] = None, device: Optional[str] = None,
@@ -41,7 +42,7 @@ def export_run(run_dir: Path, out: Path, reflectance_only: bool = False, directi
     refuse_existing([out], force)
 
     cfg, scene, model, step = load_run(run_dir, device)
-    degree = active_degree(cfg, step)
+    degree = active_sh_degree(cfg, step)
     comments = [f"retinexgs export of {run_dir.name} (step {step}, method {cfg['method']})",
                 f"world frame: normalisation undone (center {scene.normalization.center.tolist()}, "
                 f"scale {scene.normalization.scale})"]
@@ -58,7 +59,7 @@ def export_run(run_dir: Path, out: Path, reflectance_only: bool = False, directi
                   dynamic_ncols=True) as bar:
             sh = bake_enhanced_sh(model, degree, g, directions, progress=bar.update)
         gtext = ", ".join(f"{x:.4f}" for x in g.tolist())
-        comments.append(f"colour: enhanced R*L^g baked into SH by least squares over {directions} directions, "
+        comments.append(f"colour: enhanced R*(L/L_ref)^g baked into SH by least squares over {directions} directions, "
                         f"g = ({gtext})")
     else:
         sh = reflectance_sh(model, degree)

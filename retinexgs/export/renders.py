@@ -25,13 +25,13 @@ from torch import Tensor
 from retinexgs.data.scene import View
 from retinexgs.errors import UserError
 from retinexgs.evaluate.evaluate import save_png, to_uint8
-from retinexgs.export.common import active_degree, check_enhancement_flags, read_run_config, refuse_existing
+from retinexgs.export.common import check_enhancement_flags, read_run_config, refuse_existing
 from retinexgs.export import PATH_KINDS
 from retinexgs.export.paths import camera_path
 from retinexgs.fileio import TMP_PREFIX, atomic_write
 from retinexgs.render import rasterize_gaussians
 from retinexgs.train.run import load_run, render_function
-from retinexgs.train.trainer import view_camera
+from retinexgs.train.trainer import active_sh_degree, view_camera
 
 MAPS = ("enhanced", "R", "L", "depth", "low")
 DECOMPOSED_MAPS = ("R", "L", "low")
@@ -165,7 +165,7 @@ def render_run(run_dir: Path, views: Optional[str] = None, out: Optional[Path] =
         targets = [out / name / f"{Path(v.name).stem}.png" for name in maps for v in frames_views]
     refuse_existing(targets, force)
 
-    fn = render_function(model, cfg, active_degree(cfg, step), exposure=exposure, gamma=gamma)
+    fn = render_function(model, cfg, active_sh_degree(cfg, step), exposure=exposure, gamma=gamma)
     zrange = depth_range(model, frames_views) if "depth" in maps else (0.1, 10.0)
     from tqdm import tqdm
     bar = tqdm(frames_views, desc=f"render {path or views}", unit="frame", disable=not progress, dynamic_ncols=True)

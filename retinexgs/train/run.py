@@ -15,7 +15,7 @@ from retinexgs.model.gaussians import GaussianModel
 from retinexgs.model.retinex_model import RetinexGSModel
 from retinexgs.train.checkpoint import latest_checkpoint, load_checkpoint
 from retinexgs.train.config import load_config, read_yaml
-from retinexgs.train.trainer import Trainer, view_camera, write_run_config
+from retinexgs.train.trainer import Trainer, active_sh_degree, view_camera, write_run_config
 
 
 def pick_device(device: Optional[str]) -> str:
@@ -117,6 +117,5 @@ def load_run(run_dir: Path, device: Optional[str] = None) -> Tuple[Dict, Scene, 
 def eval_run(run_dir: Path, device: Optional[str] = None, log: Callable[[str], None] = print) -> Optional[Dict]:
     """Re-evaluate a saved run (rewrites metrics.json and renders/test)."""
     cfg, scene, model, step = load_run(run_dir, device)
-    every = max(int(cfg["model"]["sh_degree_every"]), 1)
-    degree = min(cfg["model"]["sh_degree"], step // every)
-    return evaluate(render_function(model, cfg, degree), scene, Path(run_dir), cfg["eval"]["lpips"], log)
+    return evaluate(render_function(model, cfg, active_sh_degree(cfg, step)), scene, Path(run_dir),
+                    cfg["eval"]["lpips"], log)

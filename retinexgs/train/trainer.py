@@ -29,6 +29,12 @@ class TrainingDiverged(UserError):
     """A loss term or parameter became non-finite; the last good checkpoint is left intact."""
 
 
+def active_sh_degree(cfg: Dict, step: int) -> int:
+    """The SH degree the model renders with after ``step`` steps (it grows by one every sh_degree_every)."""
+    every = max(int(cfg["model"]["sh_degree_every"]), 1)
+    return min(int(cfg["model"]["sh_degree"]), step // every)
+
+
 def view_camera(view: View) -> Camera:
     """The renderer's camera for a data-layer view."""
     return Camera(view.world_to_camera(), view.fx, view.fy, view.cx, view.cy, view.width, view.height)
@@ -175,8 +181,7 @@ class Trainer:
         return self.extent * math.exp((1 - t) * math.log(lr["means"]) + t * math.log(lr["means_final"]))
 
     def active_degree(self, step: int) -> int:
-        every = max(int(self.cfg["model"]["sh_degree_every"]), 1)
-        return min(self.cfg["model"]["sh_degree"], step // every)
+        return active_sh_degree(self.cfg, step)
 
     def loss(self, res: Dict[str, Tensor], tv: TrainView, step: int) -> Dict[str, Tensor]:
         """Every loss term of this step (weighted terms sum to ``total``)."""
