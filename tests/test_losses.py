@@ -265,3 +265,47 @@ def test_supervision_loss_equals_three_separate_terms():
         assert float(terms[k]) == pytest.approx(float(v), rel=1e-12, abs=1e-14), k
     assert float(total) == pytest.approx(0.3 * float(want["sup_r"]) + 0.7 * float(want["sup_l"])
                                          + 1.1 * float(want["sup_rec"]), rel=1e-12)
+
+
+def test_exposure_loss_whole_image_and_l1():
+    y = torch.rand(2, 3, 32, 48, dtype=torch.float64)
+    means = y.mean(dim=(1, 2, 3))
+    assert float(Lo.exposure_loss(y, 0.6, patch=0)) == pytest.approx(float(((means - 0.6) ** 2).mean()))
+    assert float(Lo.exposure_loss(y, 0.6, patch=0, form="l1")) == pytest.approx(float((means - 0.6).abs().mean()))
+    pooled = torch.nn.functional.avg_pool2d(y.mean(1, keepdim=True), 16)
+    assert float(Lo.exposure_loss(y, 0.6, 16, "l1")) == pytest.approx(float((pooled - 0.6).abs().mean()))
+    with pytest.raises(ValueError):
+        Lo.exposure_loss(y, form="l3")
+
+
+def test_scale_invariant_spa_and_col_ignore_a_global_gain():
+    """The mean-normalised L_spa and L_col compare structure and colour balance: brightening the whole image
+    costs nothing, while the plain terms penalise it (they reward a darker output)."""
+    x = torch.rand(1, 3, 24, 32, dtype=torch.float64) * torch.tensor([1.0, 0.8, 0.5], dtype=torch.float64).view(1, 3, 1, 1)
+    for form in ("zero_dce", "paper"):
+        assert float(Lo.spatial_consistency_loss(3 * x, x, form=form, scale_invariant=True)) == pytest.approx(0, abs=1e-12)
+        assert float(Lo.spatial_consistency_loss(3 * x, x, form=form)) > 1e-4
+        # a change of structure is still seen
+        assert float(Lo.spatial_consistency_loss(x.flip(-1), x, form=form, scale_invariant=True)) > 1e-4
+    assert float(Lo.color_constancy_loss(3 * x, scale_invariant=True)) == pytest.approx(
+        float(Lo.color_constancy_loss(x, scale_invariant=True)))
+    assert float(Lo.color_constancy_loss(3 * x)) == pytest.approx(9 * float(Lo.color_constancy_loss(x)))
+
+
+def test_spatial_consistency_paper_form_is_eq8():
+    """form="paper": mean |∇_x S_enh − ∇_x S| + mean |∇_y S_enh − ∇_y S| at full resolution."""
+    e = torch.rand(1, 3, 9, 11, dtype=torch.float64)
+    o = torch.rand(1, 3, 9, 11, dtype=torch.float64)
+    gx = lambda t: t[..., 1:] - t[..., :-1]
+    gy = lambda t: t[..., 1:, :] - t[..., :-1, :]
+    want = (gx(e) - gx(o)).abs().mean() + (gy(e) - gy(o)).abs().mean()
+    assert float(Lo.spatial_consistency_loss(e, o, form="paper")) == pytest.approx(float(want))
+
+
+def test_enhancement_loss_measures_exposure_on_the_illumination_when_given():
+    enh = torch.full((1, 3, 16, 16), 0.2, dtype=torch.float64)
+    light = torch.full((1, 3, 16, 16), 0.5, dtype=torch.float64)
+    _, on_image = Lo.enhancement_loss(enh, enh, E=0.6)
+    _, on_light = Lo.enhancement_loss(enh, enh, E=0.6, illumination=light, exp_patch=0)
+    assert float(on_image["exp"]) == pytest.approx(0.16)
+    assert float(on_light["exp"]) == pytest.approx(0.01)

@@ -2,7 +2,8 @@
 import importlib
 import sys
 
-BENCHES = {"raster": "retinexgs.bench.raster", "lr3m": "retinexgs.bench.lr3m", "fps": "retinexgs.bench.fps"}
+BENCHES = {"raster": "retinexgs.bench.raster", "lr3m": "retinexgs.bench.lr3m", "fps": "retinexgs.bench.fps",
+           "quality": "retinexgs.bench.quality"}
 
 
 def main() -> int:

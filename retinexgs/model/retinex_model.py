@@ -10,8 +10,9 @@ scene), and a gamma curve only brightens with the right contrast on an illuminat
 (1 = the brightest light in the scene) — the same normalisation as LR3M's display rule R∘(L/max L)^{1/γ}.
 Without it no g reaches a normal exposure: on fox-dark's LR3M maps the best R∘L^g is 17.8 dB against the
 normal-light photo, R∘(L/L_ref)^g reaches 25 dB. L_ref is one scene-wide constant (a buffer saved with the
-model: the median over training views of the 99th percentile of the 2D prior L, set by the trainer), not a
-per-view maximum, so the enhancement stays 3D-consistent.
+model: the median over training views of a quantile of the 2D prior L — by default its maximum, as in LR3M's
+rule; ``model.enhancement.ref_quantile`` — set by the trainer), not a per-view value, so the enhancement
+stays 3D-consistent. With ``ref_quantile: null`` L_ref = 1 (configs/paper.yaml: L_enh = L̂^g as written).
 The plain-3DGS baselines use the same Gaussians with 3 colour channels and no illumination or enhancement.
 """
 from __future__ import annotations
@@ -39,6 +40,7 @@ class RetinexGSModel(nn.Module):
             enh = dict(model_cfg["enhancement"])
             enh["gamma_range"] = tuple(enh["gamma_range"])
             self.per_channel_gamma = bool(enh.pop("per_channel", False))
+            enh.pop("ref_quantile", None)  # the trainer's (it sets illum_ref)
             self.enhancement = EnhancementNet(channels=3, **enh)
             self.register_buffer("illum_ref", torch.ones(()))  # L_ref; set by the trainer from the 2D priors
 

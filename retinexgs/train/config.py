@@ -98,7 +98,13 @@ def validate(cfg: Config) -> None:
         raise UserError(f"decomposer.method must be lr3m, lime or none, got {cfg['decomposer']['method']!r}")
     if not 0 <= cfg["model"]["sh_degree"] <= 3:
         raise UserError("model.sh_degree must be in 0..3")
+    choices = {"exp_on": ("illumination", "image"), "exp_form": ("l2", "l1"), "spa_form": ("zero_dce", "paper"),
+               "sh_reduction": ("mean", "sum")}
     for k, v in cfg["loss"].items():
+        if k in choices:
+            if v not in choices[k]:
+                raise UserError(f"loss.{k} must be one of {', '.join(choices[k])}, got {v!r}")
+            continue
         if isinstance(v, bool):
             continue
         if not isinstance(v, (int, float)) or v < 0:

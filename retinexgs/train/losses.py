@@ -10,18 +10,20 @@ Decomposition loss (weights from the paper):
 Enhancement loss on S_enh = R̂∘L̂^g, switched on after step 3000 (the trainer decides):
     L_enhance = 0.1·L_spa + 1·L_exp + 0.5·L_col                             (Eq. 7)
 
-Choices where the paper and the Zero-DCE reference code differ (documented per function):
-    - L_spa: Zero-DCE's squared differences of 4×4-pooled neighbour gradients (the paper's Eq. 8 writes
-      an L1 of full-resolution gradient differences).
-    - L_exp: Zero-DCE's squared deviation of 16×16-pooled brightness from E (the paper's Eq. 9 writes |·|).
+Choices where the paper and the Zero-DCE reference code differ (each is an option; configs/paper.yaml
+picks the paper's, configs/default.yaml the product's, with the reasons in the files):
+    - L_spa: Zero-DCE's squared differences of 4×4-pooled neighbour gradients, or the paper's L1 of
+      full-resolution gradient differences (Eq. 8); optionally on mean-normalised images.
+    - L_exp: squared (Zero-DCE's code) or absolute (Eq. 9) deviation of 16×16-pooled (or whole-image)
+      brightness from E, on the enhanced image (the paper) or on the enhanced illumination (the default).
     - L_col: the paper's Σ(m_p − m_q)² by default; Zero-DCE's sqrt(Σ d^4) on request (it has an
       infinite gradient at a perfectly grey image, so it gets an eps inside the root).
-    - L_SH: mean of squares, not the sum of Eq. 6, so that its weight does not scale with the number
-      of Gaussians.
+    - L_SH: mean of squares (the default: its weight does not scale with the number of Gaussians) or the
+      sum of Eq. 6.
 """
 from __future__ import annotations
 
-from typing import Dict, Tuple
+from typing import Dict, Optional, Tuple
 
 import torch
 import torch.nn.functional as F
@@ -189,14 +191,34 @@ def _neighbour_diffs(y: torch.Tensor):
             y - p[..., 0:h, 1:w + 1], y - p[..., 2:h + 2, 1:w + 1])
 
 
-def spatial_consistency_loss(enh: torch.Tensor, orig: torch.Tensor, pool: int = 4) -> torch.Tensor:
-    """L_spa (Eq. 8, Zero-DCE form): keeps the local contrast structure of ``orig`` in ``enh``.
+def _mean_normalized(x: torch.Tensor) -> torch.Tensor:
+    """Each image of [B,C,H,W] divided by its mean brightness: terms on it ignore a global gain."""
+    return x / x.mean(dim=(1, 2, 3), keepdim=True).clamp_min(1e-6)
 
-    Both images are averaged over channels and ``pool``×``pool``-average-pooled (region means Y);
-    for each region k and each of its 4 neighbours j (zero outside the image),
-    D_kj = Y_k − Y_j. Loss = mean over k and batch of Σ_j (D_kj(enh) − D_kj(orig))².
+
+def spatial_consistency_loss(enh: torch.Tensor, orig: torch.Tensor, pool: int = 4, form: str = "zero_dce",
+                             scale_invariant: bool = False) -> torch.Tensor:
+    """L_spa (Eq. 8): keeps the local contrast structure of ``orig`` in ``enh``.
+
+    form="zero_dce": both images are averaged over channels and ``pool``×``pool``-average-pooled (region
+    means Y); for each region k and each of its 4 neighbours j (zero outside the image), D_kj = Y_k − Y_j.
+    Loss = mean over k and batch of Σ_j (D_kj(enh) − D_kj(orig))².
+    form="paper": Eq. 8 as written, ‖∇S_enh − ∇S‖₁: mean absolute difference of the full-resolution
+    forward differences (x and y, per channel).
+
+    ``scale_invariant`` divides each image by its mean brightness first. Without it the term compares the
+    brightened image's gradients with the dark input's, so it rewards a darker output (it trades
+    brightness for contrast); with it only the *structure* of the contrast is compared.
     """
     _check4(enh, orig)
+    if scale_invariant:
+        enh, orig = _mean_normalized(enh), _mean_normalized(orig)
+    if form == "paper":
+        dx = (enh[..., :, 1:] - enh[..., :, :-1]) - (orig[..., :, 1:] - orig[..., :, :-1])
+        dy = (enh[..., 1:, :] - enh[..., :-1, :]) - (orig[..., 1:, :] - orig[..., :-1, :])
+        return dx.abs().mean() + dy.abs().mean()
+    if form != "zero_dce":
+        raise ValueError("form must be 'zero_dce' or 'paper'")
     ye = F.avg_pool2d(enh.mean(1, keepdim=True), pool)
     yo = F.avg_pool2d(orig.mean(1, keepdim=True), pool)
     total = 0.0
@@ -205,18 +227,30 @@ def spatial_consistency_loss(enh: torch.Tensor, orig: torch.Tensor, pool: int = 
     return total.mean()
 
 
-def exposure_loss(enh: torch.Tensor, E: float = 0.6, patch: int = 16) -> torch.Tensor:
-    """L_exp (Eq. 9, Zero-DCE form): mean over non-overlapping ``patch``² regions of (Y_k − E)².
+def exposure_loss(enh: torch.Tensor, E: float = 0.6, patch: int = 16, form: str = "l2") -> torch.Tensor:
+    """L_exp (Eq. 9): deviation of the brightness Y_k of regions from the target exposure E.
 
-    Y_k = mean brightness (channel mean, then patch average; a partial border patch is dropped).
+    Y_k = mean brightness (channel mean, then the average over non-overlapping ``patch``² regions; a partial
+    border patch is dropped). ``patch=0`` uses one region, the whole image (the right form for one gamma
+    per image: a single parameter cannot move every patch to E, and per-patch errors then pull it towards
+    flattening the contrast). form="l2": mean (Y_k − E)² (Zero-DCE's code); "l1": mean |Y_k − E| (Eq. 9).
     """
     _check4(enh)
-    y = F.avg_pool2d(enh.mean(1, keepdim=True), patch)
-    return (y - E).square().mean()
+    y = enh.mean(1, keepdim=True)
+    y = y.mean(dim=(2, 3), keepdim=True) if patch == 0 else F.avg_pool2d(y, patch)
+    if form == "l2":
+        return (y - E).square().mean()
+    if form == "l1":
+        return (y - E).abs().mean()
+    raise ValueError("form must be 'l2' or 'l1'")
 
 
-def color_constancy_loss(enh: torch.Tensor, mode: str = "paper", eps: float = 1e-12) -> torch.Tensor:
+def color_constancy_loss(enh: torch.Tensor, mode: str = "paper", eps: float = 1e-12,
+                         scale_invariant: bool = False) -> torch.Tensor:
     """L_col (Eq. 10): gray-world penalty on the per-image channel means m_r, m_g, m_b; batch mean.
+
+    ``scale_invariant`` divides the means by their average first (a penalty on the colour balance alone:
+    without it a darker image always scores better).
 
     mode="paper": (m_r−m_g)² + (m_r−m_b)² + (m_g−m_b)² (the 3 unordered pairs of Eq. 10).
     mode="zero_dce": sqrt((m_r−m_g)^4 + (m_r−m_b)^4 + (m_g−m_b)^4 + eps) (Zero-DCE's code; eps keeps
@@ -226,6 +260,8 @@ def color_constancy_loss(enh: torch.Tensor, mode: str = "paper", eps: float = 1e
     if enh.shape[1] != 3:
         raise ValueError("color_constancy_loss needs 3 channels")
     m = enh.mean(dim=(2, 3))
+    if scale_invariant:
+        m = m / m.mean(dim=1, keepdim=True).clamp_min(1e-6)
     drg = (m[:, 0] - m[:, 1]).square()
     drb = (m[:, 0] - m[:, 2]).square()
     dgb = (m[:, 1] - m[:, 2]).square()
@@ -237,17 +273,23 @@ def color_constancy_loss(enh: torch.Tensor, mode: str = "paper", eps: float = 1e
 
 
 def enhancement_loss(enh: torch.Tensor, orig: torch.Tensor, w_spa: float = 0.1, w_exp: float = 1.0,
-                     w_col: float = 0.5, E: float = 0.6,
-                     color_mode: str = "paper") -> Tuple[torch.Tensor, Terms]:
+                     w_col: float = 0.5, E: float = 0.6, color_mode: str = "paper",
+                     illumination: Optional[torch.Tensor] = None, exp_patch: int = 16, exp_form: str = "l2",
+                     spa_form: str = "zero_dce", scale_invariant: bool = False) -> Tuple[torch.Tensor, Terms]:
     """L_enhance of Eq. 7 on S_enh = R̂∘L_enh with the low-light input (or R̂∘L̂) as ``orig``.
+
+    ``illumination``: when given (the enhanced illumination L_enh, [B,C,H,W]), L_exp measures the exposure
+    of the light instead of the image: how bright a normally lit scene looks then depends on its
+    reflectance (a white sofa is brighter than a dark bike), as it does in a photograph. The other options
+    are those of :func:`exposure_loss`, :func:`spatial_consistency_loss` and :func:`color_constancy_loss`.
 
     Returns:
         (w_spa·L_spa + w_exp·L_exp + w_col·L_col, {"spa", "exp", "col"}) — unweighted terms.
     """
     terms = {
-        "spa": spatial_consistency_loss(enh, orig),
-        "exp": exposure_loss(enh, E),
-        "col": color_constancy_loss(enh, color_mode),
+        "spa": spatial_consistency_loss(enh, orig, form=spa_form, scale_invariant=scale_invariant),
+        "exp": exposure_loss(enh if illumination is None else illumination, E, exp_patch, exp_form),
+        "col": color_constancy_loss(enh, color_mode, scale_invariant=scale_invariant),
     }
     total = w_spa * terms["spa"] + w_exp * terms["exp"] + w_col * terms["col"]
     return total, terms

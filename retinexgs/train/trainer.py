@@ -165,13 +165,17 @@ class Trainer:
 
     def illumination_reference(self) -> float:
         """L_ref, the scene's "full light" level that the enhancement normalises L̂ by: the median over the
-        training views of the 99th percentile of the 2D prior L (of max-RGB of S without priors, the usual
-        initial illumination estimate)."""
+        training views of the ``model.enhancement.ref_quantile`` quantile of the 2D prior L (of max-RGB of S
+        without priors, the usual initial illumination estimate). 1 when the quantile is null (no
+        normalisation: L_enh = L̂^g as the paper writes it)."""
+        q = self.cfg["model"]["enhancement"]["ref_quantile"]
+        if q is None:
+            return 1.0
         per_view = []
         for tv in self.views:
             L = tv.L if tv.L is not None else tv.S.amax(dim=-1)
             flat = L.reshape(-1).float()
-            per_view.append(flat.kthvalue(max(1, int(0.99 * flat.numel()))).values)
+            per_view.append(flat.kthvalue(min(flat.numel(), max(1, round(float(q) * flat.numel())))).values)
         return float(torch.stack(per_view).median().clamp_min(1e-3))
 
     # ---- one step ----------------------------------------------------------------------------------------
@@ -199,17 +203,20 @@ class Trainer:
             terms["sup_rec"] = losses.l1_ssim(R_hat * L_hat, S, c["lambda_ssim"])
             sup = c["w_s"] * terms["sup_rec"]
         terms["tv"] = losses.tv_loss(R_hat)
-        terms["sh"] = losses.sh_sparsity_loss(self.model.gaussians.sh_rest)
+        terms["sh"] = losses.sh_sparsity_loss(self.model.gaussians.sh_rest, c["sh_reduction"])
         total = sup + c["w_tv"] * terms["tv"] + c["w_sh"] * terms["sh"]
         if step >= c["enhance_from"]:
             if c["enhance_trains_scene"]:
-                S_enh = to_bchw(res["rgb"])
+                out = res
             else:
                 # The paper trains the EnhancementNet alone with L_enhance: without this the exposure term would
                 # flatten R̂ and L̂ towards E instead of adjusting the gamma.
-                S_enh = to_bchw(self.model.enhance(res["R"].detach(), res["L"].detach())["rgb"])
-            enh, enh_terms = losses.enhancement_loss(S_enh, S, c["w_spa"], c["w_exp"], c["w_col"],
-                                                     c["exposure_E"])
+                out = self.model.enhance(res["R"].detach(), res["L"].detach())
+            light = to_bchw(out["L_enh"]) if c["exp_on"] == "illumination" else None
+            enh, enh_terms = losses.enhancement_loss(
+                to_bchw(out["rgb"]), S, c["w_spa"], c["w_exp"], c["w_col"], c["exposure_E"],
+                illumination=light, exp_patch=c["exp_patch"], exp_form=c["exp_form"], spa_form=c["spa_form"],
+                scale_invariant=c["enhance_scale_invariant"])
             terms.update(enh_terms)
             total = total + enh
         terms["total"] = total

@@ -1,0 +1,242 @@
+"""Quality benchmark: train every (scene, config, seed), evaluate, and write one markdown table plus a contact
+sheet per scene (low | each config | truth).
+
+    python -m retinexgs.bench quality --scenes DIR... --configs NAME... --seeds N [--jobs K] [--runs DIR]
+
+Runs go to ``RUNS/<scene>/<config>/seed<k>`` (``default`` = configs/default.yaml alone). A run whose
+``metrics.json`` exists is reused, not retrained: seeds can be trained in several calls (``--seeds 1,2``) and
+the table rebuilt from all of them (``--no-train``). Jobs run side by side as separate ``retinexgs train``
+processes (several trainings share one GPU well: the training step is launch-bound).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Dict, List, Optional, Sequence
+
+import numpy as np
+
+from retinexgs.fileio import atomic_write_text
+
+
+@dataclass(frozen=True)
+class Job:
+    """One training run of the benchmark."""
+
+    scene: Path
+    config: str
+    seed: int
+    run: Path
+
+    @property
+    def metrics_path(self) -> Path:
+        return self.run / "metrics.json"
+
+
+def scene_label(scene: Path) -> str:
+    """``lom/buu`` for .../lom/buu, ``fox-dark`` for .../fox-dark (the parent is kept when it is a collection)."""
+    scene = Path(scene).resolve()
+    return f"{scene.parent.name}/{scene.name}" if scene.parent.name.lower() in ("lom", "llnerf", "data_lom") \
+        else scene.name
+
+
+def config_slug(config: str) -> str:
+    return config.replace("/", "-")
+
+
+def parse_seeds(text: str) -> List[int]:
+    """``3`` -> [0, 1, 2]; ``1,2`` -> [1, 2]."""
+    if "," in text:
+        return [int(s) for s in text.split(",") if s.strip()]
+    n = int(text)
+    if n < 1:
+        raise ValueError("--seeds must be a positive count or a comma-separated list")
+    return list(range(n))
+
+
+def plan(scenes: Sequence[Path], configs: Sequence[str], seeds: Sequence[int], runs: Path) -> List[Job]:
+    return [Job(Path(s), c, k, runs / scene_label(Path(s)) / config_slug(c) / f"seed{k}")
+            for s in scenes for c in configs for k in seeds]
+
+
+def train_command(job: Job, device: str, steps: Optional[int], extra: Sequence[str]) -> List[str]:
+    cmd = [sys.executable, "-m", "retinexgs", "train", "--data", str(job.scene), "--out", str(job.run),
+           "--device", device, "--quiet", "--set", f"seed={job.seed}"]
+    if job.config != "default":
+        cmd += ["--config", job.config]
+    if steps is not None:
+        cmd += ["--set", f"steps={steps}"]
+    for s in extra:
+        cmd += ["--set", s]
+    return cmd
+
+
+def run_job(job: Job, device: str, steps: Optional[int], extra: Sequence[str]) -> str:
+    """Train one job (its log goes to RUN.log); returns a one-line status."""
+    if job.metrics_path.is_file():
+        return f"reused  {job.run}"
+    if job.run.exists():  # a run cut off earlier: start it again from scratch
+        import shutil
+        shutil.rmtree(job.run)
+    job.run.parent.mkdir(parents=True, exist_ok=True)
+    t0 = time.time()
+    with open(f"{job.run}.log", "w") as log:
+        rc = subprocess.run(train_command(job, device, steps, extra), stdout=log, stderr=subprocess.STDOUT).returncode
+    status = "ok" if rc == 0 and job.metrics_path.is_file() else f"FAILED (exit {rc}, see {job.run}.log)"
+    return f"{status:7s} {job.run} in {time.time() - t0:.0f} s"
+
+
+def read_metrics(job: Job) -> Optional[Dict]:
+    try:
+        m = json.loads(job.metrics_path.read_text())
+    except (OSError, ValueError):
+        return None
+    return m if "mean" in m else None
+
+
+def _mean_std(values: Sequence[float], digits: int) -> str:
+    if not values:
+        return "–"
+    mean = float(np.mean(values))
+    if len(values) == 1:
+        return f"{mean:.{digits}f}"
+    return f"{mean:.{digits}f} ± {float(np.std(values, ddof=1)):.{digits}f}"
+
+
+def table(jobs: Sequence[Job], configs: Sequence[str]) -> str:
+    """Markdown: per scene and config PSNR / SSIM (mean ± sample std over seeds) and train time; then the mean
+    over scenes (each seed's scene-mean, so its ± is the spread of the whole benchmark over seeds)."""
+    scenes = list(dict.fromkeys(scene_label(j.scene) for j in jobs))
+    results: Dict = {}
+    low: Dict[str, tuple] = {}
+    for j in jobs:
+        m = read_metrics(j)
+        if m is None:
+            continue
+        s = scene_label(j.scene)
+        results.setdefault((s, j.config), []).append((j.seed, m["mean"]["psnr"], m["mean"]["ssim"],
+                                                     m.get("train", {}).get("train_seconds")))
+        low[s] = (m["mean"]["low_psnr"], m["mean"]["low_ssim"])
+    head = "| config | " + " | ".join(scenes) + " | mean |"
+    lines = [head, "|" + "---|" * (len(scenes) + 2)]
+    lines.append("| low input | " + " | ".join(f"{low[s][0]:.2f} / {low[s][1]:.3f}" if s in low else "–"
+                                               for s in scenes) + " | – |")
+    for c in configs:
+        cells = []
+        per_seed: Dict[int, List[tuple]] = {}
+        for s in scenes:
+            r = results.get((s, c), [])
+            for seed, p, q, _ in r:
+                per_seed.setdefault(seed, []).append((p, q))
+            secs = [t for *_, t in r if t is not None]
+            cells.append(f"{_mean_std([p for _, p, _, _ in r], 2)} / {_mean_std([q for _, _, q, _ in r], 3)}"
+                         + (f" ({np.mean(secs):.0f} s)" if secs else ""))
+        full = [v for v in per_seed.values() if len(v) == len(scenes)]
+        mean_cell = (f"{_mean_std([np.mean([p for p, _ in v]) for v in full], 2)} / "
+                     f"{_mean_std([np.mean([q for _, q in v]) for v in full], 3)}") if full else "–"
+        n = sorted({len(results.get((s, c), [])) for s in scenes})
+        lines.append(f"| `{c}` (n={'/'.join(map(str, n))}) | " + " | ".join(cells) + f" | {mean_cell} |")
+    return "\n".join(lines) + "\n\nPSNR (dB) / SSIM on the test views against the normal-light photos, mean ± sample " \
+        "std over seeds (n = seeds per scene); (s) = mean training time. The mean column averages each seed's " \
+        "scene means (seeds with every scene only).\n"
+
+
+def contact_sheet(jobs: Sequence[Job], configs: Sequence[str], scene: str, out: Path, views: int = 2) -> Optional[Path]:
+    """low | each config (lowest seed) | truth for the first ``views`` test views, from the runs' side-by-side
+    PNGs (their first panel is the low input, the second the output, the last the normal-light truth)."""
+    from PIL import Image, ImageDraw
+
+    chosen: Dict[str, Job] = {}
+    for j in sorted(jobs, key=lambda j: j.seed):
+        if scene_label(j.scene) == scene and j.config not in chosen and read_metrics(j) is not None:
+            chosen[j.config] = j
+    if not chosen:
+        return None
+    first = chosen[next(iter(chosen))]
+    m = read_metrics(first)
+    names = [Path(v["view"]).stem for v in m["views"]][:views]
+    w = h = 0
+    rows = []
+    for name in names:
+        cols, labels = [], []
+        for k, c in enumerate(c for c in configs if c in chosen):
+            img = Image.open(chosen[c].run / "renders" / "test" / f"{name}.png").convert("RGB")
+            h = img.height
+            panels = 5 if read_metrics(chosen[c]).get("panels", "").count("|") == 4 else 3
+            w = img.width // panels
+            if k == 0:
+                cols.append(img.crop((0, 0, w, h)))
+                labels.append("low input")
+            cols.append(img.crop((w, 0, 2 * w, h)))
+            labels.append(c)
+            truth = img.crop((img.width - w, 0, img.width, h))
+        cols.append(truth)
+        labels.append("truth")
+        rows.append((cols, labels))
+    pad = 14
+    sheet = Image.new("RGB", (w * len(rows[0][0]), (h + pad) * len(rows)), "white")
+    draw = ImageDraw.Draw(sheet)
+    for r, (cols, labels) in enumerate(rows):
+        for k, (img, label) in enumerate(zip(cols, labels)):
+            sheet.paste(img, (k * w, r * (h + pad) + pad))
+            draw.text((k * w + 2, r * (h + pad) + 1), label[: max(4, w // 6)], fill="black")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".tmp-{out.name}")
+    sheet.save(tmp, format="PNG")
+    tmp.replace(out)
+    return out
+
+
+def main(argv: Sequence[str]) -> int:
+    ap = argparse.ArgumentParser(prog="python -m retinexgs.bench quality", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scenes", nargs="+", type=Path, required=True, help="scene folders")
+    ap.add_argument("--configs", nargs="+", default=["default"],
+                    help="config names in configs/ (default, paper, ablations/baseline_pre, ...)")
+    ap.add_argument("--seeds", default="3", help="a count N (seeds 0..N-1) or a list like 1,2 (default 3)")
+    ap.add_argument("--runs", type=Path, default=Path("runs/quality"), help="where the runs go (reused when done)")
+    ap.add_argument("--jobs", type=int, default=4, help="trainings side by side (default 4)")
+    ap.add_argument("--device", default="auto", help="cuda, cpu or auto")
+    ap.add_argument("--steps", type=int, default=None, help="override every config's steps")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="extra override for every run")
+    ap.add_argument("--out", type=Path, default=None, help="markdown file (default RUNS/quality.md)")
+    ap.add_argument("--no-train", action="store_true", help="only tabulate the runs that exist")
+    args = ap.parse_args(list(argv))
+    for s in args.scenes:
+        if not s.is_dir():
+            print(f"scene folder {s} does not exist", file=sys.stderr)
+            return 2
+    try:
+        seeds = parse_seeds(args.seeds)
+    except ValueError as exc:
+        print(f"--seeds {args.seeds!r}: {exc}", file=sys.stderr)
+        return 2
+    jobs = plan(args.scenes, args.configs, seeds, args.runs)
+    if not args.no_train:
+        t0 = time.time()
+        # Longest scenes first would balance better; the plan order (scene-major) keeps similar jobs apart.
+        order = sorted(jobs, key=lambda j: (j.seed, j.config, str(j.scene)))
+        with ThreadPoolExecutor(max(1, args.jobs)) as pool:
+            for line in pool.map(lambda j: run_job(j, args.device, args.steps, args.set), order):
+                print(line, flush=True)
+        print(f"{len(jobs)} runs in {time.time() - t0:.0f} s", flush=True)
+    md = table(jobs, args.configs)
+    sheets = []
+    for scene in dict.fromkeys(scene_label(j.scene) for j in jobs):
+        path = contact_sheet(jobs, args.configs, scene, args.runs / f"sheet_{scene.replace('/', '-')}.png")
+        if path is not None:
+            sheets.append(path)
+    md += "".join(f"\n![{p.stem}]({p.name})\n" for p in sheets)
+    out = args.out or args.runs / "quality.md"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out, md)
+    print(md)
+    print(f"table: {out}" + (f"; contact sheets: {', '.join(str(p) for p in sheets)}" if sheets else ""))
+    failed = [j for j in jobs if read_metrics(j) is None]
+    return 1 if failed and not args.no_train else 0

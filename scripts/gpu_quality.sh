@@ -1,0 +1,33 @@
+#!/usr/bin/env bash
+# The quality benchmark on the GPU machine, several groups side by side on one GPU:
+#   bash scripts/gpu_quality.sh SEEDS:CONFIG[,CONFIG]:SCENE[,SCENE]:JOBS ...
+# e.g. 0:default:fox-dark,lom/buu,lom/sofa,lom/bike:4 0:paper:lom/buu:1 . Scenes are read from the carried folder
+# .data (copies of shared/data, never committed). Each group stops after ${LIMIT:-520} s (finished runs are kept);
+# the small results (metrics, logs, tables, contact sheets) are packed into $OUT.
+set -uo pipefail
+OUT=${OUT:-gpu_out}; mkdir -p "$OUT"
+export PYTHONUNBUFFERED=1 PYTHONPATH="$PWD" MAX_JOBS=16 TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0}
+t0=$(date +%s)
+python3 setup.py build_ext --inplace > "$OUT/build.log" 2>&1 || { tail -20 "$OUT/build.log"; exit 1; }
+echo "build: $(( $(date +%s) - t0 )) s"; rm -f "$OUT/build.log"; mkdir -p /tmp/runs
+[ -d /tmp/data ] || cp -r .data /tmp/data
+left=$(( ${LIMIT:-520} - ($(date +%s) - t0) ))
+i=0; all_configs=(); all_scenes=()
+for group in "$@"; do
+  IFS=: read -r seeds configs scenes jobs <<< "$group"
+  dirs=(); for s in ${scenes//,/ }; do dirs+=("/tmp/data/$s"); done
+  all_configs+=(${configs//,/ }); all_scenes+=("${dirs[@]}")
+  timeout "$left" python3 -m retinexgs.bench quality --scenes "${dirs[@]}" --configs ${configs//,/ } --seeds "$seeds" \
+    --runs /tmp/runs --jobs "$jobs" --device cuda --out "/tmp/runs/group$i.md" > "/tmp/runs/group$i.log" 2>&1 &
+  i=$((i + 1))
+done
+wait
+# One table and one contact sheet per scene over every group (nothing is trained here).
+python3 -m retinexgs.bench quality --no-train --scenes $(printf '%s\n' "${all_scenes[@]}" | awk '!s[$0]++') \
+  --configs $(printf '%s\n' "${all_configs[@]}" | awk '!s[$0]++') --seeds "${SEEDS_ALL:-0,1,2}" --runs /tmp/runs \
+  --out "$OUT/quality.md" > /dev/null 2>&1
+nvidia-smi --query-gpu=name --format=csv,noheader
+for f in /tmp/runs/group*.log; do echo "== $f"; grep -E "^(ok|FAIL|reused)|runs in" "$f"; done
+cp /tmp/runs/sheet_*.png "$OUT/" 2>/dev/null
+tar czf "$OUT/runs.tgz" -C /tmp runs --exclude='*.pt' --exclude='tb' --exclude='renders' 2>/dev/null
+echo "total: $(( $(date +%s) - t0 )) s"
