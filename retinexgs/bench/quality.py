@@ -52,7 +52,7 @@ def config_slug(config: str) -> str:
 
 
 def parse_seeds(text: str) -> List[int]:
-    """``3`` -> [0, 1, 2]; ``1,2`` -> [1, 2]."""
+    """``3`` -> [0, 1, 2] (a count); ``1,2`` or ``0,`` -> [1, 2] or [0] (a list: any text with a comma)."""
     if "," in text:
         return [int(s) for s in text.split(",") if s.strip()]
     n = int(text)
@@ -199,7 +199,7 @@ def main(argv: Sequence[str]) -> int:
     ap.add_argument("--scenes", nargs="+", type=Path, required=True, help="scene folders")
     ap.add_argument("--configs", nargs="+", default=["default"],
                     help="config names in configs/ (default, paper, ablations/baseline_pre, ...)")
-    ap.add_argument("--seeds", default="3", help="a count N (seeds 0..N-1) or a list like 1,2 (default 3)")
+    ap.add_argument("--seeds", default="3", help="a count N (seeds 0..N-1) or a list with a comma: 1,2 or 0, (default 3)")
     ap.add_argument("--runs", type=Path, default=Path("runs/quality"), help="where the runs go (reused when done)")
     ap.add_argument("--jobs", type=int, default=4, help="trainings side by side (default 4)")
     ap.add_argument("--device", default="auto", help="cuda, cpu or auto")
