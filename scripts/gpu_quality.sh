@@ -29,5 +29,5 @@ python3 -m retinexgs.bench quality --no-train --scenes $(printf '%s\n' "${all_sc
 nvidia-smi --query-gpu=name --format=csv,noheader
 for f in /tmp/runs/group*.log; do echo "== $f"; grep -E "^(ok|FAIL|reused)|runs in" "$f"; done
 cp /tmp/runs/sheet_*.png "$OUT/" 2>/dev/null
-tar czf "$OUT/runs.tgz" -C /tmp runs --exclude='*.pt' --exclude='tb' --exclude='renders' 2>/dev/null
+tar czf "$OUT/runs.tgz" --exclude='*.pt' --exclude='tb' --exclude='renders' -C /tmp runs 2>/dev/null
 echo "total: $(( $(date +%s) - t0 )) s"
