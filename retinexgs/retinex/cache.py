@@ -37,18 +37,14 @@ PathLike = Union[str, os.PathLike]
 
 
 def read_image(path: PathLike) -> torch.Tensor:
-    """Read a photo as float32 [H,W,3] in [0,1]; raises UserError naming the file if it cannot be read."""
-    from PIL import Image  # local import: keeps ``import retinexgs.retinex`` light
+    """Read a photo as float32 [H,W,3] in [0,1] (8 or 16 bit, see :mod:`retinexgs.data.images`); raises
+    UserError naming the file if it cannot be read."""
+    from retinexgs.data.images import load_image_tensor  # local import: keeps ``import retinexgs.retinex`` light
 
     p = Path(path)
     if not p.is_file():
         raise UserError(f"image not found: {p}")
-    try:
-        with Image.open(p) as im:
-            arr = np.asarray(im.convert("RGB"), dtype=np.uint8)
-    except Exception as exc:  # PIL raises many types for truncated/corrupt files
-        raise UserError(f"cannot read image {p}: {exc}. Is it a valid JPEG/PNG?") from None
-    return torch.from_numpy(arr.astype(np.float32) / 255.0)
+    return load_image_tensor(p)
 
 
 def default_cache_root(image_paths: Sequence[PathLike]) -> Path:
