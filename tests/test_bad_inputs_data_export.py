@@ -174,3 +174,100 @@ def test_non_numeric_width_names_key_and_value(scene, capsys):
     code, out, err = _cli(["train", "--data", scene, "--out", scene.parent / "run", "--device", "cpu"], capsys)
     assert code == 2 and "Traceback" not in err, err
     assert "transforms_train.json frame 0" in err and "'w' must be a" in err and "'wide'" in err, err
+
+
+# ---- 2 and 4. render --views val; export into an unwritable folder or from a non-ASCII run folder ---------
+
+@pytest.fixture(scope="module")
+def run_with_val(tmp_path_factory, demo):
+    """A 3-step run of a copy of the demo scene given a val split (the test frames listed again)."""
+    base = tmp_path_factory.mktemp("valrun")
+    scene = base / "scene"
+    shutil.copytree(demo, scene)
+    shutil.copy(scene / "transforms_test.json", scene / "transforms_val.json")
+    from retinexgs.train.run import train_run
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        train_run(scene, base / "rün ✓", ["demo"], TINY, "cpu", progress=False, log=lambda s: None)
+    finally:
+        torch.set_num_threads(n)
+    return base / "rün ✓"
+
+
+def test_render_val_views(run_with_val, tmp_path, capsys):
+    out = tmp_path / "val"
+    code, _, err = _cli(["render", "--run", run_with_val, "--views", "val", "--out", out, "--device", "cpu",
+                         "--quiet"], capsys)
+    assert code == 0, err
+    scene = run_with_val.parent / "scene"
+    val = [Path(f["file_path"]).stem + ".png" for f in json.loads((scene / "transforms_val.json").read_text())["frames"]]
+    assert sorted(p.name for p in (out / "enhanced").iterdir()) == sorted(val)
+
+
+def test_render_val_without_a_val_split_names_the_splits_there_are(tmp_path, monkeypatch):
+    import retinexgs.export.renders as renders
+
+    class _Scene:  # what load_run returns, reduced to the splits
+        test, train, val = [object()], [object()], []
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.yaml").write_text("method: retinexgs\n")
+    monkeypatch.setattr(renders, "load_run", lambda run_dir, device: ({}, _Scene, None, 0))
+    with pytest.raises(UserError, match=r"no val views; try --views test or --views train or --views path"):
+        renders.render_run(run, "val", tmp_path / "out")
+
+
+def test_export_from_a_non_ascii_run_folder_writes_an_ascii_header(run_with_val, tmp_path, capsys):
+    from retinexgs.export.ply import read_ply
+
+    out = tmp_path / "out.ply"
+    code, _, err = _cli(["export", "--run", run_with_val, "--out", out, "--device", "cpu", "--quiet"], capsys)
+    assert code == 0 and "Traceback" not in err, err
+    data = out.read_bytes()
+    header = data[: data.index(b"end_header\n")]
+    header.decode("ascii")  # the PLY header must be ASCII
+    assert b"r\\xfcn \\u2713" in header  # the folder name, escaped
+    assert read_ply(out)["means"].shape[1] == 3
+
+
+@pytest.fixture
+def no_model_load(monkeypatch):
+    """Fail the test if export gets as far as loading the model (the slow part comes after)."""
+    import retinexgs.export.export as export_mod
+
+    def refuse(*a, **k):
+        raise AssertionError("export loaded the run before checking its --out")
+
+    monkeypatch.setattr(export_mod, "load_run", refuse)
+
+
+def test_export_under_a_file_fails_before_loading(run_with_val, tmp_path, capsys, no_model_load):
+    (tmp_path / "afile").write_text("x")
+    code, _, err = _cli(["export", "--run", run_with_val, "--out", tmp_path / "afile" / "sub" / "o.ply",
+                         "--device", "cpu"], capsys)
+    assert code == 2 and "Traceback" not in err, err
+    assert "is a file, not a folder" in err and "afile" in err, err
+
+
+def test_export_into_an_unwritable_folder_fails_before_loading(run_with_val, tmp_path, capsys, no_model_load,
+                                                                monkeypatch):
+    import tempfile
+
+    locked = tmp_path / "locked"
+    locked.mkdir()
+
+    def denied(*a, dir=None, **k):
+        if Path(dir) == locked:
+            raise PermissionError(13, "Permission denied")
+        return real(*a, dir=dir, **k)
+
+    real = tempfile.TemporaryFile
+    # tests run as root here, where chmod cannot make a folder unwritable: the write is refused instead
+    monkeypatch.setattr(tempfile, "TemporaryFile", denied)
+    code, _, err = _cli(["export", "--run", run_with_val, "--out", locked / "o.ply", "--device", "cpu"], capsys)
+    assert code == 2 and "Traceback" not in err, err
+    assert f"cannot write in {locked} (Permission denied)" in err, err
+    assert not list(locked.iterdir())
