@@ -271,3 +271,18 @@ def test_export_into_an_unwritable_folder_fails_before_loading(run_with_val, tmp
     assert code == 2 and "Traceback" not in err, err
     assert f"cannot write in {locked} (Permission denied)" in err, err
     assert not list(locked.iterdir())
+
+
+# ---- 5. sfm --camera-model ---------------------------------------------------------------------------------
+
+def test_sfm_unknown_camera_model_lists_the_accepted_ones(demo, tmp_path, capsys):
+    photos = tmp_path / "photos"
+    shutil.copytree(demo / "low", photos)
+    code, _, err = _cli(["sfm", "--images", photos, "--camera-model", "FISHEYE_XYZ", "--quiet"], capsys)
+    assert code == 2 and "Traceback" not in err, err
+    assert "--camera-model 'FISHEYE_XYZ' is not supported" in err, err
+    assert "SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV" in err, err
+    # a model pycolmap knows but the scene loader cannot read back is refused as well, before any work
+    code, _, err = _cli(["sfm", "--images", photos, "--camera-model", "OPENCV_FISHEYE", "--quiet"], capsys)
+    assert code == 2 and "'OPENCV_FISHEYE' is not supported" in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["photos"]
