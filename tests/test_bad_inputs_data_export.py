@@ -286,3 +286,88 @@ def test_sfm_unknown_camera_model_lists_the_accepted_ones(demo, tmp_path, capsys
     code, _, err = _cli(["sfm", "--images", photos, "--camera-model", "OPENCV_FISHEYE", "--quiet"], capsys)
     assert code == 2 and "'OPENCV_FISHEYE' is not supported" in err, err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["photos"]
+
+
+# ---- 3. decomposition cache shared by decompose and train; scene cache validated, never left partial -------
+
+@pytest.fixture
+def no_decomposition(monkeypatch):
+    """Fail the test if anything is decomposed (train must find every entry in the cache)."""
+    from retinexgs.retinex.base import Decomposer
+
+    def refuse(self, image):
+        raise AssertionError("train decomposed a view that decompose had cached")
+
+    return lambda: monkeypatch.setattr(Decomposer, "decompose", refuse)
+
+
+def _train(scene: Path, out: Path, extra=()) -> None:
+    from retinexgs.train.run import train_run
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        train_run(scene, out, ["demo"], TINY + list(extra), "cpu", progress=False, log=lambda s: None)
+    finally:
+        torch.set_num_threads(n)
+
+
+@pytest.mark.parametrize("cache", [False, True])
+def test_train_finds_what_decompose_cached_for_a_downscaled_scene(scene, tmp_path, capsys, no_decomposition,
+                                                                   cache):
+    flags = ["--set", "data.downscale=1.5"] + (["--cache", tmp_path / "caches"] if cache else [])
+    code, out, err = _cli(["decompose", "--data", scene, "--method", "lime", "--quiet", *flags], capsys)
+    assert code == 0, err
+    assert "3 view(s) decomposed with lime: 3 computed" in out, out
+    no_decomposition()
+    extra = ["data.downscale=1.5"] + ([f"data.cache_dir={tmp_path / 'caches'}"] if cache else [])
+    _train(scene, tmp_path / "run", extra)
+    assert (tmp_path / "run" / "config.yaml").is_file()
+
+
+def test_huge_downscale_is_refused_before_anything_is_written(scene, tmp_path, capsys):
+    before = _tree(scene)
+    code, _, err = _cli(["train", "--data", scene, "--out", tmp_path / "run", "--device", "cpu", "--set",
+                         "data.downscale=1000"], capsys)
+    assert code == 2 and "Traceback" not in err, err
+    assert "downscale 1000 shrinks" in err and "to 1x1 pixels" in err and "at most 1.7" in err, err
+    assert _tree(scene) == before and not (tmp_path / "run").exists()
+    code, _, err = _cli(["decompose", "--data", scene, "--set", "data.downscale=1000", "--quiet"], capsys)
+    assert code == 2 and "downscale 1000 shrinks" in err, err
+    assert _tree(scene) == before
+
+
+def _truncate(path: Path) -> None:
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+
+
+def test_failed_load_leaves_no_partial_cache(scene):
+    _truncate(scene / "low" / sorted(p.name for p in (scene / "low").iterdir())[1])
+    with pytest.raises(UserError, match="cannot read image"):
+        load_scene(scene, downscale=1.5)
+    assert not (scene / "retinexgs_cache").exists()
+
+
+def test_failed_load_adds_nothing_to_an_existing_cache(scene):
+    load_scene(scene, downscale=1.5)
+    before = _tree(scene / "retinexgs_cache")
+    _truncate(scene / "low" / sorted(p.name for p in (scene / "low").iterdir())[1])
+    with pytest.raises(UserError, match="cannot read image"):
+        load_scene(scene, downscale=1.2)
+    assert _tree(scene / "retinexgs_cache") == before
+
+
+@pytest.mark.parametrize("command, blocked, hint", [
+    (["train", "--out", "{tmp}/run", "--device", "cpu", "--set", "data.downscale=1.5"], "retinexgs_cache",
+     "with --set data.cache_dir=DIR"),
+    (["decompose", "--method", "lime", "--quiet", "--set", "data.downscale=1.5"], "retinexgs_cache", "with --cache DIR"),
+    (["decompose", "--method", "lime", "--quiet"], "retinex_cache", "with --cache DIR"),
+])
+def test_unwritable_scene_names_the_cache_option_of_the_command(scene, tmp_path, capsys, command, blocked, hint):
+    # Running as root, chmod cannot make the scene read-only: a file where the cache folder goes blocks it.
+    (scene / blocked).write_text("in the way\n")
+    argv = [a.format(tmp=tmp_path) for a in command]
+    code, _, err = _cli([argv[0], "--data", scene, *argv[1:]], capsys)
+    assert code == 2 and "Traceback" not in err, err
+    assert str(scene / blocked) in err and hint in err and "pass cache_dir=" not in err, err
