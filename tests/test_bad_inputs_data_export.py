@@ -7,7 +7,6 @@ Every fixture is built here (a tiny synthetic demo scene); no dev data is used.
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import traceback
 from pathlib import Path
@@ -371,3 +370,21 @@ def test_unwritable_scene_names_the_cache_option_of_the_command(scene, tmp_path,
     code, _, err = _cli([argv[0], "--data", scene, *argv[1:]], capsys)
     assert code == 2 and "Traceback" not in err, err
     assert str(scene / blocked) in err and hint in err and "pass cache_dir=" not in err, err
+
+
+# ---- 1 and 6. COLMAP models through pycolmap: bad intrinsics named -----------------------------------------
+
+def test_colmap_camera_with_zero_focal_length_is_refused(scene):
+    from retinexgs.data.colmap import read_model
+
+    model = scene / "colmap_sparse" / "0"
+    lines = (model / "cameras.txt").read_text().splitlines()
+    cam = [i for i, line in enumerate(lines) if line and not line.startswith("#")][0]
+    fields = lines[cam].split()
+    fields[4] = "0"  # fx of a PINHOLE camera: CAMERA_ID MODEL WIDTH HEIGHT fx fy cx cy
+    lines[cam] = " ".join(fields)
+    (model / "cameras.txt").write_text("\n".join(lines) + "\n")
+    with pytest.raises(UserError, match=r"colmap_sparse/0 camera 1: focal length fx .* got 0\.0"):
+        read_model(model)
+    with pytest.raises(UserError, match=r"camera 1: focal length fx"):
+        load_scene(scene)  # the transforms reader reads the model for its points, with the same check
