@@ -388,3 +388,11 @@ def test_colmap_camera_with_zero_focal_length_is_refused(scene):
         read_model(model)
     with pytest.raises(UserError, match=r"camera 1: focal length fx"):
         load_scene(scene)  # the transforms reader reads the model for its points, with the same check
+
+
+def test_decompose_with_no_decomposer_configured_writes_nothing(scene, capsys):
+    before = _tree(scene)
+    code, _, err = _cli(["decompose", "--data", scene, "--set", "decomposer.method=none", "--set",
+                         "data.downscale=1.5", "--quiet"], capsys)
+    assert code == 2 and "decomposer.method is none: there is nothing to decompose" in err, err
+    assert _tree(scene) == before

@@ -66,12 +66,12 @@ def _resolve_file(root: Path, file_path: str, json_path: Path, index: int) -> Pa
 def _number(settings: Dict, key: str, where: str) -> float:
     """``settings[key]`` as a float; UserError naming the key and its value when it is not a number."""
     value = settings[key]
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        try:  # numbers written as strings ("800") are accepted, words are not
-            return float(value)
-        except (TypeError, ValueError):
-            raise UserError(f"{where}: {key!r} must be a number, got {value!r}") from None
-    return float(value)
+    if isinstance(value, bool):
+        raise UserError(f"{where}: {key!r} must be a number, got {value!r}")
+    try:  # numbers written as strings ("800") are accepted, words are not
+        return float(value)
+    except (TypeError, ValueError):
+        raise UserError(f"{where}: {key!r} must be a number, got {value!r}") from None
 
 
 def _size(settings: Dict, key: str, where: str) -> int:

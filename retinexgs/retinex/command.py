@@ -6,7 +6,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import List
+from typing import List, Optional
 
 from retinexgs.errors import UserError
 
@@ -60,7 +60,7 @@ def list_scene_images(scene: Path, images_subdir: str = "low") -> List[Path]:
     return paths
 
 
-def _has_poses(scene: Path, cache_dir) -> bool:
+def _has_poses(scene: Path, cache_dir: Optional[str]) -> bool:
     """True when ``train`` would load the scene without computing SfM: a transforms JSON, a COLMAP model, or
     the SfM model an earlier ``train``/``sfm`` cached for it."""
     from retinexgs.data.colmap import find_model_dir
@@ -73,6 +73,7 @@ def _has_poses(scene: Path, cache_dir) -> bool:
 def run(args: argparse.Namespace) -> int:
     """Entry point of ``retinexgs decompose``."""
     from retinexgs.data.images import read_image
+    from retinexgs.retinex.base import available_methods
     from retinexgs.retinex.cache import decompose_images, scene_cache_root
     from retinexgs.train.config import load_config
 
@@ -84,6 +85,10 @@ def run(args: argparse.Namespace) -> int:
     if args.cache:
         overrides.append(f"data.cache_dir={Path(args.cache).expanduser()}")
     cfg = load_config(args.config or [], overrides)  # the settings train would use, checked before any work
+    dcfg = cfg["decomposer"]
+    if dcfg["method"] not in available_methods():
+        raise UserError(f"decomposer.method is {dcfg['method']}: there is nothing to decompose "
+                        f"(choose {' or '.join(available_methods())})")
     # An unreadable or truncated photo is refused before the cache folder is created (one extra decode per
     # photo; the decomposition itself costs far more).
     for p in paths:
@@ -102,9 +107,6 @@ def run(args: argparse.Namespace) -> int:
                             "without data.downscale")
         print(f"note: {scene} has no camera poses yet; train will run SfM and decompose the undistorted copies it "
               "makes, which these entries do not cover", file=sys.stderr)
-    dcfg = cfg["decomposer"]
-    if dcfg["method"] == "none":
-        raise UserError("decomposer.method is none: there is nothing to decompose")
     cache_root = scene_cache_root(scene, cfg["data"]["cache_dir"])
     _, report = decompose_images(paths, dcfg["method"], dict(dcfg["params"]) or None, cache_root,
                                  args.device, keep=False, preview=args.preview, progress=not args.quiet,
