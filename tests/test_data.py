@@ -19,7 +19,6 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from retinexgs.data import Camera, Normalization, load_scene, run_sfm
-from retinexgs.data import colmap_files
 from retinexgs.data.camera import opengl_to_opencv, qvec_to_rotmat, rotmat_to_qvec
 from retinexgs.data.colmap import read_model, similarity_from_centres
 from retinexgs.errors import UserError
@@ -155,28 +154,31 @@ def write_transforms(root: Path, cam: Camera, poses, names, test_names, images, 
         (root / f"transforms_{split}.json").write_text(json.dumps(dict(top, frames=frames), indent=1))
 
 
-def colmap_raw(cam: Camera, poses, names, frame=(1.0, np.eye(3), np.zeros(3))):
-    """COLMAP cameras/images dicts; ``frame`` = (s, R, t) maps the test world into the model's frame."""
+def colmap_reconstruction(cam: Camera, poses, names, points, colors, frame=(1.0, np.eye(3), np.zeros(3))):
+    """A pycolmap Reconstruction of the views; ``frame`` = (s, R, t) maps the test world into the model's."""
+    import pycolmap
+
     s, R, t = frame
-    cams = {1: colmap_files.RawCamera(1, "OPENCV", cam.width, cam.height,
-                                      (cam.fx, cam.fy, cam.cx, cam.cy) + tuple(cam.dist))}
-    ims = {}
+    rec = pycolmap.Reconstruction()
+    rec.add_camera_with_trivial_rig(pycolmap.Camera(model="OPENCV", width=cam.width, height=cam.height,
+                                                    params=[cam.fx, cam.fy, cam.cx, cam.cy] + list(cam.dist),
+                                                    camera_id=1))
     for i, (n, c2w) in enumerate(zip(names, poses)):
-        Rc = R @ c2w[:3, :3]
+        R_w2c = (R @ c2w[:3, :3]).T
         C = s * R @ c2w[:3, 3] + t
-        R_w2c = Rc.T
-        ims[i + 1] = colmap_files.RawImage(i + 1, tuple(rotmat_to_qvec(R_w2c)), tuple(-R_w2c @ C), 1, n)
-    return cams, ims
+        w2c = np.hstack([R_w2c, (-R_w2c @ C)[:, None]])
+        rec.add_image_with_trivial_frame(pycolmap.Image(name=n, camera_id=1, image_id=i + 1), pycolmap.Rigid3d(w2c))
+    for p, c in zip(s * np.asarray(points) @ R.T + t, np.asarray(colors, np.uint8)):
+        rec.add_point3D(p, pycolmap.Track(), c)
+    return rec
 
 
 def write_colmap_text(model_dir: Path, cam, poses, names, points=None, colors=None, frame=None):
-    cams, ims = colmap_raw(cam, poses, names, frame or (1.0, np.eye(3), np.zeros(3)))
     pts = np.zeros((0, 3)) if points is None else points
-    if frame is not None and points is not None:
-        s, R, t = frame
-        pts = s * points @ R.T + t
     cols = np.zeros((len(pts), 3), np.uint8) if colors is None else colors
-    colmap_files.write_model_text(model_dir, cams, ims, pts, cols)
+    rec = colmap_reconstruction(cam, poses, names, pts, cols, frame or (1.0, np.eye(3), np.zeros(3)))
+    model_dir.mkdir(parents=True, exist_ok=True)
+    rec.write_text(str(model_dir))
 
 
 @pytest.fixture(scope="module")
@@ -202,18 +204,14 @@ def small_scene(tmp_path_factory):
         save(txt / "images" / n, im)
     write_colmap_text(txt / "sparse" / "0", SMALL, poses, NAMES, points, colors)
     (txt / "split.json").write_text(json.dumps(split))
-    binary = None
-    try:
-        import pycolmap
-    except ImportError:  # binary-format tests skip; everything else runs on the pure-Python reader
-        pycolmap = None
-    if pycolmap is not None:
-        binary = base / "colmap_bin"
-        shutil.copytree(txt / "images", binary / "images")
-        (binary / "split.json").write_text(json.dumps(split))
-        rec = pycolmap.Reconstruction(str(txt / "sparse" / "0"))
-        (binary / "sparse" / "0").mkdir(parents=True)
-        rec.write_binary(str(binary / "sparse" / "0"))
+    import pycolmap
+
+    binary = base / "colmap_bin"
+    shutil.copytree(txt / "images", binary / "images")
+    (binary / "split.json").write_text(json.dumps(split))
+    rec = pycolmap.Reconstruction(str(txt / "sparse" / "0"))
+    (binary / "sparse" / "0").mkdir(parents=True)
+    rec.write_binary(str(binary / "sparse" / "0"))
     return dict(base=base, lom=lom, txt=txt, bin=binary, poses=poses, points=points, colors=colors,
                 images=images)
 
@@ -306,11 +304,9 @@ def test_same_cameras_from_every_format(small_scene, tmp_path):
         assert np.allclose(scenes[key].colors.numpy() * 255, small_scene["colors"], atol=1e-3)
 
 
-@pytest.mark.parametrize("fmt", ["txt", "bin"])
-def test_fallback_reader_matches_pycolmap(small_scene, fmt):
-    _need_pycolmap()
-    a = read_model(small_scene[fmt] / "sparse" / "0", use_pycolmap=True)
-    b = read_model(small_scene[fmt] / "sparse" / "0", use_pycolmap=False)
+def test_text_and_binary_models_read_alike(small_scene):
+    a = read_model(small_scene["txt"] / "sparse" / "0")
+    b = read_model(small_scene["bin"] / "sparse" / "0")
     assert a.cameras == b.cameras
     assert sorted(i.name for i in a.images.values()) == sorted(i.name for i in b.images.values())
     for i in a.images:
@@ -537,14 +533,10 @@ def test_malformed_json(small_scene, tmp_path):
         load_scene(root, cache_dir=tmp_path / "c")
 
 
-def test_colmap_model_without_registered_images(small_scene, tmp_path, monkeypatch):
+def test_colmap_model_without_registered_images(small_scene, tmp_path):
     root = tmp_path / "colmap"
     shutil.copytree(small_scene["txt"], root)
     (root / "sparse" / "0" / "images.txt").write_text("# no images\n")
-    with pytest.raises(UserError, match=r"sparse/0 has no registered images"):
-        load_scene(root)
-    import retinexgs.data.colmap as colmap_mod
-    monkeypatch.setattr(colmap_mod, "_have_pycolmap", lambda: False)  # same check with the file reader
     with pytest.raises(UserError, match=r"sparse/0 has no registered images"):
         load_scene(root)
 
@@ -563,7 +555,7 @@ def test_unsupported_camera_model(small_scene, tmp_path):
     p = root / "sparse" / "0" / "cameras.txt"
     p.write_text(p.read_text().replace("OPENCV 80 60", "FOV 80 60").rsplit(" ", 3)[0] + "\n")
     with pytest.raises(UserError, match=r"FOV is not supported"):
-        read_model(root / "sparse" / "0", use_pycolmap=False)
+        read_model(root / "sparse" / "0")
 
 
 def test_atomic_write_keeps_the_old_file_on_error_and_sets_usual_permissions(tmp_path):

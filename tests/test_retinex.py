@@ -386,8 +386,10 @@ def test_command_folder_with_low_and_preview(tmp_path, capsys):
 
 def test_command_uses_transforms_frames(tmp_path, capsys):
     _write_scene(tmp_path, n=3)
-    frames = [{"file_path": "low/0000"}, {"file_path": "./low/0002.png"}]  # without / with extension
-    (tmp_path / "transforms_train.json").write_text(json.dumps({"frames": frames}))
+    pose = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
+    frames = [{"file_path": "low/0000", "transform_matrix": pose},  # without / with extension
+              {"file_path": "./low/0002.png", "transform_matrix": pose}]
+    (tmp_path / "transforms_train.json").write_text(json.dumps({"fl_x": 50.0, "frames": frames}))
     assert _run_cli(["decompose", "--data", str(tmp_path), "--method", "lime", "--quiet"]) == 0
     assert "2 view(s)" in capsys.readouterr().out
     (tmp_path / "transforms_train.json").write_text(json.dumps({"frames": [{"file_path": "low/9999.jpg"}]}))

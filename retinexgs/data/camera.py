@@ -9,6 +9,7 @@ convention (x right, y up, z back); :func:`opengl_to_opencv` converts a camera-t
 from __future__ import annotations
 
 import hashlib
+import math
 from dataclasses import dataclass, replace
 from typing import Sequence, Tuple
 
@@ -78,6 +79,48 @@ class Camera:
         return hashlib.sha1(text.encode()).hexdigest()[:10]
 
 
+# How far R Rᵀ may stray from the identity: generous for poses written with a few decimals, tight
+# enough to refuse a scaled, sheared or degenerate matrix.
+ROTATION_TOLERANCE = 1e-2
+
+
+def check_rotation(R: np.ndarray, where: str, field: str = "rotation") -> None:
+    """UserError naming ``where`` and ``field`` unless ``R`` is a finite proper rotation (within tolerance).
+
+    An all-zero, rank-deficient, scaled, sheared or mirrored 3x3 block would train silently into garbage.
+    """
+    R = np.asarray(R, dtype=np.float64)
+    if R.shape != (3, 3) or not np.all(np.isfinite(R)):
+        raise UserError(f"{where}: {field} is not a finite 3x3 rotation")
+    rank = int(np.linalg.matrix_rank(R, tol=1e-6))
+    if rank < 3:
+        raise UserError(f"{where}: {field} is {'all zero' if rank == 0 else f'rank-deficient (rank {rank})'}; "
+                        "a camera pose needs a rotation matrix (orthonormal, determinant 1)")
+    err = float(np.abs(R @ R.T - np.eye(3)).max())
+    det = float(np.linalg.det(R))
+    if err > ROTATION_TOLERANCE or det < 0:
+        raise UserError(f"{where}: {field} is not a rotation (max |R Rᵀ - I| = {err:.3g}, det = {det:.3g}); "
+                        "a camera pose needs an orthonormal matrix with determinant 1, without scale")
+
+
+def check_camera(cam: "Camera", where: str) -> None:
+    """UserError naming ``where`` and the field unless the intrinsics are usable (positive size and focal
+    lengths, finite principal point and distortion)."""
+    for name in ("width", "height"):
+        if not int(getattr(cam, name)) > 0:
+            raise UserError(f"{where}: image {name} must be a positive number of pixels, got {getattr(cam, name)}")
+    for name, label in (("fx", "focal length fx (fl_x)"), ("fy", "focal length fy (fl_y)")):
+        value = float(getattr(cam, name))
+        if not (math.isfinite(value) and value > 0):
+            raise UserError(f"{where}: {label} must be a positive number, got {value}")
+    for name in ("cx", "cy"):
+        value = float(getattr(cam, name))
+        if not math.isfinite(value):
+            raise UserError(f"{where}: principal point {name} must be a finite number, got {value}")
+    if not all(math.isfinite(float(c)) for c in cam.dist):
+        raise UserError(f"{where}: distortion coefficients must be finite numbers, got {tuple(cam.dist)}")
+
+
 def distort_normalized(x: np.ndarray, y: np.ndarray, dist: Sequence[float]) -> Tuple[np.ndarray, np.ndarray]:
     """Apply OpenCV's distortion model (up to 8 coefficients) to normalised image coordinates."""
     c = list(dist) + [0.0] * (8 - len(dist))
@@ -112,7 +155,9 @@ def camera_from_colmap(model: str, width: int, height: int, params: Sequence[flo
         dist = (p["k1"], p["k2"], p["p1"], p["p2"])
     else:  # FULL_OPENCV: OpenCV orders k3 after the tangential terms, as COLMAP does
         dist = tuple(p[n] for n in ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"))
-    return Camera(int(width), int(height), float(fx), float(fy), p["cx"], p["cy"], dist)
+    cam = Camera(int(width), int(height), float(fx), float(fy), p["cx"], p["cy"], dist)
+    check_camera(cam, where or "COLMAP model")
+    return cam
 
 
 def opengl_to_opencv(c2w: np.ndarray) -> np.ndarray:

@@ -1,5 +1,5 @@
-"""COLMAP sparse models: finding them, reading them (pycolmap when installed, else the pure-Python
-reader in :mod:`retinexgs.data.colmap_files`), and turning one into views.
+"""COLMAP sparse models: finding them, reading them with pycolmap (binary or text, with or without the
+rigs/frames files of newer COLMAP versions), and turning one into views.
 
 The COLMAP reader looks for images next to the model: the folder given, else ``<scene>/images``, else
 ``<scene>/low`` (LOM layout), else the scene folder itself; the first folder holding every registered
@@ -16,8 +16,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from retinexgs.data import colmap_files
-from retinexgs.data.camera import Camera, c2w_from_w2c, camera_from_colmap, qvec_to_rotmat
+from retinexgs.data.camera import Camera, c2w_from_w2c, camera_from_colmap, check_rotation
 from retinexgs.data.raw import RawScene, RawView
 from retinexgs.errors import UserError
 
@@ -45,57 +44,65 @@ class ColmapModel:
     colors: np.ndarray  # [P,3] uint8
 
 
+def model_format(model_dir: Path) -> str:
+    """'bin' or 'txt' depending on which cameras file the folder holds ('' when neither)."""
+    if (Path(model_dir) / "cameras.bin").is_file():
+        return "bin"
+    if (Path(model_dir) / "cameras.txt").is_file():
+        return "txt"
+    return ""
+
+
 def find_model_dir(path: Path) -> Optional[Path]:
     """The first folder under ``path`` (see MODEL_SUBDIRS) holding cameras.bin or cameras.txt."""
     for sub in MODEL_SUBDIRS:
         d = (Path(path) / sub)
-        if colmap_files.model_format(d):
+        if model_format(d):
             return d
     return None
 
 
-def _have_pycolmap() -> bool:
+def _pycolmap():
     try:
-        import pycolmap  # noqa: F401
+        import pycolmap
     except ImportError:
-        return False
-    return True
+        raise UserError("reading COLMAP models needs pycolmap (a dependency of retinexgs): "
+                        "pip install pycolmap") from None
+    return pycolmap
 
 
-def read_model(model_dir: Path, use_pycolmap: Optional[bool] = None) -> ColmapModel:
-    """Read a COLMAP model folder (binary or text). ``use_pycolmap=None`` uses pycolmap when installed."""
+def read_model(model_dir: Path) -> ColmapModel:
+    """Read a COLMAP model folder (binary or text) with pycolmap; UserError naming the folder on failure."""
     model_dir = Path(model_dir)
-    if not colmap_files.model_format(model_dir):
+    fmt = model_format(model_dir)
+    if not fmt:
         raise UserError(f"{model_dir} holds no COLMAP model (cameras.bin or cameras.txt)")
-    if use_pycolmap is None:
-        use_pycolmap = _have_pycolmap()
+    # pycolmap reports a missing file as a C++ check failure; name it ourselves first
+    missing = [n for n in (f"images.{fmt}", f"points3D.{fmt}") if not (model_dir / n).is_file()]
+    if missing:
+        raise UserError(f"COLMAP model {model_dir} is incomplete: missing {', '.join(missing)}")
+    pycolmap = _pycolmap()
+    try:
+        rec = pycolmap.Reconstruction(str(model_dir))
+    except Exception as exc:  # pycolmap raises ValueError/RuntimeError for malformed or truncated files
+        raise UserError(f"cannot read COLMAP model {model_dir}: {exc}") from None
     where = str(model_dir)
     cameras: Dict[int, Camera] = {}
     images: Dict[int, ColmapImage] = {}
-    if use_pycolmap:
-        import pycolmap
-        try:
-            rec = pycolmap.Reconstruction(str(model_dir))
-        except Exception as exc:
-            raise UserError(f"cannot read COLMAP model {model_dir}: {exc}") from None
-        for cid, c in rec.cameras.items():
-            cameras[int(cid)] = camera_from_colmap(c.model.name, c.width, c.height, list(c.params), where)
-        for iid, im in rec.images.items():
-            if not im.has_pose:
-                continue
-            m = np.asarray(im.cam_from_world().matrix(), np.float64)
-            images[int(iid)] = ColmapImage(im.name, int(im.camera_id), c2w_from_w2c(m[:, :3], m[:, 3]))
-        pts = [rec.points3D[i] for i in sorted(rec.points3D.keys())]  # id order, like the file reader
-        points = np.asarray([p.xyz for p in pts], np.float64).reshape(-1, 3)
-        colors = np.asarray([p.color for p in pts], np.uint8).reshape(-1, 3)
-    else:
-        raw_cams, raw_images, points, colors = colmap_files.read_model_files(model_dir)
-        for cid, c in raw_cams.items():
-            cameras[cid] = camera_from_colmap(c.model, c.width, c.height, c.params, where)
-        for iid, im in raw_images.items():
-            if not np.all(np.isfinite(im.qvec + im.tvec)):  # unregistered image in newer formats
-                continue
-            images[iid] = ColmapImage(im.name, im.camera_id, c2w_from_w2c(qvec_to_rotmat(im.qvec), im.tvec))
+    for cid, c in rec.cameras.items():
+        cameras[int(cid)] = camera_from_colmap(c.model.name, c.width, c.height, list(c.params),
+                                               f"{where} camera {cid}")
+    for iid, im in rec.images.items():
+        if not im.has_pose:  # unregistered image
+            continue
+        m = np.asarray(im.cam_from_world().matrix(), np.float64)
+        if not np.all(np.isfinite(m)):
+            raise UserError(f"COLMAP model {model_dir} image {im.name}: pose is not finite")
+        check_rotation(m[:, :3], f"COLMAP model {model_dir} image {im.name}", "rotation (qvec)")
+        images[int(iid)] = ColmapImage(im.name, int(im.camera_id), c2w_from_w2c(m[:, :3], m[:, 3]))
+    pts = [rec.points3D[i] for i in sorted(rec.points3D.keys())]  # id order, as in the files
+    points = np.asarray([p.xyz for p in pts], np.float64).reshape(-1, 3)
+    colors = np.asarray([p.color for p in pts], np.uint8).reshape(-1, 3)
     for im in images.values():
         if im.camera_id not in cameras:
             raise UserError(f"COLMAP model {model_dir}: image {im.name} uses missing camera {im.camera_id}")

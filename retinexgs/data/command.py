@@ -19,7 +19,9 @@ def register(subparsers) -> None:
                    help="pair selection: exhaustive up to 100 photos, else sequential (default: auto)")
     p.add_argument("--enhance", choices=["auto", "on", "off"], default="auto",
                    help="brighten+denoise before feature extraction: auto = only for dark folders")
-    p.add_argument("--camera-model", default="SIMPLE_RADIAL", help="COLMAP camera model (default SIMPLE_RADIAL)")
+    p.add_argument("--camera-model", default="SIMPLE_RADIAL",
+                   help="COLMAP camera model: SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL (default), RADIAL, OPENCV "
+                        "or FULL_OPENCV")
     p.add_argument("--max-features", type=int, default=8192, help="SIFT features per photo (default 8192)")
     p.add_argument("--threads", type=int, default=-1, help="CPU threads (default: all)")
     p.add_argument("--force", action="store_true", help="recompute even when a cached model matches")

@@ -1,7 +1,9 @@
 """Image files: listing, reading (with clear errors), atomic writing and resizing.
 
-Images are read with Pillow as 8-bit RGB (greyscale and RGBA are converted; EXIF orientation is ignored,
-as COLMAP ignores it, so poses and pixels stay consistent).
+Images are read with Pillow and scaled to [0,1] by their bit depth: 8- and 16-bit grey, grey+alpha, RGB
+and RGBA (alpha is dropped, grey is repeated over the three channels; 16-bit RGB(A), which Pillow
+reduces to 8 bits, is decoded by OpenCV at full depth when it is installed). EXIF orientation is
+ignored, as COLMAP ignores it, so poses and pixels stay consistent.
 """
 from __future__ import annotations
 
@@ -50,23 +52,75 @@ def image_size(path: Path) -> Tuple[int, int]:
         raise UserError(f"cannot read image {path}: {exc}") from None
 
 
-def read_image(path: Path) -> np.ndarray:
-    """Read an image as uint8 [H,W,3] RGB; UserError naming the file if it is missing or unreadable."""
+# Pillow modes holding one channel of 16-bit samples (``I`` is how some Pillow versions open them).
+_SIXTEEN_BIT_GREY = ("I;16", "I;16L", "I;16B", "I;16N", "I")
+
+
+def _bit_depth(path: Path, im) -> int:
+    """Bits per sample of a PNG or TIFF as stored (Pillow's mode hides 16-bit RGB); 8 for other formats."""
+    if im.format == "PNG":
+        with open(path, "rb") as f:
+            header = f.read(25)
+        return header[24] if len(header) == 25 else 8  # IHDR bit depth
+    if im.format == "TIFF":
+        bits = im.tag_v2.get(258, (8,))  # BitsPerSample
+        return int(bits[0] if isinstance(bits, tuple) else bits)
+    return 8
+
+
+def _decode_16bit_colour(path: Path) -> np.ndarray:
+    """A 16-bit RGB(A) file as float32 [H,W,3] in [0,1] via OpenCV, or an empty array without OpenCV."""
+    try:
+        import cv2
+    except ImportError:
+        return np.empty(0, np.float32)
+    data = cv2.imdecode(np.fromfile(str(path), np.uint8), cv2.IMREAD_UNCHANGED)
+    if data is None or data.dtype != np.uint16 or data.ndim != 3 or data.shape[2] not in (3, 4):
+        return np.empty(0, np.float32)
+    return data[:, :, 2::-1].astype(np.float32) / 65535.0  # BGR(A) -> RGB, alpha dropped
+
+
+def read_image_float(path: Path) -> np.ndarray:
+    """Read an image as float32 [H,W,3] in [0,1] scaled by its bit depth (see the module docstring);
+    UserError naming the file if it is missing, unreadable or of an unsupported pixel format."""
     Image = _pil()
+    path = Path(path)
     try:
         with Image.open(path) as im:
             im.load()
-            rgb = im.convert("RGB")
+            mode = im.mode
+            if mode in _SIXTEEN_BIT_GREY:
+                grey = np.asarray(im)
+                if grey.min() < 0 or grey.max() > 65535:
+                    raise UserError(f"cannot read image {path}: 32-bit integer pixels are not supported "
+                                    "(save it as 8- or 16-bit)")
+                return np.repeat((grey.astype(np.float32) / 65535.0)[:, :, None], 3, axis=2)
+            if mode == "F":
+                raise UserError(f"cannot read image {path}: floating-point pixels are not supported "
+                                "(save it as 8- or 16-bit)")
+            if mode in ("RGB", "RGBA") and _bit_depth(path, im) == 16:
+                deep = _decode_16bit_colour(path)
+                if deep.shape[:2] == (im.size[1], im.size[0]):
+                    return deep
+            rgb = np.asarray(im.convert("RGB"), dtype=np.uint8)
     except FileNotFoundError:
         raise UserError(f"image {path} does not exist") from None
+    except UserError:
+        raise
     except Exception as exc:
         raise UserError(f"cannot read image {path}: {exc}") from None
-    return np.asarray(rgb, dtype=np.uint8)
+    return rgb.astype(np.float32) / 255.0
+
+
+def read_image(path: Path) -> np.ndarray:
+    """Read an image as uint8 [H,W,3] RGB (16-bit input rounded to 8 bits); UserError naming the file if
+    it is missing or unreadable."""
+    return np.clip(np.rint(read_image_float(path) * 255.0), 0, 255).astype(np.uint8)
 
 
 def load_image_tensor(path: Path) -> torch.Tensor:
-    """Read an image as a float32 [H,W,3] tensor in [0,1]."""
-    return torch.from_numpy(read_image(path).astype(np.float32) / 255.0)
+    """Read an image as a float32 [H,W,3] tensor in [0,1] (full bit depth)."""
+    return torch.from_numpy(read_image_float(path))
 
 
 def write_image_atomic(path: Path, rgb: np.ndarray, quality: int = 95) -> None:

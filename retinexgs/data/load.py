@@ -17,6 +17,8 @@ views (of all, if fewer); colour mid-grey.
 """
 from __future__ import annotations
 
+import shutil
+import tempfile
 from pathlib import Path
 from typing import Callable, Dict, List, Optional, Tuple, Union
 
@@ -114,10 +116,35 @@ def random_frustum_points(views: List[View], n: int, seed: int = 0) -> np.ndarra
     return out
 
 
+# Smallest image side a downscaled view may have: the evaluation's SSIM window is 11x11 (the decomposers
+# need 8x8), and fewer pixels train nothing useful.
+MIN_IMAGE_SIDE = 11
+# How each entry point spells "put the caches elsewhere", for the read-only-scene message.
+CACHE_HINT = "cache_dir=DIR"
+
+
+def _check_downscale(downscale: float, cams: Dict[int, Camera], views: List[RawView]) -> None:
+    """UserError, before anything is written, when ``downscale`` leaves a view too small to use."""
+    for v in views:
+        cam = cams[id(v)]
+        w, h = max(1, int(round(cam.width / downscale))), max(1, int(round(cam.height / downscale)))
+        if min(w, h) < MIN_IMAGE_SIDE:
+            largest = min(cam.width, cam.height) / (MIN_IMAGE_SIDE - 0.5)
+            raise UserError(f"downscale {downscale:g} shrinks {v.image} ({cam.width}x{cam.height}) to {w}x{h} "
+                            f"pixels; images need at least {MIN_IMAGE_SIDE} pixels a side (use a downscale of at "
+                            f"most {max(1.0, float(int(largest * 10) / 10)):g})")
+
+
 def build_scene(raw: RawScene, downscale: float = 1, cache_dir: Optional[PathLike] = None,
-                normalize: bool = True, num_random_points: int = 50_000, seed: int = 0) -> Scene:
-    """Turn a reader's :class:`RawScene` into a :class:`Scene` (images processed into the cache)."""
-    if downscale < 1:
+                normalize: bool = True, num_random_points: int = 50_000, seed: int = 0,
+                cache_hint: str = CACHE_HINT) -> Scene:
+    """Turn a reader's :class:`RawScene` into a :class:`Scene` (images processed into the cache).
+
+    Every image's size is checked before the cache is touched; the cache's files of one call appear
+    together or not at all. ``cache_hint`` is how the caller's interface spells moving the caches
+    (e.g. ``--set data.cache_dir=DIR``), named when the scene folder is not writable.
+    """
+    if not downscale >= 1:
         raise UserError(f"downscale must be >= 1, got {downscale}")
     root = Path(raw.root)
     cache = Path(cache_dir) if cache_dir is not None else root / "retinexgs_cache"
@@ -125,6 +152,7 @@ def build_scene(raw: RawScene, downscale: float = 1, cache_dir: Optional[PathLik
     split_views: Dict[str, List[View]] = {}
     all_raw = raw.train + raw.test + raw.val
     cams = {id(v): _fit_camera(v) for v in all_raw}
+    _check_downscale(downscale, cams, all_raw)
     norm = _normalization(raw.train) if normalize else Normalization.identity()
     for split, rv in (("train", raw.train), ("test", raw.test), ("val", raw.val)):
         views = []
@@ -138,11 +166,20 @@ def build_scene(raw: RawScene, downscale: float = 1, cache_dir: Optional[PathLik
                               mapping[v.paired] if v.paired is not None else None, v.image))
         split_views[split] = views
     if jobs:
+        created = not cache.exists()
         try:
             cache.mkdir(parents=True, exist_ok=True)
+            probe = tempfile.TemporaryFile(dir=cache)  # an existing but read-only cache fails here too
+            probe.close()
         except OSError as exc:
-            raise UserError(f"cannot create the cache folder {cache}: {exc}; pass cache_dir=...") from None
-        process_all(jobs)
+            raise UserError(f"cannot write the image cache folder {cache}: {exc.strerror or exc}; "
+                            f"put the caches elsewhere with {cache_hint}") from None
+        try:
+            process_all(jobs, cache)
+        except BaseException:
+            if created:  # nothing of a failed first load stays in the user's scene folder
+                shutil.rmtree(cache, ignore_errors=True)
+            raise
     if raw.points is not None and len(raw.points):
         pts = norm.to_normalized(np.asarray(raw.points, np.float64))
         points = torch.tensor(pts, dtype=torch.float32)
@@ -160,13 +197,14 @@ def build_scene(raw: RawScene, downscale: float = 1, cache_dir: Optional[PathLik
 def load_scene(path: PathLike, reader: str = "auto", downscale: float = 1, *, images: Optional[PathLike] = None,
                cache_dir: Optional[PathLike] = None, normalize: bool = True, test_every: int = 0,
                num_random_points: int = 50_000, seed: int = 0, sfm_options: Optional[dict] = None,
-               progress: Optional[Callable[[str], None]] = None) -> Scene:
+               progress: Optional[Callable[[str], None]] = None, cache_hint: str = CACHE_HINT) -> Scene:
     """Load a scene folder in any supported format (see the module docstring).
 
     ``reader``: "auto", "transforms", "colmap" or "sfm". ``downscale``: resize factor (>= 1) applied to
     images and intrinsics. ``images``: image folder for the colmap/sfm readers (relative to ``path`` or
     absolute). ``test_every``: for colmap/sfm scenes without split.json, hold out every N-th view.
-    ``sfm_options``: keyword arguments for :func:`retinexgs.data.sfm.run_sfm`.
+    ``sfm_options``: keyword arguments for :func:`retinexgs.data.sfm.run_sfm`. ``cache_hint``: how the
+    caller spells ``cache_dir`` (for the message when the scene folder cannot be written).
     """
     root = Path(path)
     if not root.exists():
@@ -190,6 +228,10 @@ def load_scene(path: PathLike, reader: str = "auto", downscale: float = 1, *, im
         if image_dir is None:
             where = images if images is not None else f"{root} or {root / 'images'}"
             raise UserError(f"no photos found in {where}")
+        if downscale >= 1:  # refuse a useless downscale before SfM writes its model
+            photos = [RawView(p.name, p, Camera(*image_size(p), 1.0, 1.0, 0.0, 0.0), np.eye(4))
+                      for p in list_images(image_dir)]
+            _check_downscale(downscale, {id(v): v.camera for v in photos}, photos)
         out = Path(cache_dir) / "sfm" if cache_dir is not None else root / "retinexgs_sfm"
         kwargs = dict(sfm_options or {})
         if progress is not None:
@@ -198,4 +240,4 @@ def load_scene(path: PathLike, reader: str = "auto", downscale: float = 1, *, im
         raw = read_colmap_scene(root, result.model_dir, images=image_dir.resolve(), test_every=test_every,
                                 reader="sfm")
         raw.points_source = "sfm"
-    return build_scene(raw, downscale, cache_dir, normalize, num_random_points, seed)
+    return build_scene(raw, downscale, cache_dir, normalize, num_random_points, seed, cache_hint)

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, List, Optional, Union
 
+from retinexgs.data.camera import COLMAP_MODELS
 from retinexgs.data.images import image_size, is_fresh, list_images, read_image, write_image_atomic
 from retinexgs.errors import UserError
 
@@ -64,6 +65,23 @@ def _stderr_progress(msg: str) -> None:
     print(f"[sfm] {msg}", file=sys.stderr, flush=True)
 
 
+def sfm_camera_models() -> List[str]:
+    """Camera models SfM may fit: those pycolmap knows that RetinexGS can read back (pinhole + OpenCV
+    distortion; fisheye and other models would be refused when the scene is loaded)."""
+    pycolmap = _pycolmap()
+    known = {m for m in dir(pycolmap.CameraModelId) if m.isupper()}
+    return [m for m in COLMAP_MODELS if m in known]
+
+
+def check_camera_model(name: str) -> str:
+    """``name`` upper-cased when it is one of :func:`sfm_camera_models`, else UserError listing them."""
+    accepted = sfm_camera_models()
+    model = str(name).strip().upper()
+    if model not in accepted:
+        raise UserError(f"--camera-model {name!r} is not supported; choose one of {', '.join(accepted)}")
+    return model
+
+
 def default_sfm_dir(image_dir: Path) -> Path:
     """``<scene>/retinexgs_sfm`` where the scene is the photo folder, or its parent if it is named images/."""
     image_dir = Path(image_dir)
@@ -92,6 +110,7 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
         raise UserError(f"image folder {image_dir} holds only one photo; SfM needs at least two")
     if matching not in ("auto", "exhaustive", "sequential"):
         raise UserError(f"matching must be auto, exhaustive or sequential, not {matching!r}")
+    camera_model = check_camera_model(camera_model)
     if matching == "auto":
         matching = "exhaustive" if len(paths) <= EXHAUSTIVE_MAX else "sequential"
     out_dir = Path(out) if out is not None else default_sfm_dir(image_dir)

@@ -21,7 +21,7 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
-from retinexgs.data.camera import Camera, opengl_to_opencv
+from retinexgs.data.camera import Camera, check_camera, check_rotation, opengl_to_opencv
 from retinexgs.data.images import IMAGE_EXTENSIONS, image_size
 from retinexgs.data.pairing import check_same_files
 from retinexgs.data.raw import RawScene, RawView
@@ -63,34 +63,62 @@ def _resolve_file(root: Path, file_path: str, json_path: Path, index: int) -> Pa
                     f"(looked for {p})")
 
 
+def _number(settings: Dict, key: str, where: str) -> float:
+    """``settings[key]`` as a float; UserError naming the key and its value when it is not a number."""
+    value = settings[key]
+    if isinstance(value, bool):
+        raise UserError(f"{where}: {key!r} must be a number, got {value!r}")
+    try:  # numbers written as strings ("800") are accepted, words are not
+        return float(value)
+    except (TypeError, ValueError):
+        raise UserError(f"{where}: {key!r} must be a number, got {value!r}") from None
+
+
+def _size(settings: Dict, key: str, where: str) -> int:
+    """``settings[key]`` as a positive whole number of pixels; UserError naming the key and value."""
+    value = _number(settings, key, where)
+    if not (math.isfinite(value) and value == int(value) and value > 0):
+        raise UserError(f"{where}: {key!r} must be a positive whole number of pixels, got {settings[key]!r}")
+    return int(value)
+
+
 def _camera(settings: Dict, image: Path, where: str) -> Camera:
     if settings.get("is_fisheye"):
         raise UserError(f"{where}: fisheye cameras are not supported")
     if "w" in settings and "h" in settings:
-        w, h = int(settings["w"]), int(settings["h"])
+        w, h = _size(settings, "w", where), _size(settings, "h", where)
     else:
+        for key in ("w", "h"):
+            if key in settings:
+                _size(settings, key, where)
         w, h = image_size(image)
-    try:
-        if "fl_x" in settings:
-            fx = float(settings["fl_x"])
-        elif "camera_angle_x" in settings:
-            fx = 0.5 * w / math.tan(0.5 * float(settings["camera_angle_x"]))
-        else:
-            raise UserError(f"{where}: no focal length (fl_x or camera_angle_x)")
-        if "fl_y" in settings:
-            fy = float(settings["fl_y"])
-        elif "camera_angle_y" in settings and "fl_x" not in settings:
-            fy = 0.5 * h / math.tan(0.5 * float(settings["camera_angle_y"]))
-        else:
-            fy = fx
-        cx = float(settings.get("cx", w / 2.0))
-        cy = float(settings.get("cy", h / 2.0))
-        dist = tuple(float(settings.get(k, 0.0)) for k in ("k1", "k2", "p1", "p2", "k3"))
-    except (TypeError, ValueError) as exc:
-        raise UserError(f"{where}: bad intrinsics value: {exc}") from None
+    num = {k: _number(settings, k, where) for k in _INTRINSIC_KEYS if k in settings and k != "is_fisheye"}
+    if "fl_x" in num:
+        fx = num["fl_x"]
+    elif "camera_angle_x" in num:
+        if not 0 < num["camera_angle_x"] < math.pi:
+            raise UserError(f"{where}: 'camera_angle_x' must be an angle in radians between 0 and pi, "
+                            f"got {settings['camera_angle_x']!r}")
+        fx = 0.5 * w / math.tan(0.5 * num["camera_angle_x"])
+    else:
+        raise UserError(f"{where}: no focal length (fl_x or camera_angle_x)")
+    if "fl_y" in num:
+        fy = num["fl_y"]
+    elif "camera_angle_y" in num and "fl_x" not in num:
+        if not 0 < num["camera_angle_y"] < math.pi:
+            raise UserError(f"{where}: 'camera_angle_y' must be an angle in radians between 0 and pi, "
+                            f"got {settings['camera_angle_y']!r}")
+        fy = 0.5 * h / math.tan(0.5 * num["camera_angle_y"])
+    else:
+        fy = fx
+    cx = num.get("cx", w / 2.0)
+    cy = num.get("cy", h / 2.0)
+    dist = tuple(num.get(k, 0.0) for k in ("k1", "k2", "p1", "p2", "k3"))
     if dist[4] == 0.0:
         dist = dist[:4]
-    return Camera(w, h, fx, fy, cx, cy, dist if any(dist) else ())
+    cam = Camera(w, h, fx, fy, cx, cy, dist if any(dist) else ())
+    check_camera(cam, where)
+    return cam
 
 
 def _pose(frame: dict, where: str) -> np.ndarray:
@@ -104,6 +132,7 @@ def _pose(frame: dict, where: str) -> np.ndarray:
         m = np.vstack([m, [0, 0, 0, 1]])
     if m.shape != (4, 4) or not np.all(np.isfinite(m)):
         raise UserError(f"{where}: transform_matrix is not a finite 4x4 matrix")
+    check_rotation(m[:3, :3], where, "transform_matrix rotation (upper-left 3x3)")
     return opengl_to_opencv(m)
 
 
@@ -129,6 +158,7 @@ def read_split_json(root: Path, json_path: Path) -> List[RawView]:
         where = f"{json_path} frame {i}"
         if not isinstance(frame, dict) or "file_path" not in frame:
             raise UserError(f"{where}: expected an object with 'file_path' and 'transform_matrix'")
+        where = f"{json_path} frame {i} ({frame['file_path']})"
         listed = _resolve_file(root, frame["file_path"], json_path, i)
         image, paired = _pair(listed, root)
         settings = dict(top)

@@ -8,12 +8,15 @@ intrinsics are scaled by new_size / old_size in the pixel-centre convention.
 
 Results are cached as PNG under ``<cache>/undistorted/<camera-key>_x<downscale>/`` (or
 ``<cache>/downscaled/...`` when only resizing), mirroring the source's path relative to the scene
-folder, written atomically and reused while newer than their source.
+folder, written atomically (all of a load's files together, see :func:`process_all`) and reused while
+newer than their source.
 """
 from __future__ import annotations
 
 import hashlib
 import os
+import shutil
+import tempfile
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from functools import lru_cache
@@ -25,6 +28,7 @@ import numpy as np
 from retinexgs.data.camera import Camera
 from retinexgs.data.images import is_fresh, read_image, resize_image, write_image_atomic
 from retinexgs.errors import UserError
+from retinexgs.fileio import TMP_PREFIX
 
 
 def _cv2():
@@ -105,16 +109,30 @@ def process_image(src: Path, dst: Path, cam: Camera, out_cam: Camera) -> None:
     write_image_atomic(dst, rgb)
 
 
-def process_all(jobs: List[Tuple[Path, Path, Camera, Camera]], workers: Optional[int] = None) -> None:
-    """Run :func:`process_image` on (src, dst, cam, out_cam) jobs, a few threads at a time."""
+def process_all(jobs: List[Tuple[Path, Path, Camera, Camera]], cache_dir: Path, workers: Optional[int] = None) -> None:
+    """Run :func:`process_image` on (src, dst, cam, out_cam) jobs, a few threads at a time.
+
+    All outputs (every ``dst`` lies under ``cache_dir``) are written into a temporary folder inside
+    ``cache_dir`` and moved into place only when every job succeeded: a failure (an unreadable photo, a
+    size mismatch, an interrupt) leaves no partial cache behind.
+    """
     unique = {j[1]: j for j in jobs}  # the same file may be listed by two splits
     jobs = [j for j in unique.values() if not is_fresh(j[1], j[0])]
     if not jobs:
         return
-    workers = workers or min(8, os.cpu_count() or 1)
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        for f in [pool.submit(process_image, *j) for j in jobs]:
-            f.result()
+    cache_dir = Path(cache_dir)
+    staging = Path(tempfile.mkdtemp(prefix=TMP_PREFIX, dir=cache_dir))
+    try:
+        staged = [(src, staging / Path(dst).relative_to(cache_dir), cam, out) for src, dst, cam, out in jobs]
+        workers = workers or min(8, os.cpu_count() or 1)
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            for f in [pool.submit(process_image, *j) for j in staged]:
+                f.result()
+        for (_, dst, _, _), (_, tmp, _, _) in zip(jobs, staged):
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            os.replace(tmp, dst)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
 
 
 def plan_paths(paths: List[Path], root: Path, cache_dir: Path, cam: Camera, downscale: float,

@@ -20,12 +20,12 @@ def _add_common(p: argparse.ArgumentParser) -> None:
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("render", help="render a trained run's views or a camera path to PNG/MP4",
                        description="Render the enhanced image (and on request R̂, L̂, depth and the low-light "
-                                   "reconstruction) of RUN's test or train views to OUT/<map>/<view>.png, or "
+                                   "reconstruction) of RUN's test, train or val views to OUT/<map>/<view>.png, or "
                                    "along a smooth camera path to an MP4. Existing files are kept unless --force.")
     _add_common(p)
     # No argparse choices for --views/--path/--format: a bad value then exits through UserError (code 2,
     # one paragraph) like every other input problem, and nothing is loaded first.
-    p.add_argument("--views", default=None, help="test (default), train, or path (a camera path; see --path)")
+    p.add_argument("--views", default=None, help="test (default), train, val (when the scene has a val split), or path (a camera path; see --path)")
     p.add_argument("--out", type=Path, help="output folder (views, PNG frames) or .mp4 file (path); default "
                                              "RUN/renders/<views> or RUN/renders/path_<kind>.mp4")
     p.add_argument("--maps", default="enhanced", help="comma-separated: enhanced,R,L,depth,low (default enhanced)")

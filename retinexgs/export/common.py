@@ -1,6 +1,7 @@
 """Checks shared by ``render`` and ``export``: run config, enhancement flags, output overwrites."""
 from __future__ import annotations
 
+import tempfile
 from pathlib import Path
 from typing import Dict, Iterable, Optional
 
@@ -41,3 +42,20 @@ def refuse_existing(paths: Iterable[Path], force: bool) -> None:
         if Path(p).is_dir():
             raise UserError(f"{p} is a folder; --out must name a file here")
 
+
+
+def check_writable_folder(out: Path, flag: str = "--out") -> None:
+    """UserError unless ``out`` (a file to write) can be created: its folder, or the nearest existing folder
+    above it, must be a writable folder. Checked before the slow work; nothing is created here (the probe
+    file is removed at once)."""
+    folder = Path(out).absolute().parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    if not folder.is_dir():
+        raise UserError(f"{flag} {out}: {folder} is a file, not a folder; choose another {flag}")
+    try:  # a real write: os.access says yes to root on a read-only mount or for a chmod 555 folder
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as exc:
+        raise UserError(f"{flag} {out}: cannot write in {folder} ({exc.strerror or exc}); "
+                        f"choose another {flag}") from None

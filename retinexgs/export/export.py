@@ -15,7 +15,7 @@ import torch
 from retinexgs.errors import UserError
 from retinexgs.export import DEFAULT_DIRECTIONS
 from retinexgs.export.bake import bake_enhanced_sh, export_params, mean_gamma, reflectance_sh
-from retinexgs.export.common import check_enhancement_flags, read_run_config, refuse_existing
+from retinexgs.export.common import check_enhancement_flags, check_writable_folder, read_run_config, refuse_existing
 from retinexgs.export.ply import write_ply
 from retinexgs.train.run import load_run
 from retinexgs.train.trainer import active_sh_degree, view_camera
@@ -40,6 +40,7 @@ def export_run(run_dir: Path, out: Path, reflectance_only: bool = False, directi
         raise UserError(f"--directions must be at least {k} to fit the run's degree-{cfg['model']['sh_degree']} "
                         f"SH ({k} coefficients), got {directions}")
     refuse_existing([out], force)
+    check_writable_folder(out)  # before the model load and the bake, which take the time
 
     cfg, scene, model, step = load_run(run_dir, device)
     degree = active_sh_degree(cfg, step)

@@ -49,10 +49,18 @@ def _np32(x: ArrayLike) -> np.ndarray:
     return np.asarray(x, dtype=np.float32)
 
 
+def ascii_comment(text: str) -> str:
+    """``text`` as one line of ASCII for a PLY header (the format allows nothing else): non-ASCII
+    characters become ``\\xNN``/``\\uNNNN`` escapes, line breaks become spaces."""
+    one_line = " ".join(str(text).splitlines())
+    return one_line.encode("ascii", "backslashreplace").decode("ascii")
+
+
 def write_ply(path: Union[str, Path], gaussians: Dict[str, ArrayLike], comments: Sequence[str] = ()) -> Path:
     """Write a Gaussians dict (see the module docstring) as an INRIA 3DGS PLY, atomically.
 
-    ``comments`` become PLY header comments (e.g. how the colours were made). Returns ``path``.
+    ``comments`` become PLY header comments (e.g. how the colours were made), made ASCII by
+    :func:`ascii_comment`. Returns ``path``.
     """
     plyfile = _plyfile()
     means = _np32(gaussians["means"]).reshape(-1, 3)
@@ -72,7 +80,7 @@ def write_ply(path: Union[str, Path], gaussians: Dict[str, ArrayLike], comments:
     for i, name in enumerate(names):
         data[name] = flat[:, i]
     element = plyfile.PlyElement.describe(data, "vertex")
-    ply = plyfile.PlyData([element], text=False, byte_order="<", comments=list(comments))
+    ply = plyfile.PlyData([element], text=False, byte_order="<", comments=[ascii_comment(c) for c in comments])
     return atomic_write(path, ply.write)
 
 

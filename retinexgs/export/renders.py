@@ -5,7 +5,7 @@ Maps (``--maps``, comma-separated): ``enhanced`` (the model's output, S_enh; the
 ``depth`` (inverse depth, white = near, black = far or empty, on one range for all frames of a call so
 videos do not flicker). ``R``, ``L`` and ``low`` exist only for RetinexGS runs.
 
-Files: views go to ``OUT/<map>/<view name>.png`` (default OUT = ``RUN/renders/<test|train>``). A path goes
+Files: views go to ``OUT/<map>/<view name>.png`` (default OUT = ``RUN/renders/<test|train|val>``). A path goes
 to ``OUT`` (default ``RUN/renders/path_<kind>.mp4``) for the first map and ``OUT`` with ``_<map>`` before
 the suffix for the others; with ``--format png`` to ``OUT/<map>/<frame>.png`` (default OUT =
 ``RUN/renders/path_<kind>``). Existing files are kept unless ``force``; every file is written atomically.
@@ -25,7 +25,7 @@ from torch import Tensor
 from retinexgs.data.scene import View
 from retinexgs.errors import UserError
 from retinexgs.evaluate.evaluate import save_png, to_uint8
-from retinexgs.export.common import check_enhancement_flags, read_run_config, refuse_existing
+from retinexgs.export.common import check_enhancement_flags, check_writable_folder, read_run_config, refuse_existing
 from retinexgs.export import PATH_KINDS
 from retinexgs.export.paths import camera_path
 from retinexgs.fileio import TMP_PREFIX, atomic_write
@@ -36,7 +36,7 @@ from retinexgs.train.trainer import active_sh_degree, view_camera
 MAPS = ("enhanced", "R", "L", "depth", "low")
 DECOMPOSED_MAPS = ("R", "L", "low")
 _KEYS = {"enhanced": "rgb", "R": "R", "L": "L", "low": "S_rec"}  # map name -> key of RetinexGSModel.render
-VIEW_SETS = ("test", "train", "path")
+VIEW_SETS = ("test", "train", "val", "path")
 FORMATS = ("mp4", "png")
 
 
@@ -112,7 +112,7 @@ def render_run(run_dir: Path, views: Optional[str] = None, out: Optional[Path] =
                path: Optional[str] = None, frames: int = 120, fps: float = 30.0, fmt: str = "mp4",
                device: Optional[str] = None, force: bool = False, progress: bool = True,
                log: Callable[[str], None] = print) -> List[Path]:
-    """Render ``maps`` of a run for its ``views`` (``test``, ``train``) or a camera ``path`` (``orbit``,
+    """Render ``maps`` of a run for its ``views`` (``test``, ``train``, ``val``) or a camera ``path`` (``orbit``,
     ``interpolate``; ``views="path"`` alone means an orbit); see the module docstring for the files.
 
     ``exposure`` scales the predicted gamma (< 1 brighter), ``gamma`` replaces it (RetinexGS runs only).
@@ -146,10 +146,12 @@ def render_run(run_dir: Path, views: Optional[str] = None, out: Optional[Path] =
 
     cfg, scene, model, step = load_run(run_dir, device)
     if path is None:
-        frames_views = list(scene.test if views == "test" else scene.train)
+        splits = {"test": scene.test, "train": scene.train, "val": scene.val}
+        frames_views = list(splits[views])
         if not frames_views:
-            raise UserError(f"the scene of {run_dir} has no {views} views; try --views "
-                            + ("train" if views == "test" else "test") + " or --views path")
+            others = [name for name, vs in splits.items() if vs and name != views]
+            raise UserError(f"the scene of {run_dir} has no {views} views; try "
+                            + "".join(f"--views {name} or " for name in others) + "--views path")
         out = Path(out) if out is not None else run_dir / "renders" / views
     else:
         if not scene.train:
@@ -164,6 +166,7 @@ def render_run(run_dir: Path, views: Optional[str] = None, out: Optional[Path] =
             raise UserError(f"--out {out} is a file; PNG renders need a folder")
         targets = [out / name / f"{Path(v.name).stem}.png" for name in maps for v in frames_views]
     refuse_existing(targets, force)
+    check_writable_folder(targets[0])
 
     fn = render_function(model, cfg, active_sh_degree(cfg, step), exposure=exposure, gamma=gamma)
     zrange = depth_range(model, frames_views) if "depth" in maps else (0.1, 10.0)

@@ -37,18 +37,14 @@ PathLike = Union[str, os.PathLike]
 
 
 def read_image(path: PathLike) -> torch.Tensor:
-    """Read a photo as float32 [H,W,3] in [0,1]; raises UserError naming the file if it cannot be read."""
-    from PIL import Image  # local import: keeps ``import retinexgs.retinex`` light
+    """Read a photo as float32 [H,W,3] in [0,1] (8 or 16 bit, see :mod:`retinexgs.data.images`); raises
+    UserError naming the file if it cannot be read."""
+    from retinexgs.data.images import load_image_tensor  # local import: keeps ``import retinexgs.retinex`` light
 
     p = Path(path)
     if not p.is_file():
         raise UserError(f"image not found: {p}")
-    try:
-        with Image.open(p) as im:
-            arr = np.asarray(im.convert("RGB"), dtype=np.uint8)
-    except Exception as exc:  # PIL raises many types for truncated/corrupt files
-        raise UserError(f"cannot read image {p}: {exc}. Is it a valid JPEG/PNG?") from None
-    return torch.from_numpy(arr.astype(np.float32) / 255.0)
+    return load_image_tensor(p)
 
 
 def default_cache_root(image_paths: Sequence[PathLike]) -> Path:
@@ -59,6 +55,12 @@ def default_cache_root(image_paths: Sequence[PathLike]) -> Path:
     if common.name.lower() in _IMAGE_FOLDER_NAMES:
         common = common.parent
     return common / CACHE_DIRNAME
+
+
+def scene_cache_root(scene_root: PathLike, cache_dir: Optional[PathLike] = None) -> Path:
+    """Where ``train`` and ``decompose`` keep a scene's decompositions: ``<cache_dir>/retinex`` when the
+    config's ``data.cache_dir`` is set, else ``<scene>/retinex_cache``."""
+    return Path(cache_dir) / "retinex" if cache_dir else Path(scene_root) / CACHE_DIRNAME
 
 
 def entry_dir(cache_root: PathLike, method: str, params: Any = None) -> Path:
@@ -138,12 +140,13 @@ def resolve_device(device: Union[str, torch.device, None]) -> torch.device:
 
 def decompose_images(image_paths: Sequence[PathLike], method: str = "lr3m", params: Any = None,
                      cache_dir: Optional[PathLike] = None, device: Union[str, torch.device] = "cpu", *,
-                     keep: bool = True, preview: bool = False, progress: bool = True
+                     keep: bool = True, preview: bool = False, progress: bool = True, cache_hint: str = ""
                      ) -> Tuple[List[Optional[Tuple[torch.Tensor, torch.Tensor]]], Dict[str, Any]]:
     """Make sure every image has a valid cache entry; return (results, report).
 
     ``results[i]`` is (R, L) on the CPU when ``keep`` else None. ``report`` has ``folder`` (the entry
     folder), ``computed`` and ``reused`` counts and ``files`` (entry paths, in input order).
+    ``cache_hint``: the caller's spelling of the cache option, named when the cache cannot be created.
     """
     paths = [Path(p) for p in image_paths]
     if not paths:
@@ -155,7 +158,8 @@ def decompose_images(image_paths: Sequence[PathLike], method: str = "lr3m", para
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise UserError(f"cannot create the cache folder {folder}: {exc}") from None
+        hint = f"; put the caches elsewhere with {cache_hint}" if cache_hint else ""
+        raise UserError(f"cannot create the cache folder {folder}: {exc.strerror or exc}{hint}") from None
     _sweep_stale_temps(folder)
     settings = folder / "params.json"
     if not settings.is_file():  # for humans: what produced this folder
@@ -206,12 +210,13 @@ def decompose_images(image_paths: Sequence[PathLike], method: str = "lr3m", para
 
 def load_or_compute(image_paths: Sequence[PathLike], method: str = "lr3m", params: Any = None,
                     cache_dir: Optional[PathLike] = None, device: Union[str, torch.device] = "cpu", *,
-                    progress: bool = True) -> List[Tuple[torch.Tensor, torch.Tensor]]:
+                    progress: bool = True, cache_hint: str = "") -> List[Tuple[torch.Tensor, torch.Tensor]]:
     """(R [H,W,3], L [H,W,1]) float32 CPU tensors for each image, from the cache or freshly computed.
 
     ``params``: a params dataclass or a dict of overrides (None = defaults). ``cache_dir``: the cache root
     (default ``<scene>/retinex_cache``, see :func:`default_cache_root`); entries go in
     ``<cache_dir>/<method>-<key>/``. ``device``: where missing entries are computed.
     """
-    results, _ = decompose_images(image_paths, method, params, cache_dir, device, keep=True, progress=progress)
+    results, _ = decompose_images(image_paths, method, params, cache_dir, device, keep=True, progress=progress,
+                                  cache_hint=cache_hint)
     return [r for r in results if r is not None]

@@ -1,10 +1,12 @@
-"""``retinexgs decompose``: Retinex-decompose every training photo of a scene into the on-disk cache."""
+"""``retinexgs decompose``: Retinex-decompose every training photo of a scene into the on-disk cache that
+``retinexgs train`` reads (same scene loading, same cache folder; see :func:`run`)."""
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
-from typing import List
+from typing import List, Optional
 
 from retinexgs.errors import UserError
 
@@ -58,21 +60,58 @@ def list_scene_images(scene: Path, images_subdir: str = "low") -> List[Path]:
     return paths
 
 
+def _has_poses(scene: Path, cache_dir: Optional[str]) -> bool:
+    """True when ``train`` would load the scene without computing SfM: a transforms JSON, a COLMAP model, or
+    the SfM model an earlier ``train``/``sfm`` cached for it."""
+    from retinexgs.data.colmap import find_model_dir
+    from retinexgs.data.transforms_json import has_transforms
+
+    sfm = Path(cache_dir) / "sfm" if cache_dir else scene / "retinexgs_sfm"
+    return has_transforms(scene) or find_model_dir(scene) is not None or (sfm / "retinexgs_sfm.json").is_file()
+
+
 def run(args: argparse.Namespace) -> int:
     """Entry point of ``retinexgs decompose``."""
     from retinexgs.data.images import read_image
-    from retinexgs.retinex.cache import CACHE_DIRNAME, decompose_images
+    from retinexgs.retinex.base import available_methods
+    from retinexgs.retinex.cache import decompose_images, scene_cache_root
+    from retinexgs.train.config import load_config
 
     scene = Path(args.data).expanduser()
     paths = list_scene_images(scene, args.images_subdir)
+    overrides = list(args.set or [])
+    if args.method is not None:
+        overrides.append(f"decomposer.method={args.method}")
+    if args.cache:
+        overrides.append(f"data.cache_dir={Path(args.cache).expanduser()}")
+    cfg = load_config(args.config or [], overrides)  # the settings train would use, checked before any work
+    dcfg = cfg["decomposer"]
+    if dcfg["method"] not in available_methods():
+        raise UserError(f"decomposer.method is {dcfg['method']}: there is nothing to decompose "
+                        f"(choose {' or '.join(available_methods())})")
     # An unreadable or truncated photo is refused before the cache folder is created (one extra decode per
     # photo; the decomposition itself costs far more).
     for p in paths:
         read_image(p)
-    cache_root = Path(args.cache).expanduser() if args.cache else scene / CACHE_DIRNAME
-    _, report = decompose_images(paths, args.method, None, cache_root, args.device, keep=False,
-                                 preview=args.preview, progress=not args.quiet)
-    print(f"{len(paths)} view(s) decomposed with {args.method}: {report['computed']} computed, "
+    hint = "--cache DIR (or --set data.cache_dir=DIR)"
+    if _has_poses(scene, cfg["data"]["cache_dir"]):
+        # Decompose exactly the images train will read: undistorted and downscaled copies where the scene
+        # needs them, so that train finds every entry in the cache.
+        from retinexgs.train.run import open_scene
+
+        paths = [v.image_path for v in open_scene(scene, cfg, cache_hint=hint).train]
+    else:
+        if cfg["data"]["downscale"] != 1:
+            raise UserError(f"{scene} has no camera poses yet (no transforms JSON, COLMAP model or cached SfM), so "
+                            "there are no downscaled views to decompose: train once (it runs SfM), or decompose "
+                            "without data.downscale")
+        print(f"note: {scene} has no camera poses yet; train will run SfM and decompose the undistorted copies it "
+              "makes, which these entries do not cover", file=sys.stderr)
+    cache_root = scene_cache_root(scene, cfg["data"]["cache_dir"])
+    _, report = decompose_images(paths, dcfg["method"], dict(dcfg["params"]) or None, cache_root,
+                                 args.device, keep=False, preview=args.preview, progress=not args.quiet,
+                                 cache_hint=hint)
+    print(f"{len(paths)} view(s) decomposed with {dcfg['method']}: {report['computed']} computed, "
           f"{report['reused']} reused from cache -> {report['folder']}")
     if args.preview:
         print(f"previews: {Path(report['folder']) / 'preview'}")
@@ -86,14 +125,23 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "decompose", help="split each low-light photo of a scene into reflectance R and illumination L (cached)",
         description="Decompose the training photos of SCENE into reflectance and illumination and cache the "
-                    "results on disk. Photos: the frames of SCENE/transforms_train.json if present, otherwise "
-                    "every .jpg/.jpeg/.png in SCENE/<images-subdir>/ if that folder exists, else in SCENE. "
-                    "Cached entries are reused unless the photo or the parameters changed.")
+                    "results where `train` looks for them (same settings: --config/--set as for train). A "
+                    "scene with poses (transforms JSON or COLMAP model) is loaded as train loads it "
+                    "(undistorted, downscaled by data.downscale) and its train views are decomposed; a "
+                    "folder of photos without poses has every .jpg/.jpeg/.png in SCENE/<images-subdir>/ "
+                    "(or SCENE) decomposed. Cached entries are reused unless the photo or the parameters "
+                    "changed.")
     p.add_argument("--data", required=True, metavar="SCENE", help="scene folder")
-    p.add_argument("--method", default="lr3m", choices=available_methods(), help="decomposer (default: lr3m)")
+    p.add_argument("--method", default=None, choices=available_methods(),
+                   help="decomposer (default: decomposer.method of the config, lr3m)")
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="where to compute (default: cpu)")
     p.add_argument("--cache", metavar="DIR", default=None,
-                   help="cache root (default: SCENE/retinex_cache); entries go in DIR/<method>-<hash>/")
+                   help="the caches' folder, as train's --set data.cache_dir=DIR (default: in SCENE: "
+                        "SCENE/retinex_cache); entries go in DIR/retinex/<method>-<hash>/")
+    p.add_argument("--config", action="append", default=[],
+                   help="config override file or name in configs/, as for train; repeatable")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override one config key as for train, e.g. --set data.downscale=2; repeatable")
     p.add_argument("--images-subdir", default="low", metavar="NAME",
                    help="photo subfolder used when there is no transforms_train.json (default: low)")
     p.add_argument("--preview", action="store_true",

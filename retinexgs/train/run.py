@@ -29,10 +29,13 @@ def pick_device(device: Optional[str]) -> str:
     return device
 
 
-def open_scene(path: Path, cfg: Dict) -> Scene:
+def open_scene(path: Path, cfg: Dict, cache_hint: str = "--set data.cache_dir=DIR") -> Scene:
+    """Load the scene as a run's config says (reader, downscale, caches); train and decompose share it so
+    that they read the same (undistorted, downscaled) images. ``cache_hint``: the caller's spelling of
+    ``data.cache_dir`` for the message when the scene folder is read-only."""
     d = cfg["data"]
     return load_scene(path, reader=d["reader"], downscale=d["downscale"],
-                      cache_dir=d["cache_dir"] and Path(d["cache_dir"]) / "scene")
+                      cache_dir=d["cache_dir"] and Path(d["cache_dir"]) / "scene", cache_hint=cache_hint)
 
 
 def train_run(scene_path: Path, run_dir: Path, config_files: Iterable[str] = (), overrides: Iterable[str] = (),

@@ -61,14 +61,16 @@ class TrainView:
     target: Optional[Tensor] = None  # [H,W,3], baselines
 
 
-def decompose_views(views: List[View], cfg: Dict, device: str, progress: bool) -> List:
-    """(R, L) per view from the per-scene cache (computed where missing)."""
-    from retinexgs.retinex import load_or_compute
+def decompose_views(views: List[View], cfg: Dict, device: str, progress: bool, scene_root: Path) -> List:
+    """(R, L) per view from the per-scene cache (computed where missing; ``retinexgs decompose`` fills the
+    same cache, see :func:`retinexgs.retinex.cache.scene_cache_root`)."""
+    from retinexgs.retinex.cache import load_or_compute, scene_cache_root
 
     dcfg = cfg["decomposer"]
     return load_or_compute([v.image_path for v in views], dcfg["method"], dict(dcfg["params"]) or None,
-                           cache_dir=cfg["data"]["cache_dir"] and Path(cfg["data"]["cache_dir"]) / "retinex",
-                           device=dcfg["device"] or device, progress=progress)
+                           cache_dir=scene_cache_root(scene_root, cfg["data"]["cache_dir"]),
+                           device=dcfg["device"] or device, progress=progress,
+                           cache_hint="--set data.cache_dir=DIR")
 
 
 class Trainer:
@@ -107,7 +109,7 @@ class Trainer:
             raise UserError("the pre-enhancement baseline needs a decomposer (decomposer.method lr3m or lime)")
         if needs_priors:
             self.log(f"2D priors: {cfg['decomposer']['method']} on {len(views)} views (cached per scene)")
-            priors = decompose_views(self.scene.train, cfg, str(dev), self.progress)
+            priors = decompose_views(self.scene.train, cfg, str(dev), self.progress, self.scene.root)
             for tv, (R, L) in zip(views, priors):
                 if R.shape[:2] != tv.S.shape[:2]:
                     raise UserError(f"cached decomposition has size {tuple(R.shape[:2])} but the view is "
