@@ -12,10 +12,9 @@ the helpers below (``Int``, ``Num``, ``Bool``, ``Choice``, ``Step``, ``Every``, 
 from __future__ import annotations
 
 import re
-from typing import Any, Dict, List, Literal, Optional, Tuple, Union
+from typing import Annotated, Any, Dict, List, Literal, Optional, Tuple, Union
 
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, StrictInt, model_validator
-from typing_extensions import Annotated
 
 
 class Expect:
