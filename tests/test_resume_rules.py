@@ -171,6 +171,18 @@ def test_relocate_scene_points_the_run_at_the_moved_folder(run, originals, tmp_p
     assert code == 0, err
 
 
+def test_resume_of_a_moved_scene_says_how_to_relocate(run, originals, tmp_path, capsys):
+    cfg = recorded(run)
+    cfg["scene"] = str(tmp_path / "gone")
+    (run / "config.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
+    code, out, err = cli(["train", "--out", str(run), "--resume", *T], capsys)
+    assert code == 2 and f"{tmp_path / 'gone'}, does not exist" in err and "--relocate-scene" in err
+    code, out, err = cli(["train", "--out", str(run), "--resume", "--data", str(originals[0]), "--relocate-scene",
+                          *T], capsys)
+    assert code == 0, err
+    assert recorded(run)["scene"] == str(Path(originals[0]).resolve())
+
+
 def test_relocate_scene_refuses_a_scene_with_other_views(run, originals, tmp_path, capsys):
     other = make_demo_scene(tmp_path / "other", n_train=4, n_test=1, width=24, height=18, n_points=200)
     before = (run / "config.yaml").read_bytes()
@@ -217,6 +229,40 @@ def test_the_lock_is_held_while_training_and_released_after(run, originals, monk
     assert seen == [True]
     with run_lock(run):  # released
         pass
+
+
+def test_a_new_run_checks_the_lock_and_emptiness_when_it_makes_its_folder(originals, tmp_path, monkeypatch,
+                                                                           one_thread):
+    """Two new runs on one --out: the one that loads second is refused when it makes the folder."""
+    real = run_module.Trainer
+    held = []
+
+    def other_trainer_first(cfg, scene, run_dir, *a, **k):
+        tr = real(cfg, scene, run_dir, *a, **k)
+        run_dir.mkdir(parents=True)
+        fd = os.open(run_dir, os.O_RDONLY)
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # the other trainer, still running
+        held.append(fd)
+        return tr
+
+    monkeypatch.setattr(run_module, "Trainer", other_trainer_first)
+    out = tmp_path / "run"
+    try:
+        with pytest.raises(UserError, match=f"run folder {out} is in use by another trainer"):
+            train_run(originals[0], out, ["demo"], TINY, "cpu", progress=False, log=lambda s: None)
+    finally:
+        os.close(held.pop())
+    assert list(out.iterdir()) == []
+
+    def other_trainer_finished(cfg, scene, run_dir, *a, **k):
+        tr = real(cfg, scene, run_dir, *a, **k)
+        (run_dir / "config.yaml").write_text("the other run's\n")
+        return tr
+
+    monkeypatch.setattr(run_module, "Trainer", other_trainer_finished)
+    with pytest.raises(UserError, match="was filled by another trainer meanwhile"):
+        train_run(originals[0], out, ["demo"], TINY, "cpu", progress=False, log=lambda s: None)
+    assert (out / "config.yaml").read_text() == "the other run's\n"
 
 
 # ---- --out that cannot hold a run --------------------------------------------------------------------------

@@ -147,6 +147,9 @@ def resume_scene(recorded: Path, given: Optional[Path], relocate: bool, run_dir:
     if given is None:
         if relocate:
             raise UserError("--relocate-scene needs --data NEW_SCENE_FOLDER (where the run's scene now is)")
+        if not Path(recorded).exists():
+            raise UserError(f"the scene of run {run_dir}, {recorded}, does not exist; if the scene folder was "
+                            "moved, pass --data NEW_FOLDER --relocate-scene")
         return recorded, False
     if Path(given).resolve() == Path(recorded).resolve():
         return recorded, False
@@ -157,10 +160,11 @@ def resume_scene(recorded: Path, given: Optional[Path], relocate: bool, run_dir:
     return Path(given), True
 
 
-def check_same_views(recorded: Optional[Iterable[str]], names: Iterable[str], old: Path, new: Path) -> None:
-    """A relocated scene must have the training views the run was trained on (same count and file names)."""
+def check_same_views(recorded: Optional[Iterable[str]], names: Iterable[str], old: Path, new: Path) -> bool:
+    """A relocated scene must have the training views the run was trained on (same count and file names);
+    False when the run has no record of them to compare with (checkpoints older than the record)."""
     if recorded is None:
-        return
+        return False
     recorded, names = sorted(recorded), sorted(names)
     if recorded != names:
         missing = sorted(set(recorded) - set(names))
@@ -169,3 +173,4 @@ def check_same_views(recorded: Optional[Iterable[str]], names: Iterable[str], ol
                                        f"not in the run {', '.join(extra[:3])}" if extra else "") if x)
         raise UserError(f"--relocate-scene: {new} has {len(names)} training views, the run was trained on "
                         f"{len(recorded)} from {old} ({detail}); it is not the same scene")
+    return True

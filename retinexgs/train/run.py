@@ -77,7 +77,9 @@ def train_run(scene_path: Optional[Path], run_dir: Path, config_files: Iterable[
         if relocating:
             ckpt = latest_checkpoint(run_dir)
             names = load_checkpoint(ckpt).get("train_views") if ckpt is not None else None
-            check_same_views(names, [v.name for v in scene.train], recorded_scene, Path(scene_path))
+            if not check_same_views(names, [v.name for v in scene.train], recorded_scene, Path(scene_path)):
+                log(f"--relocate-scene: {run_dir} has no record of its training views to compare with (a "
+                    "checkpoint from an older version); the new scene is taken as it is")
         log(build_schedule(cfg).describe())
         if device.startswith("cuda"):
             torch.cuda.reset_peak_memory_stats()
