@@ -1,6 +1,5 @@
 """One typed schema for the config (issue 15): every shipped config validates; a bad value is refused before
 any work starts, naming where it came from, the key path, the value and what was expected."""
-from pathlib import Path
 
 import pytest
 import yaml

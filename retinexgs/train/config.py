@@ -111,7 +111,7 @@ def load_config(files: Iterable[str] = (), overrides: Iterable[str] = (), base: 
     return validate(cfg, sources, base_label or "config")
 
 
-def _describe_error(err: Dict[str, Any], cfg: Config, sources: Dict[Tuple[str, ...], str], base_label: str) -> str:
+def _describe_error(err: Dict[str, Any], sources: Dict[Tuple[str, ...], str], base_label: str) -> str:
     keys, expect, section = field_expectation(tuple(err["loc"]))
     name = ".".join(keys) or "config"
     # The key itself or a parent replaced by a value; else (a section's cross-field check) a key inside it.
@@ -139,7 +139,7 @@ def validate(cfg: Config, sources: Optional[Dict[Tuple[str, ...], str]] = None, 
     except ValidationError as exc:
         seen, lines = set(), []
         for err in exc.errors():
-            line = _describe_error(err, cfg, sources or {}, base_label)
+            line = _describe_error(err, sources or {}, base_label)
             if line not in seen:  # a union reports once per member
                 seen.add(line)
                 lines.append(line)

@@ -9,7 +9,7 @@ import fcntl
 import os
 import tempfile
 from pathlib import Path
-from typing import Any, Dict, Iterable, Iterator, List, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, Iterable, Iterator, List, Optional, Sequence, Tuple
 
 from retinexgs.errors import UserError
 from retinexgs.fileio import TMP_PREFIX
@@ -87,7 +87,7 @@ def _fill_missing(cfg: Config, default: Config, prefix: str, filled: List[str]) 
     return out
 
 
-def read_run_config(run_dir: Path, log=None) -> Tuple[Config, Path]:
+def read_run_config(run_dir: Path, log: Optional[Callable[[str], None]] = None) -> Tuple[Config, Path]:
     """(validated config, scene path) recorded in ``run_dir/config.yaml``."""
     path = Path(run_dir) / "config.yaml"
     if not path.is_file():

@@ -44,7 +44,8 @@ def _checkpoint_step(run_dir: Path) -> int:
 
 def train_run(scene_path: Optional[Path], run_dir: Path, config_files: Iterable[str] = (),
               overrides: Iterable[str] = (), device: Optional[str] = None, resume: bool = False,
-              progress: bool = True, log: Callable[[str], None] = print, relocate_scene: bool = False) -> Optional[Dict]:
+              progress: bool = True, log: Callable[[str], None] = print,
+              relocate_scene: bool = False) -> Optional[Dict]:
     """Train (or resume) a run and evaluate it; returns the test metrics (None when there are none).
 
     Everything cheap is checked before the scene is loaded: the config (schema and schedule), ``--out``
