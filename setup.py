@@ -63,7 +63,7 @@ setup(
     description="3D Retinex Gaussian splatting: normally-lit, 3D-consistent novel views from dark photos",
     packages=find_packages(include=["retinexgs", "retinexgs.*"]),
     python_requires=">=3.9",
-    install_requires=["torch>=2.1", "numpy", "pyyaml", "tqdm", "pillow", "opencv-contrib-python-headless>=4.8"],
+    install_requires=["torch>=2.1", "numpy", "pyyaml", "tqdm", "pillow", "opencv-contrib-python-headless>=4.8", "pydantic>=2"],
     extras_require={
         "test": ["pytest", "hypothesis", "scipy", "pycolmap>=4.0", "opencv-contrib-python-headless>=4.8", "plyfile",
                  "imageio[ffmpeg]"],

@@ -63,14 +63,13 @@ def benchmark(run: Path, device: Optional[str] = None, width: Optional[int] = No
     """Median ms / FPS of the full enhanced render and of the rasterization alone for ``run``."""
     from retinexgs.errors import UserError
     from retinexgs.train.run import load_run
-    from retinexgs.train.trainer import view_camera
+    from retinexgs.train.trainer import active_sh_degree, view_camera
 
     cfg, scene, model, step = load_run(run, device)
     model.eval()
     views = scene.test or scene.train
     cams = [resize_camera(view_camera(v), width, height) for v in views]
-    every = max(int(cfg["model"]["sh_degree_every"]), 1)
-    degree = min(cfg["model"]["sh_degree"], step // every)
+    degree = active_sh_degree(cfg, step)
     g = model.gaussians
     dev = g.means.device
     if len(g) == 0:

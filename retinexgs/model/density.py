@@ -11,6 +11,7 @@ from torch import Tensor, nn
 from retinexgs.model.gaussians import PARAM_NAMES, GaussianModel
 from retinexgs.render import RenderOutput
 from retinexgs.render.reference import quat_to_rotmat
+from retinexgs.train.schedule import Schedule
 
 
 def _edit_params(model: GaussianModel, optimizer: torch.optim.Optimizer,
@@ -34,8 +35,9 @@ def _edit_params(model: GaussianModel, optimizer: torch.optim.Optimizer,
 class DensityController:
     """Accumulates per-Gaussian screen-space gradient statistics and densifies/prunes on schedule."""
 
-    def __init__(self, cfg: Dict, scene_extent: float, reset_every: Optional[int] = None) -> None:
+    def __init__(self, cfg: Dict, scene_extent: float, schedule: Schedule) -> None:
         self.cfg = cfg
+        self.schedule = schedule  # when to densify and reset, in steps (retinexgs.train.schedule)
         self.extent = float(scene_extent)
         self.grad_accum: Optional[Tensor] = None
         self.count: Optional[Tensor] = None
@@ -72,12 +74,10 @@ class DensityController:
 
     def step(self, step: int, model: GaussianModel, optimizer: torch.optim.Optimizer, image_size: int) -> str:
         """Run whatever the schedule asks for at ``step``; returns a short description ('' if nothing)."""
-        c = self.cfg
         did = ""
-        if c["start"] < step <= c["stop"] and step % c["every"] == 0 and self.grad_accum is not None:
+        if self.schedule.densify_at(step) and self.grad_accum is not None:
             did = self.densify_and_prune(step, model, optimizer, image_size)
-        reset = c["reset_opacity_every"]
-        if reset and step % reset == 0 and step <= c["stop"]:
+        if self.schedule.reset_at(step):
             self.reset_opacity(model, optimizer)
             did += " opacity reset"
         return did.strip()
@@ -114,7 +114,7 @@ class DensityController:
         # Prune: the split originals, transparent Gaussians, and (after the first reset) oversized ones.
         prune = torch.cat([split, torch.zeros(n_new, dtype=torch.bool, device=split.device)])
         prune |= model.opacities < c["prune_opacity"]
-        if c["reset_opacity_every"] and step > c["reset_opacity_every"]:
+        if self.schedule.prune_large_at(step):
             radius = torch.cat([self.max_radius, torch.zeros(n_new, device=split.device)])
             prune |= radius > c["max_screen_fraction"] * image_size
             prune |= model.scales.max(-1).values > 0.1 * self.extent

@@ -19,13 +19,19 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description="Train on SCENE (LOM/transforms JSON, COLMAP or a folder of photos) into RUN: "
                                    "decomposes the views (cached), trains, checkpoints, then evaluates the "
                                    "test views (metrics.json, renders/test/*.png).")
-    p.add_argument("--data", type=Path, help="scene folder (not needed with --resume)")
+    p.add_argument("--data", type=Path, help="scene folder (not needed with --resume; if given, it must be the "
+                   "run's scene)")
     p.add_argument("--out", required=True, type=Path, help="run folder (must not exist unless --resume)")
     p.add_argument("--config", action="append", default=[],
                    help="override file or name in configs/ (e.g. ablations/no_tv); repeatable")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override one key, e.g. --set steps=3000 --set loss.w_tv=0")
-    p.add_argument("--resume", action="store_true", help="continue RUN from its newest checkpoint")
+    p.add_argument("--resume", action="store_true",
+                   help="continue RUN from its newest checkpoint; --set/--config then change the run (steps, log, "
+                        "checkpoint, lr, loss, density, eval keys; recorded in RUN/config.yaml) or are refused")
+    p.add_argument("--relocate-scene", action="store_true",
+                   help="with --resume --data NEW: the run's scene folder was moved to NEW (its training views "
+                        "must match); NEW is recorded in the run")
     _add_common(p)
     p.set_defaults(func=_train)
 
@@ -47,7 +53,8 @@ def _train(args: argparse.Namespace) -> int:
 
     if args.data is None and not args.resume:
         raise UserError("--data SCENE is required (only --resume can do without it: the run knows its scene)")
-    train_run(args.data, args.out, args.config, args.set, args.device, args.resume, progress=not args.quiet)
+    train_run(args.data, args.out, args.config, args.set, args.device, args.resume, progress=not args.quiet,
+              relocate_scene=args.relocate_scene)
     return 0
 
 

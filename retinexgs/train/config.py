@@ -1,14 +1,18 @@
-"""Configs as data: ``configs/default.yaml`` deep-merged with override files and ``key.sub=value`` overrides.
-Unknown keys are errors, so a typo in an override never silently does nothing."""
+"""Configs as data: ``configs/default.yaml`` deep-merged with override files and ``key.sub=value`` overrides,
+then checked against one typed schema (:mod:`retinexgs.train.schema`) before any work starts. Unknown keys are
+errors, so a typo in an override never silently does nothing."""
 from __future__ import annotations
 
 import copy
 from pathlib import Path
-from typing import Any, Dict, Iterable, Optional
+from typing import Any, Dict, Iterable, Optional, Tuple
 
 import yaml
+from pydantic import ValidationError
 
 from retinexgs.errors import UserError
+from retinexgs.train.schedule import check_schedule
+from retinexgs.train.schema import ConfigSchema, field_expectation
 
 Config = Dict[str, Any]
 
@@ -76,36 +80,71 @@ def parse_override(text: str) -> Config:
     return out
 
 
-def load_config(files: Iterable[str] = (), overrides: Iterable[str] = (), base: Optional[Config] = None) -> Config:
-    """default.yaml (or ``base``), then each file, then each ``key=value`` override."""
-    cfg = base if base is not None else read_yaml(configs_dir() / "default.yaml")
+def _note_sources(data: Config, prefix: Tuple[str, ...], label: str, sources: Dict[Tuple[str, ...], str]) -> None:
+    """Remember which file or ``--set`` gave each key (for error messages)."""
+    for key, value in data.items():
+        path = prefix + (str(key),)
+        if isinstance(value, dict) and key != "params":
+            _note_sources(value, path, label, sources)
+        else:
+            sources[path] = label
+
+
+def load_config(files: Iterable[str] = (), overrides: Iterable[str] = (), base: Optional[Config] = None,
+                base_label: Optional[str] = None) -> Config:
+    """default.yaml (or ``base``), then each file, then each ``key=value`` override, validated by the schema
+    (:mod:`retinexgs.train.schema`) and the schedule checks; returns the validated config as a plain dict."""
+    if base is None:
+        cfg, base_label = read_yaml(configs_dir() / "default.yaml"), str(configs_dir() / "default.yaml")
+    else:
+        cfg = base
+    sources: Dict[Tuple[str, ...], str] = {}
     for f in files:
         path = resolve_config_path(f)
-        cfg = merge(cfg, read_yaml(path), f"{path}: ")
+        data = read_yaml(path)
+        cfg = merge(cfg, data, f"{path}: ")
+        _note_sources(data, (), f"config {path}", sources)
     for o in overrides:
-        cfg = merge(cfg, parse_override(o), "--set ")
-    validate(cfg)
-    return cfg
+        data = parse_override(o)
+        cfg = merge(cfg, data, "--set ")
+        _note_sources(data, (), f"--set {o}", sources)
+    return validate(cfg, sources, base_label or "config")
 
 
-def validate(cfg: Config) -> None:
-    """Range checks of the values a user is likely to get wrong."""
-    if cfg["method"] not in ("retinexgs", "3dgs", "pre", "post"):
-        raise UserError(f"method must be retinexgs, 3dgs, pre or post, got {cfg['method']!r}")
-    if not isinstance(cfg["steps"], int) or cfg["steps"] < 1:
-        raise UserError(f"steps must be a positive integer, got {cfg['steps']!r}")
-    if cfg["decomposer"]["method"] not in ("lr3m", "lime", "none"):
-        raise UserError(f"decomposer.method must be lr3m, lime or none, got {cfg['decomposer']['method']!r}")
-    if not 0 <= cfg["model"]["sh_degree"] <= 3:
-        raise UserError("model.sh_degree must be in 0..3")
-    choices = {"exp_on": ("illumination", "image"), "exp_form": ("l2", "l1"), "spa_form": ("zero_dce", "paper"),
-               "sh_reduction": ("mean", "sum")}
-    for k, v in cfg["loss"].items():
-        if k in choices:
-            if v not in choices[k]:
-                raise UserError(f"loss.{k} must be one of {', '.join(choices[k])}, got {v!r}")
-            continue
-        if isinstance(v, bool):
-            continue
-        if not isinstance(v, (int, float)) or v < 0:
-            raise UserError(f"loss.{k} must be a non-negative number, got {v!r}")
+def _describe_error(err: Dict[str, Any], sources: Dict[Tuple[str, ...], str], base_label: str) -> str:
+    keys, expect, section = field_expectation(tuple(err["loc"]))
+    name = ".".join(keys) or "config"
+    # The key itself or a parent replaced by a value; else (a section's cross-field check) a key inside it.
+    label = next((sources[keys[:i]] for i in range(len(keys), 0, -1) if keys[:i] in sources), None) or next(
+        (src for path, src in reversed(list(sources.items())) if path[:len(keys)] == keys), base_label)
+    kind = err["type"]
+    if kind == "extra_forbidden":
+        extra = ".".join(str(p) for p in err["loc"])
+        return f"{label}: unknown config key {extra} (not in the config schema, retinexgs/train/schema.py)"
+    if kind == "missing":
+        return f"{label}: config key {name} is missing"
+    if kind == "value_error":  # a cross-field check of a section: its message names the keys
+        return f"{label}: {err['ctx']['error']}"
+    if section is not None and len(keys) == len([p for p in err["loc"] if isinstance(p, str)]):
+        expect = f"a mapping with the keys {', '.join(section.model_fields)}"
+    return f"{label}: {name} must be {expect or err['msg'].lower()}, got {err['input']!r}"
+
+
+def validate(cfg: Config, sources: Optional[Dict[Tuple[str, ...], str]] = None, base_label: str = "config") -> Config:
+    """Check ``cfg`` against the schema and the schedule rules; returns it as validated plain data (numbers
+    typed as the schema says). The error names the key path, the value given, what was expected and where the
+    value came from (``--set model.sh_degree=abc: model.sh_degree must be an integer 0..3, got 'abc'``)."""
+    try:
+        model = ConfigSchema.model_validate(cfg)
+    except ValidationError as exc:
+        seen, lines = set(), []
+        for err in exc.errors():
+            line = _describe_error(err, sources or {}, base_label)
+            if line not in seen:  # a union reports once per member
+                seen.add(line)
+                lines.append(line)
+        more = f" (and {len(lines) - 3} more)" if len(lines) > 3 else ""
+        raise UserError("; ".join(lines[:3]) + more) from None
+    out = model.model_dump()
+    check_schedule(out)
+    return out

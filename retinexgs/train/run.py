@@ -1,20 +1,22 @@
 """Run folders: create, train, resume, reload and evaluate (what the train / eval / demo commands call)."""
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 from typing import Callable, Dict, Iterable, Optional, Tuple
 
 import torch
-import yaml
 
 from retinexgs.data import Scene, View, load_scene
 from retinexgs.errors import UserError
 from retinexgs.evaluate.evaluate import evaluate
-from retinexgs.fileio import TMP_PREFIX
 from retinexgs.model.gaussians import GaussianModel
 from retinexgs.model.retinex_model import RetinexGSModel
 from retinexgs.train.checkpoint import latest_checkpoint, load_checkpoint
-from retinexgs.train.config import load_config, read_yaml
+from retinexgs.train.config import load_config
+from retinexgs.train.resume import (check_same_views, check_writable_folder, is_empty_run_folder, read_run_config,
+                                    resume_config, resume_scene, run_lock)
+from retinexgs.train.schedule import build_schedule
 from retinexgs.train.trainer import Trainer, active_sh_degree, view_camera, write_run_config
 
 
@@ -38,32 +40,71 @@ def open_scene(path: Path, cfg: Dict, cache_hint: str = "--set data.cache_dir=DI
                       cache_dir=d["cache_dir"] and Path(d["cache_dir"]) / "scene", cache_hint=cache_hint)
 
 
-def train_run(scene_path: Path, run_dir: Path, config_files: Iterable[str] = (), overrides: Iterable[str] = (),
-              device: Optional[str] = None, resume: bool = False, progress: bool = True,
-              log: Callable[[str], None] = print) -> Optional[Dict]:
-    """Train (or resume) a run and evaluate it; returns the test metrics (None when there are none)."""
+def _checkpoint_step(run_dir: Path) -> int:
+    ckpt = latest_checkpoint(run_dir)
+    return int(ckpt.stem.split("_")[-1]) if ckpt is not None else 0
+
+
+def train_run(scene_path: Optional[Path], run_dir: Path, config_files: Iterable[str] = (),
+              overrides: Iterable[str] = (), device: Optional[str] = None, resume: bool = False,
+              progress: bool = True, log: Callable[[str], None] = print,
+              relocate_scene: bool = False) -> Optional[Dict]:
+    """Train (or resume) a run and evaluate it; returns the test metrics (None when there are none).
+
+    Everything cheap is checked before the scene is loaded: the config (schema and schedule), ``--out``
+    (a writable folder, empty for a new run), and on resume the run's lock, the keys a resume may change and
+    ``--data`` against the run's scene. Overrides given on resume are recorded in the run's config.yaml."""
     run_dir = Path(run_dir)
     device = pick_device(device)
-    if resume:
-        if not (run_dir / "config.yaml").is_file():
-            raise UserError(f"--resume: {run_dir} is not a run folder (no config.yaml)")
-        cfg = read_yaml(run_dir / "config.yaml")
-        scene_path = Path(cfg.pop("scene"))
-        cfg = load_config(overrides=overrides, base=cfg)
-    else:
-        if run_dir.exists() and any(not p.name.startswith(TMP_PREFIX) for p in run_dir.iterdir()):
-            raise UserError(f"run folder {run_dir} already exists and is not empty; pass --resume to continue it "
-                            "or choose another --out")
-        cfg = load_config(config_files, overrides)
-    scene = open_scene(Path(scene_path), cfg)
-    log(scene.summary())
-    if device.startswith("cuda"):
-        torch.cuda.reset_peak_memory_stats()
-    # The trainer reads every image and decomposition first: bad input fails before the run folder is made.
-    trainer = Trainer(cfg, scene, run_dir, device, resume=resume, progress=progress, log=log)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    if not resume:
-        write_run_config(run_dir, cfg, scene_path)
+    config_files, overrides = list(config_files), list(overrides)
+    changes: Dict = {}
+    relocating = False
+    with contextlib.ExitStack() as stack:
+        if resume:
+            if not (run_dir / "config.yaml").is_file():
+                raise UserError(f"--resume: {run_dir} is not a run folder (no config.yaml)")
+            check_writable_folder(run_dir)
+            stack.enter_context(run_lock(run_dir))
+            recorded, recorded_scene = read_run_config(run_dir, log)
+            cfg, changes = resume_config(recorded, config_files, overrides, run_dir, _checkpoint_step(run_dir))
+            scene_path, relocating = resume_scene(recorded_scene, scene_path, relocate_scene, run_dir)
+        else:
+            if relocate_scene:
+                raise UserError("--relocate-scene applies only with --resume (it points a run at its moved scene)")
+            check_writable_folder(run_dir)
+            if not is_empty_run_folder(run_dir):
+                raise UserError(f"run folder {run_dir} already exists and is not empty; pass --resume to continue "
+                                "it or choose another --out")
+            cfg = load_config(config_files, overrides)
+        scene = open_scene(Path(scene_path), cfg)
+        log(scene.summary())
+        if relocating:
+            ckpt = latest_checkpoint(run_dir)
+            names = load_checkpoint(ckpt).get("train_views") if ckpt is not None else None
+            if not check_same_views(names, [v.name for v in scene.train], recorded_scene, Path(scene_path)):
+                log(f"--relocate-scene: {run_dir} has no record of its training views to compare with (a "
+                    "checkpoint from an older version); the new scene is taken as it is")
+        log(build_schedule(cfg).describe())
+        if device.startswith("cuda"):
+            torch.cuda.reset_peak_memory_stats()
+        # The trainer reads every image and decomposition first: bad input fails before the run folder is made.
+        trainer = Trainer(cfg, scene, run_dir, device, resume=resume, progress=progress, log=log)
+        if not resume:
+            run_dir.mkdir(parents=True, exist_ok=True)
+            stack.enter_context(run_lock(run_dir))
+            if not is_empty_run_folder(run_dir):  # another trainer made it while this one was loading
+                raise UserError(f"run folder {run_dir} was filled by another trainer meanwhile; choose another --out")
+        if not resume or changes or relocating:
+            write_run_config(run_dir, cfg, scene_path)  # atomic: a later --resume continues with these settings
+            for key, (old, new) in changes.items():
+                log(f"--resume: {key} {old!r} -> {new!r} (recorded in {run_dir / 'config.yaml'})")
+            if relocating:
+                log(f"--relocate-scene: the run now reads its scene from {Path(scene_path).resolve()}")
+        return _train_and_evaluate(trainer, cfg, scene, run_dir, device, log)
+
+
+def _train_and_evaluate(trainer: Trainer, cfg: Dict, scene: Scene, run_dir: Path, device: str,
+                        log: Callable[[str], None]) -> Optional[Dict]:
     stats: Dict = {"device": torch.cuda.get_device_name() if device.startswith("cuda") else "cpu"}
     if trainer.step >= cfg["steps"]:
         log(f"{run_dir} has already finished its {cfg['steps']} steps")
@@ -105,8 +146,7 @@ def load_run(run_dir: Path, device: Optional[str] = None) -> Tuple[Dict, Scene, 
     ckpt = latest_checkpoint(run_dir)
     if ckpt is None:
         raise UserError(f"run folder {run_dir} has no checkpoint (checkpoints/step_*.pt); train it first")
-    cfg = read_yaml(run_dir / "config.yaml")
-    scene_path = Path(cfg.pop("scene"))
+    cfg, scene_path = read_run_config(run_dir)
     state = load_checkpoint(ckpt)
     gstate = {k[len("gaussians."):]: v for k, v in state["model"].items() if k.startswith("gaussians.")}
     model = RetinexGSModel(GaussianModel.empty_like_state(gstate, cfg["model"]["sh_degree"]), cfg["model"],

@@ -23,6 +23,7 @@ from retinexgs.model.retinex_model import RetinexGSModel
 from retinexgs.render import Camera
 from retinexgs.train import losses
 from retinexgs.train.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
+from retinexgs.train.schedule import build_schedule
 
 
 class TrainingDiverged(UserError):
@@ -31,8 +32,7 @@ class TrainingDiverged(UserError):
 
 def active_sh_degree(cfg: Dict, step: int) -> int:
     """The SH degree the model renders with after ``step`` steps (it grows by one every sh_degree_every)."""
-    every = max(int(cfg["model"]["sh_degree_every"]), 1)
-    return min(int(cfg["model"]["sh_degree"]), step // every)
+    return build_schedule(cfg).sh_degree_at(step)
 
 
 def view_camera(view: View) -> Camera:
@@ -83,6 +83,7 @@ class Trainer:
         if not scene.train:
             raise UserError(f"scene {scene.root} has no training views")
         self.method = cfg["method"]
+        self.schedule = build_schedule(cfg)
         self.decomposed = self.method == "retinexgs"
         torch.manual_seed(cfg["seed"])
         random.seed(cfg["seed"])
@@ -153,12 +154,15 @@ class Trainer:
                         "name": "illumination"},
                        {"params": list(self.model.enhancement.parameters()), "lr": lr["enhancement"],
                         "name": "enhancement"}]
+        rates = {group["name"]: group["lr"] for group in groups}
         # Fused Adam on the GPU: one kernel per parameter group instead of a dozen (the step is launch-bound).
         self.optimizer = torch.optim.Adam(groups, eps=1e-15, fused=self.device.type == "cuda")
-        self.density = DensityController(self.cfg["density"], self.extent)
+        self.density = DensityController(self.cfg["density"], self.extent, self.schedule)
         if state is not None:
             self.model.load_state_dict(state["model"])
             self.optimizer.load_state_dict(state["optimizer"])
+            for group in self.optimizer.param_groups:  # the config's rates: a resume may change them
+                group["lr"] = rates[group["name"]]
             self.step = int(state["step"])
             torch.set_rng_state(state["rng"])
             random.setstate(state["py_rng"])
@@ -187,7 +191,7 @@ class Trainer:
         return self.extent * math.exp((1 - t) * math.log(lr["means"]) + t * math.log(lr["means_final"]))
 
     def active_degree(self, step: int) -> int:
-        return active_sh_degree(self.cfg, step)
+        return self.schedule.sh_degree_at(step)
 
     def loss(self, res: Dict[str, Tensor], tv: TrainView, step: int) -> Dict[str, Tensor]:
         """Every loss term of this step (weighted terms sum to ``total``)."""
@@ -207,7 +211,7 @@ class Trainer:
         terms["tv"] = losses.tv_loss(R_hat)
         terms["sh"] = losses.sh_sparsity_loss(self.model.gaussians.sh_rest, c["sh_reduction"])
         total = sup + c["w_tv"] * terms["tv"] + c["w_sh"] * terms["sh"]
-        if step >= c["enhance_from"]:
+        if self.schedule.enhance_at(step):
             if c["enhance_trains_scene"]:
                 out = res
             else:
@@ -230,7 +234,7 @@ class Trainer:
                 group["lr"] = self._means_lr(step)
         c = self.cfg["loss"]
         # The enhanced image is needed only when L_enhance trains the scene through it (the default detaches).
-        enhance = self.decomposed and c["enhance_trains_scene"] and step >= c["enhance_from"]
+        enhance = self.decomposed and c["enhance_trains_scene"] and self.schedule.enhance_at(step)
         res = self.model.render(tv.camera, self.active_degree(step), validate=False, enhance=enhance)
         terms = self.loss(res, tv, step)
         terms["total"].backward()
@@ -271,7 +275,7 @@ class Trainer:
                 "optimizer": self.optimizer.state_dict(), "rng": torch.get_rng_state(),
                 "py_rng": random.getstate(), "order": list(self.order), "density": self.density.state_dict(), "normalization": {
                     "center": self.scene.normalization.center, "scale": self.scene.normalization.scale},
-                "scene_root": str(self.scene.root)}
+                "scene_root": str(self.scene.root), "train_views": [v.name for v in self.scene.train]}
 
     def save(self) -> Path:
         return save_checkpoint(self.run, self.step, self.checkpoint_state(), self.cfg["checkpoint"]["keep"])

@@ -1,0 +1,229 @@
+"""The typed schema of a config (pydantic v2): one class per section of ``configs/default.yaml``.
+
+Every field says what it expects with :class:`Expect` (used verbatim in error messages), so a bad value reads
+``model.sh_degree must be an integer 0..3, got 'abc'``. Unknown keys are refused (``extra="forbid"``) and
+types are strict (no silent ``"3"`` -> 3 or ``true`` -> 1); the only coercion is a YAML string that spells a
+number (PyYAML reads ``1e-4`` as a string) into a float.
+
+To add a config key: add it to ``configs/default.yaml`` and a field to its section's class here, built with
+the helpers below (``Int``, ``Num``, ``Bool``, ``Choice``, ``Step``, ``Every``, ...);
+``tests/test_config_schema.py`` checks that every shipped config validates.
+"""
+from __future__ import annotations
+
+import re
+from typing import Annotated, Any, Dict, List, Literal, Optional, Tuple, Union
+
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, StrictInt, model_validator
+
+
+class Expect:
+    """Annotation metadata: what a field expects, in words (pydantic ignores it; the error formatter reads it)."""
+
+    def __init__(self, text: str) -> None:
+        self.text = text
+
+
+_NUMBER = re.compile(r"^\s*[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?\s*$")
+
+
+def _yaml_number(value: Any) -> Any:
+    """PyYAML reads ``1e-4`` (no dot) as a string: accept a string that spells a number as that number."""
+    if isinstance(value, str) and _NUMBER.match(value):
+        return float(value)
+    return value
+
+
+def _range(lo: Optional[float], hi: Optional[float], lo_open: bool = False) -> str:
+    if lo is not None and hi is not None:
+        return f"{lo}..{hi}" if not lo_open else f"in ({lo}, {hi}]"
+    if lo is not None:
+        return f"{'>' if lo_open else '>='} {lo}"
+    return f"<= {hi}" if hi is not None else ""
+
+
+def Int(lo: Optional[int] = None, hi: Optional[int] = None) -> Any:
+    """An integer (not a bool, not 2.0) within [lo, hi]."""
+    text = f"an integer {_range(lo, hi)}".strip()
+    return Annotated[int, Field(ge=lo, le=hi), Expect(text)]
+
+
+def Num(ge: Optional[float] = None, gt: Optional[float] = None, le: Optional[float] = None) -> Any:
+    """A number (int or float, not a bool) within the bounds."""
+    lo, lo_open = (gt, True) if gt is not None else (ge, False)
+    text = f"a number {_range(lo, le, lo_open)}".strip()
+    return Annotated[float, BeforeValidator(_yaml_number), Field(ge=ge, gt=gt, le=le), Expect(text)]
+
+
+Bool = Annotated[bool, Expect("true or false")]
+OptStr = Annotated[Optional[str], Expect("a string or null")]
+
+
+def Choice(*values: str) -> Any:
+    """One of ``values`` (a Literal)."""
+    return Annotated[Literal[values], Expect("one of " + ", ".join(values))]  # type: ignore[valid-type]
+
+
+# Schedule points (retinexgs.train.schedule): a decimal 0..1 is a fraction of `steps`, so the schedule follows the
+# run length; an integer is an absolute step number (sklearn's test_size convention).
+Step = Annotated[Union[Annotated[StrictInt, Field(ge=0)], Annotated[float, Field(ge=0, le=1)]],
+                 Expect("a fraction of steps 0..1 (a decimal, e.g. 0.3) or an absolute step (an integer >= 0)")]
+Every = Annotated[Union[Annotated[StrictInt, Field(ge=1)], Annotated[float, Field(gt=0, le=1)]],
+                  Expect("an interval: a fraction of steps in (0, 1] (a decimal, e.g. 0.01) or a number of steps "
+                         "(an integer >= 1)")]
+EveryOrOff = Annotated[Union[Annotated[StrictInt, Field(ge=0)], Annotated[float, Field(ge=0, le=1)]],
+                       Expect("an interval: a fraction of steps 0..1 (a decimal, e.g. 0.3), a number of steps "
+                              "(an integer >= 1), or 0 for never")]
+
+
+class Section(BaseModel):
+    """A config section: strict types, unknown keys refused."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+
+class Data(Section):
+    reader: Choice("auto", "transforms", "colmap", "sfm")
+    downscale: Num(ge=1)
+    cache_dir: OptStr
+
+
+class Decomposer(Section):
+    method: Choice("lr3m", "lime", "none")
+    # Decomposer-specific: checked by the decomposer itself (retinexgs.retinex).
+    params: Annotated[Dict[str, Any], Expect("a mapping of the decomposer's parameters")]
+    device: OptStr
+
+
+class Illumination(Section):
+    pos_freqs: Int(0)
+    dir_freqs: Int(0)
+    hidden: Int(1)
+    depth: Int(1)
+    dir_hidden: Int(1)
+    init_value: Num(gt=0)
+
+
+class Enhancement(Section):
+    gamma_range: Annotated[List[Annotated[float, BeforeValidator(_yaml_number), Field(gt=0)]],
+                           Field(min_length=2, max_length=2), Expect("a list [low, high] of two numbers > 0")]
+    init_gamma: Num(gt=0)
+    per_channel: Bool
+    ref_quantile: Annotated[Optional[Annotated[float, BeforeValidator(_yaml_number), Field(gt=0, le=1)]],
+                            Expect("a quantile in (0, 1] (1 = the maximum) or null (no normalisation)")]
+
+    @model_validator(mode="after")
+    def _ordered(self) -> "Enhancement":
+        lo, hi = self.gamma_range
+        if not lo < hi:
+            raise ValueError(f"model.enhancement.gamma_range must be [low, high] with low < high, got [{lo}, {hi}]")
+        if not lo <= self.init_gamma <= hi:
+            raise ValueError(f"model.enhancement.init_gamma must lie in gamma_range [{lo}, {hi}], "
+                             f"got {self.init_gamma}")
+        return self
+
+
+class Model(Section):
+    sh_degree: Int(0, 3)
+    sh_degree_every: Every
+    init_opacity: Num(gt=0, le=1)
+    max_init_points: Int(1)
+    illumination: Illumination
+    enhancement: Enhancement
+
+
+class Loss(Section):
+    lambda_ssim: Num(ge=0, le=1)
+    w_r: Num(ge=0)
+    w_l: Num(ge=0)
+    w_s: Num(ge=0)
+    w_tv: Num(ge=0)
+    w_sh: Num(ge=0)
+    w_spa: Num(ge=0)
+    w_exp: Num(ge=0)
+    w_col: Num(ge=0)
+    exposure_E: Num(gt=0, le=1)
+    exp_on: Choice("illumination", "image")
+    exp_patch: Int(0)
+    exp_form: Choice("l2", "l1")
+    spa_form: Choice("zero_dce", "paper")
+    enhance_scale_invariant: Bool
+    sh_reduction: Choice("mean", "sum")
+    enhance_from: Step
+    enhance_trains_scene: Bool
+
+
+class LearningRates(Section):
+    means: Num(gt=0)
+    means_final: Num(gt=0)
+    quats: Num(ge=0)
+    scales: Num(ge=0)
+    opacities: Num(ge=0)
+    sh_dc: Num(ge=0)
+    sh_rest: Num(ge=0)
+    illumination: Num(ge=0)
+    enhancement: Num(ge=0)
+
+
+class Density(Section):
+    start: Step
+    stop: Step
+    every: Every
+    grad_threshold: Num(gt=0)
+    percent_dense: Num(gt=0)
+    prune_opacity: Num(ge=0, le=1)
+    reset_opacity_every: EveryOrOff
+    last_event: Step
+    max_screen_fraction: Num(gt=0)
+    max_gaussians: Int(1)
+
+
+class Log(Section):
+    every: Int(1)
+    tensorboard: Bool
+
+
+class Checkpoint(Section):
+    every: Int(1)
+    keep: Int(1)
+
+
+class Eval(Section):
+    lpips: Bool
+
+
+class ConfigSchema(Section):
+    """The whole config (``configs/default.yaml`` after every override)."""
+
+    method: Choice("retinexgs", "3dgs", "pre", "post")
+    steps: Annotated[int, Field(ge=1), Expect("a positive integer")]
+    seed: Int(0)
+    data: Data
+    decomposer: Decomposer
+    model: Model
+    loss: Loss
+    lr: LearningRates
+    density: Density
+    log: Log
+    checkpoint: Checkpoint
+    eval: Eval
+
+
+def field_expectation(path: Tuple[Any, ...]) -> Tuple[Tuple[str, ...], Optional[str], Optional[type]]:
+    """For an error location: (the key path inside the config, what that key expects, its section class when
+    the key is a section). Location parts past the last config key (pydantic's union/list members) are dropped."""
+    cls: Any = ConfigSchema
+    keys: List[str] = []
+    expect: Optional[str] = None
+    section: Optional[type] = None
+    for part in path:
+        fields = getattr(cls, "model_fields", None)
+        if not isinstance(part, str) or fields is None or part not in fields:
+            break
+        info = fields[part]
+        keys.append(part)
+        expect = next((m.text for m in info.metadata if isinstance(m, Expect)), None)
+        ann = info.annotation
+        section = ann if isinstance(ann, type) and issubclass(ann, BaseModel) else None
+        cls = section
+    return tuple(keys), expect, section
