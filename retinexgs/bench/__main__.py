@@ -3,7 +3,8 @@ import importlib
 import sys
 
 BENCHES = {"raster": "retinexgs.bench.raster", "lr3m": "retinexgs.bench.lr3m", "fps": "retinexgs.bench.fps",
-           "quality": "retinexgs.bench.quality"}
+           "quality": "retinexgs.bench.quality",
+           "proxy": "retinexgs.bench.proxy"}
 
 
 def main() -> int:

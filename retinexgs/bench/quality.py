@@ -157,6 +157,10 @@ def contact_sheet(jobs: Sequence[Job], configs: Sequence[str], scene: str, out: 
     for j in sorted(jobs, key=lambda j: j.seed):
         if scene_label(j.scene) == scene and j.config not in chosen and read_metrics(j) is not None:
             chosen[j.config] = j
+    # Runs copied without their renders (e.g. from another machine) are left out of the sheet.
+    chosen = {c: j for c, j in chosen.items()
+              if all((j.run / "renders" / "test" / f"{Path(v['view']).stem}.png").is_file()
+                     for v in read_metrics(j)["views"][:views])}
     if not chosen:
         return None
     first = chosen[next(iter(chosen))]

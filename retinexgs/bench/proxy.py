@@ -1,0 +1,161 @@
+"""2D proxy of the enhancement, and the decomposition's texture split, on scenes with normal-light pairs.
+
+    python -m retinexgs.bench proxy --scenes DIR... [--configs NAME...] [--views 4] [--device cpu]
+
+For a few training views per scene: LR3M's (R, L) of the dark photo; for each config, the gamma a view gets is
+the minimiser (on a grid) of that config's L_enhance on S_enh = R·(L/L_ref)^g, with L_ref the median over the
+chosen views of the config's quantile of L; the table gives the PSNR of that S_enh against the normal-light
+photo. It is what the 3D model does with perfect 2D priors and a perfect EnhancementNet, in seconds on a CPU:
+a way to compare enhancement losses before spending GPU time (it tracked our 3D runs within ~2 dB on the dev
+scenes; docs/benchmarks.md). No normal-light photo is used except for scoring.
+
+The texture split: the share of the high-pass energy (x − Gaussian blur σ = 2 px, of log luminance) of
+log S = log R + log L that lands in log L versus log R. Texture in L is what a gamma on L compresses.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Dict, List, Optional, Sequence, Tuple
+
+import torch
+import torch.nn.functional as F
+
+from retinexgs.train import losses
+
+GAMMAS = torch.linspace(0.1, 1.0, 91)
+
+
+def psnr(x: torch.Tensor, y: torch.Tensor) -> float:
+    return float(-10.0 * torch.log10(((x - y) ** 2).mean().clamp_min(1e-12)))
+
+
+def quantile(x: torch.Tensor, q: float) -> torch.Tensor:
+    flat = x.reshape(-1)
+    return flat.kthvalue(min(flat.numel(), max(1, round(q * flat.numel())))).values
+
+
+def _bchw(x: torch.Tensor) -> torch.Tensor:
+    return x.permute(2, 0, 1).unsqueeze(0)
+
+
+def proxy_gamma(R: torch.Tensor, L: torch.Tensor, S: torch.Tensor, ref: float, cfg: Dict) -> float:
+    """The grid gamma minimising ``cfg``'s L_enhance on R·(L/ref)^g ([H,W,3] R, S; [H,W,1] L)."""
+    c = cfg["loss"]
+    ln = (L / ref).clamp(1e-3, 1.0).expand_as(R)
+    best, best_g = float("inf"), float(GAMMAS[0])
+    for g in GAMMAS.tolist():
+        light = ln ** g
+        enh = (R * light).clamp(0.0, 1.0)
+        total, _ = losses.enhancement_loss(
+            _bchw(enh), _bchw(S), c["w_spa"], c["w_exp"], c["w_col"], c["exposure_E"],
+            illumination=_bchw(light) if c["exp_on"] == "illumination" else None, exp_patch=c["exp_patch"],
+            exp_form=c["exp_form"], spa_form=c["spa_form"], scale_invariant=c["enhance_scale_invariant"])
+        if float(total) < best:
+            best, best_g = float(total), g
+    return best_g
+
+
+def _blur(x: torch.Tensor, sigma: float = 2.0) -> torch.Tensor:
+    r = int(3 * sigma)
+    t = torch.arange(-r, r + 1, dtype=x.dtype)
+    k = torch.exp(-t ** 2 / (2 * sigma ** 2))
+    k = k / k.sum()
+    y = _bchw(x)
+    y = F.conv2d(F.pad(y, (r, r, 0, 0), mode="replicate"), k.view(1, 1, 1, -1))
+    y = F.conv2d(F.pad(y, (0, 0, r, r), mode="replicate"), k.view(1, 1, -1, 1))
+    return y[0].permute(1, 2, 0)
+
+
+def texture_split(R: torch.Tensor, L: torch.Tensor) -> float:
+    """Share (0..1) of the log-luminance high-pass energy of R·L that lies in L."""
+    def hp(x: torch.Tensor) -> torch.Tensor:
+        lx = torch.log(x.clamp_min(1e-3))
+        return lx - _blur(lx)
+    e_l = float(hp(L).square().sum())
+    e_r = float(hp(R.mean(-1, keepdim=True)).square().sum())
+    return e_l / max(e_l + e_r, 1e-12)
+
+
+def _views(scene_dir: Path, n: int, cfg: Dict) -> List[Tuple[torch.Tensor, torch.Tensor]]:
+    """(dark image, normal-light image) of ``n`` evenly spaced paired training views."""
+    from retinexgs.train.run import open_scene
+
+    scene = open_scene(scene_dir, cfg)
+    paired = [v for v in scene.train if v.paired_path is not None] or [v for v in scene.test if v.paired_path]
+    if not paired:
+        raise SystemExit(f"{scene_dir}: no view has a normal-light pair; the proxy needs them for scoring")
+    idx = torch.linspace(0, len(paired) - 1, min(n, len(paired))).round().long().unique().tolist()
+    return [(paired[i].image.float(), paired[i].paired_image.float()) for i in idx]
+
+
+def run(scenes: Sequence[Path], configs: Sequence[str], n_views: int, device: str,
+        betas: Sequence[float] = ()) -> str:
+    """The proxy table and the texture-split table (markdown)."""
+    from retinexgs.retinex import decompose
+    from retinexgs.train.config import load_config
+
+    cfgs = {name: load_config([] if name == "default" else [name]) for name in configs}
+    base = cfgs[configs[0]]
+    rows: Dict[str, List[str]] = {name: [] for name in configs}
+    extra: Dict[str, List[str]] = {"LR3M's display rule R·(L/max L)^(1/2.2) (`baseline_pre`'s target)": [],
+                                   "best g per view (oracle, L_ref = max)": []}
+    split_rows: Dict[str, List[str]] = {}
+    labels = []
+    for scene in scenes:
+        from retinexgs.bench.quality import scene_label
+        labels.append(scene_label(scene))
+        views = _views(Path(scene), n_views, base)
+        params = dict(base["decomposer"]["params"])
+        maps = [(S, H) + tuple(decompose(S.to(device), "lr3m", **params)) for S, H in views]
+        maps = [(S, H, R.cpu(), L.cpu()) for S, H, R, L in maps]
+        for name, cfg in cfgs.items():
+            q = cfg["model"]["enhancement"]["ref_quantile"]
+            ref = 1.0 if q is None else float(torch.stack([quantile(L, q) for *_, L in maps]).median())
+            scores, gs = [], []
+            for S, H, R, L in maps:
+                g = proxy_gamma(R, L, S, ref, cfg)
+                gs.append(g)
+                scores.append(psnr((R * (L / ref).clamp(1e-3, 1.0) ** g).clamp(0, 1), H))
+            rows[name].append(f"{sum(scores) / len(scores):.2f} (g {sum(gs) / len(gs):.2f})")
+        ref = float(torch.stack([L.max() for *_, L in maps]).median())
+        disp = [psnr((R * (L / L.max()).clamp(0, 1) ** (1 / 2.2)).clamp(0, 1), H) for _, H, R, L in maps]
+        best = [max(psnr((R * (L / ref).clamp(1e-3, 1) ** g).clamp(0, 1), H) for g in GAMMAS.tolist())
+                for _, H, R, L in maps]
+        extra["LR3M's display rule R·(L/max L)^(1/2.2) (`baseline_pre`'s target)"].append(f"{sum(disp) / len(disp):.2f}")
+        extra["best g per view (oracle, L_ref = max)"].append(f"{sum(best) / len(best):.2f}")
+        beta0 = float(params.get("beta", 0.015))
+        for beta in [beta0, *betas]:
+            if beta == beta0:
+                pairs = [(R, L) for *_, R, L in maps]
+            else:
+                pairs = [tuple(t.cpu() for t in decompose(S.to(device), "lr3m", **{**params, "beta": beta}))
+                         for S, *_ in maps]
+            share = sum(texture_split(R, L) for R, L in pairs) / len(pairs)
+            split_rows.setdefault(f"LR3M β = {beta:g}", []).append(f"{100 * share:.0f} % / {100 * (1 - share):.0f} %")
+    head = "| config (2D proxy: PSNR, mean g) | " + " | ".join(labels) + " |\n|" + "---|" * (len(labels) + 1) + "\n"
+    body = "".join(f"| `{name}` | " + " | ".join(cells) + " |\n" for name, cells in rows.items())
+    body += "".join(f"| {name} | " + " | ".join(cells) + " |\n" for name, cells in extra.items())
+    split = ("\n| texture split: high-pass share in L / in R | " + " | ".join(labels) + " |\n|"
+             + "---|" * (len(labels) + 1) + "\n"
+             + "".join(f"| {name} | " + " | ".join(cells) + " |\n" for name, cells in split_rows.items()))
+    return head + body + f"\n{n_views} training views per scene (evenly spaced), PSNR against their normal-light photos.\n" + split
+
+
+def main(argv: Sequence[str]) -> int:
+    ap = argparse.ArgumentParser(prog="python -m retinexgs.bench proxy", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scenes", nargs="+", type=Path, required=True)
+    ap.add_argument("--configs", nargs="+", default=["default", "ablations/with_col", "ablations/exp_on_image",
+                                                     "ablations/not_scale_invariant", "ablations/ref_p99", "paper"])
+    ap.add_argument("--views", type=int, default=4, help="training views per scene (default 4)")
+    ap.add_argument("--device", default="cpu", help="where LR3M runs (cpu or cuda)")
+    ap.add_argument("--betas", type=float, nargs="*", default=[0.15],
+                    help="extra LR3M β values for the texture-split table (default 0.15)")
+    args = ap.parse_args(list(argv))
+    for s in args.scenes:
+        if not s.is_dir():
+            print(f"scene folder {s} does not exist", file=sys.stderr)
+            return 2
+    print(run(args.scenes, args.configs, args.views, args.device, args.betas))
+    return 0
