@@ -8,10 +8,18 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 from typing import List, Optional
 
 from retinexgs.errors import UserError
+
+# OpenMP threads (torch's and our kernels') that finish early spin at the barrier by default. On a busy
+# machine the spinning threads take the cores the others need to finish, and a step ends up many times
+# slower than a fair share would make it (docs/benchmarks.md, "Training on a busy CPU"). Sleeping waiters
+# cost about nothing on a quiet machine. This has to be set before torch loads the OpenMP runtime, which
+# the sub-commands import lazily; a value the user exported wins.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 # Stage modules that contribute sub-commands, in the order ``--help`` lists them.
 _COMMAND_MODULES = [
@@ -24,7 +32,10 @@ _COMMAND_MODULES = [
 
 def build_parser() -> argparse.ArgumentParser:
     """Build the top-level parser with every available sub-command."""
-    parser = argparse.ArgumentParser(prog="retinexgs", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="retinexgs",
+        description="RetinexGS: normally-lit, 3D-consistent novel views from multi-view photos taken in the "
+                    "dark. One sub-command per stage, each with its own --help.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in _COMMAND_MODULES:
         try:

@@ -1,6 +1,23 @@
-"""Shared test fixtures."""
-import pytest
-import torch
+"""Shared test fixtures, and a guard that the package under test has its compiled kernels."""
+import os
+
+# Set before torch loads its OpenMP runtime (as the CLI does): waiting threads sleep instead of spinning,
+# which keeps the suite from stalling on a busy 2-core CI machine.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import pytest  # noqa: E402
+import torch  # noqa: E402
+
+
+def pytest_sessionstart(session: pytest.Session) -> None:
+    """Stop at once, with the install instruction, when ``retinexgs`` (e.g. the source folder on sys.path)
+    has no built ``_C``: otherwise nearly every test fails or errors with the same import error."""
+    from retinexgs.render._backend import kernels
+
+    try:
+        kernels()
+    except ImportError as exc:
+        pytest.exit(str(exc), returncode=pytest.ExitCode.USAGE_ERROR)
 
 
 @pytest.fixture

@@ -91,7 +91,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "Cached entries are reused unless the photo or the parameters changed.")
     p.add_argument("--data", required=True, metavar="SCENE", help="scene folder")
     p.add_argument("--method", default="lr3m", choices=available_methods(), help="decomposer (default: lr3m)")
-    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="where to compute (default: cpu)")
+    p.add_argument("--device", default="auto", choices=["cpu", "cuda", "auto"],
+                   help="where to compute: cpu, cuda or auto (default: cuda when available)")
     p.add_argument("--cache", metavar="DIR", default=None,
                    help="cache root (default: SCENE/retinex_cache); entries go in DIR/<method>-<hash>/")
     p.add_argument("--images-subdir", default="low", metavar="NAME",
