@@ -15,10 +15,10 @@ from typing import List, Optional
 from retinexgs.errors import UserError
 
 # OpenMP threads (torch's and our kernels') that finish early spin at the barrier by default. On a busy
-# machine the spinning threads take the cores the others need to finish, and a step ends up many times
-# slower than a fair share would make it (docs/benchmarks.md, "Training on a busy CPU"). Sleeping waiters
-# cost about nothing on a quiet machine. This has to be set before torch loads the OpenMP runtime, which
-# the sub-commands import lazily; a value the user exported wins.
+# machine the spinning threads take the cores the others need to finish, and training ran 5-7x slower
+# than with sleeping waiters (docs/benchmarks.md, "Training on a busy CPU"); a sleeping waiter costs one
+# wake-up per parallel region. This has to be set before torch loads the OpenMP runtime, which the
+# sub-commands import lazily; a value the user exported wins.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 # Stage modules that contribute sub-commands, in the order ``--help`` lists them.
