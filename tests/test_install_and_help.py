@@ -24,8 +24,7 @@ from retinexgs.train.run import train_run
 
 REPO = Path(__file__).resolve().parent.parent
 README = (REPO / "README.md").read_text()
-TINY = ["steps=4", "checkpoint.every=4", "log.every=1", "model.sh_degree=1", "model.max_init_points=200",
-        "loss.enhance_from=2", "density.start=1", "density.every=2", "density.stop=3", "decomposer.method=lime"]
+TINY = ["steps=4", "model.max_init_points=200", "decomposer.method=lime"]  # otherwise the default config
 
 
 def _bash_blocks(markdown: str, heading: str) -> list:
@@ -35,10 +34,9 @@ def _bash_blocks(markdown: str, heading: str) -> list:
                                                                                    re.S)]
 
 
-def _env_without(*names: str) -> dict:
-    env = {k: v for k, v in os.environ.items() if k not in names}
-    env["PYTHONPATH"] = str(REPO)
-    return env
+def _env(without=(), **extra: str) -> dict:
+    """This process' environment less ``without``, plus ``extra``."""
+    return {**{k: v for k, v in os.environ.items() if k not in without}, **extra}
 
 
 # ---- the README's set-up is what CI runs ----------------------------------------------------------------
@@ -65,7 +63,7 @@ def test_tests_stop_at_once_with_the_install_instruction_when_the_kernels_are_no
     shutil.copy(REPO / "tests" / "conftest.py", tmp_path / "tests")
     (tmp_path / "tests" / "test_one.py").write_text("def test_one():\n    pass\n")
     p = subprocess.run([sys.executable, "-m", "pytest", "tests", "-q", "-p", "no:cacheprovider"], cwd=tmp_path,
-                       env=_env_without("PYTHONPATH"), capture_output=True, text=True, timeout=120)
+                       env=_env(without=["PYTHONPATH"]), capture_output=True, text=True, timeout=120)
     out = p.stdout + p.stderr
     assert p.returncode == pytest.ExitCode.USAGE_ERROR, out
     # Without an install: _C cannot be loaded; beside an editable install of the repository, the copy would
@@ -119,15 +117,16 @@ def test_asking_for_missing_tensorboard_and_lpips_says_so_once(tiny_scene, tmp_p
 def _openmp_settings(env: dict) -> str:
     """What libgomp reports at start-up (OMP_DISPLAY_ENV) in a ``retinexgs`` process that loads torch."""
     p = subprocess.run([sys.executable, "-m", "retinexgs", "eval", "--run", "no-such-run", "--device", "cpu"],
-                       env=dict(env, OMP_DISPLAY_ENV="VERBOSE"), capture_output=True, text=True, timeout=120)
+                       env=dict(env, OMP_DISPLAY_ENV="VERBOSE", PYTHONPATH=str(REPO)), capture_output=True,
+                       text=True, timeout=120)
     assert p.returncode == 2 and "no-such-run" in p.stderr  # torch was loaded, then the run refused
     return p.stdout + p.stderr
 
 
 def test_cli_threads_wait_passively_unless_the_user_says_otherwise():
     # libgomp's default shows as 'PASSIVE' too, but spins 300000 times before sleeping; passive spins 0 times.
-    assert "GOMP_SPINCOUNT = '0'" in _openmp_settings(_env_without("OMP_WAIT_POLICY"))
-    assert "OMP_WAIT_POLICY = 'ACTIVE'" in _openmp_settings(dict(_env_without(), OMP_WAIT_POLICY="ACTIVE"))
+    assert "GOMP_SPINCOUNT = '0'" in _openmp_settings(_env(without=["OMP_WAIT_POLICY"]))
+    assert "OMP_WAIT_POLICY = 'ACTIVE'" in _openmp_settings(_env(OMP_WAIT_POLICY="ACTIVE"))
 
 
 def test_kernels_use_torch_thread_count():
