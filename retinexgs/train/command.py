@@ -41,7 +41,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description="Generate a small synthetic dark scene with its normal-light truth "
                                    "(OUT/scene), train RetinexGS on it with configs/demo.yaml (OUT/run), then "
                                    "report the test views' PSNR/SSIM against the truth next to the dark "
-                                   "input's. About a minute on two CPU cores; nothing is downloaded.")
+                                   "input's. One to two minutes on two CPU cores; nothing is downloaded.")
     p.add_argument("--out", type=Path, default=Path("retinexgs-demo"), help="folder for the scene and the run")
     p.add_argument("--steps", type=int, default=None, help="training steps (default: configs/demo.yaml)")
     p.add_argument("--overwrite", action="store_true", help="replace an earlier demo folder at --out")
