@@ -8,18 +8,14 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import os
 import sys
 from typing import List, Optional
 
 from retinexgs.errors import UserError
+from retinexgs.openmp import bound_openmp_spinning
 
-# OpenMP threads (torch's and our kernels') that finish early spin at the barrier by default. On a busy
-# machine the spinning threads take the cores the others need to finish, and training ran 5-7x slower
-# than with sleeping waiters (docs/benchmarks.md, "Training on a busy CPU"); a sleeping waiter costs one
-# wake-up per parallel region. This has to be set before torch loads the OpenMP runtime, which the
-# sub-commands import lazily; a value the user exported wins.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+# Before any sub-command imports torch (they do so lazily): idle OpenMP threads spin briefly, then sleep.
+bound_openmp_spinning()
 
 # Stage modules that contribute sub-commands, in the order ``--help`` lists them.
 _COMMAND_MODULES = [

@@ -1,10 +1,10 @@
 """Shared test fixtures, and a guard that the package under test has its compiled kernels."""
-import os
 from pathlib import Path
 
-# Set before torch loads its OpenMP runtime (as the CLI does): waiting threads sleep instead of spinning,
-# which keeps the suite from stalling on a busy 2-core CI machine.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+from retinexgs.openmp import bound_openmp_spinning
+
+# Before torch loads its OpenMP runtime, as the CLI does: a busy 2-core CI machine does not stall the suite.
+bound_openmp_spinning()
 
 import pytest  # noqa: E402
 import torch  # noqa: E402

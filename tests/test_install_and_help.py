@@ -17,6 +17,7 @@ import torch
 from retinexgs.cli import build_parser, main
 from retinexgs.demo.synthetic import make_demo_scene
 from retinexgs.evaluate.evaluate import save_png
+from retinexgs.openmp import SPIN_COUNT
 from retinexgs.render import get_num_threads
 from retinexgs.retinex.cache import resolve_device
 from retinexgs.train.config import load_config
@@ -123,10 +124,13 @@ def _openmp_settings(env: dict) -> str:
     return p.stdout + p.stderr
 
 
-def test_cli_threads_wait_passively_unless_the_user_says_otherwise():
-    # libgomp's default shows as 'PASSIVE' too, but spins 300000 times before sleeping; passive spins 0 times.
-    assert "GOMP_SPINCOUNT = '0'" in _openmp_settings(_env(without=["OMP_WAIT_POLICY"]))
-    assert "OMP_WAIT_POLICY = 'ACTIVE'" in _openmp_settings(_env(OMP_WAIT_POLICY="ACTIVE"))
+def test_cli_bounds_openmp_spinning_unless_the_user_chose_a_policy():
+    # libgomp's default would show GOMP_SPINCOUNT = '300000' (about 3 ms of spinning per wait).
+    mine = ["OMP_WAIT_POLICY", "GOMP_SPINCOUNT"]
+    assert f"GOMP_SPINCOUNT = '{SPIN_COUNT}'" in _openmp_settings(_env(without=mine))
+    assert "OMP_WAIT_POLICY = 'ACTIVE'" in _openmp_settings(_env(without=mine, OMP_WAIT_POLICY="ACTIVE"))
+    assert "GOMP_SPINCOUNT = '0'" in _openmp_settings(_env(without=mine, OMP_WAIT_POLICY="PASSIVE"))
+    assert "GOMP_SPINCOUNT = '42'" in _openmp_settings(_env(without=mine, GOMP_SPINCOUNT="42"))
 
 
 def test_kernels_use_torch_thread_count():
