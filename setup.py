@@ -63,12 +63,14 @@ setup(
     description="3D Retinex Gaussian splatting: normally-lit, 3D-consistent novel views from dark photos",
     packages=find_packages(include=["retinexgs", "retinexgs.*"]),
     python_requires=">=3.9",
-    install_requires=["torch>=2.1", "numpy", "pyyaml", "tqdm", "pillow", "opencv-contrib-python-headless>=4.8", "pydantic>=2"],
+    # pycolmap reads COLMAP models and runs SfM; plyfile reads and writes the exported PLY;
+    # pydantic checks the config (retinexgs/train/schema.py).
+    install_requires=["torch>=2.1", "numpy", "pyyaml", "tqdm", "pillow", "opencv-contrib-python-headless>=4.8",
+                      "pycolmap>=4.0", "plyfile", "pydantic>=2"],
     extras_require={
-        "test": ["pytest", "hypothesis", "scipy", "pycolmap>=4.0", "opencv-contrib-python-headless>=4.8", "plyfile",
-                 "imageio[ffmpeg]"],
-        "data": ["pycolmap>=4.0", "opencv-contrib-python-headless>=4.8"],
-        "io": ["imageio[ffmpeg]", "plyfile", "tensorboard"],
+        "test": ["pytest", "hypothesis", "scipy", "imageio[ffmpeg]"],
+        # Video paths (render --path) and TensorBoard logging (log.tensorboard, off by default).
+        "io": ["imageio[ffmpeg]", "tensorboard"],
     },
     entry_points={"console_scripts": ["retinexgs=retinexgs.cli:main"]},
     ext_modules=[_extension()],

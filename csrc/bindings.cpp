@@ -1,6 +1,6 @@
 // The only torch-aware file: argument checks, output allocation, dispatch to the CPU or CUDA launchers
 // (csrc/include/rgs/kernels.h), and the pybind11 module `retinexgs._C`.
-#include <omp.h>
+#include <ATen/Parallel.h>
 #include <torch/extension.h>
 
 #include <sstream>
@@ -32,9 +32,11 @@ std::string cat(const Args&... args) {
     if (!(cond)) throw pybind11::value_error(cat(__VA_ARGS__))
 #define RGS_CHECK_TYPE(cond, ...) \
     if (!(cond)) throw pybind11::type_error(cat(__VA_ARGS__))
-int g_num_threads = 0;  // 0: OpenMP's default
+// 0: as many threads as torch's intra-op pool (torch.set_num_threads), so the kernels and torch's own ops
+// share one thread count, whichever OpenMP runtime torch was built with.
+int g_num_threads = 0;
 
-int num_threads() { return g_num_threads > 0 ? g_num_threads : omp_get_max_threads(); }
+int num_threads() { return g_num_threads > 0 ? g_num_threads : at::get_num_threads(); }
 
 // ---- checks ------------------------------------------------------------------------------------
 void check_tensor(const Tensor& t, const char* name, std::vector<int64_t> shape, const Tensor& like) {
@@ -431,7 +433,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("rasterize_backward", &rasterize_backward);
     m.def("sh_forward", &sh_forward);
     m.def("sh_backward", &sh_backward);
-    m.def("set_num_threads", [](int n) { g_num_threads = n; }, "OpenMP threads for the CPU kernels (0: default)");
+    m.def("set_num_threads", [](int n) { g_num_threads = n; },
+          "OpenMP threads for the CPU kernels (0: torch.get_num_threads())");
     m.def("get_num_threads", &num_threads);
 #ifdef RGS_WITH_CUDA
     m.attr("has_cuda") = true;

@@ -12,6 +12,10 @@ import sys
 from typing import List, Optional
 
 from retinexgs.errors import UserError
+from retinexgs.openmp import bound_openmp_spinning
+
+# Before any sub-command imports torch (they do so lazily): idle OpenMP threads spin briefly, then sleep.
+bound_openmp_spinning()
 
 # Stage modules that contribute sub-commands, in the order ``--help`` lists them.
 _COMMAND_MODULES = [
@@ -24,7 +28,10 @@ _COMMAND_MODULES = [
 
 def build_parser() -> argparse.ArgumentParser:
     """Build the top-level parser with every available sub-command."""
-    parser = argparse.ArgumentParser(prog="retinexgs", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="retinexgs",
+        description="RetinexGS: normally-lit, 3D-consistent novel views from multi-view photos taken in the "
+                    "dark. One sub-command per stage, each with its own --help.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in _COMMAND_MODULES:
         try:

@@ -1,6 +1,33 @@
-"""Shared test fixtures."""
-import pytest
-import torch
+"""Shared test fixtures, and a guard that the package under test has its compiled kernels."""
+from pathlib import Path
+
+from retinexgs.openmp import bound_openmp_spinning
+
+# Before torch loads its OpenMP runtime, as the CLI does: a busy 2-core CI machine does not stall the suite.
+bound_openmp_spinning()
+
+import pytest  # noqa: E402
+import torch  # noqa: E402
+
+
+def pytest_sessionstart(session: pytest.Session) -> None:
+    """Stop at once, with the install instruction, when the ``retinexgs`` under test (e.g. the source folder
+    on sys.path) has no built ``_C`` (otherwise nearly every test fails with the same import error), or
+    borrows another copy's ``_C`` through an editable install elsewhere (the kernels would not be the
+    ones of the sources under test)."""
+    import retinexgs
+    from retinexgs.render._backend import kernels
+
+    try:
+        C = kernels()
+    except ImportError as exc:
+        pytest.exit(str(exc), returncode=pytest.ExitCode.USAGE_ERROR)
+    here = Path(retinexgs.__file__).resolve().parent
+    if Path(C.__file__).resolve().parent != here:
+        pytest.exit(f"the tests import retinexgs from {here} but its compiled kernels from {C.__file__}, "
+                    f"another copy's build. From {here.parent}, install with "
+                    '`pip install --no-build-isolation -e ".[test]"` (or build the kernels in place: '
+                    "`python setup.py build_ext --inplace`).", returncode=pytest.ExitCode.USAGE_ERROR)
 
 
 @pytest.fixture

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import functools
+from pathlib import Path
 from types import ModuleType
 
 
@@ -13,16 +14,20 @@ def kernels() -> ModuleType:
     try:
         from retinexgs import _C
     except ImportError as exc:
+        import retinexgs
+
+        where = Path(retinexgs.__file__).resolve().parent
         raise ImportError(
-            "retinexgs._C (the compiled rasterizer) could not be loaded: "
-            f"{exc}. Install the package with `pip install --no-build-isolation .` "
-            "so that setup.py builds it against the installed torch."
+            f"retinexgs._C (the compiled rasterizer) could not be loaded from {where}: {exc}. "
+            "From the source folder (the one holding setup.py), install with "
+            "`pip install --no-build-isolation -e \".[test]\"`, which builds it in place against the "
+            "installed torch (or build it alone: `python setup.py build_ext --inplace`)."
         ) from exc
     return _C
 
 
 def set_num_threads(n: int) -> None:
-    """Set the OpenMP thread count of the CPU kernels (0 restores OpenMP's default)."""
+    """Set the OpenMP thread count of the CPU kernels (0, the default: follow ``torch.get_num_threads()``)."""
     if not isinstance(n, int) or n < 0:
         raise ValueError(f"num_threads must be a non-negative integer, got {n!r}")
     kernels().set_num_threads(n)

@@ -130,7 +130,10 @@ def _save_preview(path: Path, r: torch.Tensor, l: torch.Tensor, gamma: float = 2
 
 
 def resolve_device(device: Union[str, torch.device, None]) -> torch.device:
-    """``cpu``/``cuda``/``cuda:N`` -> torch.device; UserError if CUDA is asked for but not available."""
+    """``cpu``/``cuda``/``cuda:N``/``auto`` (CUDA when available) -> torch.device; UserError if CUDA is asked
+    for but not available."""
+    if device == "auto":
+        device = "cuda" if torch.cuda.is_available() else "cpu"
     dev = torch.device(device or "cpu")
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise UserError("--device cuda was requested but torch reports no usable CUDA device "

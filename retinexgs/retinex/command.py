@@ -134,7 +134,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--data", required=True, metavar="SCENE", help="scene folder")
     p.add_argument("--method", default=None, choices=available_methods(),
                    help="decomposer (default: decomposer.method of the config, lr3m)")
-    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="where to compute (default: cpu)")
+    p.add_argument("--device", default="auto", choices=["cpu", "cuda", "auto"],
+                   help="where to compute: cpu, cuda or auto (default: cuda when available)")
     p.add_argument("--cache", metavar="DIR", default=None,
                    help="the caches' folder, as train's --set data.cache_dir=DIR (default: in SCENE: "
                         "SCENE/retinex_cache); entries go in DIR/retinex/<method>-<hash>/")
