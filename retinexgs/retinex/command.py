@@ -125,7 +125,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "decompose", help="split each low-light photo of a scene into reflectance R and illumination L (cached)",
         description="Decompose the training photos of SCENE into reflectance and illumination and cache the "
-                    "results where `train` looks for them (same settings: --config/--set as for train). A "
+                    "results where train looks for them (same settings: --config/--set as for train). A "
                     "scene with poses (transforms JSON or COLMAP model) is loaded as train loads it "
                     "(undistorted, downscaled by data.downscale) and its train views are decomposed; a "
                     "folder of photos without poses has every .jpg/.jpeg/.png in SCENE/<images-subdir>/ "
