@@ -6,7 +6,7 @@ For a few training views per scene: LR3M's (R, L) of the dark photo; for each co
 the minimiser (on a grid) of that config's L_enhance on S_enh = R·(L/L_ref)^g, with L_ref the median over the
 chosen views of the config's quantile of L; the table gives the PSNR of that S_enh against the normal-light
 photo. It is what the 3D model does with perfect 2D priors and a perfect EnhancementNet, in seconds on a CPU:
-a way to compare enhancement losses before spending GPU time (it tracked our 3D runs within ~2 dB on the dev
+a way to compare enhancement losses before spending GPU time (it tracked our 3D runs within 2.5 dB on the dev
 scenes; docs/benchmarks.md). No normal-light photo is used except for scoring.
 
 The texture split: the share of the high-pass energy (x − Gaussian blur σ = 2 px, of log luminance) of

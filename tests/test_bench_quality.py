@@ -1,0 +1,71 @@
+"""The quality benchmark's bookkeeping (seeds, the mean ± std table, contact sheets) and the 2D proxy's pieces,
+on fabricated run folders: no training."""
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from retinexgs.bench import proxy, quality
+from retinexgs.train.config import load_config
+
+
+def test_parse_seeds():
+    assert quality.parse_seeds("3") == [0, 1, 2]
+    assert quality.parse_seeds("0,") == [0]
+    assert quality.parse_seeds("1,2") == [1, 2]
+    with pytest.raises(ValueError):
+        quality.parse_seeds("0")
+
+
+def _fake_run(job, psnr, ssim, width=8, height=6, panels=5):
+    job.run.mkdir(parents=True)
+    views = []
+    for k, name in enumerate(("a", "b")):
+        img = np.zeros((height, width * panels, 3), np.uint8)
+        for p in range(panels):
+            img[:, p * width:(p + 1) * width] = 40 * p + k
+        (job.run / "renders" / "test").mkdir(parents=True, exist_ok=True)
+        Image.fromarray(img).save(job.run / "renders" / "test" / f"{name}.png")
+        views.append({"view": f"{name}.jpg"})
+    job.metrics_path.write_text(json.dumps({
+        "mean": {"psnr": psnr, "ssim": ssim, "low_psnr": 7.0, "low_ssim": 0.2}, "views": views,
+        "panels": " | ".join(["x"] * panels), "train": {"train_seconds": 10.0}}))
+
+
+def test_table_mean_and_sample_std_over_seeds_and_scenes(tmp_path):
+    scenes = [tmp_path / "s1", tmp_path / "s2"]
+    jobs = quality.plan(scenes, ["default", "ablations/baseline_pre"], [0, 1], tmp_path / "runs")
+    values = {("s1", "default"): [20.0, 22.0], ("s2", "default"): [24.0, 26.0],
+              ("s1", "ablations/baseline_pre"): [18.0, 18.0], ("s2", "ablations/baseline_pre"): [19.0, 19.0]}
+    for j in jobs:
+        _fake_run(j, values[(j.scene.name, j.config)][j.seed], 0.5 + 0.1 * j.seed,
+                  panels=5 if j.config == "default" else 3)
+    md = quality.table(jobs, ["default", "ablations/baseline_pre"])
+    row = next(line for line in md.splitlines() if line.startswith("| `default`"))
+    assert f"21.00 ± {math.sqrt(2):.2f}" in row and "25.00 ± 1.41" in row
+    # the mean column: each seed's mean over scenes (22, 24) -> 23 ± 1.41
+    assert row.rstrip(" |").endswith(f"23.00 ± {math.sqrt(2):.2f} / 0.550 ± 0.071")
+    assert "| low input | 7.00 / 0.200 | 7.00 / 0.200 |" in md
+    sheet = quality.contact_sheet(jobs, ["default", "ablations/baseline_pre"], "s1", tmp_path / "sheet.png")
+    img = np.asarray(Image.open(sheet))
+    assert img.shape[1] == 8 * 4  # low | default | baseline | truth
+    top = 14  # the label strip
+    # columns: low input (panel 0), each config's output (panel 1), the truth (last panel) — view "a" is row 0
+    assert img[top + 2, 1, 0] == 0 and img[top + 2, 8 + 1, 0] == 40 and img[top + 2, 24 + 1, 0] == 80
+
+
+def test_texture_split_and_proxy_gamma():
+    torch.manual_seed(0)
+    tex = 0.2 + 0.6 * torch.rand(32, 32, 1)
+    flat = torch.full((32, 32, 1), 0.5)
+    assert proxy.texture_split(flat.expand(32, 32, 3), tex) == pytest.approx(1.0)
+    assert proxy.texture_split(tex.expand(32, 32, 3), flat) == pytest.approx(0.0, abs=1e-9)
+    # With the default's loss (whole-image exposure of the light, L_col off) a uniform light v/ref = 0.25 gets
+    # the gamma whose light is E = 0.6 on average: g = log 0.6 / log 0.25 ≈ 0.37 (L_spa is scale-invariant: 0).
+    cfg = load_config([])
+    R = torch.full((32, 32, 3), 0.7)
+    g = proxy.proxy_gamma(R, torch.full((32, 32, 1), 0.1), R * 0.1, 0.4, cfg)
+    assert g == pytest.approx(math.log(0.6) / math.log(0.25), abs=0.006)
