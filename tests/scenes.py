@@ -44,3 +44,24 @@ def random_gaussians(n: int, C: int = 3, seed: int = 0, dtype=torch.float64, spr
     opacities = torch.rand(n, generator=g, dtype=dtype) * (ohi - olo) + olo
     colors = torch.rand(n, C, generator=g, dtype=dtype)
     return means, quats, scales, opacities, colors
+
+
+# A run trained for 3 steps on a 24×18 demo scene: the prepared input of the CLI and resume tests.
+TINY_RUN = ["steps=3", "checkpoint.every=3", "log.every=1", "log.tensorboard=false", "model.sh_degree=1",
+            "model.max_init_points=300", "decomposer.method=lime", "eval.lpips=false"]
+
+
+def tiny_trained_run(base):
+    """(scene folder, run folder) under ``base``: a tiny demo scene and a run of it trained with TINY_RUN."""
+    from retinexgs.demo.synthetic import make_demo_scene
+    from retinexgs.train.run import train_run
+
+    scene = make_demo_scene(base / "scene", n_train=3, n_test=1, width=24, height=18, n_points=200)
+    run = base / "run"
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)  # tiny tensors: one thread avoids oversubscription stalls
+    try:
+        train_run(scene, run, ["demo"], TINY_RUN, "cpu", progress=False, log=lambda s: None)
+    finally:
+        torch.set_num_threads(n)
+    return scene, run

@@ -22,13 +22,11 @@ import torch
 import yaml
 
 from retinexgs.cli import build_parser, main
-from retinexgs.demo.synthetic import make_demo_scene
 from retinexgs.train.checkpoint import latest_checkpoint
-from retinexgs.train.run import train_run
+from scenes import TINY_RUN, tiny_trained_run
 
 REPO = Path(__file__).resolve().parent.parent
-TINY = ["steps=3", "checkpoint.every=3", "log.every=1", "log.tensorboard=false", "model.sh_degree=1",
-        "model.max_init_points=300", "decomposer.method=lime", "eval.lpips=false"]
+TINY = TINY_RUN
 NOT_AN_IMAGE = b"these bytes are not an image\n" * 4
 
 
@@ -37,15 +35,7 @@ NOT_AN_IMAGE = b"these bytes are not an image\n" * 4
 @pytest.fixture(scope="module")
 def originals(tmp_path_factory):
     """A tiny scene and a tiny trained run (3 steps), copied into each case's folder as needed."""
-    base = tmp_path_factory.mktemp("originals")
-    scene = make_demo_scene(base / "scene", n_train=3, n_test=1, width=24, height=18, n_points=200)
-    run = base / "run"
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        train_run(scene, run, ["demo"], TINY, "cpu", progress=False, log=lambda s: None)
-    finally:
-        torch.set_num_threads(n)
+    scene, run = tiny_trained_run(tmp_path_factory.mktemp("originals"))
     return {"scene": scene, "run": run}
 
 

@@ -7,7 +7,6 @@ import shutil
 from pathlib import Path
 
 import pytest
-import torch
 import yaml
 
 from retinexgs.cli import main
@@ -19,25 +18,16 @@ from retinexgs.train.config import load_config
 from retinexgs.train.resume import run_lock
 from retinexgs.train.run import train_run
 from retinexgs.train.trainer import Trainer
+from scenes import TINY_RUN, tiny_trained_run
 
-TINY = ["steps=3", "checkpoint.every=3", "log.every=1", "log.tensorboard=false", "model.sh_degree=1",
-        "model.max_init_points=300", "decomposer.method=lime", "eval.lpips=false"]
+TINY = TINY_RUN
 T = ["--device", "cpu", "--quiet"]
 
 
 @pytest.fixture(scope="module")
 def originals(tmp_path_factory):
     """A tiny scene and a run of it trained for 3 steps."""
-    base = tmp_path_factory.mktemp("originals")
-    scene = make_demo_scene(base / "scene", n_train=3, n_test=1, width=24, height=18, n_points=200)
-    run = base / "run"
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        train_run(scene, run, ["demo"], TINY, "cpu", progress=False, log=lambda s: None)
-    finally:
-        torch.set_num_threads(n)
-    return scene, run
+    return tiny_trained_run(tmp_path_factory.mktemp("originals"))
 
 
 @pytest.fixture
