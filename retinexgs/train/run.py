@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import contextlib
 from pathlib import Path
-from typing import Callable, Dict, Iterable, Optional, Tuple
+from typing import Callable, Dict, Iterable, Optional, Tuple, Union
 
 import torch
 
@@ -12,6 +12,7 @@ from retinexgs.errors import UserError
 from retinexgs.evaluate.evaluate import evaluate
 from retinexgs.model.gaussians import GaussianModel
 from retinexgs.model.retinex_model import RetinexGSModel
+from retinexgs.render import Camera
 from retinexgs.train.checkpoint import latest_checkpoint, load_checkpoint
 from retinexgs.train.config import load_config
 from retinexgs.train.resume import (check_same_views, check_writable_folder, is_empty_run_folder, read_run_config,
@@ -121,13 +122,15 @@ def _train_and_evaluate(trainer: Trainer, cfg: Dict, scene: Scene, run_dir: Path
 
 
 def render_function(model: RetinexGSModel, cfg: Dict, degree: int, exposure: Optional[float] = None,
-                    gamma: Optional[float] = None) -> Callable[[View], Dict]:
-    """view -> the model's output maps; for the post-enhancement baseline, LR3M enhances the render."""
+                    gamma: Optional[float] = None) -> Callable[[Union[View, Camera]], Dict]:
+    """view (or a renderer camera) -> the model's output maps; for the post-enhancement baseline, LR3M
+    enhances the render."""
     model.eval()
 
-    def fn(view: View) -> Dict:
+    def fn(view: Union[View, Camera]) -> Dict:
+        camera = view if isinstance(view, Camera) else view_camera(view)
         with torch.no_grad():
-            res = model.render(view_camera(view), degree, exposure=exposure, gamma=gamma)
+            res = model.render(camera, degree, exposure=exposure, gamma=gamma)
             if cfg["method"] == "post":
                 from retinexgs.retinex import decompose, enhance_for_viewing
                 method = cfg["decomposer"]["method"] if cfg["decomposer"]["method"] != "none" else "lr3m"
