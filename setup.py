@@ -71,6 +71,8 @@ setup(
         "test": ["pytest", "hypothesis", "scipy", "imageio[ffmpeg]"],
         # Video paths (render --path) and TensorBoard logging (log.tensorboard, off by default).
         "io": ["imageio[ffmpeg]", "tensorboard"],
+        # The web viewer (retinexgs view).
+        "view": ["viser>=1.1"],
     },
     entry_points={"console_scripts": ["retinexgs=retinexgs.cli:main"]},
     ext_modules=[_extension()],
