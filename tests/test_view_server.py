@@ -41,7 +41,6 @@ def test_bad_address_is_refused(run_dir, capsys, args, message):
 
 
 def test_not_a_run_folder(tmp_path, capsys):
-    pytest.importorskip("viser")
     assert main(["view", "--run", str(tmp_path), "--device", "cpu"]) == 2
     assert "is not a run folder" in capsys.readouterr().err
 

@@ -186,13 +186,13 @@ def check_address(host: str, port: int) -> None:
 
 def view_run(run_dir, host: str = "127.0.0.1", port: int = 8080, device: Optional[str] = None,
              log: Callable[[str], None] = print, block: bool = True) -> RunViewer:
-    """Serve ``run_dir`` in the browser; with ``block``, until Ctrl-C. Checks viser and the address before
-    loading the run."""
+    """Serve ``run_dir`` in the browser; with ``block``, until Ctrl-C. The address, then the run, then the
+    viser install are checked, each with a UserError."""
     check_address(host, port)
-    import_viser()
     from retinexgs.train.run import load_run
     from retinexgs.train.trainer import active_sh_degree
     cfg, scene, model, step = load_run(run_dir, device)
+    import_viser()
     renderer = FrameRenderer(model, cfg, active_sh_degree(cfg, step), scene.train)
     on_gpu = model.gaussians.means.is_cuda
     viewer = RunViewer(renderer, snap_cameras(scene), host, port, default_scale=1.0 if on_gpu else 0.5, log=log)
