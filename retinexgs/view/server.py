@@ -62,14 +62,24 @@ class _Client:
         client.camera.on_update(lambda _: self.request(moving=True))
         self.thread = threading.Thread(target=self._loop, name=f"retinexgs-view-{client.client_id}", daemon=True)
         self.thread.start()
-        # viser calls connect after the client's first camera message, possibly after that message's camera
-        # callbacks ran (without ours): draw the first frame now.
+        # Start at the first training camera (viser's default camera knows nothing of the scene). viser calls
+        # connect after the client's first camera message, possibly after that message's camera callbacks ran
+        # (without ours): draw the first frame now either way.
+        if names:
+            self.snap_to(names[0])
         self.request(moving=False)
 
     def settings(self) -> FrameSettings:
+        """The controls' values; a number typed into a slider's box is clamped to the slider's range (the
+        browser sends the intermediate values of typing, e.g. 0 on the way to 0.3). NaN stays NaN and is
+        refused by the renderer."""
         key = {v: k for k, v in _LABELS.items()}[self.map.value]
-        gamma = float(self.gamma.value) if self.use_gamma.value else None
-        return FrameSettings(map=key, exposure=float(self.exposure.value), gamma=gamma, scale=float(self.scale.value))
+
+        def clamped(handle) -> float:
+            return max(min(float(handle.value), handle.max), handle.min)
+
+        gamma = clamped(self.gamma) if self.use_gamma.value else None
+        return FrameSettings(map=key, exposure=clamped(self.exposure), gamma=gamma, scale=clamped(self.scale))
 
     def request(self, moving: bool) -> None:
         self.moving = self.moving or moving
@@ -117,6 +127,7 @@ class _Client:
             self.client.scene.set_background_image(frame, format="jpeg", jpeg_quality=90)
             self.frame_time.value = f"{ms:.0f} ms ({frame.shape[1]}x{frame.shape[0]}{', moving' if low else ''})"
             self.viewer.frames += 1
+            self.viewer.last_frame = frame
         except Exception as exc:  # a viewer must survive junk from a client and renderer errors
             self.errors += 1
             if self.errors <= 3:
@@ -135,6 +146,7 @@ class RunViewer:
         self.default_scale = default_scale
         self.stopped = False
         self.frames = 0
+        self.last_frame = None  # the newest frame sent to any client (for tests and diagnostics)
         self._clients: Dict[int, _Client] = {}
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
         self.server.scene.set_up_direction(average_up(list(cameras.values())) if cameras else "+z")
