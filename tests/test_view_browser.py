@@ -71,7 +71,8 @@ def set_number(driver, label, value):
     """Type ``value`` into the number box of the GUI row labelled ``label``."""
     from selenium.webdriver.common.by import By
     from selenium.webdriver.common.keys import Keys
-    row = driver.find_element(By.XPATH, f"//*[normalize-space(text())='{label}']/ancestor::*[.//input[@type='text']][1]")
+    row = driver.find_element(By.XPATH,
+                              f"//*[normalize-space(text())='{label}']/ancestor::*[.//input[@type='text']][1]")
     box = row.find_element(By.XPATH, ".//input[@type='text']")
     box.send_keys(Keys.CONTROL, "a")
     box.send_keys(str(value), Keys.ENTER)

@@ -49,12 +49,13 @@ def _checkpoint_step(run_dir: Path) -> int:
 def train_run(scene_path: Optional[Path], run_dir: Path, config_files: Iterable[str] = (),
               overrides: Iterable[str] = (), device: Optional[str] = None, resume: bool = False,
               progress: bool = True, log: Callable[[str], None] = print,
-              relocate_scene: bool = False) -> Optional[Dict]:
+              relocate_scene: bool = False, view: Optional[Tuple[str, int]] = None) -> Optional[Dict]:
     """Train (or resume) a run and evaluate it; returns the test metrics (None when there are none).
 
     Everything cheap is checked before the scene is loaded: the config (schema and schedule), ``--out``
     (a writable folder, empty for a new run), and on resume the run's lock, the keys a resume may change and
-    ``--data`` against the run's scene. Overrides given on resume are recorded in the run's config.yaml."""
+    ``--data`` against the run's scene. Overrides given on resume are recorded in the run's config.yaml.
+    ``view`` = (host, port): serve the model in the web viewer while it trains (``retinexgs.view.live``)."""
     run_dir = Path(run_dir)
     device = pick_device(device)
     config_files, overrides = list(config_files), list(overrides)
@@ -101,6 +102,9 @@ def train_run(scene_path: Optional[Path], run_dir: Path, config_files: Iterable[
                 log(f"--resume: {key} {old!r} -> {new!r} (recorded in {run_dir / 'config.yaml'})")
             if relocating:
                 log(f"--relocate-scene: the run now reads its scene from {Path(scene_path).resolve()}")
+        if view is not None:
+            from retinexgs.view.live import start_live_viewer
+            stack.callback(start_live_viewer(trainer, scene, view[0], view[1], log).stop)
         return _train_and_evaluate(trainer, cfg, scene, run_dir, device, log)
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 import threading
 from dataclasses import dataclass
-from typing import Dict, Optional, Sequence
+from typing import Callable, ContextManager, Dict, Optional, Sequence, Union
 
 import numpy as np
 import torch
@@ -57,15 +57,21 @@ def _positive(name: str, value: object) -> float:
 
 
 class FrameRenderer:
-    """Renders a trained model for the viewer. ``views``: the training views (they fix the depth range, so
-    the depth colours do not change as the camera moves). Thread safe: frames render one at a time."""
+    """Renders a model for the viewer. ``views``: the training views (they fix the depth range, so the depth
+    colours do not change as the camera moves). ``degree``: the SH degree, or a function giving it (a model
+    in training). ``guard``: a context manager factory held while a frame renders (a trainer's step gate, so
+    no frame sees a half-updated model); by default a lock, so frames render one at a time."""
 
-    def __init__(self, model, cfg: Dict, degree: int, views: Sequence[View] = ()) -> None:
+    def __init__(self, model, cfg: Dict, degree: Union[int, Callable[[], int]], views: Sequence[View] = (),
+                 guard: Optional[Callable[[], ContextManager]] = None) -> None:
         self.model, self.cfg, self.degree = model, cfg, degree
         self.decomposed = cfg.get("method") == "retinexgs"
         self.maps = VIEW_MAPS if self.decomposed else BASELINE_MAPS
         self.zrange = depth_range(model, views) if views else (0.1, 10.0)
-        self._lock = threading.Lock()
+        self._guard = guard
+        if guard is None:
+            lock = threading.Lock()
+            self._guard = lambda: lock
 
     def check(self, settings: FrameSettings) -> None:
         """ValueError naming the bad setting (unknown or unavailable map, exposure/gamma not positive)."""
@@ -80,11 +86,16 @@ class FrameRenderer:
         gamma, so exposure and gamma do not apply to them."""
         self.check(settings)
         camera = viewer_to_camera(cam, settings.scale)
-        with self._lock, torch.no_grad():
+        with self._guard(), torch.no_grad():
             if settings.map == "depth":
                 return to_uint8(colorize_depth(render_depth(self.model, camera, *self.zrange).cpu()))
             gamma = settings.gamma if self.decomposed else None
             exposure = settings.exposure if self.decomposed and gamma is None else None
-            res = render_function(self.model, self.cfg, self.degree, exposure=exposure, gamma=gamma)(camera)
+            degree = self.degree() if callable(self.degree) else self.degree
+            training = self.model.training  # render_function sets eval mode; a live trainer's model gets its back
+            try:
+                res = render_function(self.model, self.cfg, degree, exposure=exposure, gamma=gamma)(camera)
+            finally:
+                self.model.train(training)
             img = self.model.normalized_illumination(res["L"]) if settings.map == "L" else res[_KEYS[settings.map]]
             return to_uint8(img)
