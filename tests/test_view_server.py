@@ -104,3 +104,29 @@ def test_server_renders_and_survives_junk_and_disconnects(run_dir):
         start = time.time()
         viewer.stop()
         assert time.time() - start < 10
+
+
+def test_cli_prints_the_url_serves_and_stops_on_ctrl_c(run_dir):
+    pytest.importorskip("viser")
+    import re
+    import signal
+    import subprocess
+
+    proc = subprocess.Popen([sys.executable, "-m", "retinexgs", "view", "--run", str(run_dir), "--port", "0",
+                             "--device", "cpu"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        url = None
+        for line in proc.stdout:  # the URL line comes once the server listens
+            m = re.search(r"retinexgs view: .* at (http://127\.0\.0\.1:\d+)", line)
+            if m:
+                url = m.group(1)
+                break
+        assert url, "no URL printed"
+        assert urllib.request.urlopen(url, timeout=5).status == 200
+        proc.send_signal(signal.SIGINT)
+        out = proc.communicate(timeout=20)[0]
+        assert proc.returncode == 0 and "Traceback" not in out, out
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
