@@ -23,6 +23,7 @@ _COMMAND_MODULES = [
     "retinexgs.retinex.command",
     "retinexgs.data.command",
     "retinexgs.export.command",
+    "retinexgs.view.command",
 ]
 
 

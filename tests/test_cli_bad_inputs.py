@@ -248,6 +248,12 @@ RENDER_EXPORT_CASES: List[Case] = [
          "step_000003.pt is unreadable", "truncated_checkpoint"),
     Case("export-malformed-config", ["export", "--run", "{root}/run", "--out", "{root}/x.ply", *T],
          "is not valid YAML", "run_bad_config"),
+    # view (issue 14): the run and the address are checked before viser is needed; more in test_view_server.py.
+    Case("view-missing-run", ["view", "--run", "{root}/missing", "--device", "cpu"], "is not a run folder"),
+    Case("view-truncated-checkpoint", ["view", "--run", "{root}/run", "--device", "cpu"],
+         "step_000003.pt is unreadable", "truncated_checkpoint"),
+    Case("view-bad-port", ["view", "--run", "{root}/run", "--device", "cpu", "--port", "99999"],
+         "--port must be 0..65535"),
 ]
 
 

@@ -16,7 +16,7 @@ import importlib.util
 import shutil
 import tempfile
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Callable, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 import torch
@@ -29,7 +29,7 @@ from retinexgs.export.common import check_enhancement_flags, check_writable_fold
 from retinexgs.export import PATH_KINDS
 from retinexgs.export.paths import camera_path
 from retinexgs.fileio import TMP_PREFIX, atomic_write
-from retinexgs.render import rasterize_gaussians
+from retinexgs.render import Camera, rasterize_gaussians
 from retinexgs.train.run import load_run, render_function
 from retinexgs.train.trainer import active_sh_degree, view_camera
 
@@ -76,13 +76,14 @@ def depth_range(model, views: Sequence[View]) -> Tuple[float, float]:
     return near, max(far, near * 1.01)
 
 
-def render_depth(model, view: View, near: float, far: float) -> Tensor:
-    """[H,W,1] inverse depth mapped to [0,1] between 1/far (0) and 1/near (1); empty pixels 0."""
+def render_depth(model, view: Union[View, Camera], near: float, far: float) -> Tensor:
+    """[H,W,1] inverse depth mapped to [0,1] between 1/far (0) and 1/near (1); empty pixels 0. ``view`` is a
+    data-layer view or a renderer camera (the viewer's)."""
     g = model.gaussians
+    camera = view if isinstance(view, Camera) else view_camera(view)
     with torch.no_grad():
         ones = torch.ones(len(g), 1, dtype=g.means.dtype, device=g.means.device)
-        out = rasterize_gaussians(g.means, g.quats, g.scales, g.opacities, ones, view_camera(view),
-                                  render_depth=True)
+        out = rasterize_gaussians(g.means, g.quats, g.scales, g.opacities, ones, camera, render_depth=True)
     alpha = out.alpha.float().cpu()
     z = out.depth.float().cpu() / alpha.clamp_min(1e-6)
     disp = (1.0 / z.clamp_min(1e-6) - 1.0 / far) / (1.0 / near - 1.0 / far)

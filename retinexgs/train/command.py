@@ -32,6 +32,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--relocate-scene", action="store_true",
                    help="with --resume --data NEW: the run's scene folder was moved to NEW (its training views "
                         "must match); NEW is recorded in the run")
+    p.add_argument("--view", action="store_true",
+                   help="serve the scene in the web viewer while it trains (needs retinexgs[view]; see the view "
+                        "command)")
+    p.add_argument("--view-port", type=int, default=8080, help="port of --view (default 8080; 0 = any free one)")
+    p.add_argument("--view-host", default="127.0.0.1", help="address --view binds (default 127.0.0.1)")
     _add_common(p)
     p.set_defaults(func=_train)
 
@@ -60,8 +65,14 @@ def _train(args: argparse.Namespace) -> int:
 
     if args.data is None and not args.resume:
         raise UserError("--data SCENE is required (only --resume can do without it: the run knows its scene)")
+    view = None
+    if args.view:  # checked before any work: a missing viser or a bad port must not cost a training run
+        from retinexgs.view.server import check_address, import_viser
+        check_address(args.view_host, args.view_port)
+        import_viser()
+        view = (args.view_host, args.view_port)
     train_run(args.data, args.out, args.config, args.set, args.device, args.resume, progress=not args.quiet,
-              relocate_scene=args.relocate_scene)
+              relocate_scene=args.relocate_scene, view=view)
     return 0
 
 

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import contextlib
 from pathlib import Path
-from typing import Callable, Dict, Iterable, Optional, Tuple
+from typing import Callable, Dict, Iterable, Optional, Tuple, Union
 
 import torch
 
@@ -12,6 +12,7 @@ from retinexgs.errors import UserError
 from retinexgs.evaluate.evaluate import evaluate
 from retinexgs.model.gaussians import GaussianModel
 from retinexgs.model.retinex_model import RetinexGSModel
+from retinexgs.render import Camera
 from retinexgs.train.checkpoint import latest_checkpoint, load_checkpoint
 from retinexgs.train.config import load_config
 from retinexgs.train.resume import (check_same_views, check_writable_folder, is_empty_run_folder, read_run_config,
@@ -48,12 +49,13 @@ def _checkpoint_step(run_dir: Path) -> int:
 def train_run(scene_path: Optional[Path], run_dir: Path, config_files: Iterable[str] = (),
               overrides: Iterable[str] = (), device: Optional[str] = None, resume: bool = False,
               progress: bool = True, log: Callable[[str], None] = print,
-              relocate_scene: bool = False) -> Optional[Dict]:
+              relocate_scene: bool = False, view: Optional[Tuple[str, int]] = None) -> Optional[Dict]:
     """Train (or resume) a run and evaluate it; returns the test metrics (None when there are none).
 
     Everything cheap is checked before the scene is loaded: the config (schema and schedule), ``--out``
     (a writable folder, empty for a new run), and on resume the run's lock, the keys a resume may change and
-    ``--data`` against the run's scene. Overrides given on resume are recorded in the run's config.yaml."""
+    ``--data`` against the run's scene. Overrides given on resume are recorded in the run's config.yaml.
+    ``view`` = (host, port): serve the model in the web viewer while it trains (``retinexgs.view.live``)."""
     run_dir = Path(run_dir)
     device = pick_device(device)
     config_files, overrides = list(config_files), list(overrides)
@@ -100,6 +102,9 @@ def train_run(scene_path: Optional[Path], run_dir: Path, config_files: Iterable[
                 log(f"--resume: {key} {old!r} -> {new!r} (recorded in {run_dir / 'config.yaml'})")
             if relocating:
                 log(f"--relocate-scene: the run now reads its scene from {Path(scene_path).resolve()}")
+        if view is not None:
+            from retinexgs.view.live import start_live_viewer
+            stack.callback(start_live_viewer(trainer, scene, view[0], view[1], log).stop)
         return _train_and_evaluate(trainer, cfg, scene, run_dir, device, log)
 
 
@@ -121,13 +126,15 @@ def _train_and_evaluate(trainer: Trainer, cfg: Dict, scene: Scene, run_dir: Path
 
 
 def render_function(model: RetinexGSModel, cfg: Dict, degree: int, exposure: Optional[float] = None,
-                    gamma: Optional[float] = None) -> Callable[[View], Dict]:
-    """view -> the model's output maps; for the post-enhancement baseline, LR3M enhances the render."""
+                    gamma: Optional[float] = None) -> Callable[[Union[View, Camera]], Dict]:
+    """view (or a renderer camera) -> the model's output maps; for the post-enhancement baseline, LR3M
+    enhances the render."""
     model.eval()
 
-    def fn(view: View) -> Dict:
+    def fn(view: Union[View, Camera]) -> Dict:
+        camera = view if isinstance(view, Camera) else view_camera(view)
         with torch.no_grad():
-            res = model.render(view_camera(view), degree, exposure=exposure, gamma=gamma)
+            res = model.render(camera, degree, exposure=exposure, gamma=gamma)
             if cfg["method"] == "post":
                 from retinexgs.retinex import decompose, enhance_for_viewing
                 method = cfg["decomposer"]["method"] if cfg["decomposer"]["method"] != "none" else "lr3m"

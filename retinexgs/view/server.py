@@ -1,0 +1,224 @@
+"""The viser web viewer of a trained run: one render thread per connected browser, the GUI's controls per
+client, frames sent as the scene's background image.
+
+Safety: binds 127.0.0.1 unless told otherwise; a frame that fails (junk camera from the client, a renderer
+error) is logged and skipped, never raised into viser's threads, and a client that disconnects only stops
+its own render thread.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import replace
+from typing import Callable, Dict, Optional
+
+from retinexgs.errors import UserError
+from retinexgs.render import Camera
+from retinexgs.view.camera import ViewerCamera, average_up, camera_to_viewer
+from retinexgs.view.frame import FrameRenderer, FrameSettings
+
+MOVING_SCALE = 0.5   # frames rendered while the camera moves are this much smaller (when enabled)
+SETTLE_SECONDS = 0.3  # no camera update for this long: render the full-resolution frame
+_LABELS = {"enhanced": "enhanced", "R": "R̂ (reflectance)", "L": "L̂ (illumination, normalised)",
+           "low": "low (R̂∘L̂)", "depth": "depth"}
+
+
+def import_viser():
+    """The viser module, or a UserError saying how to install it."""
+    try:
+        import viser
+    except ImportError:
+        raise UserError('the viewer needs viser, an optional dependency: pip install "retinexgs[view]"') from None
+    return viser
+
+
+class _Client:
+    """One browser: its GUI controls and a render thread that draws the newest camera (older requests are
+    dropped, so a slow renderer never builds a backlog)."""
+
+    def __init__(self, viewer: "RunViewer", client) -> None:
+        self.viewer, self.client = viewer, client
+        self.wake = threading.Event()
+        self.moving = False
+        self.stopped = False
+        self.errors = 0
+        gui = client.gui
+        maps = viewer.renderer.maps
+        self.map = gui.add_dropdown("Map", [_LABELS[m] for m in maps], initial_value=_LABELS[maps[0]])
+        decomposed = viewer.renderer.decomposed
+        self.exposure = gui.add_slider("Exposure (× gamma)", 0.2, 3.0, 0.05, 1.0, disabled=not decomposed,
+                                       hint="scales the predicted gamma: < 1 brighter, > 1 darker")
+        self.use_gamma = gui.add_checkbox("Absolute gamma", False, disabled=not decomposed)
+        self.gamma = gui.add_slider("Gamma", 0.05, 1.5, 0.01, 0.5, disabled=not decomposed)
+        self.scale = gui.add_slider("Resolution scale", 0.1, 2.0, 0.05, viewer.default_scale)
+        self.lowres = gui.add_checkbox("Lower resolution while moving", True)
+        names = list(viewer.cameras)
+        self.camera_pick = gui.add_dropdown("Camera", names or ["(none)"], disabled=not names)
+        self.snap = gui.add_button("Snap to camera", disabled=not names)
+        self.frame_time = gui.add_text("Frame time", "-", disabled=True)
+        for handle in (self.map, self.exposure, self.use_gamma, self.gamma, self.scale):
+            handle.on_update(lambda _: self.request(moving=False))
+        self.snap.on_click(lambda _: self.snap_to(self.camera_pick.value))
+        client.camera.on_update(lambda _: self.request(moving=True))
+        self.thread = threading.Thread(target=self._loop, name=f"retinexgs-view-{client.client_id}", daemon=True)
+        self.thread.start()
+        # Start at the first training camera (viser's default camera knows nothing of the scene). viser calls
+        # connect after the client's first camera message, possibly after that message's camera callbacks ran
+        # (without ours): draw the first frame now either way.
+        if names:
+            self.snap_to(names[0])
+        self.request(moving=False)
+
+    def settings(self) -> FrameSettings:
+        """The controls' values; a number typed into a slider's box is clamped to the slider's range (the
+        browser sends the intermediate values of typing, e.g. 0 on the way to 0.3). NaN stays NaN and is
+        refused by the renderer."""
+        key = {v: k for k, v in _LABELS.items()}[self.map.value]
+
+        def clamped(handle) -> float:
+            return max(min(float(handle.value), handle.max), handle.min)
+
+        gamma = clamped(self.gamma) if self.use_gamma.value else None
+        return FrameSettings(map=key, exposure=clamped(self.exposure), gamma=gamma, scale=clamped(self.scale))
+
+    def request(self, moving: bool) -> None:
+        self.moving = self.moving or moving
+        self.wake.set()
+
+    def snap_to(self, name: str) -> None:
+        camera = self.viewer.cameras.get(name)
+        if camera is None:
+            return
+        vc = camera_to_viewer(camera)
+        with self.client.atomic():
+            self.client.camera.position = vc.position
+            self.client.camera.wxyz = vc.wxyz
+            self.client.camera.fov = vc.fov
+        self.request(moving=False)
+
+    def _loop(self) -> None:
+        pending_full = False
+        while not (self.stopped or self.viewer.stopped):
+            woke = self.wake.wait(SETTLE_SECONDS)
+            if self.stopped or self.viewer.stopped:
+                break
+            if woke:
+                self.wake.clear()
+                low = self.moving and bool(self.lowres.value)
+                self.moving = False
+                self.draw(low)
+                pending_full = low
+            elif pending_full:
+                pending_full = False
+                self.draw(False)
+
+    def draw(self, low: bool) -> None:
+        """Render and send one frame; any failure is logged (the first few of each client) and skipped."""
+        try:
+            cam = self.client.camera
+            vc = ViewerCamera(tuple(cam.wxyz), tuple(cam.position), float(cam.fov), int(cam.image_width),
+                              int(cam.image_height))
+            settings = self.settings()
+            if low:
+                settings = replace(settings, scale=settings.scale * MOVING_SCALE)
+            start = time.perf_counter()
+            frame = self.viewer.renderer.render(vc, settings)
+            ms = 1000 * (time.perf_counter() - start)
+            self.client.scene.set_background_image(frame, format="jpeg", jpeg_quality=90)
+            self.frame_time.value = f"{ms:.0f} ms ({frame.shape[1]}x{frame.shape[0]}{', moving' if low else ''})"
+            self.viewer.frames += 1
+            self.viewer.last_frame = frame
+        except Exception as exc:  # a viewer must survive junk from a client and renderer errors
+            self.errors += 1
+            if self.errors <= 3:
+                self.viewer.log(f"retinexgs view: frame for client {self.client.client_id} failed: "
+                                f"{type(exc).__name__}: {exc}")
+
+
+class RunViewer:
+    """A viser server showing ``renderer``'s scene. ``cameras``: name -> camera for the snap list; ``up``: the
+    world's up direction. ``port`` 0 picks a free port; :attr:`url` is where it serves."""
+
+    def __init__(self, renderer: FrameRenderer, cameras: Dict[str, Camera], host: str = "127.0.0.1",
+                 port: int = 8080, default_scale: float = 1.0, log: Callable[[str], None] = print) -> None:
+        viser = import_viser()
+        self.renderer, self.cameras, self.log = renderer, cameras, log
+        self.default_scale = default_scale
+        self.stopped = False
+        self.frames = 0
+        self.last_frame = None  # the newest frame sent to any client (for tests and diagnostics)
+        self._clients: Dict[int, _Client] = {}
+        self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        self.server.scene.set_up_direction(average_up(list(cameras.values())) if cameras else "+z")
+        self.server.on_client_connect(self._connect)
+        self.server.on_client_disconnect(self._disconnect)
+
+    @property
+    def url(self) -> str:
+        return f"http://{self.server.get_host()}:{self.server.get_port()}"
+
+    def _connect(self, client) -> None:
+        try:
+            self._clients[client.client_id] = _Client(self, client)
+        except Exception as exc:
+            self.log(f"retinexgs view: could not set up client {client.client_id}: {type(exc).__name__}: {exc}")
+
+    def _disconnect(self, client) -> None:
+        state = self._clients.pop(client.client_id, None)
+        if state is not None:
+            state.stopped = True
+            state.wake.set()
+
+    def stop(self) -> None:
+        """Stop the server and every render thread (bounded: viser joins its threads with timeouts)."""
+        self.stopped = True
+        for state in list(self._clients.values()):
+            state.stopped = True
+            state.wake.set()
+        self.server.stop()
+
+
+def snap_cameras(scene) -> Dict[str, Camera]:
+    """'train: NAME' / 'test: NAME' -> camera, for the snap list."""
+    from retinexgs.train.trainer import view_camera
+    out: Dict[str, Camera] = {}
+    for split in ("train", "test"):
+        for v in getattr(scene, split):
+            out[f"{split}: {v.name}"] = view_camera(v)
+    return out
+
+
+def check_address(host: str, port: int) -> None:
+    """UserError for a port outside 0..65535 or an empty host."""
+    if not isinstance(port, int) or not 0 <= port <= 65535:
+        raise UserError(f"--port must be 0..65535 (0 picks a free port), got {port}")
+    if not host:
+        raise UserError("--host is empty; give an address to bind, e.g. 127.0.0.1")
+
+
+def view_run(run_dir, host: str = "127.0.0.1", port: int = 8080, device: Optional[str] = None,
+             log: Callable[[str], None] = print, block: bool = True) -> RunViewer:
+    """Serve ``run_dir`` in the browser; with ``block``, until Ctrl-C. The address, then the run, then the
+    viser install are checked, each with a UserError."""
+    check_address(host, port)
+    from retinexgs.train.run import load_run
+    from retinexgs.train.trainer import active_sh_degree
+    cfg, scene, model, step = load_run(run_dir, device)
+    import_viser()
+    renderer = FrameRenderer(model, cfg, active_sh_degree(cfg, step), scene.train)
+    on_gpu = model.gaussians.means.is_cuda
+    viewer = RunViewer(renderer, snap_cameras(scene), host, port, default_scale=1.0 if on_gpu else 0.5, log=log)
+    log(f"retinexgs view: {run_dir} (step {step}, {len(model.gaussians)} Gaussians) at {viewer.url}")
+    if host not in ("127.0.0.1", "localhost", "::1"):
+        log(f"retinexgs view: bound to {host}: anyone who can reach this machine on port "
+            f"{viewer.server.get_port()} can see the scene")
+    if not block:
+        return viewer
+    try:
+        while True:
+            time.sleep(1.0)
+    except KeyboardInterrupt:
+        log("retinexgs view: stopping")
+    finally:
+        viewer.stop()
+    return viewer
