@@ -11,6 +11,7 @@ from PIL import Image
 
 from retinexgs.demo.synthetic import make_demo_scene
 from retinexgs.train.run import train_run
+from polling import wait_until
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 DRIVER = shutil.which("chromedriver")
@@ -22,12 +23,7 @@ WIDTH, HEIGHT, PANEL = 900, 700, 560  # window; the GUI panel lies right of x = 
 
 
 def _wait(cond, seconds=30.0):
-    end = time.time() + seconds
-    while time.time() < end:
-        if cond():
-            return True
-        time.sleep(0.1)
-    return False
+    return wait_until(cond, seconds, 0.1)
 
 
 @pytest.fixture(scope="module")

@@ -13,6 +13,7 @@ from retinexgs.cli import main
 from retinexgs.demo.synthetic import make_demo_scene
 from retinexgs.train.run import train_run
 from retinexgs.view.live import StepGate
+from polling import wait_until
 
 TINY = ["checkpoint.every=1000", "log.tensorboard=false", "model.sh_degree=0", "model.max_init_points=400",
         "decomposer.method=lime", "loss.enhance_from=0.5"]
@@ -81,12 +82,7 @@ def test_train_view_renders_while_training_and_stops_after(scene, tmp_path, monk
 
 
 def _wait(cond, seconds=30.0):
-    end = time.time() + seconds
-    while time.time() < end:
-        if cond():
-            return True
-        time.sleep(0.05)
-    return False
+    return wait_until(cond, seconds, 0.05)
 
 
 @pytest.mark.parametrize("extra, message, block_viser", [

@@ -12,6 +12,7 @@ import pytest
 from retinexgs.cli import main
 from retinexgs.demo.synthetic import make_demo_scene
 from retinexgs.train.run import train_run
+from polling import wait_until
 
 TINY = ["steps=2", "checkpoint.every=2", "log.tensorboard=false", "model.sh_degree=0", "model.max_init_points=400",
         "decomposer.method=lime", "loss.enhance_from=1"]
@@ -54,12 +55,7 @@ def _camera_message(**change):
 
 
 def _wait(cond, seconds=20.0):
-    end = time.time() + seconds
-    while time.time() < end:
-        if cond():
-            return True
-        time.sleep(0.05)
-    return False
+    return wait_until(cond, seconds, 0.05)
 
 
 def test_server_renders_and_survives_junk_and_disconnects(run_dir):
