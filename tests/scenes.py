@@ -51,17 +51,25 @@ TINY_RUN = ["steps=3", "checkpoint.every=3", "log.every=1", "log.tensorboard=fal
             "model.max_init_points=300", "decomposer.method=lime", "eval.lpips=false"]
 
 
-def tiny_trained_run(base):
-    """(scene folder, run folder) under ``base``: a tiny demo scene and a run of it trained with TINY_RUN."""
+def tiny_trained_run(base, overrides=TINY_RUN, n_train=3, n_test=1, width=24, height=18, n_points=200,
+                     baseline_overrides=None):
+    """(scene folder, run folder) under ``base``: a tiny demo scene and a run of it trained with ``overrides``
+    (default TINY_RUN). With ``baseline_overrides`` a second run, ``base/base``, is trained with them too and
+    (scene, run, baseline run) is returned."""
     from retinexgs.demo.synthetic import make_demo_scene
     from retinexgs.train.run import train_run
 
-    scene = make_demo_scene(base / "scene", n_train=3, n_test=1, width=24, height=18, n_points=200)
-    run = base / "run"
+    scene = make_demo_scene(base / "scene", n_train=n_train, n_test=n_test, width=width, height=height,
+                            n_points=n_points)
     n = torch.get_num_threads()
     torch.set_num_threads(1)  # tiny tensors: one thread avoids oversubscription stalls
     try:
-        train_run(scene, run, ["demo"], TINY_RUN, "cpu", progress=False, log=lambda s: None)
+        train_run(scene, base / "run", ["demo"], list(overrides), "cpu", progress=False, log=lambda s: None)
+        if baseline_overrides is not None:
+            train_run(scene, base / "base", ["demo"], list(overrides) + list(baseline_overrides), "cpu",
+                      progress=False, log=lambda s: None)
     finally:
         torch.set_num_threads(n)
-    return scene, run
+    if baseline_overrides is not None:
+        return scene, base / "run", base / "base"
+    return scene, base / "run"

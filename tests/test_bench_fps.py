@@ -3,9 +3,8 @@ import pytest
 import torch
 
 from retinexgs.bench.fps import benchmark, format_result, main, resize_camera
-from retinexgs.demo.synthetic import make_demo_scene
 from retinexgs.render import Camera
-from retinexgs.train.run import train_run
+from scenes import tiny_trained_run
 
 TINY = ["steps=4", "checkpoint.every=4", "log.tensorboard=false", "model.sh_degree=1", "model.sh_degree_every=2",
         "model.max_init_points=300", "density.start=100", "decomposer.method=lime"]
@@ -13,10 +12,8 @@ TINY = ["steps=4", "checkpoint.every=4", "log.tensorboard=false", "model.sh_degr
 
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory):
-    root = tmp_path_factory.mktemp("fps")
-    scene = make_demo_scene(root / "scene", n_train=3, n_test=2, width=40, height=30, n_points=300)
-    train_run(scene, root / "run", ["demo"], TINY, "cpu", progress=False, log=lambda m: None)
-    return root / "run"
+    return tiny_trained_run(tmp_path_factory.mktemp("fps"), TINY, n_test=2, width=40, height=30,
+                            n_points=300)[1]
 
 
 def test_fps_times_full_and_raster_on_resized_cameras(run_dir):

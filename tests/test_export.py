@@ -11,15 +11,15 @@ import torch
 from PIL import Image
 
 from retinexgs.cli import main
-from retinexgs.demo.synthetic import make_demo_scene
 from retinexgs.errors import UserError
 from retinexgs.evaluate.metrics import psnr
 from retinexgs.export.bake import fibonacci_sphere, sh_basis, to_normalized
 from retinexgs.export.paths import interpolate_path, orbit_path, scene_center
 from retinexgs.export.ply import read_ply, write_ply
 from retinexgs.render import rasterize_gaussians, spherical_harmonics
-from retinexgs.train.run import load_run, train_run
+from retinexgs.train.run import load_run
 from retinexgs.train.trainer import view_camera
+from scenes import tiny_trained_run
 
 # Opaque Gaussians on dense points: coverage like a trained scene's (alpha near 1 where there is content), which is
 # what the baked PLY is meant for (see test_export_matches_the_full_enhanced_render).
@@ -31,12 +31,9 @@ TINY = ["steps=4", "checkpoint.every=4", "log.tensorboard=false", "model.sh_degr
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
     """A tiny RetinexGS run (4 steps, 1200 Gaussians, SH degree 1 active) and a tiny plain-3DGS baseline."""
-    root = tmp_path_factory.mktemp("export")
-    scene = make_demo_scene(root / "scene", n_train=3, n_test=2, width=40, height=30, n_points=1200)
-    train_run(scene, root / "run", ["demo"], TINY, "cpu", progress=False, log=lambda m: None)
-    train_run(scene, root / "base", ["demo"], TINY + ["steps=2", "method=3dgs"], "cpu", progress=False,
-              log=lambda m: None)
-    return root / "run", root / "base"
+    _, run, base = tiny_trained_run(tmp_path_factory.mktemp("export"), TINY, n_test=2, width=40, height=30,
+                                    n_points=1200, baseline_overrides=["steps=2", "method=3dgs"])
+    return run, base
 
 
 @pytest.fixture(scope="module")

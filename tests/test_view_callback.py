@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 import torch
 
-from retinexgs.demo.synthetic import make_demo_scene
-from retinexgs.train.run import load_run, render_function, train_run
+from retinexgs.train.run import load_run, render_function
 from retinexgs.train.trainer import active_sh_degree, view_camera
 from retinexgs.evaluate.evaluate import to_uint8
 from retinexgs.view.camera import (ViewerCamera, average_up, camera_to_viewer, matrix_to_quat, quat_to_matrix,
                                    viewer_to_camera)
 from retinexgs.view.frame import FrameRenderer, FrameSettings
+from scenes import tiny_trained_run
 
 TINY = ["steps=4", "checkpoint.every=4", "log.tensorboard=false", "model.sh_degree=1", "model.sh_degree_every=2",
         "model.max_init_points=800", "model.init_opacity=0.95", "density.start=100", "decomposer.method=lime",
@@ -23,12 +23,9 @@ TINY = ["steps=4", "checkpoint.every=4", "log.tensorboard=false", "model.sh_degr
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
     """A tiny RetinexGS run and a tiny plain-3DGS baseline, loaded."""
-    root = tmp_path_factory.mktemp("view")
-    scene = make_demo_scene(root / "scene", n_train=3, n_test=1, width=40, height=30, n_points=800)
-    train_run(scene, root / "run", ["demo"], TINY, "cpu", progress=False, log=lambda m: None)
-    train_run(scene, root / "base", ["demo"], TINY + ["steps=2", "method=3dgs"], "cpu", progress=False,
-              log=lambda m: None)
-    return load_run(root / "run", "cpu"), load_run(root / "base", "cpu")
+    _, run, base = tiny_trained_run(tmp_path_factory.mktemp("view"), TINY, width=40, height=30, n_points=800,
+                                    baseline_overrides=["steps=2", "method=3dgs"])
+    return load_run(run, "cpu"), load_run(base, "cpu")
 
 
 @pytest.fixture(scope="module")

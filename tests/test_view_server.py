@@ -10,9 +10,8 @@ import urllib.request
 import pytest
 
 from retinexgs.cli import main
-from retinexgs.demo.synthetic import make_demo_scene
-from retinexgs.train.run import train_run
 from polling import wait_until
+from scenes import tiny_trained_run
 
 TINY = ["steps=2", "checkpoint.every=2", "log.tensorboard=false", "model.sh_degree=0", "model.max_init_points=400",
         "decomposer.method=lime", "loss.enhance_from=1"]
@@ -20,10 +19,8 @@ TINY = ["steps=2", "checkpoint.every=2", "log.tensorboard=false", "model.sh_degr
 
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory):
-    root = tmp_path_factory.mktemp("viewsrv")
-    scene = make_demo_scene(root / "scene", n_train=2, n_test=1, width=32, height=24, n_points=400)
-    train_run(scene, root / "run", ["demo"], TINY, "cpu", progress=False, log=lambda m: None)
-    return root / "run"
+    return tiny_trained_run(tmp_path_factory.mktemp("viewsrv"), TINY, n_train=2, width=32, height=24,
+                            n_points=400)[1]
 
 
 def test_missing_viser_names_the_extra(run_dir, monkeypatch, capsys):

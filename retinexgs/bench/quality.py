@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import subprocess
 import sys
 import time
@@ -82,7 +83,6 @@ def run_job(job: Job, device: str, steps: Optional[int], extra: Sequence[str]) -
     if job.metrics_path.is_file():
         return f"reused  {job.run}"
     if job.run.exists():  # a run cut off earlier: start it again from scratch
-        import shutil
         shutil.rmtree(job.run)
     job.run.parent.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
