@@ -1,0 +1,42 @@
+"""Profile the full enhanced render of a trained run on the GPU: operators by CUDA and CPU time, launches per frame.
+
+    python scripts/profile_frame.py RUN [--frames 50]
+"""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import torch
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("run", type=Path)
+    ap.add_argument("--frames", type=int, default=50)
+    args = ap.parse_args()
+    from retinexgs.train.run import load_run
+    from retinexgs.train.trainer import active_sh_degree, view_camera
+
+    cfg, scene, model, step = load_run(args.run, "cuda")
+    model.eval()
+    cams = [view_camera(v) for v in (scene.test or scene.train)]
+    degree = active_sh_degree(cfg, step)
+    with torch.no_grad():
+        for i in range(10):
+            model.render(cams[i % len(cams)], degree)
+        torch.cuda.synchronize()
+        acts = [torch.profiler.ProfilerActivity.CPU, torch.profiler.ProfilerActivity.CUDA]
+        with torch.profiler.profile(activities=acts) as prof:
+            for i in range(args.frames):
+                model.render(cams[i % len(cams)], degree)
+            torch.cuda.synchronize()
+    table = prof.key_averages()
+    launches = sum(e.count for e in table if e.key.startswith(("cudaLaunchKernel", "cuLaunchKernel")))
+    print(f"{launches / args.frames:.1f} kernel launches per frame")
+    print(table.table(sort_by="cuda_time_total", row_limit=30))
+    print(table.table(sort_by="cpu_time_total", row_limit=30))
+
+
+if __name__ == "__main__":
+    main()
