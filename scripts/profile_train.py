@@ -42,6 +42,9 @@ def main() -> None:
             tr.train(stop_after=args.profile)
             torch.cuda.synchronize()
         table = prof.key_averages()
+        launches = sum(e.count for e in table if e.key.startswith(("cudaLaunchKernel", "cuLaunchKernel")))
+        syncs = sum(e.count for e in table if "Synchronize" in e.key or e.key == "cudaMemcpyAsync")
+        print(f"{launches / args.profile:.1f} kernel launches, {syncs / args.profile:.1f} syncs/memcpys per step")
         print(table.table(sort_by="cuda_time_total", row_limit=25))
         print(table.table(sort_by="cpu_time_total", row_limit=20))
 
