@@ -1,0 +1,256 @@
+"""Training-step speed: wall time split into GPU busy time and host overhead, and its growth with Gaussian count,
+for our rasterizer and for gsplat's in the same step, side by side.
+
+    python -m retinexgs.bench train-speed --device cuda [--vs gsplat] [--sizes 100k,1M,3M] [--width 1280 --height 720]
+    python -m retinexgs.bench train-speed --device cuda --data SCENE [--config NAME] [--steps 300]
+
+Synthetic sweep (the default): random Gaussians (:mod:`retinexgs.bench.scenes`) with the default config's
+illumination MLP and SH degree 3, one camera, random targets for R, L and S. One step is what the trainer does
+before the enhancement losses start: per-Gaussian SH colours and illumination MLP, one 6-channel rasterization,
+the supervision (L1 + SSIM of R̂, L̂ and R̂∘L̂), TV and SH losses, backward, fused Adam. The gsplat step is the
+same step with ``gsplat.rasterization`` in place of ours (same colours, same loss), so the ratio is the
+rasterizer's share; no density control in either.
+
+``--data`` times the real :class:`~retinexgs.train.trainer.Trainer` on a scene instead (density control and the
+enhancement losses included, as the config schedules them), after ``--warmup`` steps.
+
+"wall" is the median step with a device synchronisation after each step; "GPU" is the kernels' summed time per
+step from ``torch.profiler`` (a separate pass); "overhead" = wall − GPU: the time the GPU waits for the host
+(Python, launches, syncs). Launches per step are counted in the same profiler pass.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import random
+import statistics
+import tempfile
+import time
+from pathlib import Path
+from typing import Callable, Dict, List, Optional
+
+import torch
+
+from retinexgs.bench.scenes import orbit_camera, random_scene
+from retinexgs.render import Camera, rasterize_gaussians
+
+
+def parse_size(text: str) -> int:
+    """'100k' -> 100000, '3M' -> 3000000, '2500' -> 2500."""
+    t = text.strip().lower()
+    mult = {"k": 1_000, "m": 1_000_000}.get(t[-1:], 1)
+    value = float(t[:-1] if mult > 1 else t)
+    if value <= 0 or not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"not a Gaussian count: {text!r}")
+    return int(value * mult)
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _device_time_us(event) -> float:
+    for name in ("self_device_time_total", "self_cuda_time_total"):
+        if hasattr(event, name):
+            return float(getattr(event, name))
+    return 0.0
+
+
+def profile_steps(step: Callable[[], None], steps: int, device: torch.device) -> Dict[str, float]:
+    """GPU busy ms per step (summed kernel time) and kernel launches per step over ``steps`` profiled steps."""
+    if device.type != "cuda":
+        return {"gpu_ms": float("nan"), "launches": float("nan")}
+    acts = [torch.profiler.ProfilerActivity.CPU, torch.profiler.ProfilerActivity.CUDA]
+    _sync(device)
+    with torch.profiler.profile(activities=acts) as prof:
+        for _ in range(steps):
+            step()
+        _sync(device)
+    gpu_us = launches = 0.0
+    for e in prof.key_averages():
+        if e.key.startswith(("cudaLaunchKernel", "cuLaunchKernel", "cudaGraphLaunch")):
+            launches += e.count
+        if getattr(e, "device_type", None) == torch.autograd.DeviceType.CUDA:
+            gpu_us += _device_time_us(e)
+    return {"gpu_ms": gpu_us / 1e3 / steps, "launches": launches / steps}
+
+
+def time_steps(step: Callable[[], None], steps: int, device: torch.device) -> float:
+    """Median wall ms of ``steps`` calls, each followed by a synchronisation."""
+    times = []
+    for _ in range(steps):
+        _sync(device)
+        t0 = time.perf_counter()
+        step()
+        _sync(device)
+        times.append((time.perf_counter() - t0) * 1e3)
+    return statistics.median(times)
+
+
+def measure(step: Callable[[], None], steps: int, warmup: int, device: torch.device) -> Dict[str, float]:
+    """wall / GPU / overhead ms and launches per step, plus the free-running ms per step (no per-step sync)."""
+    for _ in range(warmup):
+        step()
+    wall = time_steps(step, steps, device)
+    _sync(device)
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        step()
+    _sync(device)
+    free = (time.perf_counter() - t0) * 1e3 / steps
+    prof = profile_steps(step, max(3, min(steps, 10)), device)
+    return {"wall_ms": wall, "free_ms": free, "gpu_ms": prof["gpu_ms"], "overhead_ms": wall - prof["gpu_ms"],
+            "launches": prof["launches"]}
+
+
+# ---- the synthetic step -----------------------------------------------------------------------------------
+def _gsplat_rasterize(means, quats, scales, opacities, colors, cam: Camera) -> torch.Tensor:
+    import gsplat
+
+    dev = means.device
+    K = torch.tensor([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1]], dtype=torch.float32, device=dev)
+    image, _, _ = gsplat.rasterization(means, quats, scales, opacities, colors,
+                                       cam.viewmat.to(device=dev, dtype=torch.float32)[None], K[None], cam.width,
+                                       cam.height, near_plane=cam.near, rasterize_mode="classic")
+    return image[0]
+
+
+def synthetic_step(n: int, width: int, height: int, device: torch.device, rasterizer: str = "ours",
+                   seed: int = 0) -> Callable[[], None]:
+    """One training step of a random scene of ``n`` Gaussians (see the module docstring), as a closure."""
+    from retinexgs.model.gaussians import GaussianModel
+    from retinexgs.model.retinex_model import RetinexGSModel
+    from retinexgs.train import losses
+    from retinexgs.train.config import load_config
+
+    cfg = load_config()
+    sc = random_scene(n, 3, seed)
+    k = sc["sh"].shape[1]
+    params = {"means": sc["means"], "quats": sc["quats"], "log_scales": sc["scales"].log(),
+              "opacity_logits": torch.logit(sc["opacities"]), "sh_dc": sc["sh"][:, :1].contiguous(),
+              "sh_rest": sc["sh"][:, 1:k].contiguous()}
+    model = RetinexGSModel(GaussianModel(params, 3), cfg["model"], decomposed=True).to(device)
+    cam = orbit_camera(width, height)
+    g = torch.Generator().manual_seed(seed + 1)
+    R_t, L_t = (torch.rand(1, 3, height, width, generator=g).to(device) for _ in range(2))
+    L_t = L_t[:, :1]
+    S_t = R_t * L_t
+    opt = torch.optim.Adam(model.parameters(), lr=1e-3, eps=1e-15, fused=device.type == "cuda")
+    c = cfg["loss"]
+    gm = model.gaussians
+    center = cam.center.to(device)
+
+    def step() -> None:
+        colors = gm.colors(center, 3)
+        from retinexgs.model.illumination import IlluminationField
+        illum = model.illumination(gm.means, IlluminationField.view_dirs(gm.means, center))
+        colors = torch.cat([colors, illum], dim=-1)
+        if rasterizer == "gsplat":
+            image = _gsplat_rasterize(gm.means, gm.quats, gm.scales, gm.opacities, colors, cam)
+        else:
+            image = rasterize_gaussians(gm.means, gm.quats, gm.scales, gm.opacities, colors, cam,
+                                        validate=False).image
+        R_hat, L_hat = losses.to_bchw(image[..., :3]), losses.to_bchw(image[..., 3:6])
+        sup, _ = losses.supervision_loss(R_hat, L_hat, R_t, L_t, S_t, c["w_r"], c["w_l"], c["w_s"],
+                                         c["lambda_ssim"])
+        loss = sup + c["w_tv"] * losses.tv_loss(R_hat) + c["w_sh"] * losses.sh_sparsity_loss(gm.sh_rest)
+        loss.backward()
+        opt.step()
+        opt.zero_grad(set_to_none=True)
+
+    return step
+
+
+def trainer_step(scene_path: Path, config: List[str], device: torch.device, run_dir: Path) -> Callable[[], None]:
+    """The real trainer's next step on ``scene_path`` (it keeps training across calls)."""
+    from retinexgs.train.config import load_config
+    from retinexgs.train.run import open_scene
+    from retinexgs.train.trainer import Trainer
+
+    cfg = load_config(config)
+    tr = Trainer(cfg, open_scene(scene_path, cfg), run_dir, str(device), progress=False, log=lambda s: None)
+
+    def step() -> None:  # the body of Trainer.train's loop, without its logging and checkpoints
+        if not tr.order:
+            tr.order = list(range(len(tr.views)))
+            random.shuffle(tr.order)
+        tr.step += 1
+        tr.train_step(tr.step, tr.views[tr.order.pop()])
+
+    step.trainer = tr  # type: ignore[attr-defined]
+    return step
+
+
+def _row(label: str, m: Dict[str, float], ref: Optional[Dict[str, float]] = None) -> str:
+    def f(x: float) -> str:
+        return "n/a" if not math.isfinite(x) else f"{x:.2f}"
+    ratio = f" | {m['wall_ms'] / ref['wall_ms']:.2f}" if ref else ""
+    return (f"| {label} | {f(m['wall_ms'])} | {f(m['free_ms'])} | {f(m['gpu_ms'])} | {f(m['overhead_ms'])} | "
+            f"{f(m['launches'])}{ratio} |")
+
+
+HEADER = "| case | wall ms/step | free-running ms/step | GPU ms/step | overhead ms/step | launches/step"
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m retinexgs.bench train-speed",
+                                     description=__doc__.splitlines()[0])
+    parser.add_argument("--device", default="cuda", choices=["cpu", "cuda"])
+    parser.add_argument("--vs", choices=["gsplat"], default=None, help="also time the gsplat-based step")
+    parser.add_argument("--sizes", default="100k,1M,3M", help="Gaussian counts, comma-separated (100k, 1M, ...)")
+    parser.add_argument("--width", type=int, default=1280)
+    parser.add_argument("--height", type=int, default=720)
+    parser.add_argument("--steps", type=int, default=20, help="timed steps per case")
+    parser.add_argument("--warmup", type=int, default=5, help="untimed steps first (with --data: e.g. 3000 "
+                        "to time the phase with the enhancement losses)")
+    parser.add_argument("--data", type=Path, default=None, help="time the real trainer on this scene instead")
+    parser.add_argument("--config", action="append", default=[], help="config name(s) for --data")
+    args = parser.parse_args(argv)
+    from retinexgs.errors import UserError
+
+    device = torch.device(args.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        print("bench train-speed: error: --device cuda but torch sees no GPU (use --device cpu)")
+        return 2
+    name = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
+    print(f"{name}, torch {torch.__version__}")
+    if args.data is not None:
+        with tempfile.TemporaryDirectory() as run:
+            try:
+                step = trainer_step(args.data, args.config, device, Path(run))
+            except UserError as exc:
+                print(f"bench train-speed: error: {exc}")
+                return 2
+            m = measure(step, args.steps, args.warmup, device)
+            n = len(step.trainer.model.gaussians)  # type: ignore[attr-defined]
+            last = step.trainer.step  # type: ignore[attr-defined]
+            print(f"trainer on {args.data} ({' '.join(args.config) or 'default'}), steps 1-{last}, timed after "
+                  f"step {args.warmup}; {n} Gaussians at the end")
+            print(HEADER + " |\n|---|---|---|---|---|---|")
+            print(_row("trainer", m))
+        return 0
+    try:
+        sizes = [parse_size(s) for s in args.sizes.split(",") if s.strip()]
+    except argparse.ArgumentTypeError as exc:
+        parser.error(str(exc))
+    print(f"synthetic step at {args.width}x{args.height}, SH degree 3 + illumination MLP, 6 channels, "
+          f"median of {args.steps} steps after {args.warmup}")
+    print(HEADER + (" | ours / gsplat wall |" if args.vs else " |"))
+    print("|---|---|---|---|---|---|" + ("---|" if args.vs else ""))
+    for n in sizes:
+        ours = measure(synthetic_step(n, args.width, args.height, device), args.steps, args.warmup, device)
+        if args.vs:
+            theirs = measure(synthetic_step(n, args.width, args.height, device, "gsplat"), args.steps,
+                             args.warmup, device)
+            print(_row(f"{n:,} gsplat", theirs))
+            print(_row(f"{n:,} ours", ours, theirs))
+        else:
+            print(_row(f"{n:,} ours", ours))
+        if device.type == "cuda":
+            torch.cuda.empty_cache()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
