@@ -73,6 +73,32 @@ def test_cuda_sh_matches_cpu(degree):
         assert rel_err(a.cpu(), b) < 1e-5
 
 
+@pytest.mark.parametrize("n,K,D,degree,dtype", [(1000, 16, 3, 3, torch.float32), (1000, 16, 3, 2, torch.float64),
+                                                 (333, 4, 3, 1, torch.float32), (129, 9, 1, 2, torch.float32),
+                                                 (257, 16, 7, 3, torch.float64), (70, 16, 40, 3, torch.float32),
+                                                 (1, 1, 3, 0, torch.float32)])
+def test_cuda_sh_tiled_and_direct_paths_match_cpu(n, K, D, degree, dtype):
+    # Partial last blocks, K < 16, odd D, and D = 40 (a row too wide for shared memory: the direct kernels).
+    g = torch.Generator().manual_seed(n + K + D)
+    dirs = torch.randn(n, 3, generator=g, dtype=dtype)
+    coeffs = torch.randn(n, K, D, generator=g, dtype=dtype)
+    v = torch.randn(n, D, generator=g, dtype=dtype)
+    res = {}
+    for dev in ("cpu", "cuda"):
+        d, c = dirs.to(dev).requires_grad_(), coeffs.to(dev).requires_grad_()
+        out = spherical_harmonics(degree, d, c)
+        res[dev] = (out,) + torch.autograd.grad((out * v.to(dev)).sum(), (d, c))
+    tol = 1e-5 if dtype == torch.float32 else 1e-12
+    for a, b in zip(res["cuda"], res["cpu"]):
+        assert rel_err(a.cpu(), b) < tol
+    if K > sh_bases(degree):  # bases above the degree get exactly zero gradient
+        assert res["cuda"][2][:, sh_bases(degree):].abs().max().item() == 0.0
+
+
+def sh_bases(degree):
+    return (degree + 1) ** 2
+
+
 def test_cuda_memory_does_not_grow():
     args, cam = SCENES["dense"](7)
     args = tuple(a.float().cuda().requires_grad_() for a in args)
