@@ -3,7 +3,8 @@
 #include <ATen/Parallel.h>
 #include <torch/extension.h>
 
-#include <sstream>
+#include <cstdio>
+#include <type_traits>
 #include <string>
 #include <tuple>
 #include <vector>
@@ -22,11 +23,31 @@ using torch::Tensor;
 
 // Argument errors are raised as pybind11's own ValueError/TypeError rather than c10::Error: on some torch builds
 // (seen with torch 2.11 + gcc 13) a c10::Error thrown from an extension crashes the process instead of raising.
+// Messages are built without iostreams: on the GPU machine (torch 2.11, gcc 13, pycolmap's wheel loaded in the same
+// process) an ostream insertion inside this extension crashed in libstdc++'s locale facets instead of printing.
+inline void put(std::string& s, const char* v) { s += v; }
+inline void put(std::string& s, const std::string& v) { s += v; }
+inline void put(std::string& s, bool v) { s += v ? "true" : "false"; }
+template <typename I, std::enable_if_t<std::is_integral_v<I> && !std::is_same_v<I, bool>, int> = 0>
+void put(std::string& s, I v) { s += std::to_string(v); }
+inline void put(std::string& s, double v) {
+    char buf[32];
+    std::snprintf(buf, sizeof buf, "%g", v);
+    s += buf;
+}
+inline void put(std::string& s, c10::IntArrayRef v) {
+    s += "[";
+    for (size_t i = 0; i < v.size(); ++i) s += (i ? ", " : "") + std::to_string(v[i]);
+    s += "]";
+}
+inline void put(std::string& s, c10::ScalarType v) { s += c10::toString(v); }
+inline void put(std::string& s, const c10::Device& v) { s += v.str(); }
+
 template <typename... Args>
 std::string cat(const Args&... args) {
-    std::ostringstream s;
-    (s << ... << args);
-    return s.str();
+    std::string s;
+    (put(s, args), ...);
+    return s;
 }
 #define RGS_CHECK_VALUE(cond, ...) \
     if (!(cond)) throw pybind11::value_error(cat(__VA_ARGS__))
