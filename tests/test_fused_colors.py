@@ -5,7 +5,6 @@ import math
 import pytest
 import torch
 
-from retinexgs.model.enhancement import EnhancementNet  # noqa: F401  (model package import order)
 from retinexgs.model.gaussians import GaussianModel
 from retinexgs.model.illumination import IlluminationField
 from retinexgs.model.inference import (InferenceRenderer, camera_center, fused_colors_unsupported,

@@ -18,9 +18,8 @@ does not cover (illumination layers wider than ``retinexgs._C.max_illum_width``)
 """
 from __future__ import annotations
 
-import math
 from collections import OrderedDict
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import List, Optional, Sequence, Tuple
 
 import torch
 from torch import Tensor, nn
