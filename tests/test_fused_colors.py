@@ -249,12 +249,16 @@ def test_renderer_baseline():
 
 def test_renderer_follows_model_changes():
     model = make_model()
-    r = InferenceRenderer(model, 3)
+    r, snapshot = InferenceRenderer(model, 3, live=True), InferenceRenderer(model, 3)
     before = r.render(CAM)["rgb"].clone()
+    assert torch.equal(snapshot.render(CAM)["rgb"], before)
     with torch.no_grad():
         model.illumination.head[-1].bias.add_(0.5)  # in place: the version counter moves
         model.gaussians.opacity_logits.mul_(0.5)
+    assert torch.equal(snapshot.render(CAM)["rgb"], before)  # not live: a snapshot until refresh()
+    snapshot.refresh()
     after = r.render(CAM)["rgb"]
+    assert torch.equal(snapshot.render(CAM)["rgb"], after)
     with torch.no_grad():
         ref = model.render(CAM, 3)["rgb"]
     assert (after - before).abs().max() > 1e-3
@@ -266,4 +270,5 @@ def test_renderer_follows_model_changes():
         setattr(g, name, torch.nn.Parameter(getattr(g, name).detach()[keep].clone()))
     with torch.no_grad():
         ref = model.render(CAM, 3)["rgb"]
-    assert torch.allclose(r.render(CAM)["rgb"], ref, rtol=0, atol=2e-6)
+    for renderer in (r, snapshot):  # replaced parameters are noticed without live
+        assert torch.allclose(renderer.render(CAM)["rgb"], ref, rtol=0, atol=2e-6)

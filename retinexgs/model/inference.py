@@ -12,8 +12,10 @@ per-frame overhead of the training path:
 - on CUDA the enhancement (EnhancementNet + R̂·(L̂/L_ref)^g) is one CUDA graph per resolution, with exposure
   and gamma in device tensors so one graph serves every setting.
 
-The model may change after the renderer is built (a live trainer's viewer, a reloaded checkpoint): each frame
-checks the parameters' storage and version counters and repacks what changed. Configurations the fused kernel
+The renderer snapshots what it derives from the model (activated scales/opacities, packed weights). A model that
+changes while frames render (a live trainer's viewer) needs ``live=True``: each frame then checks the parameters'
+storage and version counters (tens of microseconds) and repacks what changed; otherwise call :meth:`refresh`
+after changing the model (replaced Gaussian parameters, e.g. after densification, are noticed either way). Configurations the fused kernel
 does not cover (illumination layers wider than ``retinexgs._C.max_illum_width``) use the torch colours.
 """
 from __future__ import annotations
@@ -163,9 +165,10 @@ class InferenceRenderer:
         degree: the active SH degree (capped at the model's).
         fused: use the fused colour kernel when it supports the model (False: the torch colours).
         graphs: capture the enhancement in CUDA graphs on CUDA (False: eager).
+        live: the model changes between frames (see the module docstring); checked every frame.
     """
 
-    def __init__(self, model, degree: int, fused: bool = True, graphs: bool = True) -> None:
+    def __init__(self, model, degree: int, fused: bool = True, graphs: bool = True, live: bool = False) -> None:
         self.model = model
         self.degree = int(degree)
         self.decomposed = bool(model.decomposed)
@@ -173,25 +176,29 @@ class InferenceRenderer:
         self.fallback_reason = fused_colors_unsupported(field) if fused else "disabled"
         self.fused = self.fallback_reason is None
         self.use_graphs = bool(graphs)
+        self.live = bool(live)
         self._graphs: "OrderedDict[Tuple, _EnhanceGraph]" = OrderedDict()
         self._stamp: Tuple = ()
         self._refresh()
 
     # ---- model state ---------------------------------------------------------------------------------------
-    def _tracked(self) -> List[Tensor]:
-        g = self.model.gaussians
-        tensors = [g.log_scales, g.opacity_logits]
-        if self.decomposed:
-            tensors += list(self.model.illumination.parameters()) + list(self.model.enhancement.parameters())
-            tensors.append(self.model.illum_ref)
-        return tensors
-
     def _current_stamp(self) -> Tuple:
-        return tuple((t.data_ptr(), t._version) for t in self._tracked())
+        # The networks' parameter objects are listed once per refresh; the Gaussians' are read each time, as
+        # densification replaces them.
+        g = self.model.gaussians
+        return tuple((t.data_ptr(), t._version) for t in [g.log_scales, g.opacity_logits] + self._net_tensors)
+
+    def refresh(self) -> None:
+        """Recompute what is derived from the model (activations, packed weights) and drop the graphs."""
+        self._refresh()
 
     def _refresh(self) -> None:
-        """Recompute what is derived from the model: activations, packed weights; drop the graphs."""
         g = self.model.gaussians
+        self._net_tensors: List[Tensor] = []
+        if self.decomposed:
+            self._net_tensors = list(self.model.illumination.parameters()) + \
+                list(self.model.enhancement.parameters()) + [self.model.illum_ref]
+        self._sources = (g.log_scales, g.opacity_logits)
         with torch.no_grad():
             self.scales = torch.exp(g.log_scales).contiguous()
             self.opacities = torch.sigmoid(g.opacity_logits).contiguous()
@@ -203,8 +210,13 @@ class InferenceRenderer:
         self._stamp = self._current_stamp()
 
     def refresh_if_changed(self) -> None:
-        """Repack after the model's parameters changed (in place or replaced); cheap when nothing did."""
-        if self._current_stamp() != self._stamp:
+        """Refresh when the model changed: any parameter (in place or replaced) when ``live``, else only replaced
+        Gaussian parameters (two identity checks)."""
+        g = self.model.gaussians
+        if self.live:
+            if self._current_stamp() != self._stamp:
+                self._refresh()
+        elif g.log_scales is not self._sources[0] or g.opacity_logits is not self._sources[1]:
             self._refresh()
 
     # ---- one frame -----------------------------------------------------------------------------------------

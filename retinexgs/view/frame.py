@@ -100,7 +100,7 @@ class FrameRenderer:
             training = self.model.training  # render_function sets eval mode; a live trainer's model gets its back
             try:
                 if self._renderer is None:
-                    self._renderer = InferenceRenderer(self.model, degree, graphs=not self.live)
+                    self._renderer = InferenceRenderer(self.model, degree, graphs=not self.live, live=self.live)
                 res = render_function(self.model, self.cfg, degree, exposure=exposure, gamma=gamma,
                                       renderer=self._renderer)(camera)
             finally:

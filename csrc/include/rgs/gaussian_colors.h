@@ -18,10 +18,14 @@
 
 namespace rgs {
 
+// RGS_UNROLL: unroll on the GPU (activations stay in registers). RGS_SIMD, on the innermost loops over a layer's
+// outputs only: unrolled on the GPU, vectorised on the CPU (gcc would otherwise keep them scalar: acc may alias w).
 #if defined(__CUDA_ARCH__)
 #define RGS_UNROLL _Pragma("unroll")
+#define RGS_SIMD _Pragma("unroll")
 #else
-#define RGS_UNROLL  // gcc -O3 vectorises the fixed-width loops by itself
+#define RGS_UNROLL
+#define RGS_SIMD _Pragma("omp simd")
 #endif
 
 constexpr int kMaxIllumWidth = 128;   // widest layer of the runtime-width path (local memory: 2 x this per thread)
@@ -94,12 +98,13 @@ RGS_HD void axpy_row(int n, const T* __restrict__ w, T v, T* acc) {
     if constexpr (N > 0 && N % 4 == 0) {
         // Rows of a width divisible by 4 start 16-byte aligned: lets nvcc use 128-bit shared-memory loads.
         const T* wa = static_cast<const T*>(__builtin_assume_aligned(w, 16));
-        RGS_UNROLL
+        RGS_SIMD
         for (int o = 0; o < N; ++o) acc[o] += wa[o] * v;
     } else if constexpr (N > 0) {
-        RGS_UNROLL
+        RGS_SIMD
         for (int o = 0; o < N; ++o) acc[o] += w[o] * v;
     } else {
+        RGS_SIMD
         for (int o = 0; o < n; ++o) acc[o] += w[o] * v;
     }
 }
@@ -107,7 +112,7 @@ RGS_HD void axpy_row(int n, const T* __restrict__ w, T v, T* acc) {
 template <typename T, int N>
 RGS_HD void load_bias(int n, const T* __restrict__ b, T* acc) {
     if constexpr (N > 0) {
-        RGS_UNROLL
+        RGS_SIMD
         for (int o = 0; o < N; ++o) acc[o] = b[o];
     } else {
         for (int o = 0; o < n; ++o) acc[o] = b[o];
@@ -117,7 +122,7 @@ RGS_HD void load_bias(int n, const T* __restrict__ b, T* acc) {
 template <typename T, int N>
 RGS_HD void relu_into(int n, const T* acc, T* out) {
     if constexpr (N > 0) {
-        RGS_UNROLL
+        RGS_SIMD
         for (int o = 0; o < N; ++o) out[o] = relu(acc[o]);
     } else {
         for (int o = 0; o < n; ++o) out[o] = relu(acc[o]);
