@@ -489,7 +489,8 @@ Tensor gaussian_colors(int degree, Tensor means, Tensor sh_dc, Tensor sh_rest, s
                         bound);
         const int64_t total = rgs::illum_layout(cfg).total;
         check_tensor(*weights, "weights", {total}, means);
-        RGS_CHECK_VALUE(weights->is_contiguous(), "weights must be contiguous (use pack_illum_weights)");
+        RGS_CHECK_VALUE(weights->is_contiguous() && reinterpret_cast<uintptr_t>(weights->data_ptr()) % 16 == 0,
+                        "weights must be contiguous and 16-byte aligned (use pack_illum_weights)");
     }
     means = means.contiguous(), sh_dc = sh_dc.contiguous(), sh_rest = sh_rest.contiguous();
     const int C = illum ? 6 : 3;

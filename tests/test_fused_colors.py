@@ -208,7 +208,7 @@ CAM = make_camera(width=40, height=30, eye=(0.3, -0.2, -3.0))
 @pytest.mark.parametrize("per_channel", [False, True])
 def test_renderer_equals_model_render(exposure, gamma, per_channel):
     model = make_model(per_channel=per_channel)
-    r = InferenceRenderer(model, 3)
+    r = InferenceRenderer(model, 3, fused=True)
     assert r.fused
     res = r.render(CAM, exposure, gamma)
     with torch.no_grad():
@@ -229,9 +229,18 @@ def test_renderer_float64_and_torch_fallback():
         assert torch.allclose(r.render(CAM, 0.8)["rgb"], ref, rtol=0, atol=1e-10)
 
 
+def test_renderer_defaults_to_torch_colours_on_the_cpu():
+    model = make_model(n=50)
+    r = InferenceRenderer(model, 3)
+    assert not r.fused and "CPU" in r.fallback_reason
+    with torch.no_grad():
+        ref = model.render(CAM, 3, exposure=0.9)["rgb"]
+    assert torch.allclose(r.render(CAM, 0.9)["rgb"], ref, rtol=0, atol=1e-6)
+
+
 def test_renderer_falls_back_for_wide_fields():
     model = make_model(illumination={"hidden": 160}, n=100)
-    r = InferenceRenderer(model, 1)
+    r = InferenceRenderer(model, 1, fused=True)
     assert not r.fused and "exceed" in r.fallback_reason
     with torch.no_grad():
         ref = model.render(CAM, 1)["rgb"]
@@ -240,7 +249,7 @@ def test_renderer_falls_back_for_wide_fields():
 
 def test_renderer_baseline():
     model = make_model(decomposed=False)
-    res = InferenceRenderer(model, 3).render(CAM, exposure=0.5)  # baselines ignore exposure, as render does
+    res = InferenceRenderer(model, 3, fused=True).render(CAM, exposure=0.5)  # baselines ignore exposure, as render does
     with torch.no_grad():
         ref = model.render(CAM, 3)["rgb"]
     assert res["rgb"].shape == (30, 40, 3)
@@ -249,7 +258,7 @@ def test_renderer_baseline():
 
 def test_renderer_follows_model_changes():
     model = make_model()
-    r, snapshot = InferenceRenderer(model, 3, live=True), InferenceRenderer(model, 3)
+    r, snapshot = InferenceRenderer(model, 3, fused=True, live=True), InferenceRenderer(model, 3, fused=True)
     before = r.render(CAM)["rgb"].clone()
     assert torch.equal(snapshot.render(CAM)["rgb"], before)
     with torch.no_grad():

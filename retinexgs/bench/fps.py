@@ -129,7 +129,7 @@ def benchmark(run: Path, device: Optional[str] = None, width: Optional[int] = No
     out: Dict[str, object] = {"gaussians": len(g), "width": cams[0].width, "height": cams[0].height,
                               "channels": int(channels[0].shape[1]), "frames": frames,
                               "device": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu",
-                              "fused_colors": renderer.fused}
+                              "fused_colors": renderer.fused, "colors_note": renderer.fallback_reason}
     with torch.no_grad():  # the fused path must give the torch path's image
         ref, got = model.render(cams[0], degree)["rgb"], renderer.render(cams[0])["rgb"]
         out["fused_max_abs_diff"] = float((ref.double() - got.double()).abs().max()) if ref.numel() else 0.0
@@ -158,7 +158,7 @@ def format_result(r: Dict[str, object]) -> str:
     lines.append(f"  MLP + EnhancementNet + SH share of the full render: {100 * (full - raster) / full:.0f} % "
                  f"(torch), {100 * (fused - raster) / fused:.0f} % (fused)")
     lines.append(f"  fused / torch full render: {fused / full:.2f}x time, {full / fused:.1f}x FPS"
-                 + ("" if r.get("fused_colors", True) else " (fused colour kernel unsupported: torch colours)")
+                 + ("" if r.get("fused_colors", True) else f" (torch colours: {r.get('colors_note')})")
                  + f"; max |fused - torch| of the enhanced image: {r.get('fused_max_abs_diff', float('nan')):.2e}")
     return "\n".join(lines)
 

@@ -163,17 +163,24 @@ class InferenceRenderer:
     Args:
         model: a :class:`~retinexgs.model.RetinexGSModel` (RetinexGS or a plain-3DGS baseline).
         degree: the active SH degree (capped at the model's).
-        fused: use the fused colour kernel when it supports the model (False: the torch colours).
+        fused: use the fused colour kernel when it supports the model (False: the torch colours). The default,
+            None, uses it on CUDA and the torch colours on the CPU, where BLAS evaluates the MLP faster than the
+            kernel's one-Gaussian-per-iteration loop (the kernel is the GPU's; its CPU twin is the reference).
         graphs: capture the enhancement in CUDA graphs on CUDA (False: eager).
         live: the model changes between frames (see the module docstring); checked every frame.
     """
 
-    def __init__(self, model, degree: int, fused: bool = True, graphs: bool = True, live: bool = False) -> None:
+    def __init__(self, model, degree: int, fused: Optional[bool] = None, graphs: bool = True,
+                 live: bool = False) -> None:
         self.model = model
         self.degree = int(degree)
         self.decomposed = bool(model.decomposed)
         field = model.illumination if self.decomposed else None
-        self.fallback_reason = fused_colors_unsupported(field) if fused else "disabled"
+        on_cpu_default = fused is None and not model.gaussians.means.is_cuda
+        if on_cpu_default:
+            self.fallback_reason: Optional[str] = "the CPU default (BLAS is faster there)"
+        else:
+            self.fallback_reason = fused_colors_unsupported(field) if fused is not False else "disabled"
         self.fused = self.fallback_reason is None
         self.use_graphs = bool(graphs)
         self.live = bool(live)

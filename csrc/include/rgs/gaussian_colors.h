@@ -23,9 +23,12 @@ namespace rgs {
 #if defined(__CUDA_ARCH__)
 #define RGS_UNROLL _Pragma("unroll")
 #define RGS_SIMD _Pragma("unroll")
-#else
+#elif defined(_OPENMP)
 #define RGS_UNROLL
 #define RGS_SIMD _Pragma("omp simd")
+#else
+#define RGS_UNROLL
+#define RGS_SIMD
 #endif
 
 constexpr int kMaxIllumWidth = 128;   // widest layer of the runtime-width path (local memory: 2 x this per thread)
@@ -92,14 +95,50 @@ RGS_HD T sigmoid_of(T z) { return T(1) / (T(1) + exp(-z)); }
 template <typename T>
 RGS_HD T relu(T v) { return v > T(0) ? v : T(0); }
 
+#if defined(__CUDA_ARCH__)
+// A 16-byte aligned float4 of weights. From shared memory through explicit PTX: nvcc otherwise splits the vector
+// loads of the unrolled layers into 32-bit ones, one load per FMA, which bounds the kernel.
+__device__ __forceinline__ float4 load_float4(const float* p) {
+    float4 r;
+    if (__isShared(p)) {
+        const unsigned addr = static_cast<unsigned>(__cvta_generic_to_shared(p));
+        asm("ld.shared.v4.f32 {%0, %1, %2, %3}, [%4];" : "=f"(r.x), "=f"(r.y), "=f"(r.z), "=f"(r.w) : "r"(addr));
+    } else {
+        r = *reinterpret_cast<const float4*>(p);
+    }
+    return r;
+}
+#endif
+
 // acc[o] += w[o] * v for o < n; w starts at a multiple of 4 elements (vector loads on the GPU).
 template <typename T, int N>
 RGS_HD void axpy_row(int n, const T* __restrict__ w, T v, T* acc) {
     if constexpr (N > 0 && N % 4 == 0) {
-        // Rows of a width divisible by 4 start 16-byte aligned: lets nvcc use 128-bit shared-memory loads.
-        const T* wa = static_cast<const T*>(__builtin_assume_aligned(w, 16));
+#if defined(__CUDA_ARCH__)
+        // Rows of a width divisible by 4 start 16-byte aligned (IllumLayout): 128-bit loads, so the broadcast
+        // shared-memory reads keep up with the FMAs (one 32-bit load per FMA would bound the kernel).
+        if constexpr (sizeof(T) == 4) {
+            RGS_UNROLL
+            for (int q = 0; q < N / 4; ++q) {
+                const float4 x = load_float4(w + 4 * q);
+                acc[4 * q] += x.x * v;
+                acc[4 * q + 1] += x.y * v;
+                acc[4 * q + 2] += x.z * v;
+                acc[4 * q + 3] += x.w * v;
+            }
+        } else {
+            const double2* w2 = reinterpret_cast<const double2*>(w);
+            RGS_UNROLL
+            for (int q = 0; q < N / 2; ++q) {
+                const double2 x = w2[q];
+                acc[2 * q] += x.x * v;
+                acc[2 * q + 1] += x.y * v;
+            }
+        }
+#else
         RGS_SIMD
-        for (int o = 0; o < N; ++o) acc[o] += wa[o] * v;
+        for (int o = 0; o < N; ++o) acc[o] += w[o] * v;
+#endif
     } else if constexpr (N > 0) {
         RGS_SIMD
         for (int o = 0; o < N; ++o) acc[o] += w[o] * v;
