@@ -33,14 +33,17 @@ gaussian_colors_kernel(int64_t N, ColorArgs<T> a, IllumConfig cfg, IllumLayout L
     for (int c = 0; c < C; ++c) colors[i * C + c] = out[c];
 }
 
-// Raises a kernel's dynamic shared-memory limit once per device (the default cap is 48 KB).
-template <typename Kernel>
-void allow_shared_bytes(Kernel kernel, size_t bytes, int device) {
+// Raises the shared-weights kernel's dynamic shared-memory limit (the default cap is 48 KB), remembered per
+// instantiation and device so that it costs one driver call.
+template <typename T, int H, int DH>
+void allow_shared_bytes(size_t bytes, int device) {
     static size_t allowed[kMaxDevices] = {};
-    if (bytes <= 48 * 1024 || device < 0 || device >= kMaxDevices || allowed[device] >= bytes) return;
-    check_cuda(cudaFuncSetAttribute(kernel, cudaFuncAttributeMaxDynamicSharedMemorySize, int(bytes)),
+    const bool known = device >= 0 && device < kMaxDevices;
+    if (bytes <= 48 * 1024 || (known && allowed[device] >= bytes)) return;
+    check_cuda(cudaFuncSetAttribute(gaussian_colors_kernel<T, H, DH, true>,
+                                    cudaFuncAttributeMaxDynamicSharedMemorySize, int(bytes)),
                "gaussian_colors (shared memory limit)");
-    allowed[device] = bytes;
+    if (known) allowed[device] = bytes;
 }
 
 template <typename T>
@@ -64,9 +67,9 @@ void gaussian_colors_cuda(int64_t N, int degree, int rest, const T* means, const
         const int blocks = num_blocks(N, kColorThreads);
         auto* s = static_cast<cudaStream_t>(stream);
         if (shared) {
-            auto kernel = gaussian_colors_kernel<T, H, DH, true>;
-            allow_shared_bytes(kernel, bytes, device);
-            kernel<<<blocks, kColorThreads, bytes, s>>>(N, a, cfg, L, C, means, sh_dc, sh_rest, weights, colors);
+            allow_shared_bytes<T, H, DH>(bytes, device);
+            gaussian_colors_kernel<T, H, DH, true><<<blocks, kColorThreads, bytes, s>>>(N, a, cfg, L, C, means, sh_dc,
+                                                                                       sh_rest, weights, colors);
         } else {
             gaussian_colors_kernel<T, H, DH, false><<<blocks, kColorThreads, 0, s>>>(N, a, cfg, L, C, means, sh_dc,
                                                                                     sh_rest, weights, colors);

@@ -130,7 +130,8 @@ class _EnhanceGraph:
                 self._body()
         torch.cuda.current_stream(like.device).wait_stream(side)
         self.graph = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(self.graph):
+        # thread_local: the viewer captures from its server thread while the main thread may use CUDA.
+        with torch.cuda.graph(self.graph, capture_error_mode="thread_local"):
             self.out = self._body()
 
     def _body(self) -> Tensor:
@@ -244,13 +245,17 @@ class InferenceRenderer:
             colors = torch.cat([colors, illum.to(colors)], dim=-1)
         return colors
 
-    def rasterize(self, camera: Camera, colors: Tensor) -> Tensor:
-        """[H,W,C] composited ``colors`` (the kernels of ``rasterize_gaussians``, without autograd or checks)."""
+    def rasterize(self, camera: Camera, colors: Optional[Tensor] = None) -> Tensor:
+        """[H,W,C] composited ``colors`` (the kernels of ``rasterize_gaussians``, without autograd or checks);
+        ``colors`` None: this frame's :meth:`colors`, launched after the binning so that the binning's one host
+        sync does not wait for the colour kernel (which then runs while the host launches the rest)."""
         K = kernels()
         g = self.model.gaussians
         means2d, depths, conics, radii = K.project_forward(g.means, g.quats, self.scales, self.opacities,
                                                            *camera.kernel_args)
         gauss_ids, tile_ranges = K.bin_gaussians(means2d, radii, depths, camera.width, camera.height)
+        if colors is None:
+            colors = self.colors(camera)
         return K.rasterize_forward(means2d, conics, colors, self.opacities, gauss_ids, tile_ranges, camera.width,
                                    camera.height)[0]
 
@@ -264,7 +269,7 @@ class InferenceRenderer:
             self.degree = int(degree)
         self.refresh_if_changed()
         with torch.no_grad():
-            image = self.rasterize(camera, self.colors(camera))
+            image = self.rasterize(camera)
             if not self.decomposed:
                 return FrameMaps(rgb=image)
             R, L = image[..., :3], image[..., 3:6]
