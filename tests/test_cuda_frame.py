@@ -4,8 +4,8 @@ import pytest
 import torch
 
 from retinexgs.bench.fps import count_launches
-from retinexgs.model.inference import (InferenceRenderer, fused_gaussian_colors, illumination_shape,
-                                       pack_illumination)
+from retinexgs.model.inference import (MAX_GRAPHS, InferenceRenderer, fused_gaussian_colors,
+                                       illumination_shape, pack_illumination)
 from retinexgs.render import has_cuda
 from scenes import make_camera
 from test_fused_colors import CENTER, SHAPES, make_field, make_gaussians, make_model, torch_colors
@@ -75,21 +75,28 @@ CAM = make_camera(width=120, height=70, eye=(0.3, -0.2, -3.0))
 def test_renderer_on_cuda_equals_model_render(per_channel):
     model = make_model(per_channel=per_channel, n=3000).cuda()
     r = InferenceRenderer(model, 3)
-    # Changing settings and resolutions reuse or add graphs; more resolutions than kept evict the oldest.
-    cams = [CAM, CAM.scaled(0.5), CAM, CAM.scaled(0.7), CAM.scaled(0.3), CAM.scaled(0.9), CAM]
-    settings = [(None, None), (0.7, None), (None, 0.5), (None, None), (1.2, None), (None, 0.9), (0.7, None)]
+    assert r.fused
+    # Each size renders eagerly first, then through its graph (captured on the second frame) with changing
+    # settings; six sizes for four kept graphs evict the two oldest.
+    scales = [1.0, 0.5, 0.7, 0.3, 0.9, 0.6]
+    settings = [(None, None), (0.7, None), (None, 0.5), (1.2, 0.9), (None, None)]
     previous = None
-    for cam, (exposure, gamma) in zip(cams, settings):
-        res = r.render(cam, exposure, gamma)
-        with torch.no_grad():
-            ref = model.render(cam, 3, exposure=exposure, gamma=gamma)
-        assert ref["rgb"].std() > 0.01
-        for key in ("rgb", "R", "L", "S_rec", "gamma"):
-            assert torch.allclose(res[key], ref[key], rtol=0, atol=1e-5), (key, (res[key] - ref[key]).abs().max())
-        if previous is not None:  # a frame's tensors are its own: the next replay does not overwrite them
-            assert torch.equal(previous[0], previous[1])
-        previous = (res["rgb"], res["rgb"].clone())
-    assert len(r._graphs) <= 4
+    for k, scale in enumerate(scales):
+        cam = CAM.scaled(scale)
+        for j, (exposure, gamma) in enumerate(settings if k == 0 else settings[:2]):
+            res = r.render(cam, exposure, gamma)
+            with torch.no_grad():
+                ref = model.render(cam, 3, exposure=exposure, gamma=gamma)
+            assert ref["rgb"].std() > 0.01
+            for key in ("rgb", "R", "L", "S_rec", "gamma"):
+                assert torch.allclose(res[key], ref[key], rtol=0, atol=1e-5), \
+                    (scale, j, key, (res[key] - ref[key]).abs().max())
+            if previous is not None:  # a frame's tensors are its own: later replays do not overwrite them
+                assert torch.equal(previous[0], previous[1])
+            previous = (res["rgb"], res["rgb"].clone())
+    assert len(r._graphs) == MAX_GRAPHS
+    kept = {key[:2] for key in r._graphs}
+    assert (CAM.height, CAM.width) not in kept and (CAM.scaled(0.6).height, CAM.scaled(0.6).width) in kept
 
 
 def test_renderer_on_cuda_without_graphs_float64_and_baseline():
@@ -119,6 +126,7 @@ def test_live_renderer_on_cuda_follows_training_updates():
 def test_fused_frame_launches_fewer_kernels():
     model = make_model(n=3000).cuda()
     r = InferenceRenderer(model, 3)
+    r.render(CAM)
     r.render(CAM)  # captures the graph
     with torch.no_grad():
         torch_path = count_launches(lambda i: model.render(CAM, 3), 3, torch.device("cuda"))

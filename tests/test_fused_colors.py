@@ -216,7 +216,7 @@ def test_renderer_equals_model_render(exposure, gamma, per_channel):
     assert res["rgb"].shape == (30, 40, 3)
     assert ref["rgb"].std() > 0.01  # not a blank frame
     for key in ("rgb", "R", "L", "S_rec", "gamma"):
-        assert torch.allclose(res[key], ref[key], rtol=0, atol=2e-6), (key, (res[key] - ref[key]).abs().max())
+        assert torch.allclose(res[key], ref[key], rtol=0, atol=1e-6), (key, (res[key] - ref[key]).abs().max())
 
 
 def test_renderer_float64_and_torch_fallback():
@@ -244,7 +244,7 @@ def test_renderer_falls_back_for_wide_fields():
     assert not r.fused and "exceed" in r.fallback_reason
     with torch.no_grad():
         ref = model.render(CAM, 1)["rgb"]
-    assert torch.allclose(r.render(CAM)["rgb"], ref, rtol=0, atol=2e-6)
+    assert torch.allclose(r.render(CAM)["rgb"], ref, rtol=0, atol=1e-6)
 
 
 def test_renderer_baseline():
@@ -271,7 +271,7 @@ def test_renderer_follows_model_changes():
     with torch.no_grad():
         ref = model.render(CAM, 3)["rgb"]
     assert (after - before).abs().max() > 1e-3
-    assert torch.allclose(after, ref, rtol=0, atol=2e-6)
+    assert torch.allclose(after, ref, rtol=0, atol=1e-6)
     # Densification replaces the parameters: fewer Gaussians.
     g = model.gaussians
     keep = torch.arange(len(g)) % 2 == 0
@@ -280,4 +280,4 @@ def test_renderer_follows_model_changes():
     with torch.no_grad():
         ref = model.render(CAM, 3)["rgb"]
     for renderer in (r, snapshot):  # replaced parameters are noticed without live
-        assert torch.allclose(renderer.render(CAM)["rgb"], ref, rtol=0, atol=2e-6)
+        assert torch.allclose(renderer.render(CAM)["rgb"], ref, rtol=0, atol=1e-6)

@@ -9,8 +9,9 @@ per-frame overhead of the training path:
   every Gaussian its SH reflectance and its illumination-MLP value, instead of ~40 small torch ops;
 - projection, binning and compositing call the kernels directly (no autograd Functions, no per-frame
   validation); scales and opacities are activated once, the MLP weights packed once;
-- on CUDA the enhancement (EnhancementNet + R̂·(L̂/L_ref)^g) is one CUDA graph per resolution, with exposure
-  and gamma in device tensors so one graph serves every setting.
+- on CUDA the enhancement (EnhancementNet + R̂·(L̂/L_ref)^g) is one CUDA graph per resolution (captured on
+  the second frame of that size, the last few kept), with exposure and gamma in device tensors so one graph
+  serves every setting.
 
 The renderer snapshots what it derives from the model (activated scales/opacities, packed weights). A model that
 changes while frames render (a live trainer's viewer) needs ``live=True``: each frame then checks the parameters'
@@ -21,7 +22,7 @@ does not cover (illumination layers wider than ``retinexgs._C.max_illum_width``)
 from __future__ import annotations
 
 from collections import OrderedDict
-from typing import List, Optional, Sequence, Tuple
+from typing import List, Optional, Sequence, Set, Tuple
 
 import torch
 from torch import Tensor, nn
@@ -186,6 +187,7 @@ class InferenceRenderer:
         self.use_graphs = bool(graphs)
         self.live = bool(live)
         self._graphs: "OrderedDict[Tuple, _EnhanceGraph]" = OrderedDict()
+        self._seen: Set[Tuple] = set()  # resolutions rendered once (captured on their second frame)
         self._stamp: Tuple = ()
         self._refresh()
 
@@ -273,17 +275,25 @@ class InferenceRenderer:
             if not self.decomposed:
                 return FrameMaps(rgb=image)
             R, L = image[..., :3], image[..., 3:6]
-            if self.use_graphs and image.is_cuda:
-                rgb, g = self._graph(camera.height, camera.width, image).run(image, exposure, gamma)
+            graph = self._graph(camera.height, camera.width, image) if self.use_graphs and image.is_cuda else None
+            if graph is not None:
+                rgb, g = graph.run(image, exposure, gamma)
             else:
                 enh = self.model.enhance(R, L, exposure, gamma)
                 rgb, g = enh["rgb"], enh["gamma"]
             return FrameMaps(rgb=rgb, R=R, L=L, gamma=g)
 
-    def _graph(self, height: int, width: int, like: Tensor) -> _EnhanceGraph:
+    def _graph(self, height: int, width: int, like: Tensor) -> Optional[_EnhanceGraph]:
+        """The enhancement graph of this resolution; None (render eagerly) the first time a resolution is seen, so
+        frames of ever-changing sizes do not pay a capture each."""
         key = (height, width, like.dtype, like.device)
         graph = self._graphs.get(key)
         if graph is None:
+            if key not in self._seen:
+                if len(self._seen) > 64:
+                    self._seen.clear()
+                self._seen.add(key)
+                return None
             graph = _EnhanceGraph(self.model, height, width, like)
             self._graphs[key] = graph
             while len(self._graphs) > MAX_GRAPHS:
