@@ -21,10 +21,15 @@ gaussian_colors_kernel(int64_t N, ColorArgs<T> a, IllumConfig cfg, IllumLayout L
     extern __shared__ __align__(16) unsigned char smem_raw[];
     const T* W = weights;
     if constexpr (kShared) {
-        T* s = reinterpret_cast<T*>(smem_raw);
-        for (int64_t k = threadIdx.x; k < L.total; k += blockDim.x) s[k] = weights[k];
+        // 16-byte copies, several in flight per thread: a scalar loop would pay one L2 round trip per element.
+        // L.total is a multiple of 4 elements and weights is 16-byte aligned (checked by the binding).
+        const uint4* src = reinterpret_cast<const uint4*>(weights);
+        uint4* dst = reinterpret_cast<uint4*>(smem_raw);
+        const int n16 = int(L.total * int64_t(sizeof(T)) / 16);
+#pragma unroll 4
+        for (int k = threadIdx.x; k < n16; k += blockDim.x) dst[k] = src[k];
         __syncthreads();  // before any thread returns
-        W = s;
+        W = reinterpret_cast<const T*>(smem_raw);
     }
     const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
     if (i >= N) return;
