@@ -9,6 +9,7 @@
 #include <tuple>
 #include <vector>
 
+#include "rgs/gaussian_colors.h"
 #include "rgs/kernels.h"
 #ifdef RGS_WITH_CUDA
 #include <c10/cuda/CUDAGuard.h>
@@ -443,6 +444,100 @@ std::tuple<Tensor, Tensor> sh_backward(int degree, Tensor dirs, Tensor coeffs, T
     return {v_dirs, v_coeffs};
 }
 
+// ---- per-Gaussian colours of a trained scene (inference) ---------------------------------------
+rgs::IllumConfig make_illum_config(int pos_freqs, int dir_freqs, int hidden, int depth, int dir_hidden) {
+    RGS_CHECK_VALUE(pos_freqs >= 0 && pos_freqs <= rgs::kMaxIllumFreqs && dir_freqs >= 0 &&
+                        dir_freqs <= rgs::kMaxIllumFreqs,
+                    "illumination pos_freqs and dir_freqs must be in 0..", rgs::kMaxIllumFreqs, ", got ", pos_freqs,
+                    " and ", dir_freqs);
+    RGS_CHECK_VALUE(hidden >= 1 && hidden <= rgs::kMaxIllumWidth && dir_hidden >= 1 &&
+                        dir_hidden <= rgs::kMaxIllumWidth,
+                    "the fused colour kernel supports illumination hidden and dir_hidden widths 1..",
+                    rgs::kMaxIllumWidth, ", got hidden=", hidden, ", dir_hidden=", dir_hidden);
+    RGS_CHECK_VALUE(depth >= 1 && depth <= 64, "illumination depth must be in 1..64, got ", depth);
+    return rgs::IllumConfig{pos_freqs, dir_freqs, hidden, depth, dir_hidden};
+}
+
+// Packs the illumination MLP's Linear weights ([out, in]) and biases ([out]) in rgs::illum_layout order: trunk
+// layers, then the head's two layers. Returns one flat buffer of the weights' dtype and device.
+Tensor pack_illum_weights(std::vector<Tensor> weights, std::vector<Tensor> biases, int pos_freqs, int dir_freqs,
+                          int hidden, int depth, int dir_hidden) {
+    const rgs::IllumConfig cfg = make_illum_config(pos_freqs, dir_freqs, hidden, depth, dir_hidden);
+    const size_t layers = size_t(depth) + 2;
+    RGS_CHECK_VALUE(weights.size() == layers && biases.size() == layers, "expected ", layers,
+                    " weights and biases (depth + 2 Linear layers), got ", weights.size(), " and ", biases.size());
+    const rgs::IllumLayout L = rgs::illum_layout(cfg);
+    check_float(weights[0], "weights[0]");
+    Tensor flat = torch::zeros({L.total}, weights[0].options());
+    auto put = [&](size_t l, int64_t in, int64_t out, int64_t w_at, int64_t b_at) {
+        const std::string wn = cat("weights[", l, "]"), bn = cat("biases[", l, "]");
+        check_tensor(weights[l], wn.c_str(), {out, in}, flat);
+        check_tensor(biases[l], bn.c_str(), {out}, flat);
+        flat.narrow(0, w_at, in * out).view({in, out}).copy_(weights[l].detach().t());
+        flat.narrow(0, b_at, out).copy_(biases[l].detach());
+    };
+    put(0, rgs::encoded_width(pos_freqs), hidden, L.trunk0_w, L.trunk0_b);
+    for (int l = 1; l < depth; ++l)
+        put(size_t(l), hidden, hidden, L.trunk_w + (l - 1) * L.trunk_stride, L.trunk_b + (l - 1) * L.trunk_stride);
+    put(size_t(depth), hidden + rgs::encoded_width(dir_freqs), dir_hidden, L.head0_w, L.head0_b);
+    put(size_t(depth) + 1, dir_hidden, 3, L.head1_w, L.head1_b);
+    return flat;
+}
+
+// [N, 3] reflectance max(SH(means - center) + 0.5, 0), or [N, 6] with the illumination MLP when `illum`
+// (pos_freqs, dir_freqs, hidden, depth, dir_hidden) and its packed `weights` are given.
+Tensor gaussian_colors(int degree, Tensor means, Tensor sh_dc, Tensor sh_rest, std::vector<double> center,
+                       std::optional<std::vector<int>> illum, double bound, std::optional<Tensor> weights) {
+    check_float(means, "means");
+    RGS_CHECK_VALUE(degree >= 0 && degree <= 3, "sh degree must be in 0..3, got ", degree);
+    const int64_t N = means.size(0);
+    check_tensor(means, "means", {N, 3}, means);
+    check_tensor(sh_dc, "sh_dc", {N, 1, 3}, means);
+    check_tensor(sh_rest, "sh_rest", {N, -1, 3}, means);
+    const int rest = int(sh_rest.size(1));
+    RGS_CHECK_VALUE(rest + 1 >= (degree + 1) * (degree + 1), "sh_rest has ", rest, " bases, degree ", degree,
+                    " needs ", (degree + 1) * (degree + 1) - 1);
+    RGS_CHECK_VALUE(center.size() == 3, "center must have 3 entries, got ", center.size());
+    for (double c : center) RGS_CHECK_VALUE(std::isfinite(c), "center must be finite");
+    RGS_CHECK_VALUE(illum.has_value() == weights.has_value(), "pass both the illumination shape and its weights, "
+                    "or neither");
+    rgs::IllumConfig cfg{0, 0, 0, 1, 0};
+    if (illum) {
+        RGS_CHECK_VALUE(illum->size() == 5, "illum must be (pos_freqs, dir_freqs, hidden, depth, dir_hidden), got ",
+                        illum->size(), " values");
+        cfg = make_illum_config((*illum)[0], (*illum)[1], (*illum)[2], (*illum)[3], (*illum)[4]);
+        RGS_CHECK_VALUE(std::isfinite(bound) && bound > 0, "illumination bound must be finite and positive, got ",
+                        bound);
+        const int64_t total = rgs::illum_layout(cfg).total;
+        check_tensor(*weights, "weights", {total}, means);
+        RGS_CHECK_VALUE(weights->is_contiguous() && reinterpret_cast<uintptr_t>(weights->data_ptr()) % 16 == 0,
+                        "weights must be contiguous and 16-byte aligned (use pack_illum_weights)");
+    }
+    means = means.contiguous(), sh_dc = sh_dc.contiguous(), sh_rest = sh_rest.contiguous();
+    const int C = illum ? 6 : 3;
+    Tensor colors = torch::empty({N, C}, means.options());
+    RGS_DEVICE_GUARD(means);
+    AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "gaussian_colors", [&] {
+        const scalar_t c[3] = {scalar_t(center[0]), scalar_t(center[1]), scalar_t(center[2])};
+        const rgs::IllumConfig* icfg = illum ? &cfg : nullptr;
+        const scalar_t* w = illum ? weights->data_ptr<scalar_t>() : nullptr;
+        if (means.is_cuda()) {
+#ifdef RGS_WITH_CUDA
+            rgs::gaussian_colors_cuda<scalar_t>(N, degree, rest, means.data_ptr<scalar_t>(),
+                                                sh_dc.data_ptr<scalar_t>(), sh_rest.data_ptr<scalar_t>(), c, icfg,
+                                                bound, w, colors.data_ptr<scalar_t>(), RGS_CUDA_STREAM(means));
+#else
+            no_cuda();
+#endif
+        } else {
+            rgs::gaussian_colors_cpu<scalar_t>(N, degree, rest, means.data_ptr<scalar_t>(),
+                                               sh_dc.data_ptr<scalar_t>(), sh_rest.data_ptr<scalar_t>(), c, icfg,
+                                               bound, w, colors.data_ptr<scalar_t>(), num_threads());
+        }
+    });
+    return colors;
+}
+
 }  // namespace
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
@@ -454,6 +549,12 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("rasterize_backward", &rasterize_backward);
     m.def("sh_forward", &sh_forward);
     m.def("sh_backward", &sh_backward);
+    m.def("pack_illum_weights", &pack_illum_weights);
+    m.def("gaussian_colors", &gaussian_colors, pybind11::arg("degree"), pybind11::arg("means"),
+          pybind11::arg("sh_dc"), pybind11::arg("sh_rest"), pybind11::arg("center"), pybind11::arg("illum") = pybind11::none(),
+          pybind11::arg("bound") = 1.0, pybind11::arg("weights") = pybind11::none());
+    m.attr("max_illum_width") = rgs::kMaxIllumWidth;
+    m.attr("max_illum_freqs") = rgs::kMaxIllumFreqs;
     m.def("set_num_threads", [](int n) { g_num_threads = n; },
           "OpenMP threads for the CPU kernels (0: torch.get_num_threads())");
     m.def("get_num_threads", &num_threads);

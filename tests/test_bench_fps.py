@@ -2,7 +2,7 @@
 import pytest
 import torch
 
-from retinexgs.bench.fps import benchmark, format_result, main, resize_camera
+from retinexgs.bench.fps import STAGES, benchmark, format_result, main, resize_camera
 from retinexgs.render import Camera
 from scenes import tiny_trained_run
 
@@ -16,14 +16,30 @@ def run_dir(tmp_path_factory):
                             n_points=300)[1]
 
 
-def test_fps_times_full_and_raster_on_resized_cameras(run_dir):
+def test_fps_times_full_fused_and_raster_on_resized_cameras(run_dir):
     r = benchmark(run_dir, "cpu", width=50, height=20, frames=3, warmup=1)
     assert (r["width"], r["height"], r["channels"]) == (50, 20, 6)
     assert r["gaussians"] > 0
-    for stage in ("full", "raster"):
+    for stage in STAGES:
         assert r[stage]["ms"] > 0 and r[stage]["fps"] == pytest.approx(1e3 / r[stage]["ms"])
+    assert r["full"]["launches"] is None and r["full (fused)"]["launches"] is None  # counted on CUDA only
+    assert r["fused_colors"] is False and "CPU" in r["colors_note"]  # the fused kernel is the GPU's default
+    assert r["fused_max_abs_diff"] < 1e-5  # the fused path renders the torch path's image
     text = format_result(r)
-    assert "full" in text and "raster" in text and "share" in text
+    for word in ("full (fused)", "raster", "share", "fused / torch full render", "max |fused - torch|",
+                 "torch colours: the CPU default"):
+        assert word in text
+    assert "launches/frame" not in text
+
+
+def test_format_shows_launches_when_counted():
+    stage = {"ms": 2.0, "fps": 500.0}
+    r = {"device": "GPU", "gaussians": 10, "width": 4, "height": 3, "channels": 6, "frames": 2, "fused_colors": True,
+         "fused_max_abs_diff": 0.0, "full": dict(stage, ms=4.0, launches=96.0),
+         "full (fused)": dict(stage, launches=12.0), "raster": dict(stage, ms=1.0)}
+    text = format_result(r)
+    assert "96 launches/frame" in text and "12 launches/frame" in text
+    assert "0.50x time, 2.0x FPS" in text
 
 
 def test_resize_camera_scales_each_axis():

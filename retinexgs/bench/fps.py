@@ -2,9 +2,12 @@
 
     python -m retinexgs.bench fps --run RUN [--width W --height H] [--frames 100] [--device cuda] [--vs gsplat]
 
-"full" is what a viewer pays per frame: SH colours + the illumination MLP on every Gaussian, one 6-channel
-rasterization, the EnhancementNet and R̂·L̂^g. "raster" renders the same Gaussians with those 6 channels
-precomputed, so the difference is the MLP/network share. Cameras are the run's test views (train views when
+"full" is what ``model.render`` (the training path, torch ops) pays per frame: SH colours + the illumination MLP on
+every Gaussian, one 6-channel rasterization, the EnhancementNet and R̂·L̂^g. "full (fused)" is the same frame
+through the :class:`~retinexgs.model.inference.InferenceRenderer` that ``render``, ``export`` and the viewer use
+(one fused colour kernel, the enhancement as a CUDA graph). "raster" renders the same Gaussians with those 6
+channels precomputed, so the difference is the MLP/network share. On CUDA the kernel launches per frame of each
+full stage are counted with torch.profiler (cudaLaunchKernel and friends; a CUDA graph counts once). Cameras are the run's test views (train views when
 it has none), cycled; ``--width/--height`` resize them (intrinsics scaled per axis).
 """
 from __future__ import annotations
@@ -19,7 +22,9 @@ import torch
 
 from retinexgs.render import Camera, rasterize_gaussians
 
-STAGES = ("full", "raster")
+STAGES = ("full", "full (fused)", "raster")
+# Runtime/driver calls that start GPU work: kernels, graphs, copies and fills.
+LAUNCH_CALLS = ("cudaLaunchKernel", "cuLaunchKernel", "cudaGraphLaunch", "cudaMemcpy", "cudaMemset")
 
 
 def resize_camera(cam: Camera, width: Optional[int], height: Optional[int]) -> Camera:
@@ -48,6 +53,20 @@ def time_frames(fn: Callable[[int], object], frames: int, warmup: int, device: t
     return times
 
 
+def count_launches(fn: Callable[[int], object], frames: int, device: torch.device) -> Optional[float]:
+    """Launches (kernels, graph launches, copies, fills) per call of ``fn`` over ``frames`` calls on CUDA, counted
+    by torch.profiler; None on the CPU."""
+    if device.type != "cuda":
+        return None
+    acts = [torch.profiler.ProfilerActivity.CPU, torch.profiler.ProfilerActivity.CUDA]
+    with torch.profiler.profile(activities=acts) as prof:
+        for i in range(frames):
+            fn(i)
+        torch.cuda.synchronize(device)
+    calls = sum(e.count for e in prof.key_averages() if e.key.startswith(LAUNCH_CALLS))
+    return calls / frames
+
+
 def _gsplat_raster(means, quats, scales, opacities, colors, cam: Camera):
     import gsplat
 
@@ -59,8 +78,11 @@ def _gsplat_raster(means, quats, scales, opacities, colors, cam: Camera):
 
 
 def benchmark(run: Path, device: Optional[str] = None, width: Optional[int] = None, height: Optional[int] = None,
-              frames: int = 100, warmup: int = 10, vs_gsplat: bool = False) -> Dict[str, object]:
-    """Median ms / FPS of the full enhanced render and of the rasterization alone for ``run``."""
+              frames: int = 100, warmup: int = 10, vs_gsplat: bool = False,
+              launch_frames: int = 5) -> Dict[str, object]:
+    """Median ms / FPS of the full enhanced render (torch path and fused path) and of the rasterization alone
+    for ``run``; on CUDA also the launches per frame of the two full stages (over ``launch_frames`` frames)."""
+    from retinexgs.model.inference import InferenceRenderer
     from retinexgs.errors import UserError
     from retinexgs.train.run import load_run
     from retinexgs.train.trainer import active_sh_degree, view_camera
@@ -78,6 +100,11 @@ def benchmark(run: Path, device: Optional[str] = None, width: Optional[int] = No
     def full(i: int) -> None:
         model.render(cams[i % len(cams)], degree)
 
+    renderer = InferenceRenderer(model, degree)
+
+    def fused(i: int) -> None:
+        renderer.render(cams[i % len(cams)])
+
     # The 6 channels of every view, computed once: the rasterizer alone then sees exactly the same work.
     with torch.no_grad():
         means, quats, scales, opac = g.means, g.quats, g.scales, g.opacities
@@ -94,18 +121,24 @@ def benchmark(run: Path, device: Optional[str] = None, width: Optional[int] = No
     def raster(i: int) -> None:
         rasterize_gaussians(means, quats, scales, opac, channels[i % len(cams)], cams[i % len(cams)])
 
-    stages: Dict[str, Callable[[int], None]] = {"full": full, "raster": raster}
+    stages: Dict[str, Callable[[int], None]] = {"full": full, "full (fused)": fused, "raster": raster}
     if vs_gsplat:
         def gs(i: int) -> None:
             _gsplat_raster(means, quats, scales, opac, channels[i % len(cams)], cams[i % len(cams)])
         stages["raster (gsplat)"] = gs
     out: Dict[str, object] = {"gaussians": len(g), "width": cams[0].width, "height": cams[0].height,
                               "channels": int(channels[0].shape[1]), "frames": frames,
-                              "device": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu"}
+                              "device": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu",
+                              "fused_colors": renderer.fused, "colors_note": renderer.fallback_reason}
+    with torch.no_grad():  # the fused path must give the torch path's image
+        ref, got = model.render(cams[0], degree)["rgb"], renderer.render(cams[0])["rgb"]
+        out["fused_max_abs_diff"] = float((ref.double() - got.double()).abs().max()) if ref.numel() else 0.0
     with torch.no_grad():
         for name, fn in stages.items():
             ms = statistics.median(time_frames(fn, frames, warmup, dev))
             out[name] = {"ms": ms, "fps": 1e3 / ms}
+            if name.startswith("full") and launch_frames > 0:
+                out[name]["launches"] = count_launches(fn, launch_frames, dev)
     return out
 
 
@@ -115,10 +148,18 @@ def format_result(r: Dict[str, object]) -> str:
              f"median of {r['frames']} frames"]
     full = r["full"]["ms"]  # type: ignore[index]
     for name in [k for k in r if isinstance(r[k], dict)]:
-        ms = r[name]["ms"]  # type: ignore[index]
-        lines.append(f"  {name:<16} {ms:8.3f} ms  {1e3 / ms:8.1f} FPS  ({ms / full:5.2f} of full)")
+        stage = r[name]
+        ms = stage["ms"]  # type: ignore[index]
+        launches = stage.get("launches")  # type: ignore[union-attr]
+        extra = f", {launches:.0f} launches/frame" if launches is not None else ""
+        lines.append(f"  {name:<16} {ms:8.3f} ms  {1e3 / ms:8.1f} FPS  ({ms / full:5.2f} of full{extra})")
     raster = r["raster"]["ms"]  # type: ignore[index]
-    lines.append(f"  MLP + EnhancementNet + SH share of the full render: {100 * (full - raster) / full:.0f} %")
+    fused = r["full (fused)"]["ms"]  # type: ignore[index]
+    lines.append(f"  MLP + EnhancementNet + SH share of the full render: {100 * (full - raster) / full:.0f} % "
+                 f"(torch), {100 * (fused - raster) / fused:.0f} % (fused)")
+    lines.append(f"  fused / torch full render: {fused / full:.2f}x time, {full / fused:.1f}x FPS"
+                 + ("" if r.get("fused_colors", True) else f" (torch colours: {r.get('colors_note')})")
+                 + f"; max |fused - torch| of the enhanced image: {r.get('fused_max_abs_diff', float('nan')):.2e}")
     return "\n".join(lines)
 
 
@@ -131,12 +172,14 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--frames", type=int, default=100, help="timed frames (default 100)")
     parser.add_argument("--warmup", type=int, default=10)
     parser.add_argument("--vs", choices=["gsplat"], default=None, help="also time gsplat's rasterization")
+    parser.add_argument("--launch-frames", type=int, default=5,
+                        help="frames profiled to count launches per frame on CUDA (0: skip; default 5)")
     args = parser.parse_args(argv)
     from retinexgs.errors import UserError
 
     try:
         print(format_result(benchmark(args.run, args.device, args.width, args.height, args.frames, args.warmup,
-                                      args.vs == "gsplat")))
+                                      args.vs == "gsplat", args.launch_frames)))
     except UserError as exc:
         print(f"bench fps: error: {exc}")
         return 2

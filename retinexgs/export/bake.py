@@ -38,6 +38,7 @@ from torch import Tensor
 
 from retinexgs.data.scene import Normalization
 from retinexgs.model.gaussians import PARAM_NAMES
+from retinexgs.model.inference import InferenceRenderer
 from retinexgs.model.retinex_model import RetinexGSModel
 from retinexgs.render import Camera, spherical_harmonics
 
@@ -62,9 +63,10 @@ def sh_basis(degree: int, dirs: Tensor) -> Tensor:
 def mean_gamma(model: RetinexGSModel, cameras: Iterable[Camera], degree: int) -> Tensor:
     """The mean gamma [3] the EnhancementNet predicts over ``cameras`` (one value repeated unless per channel)."""
     gammas = []
+    renderer = InferenceRenderer(model, degree)  # the render command's frames: same gamma as model.render
     with torch.no_grad():
         for cam in cameras:
-            gammas.append(model.render(cam, degree)["gamma"].reshape(-1, 3).mean(0).double().cpu())
+            gammas.append(renderer.render(cam)["gamma"].reshape(-1, 3).mean(0).double().cpu())
     if not gammas:
         raise ValueError("mean_gamma needs at least one camera")
     return torch.stack(gammas).mean(0)

@@ -11,6 +11,7 @@ from retinexgs.data import Scene, View, load_scene
 from retinexgs.errors import UserError
 from retinexgs.evaluate.evaluate import evaluate
 from retinexgs.model.gaussians import GaussianModel
+from retinexgs.model.inference import InferenceRenderer
 from retinexgs.model.retinex_model import RetinexGSModel
 from retinexgs.render import Camera
 from retinexgs.train.checkpoint import latest_checkpoint, load_checkpoint
@@ -126,15 +127,25 @@ def _train_and_evaluate(trainer: Trainer, cfg: Dict, scene: Scene, run_dir: Path
 
 
 def render_function(model: RetinexGSModel, cfg: Dict, degree: int, exposure: Optional[float] = None,
-                    gamma: Optional[float] = None) -> Callable[[Union[View, Camera]], Dict]:
-    """view (or a renderer camera) -> the model's output maps; for the post-enhancement baseline, LR3M
-    enhances the render."""
+                    gamma: Optional[float] = None, fast: bool = True,
+                    renderer: Optional[InferenceRenderer] = None) -> Callable[[Union[View, Camera]], Dict]:
+    """view (or a renderer camera) -> the model's output maps (``rgb``, and ``R``, ``L``, ``S_rec`` for RetinexGS);
+    for the post-enhancement baseline, LR3M enhances the render.
+
+    ``fast`` renders through an :class:`~retinexgs.model.inference.InferenceRenderer` (the fused colour kernel,
+    CUDA graphs; same images as ``model.render``), built here once or passed as ``renderer`` (the viewer keeps
+    one across frames); ``fast=False`` calls ``model.render``."""
     model.eval()
+    if fast and renderer is None:
+        renderer = InferenceRenderer(model, degree)
 
     def fn(view: Union[View, Camera]) -> Dict:
         camera = view if isinstance(view, Camera) else view_camera(view)
         with torch.no_grad():
-            res = model.render(camera, degree, exposure=exposure, gamma=gamma)
+            if fast:
+                res = renderer.render(camera, exposure=exposure, gamma=gamma, degree=degree)
+            else:
+                res = model.render(camera, degree, exposure=exposure, gamma=gamma)
             if cfg["method"] == "post":
                 from retinexgs.retinex import decompose, enhance_for_viewing
                 method = cfg["decomposer"]["method"] if cfg["decomposer"]["method"] != "none" else "lr3m"

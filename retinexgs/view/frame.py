@@ -19,6 +19,7 @@ from torch import Tensor
 from retinexgs.data.scene import View
 from retinexgs.evaluate.evaluate import to_uint8
 from retinexgs.export.renders import depth_range, render_depth
+from retinexgs.model.inference import InferenceRenderer
 from retinexgs.train.run import render_function
 from retinexgs.view.camera import ViewerCamera, viewer_to_camera
 
@@ -69,6 +70,10 @@ class FrameRenderer:
         self.maps = VIEW_MAPS if self.decomposed else BASELINE_MAPS
         self.zrange = depth_range(model, views) if views else (0.1, 10.0)
         self._guard = guard
+        # One inference renderer across frames (packed weights, CUDA graphs); a live trainer's model changes every
+        # step, so its renderer repacks per frame and skips graphs (their capture would cost more than it saves).
+        self.live = guard is not None or callable(degree)
+        self._renderer: Optional[InferenceRenderer] = None
         if guard is None:
             lock = threading.Lock()
             self._guard = lambda: lock
@@ -94,7 +99,10 @@ class FrameRenderer:
             degree = self.degree() if callable(self.degree) else self.degree
             training = self.model.training  # render_function sets eval mode; a live trainer's model gets its back
             try:
-                res = render_function(self.model, self.cfg, degree, exposure=exposure, gamma=gamma)(camera)
+                if self._renderer is None:
+                    self._renderer = InferenceRenderer(self.model, degree, graphs=not self.live, live=self.live)
+                res = render_function(self.model, self.cfg, degree, exposure=exposure, gamma=gamma,
+                                      renderer=self._renderer)(camera)
             finally:
                 self.model.train(training)
             img = self.model.normalized_illumination(res["L"]) if settings.map == "L" else res[_KEYS[settings.map]]

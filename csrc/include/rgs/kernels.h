@@ -93,4 +93,20 @@ void sh_backward_cpu(int64_t N, int degree, int K, int D, const T* dirs, const T
                      T* v_coeffs,        // [N, K, D] out (bases above the degree get 0)
                      int num_threads);
 
+// ---- per-Gaussian colours of a trained scene (inference) --------------------------------------
+// Reflectance max(SH(means - center) + 0.5, 0) and, with illum != nullptr, the illumination MLP's 3 channels
+// (rgs/gaussian_colors.h; weights packed by pack_illum_weights in that layout).
+template <typename T>
+void gaussian_colors_cpu(int64_t N, int degree,
+                         int rest,                  // SH bases in sh_rest (K - 1)
+                         const T* means,            // [N, 3]
+                         const T* sh_dc,            // [N, 3]
+                         const T* sh_rest,          // [N, rest, 3] (unused when degree = 0)
+                         const T* center,           // [3] camera centre (host memory)
+                         const IllumConfig* illum,  // MLP shape, or nullptr for the reflectance only
+                         double bound,              // positions are divided by this before encoding
+                         const T* weights,          // [illum_layout(*illum).total] (or nullptr)
+                         T* colors,                 // [N, 3 or 6] out
+                         int num_threads);
+
 }  // namespace rgs

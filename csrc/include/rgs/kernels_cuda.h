@@ -62,4 +62,10 @@ template <typename T>
 void sh_backward_cuda(int64_t N, int degree, int K, int D, const T* dirs, const T* coeffs, const T* v_colors,
                       T* v_dirs, T* v_coeffs, void* stream);
 
+// Same as gaussian_colors_cpu; the weights (device memory) are staged in shared memory per block when they fit.
+template <typename T>
+void gaussian_colors_cuda(int64_t N, int degree, int rest, const T* means, const T* sh_dc, const T* sh_rest,
+                          const T* center, const IllumConfig* illum, double bound, const T* weights, T* colors,
+                          void* stream);
+
 }  // namespace rgs

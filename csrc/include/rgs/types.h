@@ -51,4 +51,9 @@ struct TileRect {
     RGS_HD int area() const { return (x1 - x0) * (y1 - y0); }
 };
 
+// Shape of the illumination field's MLP (IlluminationField's constructor arguments; rgs/gaussian_colors.h).
+struct IllumConfig {
+    int pos_freqs, dir_freqs, hidden, depth, dir_hidden;
+};
+
 }  // namespace rgs
