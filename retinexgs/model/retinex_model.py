@@ -68,17 +68,19 @@ class RetinexGSModel(nn.Module):
         return g if self.per_channel_gamma else g.mean(dim=1, keepdim=True).expand_as(g)
 
     def render(self, camera: Camera, active_degree: int, exposure: Optional[float] = None,
-               gamma: Optional[float] = None, validate: bool = True, enhance: bool = True) -> Dict[str, Tensor]:
+               gamma: Optional[float] = None, validate: bool = True, enhance: bool = True,
+               center: Optional[Tensor] = None) -> Dict[str, Tensor]:
         """Render one view. Returns ``out`` (RenderOutput) and [H,W,3] maps: ``rgb`` (the model's output
         image: S_enh, or the plain render for baselines), and for RetinexGS ``R``, ``L``, ``S_rec``, ``gamma``.
 
         ``exposure`` scales the predicted gamma (< 1 brighter, > 1 darker); ``gamma`` replaces it.
         ``validate=False`` skips the renderer's input checks (one host sync), for loops that check their
         parameters themselves. ``enhance=False`` skips the EnhancementNet (no ``rgb``, ``L_enh``, ``gamma``):
-        training needs only R̂ and L̂ until the enhancement losses start.
+        training needs only R̂ and L̂ until the enhancement losses start. ``center``: the camera centre already
+        on the device (the trainer caches it per view; otherwise it is computed and copied every call).
         """
         g = self.gaussians
-        center = camera.center.to(g.means)
+        center = (camera.center if center is None else center).to(g.means)
         colors = g.colors(center, active_degree)
         if self.decomposed:
             illum = self.illumination(g.means, IlluminationField.view_dirs(g.means, center))

@@ -59,12 +59,30 @@ def gaussian_window(size: int = 11, sigma: float = 1.5, dtype: torch.dtype = tor
     return (g / g.sum()).to(dtype=dtype, device=device)
 
 
-def _filter(x: torch.Tensor, g: torch.Tensor, pad: int) -> torch.Tensor:
+# The depthwise filter weights by (channels, size, sigma, dtype, device): built once, not every call (a
+# training step would otherwise copy the window to the GPU and make the expanded weights contiguous each time,
+# and a captured CUDA graph cannot contain the host->device copy at all). Entries are never dropped: a captured
+# graph reads them by address. They are tiny (c·size numbers).
+_WEIGHTS: Dict[tuple, Tuple[torch.Tensor, torch.Tensor]] = {}
+
+
+def _filter_weights(c: int, size: int, sigma: float, dtype: torch.dtype, device) -> Tuple[torch.Tensor, torch.Tensor]:
+    """The (horizontal [c,1,1,k], vertical [c,1,k,1]) weights of the separable depthwise Gaussian filter."""
+    key = (c, size, float(sigma), dtype, torch.device(device) if device is not None else torch.device("cpu"))
+    w = _WEIGHTS.get(key)
+    if w is None:
+        g = gaussian_window(size, sigma, dtype, device)
+        w = (g.reshape(1, 1, 1, size).repeat(c, 1, 1, 1), g.reshape(1, 1, size, 1).repeat(c, 1, 1, 1))
+        _WEIGHTS[key] = w
+    return w
+
+
+def _filter(x: torch.Tensor, size: int, sigma: float, pad: int) -> torch.Tensor:
     """Separable depthwise Gaussian filter of [B,C,H,W] with zero padding ``pad``."""
     c = x.shape[1]
-    k = g.numel()
-    x = F.conv2d(x, g.reshape(1, 1, 1, k).expand(c, 1, 1, k), padding=(0, pad), groups=c)
-    return F.conv2d(x, g.reshape(1, 1, k, 1).expand(c, 1, k, 1), padding=(pad, 0), groups=c)
+    wx, wy = _filter_weights(c, size, sigma, x.dtype, x.device)
+    x = F.conv2d(x, wx, padding=(0, pad), groups=c)
+    return F.conv2d(x, wy, padding=(pad, 0), groups=c)
 
 
 def ssim(x: torch.Tensor, y: torch.Tensor, window: int = 11, sigma: float = 1.5, padding: str = "same",
@@ -93,10 +111,9 @@ def ssim(x: torch.Tensor, y: torch.Tensor, window: int = 11, sigma: float = 1.5,
     if padding == "valid" and min(x.shape[-2:]) < window:
         raise ValueError(f"image {tuple(x.shape[-2:])} smaller than the {window}x{window} window")
     pad = window // 2 if padding == "same" else 0
-    g = gaussian_window(window, sigma, x.dtype, x.device)
     c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
     # The five local moments in one filter pass (2 convolutions instead of 10: training is launch-bound).
-    moments = _filter(torch.cat([x, y, x * x, y * y, x * y], dim=1), g, pad)
+    moments = _filter(torch.cat([x, y, x * x, y * y, x * y], dim=1), window, sigma, pad)
     mx, my, exx, eyy, exy = moments.chunk(5, dim=1)
     sxx = exx - mx * mx
     syy = eyy - my * my

@@ -1,0 +1,128 @@
+"""CUDA graphs of the training step's image losses: forward and backward of every loss term that depends only
+on the rendered image (all but L_SH), replayed as one graph launch instead of a few hundred kernel launches.
+
+A captured graph takes the rendered image [H,W,C] and the view's packed targets (S, and the 2D priors R, L;
+or the baselines' target) in static buffers, and leaves in static buffers: the gradient of the image losses'
+sum with respect to the image, the gradients of the networks that live entirely inside the loss (the
+EnhancementNet, while L_enhance is on), and every term's value. The trainer copies the image in (one copy),
+feeds the image gradient to the rasterizer's backward, and hands the network gradients to the optimiser.
+
+One graph per (image shape, dtype, targets' shape, enhancement on/off): the EnhancementNet and its losses
+switch on at a step of the schedule, views may differ in size. The loss function is the trainer's eager one,
+traced by capture, so the graphed values and gradients are the eager ones (tests/test_cuda_step.py compares
+them for every shipped config). Only CUDA tensors are captured; anything else, a capture that fails, or more
+than ``max_graphs`` shapes, runs eagerly (the caller's fallback): the config switch ``train.cuda_graphs``
+turns graphs off altogether.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Dict, List, Optional, Tuple
+
+import torch
+from torch import Tensor
+
+# (image [H,W,C], packed targets [H,W,K], enhancement on) -> (the image losses' sum, {name: term}).
+LossFn = Callable[[Tensor, Tensor, bool], Tuple[Tensor, Dict[str, Tensor]]]
+
+
+@dataclass
+class GraphResult:
+    """What one replay leaves (static buffers: valid until the next replay of the same graph)."""
+
+    grad_image: Tensor              # [H,W,C] d(image losses)/d(image)
+    names: Tuple[str, ...]          # the image loss terms, in the loss function's order
+    values: Tensor                  # [1 + len(names)]: the image losses' sum, then each term (detached)
+    param_grads: List[Tensor]       # gradients of ``params`` (empty while the enhancement is off)
+
+
+@dataclass
+class _Captured:
+    graph: "torch.cuda.CUDAGraph"
+    image: Tensor
+    packed: Tensor
+    result: GraphResult
+
+
+class LossGraphs:
+    """Captures and replays :data:`LossFn` per input shape.
+
+    Args:
+        loss_fn: the image part of the loss; must not sync with the host (no ``.item()``, no data-dependent
+            shapes) and must read only ``image``, ``packed`` and long-lived tensors (parameters, buffers).
+        params: the parameters that get gradients inside the graph while the enhancement is on (their
+            tensors must stay the same objects: the optimiser updates them in place).
+        max_graphs: shapes captured at most; further shapes run eagerly.
+        warmup: eager iterations on a side stream before capture (library handles, workspaces, caches).
+    """
+
+    def __init__(self, loss_fn: LossFn, params: List[Tensor], max_graphs: int = 8, warmup: int = 2) -> None:
+        self.loss_fn, self.params = loss_fn, list(params)
+        self.max_graphs, self.warmup = int(max_graphs), int(warmup)
+        self._graphs: Dict[tuple, _Captured] = {}
+        self._failed: Dict[tuple, str] = {}
+        self._pool = None
+
+    def supports(self, image: Tensor, packed: Tensor) -> bool:
+        return image.is_cuda and packed.is_cuda and image.device == packed.device
+
+    def _key(self, image: Tensor, packed: Tensor, enhance: bool) -> tuple:
+        return (tuple(image.shape), image.dtype, tuple(packed.shape), packed.dtype, image.device, bool(enhance))
+
+    def _step(self, image: Tensor, packed: Tensor, enhance: bool) -> GraphResult:
+        """One forward + backward of the image losses on the static inputs (what is captured)."""
+        total, terms = self.loss_fn(image, packed, enhance)
+        params = self.params if enhance else []
+        grads = torch.autograd.grad(total, [image] + params, allow_unused=True)
+        if any(g is None for g in grads):  # a graph cannot give None some steps and a tensor on others
+            raise RuntimeError("a parameter of the graphed loss gets no gradient")
+        values = torch.stack([total.detach()] + [t.detach() for t in terms.values()])
+        return GraphResult(grads[0], tuple(terms), values, list(grads[1:]))
+
+    def _capture(self, image: Tensor, packed: Tensor, enhance: bool) -> _Captured:
+        static_image = image.detach().clone().requires_grad_(True)
+        static_packed = packed.detach().clone()
+        side = torch.cuda.Stream(device=image.device)
+        side.wait_stream(torch.cuda.current_stream(image.device))
+        with torch.cuda.stream(side):
+            for _ in range(self.warmup):
+                self._step(static_image, static_packed, enhance)
+        torch.cuda.current_stream(image.device).wait_stream(side)
+        graph = torch.cuda.CUDAGraph()
+        if self._pool is None:
+            self._pool = torch.cuda.graph_pool_handle()
+        # thread_local: the live viewer may render from another thread (its gate keeps it out of train_step,
+        # and this mode keeps any other thread's CUDA work from invalidating the capture).
+        with torch.cuda.graph(graph, pool=self._pool, capture_error_mode="thread_local"):
+            result = self._step(static_image, static_packed, enhance)
+        return _Captured(graph, static_image, static_packed, result)
+
+    def run(self, image: Tensor, packed: Tensor, enhance: bool) -> Optional[GraphResult]:
+        """Replay (capturing first when the shape is new); None when this input must run eagerly."""
+        if not self.supports(image, packed):
+            return None
+        key = self._key(image, packed, enhance)
+        cap = self._graphs.get(key)
+        if cap is None:
+            if key in self._failed or len(self._graphs) >= self.max_graphs:
+                return None
+            try:
+                cap = self._capture(image, packed, enhance)
+            except Exception as err:  # an op that cannot be captured: this shape runs eagerly from now on
+                self._failed[key] = f"{type(err).__name__}: {err}"
+                return None
+            self._graphs[key] = cap
+        with torch.no_grad():
+            cap.image.copy_(image.detach())
+            if cap.packed.data_ptr() != packed.data_ptr():
+                cap.packed.copy_(packed)
+        cap.graph.replay()
+        return cap.result
+
+    @property
+    def failures(self) -> Dict[tuple, str]:
+        """Shapes whose capture failed, with the error (they run eagerly)."""
+        return dict(self._failed)
+
+    def __len__(self) -> int:
+        return len(self._graphs)

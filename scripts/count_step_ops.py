@@ -1,0 +1,167 @@
+"""Count the operators of RetinexGS training steps, per step and by name (a proxy for kernel launches).
+
+    python scripts/count_step_ops.py [SCENE] [--device cpu|cuda] [--steps 300] [--profile 30]
+                                     [--config NAME] [--set KEY=VALUE] [--top 40]
+
+Without SCENE a small synthetic scene is generated (96x72, 4000 points). Trains ``--steps`` warm-up steps
+with the enhancement losses switched on half way (as scripts/profile_train.py does), then counts the
+operators of ``--profile`` more steps and prints, per step:
+  - aten operators as the backends see them (a TorchDispatchMode below autograd: the backward's operators
+    are included, a composite operator counts as the operators it is made of), by name;
+  - "kernel" operators: the same without the metadata-only ones (views, reshapes, empty tensors), each of
+    which is (about) one kernel launch on the GPU, split by the trainer's phases (its
+    ``record_function("step/...")`` ranges) and with the optimiser step apart (fused on the GPU);
+  - the calls into the project's own kernels (retinexgs._C);
+  - host syncs: aten::_local_scalar_dense (.item(), bool(), int() of a tensor), device->host copies;
+  - CUDA graph replays (the captured loss part runs as one graph launch);
+  - on CUDA also cudaLaunchKernel / cudaGraphLaunch counts and cudaMemcpy / synchronize calls (profiler).
+Run it on the CPU before and after a change to compare; on the GPU it also shows the launches.
+"""
+from __future__ import annotations
+
+import argparse
+import collections
+import tempfile
+from pathlib import Path
+from typing import Dict, List
+
+import torch
+from torch.utils._python_dispatch import TorchDispatchMode
+
+# Operators that only make a new view or an uninitialised tensor: no kernel on any device.
+METADATA = {
+    "view", "_reshape_alias", "reshape", "as_strided", "slice", "select", "permute", "unsqueeze", "squeeze",
+    "expand", "t", "transpose", "detach", "detach_", "alias", "unbind", "split", "split_with_sizes", "chunk",
+    "narrow", "empty", "empty_strided", "empty_like", "resolve_conj", "resolve_neg", "lift_fresh", "flatten",
+    "unflatten", "expand_as", "view_as", "_unsafe_view", "result_type", "set_", "resize_", "contiguous",
+    "is_nonzero", "broadcast_tensors", "movedim", "diagonal", "squeeze_", "unsqueeze_", "record_stream",
+    "is_same_size", "sym_size", "sym_stride", "sym_numel", "sym_storage_offset", "dim", "size", "stride",
+    "_to_copy_meta", "new_empty", "new_empty_strided", "_has_compatible_shallow_copy_type", "is_pinned",
+}
+SYNCS = {"_local_scalar_dense", "item"}
+
+
+def _op_name(func) -> str:
+    """'aten.mul.Tensor' -> 'mul'; 'profiler._record_function_enter_new.default' -> its full name."""
+    parts = str(func).split(".")
+    return parts[1] if parts[0] == "aten" and len(parts) > 1 else str(func)
+
+
+class OpCounter(TorchDispatchMode):
+    """Counts every operator that reaches a backend, by name and by the trainer's current phase."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.ops: collections.Counter = collections.Counter()
+        self.phases: collections.Counter = collections.Counter()
+        self.d2h = 0
+        self._stack: List[str] = []
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        name = _op_name(func)
+        if name.startswith("profiler._record_function_enter"):
+            self._stack.append(str(args[0]))
+        elif name.startswith("profiler._record_function_exit"):
+            if self._stack:
+                self._stack.pop()
+        else:
+            self.ops[name] += 1
+            if name not in METADATA:
+                phase = next((p for p in reversed(self._stack) if p.startswith("step/")), "step/(other)")
+                if any(p.startswith("Optimizer.step") for p in self._stack):
+                    phase = "step/optimizer"
+                self.phases[phase] += 1
+            if name in ("_to_copy", "copy_") and args and isinstance(args[0], torch.Tensor):
+                dst = kwargs.get("device")
+                if args[0].is_cuda and (dst is not None and torch.device(dst).type == "cpu"):
+                    self.d2h += 1
+        return func(*args, **kwargs)
+
+
+def count_calls(module, names) -> Dict[str, int]:
+    """Wrap the functions ``names`` of ``module`` so that calls are counted (returns the live counter)."""
+    calls: Dict[str, int] = collections.Counter()
+    for name in names:
+        fn = getattr(module, name)
+
+        def wrapped(*a, _fn=fn, _name=name, **k):
+            calls[_name] += 1
+            return _fn(*a, **k)
+
+        setattr(module, name, wrapped)
+    return calls
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("scene", type=Path, nargs="?")
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--steps", type=int, default=300)
+    ap.add_argument("--profile", type=int, default=30)
+    ap.add_argument("--config", action="append", default=[])
+    ap.add_argument("--set", action="append", default=[], dest="overrides")
+    ap.add_argument("--top", type=int, default=40)
+    args = ap.parse_args()
+
+    from retinexgs.render import _backend
+    from retinexgs.train.config import load_config
+    from retinexgs.train.run import open_scene
+    from retinexgs.train.trainer import Trainer
+
+    cuda = args.device.startswith("cuda")
+    with tempfile.TemporaryDirectory() as tmp:
+        scene_path = args.scene
+        if scene_path is None:
+            from retinexgs.demo.synthetic import make_demo_scene
+            scene_path = make_demo_scene(Path(tmp) / "scene", n_train=6, n_test=1, width=96, height=72,
+                                         n_points=4000)
+        cfg = load_config(args.config, [f"loss.enhance_from={args.steps // 2}"] + args.overrides)
+        scene = open_scene(scene_path, cfg)
+        run = Path(tmp) / "run"
+        run.mkdir()
+        tr = Trainer(cfg, scene, run, args.device, progress=False, log=lambda s: None)
+        tr.train(stop_after=args.steps)
+        k = _backend.kernels()
+        kernel_calls = count_calls(k, [n for n in dir(k) if not n.startswith("_") and callable(getattr(k, n))])
+        graph_calls = count_calls(torch.cuda.CUDAGraph, ["replay"]) if cuda else {}
+        first = tr.step + 1
+        n = args.profile
+        counter = OpCounter()
+        acts = [torch.profiler.ProfilerActivity.CPU] + ([torch.profiler.ProfilerActivity.CUDA] if cuda else [])
+        if cuda:
+            torch.cuda.synchronize()
+        with torch.profiler.profile(activities=acts) as prof, counter:
+            tr.train(stop_after=n)
+            if cuda:
+                torch.cuda.synchronize()
+        kernel_ops = {k: v for k, v in counter.ops.items() if k not in METADATA}
+        optim = counter.phases.get("step/optimizer", 0)
+        print(f"steps {first}..{tr.step} on {args.device}, {len(tr.model.gaussians)} Gaussians, "
+              f"config {args.config or ['default']} {args.overrides}, "
+              f"cuda_graphs={cfg['train']['cuda_graphs'] if 'train' in cfg else 'n/a'}")
+        print(f"aten ops per step (all):          {sum(counter.ops.values()) / n:8.1f}")
+        print(f"kernel ops per step (no views):   {sum(kernel_ops.values()) / n - optim / n:8.1f}"
+              f"  (+ {optim / n:.1f} in the optimiser step: one fused kernel per group on the GPU)")
+        print("  by phase: " + ", ".join(f"{p[5:]} {c / n:.1f}" for p, c in sorted(counter.phases.items())))
+        print(f"retinexgs._C calls per step:      {sum(kernel_calls.values()) / n:8.1f}  "
+              + ", ".join(f"{k} {v / n:.1f}" for k, v in sorted(kernel_calls.items())))
+        print(f"host syncs per step: {sum(counter.ops.get(s, 0) for s in SYNCS) / n:.2f} item/bool/int, "
+              f"{counter.d2h / n:.2f} device->host copies (+ 1 for binning's pair count on CUDA)")
+        if cuda:
+            names = collections.Counter(e.name for e in prof.events())
+            launches = sum(v for k, v in names.items() if k in ("cudaLaunchKernel", "cuLaunchKernel",
+                                                                   "cudaLaunchKernelExC", "cuLaunchKernelEx"))
+            memcpy = sum(v for k, v in names.items() if k.startswith("cudaMemcpy"))
+            sync = sum(v for k, v in names.items() if "Synchronize" in k)
+            print(f"CUDA per step: {launches / n:.1f} kernel launches, {names.get('cudaGraphLaunch', 0) / n:.2f} "
+                  f"graph launches ({sum(graph_calls.values()) / n:.2f} replays), {memcpy / n:.2f} memcpys, "
+                  f"{sync / n:.2f} synchronizes")
+        rows = sorted(kernel_ops.items(), key=lambda kv: -kv[1])[: args.top]
+        print(f"\ntop {len(rows)} kernel ops per step (optimiser included):")
+        for name, count in rows:
+            print(f"  {count / n:8.2f}  {name}")
+
+
+if __name__ == "__main__":
+    main()
