@@ -55,6 +55,7 @@ class OpCounter(TorchDispatchMode):
         self.ops: collections.Counter = collections.Counter()
         self.phases: collections.Counter = collections.Counter()
         self.d2h = 0
+        self.syncs = 0
         self._stack: List[str] = []
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
@@ -67,11 +68,13 @@ class OpCounter(TorchDispatchMode):
                 self._stack.pop()
         else:
             self.ops[name] += 1
+            phase = next((p for p in reversed(self._stack) if p.startswith("step/")), "step/(other)")
+            if any(p.startswith("Optimizer.step") for p in self._stack):
+                phase = "step/optimizer"
             if name not in METADATA:
-                phase = next((p for p in reversed(self._stack) if p.startswith("step/")), "step/(other)")
-                if any(p.startswith("Optimizer.step") for p in self._stack):
-                    phase = "step/optimizer"
                 self.phases[phase] += 1
+            if name in SYNCS and phase != "step/optimizer":  # the CPU's non-fused Adam reads its step count
+                self.syncs += 1
             if name in ("_to_copy", "copy_") and args and isinstance(args[0], torch.Tensor):
                 dst = kwargs.get("device")
                 if args[0].is_cuda and (dst is not None and torch.device(dst).type == "cpu"):
@@ -102,6 +105,9 @@ def main() -> None:
     ap.add_argument("--config", action="append", default=[])
     ap.add_argument("--set", action="append", default=[], dest="overrides")
     ap.add_argument("--top", type=int, default=40)
+    ap.add_argument("--emulate-graphs", action="store_true",
+                    help="CPU: run the CUDA-graph path of the step eagerly (its ops show as phase loss_graph, "
+                         "which is one graph launch on the GPU)")
     args = ap.parse_args()
 
     from retinexgs.render import _backend
@@ -120,7 +126,8 @@ def main() -> None:
         scene = open_scene(scene_path, cfg)
         run = Path(tmp) / "run"
         run.mkdir()
-        tr = Trainer(cfg, scene, run, args.device, progress=False, log=lambda s: None)
+        tr = Trainer(cfg, scene, run, args.device, progress=False, log=lambda s: None,
+                     emulate_graphs=args.emulate_graphs)
         tr.train(stop_after=args.steps)
         k = _backend.kernels()
         kernel_calls = count_calls(k, [n for n in dir(k) if not n.startswith("_") and callable(getattr(k, n))])
@@ -137,16 +144,20 @@ def main() -> None:
                 torch.cuda.synchronize()
         kernel_ops = {k: v for k, v in counter.ops.items() if k not in METADATA}
         optim = counter.phases.get("step/optimizer", 0)
+        graphed = counter.phases.get("step/loss_graph", 0)
         print(f"steps {first}..{tr.step} on {args.device}, {len(tr.model.gaussians)} Gaussians, "
               f"config {args.config or ['default']} {args.overrides}, "
               f"cuda_graphs={cfg['train']['cuda_graphs'] if 'train' in cfg else 'n/a'}")
         print(f"aten ops per step (all):          {sum(counter.ops.values()) / n:8.1f}")
         print(f"kernel ops per step (no views):   {sum(kernel_ops.values()) / n - optim / n:8.1f}"
               f"  (+ {optim / n:.1f} in the optimiser step: one fused kernel per group on the GPU)")
+        if graphed:
+            print(f"kernel ops per step outside the graphed losses: {(sum(kernel_ops.values()) - optim - graphed) / n:8.1f}"
+                  f"  (+ {graphed / n:.1f} inside: one graph launch on the GPU)")
         print("  by phase: " + ", ".join(f"{p[5:]} {c / n:.1f}" for p, c in sorted(counter.phases.items())))
         print(f"retinexgs._C calls per step:      {sum(kernel_calls.values()) / n:8.1f}  "
               + ", ".join(f"{k} {v / n:.1f}" for k, v in sorted(kernel_calls.items())))
-        print(f"host syncs per step: {sum(counter.ops.get(s, 0) for s in SYNCS) / n:.2f} item/bool/int, "
+        print(f"host syncs per step: {counter.syncs / n:.2f} item/bool/int (optimiser apart), "
               f"{counter.d2h / n:.2f} device->host copies (+ 1 for binning's pair count on CUDA)")
         if cuda:
             names = collections.Counter(e.name for e in prof.events())

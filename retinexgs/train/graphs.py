@@ -54,11 +54,15 @@ class LossGraphs:
             tensors must stay the same objects: the optimiser updates them in place).
         max_graphs: shapes captured at most; further shapes run eagerly.
         warmup: eager iterations on a side stream before capture (library handles, workspaces, caches).
+        emulate: on non-CUDA tensors run the same forward + backward eagerly each call (no capture) and hand
+            back the same kind of result: the trainer's graphed path on the CPU, for tests and op counts.
     """
 
-    def __init__(self, loss_fn: LossFn, params: List[Tensor], max_graphs: int = 8, warmup: int = 2) -> None:
+    def __init__(self, loss_fn: LossFn, params: List[Tensor], max_graphs: int = 8, warmup: int = 2,
+                 emulate: bool = False) -> None:
         self.loss_fn, self.params = loss_fn, list(params)
         self.max_graphs, self.warmup = int(max_graphs), int(warmup)
+        self.emulate = bool(emulate)
         self._graphs: Dict[tuple, _Captured] = {}
         self._failed: Dict[tuple, str] = {}
         self._pool = None
@@ -100,7 +104,10 @@ class LossGraphs:
     def run(self, image: Tensor, packed: Tensor, enhance: bool) -> Optional[GraphResult]:
         """Replay (capturing first when the shape is new); None when this input must run eagerly."""
         if not self.supports(image, packed):
-            return None
+            if not self.emulate or image.is_cuda:
+                return None
+            with torch.enable_grad():
+                return self._step(image.detach().requires_grad_(True), packed, enhance)
         key = self._key(image, packed, enhance)
         cap = self._graphs.get(key)
         if cap is None:

@@ -100,7 +100,9 @@ class Trainer:
     """Trains one run folder. ``resume`` continues from its newest checkpoint."""
 
     def __init__(self, cfg: Dict, scene: Scene, run_dir: Path, device: str = "cpu", resume: bool = False,
-                 progress: bool = True, log: Callable[[str], None] = print) -> None:
+                 progress: bool = True, log: Callable[[str], None] = print, emulate_graphs: bool = False) -> None:
+        """``emulate_graphs``: on the CPU, run the CUDA-graph path of the step (the image losses' forward and
+        backward apart, the gradients fed back) eagerly, for tests and op counts (:mod:`retinexgs.train.graphs`)."""
         self.cfg, self.scene, self.run = cfg, scene, Path(run_dir)
         self.device, self.progress, self.log = torch.device(device), progress, log
         if not scene.train:
@@ -122,7 +124,7 @@ class Trainer:
             else:
                 state = load_checkpoint(ckpt)
                 self.log(f"resuming from {ckpt} (step {state['step']})")
-        self._build(state)
+        self._build(state, emulate_graphs)
 
     # ---- set-up ----------------------------------------------------------------------------------------
     def _prepare_views(self) -> List[TrainView]:
@@ -149,7 +151,7 @@ class Trainer:
             tv.center = tv.camera.center.to(dev, torch.float32)
         return views
 
-    def _build(self, state: Optional[Dict]) -> None:
+    def _build(self, state: Optional[Dict], emulate_graphs: bool = False) -> None:
         mcfg = self.cfg["model"]
         if state is None:
             pts, cols = self.scene.points, self.scene.colors
@@ -193,16 +195,17 @@ class Trainer:
             random.setstate(state["py_rng"])
             self.order = list(state.get("order", []))
             self.density.load_state_dict(state.get("density", {}), self.device)
-        # Divergence watch (see check_finite): per set of term names, [finite-step counts on the device, steps].
-        self._pending: Dict[Tuple[str, ...], list] = {}
+        # Divergence watch (see _watch): per (term names, parameter names), [leading finite steps on the device,
+        # first step, steps]; and the last step's (term names, values).
+        self._pending: Dict[tuple, list] = {}
         self._last_terms: Optional[Tuple[Tuple[str, ...], Tensor]] = None
         self._checked_through = self.step
         # The image losses as CUDA graphs (train.cuda_graphs; CUDA only, eager elsewhere).
         self.graphs: Optional[LossGraphs] = None
         self._graph_failures_logged: set = set()
-        if self.device.type == "cuda" and self.cfg["train"]["cuda_graphs"]:
+        if self.cfg["train"]["cuda_graphs"] and (self.device.type == "cuda" or emulate_graphs):
             params = list(self.model.enhancement.parameters()) if self.decomposed else []
-            self.graphs = LossGraphs(self._graphed_loss, params)
+            self.graphs = LossGraphs(self._graphed_loss, params, emulate=emulate_graphs)
 
     def illumination_reference(self) -> float:
         """L_ref, the scene's "full light" level that the enhancement normalises L̂ by: the median over the
@@ -345,7 +348,7 @@ class Trainer:
             with record_function("step/backward"):
                 terms["total"].backward()
         with record_function("step/watch"):
-            self._watch(tuple(terms), torch.stack([t.detach() for t in terms.values()]).float(), step)
+            self._watch(terms, step)
         with record_function("step/density"):
             self.density.update(res["out"], tv.camera.width, tv.camera.height)
         self.optimizer.step()
@@ -361,62 +364,65 @@ class Trainer:
         return values
 
     # ---- divergence -------------------------------------------------------------------------------------
-    def _watch(self, names: Tuple[str, ...], vec: Tensor, step: int) -> None:
-        """Count, on the device, the steps at which each loss term was finite (no host sync); the next
-        :meth:`check_finite` reads the counts back. One count vector per set of term names (the enhancement
-        terms appear at a step of the schedule)."""
-        entry = self._pending.get(names)
-        if entry is None:
-            entry = self._pending[names] = [torch.zeros(len(names), dtype=torch.int32, device=vec.device), 0]
-        entry[0].add_(torch.isfinite(vec))
-        entry[1] += 1
-        self._last_terms = (names, vec)
-
-    def _since(self, step: int) -> str:
-        first = self._checked_through + 1
-        return f"at step {step}" if first >= step else f"between steps {first} and {step}"
+    def _watch(self, terms: Dict[str, Tensor], step: int) -> None:
+        """Record, on the device and without a host sync, for how many leading steps since the last check every
+        loss term of this step and every parameter (as updated by the previous step) stayed finite; the next
+        :meth:`check_finite` reads it back. A few kernels: the multi-tensor norm of the parameters (a NaN or
+        inf anywhere in a tensor makes its norm non-finite), one stack, three elementwise ops."""
+        params = list(self.model.named_parameters())
+        key = (tuple(terms), tuple(name for name, _ in params))
+        norms = torch._foreach_norm([p.detach() for _, p in params])
+        vec = torch.stack([t.detach().float() for t in terms.values()] + [n.float() for n in norms])
+        entry = self._pending.get(key)
+        if entry is None:  # [leading finite steps per value, first step, steps]
+            entry = self._pending[key] = [torch.zeros(vec.shape[0], dtype=torch.int32, device=vec.device), step, 0]
+        prefix = entry[0]
+        prefix.add_(torch.isfinite(vec) & prefix.eq(entry[2]))
+        entry[2] += 1
+        self._last_terms = (key[0], vec[:len(terms)])
 
     def check_finite(self, step: int) -> Dict[str, float]:
-        """Raise :class:`TrainingDiverged` if a loss term of any step since the last check, or a parameter now,
-        is non-finite; returns the last step's loss values. One host sync for all of it (training is
-        launch-bound: syncs stall the GPU queue), so it runs on logging, checkpoint and density steps only.
-
-        A non-finite parameter stays non-finite under Adam (NaN/inf propagate through its update), and the
-        renderer culls Gaussians with non-finite geometry, so the steps in between do no harm; a checkpoint is
-        saved only after a check, so the last checkpoint on disk is always a good one."""
+        """Raise :class:`TrainingDiverged` naming the first loss term or parameter that became non-finite at any
+        step since the last check (and the step); returns the last step's loss values. One host sync for all
+        of it (training is launch-bound: syncs stall the GPU queue), so the trainer runs it on logging,
+        checkpoint and density steps only, and :meth:`save` before writing: the last checkpoint on disk is
+        always a good one. In between a non-finite parameter does no harm: the renderer culls Gaussians with
+        non-finite geometry, and NaN/inf never turn finite again under Adam."""
         params = list(self.model.named_parameters())
-        # Every parameter, the networks' too. A NaN or inf anywhere in a tensor makes its norm non-finite;
-        # the multi-tensor norm is a couple of kernels for all of them.
-        norms = torch._foreach_norm([p.detach() for _, p in params])
+        norms = torch._foreach_norm([p.detach() for _, p in params])  # as updated by this step
         names, last = self._last_terms if self._last_terms is not None else ((), None)
         pending = list(self._pending.items())
-        parts = ([last] if last is not None else []) + [e[0].float() for _, e in pending] + \
+        parts = ([last.float()] if last is not None else []) + [e[0].float() for _, e in pending] + \
             [torch.stack(norms).float()]
         flat = torch.cat(parts).tolist()
         values = dict(zip(names, flat[:len(names)]))
         pos = len(names)
-        first_bad: Optional[Tuple[int, str]] = None  # (steps the term stayed finite, name)
-        for term_names, (_, steps) in pending:
-            counts = flat[pos:pos + len(term_names)]
-            pos += len(term_names)
-            for name, ok in zip(term_names, counts):
-                if ok < steps and (first_bad is None or ok < first_bad[0]):
-                    first_bad = (int(ok), name)
-        bad_params = [name for (name, _), norm in zip(params, flat[pos:]) if not math.isfinite(norm)]
-        since = self._since(step)
-        if first_bad is not None:
-            name = first_bad[1]
-            value = values.get(name)
-            became = value if value is not None and not math.isfinite(value) else "non-finite"
-            raise TrainingDiverged(f"loss term {name} became {became} {since}; the last good checkpoint in "
-                                   f"{self.run / 'checkpoints'} is intact (lower the learning rates or resume "
-                                   "from it)")
-        if bad_params:
-            name = bad_params[0]
+        # (step, 0 for a loss term / 1 for a parameter, position, name): a step's loss comes before its update;
+        # within a step the log's order decides (the terms before their total).
+        bad: List[Tuple[int, int, int, str]] = []
+        for (term_names, param_names), (_, first, steps) in pending:
+            prefix = flat[pos:pos + len(term_names) + len(param_names)]
+            pos += len(prefix)
+            for i, (name, ok) in enumerate(zip(term_names, prefix)):
+                if ok < steps:
+                    bad.append((first + int(ok), 0, i, name))
+            for i, (name, ok) in enumerate(zip(param_names, prefix[len(term_names):])):
+                if ok < steps:  # seen non-finite before the update of step first + ok: made so by the one before
+                    bad.append((first + int(ok) - 1, 1, i, name))
+        for i, ((name, _), norm) in enumerate(zip(params, flat[pos:])):
+            if not math.isfinite(norm):
+                bad.append((step, 1, i, name))
+        if bad:
+            at, kind, _, name = min(bad)
+            where = f"at step {at}; the last good checkpoint in {self.run / 'checkpoints'} is intact"
+            if kind == 0:
+                value = values.get(name) if at == step else None
+                became = value if value is not None and not math.isfinite(value) else "non-finite"
+                raise TrainingDiverged(f"loss term {name} became {became} {where} (lower the learning rates or "
+                                       "resume from it)")
             label = (f"Gaussian parameter {name[len('gaussians.'):]}" if name.startswith("gaussians.")
                      else f"network parameter {name}")
-            raise TrainingDiverged(f"{label} became non-finite {since}; the last good checkpoint in "
-                                   f"{self.run / 'checkpoints'} is intact")
+            raise TrainingDiverged(f"{label} became non-finite {where}")
         self._pending.clear()
         self._checked_through = step
         return values
