@@ -95,9 +95,9 @@ class LossGraphs:
         graph = torch.cuda.CUDAGraph()
         if self._pool is None:
             self._pool = torch.cuda.graph_pool_handle()
-        # thread_local: the live viewer may render from another thread (its gate keeps it out of train_step,
-        # and this mode keeps any other thread's CUDA work from invalidating the capture).
-        with torch.cuda.graph(graph, pool=self._pool, capture_error_mode="thread_local"):
+        # The backward is captured as torch.cuda.make_graphed_callables does (autograd's device thread launches
+        # onto the capturing stream). The live viewer renders from another thread only between steps (its gate).
+        with torch.cuda.graph(graph, pool=self._pool):
             result = self._step(static_image, static_packed, enhance)
         return _Captured(graph, static_image, static_packed, result)
 
