@@ -63,8 +63,7 @@ def step_gradients(tr: Trainer, view: int, step: int, graphed: bool):
     the eager path; no optimiser step."""
     tr.optimizer.zero_grad(set_to_none=True)
     tv = tr.views[view]
-    degree = tr.active_degree(step)
-    res = tr.model.render(tv.camera, degree, validate=False, enhance=False, center=tv.center)
+    res = tr.render_view(tv, step, graphed=graphed)
     if graphed:
         terms = tr._backward_graphed(res, tv, step)
         assert terms is not None, tr.graphs.failures
@@ -155,6 +154,10 @@ def test_cuda_graphed_losses_match_eager(scene_dir, tmp_path, name):
     tr = check_config(scene_dir, tmp_path, name, "cuda", emulate=False)
     assert not tr.graphs.failures, tr.graphs.failures
     assert len(tr.graphs) == 2  # one per enhancement state (one image size)
+    assert not tr.channel_graphs.failures, tr.channel_graphs.failures
+    assert tr.channel_graphs.captures >= 1
+    centers = [tv.camera.center.to(tv.center) for tv in tr.views]
+    assert all(torch.equal(tv.center, c) for tv, c in zip(tr.views, centers)), "a view's cached centre changed"
 
 
 @needs_cuda

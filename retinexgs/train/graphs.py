@@ -21,6 +21,7 @@ from typing import Callable, Dict, List, Optional, Tuple
 
 import torch
 from torch import Tensor
+from torch.profiler import record_function
 
 # (image [H,W,C], packed targets [H,W,K], enhancement on) -> (the image losses' sum, {name: term}).
 LossFn = Callable[[Tensor, Tensor, bool], Tuple[Tensor, Dict[str, Tensor]]]
@@ -133,3 +134,83 @@ class LossGraphs:
 
     def __len__(self) -> int:
         return len(self._graphs)
+
+
+class _Emulated(torch.autograd.Function):
+    """What ``make_graphed_callables`` builds, run eagerly: the module's forward as one autograd node whose
+    backward differentiates the module (inputs and parameters) in one go. Its operators show under
+    ``record_function("step/channel_graph")``, the phase that is two graph launches on the GPU."""
+
+    @staticmethod
+    def forward(ctx, module, n_inputs: int, *tensors):
+        with torch.enable_grad(), record_function("step/channel_graph"):
+            # The inputs as fresh leaves; the parameters (the module's own) as they are.
+            leaves = [t.detach().requires_grad_(t.requires_grad) for t in tensors[:n_inputs]] + \
+                list(tensors[n_inputs:])
+            out = module(*leaves[:n_inputs])
+        ctx.leaves, ctx.out = leaves, out
+        return out.detach()
+
+    @staticmethod
+    def backward(ctx, grad):
+        need = [t for t in ctx.leaves if t.requires_grad]
+        with record_function("step/channel_graph"):
+            grads = iter(torch.autograd.grad(ctx.out, need, grad))
+        return (None, None) + tuple(next(grads) if t.requires_grad else None for t in ctx.leaves)
+
+
+class ChannelGraphs:
+    """The per-Gaussian channels of a render (SH colour + illumination MLP,
+    :func:`retinexgs.model.retinex_model.gaussian_channels`), forward and backward, as CUDA graphs
+    (``torch.cuda.make_graphed_callables``): a few dozen small kernels each way on [N, ...] tensors.
+
+    The Gaussians' tensors are the graphs' static inputs themselves (Adam updates them in place), so a call
+    copies only the camera centre. The graphs are rebuilt when the Gaussians change (densification,
+    pruning: a new N or new tensors) or the active SH degree grows: a few dozen captures in a run.
+    ``emulate``: on the CPU evaluate the same module eagerly (tests, op counts).
+    """
+
+    def __init__(self, model, warmup: int = 2, emulate: bool = False) -> None:
+        self.model, self.warmup, self.emulate = model, int(warmup), bool(emulate)
+        self._key: Optional[tuple] = None
+        self._fn = None
+        self._failed: Dict[tuple, str] = {}
+        self.captures = 0
+
+    def run(self, active_degree: int, center: Tensor) -> Optional[Tensor]:
+        """The channels [N,C] (differentiable in the Gaussians and the illumination field); None: evaluate
+        them eagerly (not CUDA, or the capture failed)."""
+        from retinexgs.model.retinex_model import GaussianChannels
+
+        g = self.model.gaussians
+        degree = self.model.channel_degree(active_degree)
+        illumination = self.model.illumination if self.model.decomposed else None
+        args = (g.means, g.sh_dc, g.sh_rest, center)
+        if not g.means.is_cuda:
+            if not self.emulate:
+                return None
+            module = GaussianChannels(degree, illumination)
+            return _Emulated.apply(module, len(args), *args, *module.parameters())
+        key = (degree, center.device, center.dtype) + tuple((t.data_ptr(), tuple(t.shape), t.dtype) for t in args[:3])
+        if key != self._key:
+            self._key, self._fn = key, None  # the old graphs (and their memory) go with the old Gaussians
+            if key in self._failed:
+                return None
+            try:
+                module = GaussianChannels(degree, illumination)
+                # The sample arguments become the graphs' static inputs: the Gaussians' own tensors (no copies;
+                # a change of tensor rebuilds the graphs), a private copy of the centre (a call copies the
+                # view's centre into it; it must not overwrite the view's own tensor).
+                sample = args[:3] + (center.clone(),)
+                self._fn = torch.cuda.make_graphed_callables(module, sample, num_warmup_iters=self.warmup)
+                self.captures += 1
+            except Exception as err:  # runs eagerly until the Gaussians change
+                self._failed[key] = f"{type(err).__name__}: {err}"
+                return None
+        if self._fn is None:
+            return None
+        return self._fn(*args)
+
+    @property
+    def failures(self) -> Dict[tuple, str]:
+        return dict(self._failed)

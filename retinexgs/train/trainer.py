@@ -24,7 +24,7 @@ from retinexgs.model.retinex_model import RetinexGSModel
 from retinexgs.render import Camera
 from retinexgs.train import losses
 from retinexgs.train.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
-from retinexgs.train.graphs import LossGraphs
+from retinexgs.train.graphs import ChannelGraphs, LossGraphs
 from retinexgs.train.schedule import build_schedule
 
 
@@ -202,10 +202,12 @@ class Trainer:
         self._checked_through = self.step
         # The image losses as CUDA graphs (train.cuda_graphs; CUDA only, eager elsewhere).
         self.graphs: Optional[LossGraphs] = None
+        self.channel_graphs: Optional[ChannelGraphs] = None
         self._graph_failures_logged: set = set()
         if self.cfg["train"]["cuda_graphs"] and (self.device.type == "cuda" or emulate_graphs):
             params = list(self.model.enhancement.parameters()) if self.decomposed else []
             self.graphs = LossGraphs(self._graphed_loss, params, emulate=emulate_graphs)
+            self.channel_graphs = ChannelGraphs(self.model, emulate=emulate_graphs)
 
     def illumination_reference(self) -> float:
         """L_ref, the scene's "full light" level that the enhancement normalises L̂ by: the median over the
@@ -327,6 +329,21 @@ class Trainer:
                 p.grad = g if p.grad is None else p.grad + g
         return self.assemble_terms(values[0], image_terms, None if sh is None else sh.detach())
 
+    def render_view(self, tv: TrainView, step: int, graphed: bool = True) -> Dict[str, Tensor]:
+        """The step's render of ``tv`` (no EnhancementNet: it runs inside the loss, where its losses need it);
+        ``graphed``: the per-Gaussian channels through their CUDA graphs when the trainer has them."""
+        with record_function("step/render"):
+            colors = None
+            if graphed and self.channel_graphs is not None:
+                colors = self.channel_graphs.run(self.active_degree(step), tv.center)
+                for key, why in self.channel_graphs.failures.items():
+                    if key not in self._graph_failures_logged:
+                        self._graph_failures_logged.add(key)
+                        self.log(f"CUDA graph capture of the Gaussians' channels failed ({why}); they run eagerly "
+                                 "until the Gaussians change")
+            return self.model.render(tv.camera, self.active_degree(step), validate=False, enhance=False,
+                                     center=tv.center, colors=colors)
+
     def train_step(self, step: int, tv: TrainView, check: bool = True) -> Dict[str, float]:
         """One optimisation step on view ``tv``. With ``check`` (and always before densification or an opacity
         reset) the loss terms and parameters of every step since the last check are checked for NaN/inf
@@ -336,10 +353,7 @@ class Trainer:
         for group in self.optimizer.param_groups:
             if group["name"] == "means":
                 group["lr"] = self._means_lr(step)
-        with record_function("step/render"):
-            # The EnhancementNet runs inside the loss (on the rendered R̂, L̂), where its losses need it.
-            res = self.model.render(tv.camera, self.active_degree(step), validate=False, enhance=False,
-                                    center=tv.center)
+        res = self.render_view(tv, step)
         terms = self._backward_graphed(res, tv, step) if self.graphs is not None else None
         if terms is None:
             with record_function("step/loss"):
