@@ -83,14 +83,16 @@ class OpCounter(TorchDispatchMode):
         return func(*args, **kwargs)
 
 
-def count_calls(module, names) -> Dict[str, int]:
-    """Wrap the functions ``names`` of ``module`` so that calls are counted (returns the live counter)."""
+def count_calls(module, names, when=None) -> Dict[str, int]:
+    """Wrap the functions ``names`` of ``module`` so that calls are counted (returns the live counter);
+    ``when()``: count only while it returns True."""
     calls: Dict[str, int] = collections.Counter()
     for name in names:
         fn = getattr(module, name)
 
         def wrapped(*a, _fn=fn, _name=name, **k):
-            calls[_name] += 1
+            if when is None or when():
+                calls[_name] += 1
             return _fn(*a, **k)
 
         setattr(module, name, wrapped)
@@ -127,15 +129,21 @@ def main() -> None:
         scene = open_scene(scene_path, cfg)
         run = Path(tmp) / "run"
         run.mkdir()
-        tr = Trainer(cfg, scene, run, args.device, progress=False, log=lambda s: None,
-                     emulate_graphs=args.emulate_graphs)
+        extra = {"emulate_graphs": True} if args.emulate_graphs else {}  # (older trainers lack the argument)
+        tr = Trainer(cfg, scene, run, args.device, progress=False, log=lambda s: None, **extra)
         tr.train(stop_after=args.steps)
         k = _backend.kernels()
         kernel_calls = count_calls(k, [n for n in dir(k) if not n.startswith("_") and callable(getattr(k, n))])
         graph_calls = count_calls(torch.cuda.CUDAGraph, ["replay"]) if cuda else {}
+        # Reads of tensor values by the host (a sync on the GPU) and tensors built from host numbers (a
+        # host->device copy on the GPU), whatever the device.
+        counter = OpCounter()
+        # (the CPU's non-fused Adam reads each parameter's step count with .item(): not counted)
+        outside_optim = lambda: not any(p.startswith("Optimizer.step") for p in counter._stack)  # noqa: E731
+        host_reads = count_calls(torch.Tensor, ["tolist", "item"], outside_optim)
+        host_tensors = count_calls(torch, ["tensor", "as_tensor"], outside_optim)
         first = tr.step + 1
         n = args.profile
-        counter = OpCounter()
         acts = [torch.profiler.ProfilerActivity.CPU] + ([torch.profiler.ProfilerActivity.CUDA] if cuda else [])
         if cuda:
             torch.cuda.synchronize()
@@ -160,6 +168,9 @@ def main() -> None:
               + ", ".join(f"{k} {v / n:.1f}" for k, v in sorted(kernel_calls.items())))
         print(f"host syncs per step: {counter.syncs / n:.2f} item/bool/int (optimiser apart), "
               f"{counter.d2h / n:.2f} device->host copies (+ 1 for binning's pair count on CUDA)")
+        host = {**{f"Tensor.{k}": v for k, v in host_reads.items()}, **{f"torch.{k}": v for k, v in host_tensors.items()}}
+        print(f"host reads / tensors from host numbers per step: "
+              + (", ".join(f"{k} {v / n:.2f}" for k, v in sorted(host.items()) if v) or "none"))
         if cuda:
             names = collections.Counter(e.name for e in prof.events())
             launches = sum(v for k, v in names.items() if k in ("cudaLaunchKernel", "cuLaunchKernel",
