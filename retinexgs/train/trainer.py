@@ -74,6 +74,11 @@ class TrainView:
                 self.packed = self.S.contiguous()
             else:
                 self.packed = torch.cat([self.S, self.R, self.L], dim=-1)
+                # The view's maps become views of the packed tensor: no second copy on the device.
+                same_target = self.target is self.S
+                self.S, self.R, self.L = unpack_targets(self.packed, True)
+                if same_target:
+                    self.target = self.S
         return self.packed
 
 
