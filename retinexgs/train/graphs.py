@@ -66,7 +66,6 @@ class LossGraphs:
         self.emulate = bool(emulate)
         self._graphs: Dict[tuple, _Captured] = {}
         self._failed: Dict[tuple, str] = {}
-        self._pool = None
 
     def supports(self, image: Tensor, packed: Tensor) -> bool:
         return image.is_cuda and packed.is_cuda and image.device == packed.device
@@ -94,11 +93,10 @@ class LossGraphs:
                 self._step(static_image, static_packed, enhance)
         torch.cuda.current_stream(image.device).wait_stream(side)
         graph = torch.cuda.CUDAGraph()
-        if self._pool is None:
-            self._pool = torch.cuda.graph_pool_handle()
-        # The backward is captured as torch.cuda.make_graphed_callables does (autograd's device thread launches
-        # onto the capturing stream). The live viewer renders from another thread only between steps (its gate).
-        with torch.cuda.graph(graph, pool=self._pool):
+        # Forward and backward in one capture (autograd's device thread launches onto the capturing stream, as
+        # in torch.cuda.make_graphed_callables); a private memory pool per graph. The live viewer renders from
+        # another thread only between steps (its gate).
+        with torch.cuda.graph(graph):
             result = self._step(static_image, static_packed, enhance)
         return _Captured(graph, static_image, static_packed, result)
 
@@ -159,21 +157,71 @@ class _Emulated(torch.autograd.Function):
         return (None, None) + tuple(next(grads) if t.requires_grad else None for t in ctx.leaves)
 
 
+class _ChannelCapture:
+    """Forward and backward CUDA graphs of a :class:`GaussianChannels` module for one set of Gaussian tensors
+    (the graphs' static inputs themselves: Adam updates them in place) and a private copy of the centre.
+    What ``torch.cuda.make_graphed_callables`` builds, without its reference cycles: dropping this object
+    frees the graphs and their memory at once (a run rebuilds them at every densification)."""
+
+    def __init__(self, module, gaussians: Tuple[Tensor, ...], center: Tensor, warmup: int) -> None:
+        self.center = center.detach().clone()
+        self.inputs = tuple(gaussians) + (self.center,)
+        self.params = tuple(module.parameters())
+        self.diff = [t for t in self.inputs + self.params if t.requires_grad]
+        device = center.device
+        side = torch.cuda.Stream(device=device)
+        side.wait_stream(torch.cuda.current_stream(device))
+        with torch.cuda.stream(side):
+            for _ in range(warmup):
+                warm = module(*self.inputs)
+                torch.autograd.grad(warm, self.diff, torch.ones_like(warm))
+                del warm
+        torch.cuda.current_stream(device).wait_stream(side)
+        self.fwd, self.bwd = torch.cuda.CUDAGraph(), torch.cuda.CUDAGraph()
+        pool = torch.cuda.graph_pool_handle()  # shared by the two: the backward reads the forward's saved tensors
+        with torch.cuda.graph(self.fwd, pool=pool):
+            out = module(*self.inputs)
+        self.grad_out = torch.empty_like(out)
+        with torch.cuda.graph(self.bwd, pool=pool):
+            self.grads = torch.autograd.grad(out, self.diff, self.grad_out)
+        self.out = out.detach()
+
+
+class _GraphedChannels(torch.autograd.Function):
+    """Replays a :class:`_ChannelCapture`: forward = the forward graph, backward = the backward graph."""
+
+    @staticmethod
+    def forward(ctx, cap: _ChannelCapture, *tensors: Tensor) -> Tensor:
+        # tensors: the Gaussians' tensors (the capture's own storage), the centre, the module's parameters.
+        ctx.cap = cap
+        cap.center.copy_(tensors[len(cap.inputs) - 1])
+        cap.fwd.replay()
+        return cap.out.detach()  # a new tensor object on the static storage (autograd sets its grad_fn)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        cap = ctx.cap
+        cap.grad_out.copy_(grad)
+        cap.bwd.replay()
+        grads = iter(g.detach() for g in cap.grads)
+        return (None,) + tuple(next(grads) if t.requires_grad else None for t in cap.inputs + cap.params)
+
+
 class ChannelGraphs:
     """The per-Gaussian channels of a render (SH colour + illumination MLP,
-    :func:`retinexgs.model.retinex_model.gaussian_channels`), forward and backward, as CUDA graphs
-    (``torch.cuda.make_graphed_callables``): a few dozen small kernels each way on [N, ...] tensors.
+    :func:`retinexgs.model.retinex_model.gaussian_channels`), forward and backward, as two CUDA graphs
+    instead of a few dozen small kernels each way on [N, ...] tensors.
 
     The Gaussians' tensors are the graphs' static inputs themselves (Adam updates them in place), so a call
     copies only the camera centre. The graphs are rebuilt when the Gaussians change (densification,
-    pruning: a new N or new tensors) or the active SH degree grows: a few dozen captures in a run.
-    ``emulate``: on the CPU evaluate the same module eagerly (tests, op counts).
+    pruning, an opacity reset: new tensors) or the active SH degree grows: a few dozen captures in a run.
+    ``emulate``: on the CPU run the same structure eagerly (tests, op counts).
     """
 
     def __init__(self, model, warmup: int = 2, emulate: bool = False) -> None:
         self.model, self.warmup, self.emulate = model, int(warmup), bool(emulate)
         self._key: Optional[tuple] = None
-        self._fn = None
+        self._cap: Optional[_ChannelCapture] = None
         self._failed: Dict[tuple, str] = {}
         self.captures = 0
 
@@ -185,31 +233,26 @@ class ChannelGraphs:
         g = self.model.gaussians
         degree = self.model.channel_degree(active_degree)
         illumination = self.model.illumination if self.model.decomposed else None
-        args = (g.means, g.sh_dc, g.sh_rest, center)
+        gaussians = (g.means, g.sh_dc, g.sh_rest)
         if not g.means.is_cuda:
             if not self.emulate:
                 return None
             module = GaussianChannels(degree, illumination)
-            return _Emulated.apply(module, len(args), *args, *module.parameters())
-        key = (degree, center.device, center.dtype) + tuple((t.data_ptr(), tuple(t.shape), t.dtype) for t in args[:3])
+            return _Emulated.apply(module, 4, *gaussians, center, *module.parameters())
+        key = (degree, center.device, center.dtype) + tuple((t.data_ptr(), tuple(t.shape), t.dtype) for t in gaussians)
         if key != self._key:
-            self._key, self._fn = key, None  # the old graphs (and their memory) go with the old Gaussians
+            self._key, self._cap = key, None  # the old graphs (and their memory) go with the old Gaussians
             if key in self._failed:
                 return None
             try:
-                module = GaussianChannels(degree, illumination)
-                # The sample arguments become the graphs' static inputs: the Gaussians' own tensors (no copies;
-                # a change of tensor rebuilds the graphs), a private copy of the centre (a call copies the
-                # view's centre into it; it must not overwrite the view's own tensor).
-                sample = args[:3] + (center.clone(),)
-                self._fn = torch.cuda.make_graphed_callables(module, sample, num_warmup_iters=self.warmup)
+                self._cap = _ChannelCapture(GaussianChannels(degree, illumination), gaussians, center, self.warmup)
                 self.captures += 1
             except Exception as err:  # runs eagerly until the Gaussians change
                 self._failed[key] = f"{type(err).__name__}: {err}"
                 return None
-        if self._fn is None:
+        if self._cap is None:
             return None
-        return self._fn(*args)
+        return _GraphedChannels.apply(self._cap, *gaussians, center, *self._cap.params)
 
     @property
     def failures(self) -> Dict[tuple, str]:
