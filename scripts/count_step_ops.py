@@ -178,8 +178,10 @@ def main() -> None:
             memcpy = sum(v for k, v in names.items() if k.startswith("cudaMemcpy"))
             sync = sum(v for k, v in names.items() if "Synchronize" in k)
             print(f"CUDA per step: {launches / n:.1f} kernel launches, {names.get('cudaGraphLaunch', 0) / n:.2f} "
-                  f"graph launches ({sum(graph_calls.values()) / n:.2f} replays), {memcpy / n:.2f} memcpys, "
+                  f"graph launches ({sum(graph_calls.values()) / n:.2f} replays), {memcpy / n:.2f} memcpy calls, "
                   f"{sync / n:.2f} synchronizes")
+            copies = {k: v for k, v in names.items() if k.startswith("Memcpy")}  # by direction (DtoD: no sync)
+            print("  copies per step: " + (", ".join(f"{k} {v / n:.2f}" for k, v in sorted(copies.items())) or "none"))
         rows = sorted(kernel_ops.items(), key=lambda kv: -kv[1])[: args.top]
         print(f"\ntop {len(rows)} kernel ops per step (optimiser included):")
         for name, count in rows:
