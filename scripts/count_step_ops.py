@@ -168,7 +168,8 @@ def main() -> None:
               + ", ".join(f"{k} {v / n:.1f}" for k, v in sorted(kernel_calls.items())))
         print(f"host syncs per step: {counter.syncs / n:.2f} item/bool/int (optimiser apart), "
               f"{counter.d2h / n:.2f} device->host copies (+ 1 for binning's pair count on CUDA)")
-        host = {**{f"Tensor.{k}": v for k, v in host_reads.items()}, **{f"torch.{k}": v for k, v in host_tensors.items()}}
+        host = {**{f"Tensor.{k}": v for k, v in host_reads.items()},
+                **{f"torch.{k}": v for k, v in host_tensors.items()}}
         print(f"host reads / tensors from host numbers per step: "
               + (", ".join(f"{k} {v / n:.2f}" for k, v in sorted(host.items()) if v) or "none"))
         if cuda:

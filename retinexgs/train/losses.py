@@ -91,10 +91,11 @@ class _SSIMMap(torch.autograd.Function):
     backward: 15 elementwise kernels forward and 17 backward instead of autograd's ~23 and ~45 (the map is
     the largest tensor of the training loss, and the step is launch-bound).
 
-        A1 = 2μxμy + C1, A2 = 2(E[xy] − μxμy) + C2, B1 = μx² + μy² + C1, B2 = E[x²] + E[y²] − μx² − μy² + C2,
-        s = A1·A2 / (B1·B2);  with r = g/(B1·B2), u = g·s:
-        ∂/∂E[xy] = 2r·A1,  ∂/∂E[x²] = ∂/∂E[y²] = −u/B2,
-        ∂/∂μx = 2(μy·r·(A2 − A1) + μx·(u/B2 − u/B1)),  ∂/∂μy = 2(μx·r·(A2 − A1) + μy·(u/B2 − u/B1)).
+        A1 = 2μxμy + C1,  A2 = 2(E[xy] − μxμy) + C2,
+        B1 = μx² + μy² + C1,  B2 = E[x²] + E[y²] − μx² − μy² + C2,  s = A1·A2 / (B1·B2);
+        with r = g/(B1·B2), u = g·s:  ∂/∂E[xy] = 2r·A1,  ∂/∂E[x²] = ∂/∂E[y²] = −u/B2,
+        ∂/∂μx = 2(μy·r·(A2 − A1) + μx·(u/B2 − u/B1)),
+        ∂/∂μy = 2(μx·r·(A2 − A1) + μy·(u/B2 − u/B1)).
     """
 
     @staticmethod
