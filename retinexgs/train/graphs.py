@@ -113,7 +113,8 @@ class LossGraphs:
             if key in self._failed or len(self._graphs) >= self.max_graphs:
                 return None
             try:
-                cap = self._capture(image, packed, enhance)
+                with torch.cuda.device(image.device):  # captures run on the current device's streams
+                    cap = self._capture(image, packed, enhance)
             except Exception as err:  # an op that cannot be captured: this shape runs eagerly from now on
                 self._failed[key] = f"{type(err).__name__}: {err}"
                 return None
@@ -122,7 +123,8 @@ class LossGraphs:
             cap.image.copy_(image.detach())
             if cap.packed.data_ptr() != packed.data_ptr():
                 cap.packed.copy_(packed)
-        cap.graph.replay()
+        with torch.cuda.device(image.device):
+            cap.graph.replay()
         return cap.result
 
     @property
@@ -195,14 +197,16 @@ class _GraphedChannels(torch.autograd.Function):
         # tensors: the Gaussians' tensors (the capture's own storage), the centre, the module's parameters.
         ctx.cap = cap
         cap.center.copy_(tensors[len(cap.inputs) - 1])
-        cap.fwd.replay()
+        with torch.cuda.device(cap.center.device):
+            cap.fwd.replay()
         return cap.out.detach()  # a new tensor object on the static storage (autograd sets its grad_fn)
 
     @staticmethod
     def backward(ctx, grad: Tensor):
         cap = ctx.cap
         cap.grad_out.copy_(grad)
-        cap.bwd.replay()
+        with torch.cuda.device(cap.center.device):
+            cap.bwd.replay()
         grads = iter(g.detach() for g in cap.grads)
         return (None,) + tuple(next(grads) if t.requires_grad else None for t in cap.inputs + cap.params)
 
@@ -245,7 +249,9 @@ class ChannelGraphs:
             if key in self._failed:
                 return None
             try:
-                self._cap = _ChannelCapture(GaussianChannels(degree, illumination), gaussians, center, self.warmup)
+                with torch.cuda.device(center.device):
+                    self._cap = _ChannelCapture(GaussianChannels(degree, illumination), gaussians, center,
+                                                self.warmup)
                 self.captures += 1
             except Exception as err:  # runs eagerly until the Gaussians change
                 self._failed[key] = f"{type(err).__name__}: {err}"
