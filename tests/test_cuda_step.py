@@ -118,6 +118,23 @@ def test_graphed_path_matches_eager_on_cpu(scene_dir, tmp_path, name, one_thread
     assert len(tr.graphs) == 0  # nothing captured on the CPU
 
 
+def test_graphed_training_loop_matches_eager_on_cpu(scene_dir, tmp_path, one_thread):
+    """The whole loop (checks every few steps, densification, the enhancement switch, the SH degree growing)
+    through the graphed path's plumbing ends where the eager loop ends, to accumulation-order noise."""
+    sets = ["steps=40", "log.every=5", "model.sh_degree_every=0.25", "loss.enhance_from=10", "density.start=5",
+            "density.every=8", "density.stop=30"]
+    runs = {}
+    for emulate in (False, True):
+        tr = make_trainer(scene_dir, tmp_path / f"loop{emulate}", "default", "cpu", emulate=emulate, extra=sets)
+        runs[emulate] = (tr.train(), len(tr.model.gaussians))
+    (eager, n_eager), (graphed, n_graphed) = runs[False], runs[True]
+    assert abs(n_eager - n_graphed) <= max(2, 0.01 * n_eager), (n_eager, n_graphed)
+    assert eager.keys() == graphed.keys()
+    for k in eager:
+        if k != "seconds":
+            assert graphed[k] == pytest.approx(eager[k], rel=1e-3, abs=1e-7), k
+
+
 def test_eager_loss_is_the_papers_sum(scene_dir, tmp_path, one_thread):
     """Trainer.loss (the reference of the graphed path) against the loss functions composed by hand:
     L_sup + w_tv·L_TV + w_sh·L_SH + L_enhance on the detached R̂, L̂ (the default)."""
