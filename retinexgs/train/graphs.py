@@ -1,5 +1,9 @@
-"""CUDA graphs of the training step's image losses: forward and backward of every loss term that depends only
-on the rendered image (all but L_SH), replayed as one graph launch instead of a few hundred kernel launches.
+"""CUDA graphs of the training step (the step is launch-bound: a few ms of GPU work behind ~500 small kernel
+launches). Two parts are captured; the rasterizer (its binning needs a data-dependent size), L_SH, density
+statistics and the optimiser stay eager.
+
+:class:`LossGraphs`: the image losses, forward and backward of every loss term that depends only on the
+rendered image (all but L_SH), replayed as one graph launch instead of a few hundred kernel launches.
 
 A captured graph takes the rendered image [H,W,C] and the view's packed targets (S, and the 2D priors R, L;
 or the baselines' target) in static buffers, and leaves in static buffers: the gradient of the image losses'
@@ -13,6 +17,9 @@ traced by capture, so the graphed values and gradients are the eager ones (tests
 them for every shipped config). Only CUDA tensors are captured; anything else, a capture that fails, or more
 than ``max_graphs`` shapes, runs eagerly (the caller's fallback): the config switch ``train.cuda_graphs``
 turns graphs off altogether.
+
+:class:`ChannelGraphs`: the per-Gaussian channels (SH colour + the illumination MLP), forward and backward
+as two graph launches, rebuilt when the Gaussians change (densification) or the SH degree grows.
 """
 from __future__ import annotations
 
@@ -118,6 +125,9 @@ class LossGraphs:
             except Exception as err:  # an op that cannot be captured: this shape runs eagerly from now on
                 self._failed[key] = f"{type(err).__name__}: {err}"
                 return None
+            if enhance:  # the enhancement never switches off again: free the graphs without it
+                for old in [k for k in self._graphs if not k[-1]]:
+                    del self._graphs[old]
             self._graphs[key] = cap
         with torch.no_grad():
             cap.image.copy_(image.detach())
