@@ -309,3 +309,43 @@ def test_enhancement_loss_measures_exposure_on_the_illumination_when_given():
     _, on_light = Lo.enhancement_loss(enh, enh, E=0.6, illumination=light, exp_patch=0)
     assert float(on_image["exp"]) == pytest.approx(0.16)
     assert float(on_light["exp"]) == pytest.approx(0.01)
+
+
+def _ssim_autograd_reference(x, y, window=11, sigma=1.5):
+    """The SSIM map written out for autograd (what the hand-written backward of losses._SSIMMap replaces)."""
+    pad = window // 2
+    g = Lo.gaussian_window(window, sigma, x.dtype)
+    c = x.shape[1]
+
+    def filt(t):
+        t = torch.nn.functional.conv2d(t, g.reshape(1, 1, 1, -1).expand(c, 1, 1, -1), padding=(0, pad), groups=c)
+        return torch.nn.functional.conv2d(t, g.reshape(1, 1, -1, 1).expand(c, 1, -1, 1), padding=(pad, 0), groups=c)
+
+    mx, my, exx, eyy, exy = filt(x), filt(y), filt(x * x), filt(y * y), filt(x * y)
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    sxx, syy, sxy = exx - mx * mx, eyy - my * my, exy - mx * my
+    return ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
+
+
+def test_ssim_hand_written_backward_matches_autograd_and_finite_differences():
+    g = torch.Generator().manual_seed(3)
+    x = torch.rand(2, 3, 13, 17, generator=g, dtype=torch.float64, requires_grad=True)
+    y = (0.7 * x.detach() + 0.3 * torch.rand(2, 3, 13, 17, generator=g, dtype=torch.float64)).requires_grad_(True)
+    w = torch.randn(2, 3, 13, 17, generator=g, dtype=torch.float64)
+    got = Lo.ssim(x, y, reduction="none")
+    want = _ssim_autograd_reference(x, y)
+    assert torch.allclose(got, want, rtol=1e-12, atol=1e-14)
+    gx, gy = torch.autograd.grad((got * w).sum(), (x, y))
+    wx, wy = torch.autograd.grad((want * w).sum(), (x, y))
+    assert torch.allclose(gx, wx, rtol=1e-10, atol=1e-13) and torch.allclose(gy, wy, rtol=1e-10, atol=1e-13)
+    xs, ys = x.detach()[:1, :2, :8, :9].clone().requires_grad_(), y.detach()[:1, :2, :8, :9].clone().requires_grad_()
+    assert torch.autograd.gradcheck(lambda a, b: Lo.ssim(a, b, window=5, sigma=1.0, reduction="none"), (xs, ys))
+    # float32 (training): as accurate as autograd's float32 gradient, against the float64 one
+    truth = torch.autograd.grad(_ssim_autograd_reference(x, y).mean(), (x, y))
+    x32, y32 = x.detach().float().requires_grad_(), y.detach().float().requires_grad_()
+    g32 = torch.autograd.grad(Lo.ssim(x32, y32), (x32, y32))
+    w32 = torch.autograd.grad(_ssim_autograd_reference(x32, y32).mean(), (x32, y32))
+    for a, b, t in zip(g32, w32, truth):
+        err = float((a.double() - t).abs().max() / t.abs().max())
+        ref = float((b.double() - t).abs().max() / t.abs().max())
+        assert err <= max(2 * ref, 1e-6), (err, ref)

@@ -42,6 +42,7 @@ class DensityController:
         self.grad_accum: Optional[Tensor] = None
         self.count: Optional[Tensor] = None
         self.max_radius: Optional[Tensor] = None
+        self._ndc_scale: Optional[tuple] = None  # ((width, height, device, dtype), [2] tensor)
 
     def state_dict(self) -> Dict[str, Optional[Tensor]]:
         return {"grad_accum": self.grad_accum, "count": self.count, "max_radius": self.max_radius}
@@ -64,13 +65,17 @@ class DensityController:
             return
         self._ensure(grad.shape[0], grad.device)
         visible = out.visible
-        # Pixel gradients -> NDC gradients (the unit 3DGS's threshold is defined in).
-        ndc = grad.detach() * torch.tensor([width / 2.0, height / 2.0], device=grad.device, dtype=grad.dtype)
+        # Pixel gradients -> NDC gradients (the unit 3DGS's threshold is defined in); the scale is cached on the
+        # device (a tensor built from numbers every step is a host->device copy).
+        key = (width, height, grad.device, grad.dtype)
+        if self._ndc_scale is None or self._ndc_scale[0] != key:
+            self._ndc_scale = (key, torch.tensor([width / 2.0, height / 2.0], device=grad.device, dtype=grad.dtype))
+        ndc = grad.detach() * self._ndc_scale[1]
         # Masked arithmetic, not boolean indexing: indexing would sync with the GPU every step.
         self.grad_accum += torch.where(visible, ndc.norm(dim=-1).float(), 0.0)
-        self.count += visible.float()
-        r = out.radii.max(dim=-1).values.float()
-        self.max_radius = torch.maximum(self.max_radius, torch.where(visible, r, torch.zeros_like(r)))
+        self.count += visible
+        # A culled Gaussian has radii (0, 0), so its max radius is 0 and leaves the running maximum as it is.
+        torch.maximum(self.max_radius, out.radii.amax(dim=-1), out=self.max_radius)
 
     def step(self, step: int, model: GaussianModel, optimizer: torch.optim.Optimizer, image_size: int) -> str:
         """Run whatever the schedule asks for at ``step``; returns a short description ('' if nothing)."""

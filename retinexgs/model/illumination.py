@@ -45,6 +45,9 @@ def encoded_dim(in_dim: int, n_freqs: int, include_input: bool = True) -> int:
     return in_dim * (2 * n_freqs + (1 if include_input else 0))
 
 
+_FREQS: dict = {}  # (n_freqs, dtype, device) -> [n_freqs] 2^k·π
+
+
 def positional_encoding(x: torch.Tensor, n_freqs: int, include_input: bool = True) -> torch.Tensor:
     """NeRF positional encoding γ(x) = (x, sin(2^k π x), cos(2^k π x))_{k<n_freqs}.
 
@@ -58,7 +61,10 @@ def positional_encoding(x: torch.Tensor, n_freqs: int, include_input: bool = Tru
     """
     if n_freqs <= 0:
         return x if include_input else x[..., :0]
-    freqs = (2.0 ** torch.arange(n_freqs, device=x.device, dtype=x.dtype)) * math.pi
+    key = (n_freqs, x.dtype, x.device)
+    freqs = _FREQS.get(key)
+    if freqs is None:  # built once per (L, dtype, device): 3 kernels fewer per call in the training loop
+        freqs = _FREQS[key] = (2.0 ** torch.arange(n_freqs, device=x.device, dtype=x.dtype)) * math.pi
     xb = (x[..., None, :] * freqs[:, None]).flatten(-2)  # [..., L·D]
     parts = [x] if include_input else []
     parts += [torch.sin(xb), torch.cos(xb)]

@@ -25,7 +25,33 @@ from torch import Tensor, nn
 from retinexgs.model.enhancement import EnhancementNet
 from retinexgs.model.gaussians import GaussianModel
 from retinexgs.model.illumination import IlluminationField
-from retinexgs.render import Camera, rasterize_gaussians
+from retinexgs.render import Camera, rasterize_gaussians, spherical_harmonics
+
+
+def gaussian_channels(means: Tensor, sh_dc: Tensor, sh_rest: Tensor, center: Tensor, degree: int,
+                      illumination: Optional[IlluminationField] = None) -> Tensor:
+    """The per-Gaussian channels a render rasterizes, [N,3] or [N,6]: the SH colour max(SH(dir) + 0.5, 0) of
+    degree ``degree`` (the albedo R̂) and, with ``illumination``, the illumination field at each centre seen
+    from ``center`` (L̂). A function of the tensors, so that the trainer can capture it in a CUDA graph."""
+    coeffs = torch.cat([sh_dc, sh_rest], dim=1)
+    colors = torch.clamp_min(spherical_harmonics(degree, means - center.to(means), coeffs) + 0.5, 0.0)
+    if illumination is None:
+        return colors
+    illum = illumination(means, IlluminationField.view_dirs(means, center))
+    return torch.cat([colors, illum.to(colors)], dim=-1)
+
+
+class GaussianChannels(nn.Module):
+    """:func:`gaussian_channels` as a module holding the illumination field (its parameters) at one SH degree:
+    the callable the trainer graphs (``torch.cuda.make_graphed_callables`` takes a module's parameters)."""
+
+    def __init__(self, degree: int, illumination: Optional[IlluminationField]) -> None:
+        super().__init__()
+        self.degree = int(degree)
+        self.illumination = illumination
+
+    def forward(self, means: Tensor, sh_dc: Tensor, sh_rest: Tensor, center: Tensor) -> Tensor:
+        return gaussian_channels(means, sh_dc, sh_rest, center, self.degree, self.illumination)
 
 
 class RetinexGSModel(nn.Module):
@@ -67,22 +93,29 @@ class RetinexGSModel(nn.Module):
         g = self.enhancement(L_bchw)
         return g if self.per_channel_gamma else g.mean(dim=1, keepdim=True).expand_as(g)
 
+    def channel_degree(self, active_degree: int) -> int:
+        """The SH degree evaluated at the trainer's ``active_degree`` (at most the model's)."""
+        return min(active_degree, self.gaussians.sh_degree)
+
     def render(self, camera: Camera, active_degree: int, exposure: Optional[float] = None,
-               gamma: Optional[float] = None, validate: bool = True, enhance: bool = True) -> Dict[str, Tensor]:
+               gamma: Optional[float] = None, validate: bool = True, enhance: bool = True,
+               center: Optional[Tensor] = None, colors: Optional[Tensor] = None) -> Dict[str, Tensor]:
         """Render one view. Returns ``out`` (RenderOutput) and [H,W,3] maps: ``rgb`` (the model's output
         image: S_enh, or the plain render for baselines), and for RetinexGS ``R``, ``L``, ``S_rec``, ``gamma``.
 
         ``exposure`` scales the predicted gamma (< 1 brighter, > 1 darker); ``gamma`` replaces it.
         ``validate=False`` skips the renderer's input checks (one host sync), for loops that check their
         parameters themselves. ``enhance=False`` skips the EnhancementNet (no ``rgb``, ``L_enh``, ``gamma``):
-        training needs only R̂ and L̂ until the enhancement losses start.
+        training needs only R̂ and L̂ until the enhancement losses start. ``center``: the camera centre already
+        on the device (the trainer caches it per view; otherwise it is computed and copied every call).
+        ``colors``: the per-Gaussian channels already evaluated (:func:`gaussian_channels`; the trainer's
+        CUDA graph of them), else they are evaluated here.
         """
         g = self.gaussians
-        center = camera.center.to(g.means)
-        colors = g.colors(center, active_degree)
-        if self.decomposed:
-            illum = self.illumination(g.means, IlluminationField.view_dirs(g.means, center))
-            colors = torch.cat([colors, illum.to(colors)], dim=-1)
+        if colors is None:
+            center = (camera.center if center is None else center).to(g.means)
+            colors = gaussian_channels(g.means, g.sh_dc, g.sh_rest, center, self.channel_degree(active_degree),
+                                       self.illumination if self.decomposed else None)
         out = rasterize_gaussians(g.means, g.quats, g.scales, g.opacities, colors, camera, validate=validate)
         if not self.decomposed:
             return {"out": out, "rgb": out.image}

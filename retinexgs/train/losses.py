@@ -27,6 +27,7 @@ from typing import Dict, Optional, Tuple
 
 import torch
 import torch.nn.functional as F
+from torch.autograd.function import once_differentiable
 
 __all__ = [
     "to_bchw", "gaussian_window", "ssim", "l1_ssim", "supervision_loss", "tv_loss", "sh_sparsity_loss",
@@ -59,12 +60,73 @@ def gaussian_window(size: int = 11, sigma: float = 1.5, dtype: torch.dtype = tor
     return (g / g.sum()).to(dtype=dtype, device=device)
 
 
-def _filter(x: torch.Tensor, g: torch.Tensor, pad: int) -> torch.Tensor:
+# The depthwise filter weights by (channels, size, sigma, dtype, device): built once, not every call (a
+# training step would otherwise copy the window to the GPU and make the expanded weights contiguous each time,
+# and a captured CUDA graph cannot contain the host->device copy at all). Entries are never dropped: a captured
+# graph reads them by address. They are tiny (c·size numbers).
+_WEIGHTS: Dict[tuple, Tuple[torch.Tensor, torch.Tensor]] = {}
+
+
+def _filter_weights(c: int, size: int, sigma: float, dtype: torch.dtype, device) -> Tuple[torch.Tensor, torch.Tensor]:
+    """The (horizontal [c,1,1,k], vertical [c,1,k,1]) weights of the separable depthwise Gaussian filter."""
+    key = (c, size, float(sigma), dtype, torch.device(device) if device is not None else torch.device("cpu"))
+    w = _WEIGHTS.get(key)
+    if w is None:
+        g = gaussian_window(size, sigma, dtype, device)
+        w = (g.reshape(1, 1, 1, size).repeat(c, 1, 1, 1), g.reshape(1, 1, size, 1).repeat(c, 1, 1, 1))
+        _WEIGHTS[key] = w
+    return w
+
+
+def _filter(x: torch.Tensor, size: int, sigma: float, pad: int) -> torch.Tensor:
     """Separable depthwise Gaussian filter of [B,C,H,W] with zero padding ``pad``."""
     c = x.shape[1]
-    k = g.numel()
-    x = F.conv2d(x, g.reshape(1, 1, 1, k).expand(c, 1, 1, k), padding=(0, pad), groups=c)
-    return F.conv2d(x, g.reshape(1, 1, k, 1).expand(c, 1, k, 1), padding=(pad, 0), groups=c)
+    wx, wy = _filter_weights(c, size, sigma, x.dtype, x.device)
+    x = F.conv2d(x, wx, padding=(0, pad), groups=c)
+    return F.conv2d(x, wy, padding=(pad, 0), groups=c)
+
+
+class _SSIMMap(torch.autograd.Function):
+    """The SSIM map from the five local moments [B,5C,H,W] = (μx, μy, E[x²], E[y²], E[xy]) with a hand-written
+    backward: 15 elementwise kernels forward and 17 backward instead of autograd's ~23 and ~45 (the map is
+    the largest tensor of the training loss, and the step is launch-bound).
+
+        A1 = 2μxμy + C1,  A2 = 2(E[xy] − μxμy) + C2,
+        B1 = μx² + μy² + C1,  B2 = E[x²] + E[y²] − μx² − μy² + C2,  s = A1·A2 / (B1·B2);
+        with r = g/(B1·B2), u = g·s:  ∂/∂E[xy] = 2r·A1,  ∂/∂E[x²] = ∂/∂E[y²] = −u/B2,
+        ∂/∂μx = 2(μy·r·(A2 − A1) + μx·(u/B2 − u/B1)),
+        ∂/∂μy = 2(μx·r·(A2 − A1) + μy·(u/B2 − u/B1)).
+    """
+
+    @staticmethod
+    def forward(ctx, moments: torch.Tensor, c1: float, c2: float) -> torch.Tensor:
+        mx, my, exx, eyy, exy = moments.chunk(5, dim=1)
+        mxy = mx * my
+        m2 = torch.addcmul(mx * mx, my, my)
+        a1 = mxy.mul(2).add_(c1)
+        a2 = torch.sub(exy, mxy).mul_(2).add_(c2)
+        b1 = m2.add(c1)
+        b2 = torch.add(exx, eyy).sub_(m2).add_(c2)
+        den = b1 * b2
+        s = (a1 * a2).div_(den)
+        ctx.save_for_backward(mx, my, a1, a2, b1, b2, den, s)
+        return s
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, g: torch.Tensor):
+        mx, my, a1, a2, b1, b2, den, s = ctx.saved_tensors
+        r = g / den
+        ga1, ga2 = r * a2, r * a1          # ∂s/∂A1·g, ∂s/∂A2·g
+        u = g * s
+        ub1, ub2 = u / b1, u / b2          # −∂s/∂B1·g, −∂s/∂B2·g
+        da = ga1.sub_(ga2)                 # r·(A2 − A1)
+        db = ub2 - ub1
+        g_mx = torch.addcmul(my * da, mx, db).mul_(2)
+        g_my = torch.addcmul(mx * da, my, db).mul_(2)
+        g_exx = ub2.neg_()
+        g_exy = ga2.mul_(2)
+        return torch.cat([g_mx, g_my, g_exx, g_exx, g_exy], dim=1), None, None
 
 
 def ssim(x: torch.Tensor, y: torch.Tensor, window: int = 11, sigma: float = 1.5, padding: str = "same",
@@ -93,15 +155,10 @@ def ssim(x: torch.Tensor, y: torch.Tensor, window: int = 11, sigma: float = 1.5,
     if padding == "valid" and min(x.shape[-2:]) < window:
         raise ValueError(f"image {tuple(x.shape[-2:])} smaller than the {window}x{window} window")
     pad = window // 2 if padding == "same" else 0
-    g = gaussian_window(window, sigma, x.dtype, x.device)
     c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
     # The five local moments in one filter pass (2 convolutions instead of 10: training is launch-bound).
-    moments = _filter(torch.cat([x, y, x * x, y * y, x * y], dim=1), g, pad)
-    mx, my, exx, eyy, exy = moments.chunk(5, dim=1)
-    sxx = exx - mx * mx
-    syy = eyy - my * my
-    sxy = exy - mx * my
-    s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
+    moments = _filter(torch.cat([x, y, x * x, y * y, x * y], dim=1), window, sigma, pad)
+    s = _SSIMMap.apply(moments, c1, c2)
     if reduction == "none":
         return s
     if reduction == "mean":

@@ -19,7 +19,7 @@ from retinexgs.train.config import Config, configs_dir, load_config, read_yaml
 # checkpointing, learning rates, loss weights, the density and SH schedules, evaluation, the cache folder).
 # Every other key fixes the model's structure or what the run trains (method, seed, data, decomposer, model)
 # and is refused on --resume.
-RESUMABLE: Tuple[str, ...] = ("steps", "log", "checkpoint", "lr", "loss", "density", "eval",
+RESUMABLE: Tuple[str, ...] = ("steps", "log", "checkpoint", "lr", "loss", "density", "eval", "train",
                               "model.sh_degree_every", "data.cache_dir")
 
 

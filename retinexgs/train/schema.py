@@ -192,6 +192,10 @@ class Eval(Section):
     lpips: Bool
 
 
+class Train(Section):
+    cuda_graphs: Bool
+
+
 class ConfigSchema(Section):
     """The whole config (``configs/default.yaml`` after every override)."""
 
@@ -207,6 +211,7 @@ class ConfigSchema(Section):
     log: Log
     checkpoint: Checkpoint
     eval: Eval
+    train: Train
 
 
 def field_expectation(path: Tuple[Any, ...]) -> Tuple[Tuple[str, ...], Optional[str], Optional[type]]:

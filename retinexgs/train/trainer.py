@@ -8,11 +8,12 @@ import random
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Dict, List, Optional
+from typing import Callable, Dict, List, Optional, Tuple
 
 import torch
 import yaml
 from torch import Tensor
+from torch.profiler import record_function
 
 from retinexgs.data import Scene, View
 from retinexgs.errors import UserError
@@ -23,6 +24,7 @@ from retinexgs.model.retinex_model import RetinexGSModel
 from retinexgs.render import Camera
 from retinexgs.train import losses
 from retinexgs.train.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
+from retinexgs.train.graphs import ChannelGraphs, LossGraphs
 from retinexgs.train.schedule import build_schedule
 
 
@@ -59,6 +61,32 @@ class TrainView:
     R: Optional[Tensor] = None  # [H,W,3]
     L: Optional[Tensor] = None  # [H,W,1]
     target: Optional[Tensor] = None  # [H,W,3], baselines
+    center: Optional[Tensor] = None  # [3] the camera centre on the device (the renderer's view directions)
+    packed: Optional[Tensor] = None  # [H,W,K] the loss's targets in one tensor (the CUDA graphs' input)
+
+    def pack(self, decomposed: bool) -> Tensor:
+        """The loss's targets as one contiguous [H,W,K] tensor, built once: S (+ R, L) or the baselines' target
+        (one copy into a captured graph's input instead of three)."""
+        if self.packed is None:
+            if not decomposed:
+                self.packed = self.target.contiguous()
+            elif self.R is None:
+                self.packed = self.S.contiguous()
+            else:
+                self.packed = torch.cat([self.S, self.R, self.L], dim=-1)
+                # The view's maps become views of the packed tensor: no second copy on the device.
+                same_target = self.target is self.S
+                self.S, self.R, self.L = unpack_targets(self.packed, True)
+                if same_target:
+                    self.target = self.S
+        return self.packed
+
+
+def unpack_targets(packed: Tensor, decomposed: bool) -> Tuple[Tensor, Optional[Tensor], Optional[Tensor]]:
+    """(S or the target, R, L) from :meth:`TrainView.pack` (views, no copies)."""
+    if not decomposed or packed.shape[-1] == 3:
+        return packed, None, None
+    return packed[..., :3], packed[..., 3:6], packed[..., 6:]
 
 
 def decompose_views(views: List[View], cfg: Dict, device: str, progress: bool, scene_root: Path) -> List:
@@ -77,7 +105,9 @@ class Trainer:
     """Trains one run folder. ``resume`` continues from its newest checkpoint."""
 
     def __init__(self, cfg: Dict, scene: Scene, run_dir: Path, device: str = "cpu", resume: bool = False,
-                 progress: bool = True, log: Callable[[str], None] = print) -> None:
+                 progress: bool = True, log: Callable[[str], None] = print, emulate_graphs: bool = False) -> None:
+        """``emulate_graphs``: on the CPU, run the CUDA-graph path of the step (the image losses' forward and
+        backward apart, the gradients fed back) eagerly, for tests and op counts (:mod:`retinexgs.train.graphs`)."""
         self.cfg, self.scene, self.run = cfg, scene, Path(run_dir)
         self.device, self.progress, self.log = torch.device(device), progress, log
         if not scene.train:
@@ -99,7 +129,7 @@ class Trainer:
             else:
                 state = load_checkpoint(ckpt)
                 self.log(f"resuming from {ckpt} (step {state['step']})")
-        self._build(state)
+        self._build(state, emulate_graphs)
 
     # ---- set-up ----------------------------------------------------------------------------------------
     def _prepare_views(self) -> List[TrainView]:
@@ -122,9 +152,11 @@ class Trainer:
         for tv in views:
             if tv.target is None:
                 tv.target = tv.S
+            # Once, not every step: the camera centre is computed on the host and copied to the device.
+            tv.center = tv.camera.center.to(dev, torch.float32)
         return views
 
-    def _build(self, state: Optional[Dict]) -> None:
+    def _build(self, state: Optional[Dict], emulate_graphs: bool = False) -> None:
         mcfg = self.cfg["model"]
         if state is None:
             pts, cols = self.scene.points, self.scene.colors
@@ -168,6 +200,19 @@ class Trainer:
             random.setstate(state["py_rng"])
             self.order = list(state.get("order", []))
             self.density.load_state_dict(state.get("density", {}), self.device)
+        # Divergence watch (see _watch): per (term names, parameter names), [leading finite steps on the device,
+        # first step, steps]; and the last step's (term names, values).
+        self._pending: Dict[tuple, list] = {}
+        self._last_terms: Optional[Tuple[Tuple[str, ...], Tensor]] = None
+        self._checked_through = self.step
+        # The image losses as CUDA graphs (train.cuda_graphs; CUDA only, eager elsewhere).
+        self.graphs: Optional[LossGraphs] = None
+        self.channel_graphs: Optional[ChannelGraphs] = None
+        self._graph_failures_logged: set = set()
+        if self.cfg["train"]["cuda_graphs"] and (self.device.type == "cuda" or emulate_graphs):
+            params = list(self.model.enhancement.parameters()) if self.decomposed else []
+            self.graphs = LossGraphs(self._graphed_loss, params, emulate=emulate_graphs)
+            self.channel_graphs = ChannelGraphs(self.model, emulate=emulate_graphs)
 
     def illumination_reference(self) -> float:
         """L_ref, the scene's "full light" level that the enhancement normalises L̂ by: the median over the
@@ -193,80 +238,212 @@ class Trainer:
     def active_degree(self, step: int) -> int:
         return self.schedule.sh_degree_at(step)
 
-    def loss(self, res: Dict[str, Tensor], tv: TrainView, step: int) -> Dict[str, Tensor]:
-        """Every loss term of this step (weighted terms sum to ``total``)."""
+    def image_loss(self, image: Tensor, S: Tensor, R: Optional[Tensor], L: Optional[Tensor],
+                   enhance: bool) -> Tuple[Tensor, Dict[str, Tensor]]:
+        """Every loss term that depends only on the rendered ``image`` [H,W,C] (all but L_SH) and their
+        weighted sum. ``S`` is the low-light view (the baselines' target), ``R``/``L`` its 2D priors or None;
+        ``enhance``: the enhancement losses are on. The same function runs eagerly and inside the captured
+        CUDA graphs (:mod:`retinexgs.train.graphs`): it never syncs with the host."""
         c = self.cfg["loss"]
-        terms: Dict[str, Tensor] = {}
         if not self.decomposed:
-            terms["total"] = terms["rgb"] = losses.l1_ssim(to_bchw(res["rgb"]), to_bchw(tv.target), c["lambda_ssim"])
-            return terms
-        R_hat, L_hat, S = to_bchw(res["R"]), to_bchw(res["L"]), to_bchw(tv.S)
-        if tv.R is not None:
-            sup, sup_terms = losses.supervision_loss(R_hat, L_hat, to_bchw(tv.R), to_bchw(tv.L), S, c["w_r"],
+            rgb = losses.l1_ssim(to_bchw(image), to_bchw(S), c["lambda_ssim"])
+            return rgb, {"rgb": rgb}
+        R_img, L_img = image[..., :3], image[..., 3:6]
+        R_hat, L_hat, S_b = to_bchw(R_img), to_bchw(L_img), to_bchw(S)
+        terms: Dict[str, Tensor] = {}
+        if R is not None:
+            sup, sup_terms = losses.supervision_loss(R_hat, L_hat, to_bchw(R), to_bchw(L), S_b, c["w_r"],
                                                      c["w_l"], c["w_s"], c["lambda_ssim"])
             terms.update(sup_terms)
         else:  # no 2D priors: only the reconstruction is supervised
-            terms["sup_rec"] = losses.l1_ssim(R_hat * L_hat, S, c["lambda_ssim"])
+            terms["sup_rec"] = losses.l1_ssim(R_hat * L_hat, S_b, c["lambda_ssim"])
             sup = c["w_s"] * terms["sup_rec"]
         terms["tv"] = losses.tv_loss(R_hat)
-        terms["sh"] = losses.sh_sparsity_loss(self.model.gaussians.sh_rest, c["sh_reduction"])
-        total = sup + c["w_tv"] * terms["tv"] + c["w_sh"] * terms["sh"]
-        if self.schedule.enhance_at(step):
+        total = sup + c["w_tv"] * terms["tv"]
+        if enhance:
             if c["enhance_trains_scene"]:
-                out = res
+                out = self.model.enhance(R_img, L_img)
             else:
                 # The paper trains the EnhancementNet alone with L_enhance: without this the exposure term would
                 # flatten R̂ and L̂ towards E instead of adjusting the gamma.
-                out = self.model.enhance(res["R"].detach(), res["L"].detach())
+                out = self.model.enhance(R_img.detach(), L_img.detach())
             light = to_bchw(out["L_enh"]) if c["exp_on"] == "illumination" else None
             enh, enh_terms = losses.enhancement_loss(
-                to_bchw(out["rgb"]), S, c["w_spa"], c["w_exp"], c["w_col"], c["exposure_E"],
+                to_bchw(out["rgb"]), S_b, c["w_spa"], c["w_exp"], c["w_col"], c["exposure_E"],
                 illumination=light, exp_patch=c["exp_patch"], exp_form=c["exp_form"], spa_form=c["spa_form"],
                 scale_invariant=c["enhance_scale_invariant"])
             terms.update(enh_terms)
             total = total + enh
-        terms["total"] = total
+        return total, terms
+
+    def sh_loss(self) -> Tensor:
+        """L_SH on the Gaussians' higher-order SH (unweighted; its shape follows the Gaussian count, so it is
+        not part of the graphed image losses)."""
+        return losses.sh_sparsity_loss(self.model.gaussians.sh_rest, self.cfg["loss"]["sh_reduction"])
+
+    def assemble_terms(self, image_total: Tensor, image_terms: Dict[str, Tensor], sh: Optional[Tensor]
+                       ) -> Dict[str, Tensor]:
+        """Every logged term in the log's order (L_SH after L_TV) with ``total`` = image losses + w_sh·L_SH."""
+        if not self.decomposed:
+            return {"total": image_total, **image_terms}
+        terms: Dict[str, Tensor] = {}
+        for name, value in image_terms.items():
+            terms[name] = value
+            if name == "tv":
+                terms["sh"] = sh
+        terms["total"] = torch.add(image_total, sh, alpha=self.cfg["loss"]["w_sh"])
         return terms
 
-    def train_step(self, step: int, tv: TrainView) -> Dict[str, float]:
+    def loss(self, res: Dict[str, Tensor], tv: TrainView, step: int) -> Dict[str, Tensor]:
+        """Every loss term of this step (weighted terms sum to ``total``), eagerly, from a render's ``res``."""
+        image = res["out"].image
+        enhance = self.decomposed and self.schedule.enhance_at(step)
+        total, terms = self.image_loss(image, tv.target if not self.decomposed else tv.S, tv.R, tv.L, enhance)
+        return self.assemble_terms(total, terms, self.sh_loss() if self.decomposed else None)
+
+    def _graphed_loss(self, image: Tensor, packed: Tensor, enhance: bool) -> Tuple[Tensor, Dict[str, Tensor]]:
+        S, R, L = unpack_targets(packed, self.decomposed)
+        return self.image_loss(image, S, R, L, enhance)
+
+    def _backward_graphed(self, res: Dict[str, Tensor], tv: TrainView, step: int) -> Optional[Dict[str, Tensor]]:
+        """The loss and its backward through the captured graph; None when this view must run eagerly."""
+        enhance = self.decomposed and self.schedule.enhance_at(step)
+        image = res["out"].image
+        with record_function("step/loss_graph"):
+            result = self.graphs.run(image, tv.pack(self.decomposed), enhance)
+        if result is None:
+            for key, why in self.graphs.failures.items():
+                if key not in self._graph_failures_logged:
+                    self._graph_failures_logged.add(key)
+                    self.log(f"CUDA graph capture failed for {key[0]} images ({why}); that size trains eagerly")
+            return None
+        values = result.values
+        image_terms = {name: values[i + 1] for i, name in enumerate(result.names)}
+        with record_function("step/backward"):
+            roots, grads = [image], [result.grad_image]
+            sh = None
+            if self.decomposed:
+                sh = self.sh_loss()
+                if sh.requires_grad and self.cfg["loss"]["w_sh"]:
+                    roots.append(self.cfg["loss"]["w_sh"] * sh)
+                    grads.append(None)
+            torch.autograd.backward(roots, grads)
+            # The EnhancementNet's gradients are the graph's static buffers: read by this step's optimiser
+            # step, overwritten only by the next replay (zero_grad sets .grad to None in between).
+            for p, g in zip(self.graphs.params if enhance else [], result.param_grads):
+                p.grad = g if p.grad is None else p.grad + g
+        return self.assemble_terms(values[0], image_terms, None if sh is None else sh.detach())
+
+    def render_view(self, tv: TrainView, step: int, graphed: bool = True) -> Dict[str, Tensor]:
+        """The step's render of ``tv`` (no EnhancementNet: it runs inside the loss, where its losses need it);
+        ``graphed``: the per-Gaussian channels through their CUDA graphs when the trainer has them."""
+        with record_function("step/render"):
+            colors = None
+            if graphed and self.channel_graphs is not None:
+                colors = self.channel_graphs.run(self.active_degree(step), tv.center)
+                for key, why in self.channel_graphs.failures.items():
+                    if key not in self._graph_failures_logged:
+                        self._graph_failures_logged.add(key)
+                        self.log(f"CUDA graph capture of the Gaussians' channels failed ({why}); they run eagerly "
+                                 "until the Gaussians change")
+            return self.model.render(tv.camera, self.active_degree(step), validate=False, enhance=False,
+                                     center=tv.center, colors=colors)
+
+    def train_step(self, step: int, tv: TrainView, check: bool = True) -> Dict[str, float]:
+        """One optimisation step on view ``tv``. With ``check`` (and always before densification or an opacity
+        reset) the loss terms and parameters of every step since the last check are checked for NaN/inf
+        (:class:`TrainingDiverged`) and this step's loss values are returned; otherwise nothing is read back
+        from the device (the step never waits for the GPU, except for binning's pair count) and the result
+        holds only a density event, if any."""
         for group in self.optimizer.param_groups:
             if group["name"] == "means":
                 group["lr"] = self._means_lr(step)
-        c = self.cfg["loss"]
-        # The enhanced image is needed only when L_enhance trains the scene through it (the default detaches).
-        enhance = self.decomposed and c["enhance_trains_scene"] and self.schedule.enhance_at(step)
-        res = self.model.render(tv.camera, self.active_degree(step), validate=False, enhance=enhance)
-        terms = self.loss(res, tv, step)
-        terms["total"].backward()
-        self.density.update(res["out"], tv.camera.width, tv.camera.height)
+        res = self.render_view(tv, step)
+        terms = self._backward_graphed(res, tv, step) if self.graphs is not None else None
+        if terms is None:
+            with record_function("step/loss"):
+                terms = self.loss(res, tv, step)
+            with record_function("step/backward"):
+                terms["total"].backward()
+        with record_function("step/watch"):
+            self._watch(terms, step)
+        with record_function("step/density"):
+            self.density.update(res["out"], tv.camera.width, tv.camera.height)
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
-        # One host sync per step for every loss value and the finiteness of every parameter: syncs stall the
-        # GPU queue, and this loop is launch-bound. A non-finite loss or parameter raises before the next
-        # checkpoint, so the last checkpoint on disk is always a good one.
-        names = list(terms)
-        # Every parameter, the networks' too: a non-finite MLP weight would otherwise reach the step's
-        # checkpoint before the next step's loss showed it. A NaN or inf anywhere in a tensor makes its norm
-        # non-finite; the multi-tensor norm is a couple of kernels for all of them.
-        params = list(self.model.named_parameters())
-        norms = torch._foreach_norm([p.detach() for _, p in params])
-        checks = torch.stack([terms[k].detach().float() for k in names] + [v.float() for v in norms]).tolist()
-        values = dict(zip(names, checks[:len(names)]))
-        bad = [k for k, v in values.items() if not math.isfinite(v)]
-        if bad:
-            raise TrainingDiverged(f"loss term {bad[0]} became {values[bad[0]]} at step {step}; the last good "
-                                   f"checkpoint in {self.run / 'checkpoints'} is intact (lower the learning "
-                                   "rates or resume from it)")
-        for (name, _), norm in zip(params, checks[len(names):]):
-            if not math.isfinite(norm):
-                label = (f"Gaussian parameter {name[len('gaussians.'):]}" if name.startswith("gaussians.")
-                         else f"network parameter {name}")
-                raise TrainingDiverged(f"{label} became non-finite at step {step}; the last good checkpoint in "
-                                       f"{self.run / 'checkpoints'} is intact")
+        values: Dict[str, float] = {}
+        if check or self.schedule.densify_at(step) or self.schedule.reset_at(step):
+            with record_function("step/check"):
+                values = self.check_finite(step)
         size = max(tv.camera.width, tv.camera.height)
         event = self.density.step(step, self.model.gaussians, self.optimizer, size)
         if event:
             values["event"] = event  # type: ignore[assignment]
+        return values
+
+    # ---- divergence -------------------------------------------------------------------------------------
+    def _watch(self, terms: Dict[str, Tensor], step: int) -> None:
+        """Record, on the device and without a host sync, for how many leading steps since the last check every
+        loss term of this step and every parameter (as updated by the previous step) stayed finite; the next
+        :meth:`check_finite` reads it back. A few kernels: the multi-tensor norm of the parameters (a NaN or
+        inf anywhere in a tensor makes its norm non-finite), one stack, five elementwise ops."""
+        params = list(self.model.named_parameters())
+        key = (tuple(terms), tuple(name for name, _ in params))
+        norms = torch._foreach_norm([p.detach() for _, p in params])
+        vec = torch.stack([t.detach().float() for t in terms.values()] + [n.float() for n in norms])
+        entry = self._pending.get(key)
+        if entry is None:  # [leading finite steps per value, first step, steps]
+            entry = self._pending[key] = [torch.zeros(vec.shape[0], dtype=torch.int32, device=vec.device), step, 0]
+        prefix = entry[0]
+        # x - x is 0 exactly when x is finite (2 kernels; torch.isfinite is 4 of them).
+        prefix.add_(vec.sub(vec).eq(0).logical_and_(prefix.eq(entry[2])))
+        entry[2] += 1
+        self._last_terms = (key[0], vec[:len(terms)])
+
+    def check_finite(self, step: int) -> Dict[str, float]:
+        """Raise :class:`TrainingDiverged` naming the first loss term or parameter that became non-finite at any
+        step since the last check (and the step); returns the last step's loss values. One host sync for all
+        of it (training is launch-bound: syncs stall the GPU queue), so the trainer runs it on logging,
+        checkpoint and density steps only, and :meth:`save` before writing: the last checkpoint on disk is
+        always a good one. In between a non-finite parameter does no harm: the renderer culls Gaussians with
+        non-finite geometry, and NaN/inf never turn finite again under Adam."""
+        params = list(self.model.named_parameters())
+        norms = torch._foreach_norm([p.detach() for _, p in params])  # as updated by this step
+        names, last = self._last_terms if self._last_terms is not None else ((), None)
+        pending = list(self._pending.items())
+        parts = ([last.float()] if last is not None else []) + [e[0].float() for _, e in pending] + \
+            [torch.stack(norms).float()]
+        flat = torch.cat(parts).tolist()
+        values = dict(zip(names, flat[:len(names)]))
+        pos = len(names)
+        # (step, 0 for a loss term / 1 for a parameter, position, name): a step's loss comes before its update;
+        # within a step the log's order decides (the terms before their total).
+        bad: List[Tuple[int, int, int, str]] = []
+        for (term_names, param_names), (_, first, steps) in pending:
+            prefix = flat[pos:pos + len(term_names) + len(param_names)]
+            pos += len(prefix)
+            for i, (name, ok) in enumerate(zip(term_names, prefix)):
+                if ok < steps:
+                    bad.append((first + int(ok), 0, i, name))
+            for i, (name, ok) in enumerate(zip(param_names, prefix[len(term_names):])):
+                if ok < steps:  # seen non-finite before the update of step first + ok: made so by the one before
+                    bad.append((first + int(ok) - 1, 1, i, name))
+        for i, ((name, _), norm) in enumerate(zip(params, flat[pos:])):
+            if not math.isfinite(norm):
+                bad.append((step, 1, i, name))
+        if bad:
+            at, kind, _, name = min(bad)
+            where = f"at step {at}; the last good checkpoint in {self.run / 'checkpoints'} is intact"
+            if kind == 0:
+                value = values.get(name) if at == step else None
+                became = value if value is not None and not math.isfinite(value) else "non-finite"
+                raise TrainingDiverged(f"loss term {name} became {became} {where} (lower the learning rates or "
+                                       "resume from it)")
+            label = (f"Gaussian parameter {name[len('gaussians.'):]}" if name.startswith("gaussians.")
+                     else f"network parameter {name}")
+            raise TrainingDiverged(f"{label} became non-finite {where}")
+        self._pending.clear()
+        self._checked_through = step
         return values
 
     # ---- the loop ----------------------------------------------------------------------------------------
@@ -278,6 +455,9 @@ class Trainer:
                 "scene_root": str(self.scene.root), "train_views": [v.name for v in self.scene.train]}
 
     def save(self) -> Path:
+        """Write a checkpoint of the current step (after checking every step since the last check)."""
+        if self._checked_through < self.step:
+            self.check_finite(self.step)
         return save_checkpoint(self.run, self.step, self.checkpoint_state(), self.cfg["checkpoint"]["keep"])
 
     def train(self, stop_after: Optional[int] = None) -> Dict[str, float]:
@@ -297,7 +477,9 @@ class Trainer:
                     self.order = list(range(len(self.views)))
                     random.shuffle(self.order)
                 self.step += 1
-                values = self.train_step(self.step, self.views[self.order.pop()])
+                check = (self.step % self.cfg["log"]["every"] == 0 or self.step == end
+                         or self.step % self.cfg["checkpoint"]["every"] == 0)
+                values = self.train_step(self.step, self.views[self.order.pop()], check=check)
                 event = values.pop("event", None)
                 if event:
                     log_file.write(json.dumps({"step": self.step, "event": event, "gaussians": len(self.model.gaussians)}) + "\n")

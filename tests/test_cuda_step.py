@@ -1,0 +1,218 @@
+"""The training step's graphed image losses (retinexgs/train/graphs.py) against the eager step: the same loss
+values and gradients for every shipped config, before and after the enhancement losses switch on. The
+CPU tests run the graphed path's plumbing eagerly (``emulate_graphs``); the CUDA tests capture real graphs
+(skipped without a GPU)."""
+from pathlib import Path
+
+import pytest
+import torch
+
+from retinexgs.data import load_scene
+from retinexgs.demo.synthetic import make_demo_scene
+from retinexgs.train import losses
+from retinexgs.train.config import configs_dir, load_config
+from retinexgs.train.trainer import Trainer, to_bchw
+
+CUDA = torch.cuda.is_available()
+try:
+    from retinexgs.render import has_cuda
+    CUDA = CUDA and has_cuda()
+except ImportError:  # pragma: no cover
+    CUDA = False
+needs_cuda = pytest.mark.skipif(not CUDA, reason="needs a CUDA GPU and retinexgs built with its CUDA kernels")
+
+TINY = ["steps=20", "log.every=1", "log.tensorboard=false", "model.sh_degree=1", "model.sh_degree_every=2",
+        "model.max_init_points=300", "loss.enhance_from=3", "density.start=100", "checkpoint.every=100"]
+
+
+def shipped_configs():
+    """Every config file in configs/ (the demo aside: it is the default with a smaller model)."""
+    root = configs_dir()
+    return [p.stem for p in sorted(root.glob("*.yaml")) if p.stem not in ("default",)] + \
+        [f"ablations/{p.stem}" for p in sorted((root / "ablations").glob("*.yaml"))] + ["default"]
+
+
+def config_overrides(name):
+    cfg = load_config([] if name == "default" else [name])
+    sets = list(TINY)
+    if cfg["decomposer"]["method"] == "lr3m":  # the same code path as lime, much faster on tiny views
+        sets.append("decomposer.method=lime")
+    return [] if name == "default" else [name], sets
+
+
+@pytest.fixture(scope="module")
+def scene_dir(tmp_path_factory):
+    return make_demo_scene(tmp_path_factory.mktemp("scene") / "demo", n_train=3, n_test=1, width=48, height=36,
+                           n_points=400)
+
+
+def make_trainer(scene_dir, run: Path, name: str, device: str, emulate: bool = False, extra=()):
+    files, sets = config_overrides(name)
+    cfg = load_config(files, sets + list(extra))
+    run.mkdir(parents=True, exist_ok=True)
+    tr = Trainer(cfg, load_scene(scene_dir), run, device, progress=False, log=lambda s: None, emulate_graphs=emulate)
+    with torch.no_grad():  # non-trivial SH and anisotropy so that every gradient path carries something
+        g = torch.Generator().manual_seed(1)
+        tr.model.gaussians.sh_rest.copy_(torch.randn(tr.model.gaussians.sh_rest.shape, generator=g) * 0.05)
+        tr.model.gaussians.log_scales.add_(torch.randn(tr.model.gaussians.log_scales.shape, generator=g) * 0.2)
+    return tr
+
+
+def step_gradients(tr: Trainer, view: int, step: int, graphed: bool):
+    """(loss values, gradients of every parameter) of one step's loss on view ``view``, through the graphed or
+    the eager path; no optimiser step."""
+    tr.optimizer.zero_grad(set_to_none=True)
+    tv = tr.views[view]
+    res = tr.render_view(tv, step, graphed=graphed)
+    if graphed:
+        terms = tr._backward_graphed(res, tv, step)
+        assert terms is not None, tr.graphs.failures
+    else:
+        terms = tr.loss(res, tv, step)
+        terms["total"].backward()
+    values = {k: float(v.detach()) for k, v in terms.items()}
+    grads = {n: (None if p.grad is None else p.grad.detach().clone()) for n, p in tr.model.named_parameters()}
+    grads["means2d"] = res["out"].means2d.grad.detach().clone()
+    tr.optimizer.zero_grad(set_to_none=True)
+    return values, grads
+
+
+def assert_same(eager, graphed, rtol, atol_frac):
+    ev, eg = eager
+    gv, gg = graphed
+    assert list(ev) == list(gv), (list(ev), list(gv))  # the log's key order too
+    for k in ev:
+        assert gv[k] == pytest.approx(ev[k], rel=rtol, abs=1e-7), k
+    assert eg.keys() == gg.keys()
+    for k in eg:
+        a, b = eg[k], gg[k]
+        assert (a is None) == (b is None), f"{k}: a gradient on one path only"
+        if a is None:
+            continue
+        scale = float(a.abs().max())
+        assert torch.allclose(b, a, rtol=rtol, atol=atol_frac * scale + 1e-30), \
+            f"{k}: max diff {float((a - b).abs().max())} of max {scale}"
+
+
+def check_config(scene_dir, tmp_path, name, device, emulate):
+    tr = make_trainer(scene_dir, tmp_path / name.replace("/", "_"), name, device, emulate=emulate)
+    assert tr.graphs is not None
+    before, after = 1, tr.schedule.enhance_from + 1
+    assert not tr.schedule.enhance_at(before) and tr.schedule.enhance_at(after)
+    for step in (before, after):
+        for view in (0, 1, 0):  # a second view: the static inputs are refilled; then the first again
+            eager = step_gradients(tr, view, step, graphed=False)
+            graphed = step_gradients(tr, view, step, graphed=True)
+            assert_same(eager, graphed, rtol=1e-4, atol_frac=1e-5)
+            if tr.decomposed and tr.schedule.enhance_at(step):
+                assert any(graphed[1][n] is not None for n in graphed[1] if n.startswith("enhancement."))
+    return tr
+
+
+# ---- CPU: the graphed path's plumbing, run eagerly --------------------------------------------------------------
+
+@pytest.mark.parametrize("name", ["default", "paper", "ablations/no_priors", "ablations/baseline_3dgs",
+                                  "ablations/baseline_pre", "ablations/no_sh"])
+def test_graphed_path_matches_eager_on_cpu(scene_dir, tmp_path, name, one_thread):
+    tr = check_config(scene_dir, tmp_path, name, "cpu", emulate=True)
+    assert len(tr.graphs) == 0  # nothing captured on the CPU
+
+
+def test_graphed_training_loop_matches_eager_on_cpu(scene_dir, tmp_path, one_thread):
+    """The whole loop (checks every few steps, densification, the enhancement switch, the SH degree growing)
+    through the graphed path's plumbing ends where the eager loop ends, to accumulation-order noise."""
+    sets = ["steps=40", "log.every=5", "model.sh_degree_every=0.25", "loss.enhance_from=10", "density.start=5",
+            "density.every=8", "density.stop=30"]
+    runs = {}
+    for emulate in (False, True):
+        tr = make_trainer(scene_dir, tmp_path / f"loop{emulate}", "default", "cpu", emulate=emulate, extra=sets)
+        runs[emulate] = (tr.train(), len(tr.model.gaussians))
+    (eager, n_eager), (graphed, n_graphed) = runs[False], runs[True]
+    assert abs(n_eager - n_graphed) <= max(2, 0.01 * n_eager), (n_eager, n_graphed)
+    assert eager.keys() == graphed.keys()
+    for k in eager:
+        if k != "seconds":
+            assert graphed[k] == pytest.approx(eager[k], rel=1e-3, abs=1e-7), k
+
+
+def test_eager_loss_is_the_papers_sum(scene_dir, tmp_path, one_thread):
+    """Trainer.loss (the reference of the graphed path) against the loss functions composed by hand:
+    L_sup + w_tv·L_TV + w_sh·L_SH + L_enhance on the detached R̂, L̂ (the default)."""
+    tr = make_trainer(scene_dir, tmp_path / "ref", "default", "cpu")
+    c = tr.cfg["loss"]
+    tv = tr.views[1]
+    res = tr.model.render(tv.camera, 1)
+    terms = tr.loss(res, tv, step=10)
+    R_hat, L_hat, S = to_bchw(res["R"]), to_bchw(res["L"]), to_bchw(tv.S)
+    sup, _ = losses.supervision_loss(R_hat, L_hat, to_bchw(tv.R), to_bchw(tv.L), S, c["w_r"], c["w_l"], c["w_s"],
+                                     c["lambda_ssim"])
+    out = tr.model.enhance(res["R"].detach(), res["L"].detach())
+    enh, _ = losses.enhancement_loss(to_bchw(out["rgb"]), S, c["w_spa"], c["w_exp"], c["w_col"], c["exposure_E"],
+                                     illumination=to_bchw(out["L_enh"]), exp_patch=c["exp_patch"],
+                                     exp_form=c["exp_form"], spa_form=c["spa_form"],
+                                     scale_invariant=c["enhance_scale_invariant"])
+    want = sup + c["w_tv"] * losses.tv_loss(R_hat) + c["w_sh"] * losses.sh_sparsity_loss(
+        tr.model.gaussians.sh_rest, c["sh_reduction"]) + enh
+    assert float(terms["total"].detach()) == pytest.approx(float(want.detach()), rel=1e-6)
+    assert list(terms) == ["sup_r", "sup_l", "sup_rec", "tv", "sh", "spa", "exp", "col", "total"]
+
+
+def test_graphs_are_off_on_the_cpu_and_by_the_switch(scene_dir, tmp_path):
+    assert make_trainer(scene_dir, tmp_path / "a", "default", "cpu").graphs is None
+    off = make_trainer(scene_dir, tmp_path / "b", "default", "cpu", emulate=True, extra=["train.cuda_graphs=false"])
+    assert off.graphs is None
+
+
+# ---- CUDA: captured graphs ----------------------------------------------------------------------------------------
+
+@needs_cuda
+@pytest.mark.parametrize("name", shipped_configs())
+def test_cuda_graphed_losses_match_eager(scene_dir, tmp_path, name):
+    tr = check_config(scene_dir, tmp_path, name, "cuda", emulate=False)
+    assert not tr.graphs.failures, tr.graphs.failures
+    assert len(tr.graphs) == 1  # one image size; the graph without the enhancement is freed once it is on
+    assert not tr.channel_graphs.failures, tr.channel_graphs.failures
+    assert tr.channel_graphs.captures >= 1
+    centers = [tv.camera.center.to(tv.center) for tv in tr.views]
+    assert all(torch.equal(tv.center, c) for tv, c in zip(tr.views, centers)), "a view's cached centre changed"
+
+
+@needs_cuda
+def test_cuda_graphed_training_matches_eager_training(scene_dir, tmp_path):
+    """A few whole steps (a densification and the enhancement switch included) with and without graphs: the
+    same loss values and Gaussian counts up to float32 accumulation-order noise (Adam's normalisation can turn
+    a last-bit difference of a tiny gradient into a visible step, and a Gaussian at the densification
+    threshold may go either way)."""
+    extra = ["density.start=5", "density.every=6", "density.stop=9", "loss.enhance_from=4"]
+    runs = {}
+    for graphs in (True, False):
+        tr = make_trainer(scene_dir, tmp_path / f"g{graphs}", "default", "cuda",
+                          extra=extra + [f"train.cuda_graphs={str(graphs).lower()}"])
+        torch.manual_seed(0)
+        logs = [tr.train_step(step, tr.views[step % len(tr.views)]) for step in range(1, 11)]
+        runs[graphs] = (logs, len(tr.model.gaussians))
+        assert (tr.graphs is not None) == graphs
+    (lg, ng), (le, ne) = runs[True], runs[False]
+    assert abs(ng - ne) <= max(2, 0.01 * ne), (ng, ne)
+    for step, (a, b) in enumerate(zip(lg, le), start=1):
+        assert a.keys() == b.keys()
+        for k in a:
+            if k != "event":
+                assert a[k] == pytest.approx(b[k], rel=1e-4 if step == 1 else 2e-2, abs=1e-6), (step, k)
+
+
+@needs_cuda
+def test_cuda_step_has_no_host_sync_outside_checks(scene_dir, tmp_path):
+    """torch's sync debug mode raises on a synchronising call: a non-check step may only read binning's pair
+    count, which the extension reads itself (not through torch), so torch sees no sync at all."""
+    tr = make_trainer(scene_dir, tmp_path / "sync", "default", "cuda")
+    for step in range(1, 6):  # capture both graphs first (capture itself may sync)
+        tr.train_step(step, tr.views[step % len(tr.views)], check=True)
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        for step in range(6, 9):
+            tr.train_step(step, tr.views[step % len(tr.views)], check=False)
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    assert tr.check_finite(8)["total"] > 0
