@@ -37,3 +37,10 @@ def test_cli_synthetic_and_trainer_modes(tmp_path, capsys):
 def test_cli_rejects_bad_sizes(capsys):
     with pytest.raises(SystemExit):
         main(["--device", "cpu", "--sizes", "0"])
+
+
+def test_busy_time_is_the_union_of_spans():
+    from retinexgs.bench.train_speed import busy_ms
+    assert busy_ms([]) == 0.0
+    assert busy_ms([(0, 1000), (500, 1500), (1500, 2000), (3000, 3500)]) == pytest.approx(2.5)  # overlap once
+    assert busy_ms([(0, 1000), (0, 1000), (100, 200)]) == pytest.approx(1.0)  # duplicates and nested spans

@@ -54,7 +54,8 @@ def make_trainer(scene_dir, run: Path, name: str, device: str, emulate: bool = F
     with torch.no_grad():  # non-trivial SH and anisotropy so that every gradient path carries something
         g = torch.Generator().manual_seed(1)
         tr.model.gaussians.sh_rest.copy_(torch.randn(tr.model.gaussians.sh_rest.shape, generator=g) * 0.05)
-        tr.model.gaussians.log_scales.add_(torch.randn(tr.model.gaussians.log_scales.shape, generator=g) * 0.2)
+        tr.model.gaussians.log_scales.add_(torch.randn(tr.model.gaussians.log_scales.shape, generator=g).to(
+            tr.model.gaussians.log_scales) * 0.2)
     return tr
 
 

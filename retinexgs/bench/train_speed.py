@@ -14,9 +14,10 @@ rasterizer's share; no density control in either.
 ``--data`` times the real :class:`~retinexgs.train.trainer.Trainer` on a scene instead (density control and the
 enhancement losses included, as the config schedules them), after ``--warmup`` steps.
 
-"wall" is the median step with a device synchronisation after each step; "GPU" is the kernels' summed time per
-step from ``torch.profiler`` (a separate pass); "overhead" = wall − GPU: the time the GPU waits for the host
-(Python, launches, syncs). Launches per step are counted in the same profiler pass.
+"wall" is the median step with a device synchronisation after each step; "free-running" is the mean step without
+those synchronisations (what training sees); "GPU" is the time the GPU is busy per step (the union of the kernels'
+and copies' spans in a ``torch.profiler`` trace, a separate pass); "overhead" = wall − GPU: the time the GPU waits
+for the host (Python, launches, syncs). Launches (kernels and graph replays) per step come from the same trace.
 """
 from __future__ import annotations
 
@@ -27,7 +28,7 @@ import statistics
 import tempfile
 import time
 from pathlib import Path
-from typing import Callable, Dict, List, Optional
+from typing import Callable, Dict, List, Optional, Tuple
 
 import torch
 
@@ -57,8 +58,21 @@ def _device_time_us(event) -> float:
     return 0.0
 
 
+def busy_ms(intervals: List[Tuple[float, float]]) -> float:
+    """Length in ms of the union of (start, end) intervals in µs: kernels that overlap (streams) or appear twice in
+    the trace (a graph's replay lists its kernels) count once."""
+    total, end = 0.0, float("-inf")
+    for a, b in sorted(intervals):
+        if b <= end:
+            continue
+        total += b - max(a, end)
+        end = b
+    return total / 1e3
+
+
 def profile_steps(step: Callable[[], None], steps: int, device: torch.device) -> Dict[str, float]:
-    """GPU busy ms per step (summed kernel time) and kernel launches per step over ``steps`` profiled steps."""
+    """GPU busy ms per step (the union of the kernels' and copies' time spans) and kernel or graph launches per
+    step over ``steps`` profiled steps."""
     if device.type != "cuda":
         return {"gpu_ms": float("nan"), "launches": float("nan")}
     acts = [torch.profiler.ProfilerActivity.CPU, torch.profiler.ProfilerActivity.CUDA]
@@ -67,13 +81,13 @@ def profile_steps(step: Callable[[], None], steps: int, device: torch.device) ->
         for _ in range(steps):
             step()
         _sync(device)
-    gpu_us = launches = 0.0
-    for e in prof.key_averages():
-        if e.key.startswith(("cudaLaunchKernel", "cuLaunchKernel", "cudaGraphLaunch")):
-            launches += e.count
-        if getattr(e, "device_type", None) == torch.autograd.DeviceType.CUDA:
-            gpu_us += _device_time_us(e)
-    return {"gpu_ms": gpu_us / 1e3 / steps, "launches": launches / steps}
+    spans, launches = [], 0
+    for e in prof.events():
+        if e.name.startswith(("cudaLaunchKernel", "cuLaunchKernel", "cudaGraphLaunch")):
+            launches += 1
+        elif getattr(e, "device_type", None) == torch.autograd.DeviceType.CUDA and e.time_range.end > e.time_range.start:
+            spans.append((float(e.time_range.start), float(e.time_range.end)))
+    return {"gpu_ms": busy_ms(spans) / steps, "launches": launches / steps}
 
 
 def time_steps(step: Callable[[], None], steps: int, device: torch.device) -> float:
