@@ -209,11 +209,16 @@ def test_cuda_step_has_no_host_sync_outside_checks(scene_dir, tmp_path):
     tr = make_trainer(scene_dir, tmp_path / "sync", "default", "cuda")
     for step in range(1, 6):  # capture both graphs first (capture itself may sync)
         tr.train_step(step, tr.views[step % len(tr.views)], check=True)
+    # Density and opacity-reset steps check by design (TINY's 20-step schedule resets opacities at step 6).
+    quiet = [s for s in range(6, 20) if not (tr.schedule.densify_at(s) or tr.schedule.reset_at(s))][:3]
+    for step in range(6, quiet[0]):
+        tr.train_step(step, tr.views[step % len(tr.views)], check=True)
     torch.cuda.synchronize()
     torch.cuda.set_sync_debug_mode("error")
     try:
-        for step in range(6, 9):
+        for step in quiet:
             tr.train_step(step, tr.views[step % len(tr.views)], check=False)
     finally:
         torch.cuda.set_sync_debug_mode("default")
-    assert tr.check_finite(8)["total"] > 0
+    assert len(quiet) == 3 and quiet == list(range(quiet[0], quiet[0] + 3))  # consecutive: no step skipped
+    assert tr.check_finite(quiet[-1])["total"] > 0
