@@ -27,7 +27,6 @@ from typing import Dict, Optional, Tuple
 
 import torch
 import torch.nn.functional as F
-from torch.autograd.function import once_differentiable
 
 __all__ = [
     "to_bchw", "gaussian_window", "ssim", "l1_ssim", "supervision_loss", "tv_loss", "sh_sparsity_loss",
@@ -86,49 +85,6 @@ def _filter(x: torch.Tensor, size: int, sigma: float, pad: int) -> torch.Tensor:
     return F.conv2d(x, wy, padding=(pad, 0), groups=c)
 
 
-class _SSIMMap(torch.autograd.Function):
-    """The SSIM map from the five local moments [B,5C,H,W] = (μx, μy, E[x²], E[y²], E[xy]) with a hand-written
-    backward: 15 elementwise kernels forward and 17 backward instead of autograd's ~23 and ~45 (the map is
-    the largest tensor of the training loss, and the step is launch-bound).
-
-        A1 = 2μxμy + C1,  A2 = 2(E[xy] − μxμy) + C2,
-        B1 = μx² + μy² + C1,  B2 = E[x²] + E[y²] − μx² − μy² + C2,  s = A1·A2 / (B1·B2);
-        with r = g/(B1·B2), u = g·s:  ∂/∂E[xy] = 2r·A1,  ∂/∂E[x²] = ∂/∂E[y²] = −u/B2,
-        ∂/∂μx = 2(μy·r·(A2 − A1) + μx·(u/B2 − u/B1)),
-        ∂/∂μy = 2(μx·r·(A2 − A1) + μy·(u/B2 − u/B1)).
-    """
-
-    @staticmethod
-    def forward(ctx, moments: torch.Tensor, c1: float, c2: float) -> torch.Tensor:
-        mx, my, exx, eyy, exy = moments.chunk(5, dim=1)
-        mxy = mx * my
-        m2 = torch.addcmul(mx * mx, my, my)
-        a1 = mxy.mul(2).add_(c1)
-        a2 = torch.sub(exy, mxy).mul_(2).add_(c2)
-        b1 = m2.add(c1)
-        b2 = torch.add(exx, eyy).sub_(m2).add_(c2)
-        den = b1 * b2
-        s = (a1 * a2).div_(den)
-        ctx.save_for_backward(mx, my, a1, a2, b1, b2, den, s)
-        return s
-
-    @staticmethod
-    @once_differentiable
-    def backward(ctx, g: torch.Tensor):
-        mx, my, a1, a2, b1, b2, den, s = ctx.saved_tensors
-        r = g / den
-        ga1, ga2 = r * a2, r * a1          # ∂s/∂A1·g, ∂s/∂A2·g
-        u = g * s
-        ub1, ub2 = u / b1, u / b2          # −∂s/∂B1·g, −∂s/∂B2·g
-        da = ga1.sub_(ga2)                 # r·(A2 − A1)
-        db = ub2 - ub1
-        g_mx = torch.addcmul(my * da, mx, db).mul_(2)
-        g_my = torch.addcmul(mx * da, my, db).mul_(2)
-        g_exx = ub2.neg_()
-        g_exy = ga2.mul_(2)
-        return torch.cat([g_mx, g_my, g_exx, g_exx, g_exy], dim=1), None, None
-
-
 def ssim(x: torch.Tensor, y: torch.Tensor, window: int = 11, sigma: float = 1.5, padding: str = "same",
          data_range: float = 1.0, reduction: str = "mean") -> torch.Tensor:
     """Structural similarity (Wang et al. 2004) with a Gaussian window, per channel.
@@ -158,7 +114,11 @@ def ssim(x: torch.Tensor, y: torch.Tensor, window: int = 11, sigma: float = 1.5,
     c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
     # The five local moments in one filter pass (2 convolutions instead of 10: training is launch-bound).
     moments = _filter(torch.cat([x, y, x * x, y * y, x * y], dim=1), window, sigma, pad)
-    s = _SSIMMap.apply(moments, c1, c2)
+    mx, my, exx, eyy, exy = moments.chunk(5, dim=1)
+    sxx = exx - mx * mx
+    syy = eyy - my * my
+    sxy = exy - mx * my
+    s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
     if reduction == "none":
         return s
     if reduction == "mean":
