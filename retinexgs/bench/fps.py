@@ -108,15 +108,7 @@ def benchmark(run: Path, device: Optional[str] = None, width: Optional[int] = No
     # The 6 channels of every view, computed once: the rasterizer alone then sees exactly the same work.
     with torch.no_grad():
         means, quats, scales, opac = g.means, g.quats, g.scales, g.opacities
-        channels = []
-        for cam in cams:
-            colors = g.colors(cam.center.to(means), degree)
-            if model.decomposed:
-                from retinexgs.model.illumination import IlluminationField
-                center = cam.center.to(means)
-                colors = torch.cat([colors, model.illumination(means, IlluminationField.view_dirs(means, center))
-                                    .to(colors)], dim=-1)
-            channels.append(colors.contiguous())
+        channels = [model.channels(cam.center.to(means), degree).contiguous() for cam in cams]
 
     def raster(i: int) -> None:
         rasterize_gaussians(means, quats, scales, opac, channels[i % len(cams)], cams[i % len(cams)])

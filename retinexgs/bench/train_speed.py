@@ -156,10 +156,7 @@ def synthetic_step(n: int, width: int, height: int, device: torch.device, raster
     center = cam.center.to(device)
 
     def step() -> None:
-        colors = gm.colors(center, 3)
-        from retinexgs.model.illumination import IlluminationField
-        illum = model.illumination(gm.means, IlluminationField.view_dirs(gm.means, center))
-        colors = torch.cat([colors, illum], dim=-1)
+        colors = model.channels(center, 3)
         if rasterizer == "gsplat":
             image = _gsplat_rasterize(gm.means, gm.quats, gm.scales, gm.opacities, colors, cam)
         else:

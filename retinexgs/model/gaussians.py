@@ -18,6 +18,13 @@ def rgb_to_sh_dc(rgb: Tensor) -> Tensor:
     return (rgb - 0.5) / SH_C0
 
 
+def sh_colors(means: Tensor, sh_dc: Tensor, sh_rest: Tensor, center: Tensor, degree: int) -> Tensor:
+    """[N,3] colour max(SH(dir) + 0.5, 0) of degree ``degree`` seen from ``center`` (a function of the tensors,
+    so that the trainer can capture it in a CUDA graph)."""
+    coeffs = torch.cat([sh_dc, sh_rest], dim=1)
+    return torch.clamp_min(spherical_harmonics(degree, means - center.to(means), coeffs) + 0.5, 0.0)
+
+
 def knn_mean_distance(points: Tensor, k: int = 3, chunk: int = 2048) -> Tensor:
     """Mean distance of each point to its k nearest neighbours ([P]), computed in chunks."""
     out = torch.empty(points.shape[0], dtype=points.dtype, device=points.device)
@@ -83,10 +90,7 @@ class GaussianModel(nn.Module):
 
     def colors(self, camera_center: Tensor, active_degree: int) -> Tensor:
         """[N,3] view-dependent colour seen from ``camera_center`` with SH up to ``active_degree``."""
-        degree = min(active_degree, self.sh_degree)
-        coeffs = torch.cat([self.sh_dc, self.sh_rest], dim=1)
-        dirs = self.means - camera_center.to(self.means)
-        return torch.clamp_min(spherical_harmonics(degree, dirs, coeffs) + 0.5, 0.0)
+        return sh_colors(self.means, self.sh_dc, self.sh_rest, camera_center, min(active_degree, self.sh_degree))
 
     def tensors(self) -> Dict[str, Tensor]:
         """The parameters by name."""

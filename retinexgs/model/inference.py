@@ -240,12 +240,7 @@ class InferenceRenderer:
                 return kernels().gaussian_colors(degree, g.means, g.sh_dc, g.sh_rest, center, self.illum_shape,
                                                  self.bound, self.weights)
             return kernels().gaussian_colors(degree, g.means, g.sh_dc, g.sh_rest, center)
-        c = torch.tensor(center, dtype=torch.float64).to(g.means)
-        colors = g.colors(c, degree)
-        if self.decomposed:
-            illum = self.model.illumination(g.means, IlluminationField.view_dirs(g.means, c))
-            colors = torch.cat([colors, illum.to(colors)], dim=-1)
-        return colors
+        return self.model.channels(torch.tensor(center, dtype=torch.float64).to(g.means), degree)
 
     def rasterize(self, camera: Camera, colors: Optional[Tensor] = None) -> Tensor:
         """[H,W,C] composited ``colors`` (the kernels of ``rasterize_gaussians``, without autograd or checks);

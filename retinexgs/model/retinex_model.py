@@ -23,9 +23,9 @@ import torch
 from torch import Tensor, nn
 
 from retinexgs.model.enhancement import EnhancementNet
-from retinexgs.model.gaussians import GaussianModel
+from retinexgs.model.gaussians import GaussianModel, sh_colors
 from retinexgs.model.illumination import IlluminationField
-from retinexgs.render import Camera, rasterize_gaussians, spherical_harmonics
+from retinexgs.render import Camera, rasterize_gaussians
 
 
 def gaussian_channels(means: Tensor, sh_dc: Tensor, sh_rest: Tensor, center: Tensor, degree: int,
@@ -33,8 +33,7 @@ def gaussian_channels(means: Tensor, sh_dc: Tensor, sh_rest: Tensor, center: Ten
     """The per-Gaussian channels a render rasterizes, [N,3] or [N,6]: the SH colour max(SH(dir) + 0.5, 0) of
     degree ``degree`` (the albedo R̂) and, with ``illumination``, the illumination field at each centre seen
     from ``center`` (L̂). A function of the tensors, so that the trainer can capture it in a CUDA graph."""
-    coeffs = torch.cat([sh_dc, sh_rest], dim=1)
-    colors = torch.clamp_min(spherical_harmonics(degree, means - center.to(means), coeffs) + 0.5, 0.0)
+    colors = sh_colors(means, sh_dc, sh_rest, center, degree)
     if illumination is None:
         return colors
     illum = illumination(means, IlluminationField.view_dirs(means, center))
@@ -93,6 +92,12 @@ class RetinexGSModel(nn.Module):
         g = self.enhancement(L_bchw)
         return g if self.per_channel_gamma else g.mean(dim=1, keepdim=True).expand_as(g)
 
+    def channels(self, center: Tensor, active_degree: int) -> Tensor:
+        """The per-Gaussian channels a render of this model rasterizes from ``center`` (:func:`gaussian_channels`):
+        [N,6] R̂ and L̂ values, or [N,3] colours for the plain-3DGS baselines."""
+        return gaussian_channels(self.gaussians.means, self.gaussians.sh_dc, self.gaussians.sh_rest, center,
+                                 self.channel_degree(active_degree), self.illumination if self.decomposed else None)
+
     def channel_degree(self, active_degree: int) -> int:
         """The SH degree evaluated at the trainer's ``active_degree`` (at most the model's)."""
         return min(active_degree, self.gaussians.sh_degree)
@@ -114,8 +119,7 @@ class RetinexGSModel(nn.Module):
         g = self.gaussians
         if colors is None:
             center = (camera.center if center is None else center).to(g.means)
-            colors = gaussian_channels(g.means, g.sh_dc, g.sh_rest, center, self.channel_degree(active_degree),
-                                       self.illumination if self.decomposed else None)
+            colors = self.channels(center, active_degree)
         out = rasterize_gaussians(g.means, g.quats, g.scales, g.opacities, colors, camera, validate=validate)
         if not self.decomposed:
             return {"out": out, "rgb": out.image}
