@@ -34,9 +34,11 @@ def test_cli_synthetic_and_trainer_modes(tmp_path, capsys):
     assert "| trainer |" in out and "steps 1-" in out
 
 
-def test_cli_rejects_bad_sizes(capsys):
-    with pytest.raises(SystemExit):
-        main(["--device", "cpu", "--sizes", "0"])
+@pytest.mark.parametrize("args", [["--sizes", "0"], ["--steps", "0"], ["--warmup", "-1"], ["--width", "0"]])
+def test_cli_rejects_bad_arguments(args, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["--device", "cpu"] + args)
+    assert exc.value.code == 2 and "error" in capsys.readouterr().err
 
 
 def test_busy_time_is_the_union_of_spans():

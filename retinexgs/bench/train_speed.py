@@ -218,6 +218,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--data", type=Path, default=None, help="time the real trainer on this scene instead")
     parser.add_argument("--config", action="append", default=[], help="config name(s) for --data")
     args = parser.parse_args(argv)
+    if args.steps < 1 or args.warmup < 0 or args.width < 1 or args.height < 1:
+        parser.error("--steps, --width and --height must be at least 1 and --warmup at least 0")
     from retinexgs.errors import UserError
 
     device = torch.device(args.device)
