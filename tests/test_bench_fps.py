@@ -53,3 +53,10 @@ def test_resize_camera_scales_each_axis():
 def test_fps_on_a_folder_that_is_not_a_run(tmp_path, capsys):
     assert main(["--run", str(tmp_path), "--device", "cpu"]) == 2
     assert "not a run folder" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("args", [["--frames", "0"], ["--warmup", "-1"], ["--width", "0"], ["--launch-frames", "-2"]])
+def test_fps_rejects_bad_arguments(tmp_path, args, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["--run", str(tmp_path), "--device", "cpu"] + args)
+    assert exc.value.code == 2 and "error" in capsys.readouterr().err
