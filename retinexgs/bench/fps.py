@@ -167,8 +167,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--launch-frames", type=int, default=5,
                         help="frames profiled to count launches per frame on CUDA (0: skip; default 5)")
     args = parser.parse_args(argv)
-    if args.frames < 1 or args.warmup < 0 or args.launch_frames < 0 or (args.width or 1) < 1 \
-            or (args.height or 1) < 1:
+    if args.frames < 1 or args.warmup < 0 or args.launch_frames < 0 or any(
+            size is not None and size < 1 for size in (args.width, args.height)):
         parser.error("--frames, --width and --height must be at least 1, --warmup and --launch-frames at least 0")
     from retinexgs.errors import UserError
 
