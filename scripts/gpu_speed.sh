@@ -2,7 +2,7 @@
 # Issue 13 on the GPU machine, in one call: build, CUDA tests, a timed fox-dark training alone (+ more seeds side
 # by side), the FPS bench on it, train-speed and raster benches against gsplat, the step profile. Each stage writes
 # under $OUT as it goes. Pick stages with STAGES (default: all):
-#   STAGES="tests train fps trainspeed raster profile" SEEDS="0 1 2" VS=gsplat bash scripts/gpu_speed.sh
+#   STAGES="tests train fps trainspeed raster rprofile profile" SEEDS="0 1 2" VS=gsplat bash scripts/gpu_speed.sh
 # Carry .data/fox-dark (copy of shared/data/fox-dark, never committed) and the wheels the machine lacks (pydantic,
 # pycolmap, plyfile; gsplat for VS=gsplat: its kernels are JIT-built, ~80 s, started in the background first).
 set -uo pipefail
@@ -66,6 +66,8 @@ if has trainspeed; then
     | tee -a "$OUT/train_speed.txt"
 fi
 has raster && timeout 150 python3 -m retinexgs.bench raster --device cuda --vs ${VS:-reference} 2>&1 | tee "$OUT/bench_raster.txt"
+has rprofile && timeout 200 python3 scripts/profile_raster.py > "$OUT/profile_raster.txt" 2>&1; \
+  has rprofile && grep "==" "$OUT/profile_raster.txt"
 has profile && timeout 100 python3 scripts/profile_train.py /tmp/fox-dark --steps 300 --profile 30 > "$OUT/profile_train.txt" 2>&1 \
   && head -5 "$OUT/profile_train.txt" | grep -v -i warn
 echo "total: $(( $(date +%s) - t0 )) s"
