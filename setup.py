@@ -25,7 +25,9 @@ def _extension():
     cpu_sources = ["csrc/bindings.cpp"] + _sources("csrc/cpu/*.cpp")
     include_dirs = [os.path.join(HERE, "csrc", "include")]
     # No -std flag: torch picks the standard its headers (and its c10::Error layout) were built with.
-    cxx_flags = ["-O3", "-fopenmp"]
+    # -ffp-contract=off: no fused multiply-adds on the host, so the tile culling of the binning (rgs/math.h,
+    # TileReach, written with unfused device operations) decides every tile exactly as the GPU does.
+    cxx_flags = ["-O3", "-fopenmp", "-ffp-contract=off"]
     link_flags = ["-fopenmp"]
     want_cuda = os.environ.get("RETINEXGS_CPU_ONLY", "0") != "1"
     has_cuda = want_cuda and torch.version.cuda is not None and CUDA_HOME is not None

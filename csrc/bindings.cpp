@@ -138,7 +138,8 @@ void* scratch_alloc(size_t bytes, void* ctx) {
 }
 
 template <typename scalar_t>
-Tensor rgs_bin_gaussians_cuda(const Tensor& means2d, const Tensor& radii, const Tensor& depths, rgs::TileGrid grid,
+Tensor rgs_bin_gaussians_cuda(const Tensor& means2d, const Tensor& radii, const scalar_t* conics,
+                              const scalar_t* opacities, const Tensor& depths, rgs::TileGrid grid,
                               Tensor& tile_ranges) {
     const int64_t N = means2d.size(0);
     TorchScratch scratch{{}, means2d.device()};
@@ -146,10 +147,11 @@ Tensor rgs_bin_gaussians_cuda(const Tensor& means2d, const Tensor& radii, const 
     auto stream = RGS_CUDA_STREAM(means2d);
     Tensor offsets = torch::empty({N > 0 ? N : 1}, means2d.options().dtype(torch::kInt64));
     const int64_t M = rgs::count_tile_pairs_cuda<scalar_t>(N, means2d.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(),
-                                                           grid, offsets.data_ptr<int64_t>(), alloc, stream);
+                                                           conics, opacities, grid, offsets.data_ptr<int64_t>(),
+                                                           alloc, stream);
     RGS_CHECK_VALUE(M < (int64_t(1) << 31), "too many tile/Gaussian pairs (", M, ") for int32 indices");
     Tensor gauss_ids = torch::empty({M}, means2d.options().dtype(torch::kInt32));
-    rgs::bin_tile_pairs_cuda<scalar_t>(N, means2d.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(),
+    rgs::bin_tile_pairs_cuda<scalar_t>(N, means2d.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(), conics, opacities,
                                        depths.data_ptr<scalar_t>(), grid, offsets.data_ptr<int64_t>(), M,
                                        gauss_ids.data_ptr<int32_t>(), tile_ranges.data_ptr<int32_t>(), alloc, stream);
     return gauss_ids;
@@ -246,13 +248,25 @@ std::tuple<Tensor, Tensor, Tensor> project_backward(Tensor means, Tensor quats, 
 }
 
 // ---- tile binning ------------------------------------------------------------------------------
-std::tuple<Tensor, Tensor> bin_gaussians(Tensor means2d, Tensor radii, Tensor depths, int width, int height) {
+// conics [N, 3] and opacities [N] (both or neither): a Gaussian pairs only with the tiles of its rectangle that it
+// can reach (rgs::TileReach); they must be the ones the compositing gets, or it could miss a pair.
+std::tuple<Tensor, Tensor> bin_gaussians(Tensor means2d, Tensor radii, Tensor depths, int width, int height,
+                                         std::optional<Tensor> conics_opt, std::optional<Tensor> opacities_opt) {
     check_float(means2d, "means2d");
     check_image(width, height);
     const int64_t N = means2d.size(0);
     check_tensor(means2d, "means2d", {N, 2}, means2d);
     check_index(radii, "radii", {N, 2}, means2d);
     check_tensor(depths, "depths", {N}, means2d);
+    RGS_CHECK_VALUE(conics_opt.has_value() == opacities_opt.has_value(),
+                    "pass both conics and opacities to bin_gaussians, or neither");
+    const bool cull = conics_opt.has_value();
+    Tensor conics, opacities;
+    if (cull) {
+        check_tensor(*conics_opt, "conics", {N, 3}, means2d);
+        check_tensor(*opacities_opt, "opacities", {N}, means2d);
+        conics = conics_opt->contiguous(), opacities = opacities_opt->contiguous();
+    }
     means2d = means2d.contiguous(), radii = radii.contiguous(), depths = depths.contiguous();
     const rgs::TileGrid grid = rgs::make_tile_grid(width, height);
     auto iopts = means2d.options().dtype(torch::kInt32);
@@ -260,21 +274,25 @@ std::tuple<Tensor, Tensor> bin_gaussians(Tensor means2d, Tensor radii, Tensor de
     Tensor gauss_ids;
     RGS_DEVICE_GUARD(means2d);
     AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "bin_gaussians", [&] {
+        const scalar_t* conics_p = cull ? conics.data_ptr<scalar_t>() : nullptr;
+        const scalar_t* opacities_p = cull ? opacities.data_ptr<scalar_t>() : nullptr;
         if (means2d.is_cuda()) {
 #ifdef RGS_WITH_CUDA
-            gauss_ids = rgs_bin_gaussians_cuda<scalar_t>(means2d, radii, depths, grid, tile_ranges);
+            gauss_ids = rgs_bin_gaussians_cuda<scalar_t>(means2d, radii, conics_p, opacities_p, depths, grid,
+                                                         tile_ranges);
 #else
             no_cuda();
 #endif
         } else {
             Tensor offsets = torch::empty({N + 1}, means2d.options().dtype(torch::kInt64));
             const int64_t M = rgs::count_tile_pairs_cpu<scalar_t>(N, means2d.data_ptr<scalar_t>(),
-                                                                  radii.data_ptr<int32_t>(), grid,
-                                                                  offsets.data_ptr<int64_t>(), num_threads());
+                                                                  radii.data_ptr<int32_t>(), conics_p, opacities_p,
+                                                                  grid, offsets.data_ptr<int64_t>(), num_threads());
             RGS_CHECK_VALUE(M < (int64_t(1) << 31), "too many tile/Gaussian pairs (", M, ") for int32 indices");
             gauss_ids = torch::empty({M}, iopts);
-            rgs::bin_tile_pairs_cpu<scalar_t>(N, means2d.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(),
-                                              depths.data_ptr<scalar_t>(), grid, offsets.data_ptr<int64_t>(), M,
+            rgs::bin_tile_pairs_cpu<scalar_t>(N, means2d.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(), conics_p,
+                                              opacities_p, depths.data_ptr<scalar_t>(), grid,
+                                              offsets.data_ptr<int64_t>(), M,
                                               gauss_ids.data_ptr<int32_t>(), tile_ranges.data_ptr<int32_t>(),
                                               num_threads());
         }
@@ -544,7 +562,9 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.doc() = "RetinexGS kernel library: projection, tile binning, compositing and SH (CPU/OpenMP and CUDA)";
     m.def("project_forward", &project_forward);
     m.def("project_backward", &project_backward);
-    m.def("bin_gaussians", &bin_gaussians);
+    m.def("bin_gaussians", &bin_gaussians, pybind11::arg("means2d"), pybind11::arg("radii"), pybind11::arg("depths"),
+          pybind11::arg("width"), pybind11::arg("height"), pybind11::arg("conics") = pybind11::none(),
+          pybind11::arg("opacities") = pybind11::none());
     m.def("rasterize_forward", &rasterize_forward);
     m.def("rasterize_backward", &rasterize_backward);
     m.def("sh_forward", &sh_forward);

@@ -1,5 +1,7 @@
 // Tile binning on the CPU. Deterministic for any thread count: pairs are written at per-Gaussian offsets,
 // bucketed by tile with a stable counting sort, then each tile's list is sorted by (depth, Gaussian index).
+// With conics and opacities, the tiles of a Gaussian's rectangle that it cannot reach are skipped (TileReach,
+// the same test as on the GPU).
 #include <omp.h>
 
 #include <algorithm>
@@ -11,29 +13,37 @@
 namespace rgs {
 
 template <typename T>
-int64_t count_tile_pairs_cpu(int64_t N, const T* means2d, const int32_t* radii, TileGrid grid, int64_t* offsets,
-                             int num_threads) {
-#pragma omp parallel for schedule(static) num_threads(num_threads)
-    for (int64_t i = 0; i < N; ++i) offsets[i + 1] = gaussian_tile_rect(means2d + 2 * i, radii + 2 * i, grid).area();
+int64_t count_tile_pairs_cpu(int64_t N, const T* means2d, const int32_t* radii, const T* conics,
+                             const T* opacities, TileGrid grid, int64_t* offsets, int num_threads) {
+    // Dynamic: with culling, a Gaussian costs one test per tile of its rectangle.
+#pragma omp parallel for schedule(dynamic, 1024) num_threads(num_threads)
+    for (int64_t i = 0; i < N; ++i)
+        offsets[i + 1] = gaussian_tile_count(gaussian_tile_rect(means2d + 2 * i, radii + 2 * i, grid), means2d + 2 * i,
+                                             conics ? conics + 3 * i : nullptr, opacities ? opacities + i : nullptr);
     offsets[0] = 0;
     for (int64_t i = 0; i < N; ++i) offsets[i + 1] += offsets[i];
     return offsets[N];
 }
 
 template <typename T>
-void bin_tile_pairs_cpu(int64_t N, const T* means2d, const int32_t* radii, const T* depths, TileGrid grid,
-                        const int64_t* offsets, int64_t M, int32_t* gauss_ids, int32_t* tile_ranges,
-                        int num_threads) {
+void bin_tile_pairs_cpu(int64_t N, const T* means2d, const int32_t* radii, const T* conics, const T* opacities,
+                        const T* depths, TileGrid grid, const int64_t* offsets, int64_t M, int32_t* gauss_ids,
+                        int32_t* tile_ranges, int num_threads) {
     const int n_tiles = grid.count();
     std::vector<int32_t> pair_tile(M), pair_gauss(M);
-#pragma omp parallel for schedule(static) num_threads(num_threads)
+#pragma omp parallel for schedule(dynamic, 1024) num_threads(num_threads)
     for (int64_t i = 0; i < N; ++i) {
         const TileRect r = gaussian_tile_rect(means2d + 2 * i, radii + 2 * i, grid);
+        if (r.area() == 0) continue;
+        const bool cull = conics != nullptr;
+        const TileReach reach = cull ? TileReach::make(means2d + 2 * i, conics + 3 * i, opacities[i]) : TileReach{};
         int64_t k = offsets[i];
         for (int ty = r.y0; ty < r.y1; ++ty)
-            for (int tx = r.x0; tx < r.x1; ++tx, ++k) {
+            for (int tx = r.x0; tx < r.x1; ++tx) {
+                if (cull && !reach.hits(tx, ty)) continue;
                 pair_tile[k] = ty * grid.tiles_x + tx;
                 pair_gauss[k] = int32_t(i);
+                ++k;
             }
     }
     // Stable counting sort by tile keeps Gaussian order inside each tile.
@@ -52,9 +62,10 @@ void bin_tile_pairs_cpu(int64_t N, const T* means2d, const int32_t* radii, const
 }
 
 #define RGS_INSTANTIATE(T)                                                                                  \
-    template int64_t count_tile_pairs_cpu<T>(int64_t, const T*, const int32_t*, TileGrid, int64_t*, int);    \
-    template void bin_tile_pairs_cpu<T>(int64_t, const T*, const int32_t*, const T*, TileGrid, const int64_t*, \
-                                        int64_t, int32_t*, int32_t*, int);
+    template int64_t count_tile_pairs_cpu<T>(int64_t, const T*, const int32_t*, const T*, const T*, TileGrid,  \
+                                             int64_t*, int);                                                    \
+    template void bin_tile_pairs_cpu<T>(int64_t, const T*, const int32_t*, const T*, const T*, const T*,       \
+                                        TileGrid, const int64_t*, int64_t, int32_t*, int32_t*, int);
 RGS_INSTANTIATE(float)
 RGS_INSTANTIATE(double)
 #undef RGS_INSTANTIATE

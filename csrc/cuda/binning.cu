@@ -1,5 +1,6 @@
 // Tile binning on the GPU: count pairs per Gaussian, prefix-sum them, write 64-bit (tile | depth) keys, radix sort
-// only the bits in use, and mark each tile's range in the sorted list.
+// only the bits in use, and mark each tile's range in the sorted list. With conics and opacities, a Gaussian pairs
+// only with the tiles of its rectangle that it can reach (TileReach: the CPU's test, bit for bit).
 #include <cub/cub.cuh>
 
 #include "common.cuh"
@@ -11,14 +12,19 @@ namespace rgs {
 template <typename T>
 __global__ void count_pairs_kernel(int64_t N, const T* __restrict__ means2d,    // [N, 2]
                                    const int32_t* __restrict__ radii,          // [N, 2]
+                                   const T* __restrict__ conics,               // [N, 3] or null
+                                   const T* __restrict__ opacities,            // [N] or null
                                    TileGrid grid, int64_t* __restrict__ counts) {  // [N]
     const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
     if (i >= N) return;
-    counts[i] = gaussian_tile_rect(means2d + 2 * i, radii + 2 * i, grid).area();
+    counts[i] = gaussian_tile_count(gaussian_tile_rect(means2d + 2 * i, radii + 2 * i, grid), means2d + 2 * i,
+                                    conics ? conics + 3 * i : nullptr, opacities ? opacities + i : nullptr);
 }
 
 template <typename T>
 __global__ void write_keys_kernel(int64_t N, const T* __restrict__ means2d, const int32_t* __restrict__ radii,
+                                  const T* __restrict__ conics,             // [N, 3] or null
+                                  const T* __restrict__ opacities,          // [N] or null
                                   const T* __restrict__ depths,             // [N]
                                   TileGrid grid, const int64_t* __restrict__ offsets,  // [N] inclusive
                                   uint64_t* __restrict__ keys,              // [M]
@@ -30,10 +36,14 @@ __global__ void write_keys_kernel(int64_t N, const T* __restrict__ means2d, cons
     int64_t k = i == 0 ? 0 : offsets[i - 1];
     // Depths are >= near > 0, so the float's bit pattern orders like the value.
     const uint64_t depth_bits = __float_as_uint(sort_depth(depths[i]));  // > 0: bits order like values
+    const bool cull = conics != nullptr;
+    const TileReach reach = cull ? TileReach::make(means2d + 2 * i, conics + 3 * i, opacities[i]) : TileReach{};
     for (int ty = r.y0; ty < r.y1; ++ty)
-        for (int tx = r.x0; tx < r.x1; ++tx, ++k) {
+        for (int tx = r.x0; tx < r.x1; ++tx) {
+            if (cull && !reach.hits(tx, ty)) continue;  // the same tiles count_pairs_kernel counted
             keys[k] = (uint64_t(ty * grid.tiles_x + tx) << 32) | depth_bits;
             ids[k] = int32_t(i);
+            ++k;
         }
 }
 
@@ -47,12 +57,13 @@ __global__ void tile_ranges_kernel(int64_t M, const uint64_t* __restrict__ keys,
 }
 
 template <typename T>
-int64_t count_tile_pairs_cuda(int64_t N, const T* means2d, const int32_t* radii, TileGrid grid, int64_t* offsets,
-                              DeviceAllocator alloc, void* stream_) {
+int64_t count_tile_pairs_cuda(int64_t N, const T* means2d, const int32_t* radii, const T* conics, const T* opacities,
+                              TileGrid grid, int64_t* offsets, DeviceAllocator alloc, void* stream_) {
     if (N == 0) return 0;
     cudaStream_t stream = (cudaStream_t)stream_;
     int64_t* counts = static_cast<int64_t*>(alloc(sizeof(int64_t) * N));
-    count_pairs_kernel<T><<<num_blocks(N, 256), 256, 0, stream>>>(N, means2d, radii, grid, counts);
+    count_pairs_kernel<T><<<num_blocks(N, 256), 256, 0, stream>>>(N, means2d, radii, conics, opacities, grid,
+                                                                  counts);
     RGS_CHECK_LAUNCH("count_pairs");
     size_t temp_bytes = 0;
     check_cuda(cub::DeviceScan::InclusiveSum(nullptr, temp_bytes, counts, offsets, N, stream), "scan size");
@@ -65,8 +76,8 @@ int64_t count_tile_pairs_cuda(int64_t N, const T* means2d, const int32_t* radii,
 }
 
 template <typename T>
-void bin_tile_pairs_cuda(int64_t N, const T* means2d, const int32_t* radii, const T* depths, TileGrid grid,
-                         const int64_t* offsets, int64_t M, int32_t* gauss_ids, int32_t* tile_ranges,
+void bin_tile_pairs_cuda(int64_t N, const T* means2d, const int32_t* radii, const T* conics, const T* opacities,
+                         const T* depths, TileGrid grid, const int64_t* offsets, int64_t M, int32_t* gauss_ids, int32_t* tile_ranges,
                          DeviceAllocator alloc, void* stream_) {
     cudaStream_t stream = (cudaStream_t)stream_;
     check_cuda(cudaMemsetAsync(tile_ranges, 0, sizeof(int32_t) * 2 * grid.count(), stream), "zero ranges");
@@ -74,7 +85,8 @@ void bin_tile_pairs_cuda(int64_t N, const T* means2d, const int32_t* radii, cons
     uint64_t* keys = static_cast<uint64_t*>(alloc(sizeof(uint64_t) * M));
     uint64_t* keys_sorted = static_cast<uint64_t*>(alloc(sizeof(uint64_t) * M));
     int32_t* ids = static_cast<int32_t*>(alloc(sizeof(int32_t) * M));
-    write_keys_kernel<T><<<num_blocks(N, 256), 256, 0, stream>>>(N, means2d, radii, depths, grid, offsets, keys, ids);
+    write_keys_kernel<T><<<num_blocks(N, 256), 256, 0, stream>>>(N, means2d, radii, conics, opacities, depths, grid,
+                                                                 offsets, keys, ids);
     RGS_CHECK_LAUNCH("write_keys");
     int tile_bits = 1;
     while ((1ll << tile_bits) < grid.count()) ++tile_bits;
@@ -89,10 +101,11 @@ void bin_tile_pairs_cuda(int64_t N, const T* means2d, const int32_t* radii, cons
 }
 
 #define RGS_INSTANTIATE(T)                                                                                      \
-    template int64_t count_tile_pairs_cuda<T>(int64_t, const T*, const int32_t*, TileGrid, int64_t*,             \
-                                              DeviceAllocator, void*);                                           \
-    template void bin_tile_pairs_cuda<T>(int64_t, const T*, const int32_t*, const T*, TileGrid, const int64_t*,  \
-                                         int64_t, int32_t*, int32_t*, DeviceAllocator, void*);
+    template int64_t count_tile_pairs_cuda<T>(int64_t, const T*, const int32_t*, const T*, const T*, TileGrid,   \
+                                              int64_t*, DeviceAllocator, void*);                                 \
+    template void bin_tile_pairs_cuda<T>(int64_t, const T*, const int32_t*, const T*, const T*, const T*,        \
+                                         TileGrid, const int64_t*, int64_t, int32_t*, int32_t*, DeviceAllocator, \
+                                         void*);
 RGS_INSTANTIATE(float)
 RGS_INSTANTIATE(double)
 #undef RGS_INSTANTIATE

@@ -250,7 +250,9 @@ class InferenceRenderer:
         g = self.model.gaussians
         means2d, depths, conics, radii = K.project_forward(g.means, g.quats, self.scales, self.opacities,
                                                            *camera.kernel_args)
-        gauss_ids, tile_ranges = K.bin_gaussians(means2d, radii, depths, camera.width, camera.height)
+        # Tile culling: conics and the opacities rasterize_forward gets below.
+        gauss_ids, tile_ranges = K.bin_gaussians(means2d, radii, depths, camera.width, camera.height, conics,
+                                                 self.opacities)
         if colors is None:
             colors = self.colors(camera)
         return K.rasterize_forward(means2d, conics, colors, self.opacities, gauss_ids, tile_ranges, camera.width,

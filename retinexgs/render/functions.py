@@ -2,7 +2,7 @@
 calls the matching analytic gradient kernel. Shapes: N Gaussians, C channels, K SH bases, D SH channels."""
 from __future__ import annotations
 
-from typing import Tuple
+from typing import Optional, Tuple
 
 import torch
 from torch import Tensor
@@ -34,10 +34,20 @@ class ProjectGaussians(torch.autograd.Function):
         return v_means, v_quats, v_scales, None, None
 
 
-def bin_gaussians(means2d: Tensor, radii: Tensor, depths: Tensor, width: int, height: int) -> Tuple[Tensor, Tensor]:
+def bin_gaussians(means2d: Tensor, radii: Tensor, depths: Tensor, width: int, height: int,
+                  conics: Optional[Tensor] = None, opacities: Optional[Tensor] = None) -> Tuple[Tensor, Tensor]:
     """Tile binning (not differentiable): the Gaussian index of every (tile, Gaussian) pair, ordered by tile
-    then depth, [M] int32; and each tile's [begin, end) range into it, [tiles, 2] int32."""
-    return kernels().bin_gaussians(means2d.detach(), radii, depths.detach(), width, height)
+    then depth, [M] int32; and each tile's [begin, end) range into it, [tiles, 2] int32.
+
+    A Gaussian pairs with the tiles of its bounding rectangle (from ``radii``); given ``conics`` [N, 3] and
+    ``opacities`` [N] too (the ones the compositing will get), only with those where it can reach alpha >= 1/255
+    at some pixel centre. The others would composite nothing: same image and gradients, fewer pairs."""
+    if (conics is None) != (opacities is None):
+        raise ValueError("pass both conics and opacities to bin_gaussians, or neither")
+    if conics is None:
+        return kernels().bin_gaussians(means2d.detach(), radii, depths.detach(), width, height)
+    return kernels().bin_gaussians(means2d.detach(), radii, depths.detach(), width, height, conics.detach(),
+                                   opacities.detach())
 
 
 class RasterizeGaussians(torch.autograd.Function):

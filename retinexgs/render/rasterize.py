@@ -25,7 +25,8 @@ class RenderOutput:
         means2d: [N, 2] projected centres in pixels; its ``.grad`` after backward is the screen-space gradient
             used by densification (kept with ``retain_grad`` when it requires grad).
         radii: [N, 2] int32 pixel half extents; 0 marks Gaussians culled in this view.
-        num_pairs: number of (tile, Gaussian) pairs rasterized.
+        num_pairs: number of (tile, Gaussian) pairs rasterized: the tiles of each Gaussian's rectangle where it
+            can reach alpha >= 1/255 (tile culling).
     """
 
     image: Tensor
@@ -82,7 +83,8 @@ def rasterize_gaussians(
     means2d, depths, conics, radii = ProjectGaussians.apply(means, quats, scales, opacities, camera)
     if means2d.requires_grad:
         means2d.retain_grad()
-    gauss_ids, tile_ranges = bin_gaussians(means2d, radii, depths, camera.width, camera.height)
+    # conics and opacities: pairs only with the tiles each Gaussian can reach (the compositing gets the same ones).
+    gauss_ids, tile_ranges = bin_gaussians(means2d, radii, depths, camera.width, camera.height, conics, opacities)
     channels = torch.cat([colors, depths.unsqueeze(-1)], dim=-1) if render_depth else colors
     if means.is_cuda and channels.shape[1] > MAX_CUDA_CHANNELS:
         raise ValueError(f"colors has {colors.shape[1]} channels{' + depth' if render_depth else ''}; the CUDA "

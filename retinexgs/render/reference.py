@@ -90,6 +90,99 @@ def tile_rects(means2d: Tensor, radii: Tensor, width: int, height: int) -> Tenso
     return torch.where(visible.unsqueeze(-1), rect, torch.zeros_like(rect))
 
 
+# 1 / (2k + 1), k = 11..1, and ln 2: the literals of rgs::log_rn.
+_LOG_SERIES = (0.043478260869565216, 0.047619047619047616, 0.05263157894736842, 0.058823529411764705,
+               0.06666666666666667, 0.07692307692307693, 0.09090909090909091, 0.1111111111111111,
+               0.14285714285714285, 0.2, 0.3333333333333333, 1.0)
+_LN2 = 0.69314718055994530942
+
+
+def log_rn(x: Tensor) -> Tensor:
+    """ln of a float64 tensor (finite, > 0) with the operations of rgs::log_rn, so the same bits as the kernels:
+    x = m 2^e, m in [√½, √2), ln m = 2 atanh((m - 1) / (m + 1)) by its series."""
+    m, e = torch.frexp(x)
+    low = m < 0.70710678118654752440
+    m = torch.where(low, m * 2.0, m)
+    e = torch.where(low, e - 1, e).double()
+    s = (m - 1.0) / (m + 1.0)
+    s2 = s * s
+    p = torch.full_like(s, _LOG_SERIES[0])
+    for c in _LOG_SERIES[1:]:
+        p = p * s2 + c
+    return e * _LN2 + 2.0 * s * p
+
+
+def _tile_pair_mask_rows(means2d: Tensor, conics: Tensor, opacities: Tensor, rect: Tensor, tiles_x: int,
+                         tiles_y: int) -> Tensor:
+    """[n, tiles] bool for n Gaussians with tile rectangles ``rect`` [n, 4]: the pairs rgs::TileReach keeps."""
+    t = torch.arange(tiles_x * tiles_y, device=means2d.device)
+    tx, ty = (t % tiles_x).unsqueeze(0), (t // tiles_x).unsqueeze(0)
+    in_rect = (tx >= rect[:, :1]) & (tx < rect[:, 2:3]) & (ty >= rect[:, 1:2]) & (ty < rect[:, 3:4])
+    m = means2d.detach().double()
+    mx, my = m[:, :1], m[:, 1:]
+    x0 = (tx * TILE).double() + 0.5
+    x1 = x0 + (TILE - 1)
+    y0 = (ty * TILE).double() + 0.5
+    y1 = y0 + (TILE - 1)
+    inside = (mx >= x0) & (mx <= x1) & (my >= y0) & (my <= y1)
+    c = conics.detach().double()
+    shrink = 1.0 - 2e-5
+    A, B, C = c[:, :1] * shrink, c[:, 1:2], c[:, 2:] * shrink
+    level = 255.0 * opacities.detach().double().unsqueeze(1)
+    keep_all = ~((level > 1.0) & (level <= 1e300) & (A > 0) & (C > 0) & (A * C - B * B > 0) & (A <= 1e300)
+                 & (C <= 1e300) & (mx - mx == 0) & (my - my == 0))
+    ok = ~keep_all  # the kernels compute 1/A, 1/C and the log only there
+    one = torch.ones_like(A)
+    rA, rC = 1.0 / torch.where(ok, A, one), 1.0 / torch.where(ok, C, one)
+    cut = log_rn(torch.where(ok, level, one * 2.0)) + 2e-3
+
+    def q(dx: Tensor, dy: Tensor) -> Tensor:
+        return 0.5 * (A * dx * dx + C * dy * dy) + B * dx * dy
+
+    def clamp(v: Tensor, lo: Tensor, hi: Tensor) -> Tensor:  # v < lo ? lo : (v > hi ? hi : v), NaN stays
+        return torch.where(v < lo, lo, torch.where(v > hi, hi, v))
+
+    best = None
+    for X in (x0, x1):  # edges x = x0, x1: minimiser over dy clamped to the box
+        dx = X - mx
+        s = q(dx, clamp(-B * dx * rC, y0 - my, y1 - my))
+        best = s if best is None else torch.where(s < best, s, best)
+    for Y in (y0, y1):
+        dy = Y - my
+        s = q(clamp(-B * dy * rA, x0 - mx, x1 - mx), dy)
+        best = torch.where(s < best, s, best)
+    return in_rect & (keep_all | inside | ~(best > cut))
+
+
+def _pair_mask_chunks(means2d: Tensor, conics: Tensor, opacities: Tensor, radii: Tensor, width: int, height: int):
+    """Yields the rows of :func:`tile_pair_mask`, a few Gaussians at a time (about 2^20 entries each)."""
+    tiles_x, tiles_y = math.ceil(width / TILE), math.ceil(height / TILE)
+    rect = tile_rects(means2d, radii, width, height)
+    step = max(1, (1 << 20) // (tiles_x * tiles_y))
+    for s in range(0, means2d.shape[0], step):
+        yield _tile_pair_mask_rows(means2d[s:s + step], conics[s:s + step], opacities[s:s + step],
+                                   rect[s:s + step], tiles_x, tiles_y)
+
+
+def tile_pair_mask(means2d: Tensor, conics: Tensor, opacities: Tensor, radii: Tensor, width: int,
+                   height: int) -> Tensor:
+    """[N, tiles] bool: the (Gaussian, tile) pairs the binning keeps (``bin_gaussians`` with conics and
+    opacities). A tile of the Gaussian's rectangle is kept unless alpha < 1/255 at all its pixel centres by the
+    conservative test of rgs::TileReach, with the same float64 operations: the minimum over the box of the tile's
+    pixel centres of ½ (1 - 2e-5)(A dx² + C dy²) + B dx dy must exceed ln(255 o) + 2e-3."""
+    rows = list(_pair_mask_chunks(means2d, conics, opacities, radii, width, height))
+    if not rows:
+        return torch.zeros(0, math.ceil(width / TILE) * math.ceil(height / TILE), dtype=torch.bool,
+                           device=means2d.device)
+    return torch.cat(rows)
+
+
+def count_tile_pairs_reference(means2d: Tensor, conics: Tensor, opacities: Tensor, radii: Tensor, width: int,
+                               height: int) -> int:
+    """Number of (tile, Gaussian) pairs the binning makes: ``tile_pair_mask(...).sum()`` in bounded memory."""
+    return sum(int(rows.sum()) for rows in _pair_mask_chunks(means2d, conics, opacities, radii, width, height))
+
+
 def composite_reference(means2d: Tensor, conics: Tensor, colors: Tensor, opacities: Tensor, depths: Tensor,
                         radii: Tensor, width: int, height: int,
                         chunk: Optional[int] = None) -> Tuple[Tensor, Tensor]:
@@ -154,8 +247,7 @@ def rasterize_gaussians_reference(means: Tensor, quats: Tensor, scales: Tensor, 
         image, depth = image[..., :-1], image[..., -1:]
     if background is not None:
         image = image + (1.0 - alpha) * background
-    rect = tile_rects(means2d, radii, camera.width, camera.height)
-    pairs = int(((rect[:, 2] - rect[:, 0]) * (rect[:, 3] - rect[:, 1])).sum())
+    pairs = count_tile_pairs_reference(means2d, conics, opacities, radii, camera.width, camera.height)
     return RenderOutput(image, alpha, depth, means2d, radii, pairs)
 
 

@@ -35,15 +35,25 @@ void project_backward_cpu(int64_t N, const T* means, const T* quats, const T* sc
                           int num_threads);
 
 // ---- tile binning ----------------------------------------------------------------------------
-// Counts the (tile, Gaussian) pairs of every Gaussian; returns the total M.
+// Counts the (tile, Gaussian) pairs of every Gaussian; returns the total M. With conics and opacities (both, or
+// both null), only the tiles of its rectangle that a Gaussian can reach (rgs::TileReach).
 template <typename T>
-int64_t count_tile_pairs_cpu(int64_t N, const T* means2d, const int32_t* radii, TileGrid grid,
+int64_t count_tile_pairs_cpu(int64_t N,
+                             const T* means2d,    // [N, 2]
+                             const int32_t* radii,  // [N, 2]
+                             const T* conics,     // [N, 3] or null
+                             const T* opacities,  // [N] or null
+                             TileGrid grid,
                              int64_t* offsets,  // [N + 1] out, exclusive prefix sum of the counts
                              int num_threads);
 
-// Fills the pairs ordered by tile, then depth, then Gaussian index.
+// Fills the pairs ordered by tile, then depth, then Gaussian index (conics/opacities as for the count).
 template <typename T>
-void bin_tile_pairs_cpu(int64_t N, const T* means2d, const int32_t* radii, const T* depths, TileGrid grid,
+void bin_tile_pairs_cpu(int64_t N, const T* means2d, const int32_t* radii,
+                        const T* conics,     // [N, 3] or null
+                        const T* opacities,  // [N] or null
+                        const T* depths,     // [N]
+                        TileGrid grid,
                         const int64_t* offsets,  // [N + 1] from count_tile_pairs_cpu
                         int64_t M,
                         int32_t* gauss_ids,      // [M] out, Gaussian index of each pair

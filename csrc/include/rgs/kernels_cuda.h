@@ -28,16 +28,21 @@ void project_backward_cuda(int64_t N, const T* means, const T* quats, const T* s
                            T* v_means, T* v_quats, T* v_scales, void* stream);
 
 // Counts each Gaussian's tile pairs into offsets [N] as an inclusive prefix sum and returns the total M
-// (one device-to-host copy: the only synchronisation of a render).
+// (one device-to-host copy: the only synchronisation of a render). With conics and opacities (both, or both
+// null), only the tiles of its rectangle that a Gaussian can reach (rgs::TileReach, the CPU's test).
 template <typename T>
-int64_t count_tile_pairs_cuda(int64_t N, const T* means2d, const int32_t* radii, TileGrid grid,
+int64_t count_tile_pairs_cuda(int64_t N, const T* means2d, const int32_t* radii,
+                              const T* conics,     // [N, 3] or null
+                              const T* opacities,  // [N] or null
+                              TileGrid grid,
                               int64_t* offsets,  // [N] out, inclusive prefix sum
                               DeviceAllocator alloc, void* stream);
 
 // Writes 64-bit (tile << 32 | float depth bits) keys, radix-sorts them with the Gaussian indices (stable, so ties
 // keep index order), and fills the tile ranges.
 template <typename T>
-void bin_tile_pairs_cuda(int64_t N, const T* means2d, const int32_t* radii, const T* depths, TileGrid grid,
+void bin_tile_pairs_cuda(int64_t N, const T* means2d, const int32_t* radii, const T* conics, const T* opacities,
+                         const T* depths, TileGrid grid,
                          const int64_t* offsets, int64_t M, int32_t* gauss_ids, int32_t* tile_ranges,
                          DeviceAllocator alloc, void* stream);
 
