@@ -77,8 +77,8 @@ int64_t count_tile_pairs_cuda(int64_t N, const T* means2d, const int32_t* radii,
 
 template <typename T>
 void bin_tile_pairs_cuda(int64_t N, const T* means2d, const int32_t* radii, const T* conics, const T* opacities,
-                         const T* depths, TileGrid grid, const int64_t* offsets, int64_t M, int32_t* gauss_ids, int32_t* tile_ranges,
-                         DeviceAllocator alloc, void* stream_) {
+                         const T* depths, TileGrid grid, const int64_t* offsets, int64_t M, int32_t* gauss_ids,
+                         int32_t* tile_ranges, DeviceAllocator alloc, void* stream_) {
     cudaStream_t stream = (cudaStream_t)stream_;
     check_cuda(cudaMemsetAsync(tile_ranges, 0, sizeof(int32_t) * 2 * grid.count(), stream), "zero ranges");
     if (M == 0) return;
