@@ -2,22 +2,23 @@
 # The quality benchmark on the GPU machine, several groups side by side on one GPU:
 #   bash scripts/gpu_quality.sh SEEDS:CONFIG[,CONFIG]:SCENE[,SCENE]:JOBS ...
 # e.g. 0:default:fox-dark,lom/buu,lom/sofa,lom/bike:4 0:paper:lom/buu:1 . Scenes are read from the carried folder
-# .data (copies of shared/data, never committed). Each group stops after ${LIMIT:-520} s (finished runs are kept);
+# $DATA (default .data: copies of shared/data, never committed). Each group stops after ${LIMIT:-520} s (finished runs are kept);
 # the small results (metrics, logs, tables, contact sheets) are packed into $OUT.
 # The device machine has no pydantic (a requirement since issue 15): carry its wheels as .whl (device README:
 # pydantic, pydantic-core, annotated-types, typing-inspection for Python 3.12, manylinux x86_64).
 set -uo pipefail
 OUT=${OUT:-gpu_out}; mkdir -p "$OUT"
+WHL=${WHL:-.whl}; DATA=${DATA:-.data}  # carried folders: wheels, scene copies without their caches (64 MiB in all)
 if ! python3 -c "import pydantic" 2>/dev/null; then
-  [ -d .whl ] || { echo "pydantic is missing here: carry its wheels in .whl (see the comment above)"; exit 1; }
-  python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .whl/*.whl || exit 1
+  [ -d "$WHL" ] || { echo "pydantic is missing here: carry its wheels in $WHL (see the comment above)"; exit 1; }
+  python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site "$WHL"/*.whl || exit 1
   export PYTHONPATH="/tmp/site${PYTHONPATH:+:$PYTHONPATH}"
 fi
 export PYTHONUNBUFFERED=1 PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}" MAX_JOBS=16 TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0}
 t0=$(date +%s)
 python3 setup.py build_ext --inplace > "$OUT/build.log" 2>&1 || { tail -20 "$OUT/build.log"; exit 1; }
 echo "build: $(( $(date +%s) - t0 )) s"; rm -f "$OUT/build.log"; mkdir -p /tmp/runs
-[ -d /tmp/data ] || cp -r .data /tmp/data
+[ -d /tmp/data ] || cp -r "$DATA" /tmp/data
 left=$(( ${LIMIT:-520} - ($(date +%s) - t0) ))
 i=0; all_configs=(); all_scenes=()
 for group in "$@"; do

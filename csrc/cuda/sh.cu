@@ -61,10 +61,26 @@ __global__ void sh_backward_kernel(int64_t N, int degree, int K, int D, const T*
 template <typename T>
 __device__ __forceinline__ int sh_tile_stride(int KD) { return KD | 1; }
 
+// Each thread issues kShTileBatch independent loads before it stores any: with one load per loop iteration every
+// thread waited a full memory latency per word, and the forward took 0.50 ms at 3M Gaussians for 0.58 GB.
+constexpr int kShTileBatch = 16;
+
 template <typename T>
 __device__ __forceinline__ void sh_tile_load(const T* __restrict__ src, int count, int KD, T* tile) {
-    const int S = sh_tile_stride<T>(KD);
-    for (int e = threadIdx.x; e < count * KD; e += blockDim.x) tile[(e / KD) * S + e % KD] = src[e];
+    const int S = sh_tile_stride<T>(KD), total = count * KD;
+    for (int base = threadIdx.x; base < total; base += kShTileBatch * blockDim.x) {
+        T v[kShTileBatch];
+#pragma unroll
+        for (int u = 0; u < kShTileBatch; ++u) {
+            const int e = base + u * blockDim.x;
+            v[u] = e < total ? src[e] : T(0);
+        }
+#pragma unroll
+        for (int u = 0; u < kShTileBatch; ++u) {
+            const int e = base + u * blockDim.x;
+            if (e < total) tile[(e / KD) * S + e % KD] = v[u];
+        }
+    }
 }
 
 template <typename T>

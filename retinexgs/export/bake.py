@@ -104,7 +104,7 @@ def bake_enhanced_sh(model: RetinexGSModel, active_degree: int, gamma: Tensor, d
             # The same field and direction convention as RetinexGSModel.render: d from the camera to the Gaussian.
             L = model.illumination(means.repeat_interleave(directions, 0), dirs32.repeat(n, 1)).reshape(n, -1, 3)
             L_enh = model.enhancement.enhance(model.normalized_illumination(L.float()), gamma)
-            target = (R * L_enh).clamp(0.0, 1.0)
+            target = model.tone_map(R, L_enh, gamma)
             out[s:s + n] = torch.einsum("kd,ndc->nkc", fit, (target - 0.5).double()).float()
             if progress is not None:
                 progress(n)

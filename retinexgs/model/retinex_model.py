@@ -66,6 +66,7 @@ class RetinexGSModel(nn.Module):
             enh["gamma_range"] = tuple(enh["gamma_range"])
             self.per_channel_gamma = bool(enh.pop("per_channel", False))
             enh.pop("ref_quantile", None)  # the trainer's (it sets illum_ref)
+            self.tone = str(enh.pop("tone", "illumination"))
             self.enhancement = EnhancementNet(channels=3, **enh)
             self.register_buffer("illum_ref", torch.ones(()))  # L_ref; set by the trainer from the 2D priors
 
@@ -75,8 +76,9 @@ class RetinexGSModel(nn.Module):
 
     def enhance(self, R: Tensor, L: Tensor, exposure: Optional[float] = None,
                 gamma: Optional[float] = None) -> Dict[str, Tensor]:
-        """S_enh = clip(R̂ ∘ (L̂/L_ref)^g, 0, 1) for [H,W,3] maps ``R``, ``L``; returns ``rgb``, ``L_enh`` [H,W,3]
-        and ``gamma`` (flattened). ``exposure`` scales the predicted g (< 1 brighter); ``gamma`` replaces it."""
+        """S_enh = clip(R̂ ∘ (L̂/L_ref)^g, 0, 1) (tone "illumination") or clip(R̂^g ∘ (L̂/L_ref)^g, 0, 1) (tone
+        "signal") for [H,W,3] maps ``R``, ``L``; returns ``rgb``, ``L_enh`` = (L̂/L_ref)^g [H,W,3] and ``gamma``
+        (flattened). ``exposure`` scales the predicted g (< 1 brighter); ``gamma`` replaces it."""
         L_bchw = self.normalized_illumination(L).permute(2, 0, 1).unsqueeze(0)
         g = self.predict_gamma(L_bchw)
         if gamma is not None:
@@ -84,7 +86,16 @@ class RetinexGSModel(nn.Module):
         elif exposure is not None:
             g = g * float(exposure)
         L_enh = self.enhancement.enhance(L_bchw, g)[0].permute(1, 2, 0)
-        return {"rgb": (R * L_enh).clamp(0.0, 1.0), "L_enh": L_enh, "gamma": g.reshape(-1)}
+        return {"rgb": self.tone_map(R, L_enh, g.reshape(-1)), "L_enh": L_enh, "gamma": g.reshape(-1)}
+
+    def tone_map(self, R: Tensor, L_enh: Tensor, gamma: Tensor) -> Tensor:
+        """The output colour from R̂ [..., 3], the enhanced light L_enh [..., 3] and g ([1] or [3], broadcast over
+        the last axis): clip(R̂ ∘ L_enh, 0, 1), or with tone "signal" clip(R̂^g ∘ L_enh, 0, 1) — the same curve on
+        the whole signal R̂ ∘ L̂/L_ref, as a camera's tone curve acts on the light it records (a normal exposure
+        of a scene lifts its dark surfaces too, not only its shadows)."""
+        if self.tone == "signal":
+            R = self.enhancement.enhance(R, gamma)
+        return (R * L_enh).clamp(0.0, 1.0)
 
     def predict_gamma(self, L_bchw: Tensor) -> Tensor:
         """The EnhancementNet's gamma for a normalised L̂/L_ref [1,3,H,W]: one per image (the paper's single g,

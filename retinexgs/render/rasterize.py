@@ -9,7 +9,7 @@ from torch import Tensor
 
 from retinexgs.render.camera import Camera
 from retinexgs.render.functions import ProjectGaussians, RasterizeGaussians, SphericalHarmonics, bin_gaussians
-from retinexgs.render.validate import check_gaussians, check_tensor
+from retinexgs.render.validate import check_gaussians, check_tensor, gaussian_tensors, raise_if_not_finite
 
 MAX_CUDA_CHANNELS = 64  # rgs::kMaxCudaChannels: register-resident accumulators of the CUDA compositing
 
@@ -72,19 +72,23 @@ def rasterize_gaussians(
         background: optional [C] colour composited behind the Gaussians.
         render_depth: also render the alpha-weighted depth map.
         validate: check that every tensor is finite (a NaN or inf anywhere raises a ValueError naming the
-            argument). The check costs one host-device sync on the GPU; a loop that checks its parameters
-            itself (the trainer does, every step) passes False. Shapes, dtypes and devices are always checked.
+            argument). The verdict is read right after binning's own host sync; a loop that checks its
+            parameters itself (the trainer does, every step) passes False and saves the check's reduction. Shapes, dtypes and devices are always checked.
 
     Returns:
         A :class:`RenderOutput` with ``image`` [H, W, C], ``alpha`` [H, W, 1], ``depth`` [H, W, 1] or None,
         ``means2d``, ``radii`` and ``num_pairs``.
     """
-    check_gaussians(means, quats, scales, opacities, colors, camera, background, finite=validate)
+    # The finiteness verdict is read after binning, which waits for the GPU anyway (its pair count): one sync
+    # per render, not two. The projection culls non-finite Gaussians, so binning is safe on such input.
+    finite = check_gaussians(means, quats, scales, opacities, colors, camera, background, finite=validate,
+                             defer=True)
     means2d, depths, conics, radii = ProjectGaussians.apply(means, quats, scales, opacities, camera)
     if means2d.requires_grad:
         means2d.retain_grad()
     # conics and opacities: pairs only with the tiles each Gaussian can reach (the compositing gets the same ones).
     gauss_ids, tile_ranges = bin_gaussians(means2d, radii, depths, camera.width, camera.height, conics, opacities)
+    raise_if_not_finite(finite, gaussian_tensors(means, quats, scales, opacities, colors, background))
     channels = torch.cat([colors, depths.unsqueeze(-1)], dim=-1) if render_depth else colors
     if means.is_cuda and channels.shape[1] > MAX_CUDA_CHANNELS:
         raise ValueError(f"colors has {colors.shape[1]} channels{' + depth' if render_depth else ''}; the CUDA "

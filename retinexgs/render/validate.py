@@ -27,18 +27,22 @@ def check_tensor(value, name: str, shape: Sequence[Optional[int]], like: Optiona
     return value
 
 
-def check_finite(named: Sequence) -> None:
-    """Raise a ValueError naming the first of ``(name, tensor)`` pairs holding a NaN or an infinity.
-
-    One reduction and one host sync for all of them (the kernels would otherwise cull such Gaussians
-    silently, or let a NaN colour through to the image)."""
+def finite_flag(named: Sequence) -> Optional[Tensor]:
+    """A 0-dim bool tensor, on the tensors' device, that is True when every tensor of the ``(name, tensor)`` pairs
+    is finite; None when there is nothing to check. Nothing waits for it: read it with :func:`raise_if_not_finite`
+    where the caller synchronises anyway (the renderer reads it after binning's own host sync)."""
     tensors = [t for _, t in named if t is not None and t.numel()]
     if not tensors:
-        return
+        return None
     with torch.no_grad():
         # A NaN or inf makes a tensor's norm non-finite; the multi-tensor norm is one kernel for all of them.
-        ok = torch.isfinite(torch.stack(torch._foreach_norm([t.detach() for t in tensors]))).all()
-    if bool(ok):
+        return torch.isfinite(torch.stack(torch._foreach_norm([t.detach() for t in tensors]))).all()
+
+
+def raise_if_not_finite(flag: Optional[Tensor], named: Sequence) -> None:
+    """Raise a ValueError naming the first of ``(name, tensor)`` pairs holding a NaN or an infinity, when ``flag``
+    (from :func:`finite_flag` on the same pairs) says one does."""
+    if flag is None or bool(flag):
         return
     for name, t in named:
         if t is not None and not bool(torch.isfinite(t.detach()).all()):
@@ -47,12 +51,25 @@ def check_finite(named: Sequence) -> None:
                              "the renderer needs finite inputs")
 
 
-def check_gaussians(means, quats, scales, opacities, colors, camera, background=None, finite: bool = True) -> None:
+def check_finite(named: Sequence) -> None:
+    """Raise a ValueError naming the first of ``(name, tensor)`` pairs holding a NaN or an infinity.
+
+    One reduction and one host sync for all of them (the kernels would otherwise cull such Gaussians
+    silently, or let a NaN colour through to the image)."""
+    raise_if_not_finite(finite_flag(named), named)
+
+
+def check_gaussians(means, quats, scales, opacities, colors, camera, background=None, finite: bool = True,
+                    defer: bool = False) -> Optional[Tensor]:
     """Validate one render call's inputs; raises TypeError/ValueError naming the offending argument.
 
     Every tensor must be finite (a NaN or inf is a ValueError). A zero quaternion is allowed and means the
     identity rotation (it gets a zero gradient); opacities outside [0, 1] are allowed (alpha is clamped to
-    0.99, a non-positive opacity culls the Gaussian)."""
+    0.99, a non-positive opacity culls the Gaussian).
+
+    With ``defer``, the finiteness verdict is returned as a device flag instead of waited for: pass it to
+    :func:`raise_if_not_finite` with :func:`gaussian_tensors` before anything reads the results (the projection
+    culls non-finite Gaussians, so binning is safe to run first). Otherwise returns None."""
     check_tensor(means, "means", (None, 3))
     n = means.shape[0]
     if n == 0:
@@ -67,6 +84,16 @@ def check_gaussians(means, quats, scales, opacities, colors, camera, background=
         raise TypeError(f"camera must be a retinexgs.render.Camera, got {type(camera).__name__}")
     if background is not None:
         check_tensor(background, "background", (colors.shape[1],), means)
-    if finite:
-        check_finite([("means", means), ("quats", quats), ("scales", scales), ("opacities", opacities),
-                      ("colors", colors), ("background", background)])
+    if not finite:
+        return None
+    named = gaussian_tensors(means, quats, scales, opacities, colors, background)
+    if defer:
+        return finite_flag(named)
+    check_finite(named)
+    return None
+
+
+def gaussian_tensors(means, quats, scales, opacities, colors, background=None) -> list:
+    """The ``(name, tensor)`` pairs that :func:`check_gaussians` checks for finiteness, in its order."""
+    return [("means", means), ("quats", quats), ("scales", scales), ("opacities", opacities), ("colors", colors),
+            ("background", background)]
