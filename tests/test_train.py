@@ -181,8 +181,8 @@ def test_cli_resume_needs_no_data_and_train_without_data_is_refused(scene_dir, t
 
 def test_enhancement_normalises_by_the_scene_illumination_level(scene_dir, tmp_path):
     """L_ref is the median over training views of a quantile of the prior L (default: its maximum), saved with
-    the model, and the output is clip(R̂^g ∘ (L̂/L_ref)^g, 0, 1) (tone "signal"; clip(R̂ ∘ (L̂/L_ref)^g, 0, 1) with
-    tone "illumination"): a gamma of 1 gives back R̂ where L̂ = L_ref."""
+    the model, and the output is clip(R̂ ∘ (L̂/L_ref)^g, 0, 1) (clip(R̂^g ∘ (L̂/L_ref)^g, 0, 1) with tone "signal"):
+    a gamma of 1 gives back R̂ where L̂ = L_ref."""
     tr = trainer_for(scene_dir, tmp_path / "run")
     per_view = torch.stack([tv.L.reshape(-1).max() for tv in tr.views])
     ref = float(tr.model.illum_ref)
@@ -198,13 +198,13 @@ def test_enhancement_normalises_by_the_scene_illumination_level(scene_dir, tmp_p
     L = torch.full((5, 7, 3), ref)
     assert torch.allclose(tr.model.enhance(R, L, gamma=1.0)["rgb"], R.clamp(0, 1), atol=1e-6)
     half = tr.model.enhance(R, L * 0.25, gamma=0.5)["rgb"]
-    # The default tone "signal": the gamma acts on R̂ too, (R̂ · L̂/L_ref)^g.
-    assert tr.model.tone == "signal"
-    assert torch.allclose(half, (R.clamp_min(1e-3) ** 0.5 * 0.5).clamp(0, 1), atol=1e-5)
-    illum = trainer_for(scene_dir, tmp_path / "run_illum", ["model.enhancement.tone=illumination"])
-    illum.model.illum_ref.fill_(ref)
-    half = illum.model.enhance(R, L * 0.25, gamma=0.5)["rgb"]
+    assert tr.model.tone == "illumination"
     assert torch.allclose(half, (R * 0.5).clamp(0, 1), atol=1e-5)
+    # Tone "signal": the gamma acts on R̂ too, (R̂ · L̂/L_ref)^g.
+    sig = trainer_for(scene_dir, tmp_path / "run_signal", ["model.enhancement.tone=signal"])
+    sig.model.illum_ref.fill_(ref)
+    half = sig.model.enhance(R, L * 0.25, gamma=0.5)["rgb"]
+    assert torch.allclose(half, (R.clamp_min(1e-3) ** 0.5 * 0.5).clamp(0, 1), atol=1e-5)
     # Exposure scales the predicted gamma: < 1 brighter.
     Ld = L * 0.2
     bright, base = tr.model.enhance(R, Ld, exposure=0.5)["rgb"], tr.model.enhance(R, Ld)["rgb"]
