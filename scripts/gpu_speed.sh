@@ -2,7 +2,7 @@
 # Issue 13 on the GPU machine, in one call: build, CUDA tests, a timed fox-dark training alone (+ more seeds side
 # by side), the FPS bench on it, train-speed and raster benches against gsplat, the step profile. Each stage writes
 # under $OUT as it goes. Pick stages with STAGES (default: all):
-#   STAGES="tests train fps trainspeed raster rprofile profile" SEEDS="0 1 2" VS=gsplat bash scripts/gpu_speed.sh
+#   STAGES="tests fuzz train fps trainspeed raster rprofile profile" SEEDS="0 1 2" VS=gsplat bash scripts/gpu_speed.sh
 # Carry .data/fox-dark (copy of shared/data/fox-dark, never committed) and the wheels the machine lacks (pydantic,
 # pycolmap, plyfile; gsplat for VS=gsplat: its kernels are JIT-built, ~80 s, started in the background first).
 set -uo pipefail
@@ -29,11 +29,15 @@ print('gsplat ready')" > "$OUT/gsplat_build.log" 2>&1; echo "gsplat JIT: exit $?
 fi
 python3 setup.py build_ext --inplace > "$OUT/build.log" 2>&1 || { grep -E "error" -A3 "$OUT/build.log" | head -40; exit 1; }
 echo "build: $(( $(date +%s) - t0 )) s"
-[ -d /tmp/fox-dark ] || cp -r .data/fox-dark /tmp/fox-dark
+[ -d /tmp/fox-dark ] || cp -r "${FOX:-.data/fox-dark}" /tmp/fox-dark  # FOX: a copy of shared/data/fox-dark
 if has tests; then
   timeout 150 python3 -X faulthandler -m pytest -q -p no:cacheprovider --tb=short -rf tests/test_cuda*.py \
     tests/test_fused_colors.py > "$OUT/test_cuda.log" 2>&1
   echo "tests: exit $?"; grep -E "^FAILED|passed|failed" "$OUT/test_cuda.log" | head -30
+fi
+if has fuzz; then  # CUDA against the CPU kernels over the fuzz corpus
+  timeout 120 python3 scripts/fuzz_cuda.py --cases ${FUZZ_CASES:-300} > "$OUT/fuzz_cuda.log" 2>&1
+  echo "fuzz_cuda: exit $?"; grep -c "^FAIL" "$OUT/fuzz_cuda.log"; tail -3 "$OUT/fuzz_cuda.log" | cut -c1-400
 fi
 wait  # gsplat's build, before anything is timed
 seeds=(${SEEDS:-0})
