@@ -83,11 +83,22 @@ def rasterize_gaussians(
     # per render, not two. The projection culls non-finite Gaussians, so binning is safe on such input.
     finite = check_gaussians(means, quats, scales, opacities, colors, camera, background, finite=validate,
                              defer=True)
+    copied = None
+    if finite is not None and finite.is_cuda:
+        # Queued before binning, so the flag is on the host by the time binning has waited for its pair count;
+        # the event makes reading it correct whether or not something else synchronised.
+        host = torch.empty((), dtype=torch.bool, pin_memory=True)
+        host.copy_(finite, non_blocking=True)
+        copied = torch.cuda.Event()
+        copied.record(torch.cuda.current_stream(finite.device))
+        finite = host
     means2d, depths, conics, radii = ProjectGaussians.apply(means, quats, scales, opacities, camera)
     if means2d.requires_grad:
         means2d.retain_grad()
     # conics and opacities: pairs only with the tiles each Gaussian can reach (the compositing gets the same ones).
     gauss_ids, tile_ranges = bin_gaussians(means2d, radii, depths, camera.width, camera.height, conics, opacities)
+    if copied is not None:
+        copied.synchronize()  # already complete: binning waited for the stream
     raise_if_not_finite(finite, gaussian_tensors(means, quats, scales, opacities, colors, background))
     channels = torch.cat([colors, depths.unsqueeze(-1)], dim=-1) if render_depth else colors
     if means.is_cuda and channels.shape[1] > MAX_CUDA_CHANNELS:
