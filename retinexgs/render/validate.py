@@ -1,7 +1,7 @@
 """Argument checks of the public rendering API: clear ``TypeError``/``ValueError`` naming the argument."""
 from __future__ import annotations
 
-from typing import Optional, Sequence
+from typing import List, Optional, Sequence, Tuple
 
 import torch
 from torch import Tensor
@@ -59,17 +59,13 @@ def check_finite(named: Sequence) -> None:
     raise_if_not_finite(finite_flag(named), named)
 
 
-def check_gaussians(means, quats, scales, opacities, colors, camera, background=None, finite: bool = True,
-                    defer: bool = False) -> Optional[Tensor]:
+def check_gaussians(means, quats, scales, opacities, colors, camera, background=None, finite: bool = True) -> None:
     """Validate one render call's inputs; raises TypeError/ValueError naming the offending argument.
 
-    Every tensor must be finite (a NaN or inf is a ValueError). A zero quaternion is allowed and means the
-    identity rotation (it gets a zero gradient); opacities outside [0, 1] are allowed (alpha is clamped to
-    0.99, a non-positive opacity culls the Gaussian).
-
-    With ``defer``, the finiteness verdict is returned as a device flag instead of waited for: pass it to
-    :func:`raise_if_not_finite` with :func:`gaussian_tensors` before anything reads the results (the projection
-    culls non-finite Gaussians, so binning is safe to run first). Otherwise returns None."""
+    Every tensor must be finite (a NaN or inf is a ValueError; ``finite=False`` leaves that check to the caller,
+    e.g. :func:`finite_flag` read later). A zero quaternion is allowed and means the identity rotation (it gets
+    a zero gradient); opacities outside [0, 1] are allowed (alpha is clamped to 0.99, a non-positive opacity
+    culls the Gaussian)."""
     check_tensor(means, "means", (None, 3))
     n = means.shape[0]
     if n == 0:
@@ -84,16 +80,11 @@ def check_gaussians(means, quats, scales, opacities, colors, camera, background=
         raise TypeError(f"camera must be a retinexgs.render.Camera, got {type(camera).__name__}")
     if background is not None:
         check_tensor(background, "background", (colors.shape[1],), means)
-    if not finite:
-        return None
-    named = gaussian_tensors(means, quats, scales, opacities, colors, background)
-    if defer:
-        return finite_flag(named)
-    check_finite(named)
-    return None
+    if finite:
+        check_finite(gaussian_tensors(means, quats, scales, opacities, colors, background))
 
 
-def gaussian_tensors(means, quats, scales, opacities, colors, background=None) -> list:
+def gaussian_tensors(means, quats, scales, opacities, colors, background=None) -> List[Tuple[str, Optional[Tensor]]]:
     """The ``(name, tensor)`` pairs that :func:`check_gaussians` checks for finiteness, in its order."""
     return [("means", means), ("quats", quats), ("scales", scales), ("opacities", opacities), ("colors", colors),
             ("background", background)]
