@@ -129,8 +129,9 @@ def run(scenes: Sequence[Path], configs: Sequence[str], n_views: int, device: st
             for S, H, R, L in maps:
                 g = proxy_gamma(R, L, S, ref, cfg)
                 gs.append(g)
-                scores.append(psnr(enhanced(R, L, ref, g, cfg), H))
-                ssims.append(ssim_metric(enhanced(R, L, ref, g, cfg), H))
+                enh = enhanced(R, L, ref, g, cfg)
+                scores.append(psnr(enh, H))
+                ssims.append(ssim_metric(enh, H))
             rows[name].append(f"{sum(scores) / len(scores):.2f} / {sum(ssims) / len(ssims):.3f} "
                               f"(g {sum(gs) / len(gs):.2f})")
         ref = float(torch.stack([L.max() for *_, L in maps]).median())
