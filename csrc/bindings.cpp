@@ -164,31 +164,54 @@ Tensor rgs_bin_gaussians_cuda(const Tensor& means2d, const Tensor& radii, const 
 }
 
 // ---- projection --------------------------------------------------------------------------------
-std::tuple<Tensor, Tensor, Tensor, Tensor> project_forward(Tensor means, Tensor quats, Tensor scales,
-                                                           Tensor opacities, std::vector<double> viewmat,
-                                                           double fx, double fy, double cx, double cy, int width,
-                                                           int height, double near_plane, double far_plane) {
+// check_finite: also report whether the render inputs are finite (rgs::FiniteCheck) as a 5th output, int32 [1]
+// (0: all finite), with colors [N, C] and background [C] (optional) checked beside the projection's own inputs;
+// without it the 5th output is None. The caller reads the flag where it synchronises anyway.
+std::tuple<Tensor, Tensor, Tensor, Tensor, Tensor> project_forward(
+    Tensor means, Tensor quats, Tensor scales, Tensor opacities, std::vector<double> viewmat, double fx, double fy,
+    double cx, double cy, int width, int height, double near_plane, double far_plane, bool check_finite,
+    std::optional<Tensor> colors_opt, std::optional<Tensor> background_opt) {
     check_float(means, "means");
     const int64_t N = means.size(0);
     check_tensor(means, "means", {N, 3}, means);
     check_tensor(quats, "quats", {N, 4}, means);
     check_tensor(scales, "scales", {N, 3}, means);
     check_tensor(opacities, "opacities", {N}, means);
+    RGS_CHECK_VALUE(check_finite || (!colors_opt.has_value() && !background_opt.has_value()),
+                    "colors and background are only read by the finiteness check (check_finite=True)");
+    RGS_CHECK_VALUE(!background_opt.has_value() || colors_opt.has_value(), "a background needs colors");
+    Tensor colors, background, flag;
+    if (colors_opt.has_value()) {
+        RGS_CHECK_VALUE(colors_opt->dim() == 2, "colors must have shape (N, C)");
+        check_tensor(*colors_opt, "colors", {N, colors_opt->size(1)}, means);
+        colors = colors_opt->contiguous();
+    }
+    if (background_opt.has_value()) {
+        check_tensor(*background_opt, "background", {colors.size(1)}, means);
+        background = background_opt->contiguous();
+    }
     means = means.contiguous(), quats = quats.contiguous(), scales = scales.contiguous();
     opacities = opacities.contiguous();
     auto opts = means.options();
     Tensor means2d = torch::empty({N, 2}, opts), depths = torch::empty({N}, opts);
     Tensor conics = torch::empty({N, 3}, opts);
     Tensor radii = torch::empty({N, 2}, opts.dtype(torch::kInt32));
+    if (check_finite) flag = torch::zeros({1}, opts.dtype(torch::kInt32));
     RGS_DEVICE_GUARD(means);
     AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project_forward", [&] {
         auto cam = make_camera<scalar_t>(viewmat, fx, fy, cx, cy, width, height, near_plane, far_plane);
+        rgs::FiniteCheck<scalar_t> check;
+        if (check_finite) {
+            check.flag = flag.data_ptr<int32_t>();
+            if (colors.defined()) check.colors = colors.data_ptr<scalar_t>(), check.channels = colors.size(1);
+            if (background.defined()) check.background = background.data_ptr<scalar_t>();
+        }
         if (means.is_cuda()) {
 #ifdef RGS_WITH_CUDA
             rgs::project_forward_cuda<scalar_t>(N, means.data_ptr<scalar_t>(), quats.data_ptr<scalar_t>(),
                                                 scales.data_ptr<scalar_t>(), opacities.data_ptr<scalar_t>(), cam,
                                                 means2d.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(),
-                                                conics.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(),
+                                                conics.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(), check,
                                                 RGS_CUDA_STREAM(means));
 #else
             no_cuda();
@@ -197,11 +220,11 @@ std::tuple<Tensor, Tensor, Tensor, Tensor> project_forward(Tensor means, Tensor 
             rgs::project_forward_cpu<scalar_t>(N, means.data_ptr<scalar_t>(), quats.data_ptr<scalar_t>(),
                                                scales.data_ptr<scalar_t>(), opacities.data_ptr<scalar_t>(), cam,
                                                means2d.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(),
-                                               conics.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(),
+                                               conics.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(), check,
                                                num_threads());
         }
     });
-    return {means2d, depths, conics, radii};
+    return {means2d, depths, conics, radii, flag};
 }
 
 std::tuple<Tensor, Tensor, Tensor> project_backward(Tensor means, Tensor quats, Tensor scales,
@@ -560,7 +583,11 @@ Tensor gaussian_colors(int degree, Tensor means, Tensor sh_dc, Tensor sh_rest, s
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.doc() = "RetinexGS kernel library: projection, tile binning, compositing and SH (CPU/OpenMP and CUDA)";
-    m.def("project_forward", &project_forward);
+    m.def("project_forward", &project_forward, pybind11::arg("means"), pybind11::arg("quats"), pybind11::arg("scales"),
+          pybind11::arg("opacities"), pybind11::arg("viewmat"), pybind11::arg("fx"), pybind11::arg("fy"),
+          pybind11::arg("cx"), pybind11::arg("cy"), pybind11::arg("width"), pybind11::arg("height"),
+          pybind11::arg("near_plane"), pybind11::arg("far_plane"), pybind11::arg("check_finite") = false,
+          pybind11::arg("colors") = pybind11::none(), pybind11::arg("background") = pybind11::none());
     m.def("project_backward", &project_backward);
     m.def("bin_gaussians", &bin_gaussians, pybind11::arg("means2d"), pybind11::arg("radii"), pybind11::arg("depths"),
           pybind11::arg("width"), pybind11::arg("height"), pybind11::arg("conics") = pybind11::none(),

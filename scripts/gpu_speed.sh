@@ -32,7 +32,7 @@ echo "build: $(( $(date +%s) - t0 )) s"
 [ -d /tmp/fox-dark ] || cp -r "${FOX:-.data/fox-dark}" /tmp/fox-dark  # FOX: a copy of shared/data/fox-dark
 if has tests; then
   timeout 150 python3 -X faulthandler -m pytest -q -p no:cacheprovider --tb=short -rf tests/test_cuda*.py \
-    tests/test_fused_colors.py > "$OUT/test_cuda.log" 2>&1
+    tests/test_fused_colors.py tests/test_raster_finite_check.py > "$OUT/test_cuda.log" 2>&1
   echo "tests: exit $?"; grep -E "^FAILED|passed|failed" "$OUT/test_cuda.log" | head -30
 fi
 if has fuzz; then  # CUDA against the CPU kernels over the fuzz corpus
@@ -69,7 +69,11 @@ if has trainspeed; then
   timeout 100 python3 -m retinexgs.bench train-speed --device cuda --data /tmp/fox-dark --warmup 3100 --steps 30 2>&1 \
     | tee -a "$OUT/train_speed.txt"
 fi
-has raster && timeout 150 python3 -m retinexgs.bench raster --device cuda --vs ${VS:-reference} 2>&1 | tee "$OUT/bench_raster.txt"
+if has raster; then  # RASTER_RUNS > 1: the same bench again in the same call (its ratios move run to run)
+  for r in $(seq "${RASTER_RUNS:-1}"); do
+    timeout 150 python3 -m retinexgs.bench raster --device cuda --vs ${VS:-reference} 2>&1 | tee -a "$OUT/bench_raster.txt"
+  done
+fi
 has rprofile && timeout 200 python3 scripts/profile_raster.py > "$OUT/profile_raster.txt" 2>&1; \
   has rprofile && grep "==" "$OUT/profile_raster.txt"
 has profile && timeout 100 python3 scripts/profile_train.py /tmp/fox-dark --steps 300 --profile 30 > "$OUT/profile_train.txt" 2>&1 \

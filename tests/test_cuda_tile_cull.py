@@ -21,7 +21,7 @@ def projected(n, width, height, dtype, seed):
                                                           scale_range=(-4.5, -1.5))
     scales[: n // 2, 1] = scales[: n // 2, 0] * 0.08
     cam = make_camera(width=width, height=height)
-    means2d, depths, conics, radii = kernels().project_forward(means, quats, scales, opacities, *cam.kernel_args)
+    means2d, depths, conics, radii, _ = kernels().project_forward(means, quats, scales, opacities, *cam.kernel_args)
     return means2d, radii, depths, conics, opacities
 
 
@@ -75,7 +75,7 @@ def test_cuda_render_unchanged_by_culling(dtype):
     for cull in (False, True):
         a = tuple(x.detach().to("cuda").requires_grad_() for x in args)
         means, quats, scales, opacities, colors = a
-        means2d, depths, conics, radii = ProjectGaussians.apply(means, quats, scales, opacities, cam)
+        means2d, depths, conics, radii, _ = ProjectGaussians.apply(means, quats, scales, opacities, cam)
         extra = (conics, opacities) if cull else ()
         ids, ranges = bin_gaussians(means2d, radii, depths, cam.width, cam.height, *extra)
         image, alpha = RasterizeGaussians.apply(means2d, conics, colors, opacities, ids, ranges, cam.width,

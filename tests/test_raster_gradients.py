@@ -23,7 +23,7 @@ def test_projection_gradcheck():
     means, quats, scales = (t.clone().requires_grad_() for t in (means, quats, scales))
 
     def f(m, q, s):
-        means2d, depths, conics, _ = ProjectGaussians.apply(m, q, s, opac, cam)
+        means2d, depths, conics, _, _ = ProjectGaussians.apply(m, q, s, opac, cam)
         return means2d, depths, conics
 
     assert gradcheck(f, (means, quats, scales), **GRADCHECK)
@@ -37,7 +37,7 @@ def test_projection_gradcheck_guard_band():
     means[:, 1] += torch.tensor([0.0, 0.0, 0.0, 0.0, 1.9, -1.9], dtype=torch.float64)
     scales = scales * 8
     opac = torch.full_like(opac, 0.95)
-    _, _, _, radii = ProjectGaussians.apply(means, quats, scales, opac, cam)
+    _, _, _, radii, _ = ProjectGaussians.apply(means, quats, scales, opac, cam)
     assert (radii > 0).all(), "the test needs visible Gaussians beyond the guard band"
     means, quats, scales = (t.clone().requires_grad_() for t in (means, quats, scales))
 
@@ -50,7 +50,7 @@ def test_projection_gradcheck_guard_band():
 @pytest.mark.parametrize("C", [1, 4])
 def test_rasterize_gradcheck(C):
     (means, quats, scales, opac, colors), cam = small_scene(C=C)
-    means2d, depths, conics, radii = ProjectGaussians.apply(means, quats, scales, opac, cam)
+    means2d, depths, conics, radii, _ = ProjectGaussians.apply(means, quats, scales, opac, cam)
     gauss_ids, tile_ranges = bin_gaussians(means2d, radii, depths, cam.width, cam.height)
     inputs = tuple(t.detach().clone().requires_grad_() for t in (means2d, conics, colors, opac))
 

@@ -57,7 +57,7 @@ def synthetic_inputs(n=3000, width=173, height=131, seed=0, dtype=torch.float32)
 def project(args, cam):
     means, quats, scales, opacities, _ = args
     with torch.no_grad():
-        means2d, depths, conics, radii = ProjectGaussians.apply(means, quats, scales, opacities, cam)
+        means2d, depths, conics, radii, _ = ProjectGaussians.apply(means, quats, scales, opacities, cam)
     return means2d, depths, conics, radii, opacities
 
 
@@ -135,7 +135,7 @@ def render(args, cam, cull):
     with the binning's conics and opacities left out or not)."""
     a = tuple(x.detach().clone().requires_grad_() for x in args)
     means, quats, scales, opacities, colors = a
-    means2d, depths, conics, radii = ProjectGaussians.apply(means, quats, scales, opacities, cam)
+    means2d, depths, conics, radii, _ = ProjectGaussians.apply(means, quats, scales, opacities, cam)
     ids, ranges = bin_gaussians(means2d, radii, depths, cam.width, cam.height, *((conics, opacities) if cull else ()))
     channels = torch.cat([colors, depths.unsqueeze(-1)], -1)
     image, alpha = RasterizeGaussians.apply(means2d, conics, channels, opacities, ids, ranges, cam.width,

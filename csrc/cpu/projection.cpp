@@ -8,9 +8,14 @@ namespace rgs {
 
 template <typename T>
 void project_forward_cpu(int64_t N, const T* means, const T* quats, const T* scales, const T* opacities,
-                         const Camera<T>& cam, T* means2d, T* depths, T* conics, int32_t* radii, int num_threads) {
-#pragma omp parallel for schedule(static) num_threads(num_threads)
+                         const Camera<T>& cam, T* means2d, T* depths, T* conics, int32_t* radii,
+                         const FiniteCheck<T>& check, int num_threads) {
+    int32_t bad = 0;
+#pragma omp parallel for schedule(static) num_threads(num_threads) reduction(| : bad)
     for (int64_t i = 0; i < N; ++i) {
+        if (check.flag != nullptr && !gaussian_inputs_finite(i, means + 3 * i, quats + 4 * i, scales + 3 * i,
+                                                             opacities[i], check))
+            bad = 1;
         Projected<T> p;
         if (project_gaussian(means + 3 * i, quats + 4 * i, scales + 3 * i, opacities[i], cam, p)) {
             means2d[2 * i] = p.mean2d.x;
@@ -28,6 +33,7 @@ void project_forward_cpu(int64_t N, const T* means, const T* quats, const T* sca
             radii[2 * i] = radii[2 * i + 1] = 0;
         }
     }
+    if (check.flag != nullptr && bad) *check.flag = 1;
 }
 
 template <typename T>
@@ -48,7 +54,7 @@ void project_backward_cpu(int64_t N, const T* means, const T* quats, const T* sc
 
 #define RGS_INSTANTIATE(T)                                                                                     \
     template void project_forward_cpu<T>(int64_t, const T*, const T*, const T*, const T*, const Camera<T>&, T*, \
-                                         T*, T*, int32_t*, int);                                                \
+                                         T*, T*, int32_t*, const FiniteCheck<T>&, int);                                                \
     template void project_backward_cpu<T>(int64_t, const T*, const T*, const T*, const Camera<T>&,             \
                                           const int32_t*, const T*, const T*, const T*, T*, T*, T*, int);
 RGS_INSTANTIATE(float)

@@ -15,9 +15,13 @@ __global__ void project_forward_kernel(int64_t N,
                                        T* __restrict__ means2d,          // [N, 2]
                                        T* __restrict__ depths,           // [N]
                                        T* __restrict__ conics,           // [N, 3]
-                                       int32_t* __restrict__ radii) {    // [N, 2]
+                                       int32_t* __restrict__ radii,      // [N, 2]
+                                       const FiniteCheck<T> check) {     // off when check.flag is null
     const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
     if (i >= N) return;
+    if (check.flag != nullptr &&
+        !gaussian_inputs_finite(i, means + 3 * i, quats + 4 * i, scales + 3 * i, opacities[i], check))
+        *check.flag = 1;
     Projected<T> p;
     const bool ok = project_gaussian(means + 3 * i, quats + 4 * i, scales + 3 * i, opacities[i], cam, p);
     means2d[2 * i] = ok ? p.mean2d.x : T(0);
@@ -53,10 +57,11 @@ __global__ void project_backward_kernel(int64_t N, const T* __restrict__ means, 
 
 template <typename T>
 void project_forward_cuda(int64_t N, const T* means, const T* quats, const T* scales, const T* opacities,
-                          const Camera<T>& cam, T* means2d, T* depths, T* conics, int32_t* radii, void* stream) {
+                          const Camera<T>& cam, T* means2d, T* depths, T* conics, int32_t* radii,
+                          const FiniteCheck<T>& check, void* stream) {
     if (N == 0) return;
     project_forward_kernel<T><<<num_blocks(N, 256), 256, 0, (cudaStream_t)stream>>>(
-        N, means, quats, scales, opacities, cam, means2d, depths, conics, radii);
+        N, means, quats, scales, opacities, cam, means2d, depths, conics, radii, check);
     RGS_CHECK_LAUNCH("project_forward");
 }
 
@@ -72,7 +77,7 @@ void project_backward_cuda(int64_t N, const T* means, const T* quats, const T* s
 
 #define RGS_INSTANTIATE(T)                                                                                        \
     template void project_forward_cuda<T>(int64_t, const T*, const T*, const T*, const T*, const Camera<T>&, T*,   \
-                                          T*, T*, int32_t*, void*);                                                \
+                                          T*, T*, int32_t*, const FiniteCheck<T>&, void*);                                                \
     template void project_backward_cuda<T>(int64_t, const T*, const T*, const T*, const Camera<T>&, const int32_t*, \
                                            const T*, const T*, const T*, T*, T*, T*, void*);
 RGS_INSTANTIATE(float)

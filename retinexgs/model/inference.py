@@ -248,8 +248,8 @@ class InferenceRenderer:
         sync does not wait for the colour kernel (which then runs while the host launches the rest)."""
         K = kernels()
         g = self.model.gaussians
-        means2d, depths, conics, radii = K.project_forward(g.means, g.quats, self.scales, self.opacities,
-                                                           *camera.kernel_args)
+        means2d, depths, conics, radii, _ = K.project_forward(g.means, g.quats, self.scales, self.opacities,
+                                                              *camera.kernel_args)
         # Tile culling: conics and the opacities rasterize_forward gets below.
         gauss_ids, tile_ranges = K.bin_gaussians(means2d, radii, depths, camera.width, camera.height, conics,
                                                  self.opacities)

@@ -14,24 +14,31 @@ from retinexgs.render.camera import Camera
 
 class ProjectGaussians(torch.autograd.Function):
     """(means [N,3], quats [N,4], scales [N,3], opacities [N]) -> means2d [N,2], depths [N], conics [N,3],
-    radii [N,2] int32. Differentiable in means, quats and scales (opacity only sets the extent)."""
+    radii [N,2] int32, nonfinite. Differentiable in means, quats and scales (opacity only sets the extent).
+
+    With ``check_finite`` the projection also checks its inputs, ``colors`` [N,C] and ``background`` [C] (plain
+    tensors, not differentiated through here) for NaN/inf: ``nonfinite`` is an int32 [1] tensor on their device,
+    0 when all are finite, nothing waiting for it; otherwise ``nonfinite`` is None."""
 
     @staticmethod
-    def forward(ctx, means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, camera: Camera):
-        means2d, depths, conics, radii = kernels().project_forward(means, quats, scales, opacities,
-                                                                   *camera.kernel_args)
+    def forward(ctx, means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, camera: Camera,
+                check_finite: bool = False, colors: Optional[Tensor] = None, background: Optional[Tensor] = None):
+        means2d, depths, conics, radii, nonfinite = kernels().project_forward(
+            means, quats, scales, opacities, *camera.kernel_args, check_finite, colors, background)
         ctx.camera = camera
         ctx.save_for_backward(means, quats, scales, radii)
         ctx.mark_non_differentiable(radii)
-        return means2d, depths, conics, radii
+        if nonfinite is not None:
+            ctx.mark_non_differentiable(nonfinite)
+        return means2d, depths, conics, radii, nonfinite
 
     @staticmethod
     @once_differentiable
-    def backward(ctx, v_means2d: Tensor, v_depths: Tensor, v_conics: Tensor, _v_radii):
+    def backward(ctx, v_means2d: Tensor, v_depths: Tensor, v_conics: Tensor, _v_radii, _v_nonfinite):
         means, quats, scales, radii = ctx.saved_tensors
         v_means, v_quats, v_scales = kernels().project_backward(
             means, quats, scales, *ctx.camera.kernel_args, radii, v_means2d, v_depths, v_conics)
-        return v_means, v_quats, v_scales, None, None
+        return v_means, v_quats, v_scales, None, None, None, None, None
 
 
 def bin_gaussians(means2d: Tensor, radii: Tensor, depths: Tensor, width: int, height: int,

@@ -2,40 +2,16 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Dict, List, Optional, Tuple
+from typing import Optional
 
 import torch
 from torch import Tensor
 
 from retinexgs.render.camera import Camera
 from retinexgs.render.functions import ProjectGaussians, RasterizeGaussians, SphericalHarmonics, bin_gaussians
-from retinexgs.render.validate import (check_gaussians, check_tensor, finite_flag, gaussian_tensors,
-                                      raise_if_not_finite)
+from retinexgs.render.validate import check_gaussians, check_tensor, gaussian_tensors, raise_if_not_finite
 
 MAX_CUDA_CHANNELS = 64  # rgs::kMaxCudaChannels: register-resident accumulators of the CUDA compositing
-
-
-_CHECK_STREAMS: Dict[int, "torch.cuda.Stream"] = {}
-
-
-def _finite_flag_beside(named: List[Tuple[str, Optional[Tensor]]], device: torch.device
-                        ) -> Tuple[Optional[Tensor], Optional["torch.cuda.Event"]]:
-    """:func:`finite_flag` of CUDA tensors computed on a side stream, beside the projection and binning, and
-    copied to pinned host memory: (host flag, event marking the copy done). Wait on the event before reading."""
-    index = device.index if device.index is not None else torch.cuda.current_device()
-    side = _CHECK_STREAMS.get(index)
-    if side is None:
-        side = _CHECK_STREAMS[index] = torch.cuda.Stream(device=device)
-    side.wait_stream(torch.cuda.current_stream(device))  # the inputs are written on the caller's stream
-    with torch.cuda.stream(side):
-        flag = finite_flag(named)
-        if flag is None:
-            return None, None
-        host = torch.empty((), dtype=torch.bool, pin_memory=True)
-        host.copy_(flag, non_blocking=True)
-        done = torch.cuda.Event()
-        done.record(side)
-    return host, done
 
 
 @dataclass
@@ -96,30 +72,37 @@ def rasterize_gaussians(
         background: optional [C] colour composited behind the Gaussians.
         render_depth: also render the alpha-weighted depth map.
         validate: check that every tensor is finite (a NaN or inf anywhere raises a ValueError naming the
-            argument). The verdict is read right after binning's own host sync; a loop that checks its
-            parameters itself (the trainer does, every step) passes False and saves the check's reduction.
+            argument). The projection checks them as it reads them and the verdict is read right after
+            binning's own host sync, so the check costs no pass and no sync of its own; a loop that checks its
+            parameters itself (the trainer does, every step) passes False.
             Shapes, dtypes and devices are always checked.
 
     Returns:
         A :class:`RenderOutput` with ``image`` [H, W, C], ``alpha`` [H, W, 1], ``depth`` [H, W, 1] or None,
         ``means2d``, ``radii`` and ``num_pairs``.
     """
-    # The finiteness verdict is read after binning, which waits for the GPU anyway (its pair count): one sync
-    # per render, not two; on CUDA its reduction runs on a side stream, beside the projection and binning. The
+    # The finiteness check rides on the projection, which reads every Gaussian anyway (no pass of its own), and
+    # its verdict is read after binning, which waits for the GPU for its pair count: no extra sync either. The
     # projection culls non-finite Gaussians, so binning is safe on such input.
     check_gaussians(means, quats, scales, opacities, colors, camera, background, finite=False)
-    named = gaussian_tensors(means, quats, scales, opacities, colors, background)
-    finite, copied = None, None
-    if validate:
-        finite, copied = _finite_flag_beside(named, means.device) if means.is_cuda else (finite_flag(named), None)
-    means2d, depths, conics, radii = ProjectGaussians.apply(means, quats, scales, opacities, camera)
+    means2d, depths, conics, radii, nonfinite = ProjectGaussians.apply(
+        means, quats, scales, opacities, camera, validate, colors.detach() if validate else None,
+        background.detach() if validate and background is not None else None)
+    verdict, copied = nonfinite, None
+    if validate and means.is_cuda:
+        verdict = torch.empty(1, dtype=torch.int32, pin_memory=True)
+        verdict.copy_(nonfinite, non_blocking=True)
+        copied = torch.cuda.Event()
+        copied.record()
     if means2d.requires_grad:
         means2d.retain_grad()
     # conics and opacities: pairs only with the tiles each Gaussian can reach (the compositing gets the same ones).
     gauss_ids, tile_ranges = bin_gaussians(means2d, radii, depths, camera.width, camera.height, conics, opacities)
-    if copied is not None:
-        copied.synchronize()  # normally done by now: it ran beside the projection and binning
-    raise_if_not_finite(finite, named)
+    if validate:
+        if copied is not None:
+            copied.synchronize()  # done already: binning has waited for the stream
+        if int(verdict[0]) != 0:
+            raise_if_not_finite(False, gaussian_tensors(means, quats, scales, opacities, colors, background))
     channels = torch.cat([colors, depths.unsqueeze(-1)], dim=-1) if render_depth else colors
     if means.is_cuda and channels.shape[1] > MAX_CUDA_CHANNELS:
         raise ValueError(f"colors has {colors.shape[1]} channels{' + depth' if render_depth else ''}; the CUDA "

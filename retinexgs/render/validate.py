@@ -1,7 +1,7 @@
 """Argument checks of the public rendering API: clear ``TypeError``/``ValueError`` naming the argument."""
 from __future__ import annotations
 
-from typing import List, Optional, Sequence, Tuple
+from typing import List, Optional, Sequence, Tuple, Union
 
 import torch
 from torch import Tensor
@@ -30,7 +30,7 @@ def check_tensor(value, name: str, shape: Sequence[Optional[int]], like: Optiona
 def finite_flag(named: Sequence) -> Optional[Tensor]:
     """A 0-dim bool tensor, on the tensors' device, that is True when every tensor of the ``(name, tensor)`` pairs
     is finite; None when there is nothing to check. Nothing waits for it: read it with :func:`raise_if_not_finite`
-    where the caller synchronises anyway (the renderer reads it after binning's own host sync)."""
+    where the caller synchronises anyway. (The renderer does not use it: its projection checks as it reads.)"""
     tensors = [t for _, t in named if t is not None and t.numel()]
     if not tensors:
         return None
@@ -39,9 +39,9 @@ def finite_flag(named: Sequence) -> Optional[Tensor]:
         return torch.isfinite(torch.stack(torch._foreach_norm([t.detach() for t in tensors]))).all()
 
 
-def raise_if_not_finite(flag: Optional[Tensor], named: Sequence) -> None:
+def raise_if_not_finite(flag: Union[Tensor, bool, None], named: Sequence) -> None:
     """Raise a ValueError naming the first of ``(name, tensor)`` pairs holding a NaN or an infinity, when ``flag``
-    (from :func:`finite_flag` on the same pairs) says one does."""
+    (True: all finite, e.g. from :func:`finite_flag` on the same pairs) says one does."""
     if flag is None or bool(flag):
         return
     for name, t in named:
@@ -63,7 +63,7 @@ def check_gaussians(means, quats, scales, opacities, colors, camera, background=
     """Validate one render call's inputs; raises TypeError/ValueError naming the offending argument.
 
     Every tensor must be finite (a NaN or inf is a ValueError; ``finite=False`` leaves that check to the caller,
-    e.g. :func:`finite_flag` read later). A zero quaternion is allowed and means the identity rotation (it gets
+    e.g. the projection's own check in :func:`~retinexgs.render.rasterize_gaussians`). A zero quaternion is allowed and means the identity rotation (it gets
     a zero gradient); opacities outside [0, 1] are allowed (alpha is clamped to 0.99, a non-positive opacity
     culls the Gaussian)."""
     check_tensor(means, "means", (None, 3))

@@ -21,6 +21,7 @@ void project_forward_cpu(int64_t N,
                          T* depths,           // [N] out, camera z
                          T* conics,           // [N, 3] out, inverse 2D covariance (A, B, C)
                          int32_t* radii,      // [N, 2] out, pixel half extents; 0 = culled
+                         const FiniteCheck<T>& check,  // optional NaN/inf check of the render inputs
                          int num_threads);
 
 template <typename T>

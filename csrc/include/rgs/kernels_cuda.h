@@ -20,7 +20,8 @@ constexpr int kMaxCudaChannels = 64;  // compositing on the GPU supports 1..64 c
 
 template <typename T>
 void project_forward_cuda(int64_t N, const T* means, const T* quats, const T* scales, const T* opacities,
-                          const Camera<T>& cam, T* means2d, T* depths, T* conics, int32_t* radii, void* stream);
+                          const Camera<T>& cam, T* means2d, T* depths, T* conics, int32_t* radii,
+                          const FiniteCheck<T>& check, void* stream);
 
 template <typename T>
 void project_backward_cuda(int64_t N, const T* means, const T* quats, const T* scales, const Camera<T>& cam,

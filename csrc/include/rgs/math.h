@@ -4,10 +4,43 @@
 // Real-Time Radiance Field Rendering" (SIGGRAPH 2023) and Zwicker et al., "EWA Splatting" (2002).
 #pragma once
 #include <cmath>
+#include <cstring>
 
 #include "rgs/types.h"
 
 namespace rgs {
+
+// ---------------------------------------------------------------------------------------------
+// Finiteness by the exponent bits, not std::isfinite: fast-math flags (nvcc --use_fast_math, or a host
+// -ffast-math) let a compiler assume there is no NaN/inf and fold isfinite to true.
+// ---------------------------------------------------------------------------------------------
+RGS_HD bool finite_bits(float x) {
+    uint32_t u;
+    memcpy(&u, &x, sizeof(u));
+    return (u & 0x7f800000u) != 0x7f800000u;
+}
+RGS_HD bool finite_bits(double x) {
+    uint64_t u;
+    memcpy(&u, &x, sizeof(u));
+    return (u & 0x7ff0000000000000ull) != 0x7ff0000000000000ull;
+}
+template <typename T>
+RGS_HD bool all_finite(const T* values, int64_t n) {
+    bool ok = true;
+    for (int64_t k = 0; k < n; ++k) ok &= finite_bits(values[k]);
+    return ok;
+}
+
+// Are Gaussian i's render inputs finite (FiniteCheck: mean, rotation, scale, opacity, its colour row, and for
+// i == 0 the background)? Called by the projection of both schedulers when the check is on.
+template <typename T>
+RGS_HD bool gaussian_inputs_finite(int64_t i, const T* mean, const T* quat, const T* scale, T opacity,
+                                   const FiniteCheck<T>& check) {
+    bool ok = all_finite(mean, 3) & all_finite(quat, 4) & all_finite(scale, 3) & finite_bits(opacity);
+    if (check.colors != nullptr) ok &= all_finite(check.colors + i * check.channels, check.channels);
+    if (i == 0 && check.background != nullptr) ok &= all_finite(check.background, check.channels);
+    return ok;
+}
 
 // ---------------------------------------------------------------------------------------------
 // Small fixed-size linear algebra (row-major).

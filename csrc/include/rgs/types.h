@@ -28,6 +28,18 @@ struct Camera {
     T near_plane, far_plane;
 };
 
+// The render call's finiteness check, folded into the projection so that it costs no pass of its own: the
+// projection already reads each Gaussian's mean, rotation, scale and opacity, and checks its colour row [C] (and,
+// once, the background [C]) beside them. Any NaN or infinity sets *flag to 1 (caller zeroes it; every writer
+// writes the same value, so the race is benign). flag == nullptr: no check.
+template <typename T>
+struct FiniteCheck {
+    const T* colors = nullptr;      // [N, C] or nullptr
+    int64_t channels = 0;           // C
+    const T* background = nullptr;  // [C] or nullptr
+    int32_t* flag = nullptr;        // [1] out, 0 = all finite
+};
+
 // The depth that orders a tile's Gaussians: float32 precision for every scalar type, ties broken by Gaussian
 // index. The GPU sorts 64-bit (tile << 32 | float bits) keys, so the CPU (and the reference) must order by the
 // same float32 value, or float64 renders of Gaussians at depths equal to float32 precision would composite
