@@ -1,0 +1,58 @@
+"""scripts/gap_analysis.py: its tone oracles recover a pure tone change and leave structure alone."""
+import importlib.util
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def load():
+    spec = importlib.util.spec_from_file_location("gap_analysis", ROOT / "scripts" / "gap_analysis.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def fake_run(tmp: Path, name: str, make_output) -> Path:
+    """A run folder with two 3-panel evaluation PNGs: low | output | truth."""
+    rng = np.random.default_rng(0)
+    run = tmp / name
+    (run / "renders" / "test").mkdir(parents=True)
+    (run / "metrics.json").write_text(json.dumps({"panels": "low input | output | ground truth"}))
+    for i in range(2):
+        y, x = np.mgrid[0:48, 0:64] / 64.0
+        truth = np.stack([0.2 + 0.6 * x, 0.3 + 0.4 * y, 0.5 + 0.3 * np.sin(6 * x)], -1)
+        truth += 0.05 * rng.standard_normal(truth.shape)
+        truth = np.clip(truth, 0, 1)
+        out = np.clip(make_output(truth, rng), 0, 1)
+        img = np.concatenate([truth * 0.1, out, truth], axis=1)
+        Image.fromarray((img * 255 + 0.5).astype(np.uint8)).save(run / "renders" / "test" / f"{i}.png")
+    return run
+
+
+def test_a_tone_change_is_recovered_by_the_oracles(tmp_path):
+    ga = load()
+    m = ga.analyse(fake_run(tmp_path, "tone", lambda t, rng: 0.6 * t + 0.2))
+    assert m["psnr"] < 25  # the tone change costs PSNR
+    assert m["psnr_affine"] > 40 and m["ssim_affine"] > 0.99  # an affine fit undoes it exactly (up to 8 bits)
+    assert all(1.5 < m[f"slope_{c}"] < 1.8 for c in "rgb")  # output flatter than the truth: slope 1/0.6
+    assert m["views"] == 2
+
+
+def test_noise_is_not_recovered_by_the_oracles_but_by_blur(tmp_path):
+    ga = load()
+    m = ga.analyse(fake_run(tmp_path, "noise", lambda t, rng: t + 0.08 * rng.standard_normal(t.shape)))
+    assert m["ssim_affine"] < 0.9 and m["ssim_hist"] < 0.9
+    assert m["term_std_ratio"] > 1.2  # more local variance than the truth
+    assert m["term_l"] > 0.99  # the tone is right
+
+
+def test_missing_renders_is_a_clear_error(tmp_path):
+    ga = load()
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(SystemExit, match="no renders/test"):
+        ga.analyse(tmp_path / "empty")
