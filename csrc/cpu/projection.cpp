@@ -54,7 +54,7 @@ void project_backward_cpu(int64_t N, const T* means, const T* quats, const T* sc
 
 #define RGS_INSTANTIATE(T)                                                                                     \
     template void project_forward_cpu<T>(int64_t, const T*, const T*, const T*, const T*, const Camera<T>&, T*, \
-                                         T*, T*, int32_t*, const FiniteCheck<T>&, int);                                                \
+                                         T*, T*, int32_t*, const FiniteCheck<T>&, int);                        \
     template void project_backward_cpu<T>(int64_t, const T*, const T*, const T*, const Camera<T>&,             \
                                           const int32_t*, const T*, const T*, const T*, T*, T*, T*, int);
 RGS_INSTANTIATE(float)

@@ -77,7 +77,7 @@ void project_backward_cuda(int64_t N, const T* means, const T* quats, const T* s
 
 #define RGS_INSTANTIATE(T)                                                                                        \
     template void project_forward_cuda<T>(int64_t, const T*, const T*, const T*, const T*, const Camera<T>&, T*,   \
-                                          T*, T*, int32_t*, const FiniteCheck<T>&, void*);                                                \
+                                          T*, T*, int32_t*, const FiniteCheck<T>&, void*);                        \
     template void project_backward_cuda<T>(int64_t, const T*, const T*, const T*, const Camera<T>&, const int32_t*, \
                                            const T*, const T*, const T*, T*, T*, T*, void*);
 RGS_INSTANTIATE(float)
