@@ -23,6 +23,7 @@ import torch
 import torch.nn.functional as F
 
 from retinexgs.evaluate.metrics import ssim_metric
+from retinexgs.model.tone import tone_map
 from retinexgs.train import losses
 
 GAMMAS = torch.linspace(0.1, 1.0, 91)  # the EnhancementNet's default range
@@ -42,22 +43,25 @@ def _bchw(x: torch.Tensor) -> torch.Tensor:
     return x.permute(2, 0, 1).unsqueeze(0)
 
 
+def enhanced_maps(R: torch.Tensor, L: torch.Tensor, ref: float, g: float, cfg: Dict):
+    """The model's (S_enh, L_enh) from 2D maps, in the config's tone form (:func:`retinexgs.model.tone.tone_map`)."""
+    gamma = torch.tensor(float(g), dtype=R.dtype)
+    return tone_map(R, L.expand_as(R), torch.tensor(float(ref)), gamma, cfg["model"]["enhancement"]["tone"])
+
+
 def enhanced(R: torch.Tensor, L: torch.Tensor, ref: float, g: float, cfg: Dict) -> torch.Tensor:
-    """The model's S_enh from 2D maps: clip(R·(L/ref)^g) or, with tone "signal", clip(R^g·(L/ref)^g)."""
-    light = (L / ref).clamp(1e-3, 1.0) ** g
-    if cfg["model"]["enhancement"]["tone"] == "signal":
-        R = R.clamp_min(1e-3) ** g
-    return (R * light).clamp(0.0, 1.0)
+    """The model's S_enh from 2D maps (:func:`enhanced_maps`)."""
+    return enhanced_maps(R, L, ref, g, cfg)[0]
 
 
 def proxy_gamma(R: torch.Tensor, L: torch.Tensor, S: torch.Tensor, ref: float, cfg: Dict) -> float:
     """The grid gamma minimising ``cfg``'s L_enhance on :func:`enhanced` ([H,W,3] R, S; [H,W,1] L)."""
     c = cfg["loss"]
-    ln = (L / ref).clamp(1e-3, 1.0).expand_as(R)
-    best, best_g = float("inf"), float(GAMMAS[0])
-    for g in GAMMAS.tolist():
-        light = ln ** g
-        enh = enhanced(R, L, ref, g, cfg)
+    lo, hi = cfg["model"]["enhancement"]["gamma_range"]
+    grid = torch.linspace(float(lo), float(hi), 1 + round(100 * (float(hi) - float(lo))))  # steps of 0.01
+    best, best_g = float("inf"), float(grid[0])
+    for g in grid.tolist():
+        enh, light = enhanced_maps(R, L, ref, g, cfg)
         total, _ = losses.enhancement_loss(
             _bchw(enh), _bchw(S), c["w_spa"], c["w_exp"], c["w_col"], c["exposure_E"],
             illumination=_bchw(light) if c["exp_on"] == "illumination" else None, exp_patch=c["exp_patch"],

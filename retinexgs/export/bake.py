@@ -10,7 +10,7 @@ viewer can only evaluate SH, so for every Gaussian the enhanced colour
 is evaluated from ``directions`` unit directions d (a Fibonacci sphere; d points from the camera to the
 Gaussian, the convention of both the SH and the illumination field) and SH coefficients of the model's
 degree D are fitted to c(d) − 0.5 by least squares (colour = max(SH(d) + 0.5, 0) in 3DGS). E is the model's
-own code (``normalized_illumination`` and ``enhancement.enhance``), so the bake follows the render. g is the
+own tone map (``RetinexGSModel.tone_map``), so the bake follows the render. g is the
 mean of the gammas the EnhancementNet predicts over the training views (per channel when the model predicts
 per channel), optionally scaled by an exposure factor or replaced by a fixed gamma.
 
@@ -93,7 +93,7 @@ def bake_enhanced_sh(model: RetinexGSModel, active_degree: int, gamma: Tensor, d
     basis_act = sh_basis(act, dirs).float()                              # [n_dirs, K_act]
     dirs32 = dirs.float()
     gamma = torch.as_tensor(gamma, dtype=torch.float32, device=device).reshape(-1)
-    # The model's own steps (L̂ -> min(L̂/L_ref, 1) -> max(., eps)^g), so the bake follows the enhanced render.
+    # The model's own tone map (RetinexGSModel.tone_map), so the bake follows the enhanced render.
     coeffs = torch.cat([g.sh_dc, g.sh_rest], dim=1).detach()[:, :(act + 1) ** 2]
     out = torch.empty(len(g), k, 3, dtype=torch.float32, device=device)
     with torch.no_grad():
@@ -103,8 +103,7 @@ def bake_enhanced_sh(model: RetinexGSModel, active_degree: int, gamma: Tensor, d
             R = (torch.einsum("dk,nkc->ndc", basis_act, coeffs[s:s + chunk]) + 0.5).clamp_min(0.0)
             # The same field and direction convention as RetinexGSModel.render: d from the camera to the Gaussian.
             L = model.illumination(means.repeat_interleave(directions, 0), dirs32.repeat(n, 1)).reshape(n, -1, 3)
-            L_enh = model.enhancement.enhance(model.normalized_illumination(L.float()), gamma)
-            target = model.tone_map(R, L_enh, gamma)
+            target, _ = model.tone_map(R, L.float(), gamma)
             out[s:s + n] = torch.einsum("kd,ndc->nkc", fit, (target - 0.5).double()).float()
             if progress is not None:
                 progress(n)

@@ -141,8 +141,7 @@ class _EnhanceGraph:
         g = self.model.predict_gamma(L_bchw)
         # RetinexGSModel.enhance: gamma replaces g, else exposure scales it (exposure 1 when unset: exact).
         g = torch.where(self.use_fixed, self.fixed, g * self.exposure)
-        L_enh = self.model.enhancement.enhance(L_bchw, g)[0].permute(1, 2, 0)
-        rgb = self.model.tone_map(R, L_enh, g.reshape(-1))
+        rgb, _ = self.model.tone_map(R, L, g.reshape(-1))
         return torch.cat([rgb.reshape(-1), g.reshape(-1)])
 
     def run(self, image: Tensor, exposure: Optional[float], gamma: Optional[float]) -> Tuple[Tensor, Tensor]:

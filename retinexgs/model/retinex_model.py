@@ -17,7 +17,7 @@ The plain-3DGS baselines use the same Gaussians with 3 colour channels and no il
 """
 from __future__ import annotations
 
-from typing import Dict, Optional
+from typing import Dict, Optional, Tuple
 
 import torch
 from torch import Tensor, nn
@@ -25,6 +25,7 @@ from torch import Tensor, nn
 from retinexgs.model.enhancement import EnhancementNet
 from retinexgs.model.gaussians import GaussianModel, sh_colors
 from retinexgs.model.illumination import IlluminationField
+from retinexgs.model.tone import tone_map
 from retinexgs.render import Camera, rasterize_gaussians
 
 
@@ -76,8 +77,8 @@ class RetinexGSModel(nn.Module):
 
     def enhance(self, R: Tensor, L: Tensor, exposure: Optional[float] = None,
                 gamma: Optional[float] = None) -> Dict[str, Tensor]:
-        """S_enh = clip(R̂ ∘ (L̂/L_ref)^g, 0, 1) (tone "illumination") or clip(R̂^g ∘ (L̂/L_ref)^g, 0, 1) (tone
-        "signal") for [H,W,3] maps ``R``, ``L``; returns ``rgb``, ``L_enh`` = (L̂/L_ref)^g [H,W,3] and ``gamma``
+        """S_enh for [H,W,3] maps ``R``, ``L`` in the model's tone form (:mod:`retinexgs.model.tone`; by default
+        clip(R̂ ∘ (L̂/L_ref)^g, 0, 1)); returns ``rgb``, ``L_enh`` (the enhanced light) [H,W,3] and ``gamma``
         (flattened). ``exposure`` scales the predicted g (< 1 brighter); ``gamma`` replaces it."""
         L_bchw = self.normalized_illumination(L).permute(2, 0, 1).unsqueeze(0)
         g = self.predict_gamma(L_bchw)
@@ -85,17 +86,13 @@ class RetinexGSModel(nn.Module):
             g = torch.full_like(g, float(gamma))
         elif exposure is not None:
             g = g * float(exposure)
-        L_enh = self.enhancement.enhance(L_bchw, g)[0].permute(1, 2, 0)
-        return {"rgb": self.tone_map(R, L_enh, g.reshape(-1)), "L_enh": L_enh, "gamma": g.reshape(-1)}
+        rgb, L_enh = self.tone_map(R, L, g.reshape(-1))
+        return {"rgb": rgb, "L_enh": L_enh, "gamma": g.reshape(-1)}
 
-    def tone_map(self, R: Tensor, L_enh: Tensor, gamma: Tensor) -> Tensor:
-        """The output colour from R̂ [..., 3], the enhanced light L_enh [..., 3] and g ([1] or [3], broadcast over
-        the last axis): clip(R̂ ∘ L_enh, 0, 1), or with tone "signal" clip(R̂^g ∘ L_enh, 0, 1) — the same curve on
-        the whole signal R̂ ∘ L̂/L_ref, as a camera's tone curve acts on the light it records (a normal exposure
-        of a scene lifts its dark surfaces too, not only its shadows)."""
-        if self.tone == "signal":
-            R = self.enhancement.enhance(R, gamma)
-        return (R * L_enh).clamp(0.0, 1.0)
+    def tone_map(self, R: Tensor, L: Tensor, gamma: Tensor) -> Tuple[Tensor, Tensor]:
+        """(S_enh, L_enh) from R̂ [..., 3], the rendered L̂ [..., 3] and g ([1] or [3], broadcast over the last
+        axis), in the model's tone form (``model.enhancement.tone``: :func:`retinexgs.model.tone.tone_map`)."""
+        return tone_map(R, L, self.illum_ref, gamma, self.tone, self.enhancement.eps)
 
     def predict_gamma(self, L_bchw: Tensor) -> Tensor:
         """The EnhancementNet's gamma for a normalised L̂/L_ref [1,3,H,W]: one per image (the paper's single g,

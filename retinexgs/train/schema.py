@@ -109,7 +109,7 @@ class Enhancement(Section):
                            Field(min_length=2, max_length=2), Expect("a list [low, high] of two numbers > 0")]
     init_gamma: Num(gt=0)
     per_channel: Bool
-    tone: Choice("illumination", "signal")
+    tone: Choice("illumination", "signal", "exposure")
     ref_quantile: Annotated[Optional[Annotated[float, BeforeValidator(_yaml_number), Field(gt=0, le=1)]],
                             Expect("a quantile in (0, 1] (1 = the maximum) or null (no normalisation)")]
 
@@ -121,6 +121,10 @@ class Enhancement(Section):
         if not lo <= self.init_gamma <= hi:
             raise ValueError(f"model.enhancement.init_gamma must lie in gamma_range [{lo}, {hi}], "
                              f"got {self.init_gamma}")
+        if self.tone == "exposure" and self.ref_quantile is None:
+            # k = lin(L_ref)^(-1/g) needs a scene reference below 1: with L_ref = 1 the gain would be 1 for every g.
+            raise ValueError("model.enhancement.tone 'exposure' needs a ref_quantile (the gain is set relative to "
+                             "the scene's full light L_ref); null is only valid with 'illumination' or 'signal'")
         return self
 
 

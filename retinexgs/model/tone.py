@@ -1,0 +1,70 @@
+"""How the predicted g turns the rendered R̂, L̂ into the enhanced image: the three tone forms, as pure functions.
+
+One function, :func:`tone_map`, is the maths of ``model.enhancement.tone`` for every path that produces an
+enhanced image (training, ``render``/``eval``/the viewer through the fused frame renderer, the export bake, the
+2D proxy), so that they cannot drift apart.
+
+With ℓ = clip(L̂ / L_ref, 0, 1) (L_ref: the scene's full light, a constant of the scene):
+- ``illumination`` (the paper):  L_enh = ℓ^g,  S_enh = clip(R̂ ∘ L_enh).
+- ``signal``:                    L_enh = ℓ^g,  S_enh = clip(R̂^g ∘ L_enh)  (the gamma on the whole signal).
+- ``exposure``: a longer exposure. A camera records light linearly and then encodes it with its tone curve
+  (sRGB for JPEGs); a longer exposure multiplies the recorded light by a gain k before that curve. So the
+  enhancement undoes the curve, applies the gain and re-encodes:
+      S_enh = srgb(k · lin(R̂ ∘ L̂)),   L_enh = srgb(k · lin(L̂)),   k = lin(L_ref)^(−1/g).
+  g keeps its role: at g = 1 the scene's full light L_ref maps to white (LR3M's L / max L, in linear light),
+  a smaller g is a longer exposure (log k = −log lin(L_ref) / g), so the EnhancementNet, ``--exposure``
+  (scales g: < 1 brighter) and ``--gamma`` work unchanged. A gamma curve on sRGB values instead lifts the
+  shadows more than the mid-tones (it flattens the image); a gain keeps the scene's contrast as the longer
+  exposure records it, up to the curve's clipping of highlights.
+"""
+from __future__ import annotations
+
+from typing import Tuple
+
+import torch
+from torch import Tensor
+
+__all__ = ["TONES", "srgb_to_linear", "linear_to_srgb", "exposure_gain", "tone_map"]
+
+TONES = ("illumination", "signal", "exposure")
+
+
+def srgb_to_linear(x: Tensor) -> Tensor:
+    """The sRGB decoding (IEC 61966-2-1) of values in [0, 1]: linear light."""
+    x = x.clamp(0.0, 1.0)
+    return torch.where(x <= 0.04045, x / 12.92, ((x.clamp_min(0.04045) + 0.055) / 1.055) ** 2.4)
+
+
+def linear_to_srgb(x: Tensor) -> Tensor:
+    """The sRGB encoding of linear light, clipped to [0, 1] first (what a camera does to light past white)."""
+    x = x.clamp(0.0, 1.0)
+    return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp_min(0.0031308) ** (1.0 / 2.4) - 0.055)
+
+
+def exposure_gain(illum_ref: Tensor, gamma: Tensor) -> Tensor:
+    """k = lin(L_ref)^(−1/g), the linear-light gain of tone ``exposure`` (``gamma`` of any shape)."""
+    log_ref = torch.log(srgb_to_linear(illum_ref.to(gamma)).clamp_min(1e-6))
+    return torch.exp(-log_ref / gamma)
+
+
+def tone_map(R: Tensor, L: Tensor, illum_ref: Tensor, gamma: Tensor, tone: str,
+             eps: float = 1e-3) -> Tuple[Tensor, Tensor]:
+    """(S_enh, L_enh) of one tone form (module docstring) for rendered R̂ and L̂ of the same layout.
+
+    Args:
+        R: R̂, [..., 3] or [B,3,H,W].
+        L: L̂ as rendered (not normalised), broadcastable against ``R``.
+        illum_ref: L_ref, a scalar tensor.
+        gamma: g, broadcastable against ``R`` (e.g. [3] for [..., 3] maps, [B,C,1,1] for [B,C,H,W]).
+        tone: "illumination", "signal" or "exposure".
+        eps: floor under ℓ (and R̂ for "signal") before the power, so its gradient stays finite at 0.
+    """
+    if tone == "exposure":
+        k = exposure_gain(illum_ref, gamma)
+        return (linear_to_srgb(k * srgb_to_linear(R * L)), linear_to_srgb(k * srgb_to_linear(L)))
+    if tone not in TONES:
+        raise ValueError(f"tone must be one of {', '.join(TONES)}, got {tone!r}")
+    light = (L / illum_ref.to(L)).clamp(0.0, 1.0).clamp_min(eps) ** gamma
+    if tone == "signal":
+        R = R.clamp_min(eps) ** gamma
+    return (R * light).clamp(0.0, 1.0), light

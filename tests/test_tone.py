@@ -1,0 +1,91 @@
+"""retinexgs/model/tone.py: the three tone forms against hand-written formulas, the sRGB pair, gradients."""
+import math
+
+import pytest
+import torch
+
+from retinexgs.model.tone import exposure_gain, linear_to_srgb, srgb_to_linear, tone_map
+
+
+def _srgb_scalar(v: float) -> float:
+    v = min(max(v, 0.0), 1.0)
+    return 12.92 * v if v <= 0.0031308 else 1.055 * v ** (1 / 2.4) - 0.055
+
+
+def _lin_scalar(v: float) -> float:
+    return v / 12.92 if v <= 0.04045 else ((v + 0.055) / 1.055) ** 2.4
+
+
+def test_srgb_pair_matches_the_standard_and_inverts():
+    xs = [0.0, 0.001, 0.003, 0.0031308, 0.01, 0.2, 0.5, 1.0]
+    t = torch.tensor(xs, dtype=torch.float64)
+    assert torch.allclose(linear_to_srgb(t), torch.tensor([_srgb_scalar(v) for v in xs], dtype=torch.float64))
+    assert torch.allclose(srgb_to_linear(t), torch.tensor([_lin_scalar(v) for v in xs], dtype=torch.float64))
+    u = torch.linspace(0, 1, 1001, dtype=torch.float64)
+    assert torch.allclose(linear_to_srgb(srgb_to_linear(u)), u, atol=1e-12)
+    # Past white the encoding clips (what the camera does): no value above 1.
+    assert float(linear_to_srgb(torch.tensor([3.0]))) == pytest.approx(1.0, abs=1e-6)
+    # 18 % grey encodes near 0.46 (the sRGB mid-grey).
+    assert float(linear_to_srgb(torch.tensor([0.18]))) == pytest.approx(0.4614, abs=1e-3)
+
+
+def test_exposure_tone_is_a_gain_in_linear_light():
+    torch.manual_seed(0)
+    R = torch.rand(4, 5, 3, dtype=torch.float64)
+    L = 0.05 + 0.2 * torch.rand(4, 5, 3, dtype=torch.float64)
+    ref = torch.tensor(0.3, dtype=torch.float64)
+    for g in (1.0, 0.7, 0.4):
+        gamma = torch.tensor([g], dtype=torch.float64)
+        rgb, light = tone_map(R, L, ref, gamma, "exposure")
+        k = math.exp(-math.log(_lin_scalar(0.3)) / g)
+        assert float(exposure_gain(ref, gamma)) == pytest.approx(k, rel=1e-12)
+        want = torch.tensor([_srgb_scalar(k * _lin_scalar(v)) for v in (R * L).reshape(-1).tolist()],
+                            dtype=torch.float64).reshape(R.shape)
+        want_l = torch.tensor([_srgb_scalar(k * _lin_scalar(v)) for v in L.reshape(-1).tolist()],
+                              dtype=torch.float64).reshape(L.shape)
+        assert torch.allclose(rgb, want, atol=1e-12) and torch.allclose(light, want_l, atol=1e-12)
+    # g = 1 maps the full light L_ref to white; a smaller g is brighter everywhere it is not clipped.
+    _, light = tone_map(R, torch.full_like(L, 0.3), ref, torch.tensor([1.0], dtype=torch.float64), "exposure")
+    assert torch.allclose(light, torch.ones_like(light))
+    lo, _ = tone_map(R, L, ref, torch.tensor([0.9], dtype=torch.float64), "exposure")
+    hi, _ = tone_map(R, L, ref, torch.tensor([0.6], dtype=torch.float64), "exposure")
+    assert bool((hi >= lo).all()) and float((hi - lo).mean()) > 0.01
+    # A gain keeps ratios in linear light (until the clip): lin(S_enh) / lin(R̂∘L̂) is the same k everywhere.
+    small = L * 0.05
+    rgb, _ = tone_map(R, small, ref, torch.tensor([0.9], dtype=torch.float64), "exposure")
+    ratio = srgb_to_linear(rgb) / srgb_to_linear(R * small).clamp_min(1e-300)
+    keep = srgb_to_linear(rgb) < 0.99
+    assert ratio[keep].std() / ratio[keep].mean() < 1e-9
+
+
+def test_gamma_tones_are_the_papers_and_the_signal_form():
+    torch.manual_seed(1)
+    R = torch.rand(3, 4, 3, dtype=torch.float64)
+    L = 0.3 * torch.rand(3, 4, 3, dtype=torch.float64)
+    ref = torch.tensor(0.25, dtype=torch.float64)
+    g = torch.tensor([0.5], dtype=torch.float64)
+    ell = (L / 0.25).clamp(0, 1).clamp_min(1e-3)
+    rgb, light = tone_map(R, L, ref, g, "illumination")
+    assert torch.allclose(light, ell ** 0.5) and torch.allclose(rgb, (R * ell ** 0.5).clamp(0, 1))
+    rgb, _ = tone_map(R, L, ref, g, "signal")
+    assert torch.allclose(rgb, (R.clamp_min(1e-3) ** 0.5 * ell ** 0.5).clamp(0, 1))
+    with pytest.raises(ValueError, match="tone must be one of"):
+        tone_map(R, L, ref, g, "filmic")
+
+
+def test_exposure_tone_gradients_match_finite_differences():
+    torch.manual_seed(2)
+    R = (0.1 + 0.8 * torch.rand(3, 4, 3, dtype=torch.float64)).requires_grad_()
+    L = (0.02 + 0.1 * torch.rand(3, 4, 3, dtype=torch.float64)).requires_grad_()
+    g = torch.tensor([0.8], dtype=torch.float64, requires_grad=True)
+    ref = torch.tensor(0.3, dtype=torch.float64)
+    assert torch.autograd.gradcheck(lambda r, l, gg: tone_map(r, l, ref, gg, "exposure"), (R, L, g))
+
+
+def test_schema_refuses_the_exposure_tone_without_a_scene_reference():
+    from retinexgs.errors import UserError
+    from retinexgs.train.config import load_config
+    cfg = load_config(["ablations/tone_exposure"], [])
+    assert cfg["model"]["enhancement"]["tone"] == "exposure"
+    with pytest.raises((UserError, ValueError), match="ref_quantile"):
+        load_config(["ablations/tone_exposure"], ["model.enhancement.ref_quantile=null"])
