@@ -4,7 +4,7 @@ import sys
 
 BENCHES = {"raster": "retinexgs.bench.raster", "lr3m": "retinexgs.bench.lr3m", "fps": "retinexgs.bench.fps",
            "quality": "retinexgs.bench.quality",
-           "proxy": "retinexgs.bench.proxy", "train-speed": "retinexgs.bench.train_speed"}
+           "proxy": "retinexgs.bench.proxy", "retone": "retinexgs.bench.retone", "train-speed": "retinexgs.bench.train_speed"}
 
 
 def main() -> int:

@@ -89,6 +89,23 @@ def unpack_targets(packed: Tensor, decomposed: bool) -> Tuple[Tensor, Optional[T
     return packed[..., :3], packed[..., 3:6], packed[..., 6:]
 
 
+def enhancement_objective(model: RetinexGSModel, c: Dict, R_img: Tensor, L_img: Tensor, S_b: Tensor
+                          ) -> Tuple[Tensor, Dict[str, Tensor]]:
+    """L_enhance (weighted sum, unweighted terms) of the enhanced render of [H,W,3] maps R̂, L̂ against the
+    low-light view ``S_b`` [1,3,H,W], with the loss section ``c`` of a config. Unless
+    ``c["enhance_trains_scene"]``, R̂ and L̂ are detached: only the EnhancementNet learns from it."""
+    if not c["enhance_trains_scene"]:
+        # The paper trains the EnhancementNet alone with L_enhance: without this the exposure term would
+        # flatten R̂ and L̂ towards E instead of adjusting the gamma.
+        R_img, L_img = R_img.detach(), L_img.detach()
+    out = model.enhance(R_img, L_img)
+    light = to_bchw(out["L_enh"]) if c["exp_on"] == "illumination" else None
+    return losses.enhancement_loss(
+        to_bchw(out["rgb"]), S_b, c["w_spa"], c["w_exp"], c["w_col"], c["exposure_E"],
+        illumination=light, exp_patch=c["exp_patch"], exp_form=c["exp_form"], spa_form=c["spa_form"],
+        scale_invariant=c["enhance_scale_invariant"])
+
+
 def decompose_views(views: List[View], cfg: Dict, device: str, progress: bool, scene_root: Path) -> List:
     """(R, L) per view from the per-scene cache (computed where missing; ``retinexgs decompose`` fills the
     same cache, see :func:`retinexgs.retinex.cache.scene_cache_root`)."""
@@ -261,17 +278,7 @@ class Trainer:
         terms["tv"] = losses.tv_loss(R_hat)
         total = sup + c["w_tv"] * terms["tv"]
         if enhance:
-            if c["enhance_trains_scene"]:
-                out = self.model.enhance(R_img, L_img)
-            else:
-                # The paper trains the EnhancementNet alone with L_enhance: without this the exposure term would
-                # flatten R̂ and L̂ towards E instead of adjusting the gamma.
-                out = self.model.enhance(R_img.detach(), L_img.detach())
-            light = to_bchw(out["L_enh"]) if c["exp_on"] == "illumination" else None
-            enh, enh_terms = losses.enhancement_loss(
-                to_bchw(out["rgb"]), S_b, c["w_spa"], c["w_exp"], c["w_col"], c["exposure_E"],
-                illumination=light, exp_patch=c["exp_patch"], exp_form=c["exp_form"], spa_form=c["spa_form"],
-                scale_invariant=c["enhance_scale_invariant"])
+            enh, enh_terms = enhancement_objective(self.model, c, R_img, L_img, S_b)
             terms.update(enh_terms)
             total = total + enh
         return total, terms
