@@ -46,8 +46,9 @@ def test_retone_trains_the_enhancement_alone_and_scores_every_config(trained, ca
     # The new net moved from its initial gamma (1.0 for tone exposure) under L_enhance.
     g = m.enhance(maps[0][0], maps[0][1])["gamma"].detach()
     assert torch.isfinite(g).all() and float(g.mean()) != pytest.approx(1.0, abs=1e-7)
-    md = retone.run([run], ["default", "ablations/tone_exposure"], steps=2, device="cpu")
+    md = retone.run([run], ["default", "ablations/tone_exposure"], steps=2, device="cpu", seeds=[0, 1])
     rows = md.splitlines()[2:]
     assert len(rows) == 3 and "`ablations/tone_exposure`" in rows[-1] and "(the run's own" in rows[0]
+    assert " ± " in rows[-1]
     assert retone.main(["--runs", str(run), "--configs", "ablations/reflectance_sh0", "--steps", "1"]) == 2
     assert "only the enhancement" in capsys.readouterr().err

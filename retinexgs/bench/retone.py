@@ -1,6 +1,6 @@
 """Re-train only the enhancement of trained runs under other configs, and score each on the test views.
 
-    python -m retinexgs.bench retone --runs RUN... --configs NAME... [--steps 2000] [--device cpu] [--seed 0]
+    python -m retinexgs.bench retone --runs RUN... --configs NAME... [--steps 2000] [--seeds 1] [--device cpu]
 
 With ``loss.enhance_trains_scene: false`` (the default) L_enhance reaches only the EnhancementNet: R̂ and L̂
 are detached in its path, so the 3D scene a run learns does not depend on the enhancement's config. An
@@ -96,12 +96,13 @@ def retone(model, cfg: Dict, train_maps: List[Tuple[torch.Tensor, torch.Tensor, 
     return m
 
 
-def run(runs: Sequence[Path], configs: Sequence[str], steps: int, device: str, seed: int = 0) -> str:
-    """The markdown table: per run and config, test PSNR / SSIM and the mean predicted gamma."""
+def run(runs: Sequence[Path], configs: Sequence[str], steps: int, device: str, seeds: Sequence[int] = (0,)) -> str:
+    """The markdown table: per run and config, test PSNR / SSIM (mean ± sample std over the EnhancementNet's
+    ``seeds``: its initialisation and view order; the scene is the run's) and the mean predicted gamma."""
     from retinexgs.train.run import load_run
     from retinexgs.train.trainer import active_sh_degree, view_camera
 
-    lines = ["| run | config | PSNR / SSIM | mean g |", "|---|---|---|---|"]
+    lines = ["| run | config | PSNR / SSIM (± over enhancement seeds) | mean g |", "|---|---|---|---|"]
     for run_dir in runs:
         cfg, scene, model, step = load_run(run_dir, device)
         if cfg["method"] != "retinexgs":
@@ -128,18 +129,21 @@ def run(runs: Sequence[Path], configs: Sequence[str], steps: int, device: str, s
             lines.append(f"| {Path(run_dir).name} | (the run's own, trained with the scene) | "
                          f"{own['psnr']:.2f} / {own['ssim']:.3f} | – |")
         for name in configs:
-            m = retone(model, variant_config(cfg, name), train_maps, steps, seed)
-            scores, gammas = [], []
-            with torch.no_grad():
-                for (R, L, _), v in zip(test_maps, tests):
-                    out = m.enhance(R, L)
-                    gt = v.paired_image.to(R)
-                    scores.append((psnr(out["rgb"].float().cpu(), gt.float().cpu()),
-                                   ssim_metric(out["rgb"].float().cpu(), gt.float().cpu())))
-                    gammas.append(float(out["gamma"].mean()))
-            p = sum(s for s, _ in scores) / len(scores)
-            q = sum(s for _, s in scores) / len(scores)
-            lines.append(f"| {Path(run_dir).name} | `{name}` | {p:.2f} / {q:.3f} | {sum(gammas) / len(gammas):.2f} |")
+            variant = variant_config(cfg, name)
+            per_seed = []
+            for seed in seeds:
+                m = retone(model, variant, train_maps, steps, seed)
+                scores = []
+                with torch.no_grad():
+                    for (R, L, _), v in zip(test_maps, tests):
+                        out = m.enhance(R, L)
+                        rgb, gt = out["rgb"].float().cpu(), v.paired_image.float().cpu()
+                        scores.append((psnr(rgb, gt), ssim_metric(rgb, gt), float(out["gamma"].mean())))
+                per_seed.append(torch.tensor(scores, dtype=torch.float64).mean(0))
+            t = torch.stack(per_seed)
+            sd = t.std(0) if len(seeds) > 1 else torch.zeros(3, dtype=torch.float64)
+            lines.append(f"| {Path(run_dir).name} | `{name}` | {t[:, 0].mean():.2f} ± {sd[0]:.2f} / "
+                         f"{t[:, 1].mean():.3f} ± {sd[1]:.3f} | {t[:, 2].mean():.2f} |")
             print(lines[-1], file=sys.stderr, flush=True)
     return "\n".join(lines) + "\n"
 
@@ -149,14 +153,14 @@ def main(argv: Sequence[str]) -> int:
     ap.add_argument("--runs", nargs="+", type=Path, required=True, help="trained RetinexGS run folders")
     ap.add_argument("--configs", nargs="+", default=["default"], help="config names (default: the run's own)")
     ap.add_argument("--steps", type=int, default=2000, help="EnhancementNet steps per config (default 2000)")
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seeds", type=int, default=1, help="EnhancementNet seeds 0..N-1 per config (default 1)")
     ap.add_argument("--device", default="cpu")
     args = ap.parse_args(list(argv))
-    if args.steps < 1:
-        print("--steps must be at least 1", file=sys.stderr)
+    if args.steps < 1 or args.seeds < 1:
+        print("--steps and --seeds must be at least 1", file=sys.stderr)
         return 2
     try:
-        print(run(args.runs, args.configs, args.steps, args.device, args.seed))
+        print(run(args.runs, args.configs, args.steps, args.device, range(args.seeds)))
     except UserError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
