@@ -2,6 +2,8 @@
 import importlib
 import sys
 
+from retinexgs.openmp import bound_openmp_spinning
+
 BENCHES = {"raster": "retinexgs.bench.raster", "lr3m": "retinexgs.bench.lr3m", "fps": "retinexgs.bench.fps",
            "quality": "retinexgs.bench.quality",
            "proxy": "retinexgs.bench.proxy", "retone": "retinexgs.bench.retone", "train-speed": "retinexgs.bench.train_speed"}
@@ -12,6 +14,8 @@ def main() -> int:
         print(f"usage: python -m retinexgs.bench {{{','.join(BENCHES)}}} [options]", file=sys.stderr)
         return 2
     name = sys.argv[1]
+    if name in ("quality", "proxy", "retone"):  # not the timing benchmarks: their figures keep libgomp's default
+        bound_openmp_spinning()  # before torch loads; these often share the CPU with trainings (docs/benchmarks.md)
     try:
         module = importlib.import_module(BENCHES[name])
     except ModuleNotFoundError as exc:
