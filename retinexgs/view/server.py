@@ -208,13 +208,11 @@ def view_run(run_dir, host: str = "127.0.0.1", port: int = 8080, device: Optiona
     renderer = FrameRenderer(model, cfg, active_sh_degree(cfg, step), scene.train)
     on_gpu = model.gaussians.means.is_cuda
     viewer = RunViewer(renderer, snap_cameras(scene), host, port, default_scale=1.0 if on_gpu else 0.5, log=log)
-    log(f"retinexgs view: {run_dir} (step {step}, {len(model.gaussians)} Gaussians) at {viewer.url}")
-    if host not in ("127.0.0.1", "localhost", "::1"):
-        log(f"retinexgs view: bound to {host}: anyone who can reach this machine on port "
-            f"{viewer.server.get_port()} can see the scene")
     if not block:
+        _announce(viewer, run_dir, step, len(model.gaussians), host, log)
         return viewer
-    try:
+    try:  # from the URL line on: a Ctrl-C right after it (a user, a test) is a clean stop, not a traceback
+        _announce(viewer, run_dir, step, len(model.gaussians), host, log)
         while True:
             time.sleep(1.0)
     except KeyboardInterrupt:
@@ -222,3 +220,10 @@ def view_run(run_dir, host: str = "127.0.0.1", port: int = 8080, device: Optiona
     finally:
         viewer.stop()
     return viewer
+
+
+def _announce(viewer: RunViewer, run_dir, step: int, count: int, host: str, log: Callable[[str], None]) -> None:
+    log(f"retinexgs view: {run_dir} (step {step}, {count} Gaussians) at {viewer.url}")
+    if host not in ("127.0.0.1", "localhost", "::1"):
+        log(f"retinexgs view: bound to {host}: anyone who can reach this machine on port "
+            f"{viewer.server.get_port()} can see the scene")
