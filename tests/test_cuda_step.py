@@ -113,7 +113,8 @@ def check_config(scene_dir, tmp_path, name, device, emulate):
 # ---- CPU: the graphed path's plumbing, run eagerly --------------------------------------------------------------
 
 @pytest.mark.parametrize("name", ["default", "paper", "ablations/no_priors", "ablations/baseline_3dgs",
-                                  "ablations/baseline_pre", "ablations/no_sh"])
+                                  "ablations/baseline_pre", "ablations/no_sh", "ablations/tone_exposure",
+                                  "ablations/tone_exposure_auto", "ablations/scene_gamma"])
 def test_graphed_path_matches_eager_on_cpu(scene_dir, tmp_path, name, one_thread):
     tr = check_config(scene_dir, tmp_path, name, "cpu", emulate=True)
     assert len(tr.graphs) == 0  # nothing captured on the CPU

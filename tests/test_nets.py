@@ -122,3 +122,24 @@ def test_enhancement_learns_content_adaptive_gamma():
     # Ideal gammas: log(0.6)/log(0.04) ≈ 0.16 and log(0.6)/log(0.275) ≈ 0.39.
     assert g[0].mean() < g[1].mean() - 0.1
     assert float(loss.detach()) < float(exposure_loss(net.enhance(batch, g0), E=0.6, patch=8))
+
+
+def test_enhancement_per_scene_gamma_is_one_learned_constant():
+    """per_view=False: the same g for every input (the output bias through the range), learned by its loss; only
+    that bias is a used parameter, and it starts at init_gamma like the per-view net."""
+    net = EnhancementNet(init_gamma=0.45, per_view=False)
+    a, b = torch.rand(2, 3, 20, 30) * 0.1, torch.rand(1, 3, 7, 9)
+    ga, gb = net(a), net(b)
+    assert ga.shape == (2, 3, 1, 1) and torch.allclose(ga, torch.full_like(ga, 0.45), atol=1e-6)
+    assert torch.equal(ga[0], gb[0]) and torch.equal(ga[0], ga[1])
+    assert net.used_parameters() == [net.out.bias]
+    assert len(EnhancementNet().used_parameters()) == len(list(EnhancementNet().parameters()))
+    opt = torch.optim.Adam(net.used_parameters(), lr=0.05)
+    L = torch.rand(1, 3, 16, 16) * 0.3 + 0.05
+    for _ in range(200):  # exposure alone: the constant moves to the g that brings the mean to E
+        loss = exposure_loss(net.enhance(L, net(L)), E=0.6, patch=0)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert float(net.enhance(L, net(L)).mean()) == pytest.approx(0.6, abs=0.01)
+    assert all(p.grad is None for p in net.features.parameters())

@@ -50,14 +50,15 @@ def _allowed(key: Tuple[str, ...]) -> bool:
     return (key[:1] == ("loss",) and key[1:] and key[1] in ENHANCEMENT_LOSS_KEYS) or key == ("lr", "enhancement")
 
 
-def variant_config(run_cfg: Dict, name: str) -> Dict:
-    """The run's config with config file ``name`` applied ("default": the run's own), checked to change only
-    the enhancement (UserError naming the first other key it changes)."""
+def variant_config(run_cfg: Dict, name: str, overrides: Sequence[str] = ()) -> Dict:
+    """The run's config with config file ``name`` ("default": none) and then ``overrides`` (KEY=VALUE) applied,
+    checked to change only the enhancement (UserError naming the first other key it changes)."""
     from retinexgs.train.config import load_config
 
-    if name == "default":
+    if name == "default" and not overrides:
         return copy.deepcopy(run_cfg)
-    cfg = load_config([name], [], base=copy.deepcopy(run_cfg), base_label="the run's config")
+    cfg = load_config([] if name == "default" else [name], list(overrides), base=copy.deepcopy(run_cfg),
+                      base_label="the run's config")
     before = dict(_leaves(run_cfg))
     for key, value in _leaves(cfg):
         if before.get(key, object()) != value and not _allowed(key):
@@ -96,7 +97,8 @@ def retone(model, cfg: Dict, train_maps: List[Tuple[torch.Tensor, torch.Tensor, 
     return m
 
 
-def run(runs: Sequence[Path], configs: Sequence[str], steps: int, device: str, seeds: Sequence[int] = (0,)) -> str:
+def run(runs: Sequence[Path], configs: Sequence[str], steps: int, device: str, seeds: Sequence[int] = (0,),
+        overrides: Sequence[str] = ()) -> str:
     """The markdown table: per run and config, test PSNR / SSIM (mean ± sample std over the EnhancementNet's
     ``seeds``: its initialisation and view order; the scene is the run's) and the mean predicted gamma."""
     from retinexgs.train.run import load_run
@@ -129,7 +131,7 @@ def run(runs: Sequence[Path], configs: Sequence[str], steps: int, device: str, s
             lines.append(f"| {Path(run_dir).name} | (the run's own, trained with the scene) | "
                          f"{own['psnr']:.2f} / {own['ssim']:.3f} | – |")
         for name in configs:
-            variant = variant_config(cfg, name)
+            variant = variant_config(cfg, name, overrides)
             per_seed = []
             for seed in seeds:
                 m = retone(model, variant, train_maps, steps, seed)
@@ -155,12 +157,14 @@ def main(argv: Sequence[str]) -> int:
     ap.add_argument("--steps", type=int, default=2000, help="EnhancementNet steps per config (default 2000)")
     ap.add_argument("--seeds", type=int, default=1, help="EnhancementNet seeds 0..N-1 per config (default 1)")
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="enhancement override for every config, e.g. --set model.enhancement.per_view=false")
     args = ap.parse_args(list(argv))
     if args.steps < 1 or args.seeds < 1:
         print("--steps and --seeds must be at least 1", file=sys.stderr)
         return 2
     try:
-        print(run(args.runs, args.configs, args.steps, args.device, range(args.seeds)))
+        print(run(args.runs, args.configs, args.steps, args.device, range(args.seeds), args.set))
     except UserError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -22,7 +22,7 @@ that outputs C gamma logits: cost is independent of the rendered resolution.
 from __future__ import annotations
 
 import math
-from typing import Tuple
+from typing import List, Tuple
 
 import torch
 import torch.nn as nn
@@ -42,11 +42,14 @@ class EnhancementNet(nn.Module):
         max_side: the input is area-downsampled to at most this many pixels on its longer side.
         eps: floor applied to L̂ in :meth:`enhance` (keeps the power's gradient finite at 0).
         eps_in: floor for the log feature.
+        per_view: True (the paper): g is predicted from each view's L̂. False: one g for the whole scene, a
+            learned constant (the output layer's bias; the convolutions are unused), so every view, novel ones
+            included, gets the same exposure.
     """
 
     def __init__(self, channels: int = 3, widths: Tuple[int, int, int] = (16, 32, 32),
                  gamma_range: Tuple[float, float] = (0.1, 1.0), init_gamma: float = 0.4,
-                 max_side: int = 128, eps: float = 1e-3, eps_in: float = 1e-3) -> None:
+                 max_side: int = 128, eps: float = 1e-3, eps_in: float = 1e-3, per_view: bool = True) -> None:
         super().__init__()
         g_min, g_max = float(gamma_range[0]), float(gamma_range[1])
         if not 0.0 < g_min < g_max:
@@ -55,6 +58,7 @@ class EnhancementNet(nn.Module):
             raise ValueError("init_gamma must lie strictly inside gamma_range")
         self.channels, self.g_min, self.g_max = int(channels), g_min, g_max
         self.max_side, self.eps, self.eps_in = int(max_side), float(eps), float(eps_in)
+        self.per_view = bool(per_view)
         c1, c2, c3 = widths
         self.features = nn.Sequential(
             nn.Conv2d(2 * self.channels, c1, 3, stride=2, padding=1), nn.ReLU(inplace=True),
@@ -66,6 +70,11 @@ class EnhancementNet(nn.Module):
         nn.init.zeros_(self.out.weight)  # gradients still reach it (features are non-zero)
         nn.init.constant_(self.out.bias, math.log(t / (1.0 - t)))
 
+    def used_parameters(self) -> List[nn.Parameter]:
+        """The parameters the output depends on: all of them, or only the output bias with ``per_view`` off
+        (what a captured training step may differentiate: each must get a gradient)."""
+        return list(self.parameters()) if self.per_view else [self.out.bias]
+
     def _check(self, L: torch.Tensor) -> None:
         if L.dim() != 4 or L.shape[1] != self.channels:
             raise ValueError(f"expected L of shape [B,{self.channels},H,W], got {tuple(L.shape)}")
@@ -73,6 +82,9 @@ class EnhancementNet(nn.Module):
     def forward(self, L: torch.Tensor) -> torch.Tensor:
         """Gamma [B,C,1,1] in [g_min, g_max] for illumination maps ``L`` [B,C,H,W]."""
         self._check(L)
+        if not self.per_view:  # one learned g for the scene: the same in every view
+            z = self.out.bias.expand(L.shape[0], self.channels)
+            return (self.g_min + (self.g_max - self.g_min) * torch.sigmoid(z))[:, :, None, None]
         x = L.to(self.out.weight.dtype)
         h, w = x.shape[-2:]
         scale = self.max_side / max(h, w)

@@ -109,6 +109,7 @@ class Enhancement(Section):
                            Field(min_length=2, max_length=2), Expect("a list [low, high] of two numbers > 0")]
     init_gamma: Num(gt=0)
     per_channel: Bool
+    per_view: Bool
     tone: Choice("illumination", "signal", "exposure")
     ref_quantile: Annotated[Optional[Annotated[float, BeforeValidator(_yaml_number), Field(gt=0, le=1)]],
                             Expect("a quantile in (0, 1] (1 = the maximum) or null (no normalisation)")]

@@ -227,7 +227,7 @@ class Trainer:
         self.channel_graphs: Optional[ChannelGraphs] = None
         self._graph_failures_logged: set = set()
         if self.cfg["train"]["cuda_graphs"] and (self.device.type == "cuda" or emulate_graphs):
-            params = list(self.model.enhancement.parameters()) if self.decomposed else []
+            params = self.model.enhancement.used_parameters() if self.decomposed else []
             self.graphs = LossGraphs(self._graphed_loss, params, emulate=emulate_graphs)
             self.channel_graphs = ChannelGraphs(self.model, emulate=emulate_graphs)
 
