@@ -71,22 +71,13 @@ def retone(model, cfg: Dict, train_maps: List[Tuple[torch.Tensor, torch.Tensor, 
            seed: int = 0):
     """A copy of ``model`` whose EnhancementNet (and tone form) follow ``cfg`` and is trained ``steps`` steps on
     ``train_maps`` [(R̂, L̂, S)] with ``cfg``'s L_enhance; the scene's parameters are shared, not trained."""
-    from retinexgs.model.enhancement import EnhancementNet
     from retinexgs.train.trainer import enhancement_objective, to_bchw
 
     if cfg["loss"]["enhance_trains_scene"]:
         raise UserError("loss.enhance_trains_scene is true: the enhancement then changes the scene, re-train it")
     torch.manual_seed(seed)
     rng = random.Random(seed)
-    m = copy.copy(model)  # shallow: shares the Gaussians and the illumination field, which are not trained here
-    m._modules = dict(model._modules)
-    enh = dict(cfg["model"]["enhancement"])
-    m.per_channel_gamma = bool(enh.pop("per_channel"))
-    m.tone = str(enh.pop("tone"))
-    enh.pop("ref_quantile")
-    enh["gamma_range"] = tuple(enh["gamma_range"])
-    like = next(model.parameters())
-    m.enhancement = EnhancementNet(channels=3, **enh).to(like.device)
+    m = model.with_enhancement(cfg["model"]["enhancement"])
     opt = torch.optim.Adam(m.enhancement.parameters(), lr=cfg["lr"]["enhancement"])
     for _ in range(steps):
         R, L, S = train_maps[rng.randrange(len(train_maps))]

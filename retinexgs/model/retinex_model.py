@@ -17,6 +17,7 @@ The plain-3DGS baselines use the same Gaussians with 3 colour channels and no il
 """
 from __future__ import annotations
 
+import copy
 from typing import Dict, Optional, Tuple
 
 import torch
@@ -63,13 +64,26 @@ class RetinexGSModel(nn.Module):
         self.decomposed = decomposed
         if decomposed:
             self.illumination = IlluminationField(**model_cfg["illumination"])
-            enh = dict(model_cfg["enhancement"])
-            enh["gamma_range"] = tuple(enh["gamma_range"])
-            self.per_channel_gamma = bool(enh.pop("per_channel", False))
-            enh.pop("ref_quantile", None)  # the trainer's (it sets illum_ref)
-            self.tone = str(enh.pop("tone", "illumination"))
-            self.enhancement = EnhancementNet(channels=3, **enh)
+            self._set_enhancement(model_cfg["enhancement"])
             self.register_buffer("illum_ref", torch.ones(()))  # L_ref; set by the trainer from the 2D priors
+
+    def _set_enhancement(self, enh_cfg: Dict) -> None:
+        """A fresh EnhancementNet, the gamma's layout and the tone form from a ``model.enhancement`` section."""
+        enh = dict(enh_cfg)
+        enh["gamma_range"] = tuple(enh["gamma_range"])
+        self.per_channel_gamma = bool(enh.pop("per_channel", False))
+        enh.pop("ref_quantile", None)  # the trainer's (it sets illum_ref)
+        self.tone = str(enh.pop("tone", "illumination"))
+        self.enhancement = EnhancementNet(channels=3, **enh)
+
+    def with_enhancement(self, enh_cfg: Dict) -> "RetinexGSModel":
+        """A model that shares this one's Gaussians, illumination field and L_ref (not copied, not trained here)
+        with a fresh, untrained enhancement from ``enh_cfg`` (a ``model.enhancement`` section) on their device."""
+        other = copy.copy(self)
+        other._modules = dict(self._modules)  # its own module table: its new net leaves this model's in place
+        other._set_enhancement(enh_cfg)
+        other.enhancement.to(self.illum_ref.device)
+        return other
 
     def normalized_illumination(self, L: Tensor) -> Tensor:
         """L̂ / L_ref clamped to [0, 1]: the illumination the gamma acts on (any shape)."""
