@@ -4,13 +4,14 @@
 # e.g. 0:default:fox-dark,lom/buu,lom/sofa,lom/bike:4 0:paper:lom/buu:1 . Scenes are read from the carried folder
 # $DATA (default .data: copies of shared/data, never committed). Each group stops after ${LIMIT:-520} s (finished runs are kept);
 # the small results (metrics, logs, tables, contact sheets) are packed into $OUT.
-# The device machine has no pydantic (a requirement since issue 15): carry its wheels as .whl (device README:
-# pydantic, pydantic-core, annotated-types, typing-inspection for Python 3.12, manylinux x86_64).
+# The device machine has neither pydantic (a requirement since issue 15) nor pycolmap (the scenes' COLMAP points):
+# carry their wheels as .whl (device README: pydantic, pydantic-core, annotated-types, typing-inspection, pycolmap,
+# plyfile for Python 3.12, manylinux x86_64).
 set -uo pipefail
 OUT=${OUT:-gpu_out}; mkdir -p "$OUT"
 WHL=${WHL:-.whl}; DATA=${DATA:-.data}  # carried folders: wheels, scene copies without their caches (64 MiB in all)
-if ! python3 -c "import pydantic" 2>/dev/null; then
-  [ -d "$WHL" ] || { echo "pydantic is missing here: carry its wheels in $WHL (see the comment above)"; exit 1; }
+if ! python3 -c "import pydantic, pycolmap, plyfile" 2>/dev/null; then
+  [ -d "$WHL" ] || { echo "pydantic, pycolmap or plyfile is missing here: carry its wheels in $WHL (see the comment above)"; exit 1; }
   python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site "$WHL"/*.whl || exit 1
   export PYTHONPATH="/tmp/site${PYTHONPATH:+:$PYTHONPATH}"
 fi
