@@ -63,9 +63,14 @@ def test_texture_split_and_proxy_gamma():
     flat = torch.full((32, 32, 1), 0.5)
     assert proxy.texture_split(flat.expand(32, 32, 3), tex) == pytest.approx(1.0)
     assert proxy.texture_split(tex.expand(32, 32, 3), flat) == pytest.approx(0.0, abs=1e-9)
-    # With the default's loss (whole-image exposure of the light, L_col off) a uniform light v/ref = 0.25 gets
-    # the gamma whose light is E = 0.6 on average: g = log 0.6 / log 0.25 ≈ 0.37 (L_spa is scale-invariant: 0).
-    cfg = load_config([])
+    # With the previous default's loss (whole-image exposure of the light, L_col off) a uniform light
+    # v/ref = 0.25 gets the gamma whose light is E = 0.6 on average: g = log 0.6 / log 0.25 ≈ 0.37 (L_spa is
+    # scale-invariant: 0).
     R = torch.full((32, 32, 3), 0.7)
-    g = proxy.proxy_gamma(R, torch.full((32, 32, 1), 0.1), R * 0.1, 0.4, cfg)
+    g = proxy.proxy_gamma(R, torch.full((32, 32, 1), 0.1), R * 0.1, 0.4, load_config(["ablations/tone_illumination"]))
     assert g == pytest.approx(math.log(0.6) / math.log(0.25), abs=0.006)
+    # The default (a gain in linear light, the image metered at 0.5): srgb(k·lin(0.07)) = 0.5 with
+    # k = lin(0.4)^(-1/g), i.e. g = -log lin(0.4) / log(lin(0.5) / lin(0.07)) ≈ 0.568, on the 0.01 grid.
+    lin = lambda v: ((v + 0.055) / 1.055) ** 2.4  # noqa: E731  (sRGB decoding above 0.04045)
+    g = proxy.proxy_gamma(R, torch.full((32, 32, 1), 0.1), R * 0.1, 0.4, load_config([]))
+    assert g == pytest.approx(-math.log(lin(0.4)) / math.log(lin(0.5) / lin(0.07)), abs=0.011)

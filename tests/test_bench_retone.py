@@ -18,8 +18,9 @@ def trained(tmp_path_factory):
 def test_variant_config_takes_enhancement_keys_and_refuses_the_rest(trained):
     _, run = trained
     cfg, *_ = load_run(run)
-    exp = retone.variant_config(cfg, "ablations/tone_exposure")
-    assert exp["model"]["enhancement"]["tone"] == "exposure" and exp["steps"] == cfg["steps"]
+    old = retone.variant_config(cfg, "ablations/tone_illumination")
+    assert old["model"]["enhancement"]["tone"] == "illumination" and old["steps"] == cfg["steps"]
+    assert retone.variant_config(cfg, "ablations/exp_on_illumination")["loss"]["exp_on"] == "illumination"
     assert retone.variant_config(cfg, "ablations/with_col")["loss"]["w_col"] == 0.5
     assert retone.variant_config(cfg, "default") == cfg
     with pytest.raises(UserError, match="model.sh_degree"):
@@ -38,17 +39,17 @@ def test_retone_trains_the_enhancement_alone_and_scores_every_config(trained, ca
         for v in scene.train:
             res = model.render(view_camera(v), degree, enhance=False)
             maps.append((res["R"], res["L"], v.image.to(res["R"])))
-    m = retone.retone(model, retone.variant_config(cfg, "ablations/tone_exposure"), maps, steps=3)
-    assert m.tone == "exposure" and model.tone == "illumination"
+    m = retone.retone(model, retone.variant_config(cfg, "ablations/tone_illumination"), maps, steps=3)
+    assert m.tone == "illumination" and model.tone == "exposure"
     assert m.gaussians is model.gaussians and m.enhancement is not model.enhancement
     for k, v in model.state_dict().items():  # the run's model is untouched (its net too)
         assert torch.equal(v, before[k]), k
-    # The new net moved from its initial gamma (1.0 for tone exposure) under L_enhance.
+    # The new net moved from its initial gamma (0.45 for tone illumination) under L_enhance.
     g = m.enhance(maps[0][0], maps[0][1])["gamma"].detach()
-    assert torch.isfinite(g).all() and float(g.mean()) != pytest.approx(1.0, abs=1e-7)
-    md = retone.run([run], ["default", "ablations/tone_exposure"], steps=2, device="cpu", seeds=[0, 1])
+    assert torch.isfinite(g).all() and float(g.mean()) != pytest.approx(0.45, abs=1e-7)
+    md = retone.run([run], ["default", "ablations/exp_on_illumination"], steps=2, device="cpu", seeds=[0, 1])
     rows = md.splitlines()[2:]
-    assert len(rows) == 3 and "`ablations/tone_exposure`" in rows[-1] and "(the run's own" in rows[0]
+    assert len(rows) == 3 and "`ablations/exp_on_illumination`" in rows[-1] and "(the run's own" in rows[0]
     assert " ± " in rows[-1]
     assert retone.main(["--runs", str(run), "--configs", "ablations/reflectance_sh0", "--steps", "1"]) == 2
     assert "only the enhancement" in capsys.readouterr().err

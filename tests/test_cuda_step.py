@@ -113,8 +113,8 @@ def check_config(scene_dir, tmp_path, name, device, emulate):
 # ---- CPU: the graphed path's plumbing, run eagerly --------------------------------------------------------------
 
 @pytest.mark.parametrize("name", ["default", "paper", "ablations/no_priors", "ablations/baseline_3dgs",
-                                  "ablations/baseline_pre", "ablations/no_sh", "ablations/tone_exposure",
-                                  "ablations/tone_exposure_auto", "ablations/scene_gamma"])
+                                  "ablations/baseline_pre", "ablations/no_sh", "ablations/tone_illumination",
+                                  "ablations/exp_on_illumination", "ablations/scene_gamma"])
 def test_graphed_path_matches_eager_on_cpu(scene_dir, tmp_path, name, one_thread):
     tr = check_config(scene_dir, tmp_path, name, "cpu", emulate=True)
     assert len(tr.graphs) == 0  # nothing captured on the CPU
@@ -137,10 +137,12 @@ def test_graphed_training_loop_matches_eager_on_cpu(scene_dir, tmp_path, one_thr
             assert graphed[k] == pytest.approx(eager[k], rel=1e-3, abs=1e-7), k
 
 
-def test_eager_loss_is_the_papers_sum(scene_dir, tmp_path, one_thread):
+@pytest.mark.parametrize("name", ["default", "ablations/tone_illumination"])
+def test_eager_loss_is_the_papers_sum(scene_dir, tmp_path, one_thread, name):
     """Trainer.loss (the reference of the graphed path) against the loss functions composed by hand:
-    L_sup + w_tv·L_TV + w_sh·L_SH + L_enhance on the detached R̂, L̂ (the default)."""
-    tr = make_trainer(scene_dir, tmp_path / "ref", "default", "cpu")
+    L_sup + w_tv·L_TV + w_sh·L_SH + L_enhance on the detached R̂, L̂ (the default; L_exp on the image, or on
+    the enhanced light for the previous default)."""
+    tr = make_trainer(scene_dir, tmp_path / "ref", name, "cpu")
     c = tr.cfg["loss"]
     tv = tr.views[1]
     res = tr.model.render(tv.camera, 1)
@@ -150,7 +152,8 @@ def test_eager_loss_is_the_papers_sum(scene_dir, tmp_path, one_thread):
                                      c["lambda_ssim"])
     out = tr.model.enhance(res["R"].detach(), res["L"].detach())
     enh, _ = losses.enhancement_loss(to_bchw(out["rgb"]), S, c["w_spa"], c["w_exp"], c["w_col"], c["exposure_E"],
-                                     illumination=to_bchw(out["L_enh"]), exp_patch=c["exp_patch"],
+                                     illumination=to_bchw(out["L_enh"]) if c["exp_on"] == "illumination" else None,
+                                     exp_patch=c["exp_patch"],
                                      exp_form=c["exp_form"], spa_form=c["spa_form"],
                                      scale_invariant=c["enhance_scale_invariant"])
     want = sup + c["w_tv"] * losses.tv_loss(R_hat) + c["w_sh"] * losses.sh_sparsity_loss(

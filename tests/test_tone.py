@@ -85,10 +85,11 @@ def test_exposure_tone_gradients_match_finite_differences():
 def test_schema_refuses_the_exposure_tone_without_a_scene_reference():
     from retinexgs.errors import UserError
     from retinexgs.train.config import load_config
-    cfg = load_config(["ablations/tone_exposure"], [])
-    assert cfg["model"]["enhancement"]["tone"] == "exposure"
+    cfg = load_config([], [])
+    assert cfg["model"]["enhancement"]["tone"] == "exposure"  # the default since 2026-11-25
     with pytest.raises((UserError, ValueError), match="ref_quantile"):
-        load_config(["ablations/tone_exposure"], ["model.enhancement.ref_quantile=null"])
+        load_config([], ["model.enhancement.ref_quantile=null"])
+    assert load_config(["paper"], [])["model"]["enhancement"]["tone"] == "illumination"
 
 
 def test_a_run_with_the_exposure_tone_renders_exports_and_follows_the_exposure_control(tmp_path):

@@ -182,16 +182,18 @@ def test_cli_resume_needs_no_data_and_train_without_data_is_refused(scene_dir, t
 def test_enhancement_normalises_by_the_scene_illumination_level(scene_dir, tmp_path):
     """L_ref is the median over training views of a quantile of the prior L (default: its maximum), saved with
     the model, and the output is clip(R̂ ∘ (L̂/L_ref)^g, 0, 1) (clip(R̂^g ∘ (L̂/L_ref)^g, 0, 1) with tone "signal"):
-    a gamma of 1 gives back R̂ where L̂ = L_ref."""
-    tr = trainer_for(scene_dir, tmp_path / "run")
+    a gamma of 1 gives back R̂ where L̂ = L_ref. (Tone "exposure", the default, has its own tests: test_tone.py.)"""
+    tr = trainer_for(scene_dir, tmp_path / "run", ["model.enhancement.tone=illumination"])
     per_view = torch.stack([tv.L.reshape(-1).max() for tv in tr.views])
     ref = float(tr.model.illum_ref)
     assert ref == pytest.approx(float(per_view.median()), rel=1e-6)
-    p99 = trainer_for(scene_dir, tmp_path / "run99", ["model.enhancement.ref_quantile=0.99"])
+    p99 = trainer_for(scene_dir, tmp_path / "run99", ["model.enhancement.tone=illumination",
+                                                      "model.enhancement.ref_quantile=0.99"])
     per_view = torch.stack([tv.L.reshape(-1).quantile(0.99) for tv in p99.views])
     assert float(p99.model.illum_ref) == pytest.approx(float(per_view.median()), rel=2e-2)
     assert float(p99.model.illum_ref) < ref
-    paper = trainer_for(scene_dir, tmp_path / "run_paper", ["model.enhancement.ref_quantile=null"])
+    paper = trainer_for(scene_dir, tmp_path / "run_paper", ["model.enhancement.tone=illumination",
+                                                            "model.enhancement.ref_quantile=null"])
     assert float(paper.model.illum_ref) == 1.0  # the paper's L_enh = L̂^g
     assert 0.0 < ref < 1.0 and "illum_ref" in tr.model.state_dict()
     R = torch.rand(5, 7, 3)
@@ -212,17 +214,23 @@ def test_enhancement_normalises_by_the_scene_illumination_level(scene_dir, tmp_p
 
 
 def test_exposure_on_the_illumination_sets_the_gamma_the_image_level_does_not(scene_dir, tmp_path):
-    """The default measures L_exp on the enhanced light (L̂/L_ref)^g; the paper's placement on S_enh. Both terms
-    must match the loss functions on the corresponding maps."""
+    """The default meters L_exp on the whole enhanced image S_enh (a camera's averaging meter);
+    ``exp_on: illumination`` on the enhanced light L_enh; the paper's placement on 16×16 patches of S_enh. Each
+    term must match the loss functions on the corresponding maps."""
     from retinexgs.train import losses
     tr = trainer_for(scene_dir, tmp_path / "run", ["loss.enhance_from=1"])
     res = tr.model.render(tr.views[0].camera, 0)
     out = tr.model.enhance(res["R"].detach(), res["L"].detach())
     terms = tr.loss(res, tr.views[0], step=5)
     c = tr.cfg["loss"]
-    assert c["exp_on"] == "illumination" and c["exp_patch"] == 0
-    want = float(out["L_enh"].detach().mean() - c["exposure_E"]) ** 2
+    assert c["exp_on"] == "image" and c["exp_patch"] == 0 and c["exposure_E"] == 0.5
+    want = float(out["rgb"].detach().mean() - c["exposure_E"]) ** 2
     assert float(terms["exp"].detach()) == pytest.approx(want, rel=1e-4)
+    light = trainer_for(scene_dir, tmp_path / "run1", ["loss.enhance_from=1", "loss.exp_on=illumination"])
+    res1 = light.model.render(light.views[0].camera, 0)
+    out1 = light.model.enhance(res1["R"].detach(), res1["L"].detach())
+    want = float(out1["L_enh"].detach().mean() - c["exposure_E"]) ** 2
+    assert float(light.loss(res1, light.views[0], step=5)["exp"].detach()) == pytest.approx(want, rel=1e-4)
     img = trainer_for(scene_dir, tmp_path / "run2", ["loss.enhance_from=1", "loss.exp_on=image",
                                                   "loss.exp_patch=8"])
     res2 = img.model.render(img.views[0].camera, 0)

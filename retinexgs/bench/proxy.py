@@ -177,7 +177,7 @@ def run(scenes: Sequence[Path], configs: Sequence[str], n_views: int, device: st
 def main(argv: Sequence[str]) -> int:
     ap = argparse.ArgumentParser(prog="python -m retinexgs.bench proxy", description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenes", nargs="+", type=Path, required=True)
-    ap.add_argument("--configs", nargs="+", default=["default", "ablations/with_col", "ablations/exp_on_image",
+    ap.add_argument("--configs", nargs="+", default=["default", "ablations/with_col", "ablations/exp_patch16",
                                                      "ablations/not_scale_invariant", "ablations/ref_p99", "paper"])
     ap.add_argument("--views", type=int, default=4, help="training views per scene (default 4)")
     ap.add_argument("--device", default="cpu", help="where LR3M runs (cpu or cuda)")
