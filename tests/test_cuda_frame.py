@@ -72,8 +72,9 @@ CAM = make_camera(width=120, height=70, eye=(0.3, -0.2, -3.0))
 
 
 @pytest.mark.parametrize("per_channel", [False, True])
-def test_renderer_on_cuda_equals_model_render(per_channel):
-    model = make_model(per_channel=per_channel, n=3000).cuda()
+@pytest.mark.parametrize("tone", ["illumination", "exposure"])
+def test_renderer_on_cuda_equals_model_render(per_channel, tone):
+    model = make_model(per_channel=per_channel, n=3000, tone=tone).cuda()
     r = InferenceRenderer(model, 3)
     assert r.fused
     # Each size renders eagerly first, then through its graph (captured on the second frame) with changing

@@ -185,9 +185,12 @@ MODEL_CFG = {"illumination": {"pos_freqs": 10, "dir_freqs": 4, "hidden": 64, "de
                              "ref_quantile": 1.0}}
 
 
-def make_model(decomposed=True, per_channel=False, illumination=None, n=400, dtype=torch.float32):
-    cfg = {"illumination": dict(MODEL_CFG["illumination"], **(illumination or {})),
-           "enhancement": dict(MODEL_CFG["enhancement"], per_channel=per_channel)}
+def make_model(decomposed=True, per_channel=False, illumination=None, n=400, dtype=torch.float32,
+               tone="illumination"):
+    enh = dict(MODEL_CFG["enhancement"], per_channel=per_channel, tone=tone)
+    if tone == "exposure":  # the default's range and start
+        enh.update(gamma_range=[0.25, 2.0], init_gamma=1.0)
+    cfg = {"illumination": dict(MODEL_CFG["illumination"], **(illumination or {})), "enhancement": enh}
     g = make_gaussians(n=n, dtype=torch.float64)
     with torch.no_grad():
         g.means.mul_(0.6)
@@ -206,8 +209,9 @@ CAM = make_camera(width=40, height=30, eye=(0.3, -0.2, -3.0))
 
 @pytest.mark.parametrize("exposure, gamma", [(None, None), (0.7, None), (None, 0.5), (1.3, 0.8)])
 @pytest.mark.parametrize("per_channel", [False, True])
-def test_renderer_equals_model_render(exposure, gamma, per_channel):
-    model = make_model(per_channel=per_channel)
+@pytest.mark.parametrize("tone", ["illumination", "exposure"])
+def test_renderer_equals_model_render(exposure, gamma, per_channel, tone):
+    model = make_model(per_channel=per_channel, tone=tone)
     r = InferenceRenderer(model, 3, fused=True)
     assert r.fused
     res = r.render(CAM, exposure, gamma)
@@ -281,3 +285,24 @@ def test_renderer_follows_model_changes():
         ref = model.render(CAM, 3)["rgb"]
     for renderer in (r, snapshot):  # replaced parameters are noticed without live
         assert torch.allclose(renderer.render(CAM)["rgb"], ref, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("tone", ["illumination", "signal", "exposure"])
+def test_enhance_graph_body_equals_model_enhance(tone):
+    """The maths the frame graph captures on CUDA (exposure and the fixed gamma as device tensors, the switch
+    by torch.where), run eagerly on the CPU against RetinexGSModel.enhance for every setting."""
+    from retinexgs.model.inference import _EnhanceGraph
+    model = make_model(tone=tone, dtype=torch.float64)
+    g = torch.Generator().manual_seed(5)
+    image = torch.cat([torch.rand(12, 9, 3, generator=g), torch.rand(12, 9, 3, generator=g) * 0.3], -1).double()
+    body = _EnhanceGraph.__new__(_EnhanceGraph)  # its state without the capture (CUDA only)
+    body.model, body.image, body.size = model, image, 12 * 9 * 3
+    for exposure, gamma in [(None, None), (0.5, None), (2.0, None), (None, 0.7)]:
+        body.exposure = torch.tensor(1.0 if exposure is None else exposure, dtype=torch.float64)
+        body.fixed = torch.tensor(1.0 if gamma is None else gamma, dtype=torch.float64)
+        body.use_fixed = torch.tensor(gamma is not None)
+        with torch.no_grad():
+            out = body._body()
+            ref = model.enhance(image[..., :3], image[..., 3:], exposure, gamma)
+        torch.testing.assert_close(out[:body.size].view(12, 9, 3), ref["rgb"], rtol=0, atol=1e-12)
+        torch.testing.assert_close(out[body.size:], ref["gamma"], rtol=0, atol=1e-12)

@@ -136,3 +136,25 @@ def test_a_run_with_the_exposure_tone_renders_exports_and_follows_the_exposure_c
         with torch.no_grad():
             values.append(psnr(ply.clamp(0, 1), model.render(cam, 1)["rgb"]))
     assert min(values) >= 30.0, values  # measured 41.8-44.0 dB here (CPU, torch 2.13)
+
+
+def test_exposure_control_divides_the_light_with_the_exposure_tone_and_scales_g_with_the_gamma_tones():
+    from retinexgs.model.tone import apply_exposure, exposure_gain, linear_to_srgb, srgb_to_linear
+    g0 = torch.Generator().manual_seed(3)
+    R = torch.rand(6, 5, 3, generator=g0, dtype=torch.float64)
+    L = torch.rand(6, 5, 3, generator=g0, dtype=torch.float64) * 0.05
+    ref, g = torch.tensor(0.3, dtype=torch.float64), torch.tensor([0.9], dtype=torch.float64)
+    k = exposure_gain(ref, g)
+    for x in (0.25, 0.5, 2.0, 3.0):
+        ge = apply_exposure(g, x, ref, "exposure")
+        torch.testing.assert_close(exposure_gain(ref, ge), k / x)  # one stop per factor of two
+        S, _ = tone_map(R, L, ref, ge, "exposure")
+        torch.testing.assert_close(S, linear_to_srgb(k / x * srgb_to_linear(R * L)))
+        # the frame graph passes the factor as a device tensor: same value
+        torch.testing.assert_close(apply_exposure(g, torch.tensor(x, dtype=torch.float64), ref, "exposure"), ge)
+        for tone in ("illumination", "signal"):
+            torch.testing.assert_close(apply_exposure(g, x, ref, tone), g * x)
+    assert apply_exposure(g, 1.0, ref, "exposure") is g  # no change at all when unset
+    # Far darker than the capture: the gain stops near 1 (g large, finite), never negative or infinite.
+    dark = apply_exposure(g, 1e6, ref, "exposure")
+    assert torch.isfinite(dark).all() and float(exposure_gain(ref, dark)) == pytest.approx(1.0, abs=0.01)

@@ -207,7 +207,7 @@ def test_enhancement_normalises_by_the_scene_illumination_level(scene_dir, tmp_p
     sig.model.illum_ref.fill_(ref)
     half = sig.model.enhance(R, L * 0.25, gamma=0.5)["rgb"]
     assert torch.allclose(half, (R.clamp_min(1e-3) ** 0.5 * 0.5).clamp(0, 1), atol=1e-5)
-    # Exposure scales the predicted gamma: < 1 brighter.
+    # With a gamma tone exposure scales the predicted gamma: < 1 brighter.
     Ld = L * 0.2
     bright, base = tr.model.enhance(R, Ld, exposure=0.5)["rgb"], tr.model.enhance(R, Ld)["rgb"]
     assert float(bright.detach().mean()) > float(base.detach().mean())

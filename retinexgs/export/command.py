@@ -13,7 +13,9 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--force", action="store_true", help="overwrite existing output files")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     g = p.add_mutually_exclusive_group()
-    g.add_argument("--exposure", type=float, help="scale the predicted gamma (< 1 brighter, > 1 darker)")
+    g.add_argument("--exposure", type=float, metavar="X",
+                   help="brighten (< 1) or darken (> 1) the predicted exposure: the light / X with the default "
+                        "tone (0.5 = one stop brighter), the gamma × X with the gamma tones")
     g.add_argument("--gamma", type=float, help="use this gamma instead of the predicted one")
 
 

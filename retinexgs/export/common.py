@@ -23,7 +23,7 @@ def check_enhancement_flags(cfg: Dict, run_dir: Path, exposure: Optional[float],
         return
     flag = "--exposure" if exposure is not None else "--gamma"
     if exposure is not None and gamma is not None:
-        raise UserError("--exposure scales the predicted gamma and --gamma replaces it: give one of them")
+        raise UserError("--exposure adjusts the predicted gamma and --gamma replaces it: give one of them")
     if cfg.get("method") != "retinexgs":
         raise UserError(f"{flag} needs a RetinexGS run, but {run_dir} was trained with method="
                         f"{cfg.get('method')} (a plain-3DGS baseline has no illumination or gamma to change)")

@@ -17,6 +17,7 @@ from retinexgs.export import DEFAULT_DIRECTIONS
 from retinexgs.export.bake import bake_enhanced_sh, export_params, mean_gamma, reflectance_sh
 from retinexgs.export.common import check_enhancement_flags, check_writable_folder, read_run_config, refuse_existing
 from retinexgs.export.ply import write_ply
+from retinexgs.model.tone import apply_exposure
 from retinexgs.train.run import load_run
 from retinexgs.train.trainer import active_sh_degree, view_camera
 
@@ -26,7 +27,7 @@ def export_run(run_dir: Path, out: Path, reflectance_only: bool = False, directi
                force: bool = False, progress: bool = True, log: Callable[[str], None] = print) -> Path:
     """Write the run's Gaussians to the PLY ``out`` (refused if it exists unless ``force``); returns ``out``.
 
-    The baked gamma is the mean the EnhancementNet predicts over the training views, scaled by ``exposure``
+    The baked gamma is the mean the EnhancementNet predicts over the training views, adjusted by ``exposure``
     or replaced by ``gamma``; ``directions`` is the number of view directions of the SH fit.
     """
     run_dir, out = Path(run_dir), Path(out)
@@ -54,7 +55,9 @@ def export_run(run_dir: Path, out: Path, reflectance_only: bool = False, directi
             if not scene.train:
                 raise UserError(f"the scene of {run_dir} has no train views to average the gamma over; "
                                 "pass --gamma G")
-            g = mean_gamma(model, (view_camera(v) for v in scene.train), degree) * (exposure or 1.0)
+            g = mean_gamma(model, (view_camera(v) for v in scene.train), degree)
+            if exposure is not None:
+                g = apply_exposure(g, float(exposure), model.illum_ref.to(g), model.tone)
         from tqdm import tqdm
         with tqdm(total=len(model.gaussians), desc="bake", unit="gaussian", disable=not progress,
                   dynamic_ncols=True) as bar:

@@ -116,7 +116,7 @@ def render_run(run_dir: Path, views: Optional[str] = None, out: Optional[Path] =
     """Render ``maps`` of a run for its ``views`` (``test``, ``train``, ``val``) or a camera ``path`` (``orbit``,
     ``interpolate``; ``views="path"`` alone means an orbit); see the module docstring for the files.
 
-    ``exposure`` scales the predicted gamma (< 1 brighter), ``gamma`` replaces it (RetinexGS runs only).
+    ``exposure`` adjusts the predicted gamma (< 1 brighter), ``gamma`` replaces it (RetinexGS runs only).
     Everything is checked before anything is written. Returns the files written.
     """
     run_dir = Path(run_dir)

@@ -29,6 +29,7 @@ from torch import Tensor, nn
 
 from retinexgs.model.gaussians import GaussianModel
 from retinexgs.model.illumination import IlluminationField, encoded_dim
+from retinexgs.model.tone import apply_exposure
 from retinexgs.render._backend import kernels
 from retinexgs.render.camera import Camera
 
@@ -139,8 +140,9 @@ class _EnhanceGraph:
         R, L = self.image[..., :3], self.image[..., 3:6]
         L_bchw = self.model.normalized_illumination(L).permute(2, 0, 1).unsqueeze(0)
         g = self.model.predict_gamma(L_bchw)
-        # RetinexGSModel.enhance: gamma replaces g, else exposure scales it (exposure 1 when unset: exact).
-        g = torch.where(self.use_fixed, self.fixed, g * self.exposure)
+        # RetinexGSModel.enhance: gamma replaces g, else exposure adjusts it (exposure 1, when unset: g exactly).
+        exposed = apply_exposure(g, self.exposure, self.model.illum_ref, self.model.tone)
+        g = torch.where(self.use_fixed, self.fixed, torch.where(self.exposure == 1.0, g, exposed))
         rgb, _ = self.model.tone_map(R, L, g.reshape(-1))
         return torch.cat([rgb.reshape(-1), g.reshape(-1)])
 
@@ -260,7 +262,7 @@ class InferenceRenderer:
     def render(self, camera: Camera, exposure: Optional[float] = None, gamma: Optional[float] = None,
                degree: Optional[int] = None) -> FrameMaps:
         """The frame of ``camera``: ``rgb`` [H,W,3] equal to ``model.render(camera, degree, exposure, gamma)["rgb"]``
-        and, for RetinexGS, ``R``, ``L``, ``S_rec`` [H,W,3] and ``gamma`` [C]. ``exposure`` scales the predicted
+        and, for RetinexGS, ``R``, ``L``, ``S_rec`` [H,W,3] and ``gamma`` [C]. ``exposure`` adjusts the predicted
         gamma, ``gamma`` replaces it (RetinexGS only; baselines ignore both). ``degree`` overrides the SH degree
         of this and later frames (a live trainer raises it)."""
         if degree is not None:

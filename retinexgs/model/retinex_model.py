@@ -26,7 +26,7 @@ from torch import Tensor, nn
 from retinexgs.model.enhancement import EnhancementNet
 from retinexgs.model.gaussians import GaussianModel, sh_colors
 from retinexgs.model.illumination import IlluminationField
-from retinexgs.model.tone import tone_map
+from retinexgs.model.tone import apply_exposure, tone_map
 from retinexgs.render import Camera, rasterize_gaussians
 
 
@@ -93,13 +93,14 @@ class RetinexGSModel(nn.Module):
                 gamma: Optional[float] = None) -> Dict[str, Tensor]:
         """S_enh for [H,W,3] maps ``R``, ``L`` in the model's tone form (:mod:`retinexgs.model.tone`; by default
         clip(R̂ ∘ (L̂/L_ref)^g, 0, 1)); returns ``rgb``, ``L_enh`` (the enhanced light) [H,W,3] and ``gamma``
-        (flattened). ``exposure`` scales the predicted g (< 1 brighter); ``gamma`` replaces it."""
+        (flattened). ``exposure`` adjusts the predicted g (< 1 brighter: :func:`retinexgs.model.tone.apply_exposure`);
+        ``gamma`` replaces it."""
         L_bchw = self.normalized_illumination(L).permute(2, 0, 1).unsqueeze(0)
         g = self.predict_gamma(L_bchw)
         if gamma is not None:
             g = torch.full_like(g, float(gamma))
         elif exposure is not None:
-            g = g * float(exposure)
+            g = apply_exposure(g, float(exposure), self.illum_ref, self.tone)
         rgb, L_enh = self.tone_map(R, L, g.reshape(-1))
         return {"rgb": rgb, "L_enh": L_enh, "gamma": g.reshape(-1)}
 
@@ -130,7 +131,7 @@ class RetinexGSModel(nn.Module):
         """Render one view. Returns ``out`` (RenderOutput) and [H,W,3] maps: ``rgb`` (the model's output
         image: S_enh, or the plain render for baselines), and for RetinexGS ``R``, ``L``, ``S_rec``, ``gamma``.
 
-        ``exposure`` scales the predicted gamma (< 1 brighter, > 1 darker); ``gamma`` replaces it.
+        ``exposure`` brightens (< 1) or darkens (> 1) the predicted exposure; ``gamma`` replaces the gamma.
         ``validate=False`` skips the renderer's input checks (one host sync), for loops that check their
         parameters themselves. ``enhance=False`` skips the EnhancementNet (no ``rgb``, ``L_enh``, ``gamma``):
         training needs only R̂ and L̂ until the enhancement losses start. ``center``: the camera centre already

@@ -12,8 +12,9 @@ With ℓ = clip(L̂ / L_ref, 0, 1) (L_ref: the scene's full light, a constant of
   enhancement undoes the curve, applies the gain and re-encodes:
       S_enh = srgb(k · lin(R̂ ∘ L̂)),   L_enh = srgb(k · lin(L̂)),   k = lin(L_ref)^(−1/g).
   g keeps its role: at g = 1 the scene's full light L_ref maps to white (LR3M's L / max L, in linear light),
-  a smaller g is a longer exposure (log k = −log lin(L_ref) / g), so the EnhancementNet, ``--exposure``
-  (scales g: < 1 brighter) and ``--gamma`` work unchanged. A gamma curve on sRGB values instead lifts the
+  a smaller g is a longer exposure (log k = −log lin(L_ref) / g), so the EnhancementNet and ``--gamma`` work
+  unchanged; ``--exposure X`` divides the light by X here (k → k / X: 0.5 is one stop brighter) where the gamma
+  tones scale g by X (:func:`apply_exposure`). A gamma curve on sRGB values instead lifts the
   shadows more than the mid-tones (it flattens the image); a gain keeps the scene's contrast as the longer
   exposure records it, up to the curve's clipping of highlights.
 """
@@ -24,7 +25,7 @@ from typing import Tuple
 import torch
 from torch import Tensor
 
-__all__ = ["TONES", "srgb_to_linear", "linear_to_srgb", "exposure_gain", "tone_map"]
+__all__ = ["TONES", "srgb_to_linear", "linear_to_srgb", "exposure_gain", "apply_exposure", "tone_map"]
 
 TONES = ("illumination", "signal", "exposure")
 
@@ -45,6 +46,22 @@ def exposure_gain(illum_ref: Tensor, gamma: Tensor) -> Tensor:
     """k = lin(L_ref)^(−1/g), the linear-light gain of tone ``exposure`` (``gamma`` of any shape)."""
     log_ref = torch.log(srgb_to_linear(illum_ref.to(gamma)).clamp_min(1e-6))
     return torch.exp(-log_ref / gamma)
+
+
+def apply_exposure(gamma: Tensor, exposure, illum_ref: Tensor, tone: str) -> Tensor:
+    """g after the user's exposure factor X > 0 (``--exposure``, the viewer's slider; < 1 brighter, > 1 darker).
+
+    Tone ``exposure``: the gain is divided by X, k' = k / X (X = 0.5: twice the light, one photographic stop),
+    i.e. 1/g' = 1/g + log X / log lin(L_ref); a gain below 1 (darker than the capture) is not reached. Scaling g
+    there would raise the gain to the power 1/X (X = 0.5 squares a gain of 30). The gamma tones scale g by X.
+    ``exposure`` may be a float or a tensor (the frame graph keeps it on the device)."""
+    if tone != "exposure":
+        return gamma * exposure
+    if not torch.is_tensor(exposure) and float(exposure) == 1.0:
+        return gamma  # exactly, as with no exposure given
+    x = torch.as_tensor(exposure, dtype=gamma.dtype, device=gamma.device)
+    log_ref = torch.log(srgb_to_linear(illum_ref.to(gamma)).clamp_min(1e-6)).clamp_max(-1e-6)
+    return 1.0 / (1.0 / gamma + torch.log(x) / log_ref).clamp_min(1e-3)
 
 
 def tone_map(R: Tensor, L: Tensor, illum_ref: Tensor, gamma: Tensor, tone: str,

@@ -46,8 +46,8 @@ class _Client:
         maps = viewer.renderer.maps
         self.map = gui.add_dropdown("Map", [_LABELS[m] for m in maps], initial_value=_LABELS[maps[0]])
         decomposed = viewer.renderer.decomposed
-        self.exposure = gui.add_slider("Exposure (× gamma)", 0.2, 3.0, 0.05, 1.0, disabled=not decomposed,
-                                       hint="scales the predicted gamma: < 1 brighter, > 1 darker")
+        self.exposure = gui.add_slider("Exposure", 0.2, 3.0, 0.05, 1.0, disabled=not decomposed,
+                                       hint="< 1 brighter, > 1 darker (the light divided by it; with a gamma tone, the gamma times it)")
         self.use_gamma = gui.add_checkbox("Absolute gamma", False, disabled=not decomposed)
         self.gamma = gui.add_slider("Gamma", 0.05, 1.5, 0.01, 0.5, disabled=not decomposed)
         self.scale = gui.add_slider("Resolution scale", 0.1, 2.0, 0.05, viewer.default_scale)
