@@ -1,15 +1,16 @@
 """EnhancementNet: content-adaptive gamma for the rendered illumination map (paper Sec. II.D, Fig. 3).
 
 A small CNN looks at the rendered illumination map L̂ and predicts one gamma per image and per channel;
-the enhanced illumination is L_enh = L̂^g and the output image S_enh = R̂ ∘ L_enh. It is trained only
-by the unsupervised losses of Eq. 7 (see :func:`retinexgs.train.losses.enhancement_loss`).
+in the paper the enhanced illumination is L_enh = L̂^g and the output image S_enh = R̂ ∘ L_enh (the default
+tone instead sets a linear-light gain from g: :mod:`retinexgs.model.tone`). It is trained only by the
+unsupervised losses of Eq. 7 (see :func:`retinexgs.train.losses.enhancement_loss`).
 
 Layout: ``L`` is [B,3,H,W] (or [B,1,H,W]) float in [0, 1]; gamma is [B,C,1,1] and broadcasts against L.
 Use ``x.permute(2, 0, 1)[None]`` to turn a rendered [H,W,3] map into [1,3,H,W].
 
-Gamma range: g = g_min + (g_max − g_min)·sigmoid(z), default [0.1, 1.0]. With L̂ ∈ (0, 1), g < 1 lifts
-dark illumination and g = 1 leaves it unchanged; the net never darkens (g ≤ 1) and 0.1 bounds the lift
-(0.02^0.1 ≈ 0.68). The last layer starts at zero weights with its bias set so that the initial gamma is
+Gamma range: g = g_min + (g_max − g_min)·sigmoid(z), [0.1, 1.0] for the gamma tones (the default config's
+exposure tone uses [0.25, 2.0]). With L̂ ∈ (0, 1), g < 1 lifts dark illumination and g = 1 leaves it
+unchanged; the net never darkens (g ≤ 1) and 0.1 bounds the lift (0.02^0.1 ≈ 0.68). The last layer starts at zero weights with its bias set so that the initial gamma is
 ``init_gamma`` (default 0.4) for every input.
 
 Features: the network sees L̂ and its normalised logarithm log(L̂)/log(1/eps_in) — because

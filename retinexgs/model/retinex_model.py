@@ -2,8 +2,9 @@
 
 Per view: reflectance colours (SH, albedo) and illumination (MLP on PE(x), PE(d)) of every Gaussian are
 rasterized together as 6 channels, giving R̂ and L̂; the low-light reconstruction is R̂∘L̂ and the enhanced
-output S_enh = clip(R̂∘(L̂/L_ref)^g, 0, 1) with g predicted by the EnhancementNet from L̂/L_ref (one g per image
-by default).
+output S_enh is a tone map of R̂, L̂ with g predicted by the EnhancementNet from L̂/L_ref (one g per image by
+default): the default's longer exposure srgb(k·lin(R̂∘L̂)), k = lin(L_ref)^(−1/g), or the paper's
+clip(R̂∘(L̂/L_ref)^g, 0, 1) (``model.enhancement.tone``, :mod:`retinexgs.model.tone`).
 
 Why L_ref: L̂ lives in the photos' exposure scale (the 2D prior L is "in the scale of S", ~0.1-0.3 for a dark
 scene), and a gamma curve only brightens with the right contrast on an illumination normalised to [0, 1]

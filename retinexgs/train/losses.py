@@ -7,7 +7,8 @@ Decomposition loss (weights from the paper):
     L_decomp = L_sup + 0.01·L_TV + 0.01·L_SH
     L_sup    = 0.5·Ls(R̂, R) + 0.5·Ls(L̂, L) + 1·Ls(R̂∘L̂, S)                     (Eq. 4)
     Ls(x, y) = (1−λ)·|x−y|₁ + λ·(1 − SSIM(x, y)), λ = 0.2                   (3DGS's 0.8/0.2)
-Enhancement loss on S_enh = R̂∘L̂^g, switched on after step 3000 (the trainer decides):
+Enhancement loss on S_enh (R̂∘L̂^g in the paper; the tone map of ``model.enhancement.tone``), switched on after
+step 3000 (the trainer decides):
     L_enhance = 0.1·L_spa + 1·L_exp + 0.5·L_col                             (Eq. 7)
 
 Choices where the paper and the Zero-DCE reference code differ (each is an option; configs/paper.yaml
@@ -15,7 +16,8 @@ picks the paper's, configs/default.yaml the product's, with the reasons in the f
     - L_spa: Zero-DCE's squared differences of 4×4-pooled neighbour gradients, or the paper's L1 of
       full-resolution gradient differences (Eq. 8); optionally on mean-normalised images.
     - L_exp: squared (Zero-DCE's code) or absolute (Eq. 9) deviation of 16×16-pooled (or whole-image)
-      brightness from E, on the enhanced image (the paper) or on the enhanced illumination (the default).
+      brightness from E, on the enhanced image (the paper; the default over the whole image at E = 0.5) or on
+      the enhanced illumination (the previous default).
     - L_col: the paper's Σ(m_p − m_q)² by default; Zero-DCE's sqrt(Σ d^4) on request (it has an
       infinite gradient at a perfectly grey image, so it gets an eps inside the root).
     - L_SH: mean of squares (the default: its weight does not scale with the number of Gaussians) or the
