@@ -293,3 +293,20 @@ def test_out_not_writable(originals, tmp_path, capsys, no_scene_load, monkeypatc
         os.chmod(ro, 0o700)
     assert code == 2 and f"--out {ro / 'run'}: cannot write in {ro} (Permission denied)" in err, err
     assert list(ro.iterdir()) == []
+
+
+def test_a_run_older_than_a_key_gets_the_behaviour_it_was_trained_with(run):
+    """A config.yaml without keys added later is filled from default.yaml, except keys whose default changed since
+    they were added: a run from before ``model.enhancement.tone`` was trained with the gamma on L̂, so it must
+    render that way, not with today's default tone."""
+    from retinexgs.train.resume import read_run_config
+    raw = recorded(run)
+    assert raw["model"]["enhancement"]["tone"] == "exposure"  # a run made today records it
+    del raw["model"]["enhancement"]["tone"]
+    del raw["model"]["enhancement"]["per_view"]
+    (run / "config.yaml").write_text(yaml.safe_dump(raw))
+    lines = []
+    cfg, _ = read_run_config(run, lines.append)
+    assert cfg["model"]["enhancement"]["tone"] == "illumination"
+    assert cfg["model"]["enhancement"]["per_view"] is True  # unchanged default: filled from default.yaml
+    assert "model.enhancement.tone" in lines[0] and "model.enhancement.per_view" in lines[0]

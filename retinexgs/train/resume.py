@@ -75,12 +75,19 @@ def run_lock(run_dir: Path) -> Iterator[None]:
 
 # ---- the config of a resumed run ----------------------------------------------------------------------------
 
+# Keys whose default changed after they were added: a run made before the key existed behaved as the value here,
+# not as today's default (which would re-render it differently). The tone form was the gamma on L̂ until
+# 2026-11-25, when the exposure tone became the default.
+PREDATING_VALUES: Dict[str, Any] = {"model.enhancement.tone": "illumination"}
+
+
 def _fill_missing(cfg: Config, default: Config, prefix: str, filled: List[str]) -> Config:
-    """Keys added to default.yaml after the run was made get their default (a run folder outlives versions)."""
+    """Keys added to default.yaml after the run was made get the behaviour the run had: the value in
+    :data:`PREDATING_VALUES` where the default changed since, else their default (a run folder outlives versions)."""
     out = dict(cfg)
     for key, value in default.items():
         if key not in out:
-            out[key] = copy.deepcopy(value)
+            out[key] = copy.deepcopy(PREDATING_VALUES.get(prefix + key, value))
             filled.append(prefix + key)
         elif isinstance(value, dict) and isinstance(out[key], dict) and key != "params":
             out[key] = _fill_missing(out[key], value, f"{prefix}{key}.", filled)
@@ -99,7 +106,7 @@ def read_run_config(run_dir: Path, log: Optional[Callable[[str], None]] = None) 
     filled: List[str] = []
     raw = _fill_missing(raw, read_yaml(configs_dir() / "default.yaml"), "", filled)
     if filled and log is not None:
-        log(f"{path} predates config keys {', '.join(filled)}: using their defaults")
+        log(f"{path} predates config keys {', '.join(filled)}: using the values that match how it was trained")
     return load_config(base=raw, base_label=str(path)), Path(scene)
 
 
