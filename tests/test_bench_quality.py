@@ -21,7 +21,7 @@ def test_parse_seeds():
 
 
 def _fake_run(job, psnr, ssim, width=8, height=6, panels=5):
-    job.run.mkdir(parents=True)
+    job.run.mkdir(parents=True, exist_ok=True)
     views = []
     for k, name in enumerate(("a", "b")):
         img = np.zeros((height, width * panels, 3), np.uint8)
@@ -74,3 +74,38 @@ def test_texture_split_and_proxy_gamma():
     lin = lambda v: ((v + 0.055) / 1.055) ** 2.4  # noqa: E731  (sRGB decoding above 0.04045)
     g = proxy.proxy_gamma(R, torch.full((32, 32, 1), 0.1), R * 0.1, 0.4, load_config([]))
     assert g == pytest.approx(-math.log(lin(0.4)) / math.log(lin(0.5) / lin(0.07)), abs=0.011)
+
+
+def test_a_cut_off_run_resumes_from_its_checkpoint_and_its_time_is_left_out(tmp_path, monkeypatch):
+    """run_job: a run folder with a checkpoint but no metrics (cut off by a time limit) continues with
+    ``train --resume``; one without a checkpoint starts again; the resumed run's partial train time is not
+    averaged into the table."""
+    from retinexgs.train.checkpoint import latest_checkpoint
+
+    jobs = quality.plan([tmp_path / "s1"], ["default"], [0, 1], tmp_path / "runs")
+    calls = []
+
+    def fake_run(cmd, stdout, stderr):
+        calls.append(cmd)
+        run = __import__("pathlib").Path(cmd[cmd.index("--out") + 1])
+        run.mkdir(parents=True, exist_ok=True)
+        _fake_run(next(j for j in jobs if j.run == run), 20.0, 0.5)
+        return type("Done", (), {"returncode": 0})()
+
+    monkeypatch.setattr(quality.subprocess, "run", fake_run)
+    cut, fresh = jobs
+    (cut.run / "checkpoints").mkdir(parents=True)
+    torch.save({"step": 2000}, cut.run / "checkpoints" / "step_002000.pt")
+    assert latest_checkpoint(cut.run) is not None, "the fixture's checkpoint name must be one the trainer lists"
+    fresh.run.mkdir(parents=True)
+    (fresh.run / "stale.txt").write_text("cut off before its first checkpoint")
+    assert quality.run_job(cut, "cpu", None, []).endswith("(resumed)")
+    assert "--resume" in calls[0] and "--data" not in calls[0] and (cut.run / quality.RESUMED).is_file()
+    assert not quality.run_job(fresh, "cpu", None, []).endswith("(resumed)")
+    assert "--resume" not in calls[1] and not (fresh.run / "stale.txt").exists()
+    assert quality.run_job(fresh, "cpu", None, []).startswith("reused") and len(calls) == 2
+    row = next(line for line in quality.table(jobs, ["default"]).splitlines() if line.startswith("| `default`"))
+    assert "(10 s)" in row  # both runs report 10 s; only the fresh one counts, and its mean is 10 s
+    (fresh.run / quality.RESUMED).write_text("")
+    row = next(line for line in quality.table(jobs, ["default"]).splitlines() if line.startswith("| `default`"))
+    assert " s)" not in row  # no run trained in one go: no time shown

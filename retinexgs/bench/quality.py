@@ -5,7 +5,7 @@ sheet per scene (low | each config | truth).
 
 Runs go to ``RUNS/<scene>/<config>/seed<k>`` (``default`` = configs/default.yaml alone). A run whose
 ``metrics.json`` exists is reused, not retrained: seeds can be trained in several calls (``--seeds 1,2``) and
-the table rebuilt from all of them (``--no-train``). Jobs run side by side as separate ``retinexgs train``
+the table rebuilt from all of them (``--no-train``); a run cut off after a checkpoint is resumed from it. Jobs run side by side as separate ``retinexgs train``
 processes (several trainings share one GPU well: the training step is launch-bound).
 """
 from __future__ import annotations
@@ -78,18 +78,32 @@ def train_command(job: Job, device: str, steps: Optional[int], extra: Sequence[s
     return cmd
 
 
+RESUMED = "bench_resumed"  # marker in a run folder: the benchmark resumed it, so its train time is partial
+
+
 def run_job(job: Job, device: str, steps: Optional[int], extra: Sequence[str]) -> str:
-    """Train one job (its log goes to RUN.log); returns a one-line status."""
+    """Train one job (its log goes to RUN.log); returns a one-line status. A run cut off earlier (e.g. by a
+    device call's time limit) continues from its newest checkpoint, so the steps it trained are not paid for
+    twice; it is marked (:data:`RESUMED`) and its train time, which then covers only the last segment, is left
+    out of the table. Without a checkpoint it starts again."""
+    from retinexgs.train.checkpoint import latest_checkpoint
+
     if job.metrics_path.is_file():
         return f"reused  {job.run}"
-    if job.run.exists():  # a run cut off earlier: start it again from scratch
+    cmd = train_command(job, device, steps, extra)
+    resumed = job.run.exists() and latest_checkpoint(job.run) is not None
+    if resumed:
+        cmd = [sys.executable, "-m", "retinexgs", "train", "--out", str(job.run), "--resume", "--device", device,
+               "--quiet"]
+        (job.run / RESUMED).write_text(f"resumed from {latest_checkpoint(job.run).name}\n")
+    elif job.run.exists():  # cut off before its first checkpoint: start it again
         shutil.rmtree(job.run)
     job.run.parent.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
-    with open(f"{job.run}.log", "w") as log:
-        rc = subprocess.run(train_command(job, device, steps, extra), stdout=log, stderr=subprocess.STDOUT).returncode
+    with open(f"{job.run}.log", "a" if resumed else "w") as log:
+        rc = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT).returncode
     status = "ok" if rc == 0 and job.metrics_path.is_file() else f"FAILED (exit {rc}, see {job.run}.log)"
-    return f"{status:7s} {job.run} in {time.time() - t0:.0f} s"
+    return f"{status:7s} {job.run} in {time.time() - t0:.0f} s" + (" (resumed)" if resumed else "")
 
 
 def read_metrics(job: Job) -> Optional[Dict]:
@@ -120,8 +134,8 @@ def table(jobs: Sequence[Job], configs: Sequence[str]) -> str:
         if m is None:
             continue
         s = scene_label(j.scene)
-        results.setdefault((s, j.config), []).append((j.seed, m["mean"]["psnr"], m["mean"]["ssim"],
-                                                     m.get("train", {}).get("train_seconds")))
+        secs = None if (j.run / RESUMED).is_file() else m.get("train", {}).get("train_seconds")
+        results.setdefault((s, j.config), []).append((j.seed, m["mean"]["psnr"], m["mean"]["ssim"], secs))
         low[s] = (m["mean"]["low_psnr"], m["mean"]["low_ssim"])
     head = "| config | " + " | ".join(scenes) + " | mean |"
     lines = [head, "|" + "---|" * (len(scenes) + 2)]
@@ -143,7 +157,7 @@ def table(jobs: Sequence[Job], configs: Sequence[str]) -> str:
         n = sorted({len(results.get((s, c), [])) for s in scenes})
         lines.append(f"| `{c}` (n={'/'.join(map(str, n))}) | " + " | ".join(cells) + f" | {mean_cell} |")
     return "\n".join(lines) + "\n\nPSNR (dB) / SSIM on the test views against the normal-light photos, mean ± sample " \
-        "std over seeds (n = seeds per scene); (s) = mean training time. The mean column averages each seed's " \
+        "std over seeds (n = seeds per scene); (s) = mean training time (of the runs trained in one go). The mean column averages each seed's " \
         "scene means (seeds with every scene only).\n"
 
 
