@@ -5,8 +5,9 @@ sheet per scene (low | each config | truth).
 
 Runs go to ``RUNS/<scene>/<config>/seed<k>`` (``default`` = configs/default.yaml alone). A run whose
 ``metrics.json`` exists is reused, not retrained: seeds can be trained in several calls (``--seeds 1,2``) and
-the table rebuilt from all of them (``--no-train``); a run cut off after a checkpoint is resumed from it. Jobs run side by side as separate ``retinexgs train``
-processes (several trainings share one GPU well: the training step is launch-bound).
+the table rebuilt from all of them (``--no-train``); a run cut off after a checkpoint is resumed from it. Jobs
+run side by side as separate ``retinexgs train`` processes (several trainings share one GPU well: the training
+step is launch-bound).
 """
 from __future__ import annotations
 
@@ -157,8 +158,8 @@ def table(jobs: Sequence[Job], configs: Sequence[str]) -> str:
         n = sorted({len(results.get((s, c), [])) for s in scenes})
         lines.append(f"| `{c}` (n={'/'.join(map(str, n))}) | " + " | ".join(cells) + f" | {mean_cell} |")
     return "\n".join(lines) + "\n\nPSNR (dB) / SSIM on the test views against the normal-light photos, mean ± sample " \
-        "std over seeds (n = seeds per scene); (s) = mean training time (of the runs trained in one go). The mean column averages each seed's " \
-        "scene means (seeds with every scene only).\n"
+        "std over seeds (n = seeds per scene); (s) = mean training time (of the runs trained in one go). The " \
+        "mean column averages each seed's scene means (seeds with every scene only).\n"
 
 
 def contact_sheet(jobs: Sequence[Job], configs: Sequence[str], scene: str, out: Path, views: int = 2) -> Optional[Path]:

@@ -10,8 +10,8 @@ Use ``x.permute(2, 0, 1)[None]`` to turn a rendered [H,W,3] map into [1,3,H,W].
 
 Gamma range: g = g_min + (g_max − g_min)·sigmoid(z), [0.1, 1.0] for the gamma tones (the default config's
 exposure tone uses [0.25, 2.0]). With L̂ ∈ (0, 1), g < 1 lifts dark illumination and g = 1 leaves it
-unchanged; the net never darkens (g ≤ 1) and 0.1 bounds the lift (0.02^0.1 ≈ 0.68). The last layer starts at zero weights with its bias set so that the initial gamma is
-``init_gamma`` (default 0.4) for every input.
+unchanged; the net never darkens (g ≤ 1) and 0.1 bounds the lift (0.02^0.1 ≈ 0.68). The last layer starts at
+zero weights with its bias set so that the initial gamma is ``init_gamma`` (default 0.4) for every input.
 
 Features: the network sees L̂ and its normalised logarithm log(L̂)/log(1/eps_in) — because
 L̂^g = exp(g·log L̂), the gamma that reaches a target exposure depends on log L̂, and the log channel

@@ -92,10 +92,9 @@ class RetinexGSModel(nn.Module):
 
     def enhance(self, R: Tensor, L: Tensor, exposure: Optional[float] = None,
                 gamma: Optional[float] = None) -> Dict[str, Tensor]:
-        """S_enh for [H,W,3] maps ``R``, ``L`` in the model's tone form (:mod:`retinexgs.model.tone`; by default
-        clip(R̂ ∘ (L̂/L_ref)^g, 0, 1)); returns ``rgb``, ``L_enh`` (the enhanced light) [H,W,3] and ``gamma``
-        (flattened). ``exposure`` adjusts the predicted g (< 1 brighter: :func:`retinexgs.model.tone.apply_exposure`);
-        ``gamma`` replaces it."""
+        """S_enh for [H,W,3] maps ``R``, ``L`` in the model's tone form (:mod:`retinexgs.model.tone`); returns
+        ``rgb``, ``L_enh`` (the enhanced light) [H,W,3] and ``gamma`` (flattened). ``exposure`` adjusts the
+        predicted g (< 1 brighter: :func:`retinexgs.model.tone.apply_exposure`); ``gamma`` replaces it."""
         L_bchw = self.normalized_illumination(L).permute(2, 0, 1).unsqueeze(0)
         g = self.predict_gamma(L_bchw)
         if gamma is not None:

@@ -42,10 +42,14 @@ def linear_to_srgb(x: Tensor) -> Tensor:
     return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp_min(0.0031308) ** (1.0 / 2.4) - 0.055)
 
 
+def _log_lin_ref(illum_ref: Tensor, like: Tensor) -> Tensor:
+    """log lin(L_ref), kept below 0 (L_ref < 1: a dark scene's light), in ``like``'s dtype and device."""
+    return torch.log(srgb_to_linear(illum_ref.to(like)).clamp_min(1e-6)).clamp_max(-1e-6)
+
+
 def exposure_gain(illum_ref: Tensor, gamma: Tensor) -> Tensor:
     """k = lin(L_ref)^(−1/g), the linear-light gain of tone ``exposure`` (``gamma`` of any shape)."""
-    log_ref = torch.log(srgb_to_linear(illum_ref.to(gamma)).clamp_min(1e-6))
-    return torch.exp(-log_ref / gamma)
+    return torch.exp(-_log_lin_ref(illum_ref, gamma) / gamma)
 
 
 def apply_exposure(gamma: Tensor, exposure, illum_ref: Tensor, tone: str) -> Tensor:
@@ -60,8 +64,7 @@ def apply_exposure(gamma: Tensor, exposure, illum_ref: Tensor, tone: str) -> Ten
     if not torch.is_tensor(exposure) and float(exposure) == 1.0:
         return gamma  # exactly, as with no exposure given
     x = torch.as_tensor(exposure, dtype=gamma.dtype, device=gamma.device)
-    log_ref = torch.log(srgb_to_linear(illum_ref.to(gamma)).clamp_min(1e-6)).clamp_max(-1e-6)
-    return 1.0 / (1.0 / gamma + torch.log(x) / log_ref).clamp_min(1e-3)
+    return 1.0 / (1.0 / gamma + torch.log(x) / _log_lin_ref(illum_ref, gamma)).clamp_min(1e-3)
 
 
 def tone_map(R: Tensor, L: Tensor, illum_ref: Tensor, gamma: Tensor, tone: str,
