@@ -1,7 +1,9 @@
 """Random Gaussian scenes and cameras for the tests (built here; no data files)."""
 from __future__ import annotations
 
+import importlib.util
 import math
+from pathlib import Path
 
 import torch
 
@@ -73,3 +75,12 @@ def tiny_trained_run(base, overrides=TINY_RUN, n_train=3, n_test=1, width=24, he
     if baseline_overrides is not None:
         return scene, base / "run", base / "base"
     return scene, base / "run"
+
+
+def load_script(name: str):
+    """The module of ``scripts/<name>.py`` (the development scripts are not a package)."""
+    path = Path(__file__).resolve().parents[1] / "scripts" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod

@@ -1,20 +1,14 @@
 """scripts/exposure_rules.py: each rule is met exactly, and the oracle recovers a known exposure."""
-import importlib.util
-from pathlib import Path
-
 import pytest
 import torch
 
 from retinexgs.model.tone import tone_map
 
-ROOT = Path(__file__).resolve().parents[1]
+from scenes import load_script
 
 
 def load():
-    spec = importlib.util.spec_from_file_location("exposure_rules", ROOT / "scripts" / "exposure_rules.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("exposure_rules")
 
 
 def maps(seed=0):

@@ -1,5 +1,4 @@
 """scripts/gap_analysis.py: its tone oracles recover a pure tone change and leave structure alone."""
-import importlib.util
 import json
 from pathlib import Path
 
@@ -7,14 +6,10 @@ import numpy as np
 import pytest
 from PIL import Image
 
-ROOT = Path(__file__).resolve().parents[1]
-
+from scenes import load_script
 
 def load():
-    spec = importlib.util.spec_from_file_location("gap_analysis", ROOT / "scripts" / "gap_analysis.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("gap_analysis")
 
 
 def fake_run(tmp: Path, name: str, make_output) -> Path:
