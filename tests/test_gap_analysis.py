@@ -8,6 +8,7 @@ from PIL import Image
 
 from scenes import load_script
 
+
 def load():
     return load_script("gap_analysis")
 
