@@ -218,7 +218,8 @@ def test_export_refuses_an_existing_file_unless_forced(run_dir, tmp_path, capsys
     (["render", "--path", "spiral"], "unknown --path 'spiral'"),
     (["render", "--views", "test", "--path", "orbit"], "cannot be combined with --views test"),
     (["render", "--maps", "enhanced,albedo"], "unknown map 'albedo'"),
-    (["render", "--exposure", "-1"], "--exposure must be a positive number"),
+    (["render", "--exposure", "-1"], "--exposure must be a positive finite number"),
+    (["render", "--exposure", "inf"], "--exposure must be a positive finite number, got inf"),
     (["export", "--out", "x.ply", "--directions", "3"], "--directions must be at least 4"),
     (["export", "--out", "x.ply", "--reflectance-only", "--gamma", "0.5"], "--reflectance-only"),
 ])

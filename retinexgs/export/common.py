@@ -1,6 +1,7 @@
 """Checks shared by ``render`` and ``export``: run config, enhancement flags, output overwrites."""
 from __future__ import annotations
 
+import math
 import tempfile
 from pathlib import Path
 from typing import Dict, Iterable, Optional
@@ -28,8 +29,8 @@ def check_enhancement_flags(cfg: Dict, run_dir: Path, exposure: Optional[float],
         raise UserError(f"{flag} needs a RetinexGS run, but {run_dir} was trained with method="
                         f"{cfg.get('method')} (a plain-3DGS baseline has no illumination or gamma to change)")
     value = exposure if exposure is not None else gamma
-    if not value > 0:
-        raise UserError(f"{flag} must be a positive number, got {value}")
+    if not (value > 0 and math.isfinite(value)):
+        raise UserError(f"{flag} must be a positive finite number, got {value}")
 
 
 def refuse_existing(paths: Iterable[Path], force: bool) -> None:
