@@ -123,3 +123,13 @@ def test_cli_prints_the_url_serves_and_stops_on_ctrl_c(run_dir):
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+def test_the_absolute_gamma_slider_spans_the_runs_gamma_range():
+    from types import SimpleNamespace
+
+    from retinexgs.view.server import gamma_slider_range
+    model = lambda lo, hi: SimpleNamespace(enhancement=SimpleNamespace(g_min=lo, g_max=hi))  # noqa: E731
+    assert gamma_slider_range(model(0.25, 2.0)) == (0.12, 2.5)  # the exposure tone (the default)
+    assert gamma_slider_range(model(0.1, 1.0)) == (0.05, 1.25)  # the gamma tones
+    assert gamma_slider_range(None) == (0.05, 1.5)  # a baseline: the slider is disabled anyway

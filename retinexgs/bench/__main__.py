@@ -6,7 +6,8 @@ from retinexgs.openmp import bound_openmp_spinning
 
 BENCHES = {"raster": "retinexgs.bench.raster", "lr3m": "retinexgs.bench.lr3m", "fps": "retinexgs.bench.fps",
            "quality": "retinexgs.bench.quality",
-           "proxy": "retinexgs.bench.proxy", "retone": "retinexgs.bench.retone", "train-speed": "retinexgs.bench.train_speed"}
+           "proxy": "retinexgs.bench.proxy", "retone": "retinexgs.bench.retone",
+           "train-speed": "retinexgs.bench.train_speed"}
 
 
 def main() -> int:

@@ -26,7 +26,7 @@ from retinexgs.evaluate.metrics import ssim_metric
 from retinexgs.model.tone import tone_map
 from retinexgs.train import losses
 
-GAMMAS = torch.linspace(0.1, 1.0, 91)  # the EnhancementNet's default range
+GAMMAS = torch.linspace(0.1, 1.0, 91)  # the gamma tones' range (the oracles of the gamma on L)
 RAW_GAMMAS = torch.linspace(0.05, 1.0, 96)
 
 

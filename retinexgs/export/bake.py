@@ -12,7 +12,8 @@ Gaussian, the convention of both the SH and the illumination field) and SH coeff
 degree D are fitted to c(d) − 0.5 by least squares (colour = max(SH(d) + 0.5, 0) in 3DGS). E is the model's
 own tone map (``RetinexGSModel.tone_map``), so the bake follows the render. g is the
 mean of the gammas the EnhancementNet predicts over the training views (per channel when the model predicts
-per channel), optionally scaled by an exposure factor or replaced by a fixed gamma.
+per channel), optionally adjusted by an exposure factor (:func:`retinexgs.model.tone.apply_exposure`) or
+replaced by a fixed gamma.
 
 What the bake cannot reproduce exactly (also said in the README): the model composites R̂ and L̂
 *before* raising L̂ to g and multiplying, the bake multiplies per Gaussian and lets the viewer composite.

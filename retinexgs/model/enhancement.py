@@ -41,7 +41,8 @@ class EnhancementNet(nn.Module):
         gamma_range: (g_min, g_max), 0 < g_min < g_max.
         init_gamma: initial gamma for any input, strictly inside gamma_range.
         max_side: the input is area-downsampled to at most this many pixels on its longer side.
-        eps: floor applied to L̂ in :meth:`enhance` (keeps the power's gradient finite at 0).
+        eps: floor under L̂ before the gamma tones' power (:func:`retinexgs.model.tone.tone_map`: keeps its
+            gradient finite at 0).
         eps_in: floor for the log feature.
         per_view: True (the paper): g is predicted from each view's L̂. False: one g for the whole scene, a
             learned constant (the output layer's bias; the convolutions are unused), so every view, novel ones
@@ -96,7 +97,3 @@ class EnhancementNet(nn.Module):
         feat = self.features(torch.cat([x, logx], dim=1)).flatten(1)
         g = self.g_min + (self.g_max - self.g_min) * torch.sigmoid(self.out(feat))
         return g[:, :, None, None]
-
-    def enhance(self, L: torch.Tensor, gamma: torch.Tensor) -> torch.Tensor:
-        """L_enh = max(L, eps)^gamma (paper: L_enh = L̂^g); ``gamma`` broadcasts ([B,C,1,1] or scalar)."""
-        return L.clamp_min(self.eps) ** gamma

@@ -10,7 +10,7 @@ from __future__ import annotations
 import threading
 import time
 from dataclasses import replace
-from typing import Callable, Dict, Optional
+from typing import Callable, Dict, Optional, Tuple
 
 from retinexgs.errors import UserError
 from retinexgs.render import Camera
@@ -47,9 +47,11 @@ class _Client:
         self.map = gui.add_dropdown("Map", [_LABELS[m] for m in maps], initial_value=_LABELS[maps[0]])
         decomposed = viewer.renderer.decomposed
         self.exposure = gui.add_slider("Exposure", 0.2, 3.0, 0.05, 1.0, disabled=not decomposed,
-                                       hint="< 1 brighter, > 1 darker (the light divided by it; with a gamma tone, the gamma times it)")
+                                       hint="< 1 brighter, > 1 darker (the light divided by it; with a gamma "
+                                            "tone, the gamma times it)")
         self.use_gamma = gui.add_checkbox("Absolute gamma", False, disabled=not decomposed)
-        self.gamma = gui.add_slider("Gamma", 0.05, 1.5, 0.01, 0.5, disabled=not decomposed)
+        lo, hi = gamma_slider_range(viewer.renderer.model if decomposed else None)
+        self.gamma = gui.add_slider("Gamma", lo, hi, 0.01, round(0.5 * (lo + hi), 2), disabled=not decomposed)
         self.scale = gui.add_slider("Resolution scale", 0.1, 2.0, 0.05, viewer.default_scale)
         self.lowres = gui.add_checkbox("Lower resolution while moving", True)
         names = list(viewer.cameras)
@@ -220,6 +222,15 @@ def view_run(run_dir, host: str = "127.0.0.1", port: int = 8080, device: Optiona
     finally:
         viewer.stop()
     return viewer
+
+
+def gamma_slider_range(model) -> Tuple[float, float]:
+    """The absolute-gamma slider's (min, max): the range the run's EnhancementNet predicts in (its tone's own:
+    0.1-1 for a gamma curve, 0.25-2 for the exposure tone), widened a little; a fixed range for baselines."""
+    if model is None:
+        return 0.05, 1.5
+    net = model.enhancement
+    return round(0.5 * net.g_min, 2), round(1.25 * net.g_max, 2)
 
 
 def _announce(viewer: RunViewer, run_dir, step: int, count: int, host: str, log: Callable[[str], None]) -> None:
