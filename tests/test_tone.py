@@ -158,3 +158,16 @@ def test_exposure_control_divides_the_light_with_the_exposure_tone_and_scales_g_
     # Far darker than the capture: the gain stops near 1 (g large, finite), never negative or infinite.
     dark = apply_exposure(g, 1e6, ref, "exposure")
     assert torch.isfinite(dark).all() and float(exposure_gain(ref, dark)) == pytest.approx(1.0, abs=0.01)
+
+
+def test_the_exposure_tone_stays_finite_at_extreme_gammas():
+    """A tiny fixed gamma (``--gamma 0.001``) is an enormous gain: black stays black and the rest saturates, no
+    NaN from inf · 0."""
+    R = torch.tensor([[0.0, 0.5, 1.0]])
+    L = torch.tensor([[0.0, 0.1, 0.2]])
+    for g in (1e-4, 1e-3, 0.01, 50.0):
+        S, light = tone_map(R, L, torch.tensor(0.2), torch.tensor([g]), "exposure")
+        assert torch.isfinite(S).all() and torch.isfinite(light).all(), g
+        assert float(S[0, 0]) == 0.0
+    S, _ = tone_map(R, L, torch.tensor(0.2), torch.tensor([1e-3]), "exposure")
+    assert float(S[0, 1]) == pytest.approx(1.0, abs=1e-6) and float(S[0, 2]) == pytest.approx(1.0, abs=1e-6)

@@ -48,8 +48,10 @@ def _log_lin_ref(illum_ref: Tensor, like: Tensor) -> Tensor:
 
 
 def exposure_gain(illum_ref: Tensor, gamma: Tensor) -> Tensor:
-    """k = lin(L_ref)^(−1/g), the linear-light gain of tone ``exposure`` (``gamma`` of any shape)."""
-    return torch.exp(-_log_lin_ref(illum_ref, gamma) / gamma)
+    """k = lin(L_ref)^(−1/g), the linear-light gain of tone ``exposure`` (``gamma`` of any shape). Capped at
+    e^40 (everything but black is white long before): a tiny fixed ``--gamma`` would overflow k to inf, and
+    inf · 0 on black pixels is NaN."""
+    return torch.exp((-_log_lin_ref(illum_ref, gamma) / gamma).clamp_max(40.0))
 
 
 def apply_exposure(gamma: Tensor, exposure, illum_ref: Tensor, tone: str) -> Tensor:
