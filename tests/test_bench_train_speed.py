@@ -46,3 +46,32 @@ def test_busy_time_is_the_union_of_spans():
     assert busy_ms([]) == 0.0
     assert busy_ms([(0, 1000), (500, 1500), (1500, 2000), (3000, 3500)]) == pytest.approx(2.5)  # overlap once
     assert busy_ms([(0, 1000), (0, 1000), (100, 200)]) == pytest.approx(1.0)  # duplicates and nested spans
+
+
+class _Event:
+    def __init__(self, activity_type=None, device_type=None, is_user_annotation=False):
+        self.activity_type, self.device_type, self.is_user_annotation = activity_type, device_type, is_user_annotation
+
+
+def test_gpu_time_counts_kernels_and_copies_not_annotations():
+    from retinexgs.bench.train_speed import _is_gpu_work
+    cuda = torch.autograd.DeviceType.CUDA
+    assert _is_gpu_work(_Event("kernel", cuda)) and _is_gpu_work(_Event("gpu_memcpy", cuda))
+    assert _is_gpu_work(_Event("gpu_memset", cuda))
+    # torch mirrors record_function ranges onto the GPU timeline; they span the gaps between kernels
+    assert not _is_gpu_work(_Event("gpu_user_annotation", cuda, True))
+    assert not _is_gpu_work(_Event("cuda_runtime", torch.autograd.DeviceType.CPU))
+    # an older torch without activity_type: the device and the annotation flag decide
+    assert _is_gpu_work(_Event(None, cuda)) and not _is_gpu_work(_Event(None, cuda, True))
+    assert not _is_gpu_work(_Event(None, torch.autograd.DeviceType.CPU))
+
+
+def test_split_is_flagged_when_gpu_time_exceeds_the_free_running_step(monkeypatch):
+    import retinexgs.bench.train_speed as ts
+    monkeypatch.setattr(ts, "profile_steps", lambda step, n, dev: {"gpu_ms": 1e6, "launches": 3.0})
+    m = ts.measure(lambda: None, 2, 0, torch.device("cpu"))
+    assert m["split_ok"] is False and m["overhead_ms"] != m["overhead_ms"]  # NaN, not a negative overhead
+    assert "unreliable" in ts._row("x", m)
+    monkeypatch.setattr(ts, "profile_steps", lambda step, n, dev: {"gpu_ms": 0.0, "launches": 3.0})
+    m = ts.measure(lambda: None, 2, 0, torch.device("cpu"))
+    assert m["split_ok"] is True and m["overhead_ms"] == m["wall_ms"] and "unreliable" not in ts._row("x", m)
