@@ -100,8 +100,9 @@ def test_renderer_on_cuda_equals_model_render(per_channel, tone):
     assert (CAM.height, CAM.width) not in kept and (CAM.scaled(0.6).height, CAM.scaled(0.6).width) in kept
 
 
-def test_renderer_on_cuda_without_graphs_float64_and_baseline():
-    model = make_model(n=2000, dtype=torch.float64).cuda()
+@pytest.mark.parametrize("tone", ["illumination", "exposure"])
+def test_renderer_on_cuda_without_graphs_float64_and_baseline(tone):
+    model = make_model(n=2000, dtype=torch.float64, tone=tone).cuda()
     with torch.no_grad():
         ref = model.render(CAM, 2, gamma=0.6)["rgb"]
     for graphs in (True, False):
@@ -135,3 +136,19 @@ def test_fused_frame_launches_fewer_kernels():
     print(f"launches per frame: torch path {torch_path:.0f}, fused {fused:.0f}")
     assert fused < 0.5 * torch_path
     assert fused <= 40
+
+
+@pytest.mark.parametrize("dtype, atol", [(torch.float64, 1e-13), (torch.float32, 2e-6)])
+@pytest.mark.parametrize("gains", [1, 3])
+def test_exposure_tone_kernel_cuda_equals_cpu(dtype, atol, gains):
+    """The frame graph's exposure-tone kernel: CUDA launcher against the CPU one (float32 within a few ulps:
+    --use_fast_math's powf), NaN kept, a 7-channel strided image read like a contiguous one."""
+    from test_exposure_tone_kernel import make_image
+    from retinexgs.render._backend import kernels
+    img = make_image(h=37, w=53, c=7, dtype=dtype, seed=11)
+    img[5, 6, 2] = float("nan")
+    gain = torch.tensor([3.0, 11.0, 0.7][:gains], dtype=dtype)
+    cpu = kernels().exposure_tone(img, gain)
+    gpu = kernels().exposure_tone(img.cuda().transpose(0, 1).contiguous().transpose(0, 1), gain.cuda()).cpu()
+    torch.testing.assert_close(gpu, cpu, rtol=0, atol=atol, equal_nan=True)
+    assert torch.isnan(gpu[5, 6, 2])

@@ -29,7 +29,7 @@ from torch import Tensor, nn
 
 from retinexgs.model.gaussians import GaussianModel
 from retinexgs.model.illumination import IlluminationField, encoded_dim
-from retinexgs.model.tone import apply_exposure
+from retinexgs.model.tone import apply_exposure, exposure_gain
 from retinexgs.render._backend import kernels
 from retinexgs.render.camera import Camera
 
@@ -143,7 +143,12 @@ class _EnhanceGraph:
         # RetinexGSModel.enhance: gamma replaces g, else exposure adjusts it (exposure 1, when unset: g exactly).
         exposed = apply_exposure(g, self.exposure, self.model.illum_ref, self.model.tone)
         g = torch.where(self.use_fixed, self.fixed, torch.where(self.exposure == 1.0, g, exposed))
-        rgb, _ = self.model.tone_map(R, L, g.reshape(-1))
+        if self.model.tone == "exposure":
+            # One kernel for srgb(k·lin(R̂∘L̂)) (csrc: exposure_tone): in torch the two sRGB curves are ~20
+            # elementwise kernels over the frame, and L_enh, which the frame does not show, as many again.
+            rgb = kernels().exposure_tone(self.image, exposure_gain(self.model.illum_ref, g.reshape(-1)))
+        else:
+            rgb, _ = self.model.tone_map(R, L, g.reshape(-1))
         return torch.cat([rgb.reshape(-1), g.reshape(-1)])
 
     def run(self, image: Tensor, exposure: Optional[float], gamma: Optional[float]) -> Tuple[Tensor, Tensor]:

@@ -74,4 +74,8 @@ void gaussian_colors_cuda(int64_t N, int degree, int rest, const T* means, const
                           const T* center, const IllumConfig* illum, double bound, const T* weights, T* colors,
                           void* stream);
 
+// Same as exposure_tone_cpu; gain in device memory (the frame graph computes it on the GPU).
+template <typename T>
+void exposure_tone_cuda(int64_t P, int C, int G, const T* image, const T* gain, T* out, void* stream);
+
 }  // namespace rgs

@@ -1,0 +1,29 @@
+#!/usr/bin/env bash
+# One device call for quality and the frame path together: the quality groups of scripts/gpu_quality.sh (which
+# builds first), the CUDA tests once the build is there (beside the trainings: nothing in them is timed), then,
+# with the GPU free again, the FPS bench on the fox-dark default run of seed 0 if a group trained it.
+#   TESTS="tests/test_cuda_frame.py ..." OUT=... WHL=.whl DATA=.data LIMIT=540 bash scripts/gpu_session.sh GROUP...
+# GROUP as in gpu_quality.sh (SEEDS:CONFIG[,CONFIG]:SCENE[,SCENE]:JOBS).
+set -uo pipefail
+OUT=${OUT:-gpu_out}; mkdir -p "$OUT"
+t0=$(date +%s)
+bash scripts/gpu_quality.sh "$@" > "$OUT/quality.log" 2>&1 &
+qpid=$!
+if [ -n "${TESTS:-}" ]; then
+  until grep -q "^build:" "$OUT/quality.log" 2>/dev/null; do kill -0 $qpid 2>/dev/null || break; sleep 5; done
+  if grep -q "^build:" "$OUT/quality.log"; then
+    PYTHONPATH="/tmp/site:$PWD" timeout 200 python3 -X faulthandler -m pytest -q -p no:cacheprovider --tb=short -rf \
+      $TESTS > "$OUT/test_cuda.log" 2>&1
+    echo "tests: exit $? at $(( $(date +%s) - t0 )) s"; grep -E "^FAILED|passed|failed" "$OUT/test_cuda.log" | head -20
+  fi
+fi
+wait $qpid
+cat "$OUT/quality.log"
+run=/tmp/runs/fox-dark/default/seed0
+if [ -f "$run/metrics.json" ]; then
+  for size in "" "--width 500 --height 375"; do
+    PYTHONPATH="/tmp/site:$PWD" timeout 60 python3 -m retinexgs.bench fps --run "$run" --device cuda $size 2>&1 \
+      | grep -v -i "warn" | tee -a "$OUT/fps.txt"
+  done
+fi
+echo "session total: $(( $(date +%s) - t0 )) s"
