@@ -250,19 +250,38 @@ class InferenceRenderer:
 
     def rasterize(self, camera: Camera, colors: Optional[Tensor] = None) -> Tensor:
         """[H,W,C] composited ``colors`` (the kernels of ``rasterize_gaussians``, without autograd or checks);
-        ``colors`` None: this frame's :meth:`colors`, launched after the binning so that the binning's one host
-        sync does not wait for the colour kernel (which then runs while the host launches the rest)."""
+        ``colors`` None: this frame's :meth:`colors`. On CUDA they run on a side stream beside the projection and
+        binning (they need neither; each fills only part of the GPU at scenes of ~100k Gaussians), and the
+        binning's host sync waits for the main stream only; elsewhere they are launched after the binning."""
         K = kernels()
         g = self.model.gaussians
+        ready = None
+        if colors is None and g.means.is_cuda:
+            main = torch.cuda.current_stream(g.means.device)
+            side = self._side_stream(g.means.device)
+            side.wait_stream(main)  # the Gaussians as the main stream left them
+            with torch.cuda.stream(side):
+                colors = self.colors(camera)
+            ready = torch.cuda.Event()
+            ready.record(side)
         means2d, depths, conics, radii, _ = K.project_forward(g.means, g.quats, self.scales, self.opacities,
                                                               *camera.kernel_args)
         # Tile culling: conics and the opacities rasterize_forward gets below.
         gauss_ids, tile_ranges = K.bin_gaussians(means2d, radii, depths, camera.width, camera.height, conics,
                                                  self.opacities)
-        if colors is None:
+        if ready is not None:
+            main.wait_event(ready)
+            colors.record_stream(main)  # allocated on the side stream, freed after the main stream's use
+        elif colors is None:
             colors = self.colors(camera)
         return K.rasterize_forward(means2d, conics, colors, self.opacities, gauss_ids, tile_ranges, camera.width,
                                    camera.height)[0]
+
+    def _side_stream(self, device: torch.device) -> "torch.cuda.Stream":
+        stream = getattr(self, "_side", None)
+        if stream is None or stream.device != device:
+            stream = self._side = torch.cuda.Stream(device=device)
+        return stream
 
     def render(self, camera: Camera, exposure: Optional[float] = None, gamma: Optional[float] = None,
                degree: Optional[int] = None) -> FrameMaps:
