@@ -60,8 +60,11 @@ if has train; then
 fi
 run=/tmp/runs/fox${seeds[0]}
 if has fps && [ -f "$run/config.yaml" ]; then
-  for size in "" "--width 500 --height 375"; do
-    timeout 120 python3 -m retinexgs.bench fps --run "$run" --device cuda $size 2>&1 | tee -a "$OUT/fps.txt"
+  for r in $(seq "${FPS_RUNS:-1}"); do  # FPS_RUNS > 1: the bench again in the same call (frames move run to run)
+    for size in "" "--width 500 --height 375"; do
+      timeout 120 python3 -m retinexgs.bench fps --run "$run" --device cuda $size 2>&1 | grep -v -i warn \
+        | tee -a "$OUT/fps.txt"
+    done
   done
 fi
 if has trainspeed; then

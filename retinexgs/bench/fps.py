@@ -6,7 +6,8 @@
 every Gaussian, one 6-channel rasterization, the EnhancementNet and R̂·L̂^g. "full (fused)" is the same frame
 through the :class:`~retinexgs.model.inference.InferenceRenderer` that ``render``, ``export`` and the viewer use
 (one fused colour kernel, the enhancement as a CUDA graph). "raster" renders the same Gaussians with those 6
-channels precomputed, so the difference is the MLP/network share. On CUDA the kernel launches per frame of each
+channels precomputed, so the difference is the MLP/network share. "fused, serial" (CUDA) is "full (fused)" with
+its colour kernel launched after the binning instead of on a side stream beside projection and binning. On CUDA the kernel launches per frame of each
 full stage are counted with torch.profiler (cudaLaunchKernel and friends; a CUDA graph counts once). Cameras are the run's test views (train views when
 it has none), cycled; ``--width/--height`` resize them (intrinsics scaled per axis).
 """
@@ -114,6 +115,10 @@ def benchmark(run: Path, device: Optional[str] = None, width: Optional[int] = No
         rasterize_gaussians(means, quats, scales, opac, channels[i % len(cams)], cams[i % len(cams)])
 
     stages: Dict[str, Callable[[int], None]] = {"full": full, "full (fused)": fused, "raster": raster}
+    if dev.type == "cuda":  # the same frame with the colour kernel after the binning, not beside it
+        serial = InferenceRenderer(model, degree)
+        serial.overlap_colors = False
+        stages["fused, serial"] = lambda i: serial.render(cams[i % len(cams)])
     if vs_gsplat:
         def gs(i: int) -> None:
             _gsplat_raster(means, quats, scales, opac, channels[i % len(cams)], cams[i % len(cams)])

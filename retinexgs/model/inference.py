@@ -192,6 +192,7 @@ class InferenceRenderer:
         self.fused = self.fallback_reason is None
         self.use_graphs = bool(graphs)
         self.live = bool(live)
+        self.overlap_colors = True  # CUDA: the colour kernel on a side stream (False: after the binning)
         self._graphs: "OrderedDict[Tuple, _EnhanceGraph]" = OrderedDict()
         self._seen: Set[Tuple] = set()  # resolutions rendered once (captured on their second frame)
         self._stamp: Tuple = ()
@@ -256,7 +257,7 @@ class InferenceRenderer:
         K = kernels()
         g = self.model.gaussians
         ready = None
-        if colors is None and g.means.is_cuda:
+        if colors is None and g.means.is_cuda and self.overlap_colors:
             main = torch.cuda.current_stream(g.means.device)
             side = self._side_stream(g.means.device)
             side.wait_stream(main)  # the Gaussians as the main stream left them
