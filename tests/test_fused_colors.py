@@ -292,11 +292,13 @@ def test_enhance_graph_body_equals_model_enhance(tone):
     """The maths the frame graph captures on CUDA (exposure and the fixed gamma as device tensors, the switch
     by torch.where), run eagerly on the CPU against RetinexGSModel.enhance for every setting."""
     from retinexgs.model.inference import _EnhanceGraph
+    from retinexgs.model.tone import log_lin_ref
     model = make_model(tone=tone, dtype=torch.float64)
     g = torch.Generator().manual_seed(5)
     image = torch.cat([torch.rand(12, 9, 3, generator=g), torch.rand(12, 9, 3, generator=g) * 0.3], -1).double()
     body = _EnhanceGraph.__new__(_EnhanceGraph)  # its state without the capture (CUDA only)
     body.model, body.image, body.size = model, image, 12 * 9 * 3
+    body.log_ref = log_lin_ref(model.illum_ref, image)
     for exposure, gamma in [(None, None), (0.5, None), (2.0, None), (None, 0.7)]:
         body.exposure = torch.tensor(1.0 if exposure is None else exposure, dtype=torch.float64)
         body.fixed = torch.tensor(1.0 if gamma is None else gamma, dtype=torch.float64)

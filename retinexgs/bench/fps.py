@@ -7,9 +7,9 @@ every Gaussian, one 6-channel rasterization, the EnhancementNet and R̂·L̂^g. 
 through the :class:`~retinexgs.model.inference.InferenceRenderer` that ``render``, ``export`` and the viewer use
 (one fused colour kernel, the enhancement as a CUDA graph). "raster" renders the same Gaussians with those 6
 channels precomputed, so the difference is the MLP/network share. "fused, serial" (CUDA) is "full (fused)" with
-its colour kernel launched after the binning instead of on a side stream beside projection and binning. On CUDA the kernel launches per frame of each
-full stage are counted with torch.profiler (cudaLaunchKernel and friends; a CUDA graph counts once). Cameras are the run's test views (train views when
-it has none), cycled; ``--width/--height`` resize them (intrinsics scaled per axis).
+its colour kernel launched after the binning instead of on a side stream beside projection and binning. On CUDA
+the kernel launches per frame of each full stage are counted with torch.profiler (cudaLaunchKernel and friends; a
+CUDA graph counts once). Cameras are the run's test views (train views when it has none), cycled; ``--width/--height`` resize them (intrinsics scaled per axis).
 """
 from __future__ import annotations
 

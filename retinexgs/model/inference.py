@@ -29,7 +29,7 @@ from torch import Tensor, nn
 
 from retinexgs.model.gaussians import GaussianModel
 from retinexgs.model.illumination import IlluminationField, encoded_dim
-from retinexgs.model.tone import apply_exposure, exposure_gain
+from retinexgs.model.tone import apply_exposure, exposure_gain, log_lin_ref
 from retinexgs.render._backend import kernels
 from retinexgs.render.camera import Camera
 
@@ -125,6 +125,8 @@ class _EnhanceGraph:
         self.use_fixed = torch.zeros((), dtype=torch.bool, device=like.device)
         self.settings: Tuple = (None, None)
         self.size = height * width * 3
+        # A constant of the model (a change drops the graph): computed once, not as scalar kernels every frame.
+        self.log_ref = log_lin_ref(model.illum_ref, self.image)
         side = torch.cuda.Stream(device=like.device)
         side.wait_stream(torch.cuda.current_stream(like.device))
         with torch.cuda.stream(side):
@@ -141,12 +143,13 @@ class _EnhanceGraph:
         L_bchw = self.model.normalized_illumination(L).permute(2, 0, 1).unsqueeze(0)
         g = self.model.predict_gamma(L_bchw)
         # RetinexGSModel.enhance: gamma replaces g, else exposure adjusts it (exposure 1, when unset: g exactly).
-        exposed = apply_exposure(g, self.exposure, self.model.illum_ref, self.model.tone)
+        exposed = apply_exposure(g, self.exposure, self.model.illum_ref, self.model.tone, self.log_ref)
         g = torch.where(self.use_fixed, self.fixed, torch.where(self.exposure == 1.0, g, exposed))
         if self.model.tone == "exposure":
             # One kernel for srgb(k·lin(R̂∘L̂)) (csrc: exposure_tone): in torch the two sRGB curves are ~20
             # elementwise kernels over the frame, and L_enh, which the frame does not show, as many again.
-            rgb = kernels().exposure_tone(self.image, exposure_gain(self.model.illum_ref, g.reshape(-1)))
+            gain = exposure_gain(self.model.illum_ref, g.reshape(-1), self.log_ref)
+            rgb = kernels().exposure_tone(self.image, gain)
         else:
             rgb, _ = self.model.tone_map(R, L, g.reshape(-1))
         return torch.cat([rgb.reshape(-1), g.reshape(-1)])

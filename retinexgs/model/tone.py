@@ -20,12 +20,13 @@ With ℓ = clip(L̂ / L_ref, 0, 1) (L_ref: the scene's full light, a constant of
 """
 from __future__ import annotations
 
-from typing import Tuple
+from typing import Optional, Tuple
 
 import torch
 from torch import Tensor
 
-__all__ = ["TONES", "srgb_to_linear", "linear_to_srgb", "exposure_gain", "apply_exposure", "tone_map"]
+__all__ = ["TONES", "srgb_to_linear", "linear_to_srgb", "log_lin_ref", "exposure_gain", "apply_exposure",
+           "tone_map"]
 
 TONES = ("illumination", "signal", "exposure")
 
@@ -42,31 +43,36 @@ def linear_to_srgb(x: Tensor) -> Tensor:
     return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp_min(0.0031308) ** (1.0 / 2.4) - 0.055)
 
 
-def _log_lin_ref(illum_ref: Tensor, like: Tensor) -> Tensor:
+def log_lin_ref(illum_ref: Tensor, like: Tensor) -> Tensor:
     """log lin(L_ref), kept below 0 (L_ref < 1: a dark scene's light), in ``like``'s dtype and device."""
     return torch.log(srgb_to_linear(illum_ref.to(like)).clamp_min(1e-6)).clamp_max(-1e-6)
 
 
-def exposure_gain(illum_ref: Tensor, gamma: Tensor) -> Tensor:
+def exposure_gain(illum_ref: Tensor, gamma: Tensor, log_ref: Optional[Tensor] = None) -> Tensor:
     """k = lin(L_ref)^(−1/g), the linear-light gain of tone ``exposure`` (``gamma`` of any shape). Capped at
     e^40 (everything but black is white long before): a tiny fixed ``--gamma`` would overflow k to inf, and
-    inf · 0 on black pixels is NaN."""
-    return torch.exp((-_log_lin_ref(illum_ref, gamma) / gamma).clamp_max(40.0))
+    inf · 0 on black pixels is NaN. ``log_ref``: log lin(L_ref) already computed (:func:`log_lin_ref`; the
+    frame graph keeps it instead of a dozen scalar kernels per frame)."""
+    log_ref = log_lin_ref(illum_ref, gamma) if log_ref is None else log_ref
+    return torch.exp((-log_ref / gamma).clamp_max(40.0))
 
 
-def apply_exposure(gamma: Tensor, exposure, illum_ref: Tensor, tone: str) -> Tensor:
+def apply_exposure(gamma: Tensor, exposure, illum_ref: Tensor, tone: str,
+                   log_ref: Optional[Tensor] = None) -> Tensor:
     """g after the user's exposure factor X > 0 (``--exposure``, the viewer's slider; < 1 brighter, > 1 darker).
 
     Tone ``exposure``: the gain is divided by X, k' = k / X (X = 0.5: twice the light, one photographic stop),
     i.e. 1/g' = 1/g + log X / log lin(L_ref); a gain below 1 (darker than the capture) is not reached. Scaling g
     there would raise the gain to the power 1/X (X = 0.5 squares a gain of 30). The gamma tones scale g by X.
-    ``exposure`` may be a float or a tensor (the frame graph keeps it on the device)."""
+    ``exposure`` may be a float or a tensor (the frame graph keeps it on the device); ``log_ref`` as in
+    :func:`exposure_gain`."""
     if tone != "exposure":
         return gamma * exposure
     if not torch.is_tensor(exposure) and float(exposure) == 1.0:
         return gamma  # exactly, as with no exposure given
     x = torch.as_tensor(exposure, dtype=gamma.dtype, device=gamma.device)
-    return 1.0 / (1.0 / gamma + torch.log(x) / _log_lin_ref(illum_ref, gamma)).clamp_min(1e-3)
+    log_ref = log_lin_ref(illum_ref, gamma) if log_ref is None else log_ref
+    return 1.0 / (1.0 / gamma + torch.log(x) / log_ref).clamp_min(1e-3)
 
 
 def tone_map(R: Tensor, L: Tensor, illum_ref: Tensor, gamma: Tensor, tone: str,
