@@ -308,3 +308,14 @@ def test_enhance_graph_body_equals_model_enhance(tone):
             ref = model.enhance(image[..., :3], image[..., 3:], exposure, gamma)
         torch.testing.assert_close(out[:body.size].view(12, 9, 3), ref["rgb"], rtol=0, atol=1e-12)
         torch.testing.assert_close(out[body.size:], ref["gamma"], rtol=0, atol=1e-12)
+
+
+def test_renderer_without_tile_culling_renders_the_same_frame():
+    from retinexgs.model.inference import InferenceRenderer
+    from scenes import make_camera
+    model = make_model(n=600, tone="exposure")
+    cam = make_camera(width=48, height=36, eye=(0.3, -0.2, -3.0))
+    culled, unculled = InferenceRenderer(model, 3), InferenceRenderer(model, 3)
+    unculled.cull_tiles = False
+    a, b = culled.render(cam), unculled.render(cam)
+    assert a["rgb"].std() > 0.01 and torch.equal(a["rgb"], b["rgb"]) and torch.equal(a["L"], b["L"])

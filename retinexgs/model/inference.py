@@ -196,6 +196,9 @@ class InferenceRenderer:
         self.use_graphs = bool(graphs)
         self.live = bool(live)
         self.overlap_colors = True  # CUDA: the colour kernel on a side stream (False: after the binning)
+        # Tile culling (pairs only where a Gaussian reaches alpha >= 1/255) changes no pixel, only the work split:
+        # fewer pairs to sort and composite against a costlier pair count (tests/test_raster_tile_cull.py).
+        self.cull_tiles = True
         self._graphs: "OrderedDict[Tuple, _EnhanceGraph]" = OrderedDict()
         self._seen: Set[Tuple] = set()  # resolutions rendered once (captured on their second frame)
         self._stamp: Tuple = ()
@@ -271,8 +274,8 @@ class InferenceRenderer:
         means2d, depths, conics, radii, _ = K.project_forward(g.means, g.quats, self.scales, self.opacities,
                                                               *camera.kernel_args)
         # Tile culling: conics and the opacities rasterize_forward gets below.
-        gauss_ids, tile_ranges = K.bin_gaussians(means2d, radii, depths, camera.width, camera.height, conics,
-                                                 self.opacities)
+        cull = (conics, self.opacities) if self.cull_tiles else (None, None)
+        gauss_ids, tile_ranges = K.bin_gaussians(means2d, radii, depths, camera.width, camera.height, *cull)
         if ready is not None:
             main.wait_event(ready)
             colors.record_stream(main)  # allocated on the side stream, freed after the main stream's use
