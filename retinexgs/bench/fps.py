@@ -8,7 +8,8 @@ through the :class:`~retinexgs.model.inference.InferenceRenderer` that ``render`
 (one fused colour kernel, the enhancement as a CUDA graph). "raster" renders the same Gaussians with those 6
 channels precomputed, so the difference is the MLP/network share. "fused, serial" (CUDA) is "full (fused)" with
 its colour kernel launched after the binning instead of on a side stream beside projection and binning; "fused,
-no cull" without tile culling in the binning (the same pixels, another split of the work). On CUDA
+tile cull" with tile culling in the binning (the same pixels, another split of the work; the renderer's default
+is without). On CUDA
 the kernel launches per frame of each full stage are counted with torch.profiler (cudaLaunchKernel and friends; a
 CUDA graph counts once). Cameras are the run's test views (train views when it has none), cycled;
 ``--width/--height`` resize them (intrinsics scaled per axis).
@@ -121,9 +122,9 @@ def benchmark(run: Path, device: Optional[str] = None, width: Optional[int] = No
         serial = InferenceRenderer(model, degree)
         serial.overlap_colors = False
         stages["fused, serial"] = lambda i: serial.render(cams[i % len(cams)])
-        unculled = InferenceRenderer(model, degree)
-        unculled.cull_tiles = False
-        stages["fused, no cull"] = lambda i: unculled.render(cams[i % len(cams)])
+        culled = InferenceRenderer(model, degree)
+        culled.cull_tiles = True
+        stages["fused, tile cull"] = lambda i: culled.render(cams[i % len(cams)])
     if vs_gsplat:
         def gs(i: int) -> None:
             _gsplat_raster(means, quats, scales, opac, channels[i % len(cams)], cams[i % len(cams)])

@@ -197,8 +197,10 @@ class InferenceRenderer:
         self.live = bool(live)
         self.overlap_colors = True  # CUDA: the colour kernel on a side stream (False: after the binning)
         # Tile culling (pairs only where a Gaussian reaches alpha >= 1/255) changes no pixel, only the work split:
-        # fewer pairs to sort and composite against a costlier pair count (tests/test_raster_tile_cull.py).
-        self.cull_tiles = True
+        # fewer pairs to sort and composite against a pair count that tests every tile twice. Off for frames: on
+        # the trained fox-dark (83k Gaussians, H100) it costs 0.15-0.2 ms a frame more than it saves
+        # (docs/benchmarks.md); training and rasterize_gaussians keep it.
+        self.cull_tiles = False
         self._graphs: "OrderedDict[Tuple, _EnhanceGraph]" = OrderedDict()
         self._seen: Set[Tuple] = set()  # resolutions rendered once (captured on their second frame)
         self._stamp: Tuple = ()
