@@ -275,7 +275,7 @@ class InferenceRenderer:
             ready.record(side)
         means2d, depths, conics, radii, _ = K.project_forward(g.means, g.quats, self.scales, self.opacities,
                                                               *camera.kernel_args)
-        # Tile culling: conics and the opacities rasterize_forward gets below.
+        # With cull_tiles, pairs only where each Gaussian can reach alpha >= 1/255 (same pixels either way).
         cull = (conics, self.opacities) if self.cull_tiles else (None, None)
         gauss_ids, tile_ranges = K.bin_gaussians(means2d, radii, depths, camera.width, camera.height, *cull)
         if ready is not None:
