@@ -197,10 +197,10 @@ class InferenceRenderer:
         self.live = bool(live)
         self.overlap_colors = True  # CUDA: the colour kernel on a side stream (False: after the binning)
         # Tile culling (pairs only where a Gaussian reaches alpha >= 1/255) changes no pixel, only the work split:
-        # fewer pairs to sort and composite against a pair count that tests every tile twice. Off for frames: on
-        # the trained fox-dark (83k Gaussians, H100) it costs 0.15-0.2 ms a frame more than it saves
-        # (docs/benchmarks.md); training and rasterize_gaussians keep it.
-        self.cull_tiles = False
+        # fewer pairs to sort and composite against a pair count that tests every tile twice. None: off on CUDA,
+        # where on the trained fox-dark (83k Gaussians, H100) it costs 0.15-0.2 ms a frame more than it saves;
+        # on on the CPU, where compositing dominates and it gained a few % (docs/benchmarks.md).
+        self.cull_tiles: Optional[bool] = None
         self._graphs: "OrderedDict[Tuple, _EnhanceGraph]" = OrderedDict()
         self._seen: Set[Tuple] = set()  # resolutions rendered once (captured on their second frame)
         self._stamp: Tuple = ()
@@ -276,7 +276,8 @@ class InferenceRenderer:
         means2d, depths, conics, radii, _ = K.project_forward(g.means, g.quats, self.scales, self.opacities,
                                                               *camera.kernel_args)
         # With cull_tiles, pairs only where each Gaussian can reach alpha >= 1/255 (same pixels either way).
-        cull = (conics, self.opacities) if self.cull_tiles else (None, None)
+        on = (not g.means.is_cuda) if self.cull_tiles is None else self.cull_tiles
+        cull = (conics, self.opacities) if on else (None, None)
         gauss_ids, tile_ranges = K.bin_gaussians(means2d, radii, depths, camera.width, camera.height, *cull)
         if ready is not None:
             main.wait_event(ready)
