@@ -38,7 +38,9 @@ python3 -m retinexgs.bench quality --no-train --scenes $(printf '%s\n' "${all_sc
   --configs $(printf '%s\n' "${all_configs[@]}" | awk '!s[$0]++') --seeds "${SEEDS_ALL:-0,1,2}" --runs /tmp/runs \
   --out "$OUT/quality.md" > /dev/null 2>&1
 nvidia-smi --query-gpu=name --format=csv,noheader
-for f in /tmp/runs/group*.log; do echo "== $f"; grep -E "^(ok|FAIL|reused)|runs in" "$f"; done
+# Every group's outcome; a group that trained nothing (a bad seed spec such as "0", which is a count of zero: "0,"
+# is seed 0) shows its error instead of an empty line.
+for f in /tmp/runs/group*.log; do echo "== $f"; grep -E "^(ok|FAIL|reused)|runs in" "$f" || tail -3 "$f"; done
 cp /tmp/runs/sheet_*.png "$OUT/" 2>/dev/null
 tar czf "$OUT/runs.tgz" --exclude='*.pt' --exclude='tb' --exclude='renders' -C /tmp runs 2>/dev/null
 echo "total: $(( $(date +%s) - t0 )) s"
