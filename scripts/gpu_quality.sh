@@ -1,11 +1,13 @@
 #!/usr/bin/env bash
 # The quality benchmark on the GPU machine, several groups side by side on one GPU:
 #   bash scripts/gpu_quality.sh SEEDS:CONFIG[,CONFIG]:SCENE[,SCENE]:JOBS ...
-# e.g. 0:default:fox-dark,lom/buu,lom/sofa,lom/bike:4 0:paper:lom/buu:1 . Scenes are read from the carried folder
-# $DATA (default .data: copies of shared/data, never committed). Each group stops after ${LIMIT:-520} s (finished runs are kept;
-# on a machine still warm, the same command again resumes cut-off runs from their checkpoints, every 2000 steps).
-# Sizing, H100: a fresh machine builds in 130-170 s; 8 trainings side by side need about 420 s, 6 about 340, 4 about 225;
-# the small results (metrics, logs, tables, contact sheets) are packed into $OUT.
+# e.g. 0,:default:fox-dark,lom/buu,lom/sofa,lom/bike:4 0,1:paper:lom/buu:1 . SEEDS as bench quality's --seeds: a
+# list has a comma ("0," is seed 0), a bare number is a count ("3" is seeds 0-2; "0" trains nothing). Scenes are
+# read from the carried folder $DATA (default .data: copies of shared/data, never committed). Each group stops
+# after ${LIMIT:-520} s (finished runs are kept; on a machine still warm, the same command again resumes cut-off
+# runs from their checkpoints, every 2000 steps). Sizing, H100: a fresh machine builds in 130-170 s; 8 trainings
+# side by side need about 420 s, 6 about 340, 4 about 225; the small results (metrics, logs, tables, contact
+# sheets) are packed into $OUT.
 # The device machine has neither pydantic (a requirement since issue 15) nor pycolmap (the scenes' COLMAP points):
 # carry their wheels as .whl (device README: pydantic, pydantic-core, annotated-types, typing-inspection, pycolmap,
 # plyfile for Python 3.12, manylinux x86_64).
@@ -13,7 +15,8 @@ set -uo pipefail
 OUT=${OUT:-gpu_out}; mkdir -p "$OUT"
 WHL=${WHL:-.whl}; DATA=${DATA:-.data}  # carried folders: wheels, scene copies without their caches (64 MiB in all)
 if ! python3 -c "import pydantic, pycolmap, plyfile" 2>/dev/null; then
-  [ -d "$WHL" ] || { echo "pydantic, pycolmap or plyfile is missing here: carry its wheels in $WHL (see the comment above)"; exit 1; }
+  [ -d "$WHL" ] || { echo "pydantic, pycolmap or plyfile is missing here: carry its wheels in $WHL" \
+    "(see the comment above)"; exit 1; }
   python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site "$WHL"/*.whl || exit 1
   export PYTHONPATH="/tmp/site${PYTHONPATH:+:$PYTHONPATH}"
 fi

@@ -10,8 +10,8 @@ channels precomputed, so the difference is the MLP/network share. "fused, serial
 its colour kernel launched after the binning instead of on a side stream beside projection and binning; "fused,
 tile cull" with tile culling in the binning (the same pixels, another split of the work; the renderer's default
 on CUDA is without). On CUDA the kernel launches per frame of each full stage are counted with torch.profiler
-(cudaLaunchKernel and friends; a CUDA graph counts once). Cameras are the run's test views (train views when it has none), cycled;
-``--width/--height`` resize them (intrinsics scaled per axis).
+(cudaLaunchKernel and friends; a CUDA graph counts once). Cameras are the run's test views (train views when it
+has none), cycled; ``--width/--height`` resize them (intrinsics scaled per axis).
 """
 from __future__ import annotations
 

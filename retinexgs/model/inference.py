@@ -201,6 +201,7 @@ class InferenceRenderer:
         # where on the trained fox-dark (83k Gaussians, H100) it costs 0.15-0.2 ms a frame more than it saves;
         # on on the CPU, where compositing dominates and it gained a few % (docs/benchmarks.md).
         self.cull_tiles: Optional[bool] = None
+        self._side: Optional["torch.cuda.Stream"] = None  # created on the first CUDA frame
         self._graphs: "OrderedDict[Tuple, _EnhanceGraph]" = OrderedDict()
         self._seen: Set[Tuple] = set()  # resolutions rendered once (captured on their second frame)
         self._stamp: Tuple = ()
@@ -288,7 +289,7 @@ class InferenceRenderer:
                                    camera.height)[0]
 
     def _side_stream(self, device: torch.device) -> "torch.cuda.Stream":
-        stream = getattr(self, "_side", None)
+        stream = self._side
         if stream is None or stream.device != device:
             stream = self._side = torch.cuda.Stream(device=device)
         return stream

@@ -33,8 +33,9 @@ _RAMP = torch.tensor([[0.05, 0.03, 0.25], [0.45, 0.10, 0.55], [0.90, 0.45, 0.15]
 
 @dataclass(frozen=True)
 class FrameSettings:
-    """What the GUI controls: the ``map``, ``exposure`` (< 1 brighter, > 1 darker: :func:`retinexgs.model.tone.apply_exposure`),
-    ``gamma`` (an absolute gamma replacing the predicted one, or None) and the resolution ``scale``."""
+    """What the GUI controls: the ``map``, ``exposure`` (< 1 brighter, > 1 darker:
+    :func:`retinexgs.model.tone.apply_exposure`), ``gamma`` (an absolute gamma replacing the predicted one, or None)
+    and the resolution ``scale``."""
 
     map: str = "enhanced"
     exposure: float = 1.0
