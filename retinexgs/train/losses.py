@@ -31,7 +31,7 @@ import torch
 import torch.nn.functional as F
 
 __all__ = [
-    "to_bchw", "gaussian_window", "ssim", "l1_ssim", "supervision_loss", "tv_loss", "sh_sparsity_loss",
+    "to_bchw", "gaussian_window", "ssim", "robust_abs", "exposed", "l1_ssim", "supervision_loss", "tv_loss", "sh_sparsity_loss",
     "spatial_consistency_loss", "exposure_loss", "color_constancy_loss", "enhancement_loss",
 ]
 
@@ -128,15 +128,42 @@ def ssim(x: torch.Tensor, y: torch.Tensor, window: int = 11, sigma: float = 1.5,
     raise ValueError("reduction must be 'mean' or 'none'")
 
 
-def l1_ssim(x: torch.Tensor, y: torch.Tensor, lambda_ssim: float = 0.2) -> torch.Tensor:
+def robust_abs(err: torch.Tensor, delta: float = 0.0) -> torch.Tensor:
+    """|err| (``delta`` = 0), or the Huber penalty scaled to L1's slope: err²/(2δ) below δ, |err| − δ/2 above.
+
+    Why: an L1 fit of many views of one point settles on their median, and the median of 8-bit values is itself
+    an 8-bit level. A dark capture's texture is often below one level (LOM's bike: most pixels at 2–8 of 255,
+    neighbouring pixels equal), and only the mean of the views, which the quadratic core estimates, resolves it.
+    Above δ the penalty is L1's again, as robust to outliers (floaters, misregistered views).
+    """
+    a = err.abs()
+    if delta <= 0:
+        return a
+    return torch.where(a < delta, a * a / (2.0 * delta), a - 0.5 * delta)
+
+
+def exposed(x: torch.Tensor, gain: torch.Tensor) -> torch.Tensor:
+    """srgb(gain · lin(x)) for sRGB-encoded ``x``: the photo as a longer exposure shows it (the default's tone at
+    g = 1, :mod:`retinexgs.model.tone`), without the clip at white, so an over-bright render keeps its gradient.
+
+    ``gain``: a scalar tensor (1 / lin(L_ref)). Used to compare the reconstruction with the photo where the
+    enhanced output is judged: the sRGB curve and the gain stretch the darkest levels far more than the mid-tones.
+    """
+    x = x.clamp_min(0.0)
+    lin = torch.where(x <= 0.04045, x / 12.92, ((x.clamp_min(0.04045) + 0.055) / 1.055) ** 2.4) * gain
+    return torch.where(lin <= 0.0031308, 12.92 * lin, 1.055 * lin.clamp_min(0.0031308) ** (1.0 / 2.4) - 0.055)
+
+
+def l1_ssim(x: torch.Tensor, y: torch.Tensor, lambda_ssim: float = 0.2, huber: float = 0.0) -> torch.Tensor:
     """Ls(x, y) = (1−λ)·mean|x−y| + λ·(1 − SSIM(x, y)): 3DGS's photometric loss, SSIM with "same" padding.
 
-    ``y`` may have 1 channel where ``x`` has C (or vice versa): it is broadcast.
+    ``y`` may have 1 channel where ``x`` has C (or vice versa): it is broadcast. ``huber`` > 0 replaces |x−y| by
+    :func:`robust_abs` with that δ.
     """
     _check4(x, y)
     if x.shape != y.shape:
         x, y = torch.broadcast_tensors(x, y)
-    l1 = (x - y).abs().mean()
+    l1 = robust_abs(x - y, huber).mean()
     if lambda_ssim == 0:
         return l1
     return (1.0 - lambda_ssim) * l1 + lambda_ssim * (1.0 - ssim(x, y))
@@ -144,13 +171,17 @@ def l1_ssim(x: torch.Tensor, y: torch.Tensor, lambda_ssim: float = 0.2) -> torch
 
 def supervision_loss(R_hat: torch.Tensor, L_hat: torch.Tensor, R: torch.Tensor, L: torch.Tensor,
                      S: torch.Tensor, w_r: float = 0.5, w_l: float = 0.5, w_s: float = 1.0,
-                     lambda_ssim: float = 0.2) -> Tuple[torch.Tensor, Terms]:
+                     lambda_ssim: float = 0.2, rec_huber: float = 0.0,
+                     rec_gain: Optional[torch.Tensor] = None) -> Tuple[torch.Tensor, Terms]:
     """L_sup of Eq. 4: w_r·Ls(R̂, R) + w_l·Ls(L̂, L) + w_s·Ls(R̂∘L̂, S).
 
     Args:
         R_hat, L_hat: rendered reflectance and illumination maps [B,3,H,W] (L̂ may be [B,1,H,W]).
         R, L, S: the 2D decomposer's reflectance and illumination and the low-light input; L may have
             1 channel (broadcast against L̂).
+        rec_huber: δ of :func:`robust_abs` in the reconstruction term's L1 (0: L1, Eq. 4).
+        rec_gain: when given, the reconstruction term compares ``exposed(R̂∘L̂)`` with ``exposed(S)``
+            (:func:`exposed`) instead of the dark values.
 
     Returns:
         (total, {"sup_r", "sup_l", "sup_rec"}) — the unweighted terms, for logging.
@@ -158,11 +189,15 @@ def supervision_loss(R_hat: torch.Tensor, L_hat: torch.Tensor, R: torch.Tensor, 
     _check4(R_hat, L_hat, R, L, S)
     # The three Ls terms as one channel-stacked L1 + SSIM (SSIM is per channel, so stacking changes no value;
     # it is one set of kernels instead of three). Each pair is broadcast to a common channel count first.
-    pairs = [torch.broadcast_tensors(a, b) for a, b in ((R_hat, R), (L_hat, L), (R_hat * L_hat, S))]
+    rec, target = R_hat * L_hat, S
+    if rec_gain is not None:
+        rec, target = exposed(rec, rec_gain), exposed(target, rec_gain)
+    pairs = [torch.broadcast_tensors(a, b) for a, b in ((R_hat, R), (L_hat, L), (rec, target))]
     sizes = [a.shape[1] for a, _ in pairs]
     x = torch.cat([a for a, _ in pairs], dim=1)
     y = torch.cat([b for _, b in pairs], dim=1)
-    l1 = torch.stack([m.mean() for m in (x - y).abs().split(sizes, dim=1)])
+    err = (x - y).split(sizes, dim=1)
+    l1 = torch.stack([err[0].abs().mean(), err[1].abs().mean(), robust_abs(err[2], rec_huber).mean()])
     if lambda_ssim:
         s = torch.stack([m.mean() for m in ssim(x, y, reduction="none").split(sizes, dim=1)])
         values = (1.0 - lambda_ssim) * l1 + lambda_ssim * (1.0 - s)

@@ -157,6 +157,8 @@ class Loss(Section):
     sh_reduction: Choice("mean", "sum")
     enhance_from: Step
     enhance_trains_scene: Bool
+    rec_huber: Num(ge=0, le=1)
+    rec_domain: Choice("photo", "exposed")
 
 
 class LearningRates(Section):

@@ -21,6 +21,7 @@ from retinexgs.fileio import atomic_write_text
 from retinexgs.model.density import DensityController
 from retinexgs.model.gaussians import GaussianModel
 from retinexgs.model.retinex_model import RetinexGSModel
+from retinexgs.model.tone import log_lin_ref
 from retinexgs.render import Camera
 from retinexgs.train import losses
 from retinexgs.train.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
@@ -268,12 +269,18 @@ class Trainer:
         R_img, L_img = image[..., :3], image[..., 3:6]
         R_hat, L_hat, S_b = to_bchw(R_img), to_bchw(L_img), to_bchw(S)
         terms: Dict[str, Tensor] = {}
+        gain = None
+        if c["rec_domain"] == "exposed":  # the g = 1 exposure: 1 / lin(L_ref), a constant of the scene
+            gain = torch.exp(-log_lin_ref(self.model.illum_ref, R_hat))
         if R is not None:
             sup, sup_terms = losses.supervision_loss(R_hat, L_hat, to_bchw(R), to_bchw(L), S_b, c["w_r"],
-                                                     c["w_l"], c["w_s"], c["lambda_ssim"])
+                                                     c["w_l"], c["w_s"], c["lambda_ssim"], c["rec_huber"], gain)
             terms.update(sup_terms)
         else:  # no 2D priors: only the reconstruction is supervised
-            terms["sup_rec"] = losses.l1_ssim(R_hat * L_hat, S_b, c["lambda_ssim"])
+            rec, target = R_hat * L_hat, S_b
+            if gain is not None:
+                rec, target = losses.exposed(rec, gain), losses.exposed(target, gain)
+            terms["sup_rec"] = losses.l1_ssim(rec, target, c["lambda_ssim"], c["rec_huber"])
             sup = c["w_s"] * terms["sup_rec"]
         terms["tv"] = losses.tv_loss(R_hat)
         total = sup + c["w_tv"] * terms["tv"]
