@@ -175,6 +175,17 @@ def test_supervision_loss_reconstruction_options():
     x, y = Lo.exposed(R_hat * L_hat, gain), Lo.exposed(S, gain)
     assert float(t["sup_rec"]) == pytest.approx(float(Lo.l1_ssim(x, y, 0.2, huber=0.02)), abs=1e-12)
     assert float(t["sup_rec"]) != pytest.approx(float(base["sup_rec"]), abs=1e-3)
+    # only the SSIM exposed: the L1 on the dark values
+    _, t2 = Lo.supervision_loss(R_hat, L_hat, R, L, S, rec_gain=gain, rec_l1_exposed=False)
+    want2 = 0.8 * float((R_hat * L_hat - S).abs().mean()) + 0.2 * (1 - float(Lo.ssim(x, y)))
+    assert float(t2["sup_rec"]) == pytest.approx(want2, abs=1e-12)
+    assert float(t2["sup_r"]) == float(base["sup_r"]) and float(t2["sup_l"]) == float(base["sup_l"])
+    # the same term without priors
+    for kw in ({}, {"huber": 0.02, "gain": gain}, {"gain": gain, "l1_exposed": False}):
+        want_t = {(): base, (0.02, True): t, (0.0, False): t2}[() if not kw else (kw.get("huber", 0.0),
+                                                                               kw.get("l1_exposed", True))]
+        assert float(Lo.reconstruction_loss(R_hat * L_hat, S, 0.2, **kw)) == pytest.approx(
+            float(want_t["sup_rec"]), abs=1e-12)
     _, h = Lo.supervision_loss(R_hat, L_hat, R, L, S, rec_huber=0.02)
     want = 0.8 * float(Lo.robust_abs(R_hat * L_hat - S, 0.02).mean()) + 0.2 * (1 - float(Lo.ssim(R_hat * L_hat, S)))
     assert float(h["sup_rec"]) == pytest.approx(want, abs=1e-12)

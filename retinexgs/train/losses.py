@@ -31,7 +31,8 @@ import torch
 import torch.nn.functional as F
 
 __all__ = [
-    "to_bchw", "gaussian_window", "ssim", "robust_abs", "exposed", "l1_ssim", "supervision_loss", "tv_loss", "sh_sparsity_loss",
+    "to_bchw", "gaussian_window", "ssim", "robust_abs", "exposed", "l1_ssim", "reconstruction_loss",
+    "supervision_loss", "tv_loss", "sh_sparsity_loss",
     "spatial_consistency_loss", "exposure_loss", "color_constancy_loss", "enhancement_loss",
 ]
 
@@ -169,10 +170,33 @@ def l1_ssim(x: torch.Tensor, y: torch.Tensor, lambda_ssim: float = 0.2, huber: f
     return (1.0 - lambda_ssim) * l1 + lambda_ssim * (1.0 - ssim(x, y))
 
 
+def _reconstruction_pairs(rec: torch.Tensor, S: torch.Tensor, gain: Optional[torch.Tensor], l1_exposed: bool):
+    """((x, y) for the L1, (x, y) for the SSIM) of the reconstruction term: R̂∘L̂ and S as they are, or exposed."""
+    if gain is None:
+        return (rec, S), (rec, S)
+    rec_e, S_e = torch.broadcast_tensors(exposed(rec, gain), exposed(S, gain))
+    return ((rec_e, S_e) if l1_exposed else (rec, S)), (rec_e, S_e)
+
+
+def reconstruction_loss(rec: torch.Tensor, S: torch.Tensor, lambda_ssim: float = 0.2, huber: float = 0.0,
+                        gain: Optional[torch.Tensor] = None, l1_exposed: bool = True) -> torch.Tensor:
+    """Ls(R̂∘L̂, S) alone (no 2D priors), with the options of :func:`supervision_loss`'s reconstruction term."""
+    _check4(rec, S)
+    (x, y), (xs, ys) = _reconstruction_pairs(rec, S, gain, l1_exposed)
+    if x.shape != y.shape:
+        x, y = torch.broadcast_tensors(x, y)
+    l1 = robust_abs(x - y, huber).mean()
+    if lambda_ssim == 0:
+        return l1
+    if xs.shape != ys.shape:
+        xs, ys = torch.broadcast_tensors(xs, ys)
+    return (1.0 - lambda_ssim) * l1 + lambda_ssim * (1.0 - ssim(xs, ys))
+
+
 def supervision_loss(R_hat: torch.Tensor, L_hat: torch.Tensor, R: torch.Tensor, L: torch.Tensor,
                      S: torch.Tensor, w_r: float = 0.5, w_l: float = 0.5, w_s: float = 1.0,
-                     lambda_ssim: float = 0.2, rec_huber: float = 0.0,
-                     rec_gain: Optional[torch.Tensor] = None) -> Tuple[torch.Tensor, Terms]:
+                     lambda_ssim: float = 0.2, rec_huber: float = 0.0, rec_gain: Optional[torch.Tensor] = None,
+                     rec_l1_exposed: bool = True) -> Tuple[torch.Tensor, Terms]:
     """L_sup of Eq. 4: w_r·Ls(R̂, R) + w_l·Ls(L̂, L) + w_s·Ls(R̂∘L̂, S).
 
     Args:
@@ -180,8 +204,8 @@ def supervision_loss(R_hat: torch.Tensor, L_hat: torch.Tensor, R: torch.Tensor, 
         R, L, S: the 2D decomposer's reflectance and illumination and the low-light input; L may have
             1 channel (broadcast against L̂).
         rec_huber: δ of :func:`robust_abs` in the reconstruction term's L1 (0: L1, Eq. 4).
-        rec_gain: when given, the reconstruction term compares ``exposed(R̂∘L̂)`` with ``exposed(S)``
-            (:func:`exposed`) instead of the dark values.
+        rec_gain: when given, the reconstruction term's SSIM compares ``exposed(R̂∘L̂)`` with ``exposed(S)``
+            (:func:`exposed`) instead of the dark values, and so does its L1 if ``rec_l1_exposed``.
 
     Returns:
         (total, {"sup_r", "sup_l", "sup_rec"}) — the unweighted terms, for logging.
@@ -189,9 +213,7 @@ def supervision_loss(R_hat: torch.Tensor, L_hat: torch.Tensor, R: torch.Tensor, 
     _check4(R_hat, L_hat, R, L, S)
     # The three Ls terms as one channel-stacked L1 + SSIM (SSIM is per channel, so stacking changes no value;
     # it is one set of kernels instead of three). Each pair is broadcast to a common channel count first.
-    rec, target = R_hat * L_hat, S
-    if rec_gain is not None:
-        rec, target = exposed(rec, rec_gain), exposed(target, rec_gain)
+    (rec, target), (rec_s, target_s) = _reconstruction_pairs(R_hat * L_hat, S, rec_gain, rec_l1_exposed)
     pairs = [torch.broadcast_tensors(a, b) for a, b in ((R_hat, R), (L_hat, L), (rec, target))]
     sizes = [a.shape[1] for a, _ in pairs]
     x = torch.cat([a for a, _ in pairs], dim=1)
@@ -199,6 +221,8 @@ def supervision_loss(R_hat: torch.Tensor, L_hat: torch.Tensor, R: torch.Tensor, 
     err = (x - y).split(sizes, dim=1)
     l1 = torch.stack([err[0].abs().mean(), err[1].abs().mean(), robust_abs(err[2], rec_huber).mean()])
     if lambda_ssim:
+        if rec_s is not rec:
+            x, y = torch.cat([x[:, :-sizes[2]], rec_s], dim=1), torch.cat([y[:, :-sizes[2]], target_s], dim=1)
         s = torch.stack([m.mean() for m in ssim(x, y, reduction="none").split(sizes, dim=1)])
         values = (1.0 - lambda_ssim) * l1 + lambda_ssim * (1.0 - s)
     else:

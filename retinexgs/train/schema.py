@@ -158,7 +158,7 @@ class Loss(Section):
     enhance_from: Step
     enhance_trains_scene: Bool
     rec_huber: Num(ge=0, le=1)
-    rec_domain: Choice("photo", "exposed")
+    rec_domain: Choice("photo", "exposed", "exposed_ssim")
 
 
 class LearningRates(Section):

@@ -270,17 +270,17 @@ class Trainer:
         R_hat, L_hat, S_b = to_bchw(R_img), to_bchw(L_img), to_bchw(S)
         terms: Dict[str, Tensor] = {}
         gain = None
-        if c["rec_domain"] == "exposed":  # the g = 1 exposure: 1 / lin(L_ref), a constant of the scene
+        if c["rec_domain"] != "photo":  # the g = 1 exposure: 1 / lin(L_ref), a constant of the scene
             gain = torch.exp(-log_lin_ref(self.model.illum_ref, R_hat))
+        l1_exposed = c["rec_domain"] == "exposed"
         if R is not None:
             sup, sup_terms = losses.supervision_loss(R_hat, L_hat, to_bchw(R), to_bchw(L), S_b, c["w_r"],
-                                                     c["w_l"], c["w_s"], c["lambda_ssim"], c["rec_huber"], gain)
+                                                     c["w_l"], c["w_s"], c["lambda_ssim"], c["rec_huber"], gain,
+                                                     l1_exposed)
             terms.update(sup_terms)
         else:  # no 2D priors: only the reconstruction is supervised
-            rec, target = R_hat * L_hat, S_b
-            if gain is not None:
-                rec, target = losses.exposed(rec, gain), losses.exposed(target, gain)
-            terms["sup_rec"] = losses.l1_ssim(rec, target, c["lambda_ssim"], c["rec_huber"])
+            terms["sup_rec"] = losses.reconstruction_loss(R_hat * L_hat, S_b, c["lambda_ssim"], c["rec_huber"],
+                                                          gain, l1_exposed)
             sup = c["w_s"] * terms["sup_rec"]
         terms["tv"] = losses.tv_loss(R_hat)
         total = sup + c["w_tv"] * terms["tv"]
