@@ -109,3 +109,10 @@ def test_a_cut_off_run_resumes_from_its_checkpoint_and_its_time_is_left_out(tmp_
     (fresh.run / quality.RESUMED).write_text("")
     row = next(line for line in quality.table(jobs, ["default"]).splitlines() if line.startswith("| `default`"))
     assert " s)" not in row  # no run trained in one go: no time shown
+    # the mean Gaussian count, where the runs report it
+    for j, n in zip(jobs, (1000, 3000)):
+        m = json.loads(j.metrics_path.read_text())
+        m["train"]["gaussians"] = n
+        j.metrics_path.write_text(json.dumps(m))
+    row = next(line for line in quality.table(jobs, ["default"]).splitlines() if line.startswith("| `default`"))
+    assert "(2k Gaussians)" in row

@@ -136,7 +136,8 @@ def table(jobs: Sequence[Job], configs: Sequence[str]) -> str:
             continue
         s = scene_label(j.scene)
         secs = None if (j.run / RESUMED).is_file() else m.get("train", {}).get("train_seconds")
-        results.setdefault((s, j.config), []).append((j.seed, m["mean"]["psnr"], m["mean"]["ssim"], secs))
+        count = m.get("train", {}).get("gaussians")
+        results.setdefault((s, j.config), []).append((j.seed, m["mean"]["psnr"], m["mean"]["ssim"], secs, count))
         low[s] = (m["mean"]["low_psnr"], m["mean"]["low_ssim"])
     head = "| config | " + " | ".join(scenes) + " | mean |"
     lines = [head, "|" + "---|" * (len(scenes) + 2)]
@@ -147,18 +148,23 @@ def table(jobs: Sequence[Job], configs: Sequence[str]) -> str:
         per_seed: Dict[int, List[tuple]] = {}
         for s in scenes:
             r = results.get((s, c), [])
-            for seed, p, q, _ in r:
+            for seed, p, q, _, _ in r:
                 per_seed.setdefault(seed, []).append((p, q))
-            secs = [t for *_, t in r if t is not None]
-            cells.append(f"{_mean_std([p for _, p, _, _ in r], 2)} / {_mean_std([q for _, _, q, _ in r], 3)}"
-                         + (f" ({np.mean(secs):.0f} s)" if secs else ""))
+            secs = [t for *_, t, _ in r if t is not None]
+            counts = [n for *_, n in r if n is not None]
+            # the Gaussian count beside the time: a change that densifies more also trains slower and may fit noise
+            extra = ([f"{np.mean(secs):.0f} s"] if secs else []) + (
+                [f"{np.mean(counts) / 1000:.0f}k Gaussians"] if counts else [])
+            cells.append(f"{_mean_std([r_[1] for r_ in r], 2)} / {_mean_std([r_[2] for r_ in r], 3)}"
+                         + (f" ({', '.join(extra)})" if extra else ""))
         full = [v for v in per_seed.values() if len(v) == len(scenes)]
         mean_cell = (f"{_mean_std([np.mean([p for p, _ in v]) for v in full], 2)} / "
                      f"{_mean_std([np.mean([q for _, q in v]) for v in full], 3)}") if full else "–"
         n = sorted({len(results.get((s, c), [])) for s in scenes})
         lines.append(f"| `{c}` (n={'/'.join(map(str, n))}) | " + " | ".join(cells) + f" | {mean_cell} |")
     return "\n".join(lines) + "\n\nPSNR (dB) / SSIM on the test views against the normal-light photos, mean ± sample " \
-        "std over seeds (n = seeds per scene); (s) = mean training time (of the runs trained in one go). The " \
+        "std over seeds (n = seeds per scene); (s) = mean training time (of the runs trained in one go), then " \
+        "the mean number of Gaussians at the end. The " \
         "mean column averages each seed's scene means (seeds with every scene only).\n"
 
 
