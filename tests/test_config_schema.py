@@ -83,6 +83,15 @@ def test_bad_values_name_the_source_key_value_and_type(setting, expect):
     assert expect in str(info.value)
 
 
+def test_exposed_reconstruction_needs_the_scene_reference():
+    with pytest.raises(UserError) as info:
+        load_config(["paper"], overrides=["loss.rec_domain=exposed_ssim"])  # the paper has no L_ref
+    assert "loss.rec_domain 'exposed_ssim' exposes the photo by 1 / lin(L_ref)" in str(info.value)
+    assert load_config(overrides=["loss.rec_domain=exposed"])["loss"]["rec_domain"] == "exposed"
+    with pytest.raises(UserError, match="loss.rec_domain must be one of photo, exposed, exposed_ssim"):
+        load_config(overrides=["loss.rec_domain=linear"])
+
+
 def test_a_bad_value_in_a_config_file_names_the_file(tmp_path):
     f = tmp_path / "mine.yaml"
     f.write_text("model:\n  sh_degree: 7\n")

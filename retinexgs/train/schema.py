@@ -221,6 +221,14 @@ class ConfigSchema(Section):
     eval: Eval
     train: Train
 
+    @model_validator(mode="after")
+    def _exposed_needs_a_reference(self) -> "ConfigSchema":
+        if self.loss.rec_domain != "photo" and self.model.enhancement.ref_quantile is None:
+            # the exposure is 1 / lin(L_ref); without a reference L_ref = 1 and "exposed" would silently be "photo"
+            raise ValueError(f"loss.rec_domain '{self.loss.rec_domain}' exposes the photo by 1 / lin(L_ref) and needs "
+                             "model.enhancement.ref_quantile (null: no reference); use rec_domain 'photo'")
+        return self
+
 
 def field_expectation(path: Tuple[Any, ...]) -> Tuple[Tuple[str, ...], Optional[str], Optional[type]]:
     """For an error location: (the key path inside the config, what that key expects, its section class when
