@@ -31,15 +31,17 @@ __all__ = ["TONES", "srgb_to_linear", "linear_to_srgb", "log_lin_ref", "exposure
 TONES = ("illumination", "signal", "exposure")
 
 
-def srgb_to_linear(x: Tensor) -> Tensor:
-    """The sRGB decoding (IEC 61966-2-1) of values in [0, 1]: linear light."""
-    x = x.clamp(0.0, 1.0)
+def srgb_to_linear(x: Tensor, clip: bool = True) -> Tensor:
+    """The sRGB decoding (IEC 61966-2-1) of values in [0, 1]: linear light. ``clip=False``: values above 1 follow
+    the same curve (only negatives are clamped)."""
+    x = x.clamp(0.0, 1.0) if clip else x.clamp_min(0.0)
     return torch.where(x <= 0.04045, x / 12.92, ((x.clamp_min(0.04045) + 0.055) / 1.055) ** 2.4)
 
 
-def linear_to_srgb(x: Tensor) -> Tensor:
-    """The sRGB encoding of linear light, clipped to [0, 1] first (what a camera does to light past white)."""
-    x = x.clamp(0.0, 1.0)
+def linear_to_srgb(x: Tensor, clip: bool = True) -> Tensor:
+    """The sRGB encoding of linear light, clipped to [0, 1] first (what a camera does to light past white).
+    ``clip=False``: light past white keeps rising along the curve (a loss that must keep a gradient there)."""
+    x = x.clamp(0.0, 1.0) if clip else x.clamp_min(0.0)
     return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp_min(0.0031308) ** (1.0 / 2.4) - 0.055)
 
 

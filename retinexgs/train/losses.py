@@ -30,6 +30,8 @@ from typing import Dict, Optional, Tuple
 import torch
 import torch.nn.functional as F
 
+from retinexgs.model.tone import linear_to_srgb, srgb_to_linear
+
 __all__ = [
     "to_bchw", "gaussian_window", "ssim", "robust_abs", "exposed", "l1_ssim", "reconstruction_loss",
     "supervision_loss", "tv_loss", "sh_sparsity_loss",
@@ -150,16 +152,15 @@ def exposed(x: torch.Tensor, gain: torch.Tensor) -> torch.Tensor:
     ``gain``: a scalar tensor (1 / lin(L_ref)). Used to compare the reconstruction with the photo where the
     enhanced output is judged: the sRGB curve and the gain stretch the darkest levels far more than the mid-tones.
     """
-    x = x.clamp_min(0.0)
-    lin = torch.where(x <= 0.04045, x / 12.92, ((x.clamp_min(0.04045) + 0.055) / 1.055) ** 2.4) * gain
-    return torch.where(lin <= 0.0031308, 12.92 * lin, 1.055 * lin.clamp_min(0.0031308) ** (1.0 / 2.4) - 0.055)
+    return linear_to_srgb(gain * srgb_to_linear(x, clip=False), clip=False)
 
 
-def l1_ssim(x: torch.Tensor, y: torch.Tensor, lambda_ssim: float = 0.2, huber: float = 0.0) -> torch.Tensor:
+def l1_ssim(x: torch.Tensor, y: torch.Tensor, lambda_ssim: float = 0.2, huber: float = 0.0,
+            ssim_xy: Optional[Tuple[torch.Tensor, torch.Tensor]] = None) -> torch.Tensor:
     """Ls(x, y) = (1−λ)·mean|x−y| + λ·(1 − SSIM(x, y)): 3DGS's photometric loss, SSIM with "same" padding.
 
     ``y`` may have 1 channel where ``x`` has C (or vice versa): it is broadcast. ``huber`` > 0 replaces |x−y| by
-    :func:`robust_abs` with that δ.
+    :func:`robust_abs` with that δ. ``ssim_xy``: the pair the SSIM part compares, when it is not (x, y).
     """
     _check4(x, y)
     if x.shape != y.shape:
@@ -167,7 +168,8 @@ def l1_ssim(x: torch.Tensor, y: torch.Tensor, lambda_ssim: float = 0.2, huber: f
     l1 = robust_abs(x - y, huber).mean()
     if lambda_ssim == 0:
         return l1
-    return (1.0 - lambda_ssim) * l1 + lambda_ssim * (1.0 - ssim(x, y))
+    xs, ys = (x, y) if ssim_xy is None else torch.broadcast_tensors(*ssim_xy)
+    return (1.0 - lambda_ssim) * l1 + lambda_ssim * (1.0 - ssim(xs, ys))
 
 
 def _reconstruction_pairs(rec: torch.Tensor, S: torch.Tensor, gain: Optional[torch.Tensor], l1_exposed: bool):
@@ -183,14 +185,7 @@ def reconstruction_loss(rec: torch.Tensor, S: torch.Tensor, lambda_ssim: float =
     """Ls(R̂∘L̂, S) alone (no 2D priors), with the options of :func:`supervision_loss`'s reconstruction term."""
     _check4(rec, S)
     (x, y), (xs, ys) = _reconstruction_pairs(rec, S, gain, l1_exposed)
-    if x.shape != y.shape:
-        x, y = torch.broadcast_tensors(x, y)
-    l1 = robust_abs(x - y, huber).mean()
-    if lambda_ssim == 0:
-        return l1
-    if xs.shape != ys.shape:
-        xs, ys = torch.broadcast_tensors(xs, ys)
-    return (1.0 - lambda_ssim) * l1 + lambda_ssim * (1.0 - ssim(xs, ys))
+    return l1_ssim(x, y, lambda_ssim, huber, None if xs is x else (xs, ys))
 
 
 def supervision_loss(R_hat: torch.Tensor, L_hat: torch.Tensor, R: torch.Tensor, L: torch.Tensor,
