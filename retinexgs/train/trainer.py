@@ -21,7 +21,7 @@ from retinexgs.fileio import atomic_write_text
 from retinexgs.model.density import DensityController
 from retinexgs.model.gaussians import GaussianModel
 from retinexgs.model.retinex_model import RetinexGSModel
-from retinexgs.model.tone import log_lin_ref
+from retinexgs.model.tone import exposure_gain
 from retinexgs.render import Camera
 from retinexgs.train import losses
 from retinexgs.train.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
@@ -270,8 +270,8 @@ class Trainer:
         R_hat, L_hat, S_b = to_bchw(R_img), to_bchw(L_img), to_bchw(S)
         terms: Dict[str, Tensor] = {}
         gain = None
-        if c["rec_domain"] != "photo":  # the g = 1 exposure: 1 / lin(L_ref), a constant of the scene
-            gain = torch.exp(-log_lin_ref(self.model.illum_ref, R_hat))
+        if c["rec_domain"] != "photo":  # the tone's gain at g = 1, 1 / lin(L_ref): a constant of the scene
+            gain = exposure_gain(self.model.illum_ref, R_hat.new_ones(()))
         l1_exposed = c["rec_domain"] == "exposed"
         if R is not None:
             sup, sup_terms = losses.supervision_loss(R_hat, L_hat, to_bchw(R), to_bchw(L), S_b, c["w_r"],
