@@ -88,6 +88,19 @@ class DensityController:
         return did.strip()
 
     @torch.no_grad()
+    def limit_anisotropy(self, model: GaussianModel) -> None:
+        """Cap every Gaussian's longest axis at ``max_aniso`` times its shortest (0: no cap); call after each
+        optimiser step. Why: a Gaussian far longer than wide is a needle, seen as a streak from any view off its
+        axis, and where one or two training views see a region nothing stops it growing (the floaters of a view
+        past the training views). The long axis is shortened, not the short one widened, so the cap never makes a
+        Gaussian cover more than it did. In place on the parameter: Adam's moments stay as they are."""
+        r = float(self.cfg.get("max_aniso", 0) or 0)
+        if r <= 0 or len(model) == 0:
+            return
+        ls = model.log_scales
+        torch.minimum(ls, ls.amin(dim=-1, keepdim=True) + math.log(r), out=ls)
+
+    @torch.no_grad()
     def densify_and_prune(self, step: int, model: GaussianModel, optimizer: torch.optim.Optimizer,
                           image_size: int) -> str:
         c = self.cfg

@@ -13,7 +13,12 @@ labels the feature widths; the figure itself is not in our copy, so the widths h
     concat(feature, PE(d) [3 + 6·L_d = 27])  -> Linear(dir_hidden=32) + ReLU -> Linear(3) -> sigmoid
 
 Position enters the trunk only and direction only the head (NeRF style), so view dependence stays a
-small correction on a spatially smooth field.
+small correction on a spatially smooth field. ``view_dependent=False`` removes it: the head's direction
+columns are held at zero, so L̂ is a function of position alone. Why: in Retinex the illumination is the light
+arriving at a point, the same from every viewpoint; what a viewpoint changes (gloss) belongs to the
+reflectance's SH. A direction input lets L̂ fit each view's own noise and exposure, and on a view past the
+training views it extrapolates freely. Held at zero (not removed), the layer keeps the layout the fused
+colour kernel evaluates, which then gives the same values for any direction.
 
 Input scaling. Positions are expected in the loader's normalised world (train cameras in the unit ball,
 scene content roughly within [-1.5, 1.5]). They are divided by ``bound`` (default 2.0) before encoding
@@ -82,10 +87,12 @@ class IlluminationField(nn.Module):
         dir_hidden: width of the direction head's hidden layer.
         bound: positions are divided by this before encoding (see "Input scaling").
         init_value: initial output for every input (sigmoid bias = logit(init_value)).
+        view_dependent: False holds the head's direction columns at zero (see the module docstring).
     """
 
     def __init__(self, pos_freqs: int = 10, dir_freqs: int = 4, hidden: int = 64, depth: int = 3,
-                 dir_hidden: int = 32, bound: float = 2.0, init_value: float = 0.1) -> None:
+                 dir_hidden: int = 32, bound: float = 2.0, init_value: float = 0.1,
+                 view_dependent: bool = True) -> None:
         super().__init__()
         if depth < 1:
             raise ValueError("depth must be >= 1")
@@ -103,6 +110,15 @@ class IlluminationField(nn.Module):
         self.head = nn.Sequential(
             nn.Linear(hidden + encoded_dim(3, self.dir_freqs), dir_hidden), nn.ReLU(inplace=True),
             nn.Linear(dir_hidden, 3))
+        self.view_dependent = bool(view_dependent)
+        # 1 on the feature columns of the head's first layer, 0 on the direction columns (all 1 when view
+        # dependent). Not persistent: it follows from the config, and older checkpoints lack it.
+        mask = torch.ones(1, hidden + encoded_dim(3, self.dir_freqs))
+        if not self.view_dependent:
+            mask[:, hidden:] = 0.0
+            with torch.no_grad():
+                self.head[0].weight.mul_(mask)
+        self.register_buffer("head_mask", mask, persistent=False)
         out = self.head[-1]
         # Small last-layer weights: the field starts ~constant at init_value but still gets gradients.
         nn.init.uniform_(out.weight, -1e-3, 1e-3)
@@ -118,7 +134,17 @@ class IlluminationField(nn.Module):
         d = F.normalize(dirs.to(dtype), dim=-1, eps=1e-12)
         feat = self.trunk(positional_encoding(x, self.pos_freqs))
         h = torch.cat([feat, positional_encoding(d, self.dir_freqs)], dim=-1)
-        return torch.sigmoid(self.head(h))
+        first = self.head[0]
+        # The masked weight gets a zero gradient on the direction columns: Adam leaves them at zero.
+        weight = first.weight if self.view_dependent else first.weight * self.head_mask
+        h = F.relu(F.linear(h, weight, first.bias))
+        return torch.sigmoid(self.head[2](h))
+
+    def head_weight(self) -> torch.Tensor:
+        """The weight of the head's first layer as the forward uses it (direction columns zeroed when not view
+        dependent): what the fused colour kernel must be given."""
+        w = self.head[0].weight
+        return w if self.view_dependent else w * self.head_mask
 
     @staticmethod
     def view_dirs(xyz: torch.Tensor, camera_center: torch.Tensor) -> torch.Tensor:

@@ -73,8 +73,9 @@ def pack_illumination(field: IlluminationField) -> Tensor:
     trunk = [m for m in field.trunk if isinstance(m, nn.Linear)]
     head = [m for m in field.head if isinstance(m, nn.Linear)]
     layers = trunk + head
+    weights = [m.weight for m in trunk] + [field.head_weight(), head[1].weight]
     with torch.no_grad():
-        return kernels().pack_illum_weights([m.weight for m in layers], [m.bias for m in layers],
+        return kernels().pack_illum_weights(weights, [m.bias for m in layers],
                                             *illumination_shape(field))
 
 

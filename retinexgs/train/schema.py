@@ -102,6 +102,7 @@ class Illumination(Section):
     depth: Int(1)
     dir_hidden: Int(1)
     init_value: Num(gt=0)
+    view_dependent: Bool
 
 
 class Enhancement(Section):
@@ -184,6 +185,14 @@ class Density(Section):
     last_event: Step
     max_screen_fraction: Num(gt=0)
     max_gaussians: Int(1)
+    max_aniso: Annotated[float, BeforeValidator(_yaml_number), Expect("0 (no cap) or a ratio >= 1")]
+
+    @model_validator(mode="after")
+    def _ratio(self) -> "Density":
+        if not (self.max_aniso == 0 or self.max_aniso >= 1):
+            raise ValueError(f"density.max_aniso must be 0 (no cap) or a ratio >= 1 (longest axis / shortest), "
+                             f"got {self.max_aniso}")
+        return self
 
 
 class Log(Section):

@@ -385,6 +385,7 @@ class Trainer:
             self.density.update(res["out"], tv.camera.width, tv.camera.height)
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
+        self.density.limit_anisotropy(self.model.gaussians)
         values: Dict[str, float] = {}
         if check or self.schedule.densify_at(step) or self.schedule.reset_at(step):
             with record_function("step/check"):
