@@ -134,11 +134,9 @@ class IlluminationField(nn.Module):
         d = F.normalize(dirs.to(dtype), dim=-1, eps=1e-12)
         feat = self.trunk(positional_encoding(x, self.pos_freqs))
         h = torch.cat([feat, positional_encoding(d, self.dir_freqs)], dim=-1)
-        first = self.head[0]
         # The masked weight gets a zero gradient on the direction columns: Adam leaves them at zero.
-        weight = first.weight if self.view_dependent else first.weight * self.head_mask
-        h = F.relu(F.linear(h, weight, first.bias))
-        return torch.sigmoid(self.head[2](h))
+        h = F.relu(F.linear(h, self.head_weight(), self.head[0].bias))
+        return torch.sigmoid(self.head[-1](h))
 
     def head_weight(self) -> torch.Tensor:
         """The weight of the head's first layer as the forward uses it (direction columns zeroed when not view
