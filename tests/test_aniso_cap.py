@@ -5,6 +5,7 @@ import math
 import pytest
 import torch
 
+from retinexgs.errors import UserError
 from retinexgs.model.density import DensityController
 from retinexgs.model.gaussians import GaussianModel
 from retinexgs.train.config import load_config
@@ -51,7 +52,7 @@ def test_zero_is_no_cap():
 
 @pytest.mark.parametrize("bad", ["0.5", "-1"])
 def test_a_ratio_below_one_is_refused_by_name(bad):
-    with pytest.raises(Exception, match="max_aniso"):
+    with pytest.raises(UserError, match="max_aniso"):
         load_config([], [f"density.max_aniso={bad}"])
 
 

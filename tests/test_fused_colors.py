@@ -30,11 +30,11 @@ def make_gaussians(n=300, sh_degree=3, dtype=torch.float64, seed=0):
     return g.to(dtype)
 
 
-def make_field(shape, dtype=torch.float64, bound=2.0, seed=1):
+def make_field(shape, dtype=torch.float64, bound=2.0, seed=1, view_dependent=True):
     torch.manual_seed(seed)
     pos_freqs, dir_freqs, hidden, depth, dir_hidden = shape
     f = IlluminationField(pos_freqs=pos_freqs, dir_freqs=dir_freqs, hidden=hidden, depth=depth,
-                          dir_hidden=dir_hidden, bound=bound).to(dtype)
+                          dir_hidden=dir_hidden, bound=bound, view_dependent=view_dependent).to(dtype)
     with torch.no_grad():
         f.head[-1].weight.normal_(0, 0.5)  # a view-dependent field, not the near-constant initial one
     return f

@@ -1,27 +1,21 @@
 """The illumination field without its direction input (``model.illumination.view_dependent: false``): L̂ depends on
-position alone, stays so through training, and the fused colour kernel (CPU here, CUDA in test_cuda_frame's
-twin below) gives the torch field's values for any camera."""
+position alone, stays so through training, and the fused colour kernel (on the CPU, and on CUDA where there is a
+GPU) gives the torch field's values for any camera."""
 import pytest
 import torch
 import torch.nn.functional as F
 
 from retinexgs.model.gaussians import GaussianModel
-from retinexgs.model.illumination import IlluminationField, positional_encoding
+from retinexgs.model.illumination import positional_encoding
 from retinexgs.model.inference import fused_gaussian_colors
 from retinexgs.model.retinex_model import RetinexGSModel
 from retinexgs.render import has_cuda
 from retinexgs.train.config import load_config
-from test_fused_colors import SHAPES, make_gaussians, torch_colors
+from test_fused_colors import SHAPES, make_field, make_gaussians, torch_colors
 
 
-def field(view_dependent, shape=SHAPES[0], dtype=torch.float64, seed=1):
-    torch.manual_seed(seed)
-    pos_freqs, dir_freqs, hidden, depth, dir_hidden = shape
-    f = IlluminationField(pos_freqs=pos_freqs, dir_freqs=dir_freqs, hidden=hidden, depth=depth,
-                          dir_hidden=dir_hidden, view_dependent=view_dependent).to(dtype)
-    with torch.no_grad():
-        f.head[-1].weight.normal_(0, 0.5)  # far from the near-constant initial field
-    return f
+def field(view_dependent, shape=SHAPES[0]):
+    return make_field(shape, view_dependent=view_dependent)  # float64, far from the near-constant initial field
 
 
 def two_views(n=200, seed=0):

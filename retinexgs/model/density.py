@@ -94,7 +94,7 @@ class DensityController:
         axis, and where one or two training views see a region nothing stops it growing (the floaters of a view
         past the training views). The long axis is shortened, not the short one widened, so the cap never makes a
         Gaussian cover more than it did. In place on the parameter: Adam's moments stay as they are."""
-        r = float(self.cfg.get("max_aniso", 0) or 0)
+        r = float(self.cfg["max_aniso"])
         if r <= 0 or len(model) == 0:
             return
         ls = model.log_scales
