@@ -116,7 +116,7 @@ def check_config(scene_dir, tmp_path, name, device, emulate):
 @pytest.mark.parametrize("name", ["default", "paper", "ablations/no_priors", "ablations/baseline_3dgs",
                                   "ablations/baseline_pre", "ablations/no_sh", "ablations/tone_illumination",
                                   "ablations/exp_on_illumination", "ablations/scene_gamma", "ablations/rec_huber",
-                                  "ablations/rec_exposed", "ablations/rec_exposed_ssim"])
+                                  "ablations/rec_exposed", "ablations/rec_exposed_ssim", "ablations/depth_smooth"])
 def test_graphed_path_matches_eager_on_cpu(scene_dir, tmp_path, name, one_thread):
     tr = check_config(scene_dir, tmp_path, name, "cpu", emulate=True)
     assert len(tr.graphs) == 0  # nothing captured on the CPU

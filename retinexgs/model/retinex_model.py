@@ -127,7 +127,8 @@ class RetinexGSModel(nn.Module):
 
     def render(self, camera: Camera, active_degree: int, exposure: Optional[float] = None,
                gamma: Optional[float] = None, validate: bool = True, enhance: bool = True,
-               center: Optional[Tensor] = None, colors: Optional[Tensor] = None) -> Dict[str, Tensor]:
+               center: Optional[Tensor] = None, colors: Optional[Tensor] = None, depth: bool = False
+               ) -> Dict[str, Tensor]:
         """Render one view. Returns ``out`` (RenderOutput) and [H,W,3] maps: ``rgb`` (the model's output
         image: S_enh, or the plain render for baselines), and for RetinexGS ``R``, ``L``, ``S_rec``, ``gamma``.
 
@@ -137,13 +138,14 @@ class RetinexGSModel(nn.Module):
         training needs only R̂ and L̂ until the enhancement losses start. ``center``: the camera centre already
         on the device (the trainer caches it per view; otherwise it is computed and copied every call).
         ``colors``: the per-Gaussian channels already evaluated (:func:`gaussian_channels`; the trainer's
-        CUDA graph of them), else they are evaluated here.
+        CUDA graph of them), else they are evaluated here. ``depth``: ``out`` also holds the alpha-weighted depth.
         """
         g = self.gaussians
         if colors is None:
             center = (camera.center if center is None else center).to(g.means)
             colors = self.channels(center, active_degree)
-        out = rasterize_gaussians(g.means, g.quats, g.scales, g.opacities, colors, camera, validate=validate)
+        out = rasterize_gaussians(g.means, g.quats, g.scales, g.opacities, colors, camera, validate=validate,
+                                  render_depth=depth)
         if not self.decomposed:
             return {"out": out, "rgb": out.image}
         R, L = out.image[..., :3], out.image[..., 3:6]

@@ -34,7 +34,7 @@ from retinexgs.model.tone import linear_to_srgb, srgb_to_linear
 
 __all__ = [
     "to_bchw", "gaussian_window", "ssim", "robust_abs", "exposed", "l1_ssim", "reconstruction_loss",
-    "supervision_loss", "tv_loss", "sh_sparsity_loss",
+    "supervision_loss", "tv_loss", "edge_weights", "depth_smoothness_loss", "sh_sparsity_loss",
     "spatial_consistency_loss", "exposure_loss", "color_constancy_loss", "enhancement_loss",
 ]
 
@@ -238,6 +238,42 @@ def tv_loss(R_hat: torch.Tensor) -> torch.Tensor:
     dy = (R_hat[..., 1:, :] - R_hat[..., :-1, :]).abs()
     zero = R_hat.new_zeros(())
     return (dx.mean() if dx.numel() else zero) + (dy.mean() if dy.numel() else zero)
+
+
+def edge_weights(guide: torch.Tensor, edge: float) -> Tuple[torch.Tensor, torch.Tensor]:
+    """exp(−edge·|∂I|) of the channel mean I of ``guide`` [B,C,H,W]: ([B,1,H,W−1], [B,1,H−1,W]) weights of
+    the horizontal and vertical forward differences; near 1 in flat regions, small across the image's edges."""
+    _check4(guide)
+    g = guide.mean(1, keepdim=True)
+    wx = torch.exp(-edge * (g[..., :, 1:] - g[..., :, :-1]).abs())
+    wy = torch.exp(-edge * (g[..., 1:, :] - g[..., :-1, :]).abs())
+    return wx, wy
+
+
+def depth_smoothness_loss(depth: torch.Tensor, alpha: torch.Tensor, wx: torch.Tensor, wy: torch.Tensor,
+                          min_alpha: float = 0.5, eps: float = 1e-6) -> torch.Tensor:
+    """Edge-aware first-order smoothness of the rendered disparity (Monodepth's form, not in the paper).
+
+    ``depth`` [B,1,H,W] is the alpha-weighted depth Σ wᵢzᵢ and ``alpha`` [B,1,H,W] the accumulated Σ wᵢ of the
+    same render; ``wx``, ``wy``: :func:`edge_weights` of a guide image. The disparity α/Σwᵢzᵢ (the inverse of
+    the expected depth) is divided by its mean over the covered pixels (alpha ≥ ``min_alpha``), so the term
+    does not depend on the scene's scale. Each difference counts only where both its pixels are covered, and
+    the two directions are averaged over their own counts.
+
+    Why: where the photos show no texture (a plain wall, more so in the dark, where noise hides what texture
+    there is) the reconstruction loss is flat in depth, and Gaussians settle at any depth that reproduces the
+    training views' colours; a view past them shows that as floaters. Smooth disparity, except across the
+    guide's edges, is the prior that decides such regions.
+    """
+    _check4(depth, alpha, wx, wy)
+    covered = (alpha >= min_alpha).to(depth.dtype)
+    disp = alpha / depth.clamp_min(eps) * covered
+    disp = disp / (disp.sum() / covered.sum().clamp_min(1.0)).detach().clamp_min(eps)
+    mx = covered[..., :, 1:] * covered[..., :, :-1]
+    my = covered[..., 1:, :] * covered[..., :-1, :]
+    dx = (disp[..., :, 1:] - disp[..., :, :-1]).abs() * wx * mx
+    dy = (disp[..., 1:, :] - disp[..., :-1, :]).abs() * wy * my
+    return dx.sum() / mx.sum().clamp_min(1.0) + dy.sum() / my.sum().clamp_min(1.0)
 
 
 def sh_sparsity_loss(sh_rest: torch.Tensor, reduction: str = "mean") -> torch.Tensor:

@@ -64,6 +64,13 @@ class TrainView:
     target: Optional[Tensor] = None  # [H,W,3], baselines
     center: Optional[Tensor] = None  # [3] the camera centre on the device (the renderer's view directions)
     packed: Optional[Tensor] = None  # [H,W,K] the loss's targets in one tensor (the CUDA graphs' input)
+    edges: Optional[Tuple[Tensor, Tensor]] = None  # ([1,1,H,W-1], [1,1,H-1,W]) the depth prior's edge weights
+
+    def edge_weights(self, edge: float) -> Tuple[Tensor, Tensor]:
+        """:func:`losses.edge_weights` of the view's reflectance prior R (of S without priors), built once."""
+        if self.edges is None:
+            self.edges = losses.edge_weights(to_bchw(self.R if self.R is not None else self.S), edge)
+        return self.edges
 
     def pack(self, decomposed: bool) -> Tensor:
         """The loss's targets as one contiguous [H,W,K] tensor, built once: S (+ R, L) or the baselines' target
@@ -133,6 +140,8 @@ class Trainer:
         self.method = cfg["method"]
         self.schedule = build_schedule(cfg)
         self.decomposed = self.method == "retinexgs"
+        # The depth prior is RetinexGS's (the 3DGS baselines stay as published).
+        self.depth_prior = self.decomposed and cfg["loss"]["w_depth"] > 0
         torch.manual_seed(cfg["seed"])
         random.seed(cfg["seed"])
         self.views = self._prepare_views()
@@ -295,9 +304,19 @@ class Trainer:
         not part of the graphed image losses)."""
         return losses.sh_sparsity_loss(self.model.gaussians.sh_rest, self.cfg["loss"]["sh_reduction"])
 
-    def assemble_terms(self, image_total: Tensor, image_terms: Dict[str, Tensor], sh: Optional[Tensor]
-                       ) -> Dict[str, Tensor]:
-        """Every logged term in the log's order (L_SH after L_TV) with ``total`` = image losses + w_sh·L_SH."""
+    def depth_loss(self, res: Dict[str, Tensor], tv: TrainView) -> Optional[Tensor]:
+        """The depth prior (unweighted) of a render made with ``depth=True``; None while ``loss.w_depth`` is 0.
+        Eager in both paths: it reads the render's depth and alpha, which the graphed image losses do not."""
+        if not self.depth_prior:
+            return None
+        out = res["out"]
+        wx, wy = tv.edge_weights(self.cfg["loss"]["depth_edge"])
+        return losses.depth_smoothness_loss(to_bchw(out.depth), to_bchw(out.alpha), wx, wy)
+
+    def assemble_terms(self, image_total: Tensor, image_terms: Dict[str, Tensor], sh: Optional[Tensor],
+                       depth: Optional[Tensor] = None) -> Dict[str, Tensor]:
+        """Every logged term in the log's order (L_SH after L_TV, then the depth prior) with ``total`` = image
+        losses + w_sh·L_SH (+ w_depth·depth prior)."""
         if not self.decomposed:
             return {"total": image_total, **image_terms}
         terms: Dict[str, Tensor] = {}
@@ -305,7 +324,12 @@ class Trainer:
             terms[name] = value
             if name == "tv":
                 terms["sh"] = sh
-        terms["total"] = torch.add(image_total, sh, alpha=self.cfg["loss"]["w_sh"])
+                if depth is not None:
+                    terms["depth"] = depth
+        total = torch.add(image_total, sh, alpha=self.cfg["loss"]["w_sh"])
+        if depth is not None:
+            total = torch.add(total, depth, alpha=self.cfg["loss"]["w_depth"])
+        terms["total"] = total
         return terms
 
     def loss(self, res: Dict[str, Tensor], tv: TrainView, step: int) -> Dict[str, Tensor]:
@@ -313,7 +337,8 @@ class Trainer:
         image = res["out"].image
         enhance = self.decomposed and self.schedule.enhance_at(step)
         total, terms = self.image_loss(image, tv.target if not self.decomposed else tv.S, tv.R, tv.L, enhance)
-        return self.assemble_terms(total, terms, self.sh_loss() if self.decomposed else None)
+        return self.assemble_terms(total, terms, self.sh_loss() if self.decomposed else None,
+                                   self.depth_loss(res, tv))
 
     def _graphed_loss(self, image: Tensor, packed: Tensor, enhance: bool) -> Tuple[Tensor, Dict[str, Tensor]]:
         S, R, L = unpack_targets(packed, self.decomposed)
@@ -341,12 +366,17 @@ class Trainer:
                 if sh.requires_grad and self.cfg["loss"]["w_sh"]:
                     roots.append(self.cfg["loss"]["w_sh"] * sh)
                     grads.append(None)
+            depth = self.depth_loss(res, tv)
+            if depth is not None:
+                roots.append(self.cfg["loss"]["w_depth"] * depth)
+                grads.append(None)
             torch.autograd.backward(roots, grads)
             # The EnhancementNet's gradients are the graph's static buffers: read by this step's optimiser
             # step, overwritten only by the next replay (zero_grad sets .grad to None in between).
             for p, g in zip(self.graphs.params if enhance else [], result.param_grads):
                 p.grad = g if p.grad is None else p.grad + g
-        return self.assemble_terms(values[0], image_terms, None if sh is None else sh.detach())
+        return self.assemble_terms(values[0], image_terms, None if sh is None else sh.detach(),
+                                   None if depth is None else depth.detach())
 
     def render_view(self, tv: TrainView, step: int, graphed: bool = True) -> Dict[str, Tensor]:
         """The step's render of ``tv`` (no EnhancementNet: it runs inside the loss, where its losses need it);
@@ -361,7 +391,7 @@ class Trainer:
                         self.log(f"CUDA graph capture of the Gaussians' channels failed ({why}); they run eagerly "
                                  "until the Gaussians change")
             return self.model.render(tv.camera, self.active_degree(step), validate=False, enhance=False,
-                                     center=tv.center, colors=colors)
+                                     center=tv.center, colors=colors, depth=self.depth_prior)
 
     def train_step(self, step: int, tv: TrainView, check: bool = True) -> Dict[str, float]:
         """One optimisation step on view ``tv``. With ``check`` (and always before densification or an opacity
