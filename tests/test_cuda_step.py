@@ -116,7 +116,8 @@ def check_config(scene_dir, tmp_path, name, device, emulate):
 @pytest.mark.parametrize("name", ["default", "paper", "ablations/no_priors", "ablations/baseline_3dgs",
                                   "ablations/baseline_pre", "ablations/no_sh", "ablations/tone_illumination",
                                   "ablations/exp_on_illumination", "ablations/scene_gamma", "ablations/rec_huber",
-                                  "ablations/rec_exposed", "ablations/rec_exposed_ssim", "ablations/depth_smooth"])
+                                  "ablations/rec_exposed", "ablations/rec_exposed_ssim", "ablations/depth_smooth",
+                                  "ablations/no_depth"])
 def test_graphed_path_matches_eager_on_cpu(scene_dir, tmp_path, name, one_thread):
     tr = check_config(scene_dir, tmp_path, name, "cpu", emulate=True)
     assert len(tr.graphs) == 0  # nothing captured on the CPU
@@ -140,15 +141,16 @@ def test_graphed_training_loop_matches_eager_on_cpu(scene_dir, tmp_path, one_thr
 
 
 @pytest.mark.parametrize("name", ["default", "ablations/tone_illumination", "ablations/rec_huber",
-                                  "ablations/rec_exposed", "ablations/rec_exposed_ssim"])
+                                  "ablations/rec_exposed", "ablations/rec_exposed_ssim", "ablations/no_depth"])
 def test_eager_loss_is_the_papers_sum(scene_dir, tmp_path, one_thread, name):
     """Trainer.loss (the reference of the graphed path) against the loss functions composed by hand:
     L_sup + w_tv·L_TV + w_sh·L_SH + L_enhance on the detached R̂, L̂ (the default; L_exp on the image, or on
-    the enhanced light for the previous default)."""
+    the enhanced light for the previous default), + w_depth·(depth prior) where it is on."""
     tr = make_trainer(scene_dir, tmp_path / "ref", name, "cpu")
     c = tr.cfg["loss"]
+    assert tr.depth_prior == (name != "ablations/no_depth")
     tv = tr.views[1]
-    res = tr.model.render(tv.camera, 1)
+    res = tr.model.render(tv.camera, 1, depth=tr.depth_prior)
     terms = tr.loss(res, tv, step=10)
     R_hat, L_hat, S = to_bchw(res["R"]), to_bchw(res["L"]), to_bchw(tv.S)
     # the reconstruction term's options: the g = 1 exposure is 1 / lin(L_ref)
@@ -163,8 +165,13 @@ def test_eager_loss_is_the_papers_sum(scene_dir, tmp_path, one_thread, name):
                                      scale_invariant=c["enhance_scale_invariant"])
     want = sup + c["w_tv"] * losses.tv_loss(R_hat) + c["w_sh"] * losses.sh_sparsity_loss(
         tr.model.gaussians.sh_rest, c["sh_reduction"]) + enh
+    if tr.depth_prior:
+        out = res["out"]
+        want = want + c["w_depth"] * losses.depth_smoothness_loss(
+            to_bchw(out.depth), to_bchw(out.alpha), *losses.edge_weights(to_bchw(tv.R), c["depth_edge"]))
     assert float(terms["total"].detach()) == pytest.approx(float(want.detach()), rel=1e-6)
-    assert list(terms) == ["sup_r", "sup_l", "sup_rec", "tv", "sh", "spa", "exp", "col", "total"]
+    depth = ["depth"] if tr.depth_prior else []
+    assert list(terms) == ["sup_r", "sup_l", "sup_rec", "tv", "sh"] + depth + ["spa", "exp", "col", "total"]
 
 
 def test_graphs_are_off_on_the_cpu_and_by_the_switch(scene_dir, tmp_path):

@@ -140,3 +140,10 @@ def test_off_at_zero_and_for_the_baselines(scene_dir, tmp_path, overrides, metho
 def test_a_negative_weight_is_refused():
     with pytest.raises(Exception, match="w_depth"):
         load_config([], ["loss.w_depth=-1"])
+
+
+def test_a_render_without_depth_is_refused_by_name(scene_dir, tmp_path):  # noqa: F811
+    tr = trainer_for(scene_dir, tmp_path / "run", ["loss.w_depth=0.3"])
+    res = tr.model.render(tr.views[0].camera, 0)  # depth not asked for
+    with pytest.raises(ValueError, match="depth=True"):
+        tr.loss(res, tr.views[0], 0)

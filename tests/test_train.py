@@ -50,7 +50,7 @@ def test_one_step_changes_every_parameter_group(scene_dir, tmp_path):
 
 def test_enhancement_loss_trains_only_the_enhancement_net_by_default(scene_dir, tmp_path):
     tr = trainer_for(scene_dir, tmp_path / "run", ["loss.enhance_from=1"])
-    res = tr.model.render(tr.views[0].camera, 0)
+    res = tr.model.render(tr.views[0].camera, 0, depth=tr.depth_prior)
     terms = tr.loss(res, tr.views[0], step=5)
     enh = tr.cfg["loss"]["w_exp"] * terms["exp"]
     enh.backward()
@@ -60,7 +60,7 @@ def test_enhancement_loss_trains_only_the_enhancement_net_by_default(scene_dir, 
 
 def test_enhancement_losses_switch_on_at_enhance_from(scene_dir, tmp_path):
     tr = trainer_for(scene_dir, tmp_path / "run")
-    res = tr.model.render(tr.views[0].camera, 0)
+    res = tr.model.render(tr.views[0].camera, 0, depth=tr.depth_prior)
     before = tr.loss(res, tr.views[0], step=3)
     after = tr.loss(res, tr.views[0], step=4)
     assert not {"spa", "exp", "col"} & set(before)
@@ -219,7 +219,7 @@ def test_exposure_on_the_illumination_sets_the_gamma_the_image_level_does_not(sc
     term must match the loss functions on the corresponding maps."""
     from retinexgs.train import losses
     tr = trainer_for(scene_dir, tmp_path / "run", ["loss.enhance_from=1"])
-    res = tr.model.render(tr.views[0].camera, 0)
+    res = tr.model.render(tr.views[0].camera, 0, depth=tr.depth_prior)
     out = tr.model.enhance(res["R"].detach(), res["L"].detach())
     terms = tr.loss(res, tr.views[0], step=5)
     c = tr.cfg["loss"]
@@ -227,13 +227,13 @@ def test_exposure_on_the_illumination_sets_the_gamma_the_image_level_does_not(sc
     want = float(out["rgb"].detach().mean() - c["exposure_E"]) ** 2
     assert float(terms["exp"].detach()) == pytest.approx(want, rel=1e-4)
     light = trainer_for(scene_dir, tmp_path / "run1", ["loss.enhance_from=1", "loss.exp_on=illumination"])
-    res1 = light.model.render(light.views[0].camera, 0)
+    res1 = light.model.render(light.views[0].camera, 0, depth=light.depth_prior)
     out1 = light.model.enhance(res1["R"].detach(), res1["L"].detach())
     want = float(out1["L_enh"].detach().mean() - c["exposure_E"]) ** 2
     assert float(light.loss(res1, light.views[0], step=5)["exp"].detach()) == pytest.approx(want, rel=1e-4)
     img = trainer_for(scene_dir, tmp_path / "run2", ["loss.enhance_from=1", "loss.exp_on=image",
                                                   "loss.exp_patch=8"])
-    res2 = img.model.render(img.views[0].camera, 0)
+    res2 = img.model.render(img.views[0].camera, 0, depth=img.depth_prior)
     out2 = img.model.enhance(res2["R"].detach(), res2["L"].detach())
     t2 = img.loss(res2, img.views[0], step=5)
     bchw = out2["rgb"].permute(2, 0, 1)[None]

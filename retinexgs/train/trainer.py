@@ -310,6 +310,8 @@ class Trainer:
         if not self.depth_prior:
             return None
         out = res["out"]
+        if out.depth is None:
+            raise ValueError("loss.w_depth > 0 needs the render's depth: render with depth=True (render_view does)")
         wx, wy = tv.edge_weights(self.cfg["loss"]["depth_edge"])
         return losses.depth_smoothness_loss(to_bchw(out.depth), to_bchw(out.alpha), wx, wy)
 
