@@ -302,11 +302,17 @@ def test_a_run_older_than_a_key_gets_the_behaviour_it_was_trained_with(run):
     from retinexgs.train.resume import read_run_config
     raw = recorded(run)
     assert raw["model"]["enhancement"]["tone"] == "exposure"  # a run made today records it
+    assert raw["loss"]["w_depth"] == 0.3
     del raw["model"]["enhancement"]["tone"]
     del raw["model"]["enhancement"]["per_view"]
+    del raw["loss"]["w_depth"]
+    del raw["loss"]["depth_edge"]
     (run / "config.yaml").write_text(yaml.safe_dump(raw))
     lines = []
     cfg, _ = read_run_config(run, lines.append)
     assert cfg["model"]["enhancement"]["tone"] == "illumination"
+    assert cfg["loss"]["w_depth"] == 0.0  # trained without the depth prior
     assert cfg["model"]["enhancement"]["per_view"] is True  # unchanged default: filled from default.yaml
-    assert "model.enhancement.tone" in lines[0] and "model.enhancement.per_view" in lines[0]
+    assert cfg["loss"]["depth_edge"] == 10.0
+    for key in ("model.enhancement.tone", "model.enhancement.per_view", "loss.w_depth", "loss.depth_edge"):
+        assert key in lines[0]
