@@ -116,7 +116,7 @@ def check_config(scene_dir, tmp_path, name, device, emulate):
 @pytest.mark.parametrize("name", ["default", "paper", "ablations/no_priors", "ablations/baseline_3dgs",
                                   "ablations/baseline_pre", "ablations/no_sh", "ablations/tone_illumination",
                                   "ablations/exp_on_illumination", "ablations/scene_gamma", "ablations/rec_huber",
-                                  "ablations/rec_exposed", "ablations/rec_exposed_ssim", "ablations/depth_smooth",
+                                  "ablations/rec_exposed", "ablations/rec_photo", "ablations/depth_smooth",
                                   "ablations/no_depth"])
 def test_graphed_path_matches_eager_on_cpu(scene_dir, tmp_path, name, one_thread):
     tr = check_config(scene_dir, tmp_path, name, "cpu", emulate=True)
@@ -141,7 +141,7 @@ def test_graphed_training_loop_matches_eager_on_cpu(scene_dir, tmp_path, one_thr
 
 
 @pytest.mark.parametrize("name", ["default", "ablations/tone_illumination", "ablations/rec_huber",
-                                  "ablations/rec_exposed", "ablations/rec_exposed_ssim", "ablations/no_depth"])
+                                  "ablations/rec_exposed", "ablations/rec_photo", "ablations/no_depth"])
 def test_eager_loss_is_the_papers_sum(scene_dir, tmp_path, one_thread, name):
     """Trainer.loss (the reference of the graphed path) against the loss functions composed by hand:
     L_sup + w_tv·L_TV + w_sh·L_SH + L_enhance on the detached R̂, L̂ (the default; L_exp on the image, or on

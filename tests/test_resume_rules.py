@@ -303,10 +303,13 @@ def test_a_run_older_than_a_key_gets_the_behaviour_it_was_trained_with(run):
     raw = recorded(run)
     assert raw["model"]["enhancement"]["tone"] == "exposure"  # a run made today records it
     assert raw["loss"]["w_depth"] == 0.3
+    assert raw["loss"]["rec_domain"] == "exposed_ssim"
     del raw["model"]["enhancement"]["tone"]
     del raw["model"]["enhancement"]["per_view"]
     del raw["loss"]["w_depth"]
     del raw["loss"]["depth_edge"]
+    del raw["loss"]["rec_domain"]
+    del raw["loss"]["rec_huber"]
     (run / "config.yaml").write_text(yaml.safe_dump(raw))
     lines = []
     cfg, _ = read_run_config(run, lines.append)
@@ -314,5 +317,8 @@ def test_a_run_older_than_a_key_gets_the_behaviour_it_was_trained_with(run):
     assert cfg["loss"]["w_depth"] == 0.0  # trained without the depth prior
     assert cfg["model"]["enhancement"]["per_view"] is True  # unchanged default: filled from default.yaml
     assert cfg["loss"]["depth_edge"] == 10.0
-    for key in ("model.enhancement.tone", "model.enhancement.per_view", "loss.w_depth", "loss.depth_edge"):
+    assert cfg["loss"]["rec_domain"] == "photo"  # trained with the reconstruction term on the dark values
+    assert cfg["loss"]["rec_huber"] == 0.0
+    for key in ("model.enhancement.tone", "model.enhancement.per_view", "loss.w_depth", "loss.depth_edge",
+                "loss.rec_domain", "loss.rec_huber"):
         assert key in lines[0]

@@ -78,8 +78,10 @@ def run_lock(run_dir: Path) -> Iterator[None]:
 # Keys whose default changed after they were added: a run made before the key existed behaved as the value here,
 # not as today's default (which would re-render it differently). The tone form was the gamma on L̂ until
 # 2026-11-25, when the exposure tone became the default; the depth prior came in later that day, at weight 0.3
-# in the default (a run made before it, resumed, must not start using it).
-PREDATING_VALUES: Dict[str, Any] = {"model.enhancement.tone": "illumination", "loss.w_depth": 0.0}
+# in the default (a run made before it, resumed, must not start using it); the reconstruction term was on the
+# dark photo's values (rec_domain photo) until the exposed SSIM became the default, later still.
+PREDATING_VALUES: Dict[str, Any] = {"model.enhancement.tone": "illumination", "loss.w_depth": 0.0,
+                                    "loss.rec_domain": "photo"}
 
 
 def _fill_missing(cfg: Config, default: Config, prefix: str, filled: List[str]) -> Config:
