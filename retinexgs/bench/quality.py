@@ -170,7 +170,8 @@ def table(jobs: Sequence[Job], configs: Sequence[str]) -> str:
 
 def contact_sheet(jobs: Sequence[Job], configs: Sequence[str], scene: str, out: Path, views: int = 2) -> Optional[Path]:
     """low | each config (lowest seed) | truth for the first ``views`` test views, from the runs' side-by-side
-    PNGs (their first panel is the low input, the second the output, the last the normal-light truth)."""
+    PNGs (their first panel is the low input, the second the output, the last the normal-light truth). Each column
+    is labelled with its config and seed: configs run with different seeds show different seeds."""
     from PIL import Image, ImageDraw
 
     chosen: Dict[str, Job] = {}
@@ -199,7 +200,7 @@ def contact_sheet(jobs: Sequence[Job], configs: Sequence[str], scene: str, out: 
                 cols.append(img.crop((0, 0, w, h)))
                 labels.append("low input")
             cols.append(img.crop((w, 0, 2 * w, h)))
-            labels.append(c)
+            labels.append(f"{c}, seed {chosen[c].seed}")
             truth = img.crop((img.width - w, 0, img.width, h))
         cols.append(truth)
         labels.append("truth")
@@ -210,7 +211,10 @@ def contact_sheet(jobs: Sequence[Job], configs: Sequence[str], scene: str, out: 
     for r, (cols, labels) in enumerate(rows):
         for k, (img, label) in enumerate(zip(cols, labels)):
             sheet.paste(img, (k * w, r * (h + pad) + pad))
-            draw.text((k * w + 2, r * (h + pad) + 1), label[: max(4, w // 6)], fill="black")
+            # too long for the column: keep the end (the seed and the config's own name)
+            fit = max(4, w // 6)
+            draw.text((k * w + 2, r * (h + pad) + 1), label if len(label) <= fit else ".." + label[-fit + 2:],
+                      fill="black")
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".tmp-{out.name}")
     sheet.save(tmp, format="PNG")
