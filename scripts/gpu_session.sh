@@ -4,9 +4,16 @@
 # with the GPU free again, the FPS bench on the fox-dark default run of seed 0 if a group trained it.
 #   TESTS="tests/test_cuda_frame.py ..." OUT=... WHL=.whl DATA=.data LIMIT=540 bash scripts/gpu_session.sh GROUP...
 # GROUP as in gpu_quality.sh (SEEDS:CONFIG[,CONFIG]:SCENE[,SCENE]:JOBS).
+# ALONE="0,:default:fox-dark:1" first trains that group with the GPU to itself (a training time to report: the
+# others share the GPU), results under $OUT/alone, before the groups and the tests start; the limit covers both.
 set -uo pipefail
 OUT=${OUT:-gpu_out}; mkdir -p "$OUT"
 t0=$(date +%s)
+if [ -n "${ALONE:-}" ]; then
+  OUT="$OUT/alone" bash scripts/gpu_quality.sh "$ALONE" > "$OUT/alone.log" 2>&1
+  grep -E "^(build|ok|FAIL|reused)" "$OUT/alone.log"
+  export LIMIT=$(( ${LIMIT:-520} - ($(date +%s) - t0) ))
+fi
 bash scripts/gpu_quality.sh "$@" > "$OUT/quality.log" 2>&1 &
 qpid=$!
 if [ -n "${TESTS:-}" ]; then
