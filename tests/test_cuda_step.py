@@ -116,8 +116,8 @@ def check_config(scene_dir, tmp_path, name, device, emulate):
 @pytest.mark.parametrize("name", ["default", "paper", "ablations/no_priors", "ablations/baseline_3dgs",
                                   "ablations/baseline_pre", "ablations/no_sh", "ablations/tone_illumination",
                                   "ablations/exp_on_illumination", "ablations/scene_gamma", "ablations/rec_huber",
-                                  "ablations/rec_exposed", "ablations/rec_photo", "ablations/depth_smooth",
-                                  "ablations/no_depth"])
+                                  "ablations/rec_exposed", "ablations/rec_photo", "ablations/rec_ssim_noise",
+                                  "ablations/depth_smooth", "ablations/no_depth"])
 def test_graphed_path_matches_eager_on_cpu(scene_dir, tmp_path, name, one_thread):
     tr = check_config(scene_dir, tmp_path, name, "cpu", emulate=True)
     assert len(tr.graphs) == 0  # nothing captured on the CPU
@@ -141,7 +141,8 @@ def test_graphed_training_loop_matches_eager_on_cpu(scene_dir, tmp_path, one_thr
 
 
 @pytest.mark.parametrize("name", ["default", "ablations/tone_illumination", "ablations/rec_huber",
-                                  "ablations/rec_exposed", "ablations/rec_photo", "ablations/no_depth"])
+                                  "ablations/rec_exposed", "ablations/rec_photo", "ablations/rec_ssim_noise",
+                                  "ablations/no_depth"])
 def test_eager_loss_is_the_papers_sum(scene_dir, tmp_path, one_thread, name):
     """Trainer.loss (the reference of the graphed path) against the loss functions composed by hand:
     L_sup + w_tv·L_TV + w_sh·L_SH + L_enhance on the detached R̂, L̂ (the default; L_exp on the image, or on
@@ -156,7 +157,8 @@ def test_eager_loss_is_the_papers_sum(scene_dir, tmp_path, one_thread, name):
     # the reconstruction term's options: the g = 1 exposure is 1 / lin(L_ref)
     gain = 1.0 / srgb_to_linear(tr.model.illum_ref) if c["rec_domain"] != "photo" else None
     sup, _ = losses.supervision_loss(R_hat, L_hat, to_bchw(tv.R), to_bchw(tv.L), S, c["w_r"], c["w_l"], c["w_s"],
-                                     c["lambda_ssim"], c["rec_huber"], gain, c["rec_domain"] == "exposed")
+                                     c["lambda_ssim"], c["rec_huber"], gain, c["rec_domain"] == "exposed",
+                                     c["rec_ssim_noise"])
     out = tr.model.enhance(res["R"].detach(), res["L"].detach())
     enh, _ = losses.enhancement_loss(to_bchw(out["rgb"]), S, c["w_spa"], c["w_exp"], c["w_col"], c["exposure_E"],
                                      illumination=to_bchw(out["L_enh"]) if c["exp_on"] == "illumination" else None,

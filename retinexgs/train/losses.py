@@ -33,7 +33,7 @@ import torch.nn.functional as F
 from retinexgs.model.tone import linear_to_srgb, srgb_to_linear
 
 __all__ = [
-    "to_bchw", "gaussian_window", "ssim", "robust_abs", "exposed", "l1_ssim", "reconstruction_loss",
+    "to_bchw", "gaussian_window", "ssim", "noise_variance", "robust_abs", "exposed", "l1_ssim", "reconstruction_loss",
     "supervision_loss", "tv_loss", "edge_weights", "depth_smoothness_loss", "sh_sparsity_loss",
     "spatial_consistency_loss", "exposure_loss", "color_constancy_loss", "enhancement_loss",
 ]
@@ -91,7 +91,7 @@ def _filter(x: torch.Tensor, size: int, sigma: float, pad: int) -> torch.Tensor:
 
 
 def ssim(x: torch.Tensor, y: torch.Tensor, window: int = 11, sigma: float = 1.5, padding: str = "same",
-         data_range: float = 1.0, reduction: str = "mean") -> torch.Tensor:
+         data_range: float = 1.0, reduction: str = "mean", c2_extra: Optional[torch.Tensor] = None) -> torch.Tensor:
     """Structural similarity (Wang et al. 2004) with a Gaussian window, per channel.
 
     SSIM = (2μxμy + C1)(2σxy + C2) / ((μx² + μy² + C1)(σx² + σy² + C2)),
@@ -105,6 +105,9 @@ def ssim(x: torch.Tensor, y: torch.Tensor, window: int = 11, sigma: float = 1.5,
                  or "valid" = no padding (the standard evaluation SSIM; needs H, W ≥ window).
         data_range: R, the dynamic range of the images (1 for [0,1]).
         reduction: "mean" (scalar over everything) or "none" (the SSIM map).
+        c2_extra: added to C2, broadcast against [B,C,1,1]. C2 sets the variance below which SSIM stops comparing
+            structure; raised by a noisy y's noise variance (:func:`noise_variance`), SSIM no longer asks x to
+            reproduce y's contrast at the noise's scale, which x could only do by fitting that very noise.
     """
     _check4(x, y)
     if x.shape != y.shape:
@@ -123,6 +126,8 @@ def ssim(x: torch.Tensor, y: torch.Tensor, window: int = 11, sigma: float = 1.5,
     sxx = exx - mx * mx
     syy = eyy - my * my
     sxy = exy - mx * my
+    if c2_extra is not None:
+        c2 = c2 + c2_extra
     s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
     if reduction == "none":
         return s
@@ -145,6 +150,28 @@ def robust_abs(err: torch.Tensor, delta: float = 0.0) -> torch.Tensor:
     return torch.where(a < delta, a * a / (2.0 * delta), a - 0.5 * delta)
 
 
+# Immerkær's noise mask: the difference of two discrete Laplacians, blind to the image's first and second order
+# (planes and linear ramps give 0), so on a smooth image it responds to noise alone; Σ mask² = 36.
+_NOISE_MASK = ((1.0, -2.0, 1.0), (-2.0, 4.0, -2.0), (1.0, -2.0, 1.0))
+
+
+def noise_variance(y: torch.Tensor) -> torch.Tensor:
+    """Per image and channel, the variance of white noise in ``y`` [B,C,H,W] → [B,C,1,1] (H, W ≥ 3).
+
+    Immerkær (1996) with a median for the mean: the 3×3 mask responds to noise with standard deviation 6σ, and
+    the median of its magnitude, unlike the mean, ignores the few pixels on edges and texture (a Gaussian's
+    median |r| is 0.6745 of its σ).
+    """
+    _check4(y)
+    if min(y.shape[-2:]) < 3:
+        raise ValueError(f"noise_variance needs an image of at least 3×3, got {tuple(y.shape[-2:])}")
+    b, c, h, w = y.shape
+    mask = torch.tensor(_NOISE_MASK, dtype=y.dtype, device=y.device).expand(c, 1, 3, 3)
+    r = F.conv2d(y, mask, groups=c).abs().reshape(b, c, -1)
+    sigma = r.median(dim=-1).values / (0.6745 * 6.0)
+    return (sigma * sigma).reshape(b, c, 1, 1)
+
+
 def exposed(x: torch.Tensor, gain: torch.Tensor) -> torch.Tensor:
     """srgb(gain · lin(x)) for sRGB-encoded ``x``: the photo as a longer exposure shows it (the default's tone at
     g = 1, :mod:`retinexgs.model.tone`), without the clip at white, so an over-bright render keeps its gradient.
@@ -156,11 +183,12 @@ def exposed(x: torch.Tensor, gain: torch.Tensor) -> torch.Tensor:
 
 
 def l1_ssim(x: torch.Tensor, y: torch.Tensor, lambda_ssim: float = 0.2, huber: float = 0.0,
-            ssim_xy: Optional[Tuple[torch.Tensor, torch.Tensor]] = None) -> torch.Tensor:
+            ssim_xy: Optional[Tuple[torch.Tensor, torch.Tensor]] = None, ssim_noise: bool = False) -> torch.Tensor:
     """Ls(x, y) = (1−λ)·mean|x−y| + λ·(1 − SSIM(x, y)): 3DGS's photometric loss, SSIM with "same" padding.
 
     ``y`` may have 1 channel where ``x`` has C (or vice versa): it is broadcast. ``huber`` > 0 replaces |x−y| by
     :func:`robust_abs` with that δ. ``ssim_xy``: the pair the SSIM part compares, when it is not (x, y).
+    ``ssim_noise``: the SSIM's C2 is raised by its target's noise variance (:func:`noise_variance`).
     """
     _check4(x, y)
     if x.shape != y.shape:
@@ -169,7 +197,8 @@ def l1_ssim(x: torch.Tensor, y: torch.Tensor, lambda_ssim: float = 0.2, huber: f
     if lambda_ssim == 0:
         return l1
     xs, ys = (x, y) if ssim_xy is None else torch.broadcast_tensors(*ssim_xy)
-    return (1.0 - lambda_ssim) * l1 + lambda_ssim * (1.0 - ssim(xs, ys))
+    noise = noise_variance(ys) if ssim_noise else None
+    return (1.0 - lambda_ssim) * l1 + lambda_ssim * (1.0 - ssim(xs, ys, c2_extra=noise))
 
 
 def _reconstruction_pairs(rec: torch.Tensor, S: torch.Tensor, gain: Optional[torch.Tensor], l1_exposed: bool):
@@ -181,17 +210,18 @@ def _reconstruction_pairs(rec: torch.Tensor, S: torch.Tensor, gain: Optional[tor
 
 
 def reconstruction_loss(rec: torch.Tensor, S: torch.Tensor, lambda_ssim: float = 0.2, huber: float = 0.0,
-                        gain: Optional[torch.Tensor] = None, l1_exposed: bool = True) -> torch.Tensor:
+                        gain: Optional[torch.Tensor] = None, l1_exposed: bool = True,
+                        ssim_noise: bool = False) -> torch.Tensor:
     """Ls(R̂∘L̂, S) alone (no 2D priors), with the options of :func:`supervision_loss`'s reconstruction term."""
     _check4(rec, S)
     (x, y), (xs, ys) = _reconstruction_pairs(rec, S, gain, l1_exposed)
-    return l1_ssim(x, y, lambda_ssim, huber, None if xs is x else (xs, ys))
+    return l1_ssim(x, y, lambda_ssim, huber, None if xs is x else (xs, ys), ssim_noise)
 
 
 def supervision_loss(R_hat: torch.Tensor, L_hat: torch.Tensor, R: torch.Tensor, L: torch.Tensor,
                      S: torch.Tensor, w_r: float = 0.5, w_l: float = 0.5, w_s: float = 1.0,
                      lambda_ssim: float = 0.2, rec_huber: float = 0.0, rec_gain: Optional[torch.Tensor] = None,
-                     rec_l1_exposed: bool = True) -> Tuple[torch.Tensor, Terms]:
+                     rec_l1_exposed: bool = True, rec_ssim_noise: bool = False) -> Tuple[torch.Tensor, Terms]:
     """L_sup of Eq. 4: w_r·Ls(R̂, R) + w_l·Ls(L̂, L) + w_s·Ls(R̂∘L̂, S).
 
     Args:
@@ -201,6 +231,8 @@ def supervision_loss(R_hat: torch.Tensor, L_hat: torch.Tensor, R: torch.Tensor, 
         rec_huber: δ of :func:`robust_abs` in the reconstruction term's L1 (0: L1, Eq. 4).
         rec_gain: when given, the reconstruction term's SSIM compares ``exposed(R̂∘L̂)`` with ``exposed(S)``
             (:func:`exposed`) instead of the dark values, and so does its L1 if ``rec_l1_exposed``.
+        rec_ssim_noise: the reconstruction term's SSIM has its C2 raised by its target's noise variance
+            (:func:`noise_variance`, ``ssim``'s ``c2_extra``); the priors' SSIM is unchanged.
 
     Returns:
         (total, {"sup_r", "sup_l", "sup_rec"}) — the unweighted terms, for logging.
@@ -218,7 +250,11 @@ def supervision_loss(R_hat: torch.Tensor, L_hat: torch.Tensor, R: torch.Tensor, 
     if lambda_ssim:
         if rec_s is not rec:
             x, y = torch.cat([x[:, :-sizes[2]], rec_s], dim=1), torch.cat([y[:, :-sizes[2]], target_s], dim=1)
-        s = torch.stack([m.mean() for m in ssim(x, y, reduction="none").split(sizes, dim=1)])
+        noise = None
+        if rec_ssim_noise:  # zero for the priors' channels: LR3M's R and L are already denoised
+            noise = torch.cat([y.new_zeros(y.shape[0], y.shape[1] - sizes[2], 1, 1),
+                               noise_variance(y[:, -sizes[2]:])], dim=1)
+        s = torch.stack([m.mean() for m in ssim(x, y, reduction="none", c2_extra=noise).split(sizes, dim=1)])
         values = (1.0 - lambda_ssim) * l1 + lambda_ssim * (1.0 - s)
     else:
         values = l1

@@ -160,6 +160,7 @@ class Loss(Section):
     enhance_trains_scene: Bool
     rec_huber: Num(ge=0, le=1)
     rec_domain: Choice("photo", "exposed", "exposed_ssim")
+    rec_ssim_noise: Bool
     w_depth: Num(ge=0)
     depth_edge: Num(ge=0)
 

@@ -285,11 +285,11 @@ class Trainer:
         if R is not None:
             sup, sup_terms = losses.supervision_loss(R_hat, L_hat, to_bchw(R), to_bchw(L), S_b, c["w_r"],
                                                      c["w_l"], c["w_s"], c["lambda_ssim"], c["rec_huber"], gain,
-                                                     l1_exposed)
+                                                     l1_exposed, c["rec_ssim_noise"])
             terms.update(sup_terms)
         else:  # no 2D priors: only the reconstruction is supervised
             terms["sup_rec"] = losses.reconstruction_loss(R_hat * L_hat, S_b, c["lambda_ssim"], c["rec_huber"],
-                                                          gain, l1_exposed)
+                                                          gain, l1_exposed, c["rec_ssim_noise"])
             sup = c["w_s"] * terms["sup_rec"]
         terms["tv"] = losses.tv_loss(R_hat)
         total = sup + c["w_tv"] * terms["tv"]
