@@ -150,8 +150,9 @@ def robust_abs(err: torch.Tensor, delta: float = 0.0) -> torch.Tensor:
     return torch.where(a < delta, a * a / (2.0 * delta), a - 0.5 * delta)
 
 
-# Immerkær's noise mask: the difference of two discrete Laplacians, blind to the image's first and second order
-# (planes and linear ramps give 0), so on a smooth image it responds to noise alone; Σ mask² = 36.
+# Immerkær's noise mask: the second difference along x times the second difference along y, so it is zero on
+# anything at most linear along one axis (planes, ramps, x², y², xy) and on a smooth image responds mostly to
+# noise; Σ mask² = 36.
 _NOISE_MASK = ((1.0, -2.0, 1.0), (-2.0, 4.0, -2.0), (1.0, -2.0, 1.0))
 
 
@@ -251,7 +252,10 @@ def supervision_loss(R_hat: torch.Tensor, L_hat: torch.Tensor, R: torch.Tensor, 
         if rec_s is not rec:
             x, y = torch.cat([x[:, :-sizes[2]], rec_s], dim=1), torch.cat([y[:, :-sizes[2]], target_s], dim=1)
         noise = None
-        if rec_ssim_noise:  # zero for the priors' channels: LR3M's R and L are already denoised
+        # Zero for the priors' channels: LR3M's R and L are already denoised. The estimate is a constant of the view,
+        # made again each step because the captured graph's static inputs are S, R and L; it is one 3×3 conv and a
+        # median per channel.
+        if rec_ssim_noise:
             noise = torch.cat([y.new_zeros(y.shape[0], y.shape[1] - sizes[2], 1, 1),
                                noise_variance(y[:, -sizes[2]:])], dim=1)
         s = torch.stack([m.mean() for m in ssim(x, y, reduction="none", c2_extra=noise).split(sizes, dim=1)])
