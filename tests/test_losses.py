@@ -413,6 +413,19 @@ def test_noise_variance_estimates_white_noise_and_ignores_smooth_content():
         Lo.noise_variance(torch.zeros(1, 1, 2, 5))
 
 
+def test_noise_variance_builds_its_mask_once(monkeypatch):
+    # A captured CUDA graph cannot contain torch.tensor(..., device=cuda)'s host->device copy (the H100 run of
+    # stop 26 fell back to eager steps until the mask was cached): after the first call, no tensor is built
+    # from host data.
+    y = torch.rand(1, 3, 8, 9, dtype=torch.float32)
+    first = Lo.noise_variance(y)
+
+    def no_host_tensor(*a, **k):
+        raise AssertionError("noise_variance built a tensor from host data again")
+    monkeypatch.setattr(torch, "tensor", no_host_tensor)
+    assert torch.equal(Lo.noise_variance(y), first)
+
+
 def test_ssim_with_c2_at_the_noise_floor_stops_rewarding_a_copy_of_the_noise():
     """A flat render x = c against y = c + n (white noise, variance N): the copy x = y scores 1, the clean x scores
     C2 / (N + C2) with plain SSIM (0.26 at σ = 0.05: SSIM pays heavily for not copying the noise) and

@@ -154,6 +154,18 @@ def robust_abs(err: torch.Tensor, delta: float = 0.0) -> torch.Tensor:
 # anything at most linear along one axis (planes, ramps, x², y², xy) and on a smooth image responds mostly to
 # noise; Σ mask² = 36.
 _NOISE_MASK = ((1.0, -2.0, 1.0), (-2.0, 4.0, -2.0), (1.0, -2.0, 1.0))
+_NOISE_MASKS: Dict[tuple, torch.Tensor] = {}  # by (channels, dtype, device), kept like _WEIGHTS (graph capture)
+
+
+def _noise_mask(c: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """Immerkær's mask as depthwise weights [c,1,3,3], built once per key: a captured CUDA graph cannot contain
+    the host->device copy that ``torch.tensor(..., device=cuda)`` makes."""
+    key = (c, dtype, torch.device(device))
+    m = _NOISE_MASKS.get(key)
+    if m is None:
+        m = torch.tensor(_NOISE_MASK, dtype=dtype, device=device).expand(c, 1, 3, 3).contiguous()
+        _NOISE_MASKS[key] = m
+    return m
 
 
 def noise_variance(y: torch.Tensor) -> torch.Tensor:
@@ -167,8 +179,7 @@ def noise_variance(y: torch.Tensor) -> torch.Tensor:
     if min(y.shape[-2:]) < 3:
         raise ValueError(f"noise_variance needs an image of at least 3×3, got {tuple(y.shape[-2:])}")
     b, c, h, w = y.shape
-    mask = torch.tensor(_NOISE_MASK, dtype=y.dtype, device=y.device).expand(c, 1, 3, 3)
-    r = F.conv2d(y, mask, groups=c).abs().reshape(b, c, -1)
+    r = F.conv2d(y, _noise_mask(c, y.dtype, y.device), groups=c).abs().reshape(b, c, -1)
     sigma = r.median(dim=-1).values / (0.6745 * 6.0)
     return (sigma * sigma).reshape(b, c, 1, 1)
 
