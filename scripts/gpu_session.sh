@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # One device call for quality and the frame path together: the quality groups of scripts/gpu_quality.sh (which
 # builds first), the CUDA tests once the build is there (beside the trainings: nothing in them is timed), then,
-# with the GPU free again, the FPS bench on the fox-dark default run of seed 0 if a group trained it.
+# with the GPU free again, the FPS bench on the fox-dark default run of seed 0 if a group trained it (FPS_RUN: another
+# run folder on the device, e.g. /tmp/runs/fox-dark/ablations-NAME/seed0).
 #   TESTS="tests/test_cuda_frame.py ..." OUT=... WHL=.whl DATA=.data LIMIT=540 bash scripts/gpu_session.sh GROUP...
 # GROUP as in gpu_quality.sh (SEEDS:CONFIG[,CONFIG]:SCENE[,SCENE]:JOBS).
 # ALONE="0,:default:fox-dark:1" first trains that group with the GPU to itself (a training time to report: the
@@ -26,7 +27,7 @@ if [ -n "${TESTS:-}" ]; then
 fi
 wait $qpid
 cat "$OUT/quality.log"
-run=/tmp/runs/fox-dark/default/seed0
+run=${FPS_RUN:-/tmp/runs/fox-dark/default/seed0}
 if [ -f "$run/metrics.json" ]; then
   for size in "" "--width 500 --height 375"; do
     PYTHONPATH="/tmp/site:$PWD" timeout 60 python3 -m retinexgs.bench fps --run "$run" --device cuda $size 2>&1 \
