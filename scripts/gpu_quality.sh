@@ -7,7 +7,7 @@
 # after ${LIMIT:-520} s (finished runs are kept; on a machine still warm, the same command again resumes cut-off
 # runs from their checkpoints, every 2000 steps). Sizing, H100: a fresh machine builds in 130-170 s; 8 trainings
 # side by side need about 420 s, 6 about 340, 4 about 225; the small results (metrics, logs, tables, contact
-# sheets) are packed into $OUT.
+# sheets) are packed into $OUT/runs.tgz, beside $OUT/quality.md.
 # The device machine has neither pydantic (a requirement since issue 15) nor pycolmap (the scenes' COLMAP points):
 # carry their wheels as .whl (device README: pydantic, pydantic-core, annotated-types, typing-inspection, pycolmap,
 # plyfile for Python 3.12, manylinux x86_64).
@@ -17,7 +17,7 @@ WHL=${WHL:-.whl}; DATA=${DATA:-.data}  # carried folders: wheels, scene copies w
 if ! python3 -c "import pydantic, pycolmap, plyfile" 2>/dev/null; then
   [ -d "$WHL" ] || { echo "pydantic, pycolmap or plyfile is missing here: carry its wheels in $WHL" \
     "(see the comment above)"; exit 1; }
-  python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site "$WHL"/*.whl || exit 1
+  python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/site "$WHL"/*.whl || exit 1
   export PYTHONPATH="/tmp/site${PYTHONPATH:+:$PYTHONPATH}"
 fi
 export PYTHONUNBUFFERED=1 PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}" MAX_JOBS=16 TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0}
@@ -44,6 +44,7 @@ nvidia-smi --query-gpu=name --format=csv,noheader
 # Every group's outcome; a group that trained nothing (a bad seed spec such as "0", which is a count of zero: "0,"
 # is seed 0) shows its error instead of an empty line.
 for f in /tmp/runs/group*.log; do echo "== $f"; grep -E "^(ok|FAIL|reused)|runs in" "$f" || tail -3 "$f"; done
-cp /tmp/runs/sheet_*.png "$OUT/" 2>/dev/null
+# The contact sheets travel inside runs.tgz only: the device tool returns at most 8 files from $OUT, and
+# gpu_session.sh's logs, an ALONE group's table and archive and this call's need all 8.
 tar czf "$OUT/runs.tgz" --exclude='*.pt' --exclude='tb' --exclude='renders' -C /tmp runs 2>/dev/null
 echo "total: $(( $(date +%s) - t0 )) s"
