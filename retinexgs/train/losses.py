@@ -25,7 +25,7 @@ picks the paper's, configs/default.yaml the product's, with the reasons in the f
 """
 from __future__ import annotations
 
-from typing import Dict, Optional, Tuple
+from typing import Any, Callable, Dict, Optional, Tuple
 
 import torch
 import torch.nn.functional as F
@@ -64,22 +64,27 @@ def gaussian_window(size: int = 11, sigma: float = 1.5, dtype: torch.dtype = tor
     return (g / g.sum()).to(dtype=dtype, device=device)
 
 
-# The depthwise filter weights by (channels, size, sigma, dtype, device): built once, not every call (a
-# training step would otherwise copy the window to the GPU and make the expanded weights contiguous each time,
-# and a captured CUDA graph cannot contain the host->device copy at all). Entries are never dropped: a captured
-# graph reads them by address. They are tiny (c·size numbers).
-_WEIGHTS: Dict[tuple, Tuple[torch.Tensor, torch.Tensor]] = {}
+# The losses' constant filter weights (the SSIM window, the noise mask) by what they are for, channels, dtype and
+# device: built once, not every call (a training step would otherwise copy them to the GPU each time, and a
+# captured CUDA graph cannot contain the host->device copy at all). Entries are never dropped: a captured graph
+# reads them by address. They are tiny (a few numbers per channel).
+_WEIGHTS: Dict[tuple, Any] = {}
+
+
+def _constant(key: tuple, build: Callable[[], Any]) -> Any:
+    """``_WEIGHTS[key]``, built by ``build()`` the first time."""
+    w = _WEIGHTS.get(key)
+    if w is None:
+        w = _WEIGHTS[key] = build()
+    return w
 
 
 def _filter_weights(c: int, size: int, sigma: float, dtype: torch.dtype, device) -> Tuple[torch.Tensor, torch.Tensor]:
     """The (horizontal [c,1,1,k], vertical [c,1,k,1]) weights of the separable depthwise Gaussian filter."""
-    key = (c, size, float(sigma), dtype, torch.device(device) if device is not None else torch.device("cpu"))
-    w = _WEIGHTS.get(key)
-    if w is None:
+    def build() -> Tuple[torch.Tensor, torch.Tensor]:
         g = gaussian_window(size, sigma, dtype, device)
-        w = (g.reshape(1, 1, 1, size).repeat(c, 1, 1, 1), g.reshape(1, 1, size, 1).repeat(c, 1, 1, 1))
-        _WEIGHTS[key] = w
-    return w
+        return g.reshape(1, 1, 1, size).repeat(c, 1, 1, 1), g.reshape(1, 1, size, 1).repeat(c, 1, 1, 1)
+    return _constant(("gauss", c, size, float(sigma), dtype, torch.device(device or "cpu")), build)
 
 
 def _filter(x: torch.Tensor, size: int, sigma: float, pad: int) -> torch.Tensor:
@@ -154,18 +159,12 @@ def robust_abs(err: torch.Tensor, delta: float = 0.0) -> torch.Tensor:
 # anything at most linear along one axis (planes, ramps, x², y², xy) and on a smooth image responds mostly to
 # noise; Σ mask² = 36.
 _NOISE_MASK = ((1.0, -2.0, 1.0), (-2.0, 4.0, -2.0), (1.0, -2.0, 1.0))
-_NOISE_MASKS: Dict[tuple, torch.Tensor] = {}  # by (channels, dtype, device), kept like _WEIGHTS (graph capture)
 
 
 def _noise_mask(c: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
-    """Immerkær's mask as depthwise weights [c,1,3,3], built once per key: a captured CUDA graph cannot contain
-    the host->device copy that ``torch.tensor(..., device=cuda)`` makes."""
-    key = (c, dtype, torch.device(device))
-    m = _NOISE_MASKS.get(key)
-    if m is None:
-        m = torch.tensor(_NOISE_MASK, dtype=dtype, device=device).expand(c, 1, 3, 3).contiguous()
-        _NOISE_MASKS[key] = m
-    return m
+    """Immerkær's mask as depthwise weights [c,1,3,3] (kept in ``_WEIGHTS``, like the SSIM window)."""
+    return _constant(("noise", c, dtype, torch.device(device)),
+                     lambda: torch.tensor(_NOISE_MASK, dtype=dtype, device=device).expand(c, 1, 3, 3).contiguous())
 
 
 def noise_variance(y: torch.Tensor) -> torch.Tensor:
