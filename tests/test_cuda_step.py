@@ -12,7 +12,7 @@ from retinexgs.demo.synthetic import make_demo_scene
 from retinexgs.model.tone import srgb_to_linear
 from retinexgs.train import losses
 from retinexgs.train.config import configs_dir, load_config
-from retinexgs.train.trainer import Trainer, to_bchw
+from retinexgs.train.trainer import Trainer, pad_edges, to_bchw, unpack_edges, unpack_targets
 
 CUDA = torch.cuda.is_available()
 try:
@@ -174,6 +174,36 @@ def test_eager_loss_is_the_papers_sum(scene_dir, tmp_path, one_thread, name):
     assert float(terms["total"].detach()) == pytest.approx(float(want.detach()), rel=1e-6)
     depth = ["depth"] if tr.depth_prior else []
     assert list(terms) == ["sup_r", "sup_l", "sup_rec", "tv", "sh"] + depth + ["spa", "exp", "col", "total"]
+
+
+def test_edge_weights_travel_with_the_packed_targets():
+    g = torch.Generator().manual_seed(0)
+    wx, wy = torch.rand(1, 1, 5, 6, generator=g), torch.rand(1, 1, 4, 7, generator=g)
+    packed = torch.cat([torch.rand(5, 7, 7, generator=g), pad_edges(wx, wy)], dim=-1)
+    ux, uy = unpack_edges(packed)
+    assert torch.equal(ux, wx) and torch.equal(uy, wy)
+    S, R, L = unpack_targets(packed, True, edges=True)
+    assert torch.equal(torch.cat([S, R, L], -1), packed[..., :7])
+    S, R, L = unpack_targets(packed[..., 4:], True, edges=True)  # S alone (no priors) and the edges
+    assert R is None and L is None and torch.equal(S, packed[..., 4:7])
+
+
+@pytest.mark.parametrize("name", ["default", "ablations/no_priors", "ablations/no_depth"])
+def test_depth_prior_runs_inside_the_loss_graph(scene_dir, tmp_path, name, one_thread):
+    """The depth prior's term is one of the graphed loss's terms (not eager beside it), fed by two more input
+    channels; its edge weights are packed once per view, and the view's maps stay views of the packed tensor."""
+    tr = make_trainer(scene_dir, tmp_path / "g", name, "cpu", emulate=True)
+    tv = tr.views[0]
+    res = tr.render_view(tv, 1)
+    C = res["out"].image.shape[-1]
+    assert tr.graph_input(res).shape[-1] == C + (2 if tr.depth_prior else 0)
+    result = tr.graphs.run(tr.graph_input(res), tv.pack(True, tr.cfg["loss"]["depth_edge"] if tr.depth_prior
+                                                        else None), False)
+    assert ("depth" in result.names) == tr.depth_prior
+    assert result.grad_image.shape[-1] == C + (2 if tr.depth_prior else 0)
+    assert tv.S.data_ptr() == tv.packed.data_ptr()
+    if tr.depth_prior:
+        assert all(torch.equal(a, b) for a, b in zip(unpack_edges(tv.packed), tv.edges))
 
 
 def test_graphs_are_off_on_the_cpu_and_by_the_switch(scene_dir, tmp_path):

@@ -72,29 +72,56 @@ class TrainView:
             self.edges = losses.edge_weights(to_bchw(self.R if self.R is not None else self.S), edge)
         return self.edges
 
-    def pack(self, decomposed: bool) -> Tensor:
+    def pack(self, decomposed: bool, depth_edge: Optional[float] = None) -> Tensor:
         """The loss's targets as one contiguous [H,W,K] tensor, built once: S (+ R, L) or the baselines' target
-        (one copy into a captured graph's input instead of three)."""
+        (one copy into a captured graph's input instead of three). With ``depth_edge`` (the depth prior is on)
+        the prior's edge weights follow as the last two channels (:func:`pad_edges`)."""
         if self.packed is None:
             if not decomposed:
                 self.packed = self.target.contiguous()
-            elif self.R is None:
+                return self.packed
+            maps = [self.S] if self.R is None else [self.S, self.R, self.L]
+            if depth_edge is not None:
+                maps.append(pad_edges(*self.edge_weights(depth_edge)))
+            if len(maps) == 1:
                 self.packed = self.S.contiguous()
-            else:
-                self.packed = torch.cat([self.S, self.R, self.L], dim=-1)
-                # The view's maps become views of the packed tensor: no second copy on the device.
-                same_target = self.target is self.S
-                self.S, self.R, self.L = unpack_targets(self.packed, True)
-                if same_target:
-                    self.target = self.S
+                return self.packed
+            self.packed = torch.cat(maps, dim=-1)
+            # The view's maps become views of the packed tensor: no second copy on the device.
+            same_target = self.target is self.S
+            S, R, L = unpack_targets(self.packed, True, depth_edge is not None)
+            self.S = S
+            if self.R is not None:
+                self.R, self.L = R, L
+            if same_target:
+                self.target = self.S
         return self.packed
 
 
-def unpack_targets(packed: Tensor, decomposed: bool) -> Tuple[Tensor, Optional[Tensor], Optional[Tensor]]:
-    """(S or the target, R, L) from :meth:`TrainView.pack` (views, no copies)."""
-    if not decomposed or packed.shape[-1] == 3:
+def pad_edges(wx: Tensor, wy: Tensor) -> Tensor:
+    """The depth prior's edge weights ([1,1,H,W-1], [1,1,H-1,W]) as one [H,W,2] map, zero in the last column
+    (x) and row (y), to travel with a view's packed targets; :func:`unpack_edges` inverts it."""
+    H, W = wy.shape[-2] + 1, wx.shape[-1] + 1
+    out = wx.new_zeros(H, W, 2)
+    out[:, :-1, 0] = wx[0, 0]
+    out[:-1, :, 1] = wy[0, 0]
+    return out
+
+
+def unpack_edges(packed: Tensor) -> Tuple[Tensor, Tensor]:
+    """(wx [1,1,H,W-1], wy [1,1,H-1,W]) from the last two channels of a view's packed targets (views)."""
+    return packed[None, None, :, :-1, -2], packed[None, None, :-1, :, -1]
+
+
+def unpack_targets(packed: Tensor, decomposed: bool, edges: bool = False
+                   ) -> Tuple[Tensor, Optional[Tensor], Optional[Tensor]]:
+    """(S or the target, R, L) from :meth:`TrainView.pack` (views, no copies); ``edges``: it was packed with
+    the depth prior's edge weights."""
+    if not decomposed:
         return packed, None, None
-    return packed[..., :3], packed[..., 3:6], packed[..., 6:]
+    if packed.shape[-1] - (2 if edges else 0) == 3:
+        return (packed[..., :3] if edges else packed), None, None
+    return packed[..., :3], packed[..., 3:6], packed[..., 6:7]
 
 
 def enhancement_objective(model: RetinexGSModel, c: Dict, R_img: Tensor, L_img: Tensor, S_b: Tensor
@@ -306,7 +333,7 @@ class Trainer:
 
     def depth_loss(self, res: Dict[str, Tensor], tv: TrainView) -> Optional[Tensor]:
         """The depth prior (unweighted) of a render made with ``depth=True``; None while ``loss.w_depth`` is 0.
-        Eager in both paths: it reads the render's depth and alpha, which the graphed image losses do not."""
+        The eager path's; the graphed one computes the same inside the graph (:meth:`_graphed_loss`)."""
         if not self.depth_prior:
             return None
         out = res["out"]
@@ -316,9 +343,9 @@ class Trainer:
         return losses.depth_smoothness_loss(to_bchw(out.depth), to_bchw(out.alpha), wx, wy)
 
     def assemble_terms(self, image_total: Tensor, image_terms: Dict[str, Tensor], sh: Optional[Tensor],
-                       depth: Optional[Tensor] = None) -> Dict[str, Tensor]:
+                       depth: Optional[Tensor] = None, depth_in_total: bool = False) -> Dict[str, Tensor]:
         """Every logged term in the log's order (L_SH after L_TV, then the depth prior) with ``total`` = image
-        losses + w_sh·L_SH (+ w_depth·depth prior)."""
+        losses + w_sh·L_SH (+ w_depth·depth prior, unless ``depth_in_total``: the graphed sum holds it)."""
         if not self.decomposed:
             return {"total": image_total, **image_terms}
         terms: Dict[str, Tensor] = {}
@@ -329,7 +356,7 @@ class Trainer:
                 if depth is not None:
                     terms["depth"] = depth
         total = torch.add(image_total, sh, alpha=self.cfg["loss"]["w_sh"])
-        if depth is not None:
+        if depth is not None and not depth_in_total:
             total = torch.add(total, depth, alpha=self.cfg["loss"]["w_depth"])
         terms["total"] = total
         return terms
@@ -343,15 +370,34 @@ class Trainer:
                                    self.depth_loss(res, tv))
 
     def _graphed_loss(self, image: Tensor, packed: Tensor, enhance: bool) -> Tuple[Tensor, Dict[str, Tensor]]:
-        S, R, L = unpack_targets(packed, self.decomposed)
-        return self.image_loss(image, S, R, L, enhance)
+        """The captured loss: :meth:`image_loss`, and with the depth prior on, its term as the last ("depth",
+        weighted into the sum) on the two channels that :meth:`graph_input` appends (depth, alpha)."""
+        S, R, L = unpack_targets(packed, self.decomposed, self.depth_prior)
+        if not self.depth_prior:
+            return self.image_loss(image, S, R, L, enhance)
+        C = image.shape[-1] - 2
+        total, terms = self.image_loss(image[..., :C], S, R, L, enhance)
+        terms["depth"] = losses.depth_smoothness_loss(to_bchw(image[..., C:C + 1]), to_bchw(image[..., C + 1:]),
+                                                      *unpack_edges(packed))
+        return torch.add(total, terms["depth"], alpha=self.cfg["loss"]["w_depth"]), terms
+
+    def graph_input(self, res: Dict[str, Tensor]) -> Tensor:
+        """The captured loss's input [H,W,C(+2)]: the rendered channels, then the depth prior's depth and alpha
+        (its ~60 small kernels run inside the graph instead of eagerly)."""
+        out = res["out"]
+        if not self.depth_prior:
+            return out.image
+        if out.depth is None:
+            raise ValueError("loss.w_depth > 0 needs the render's depth: render with depth=True (render_view does)")
+        return torch.cat([out.image, out.depth, out.alpha], dim=-1)
 
     def _backward_graphed(self, res: Dict[str, Tensor], tv: TrainView, step: int) -> Optional[Dict[str, Tensor]]:
         """The loss and its backward through the captured graph; None when this view must run eagerly."""
         enhance = self.decomposed and self.schedule.enhance_at(step)
-        image = res["out"].image
+        out = res["out"]
         with record_function("step/loss_graph"):
-            result = self.graphs.run(image, tv.pack(self.decomposed), enhance)
+            edge = self.cfg["loss"]["depth_edge"] if self.depth_prior else None
+            result = self.graphs.run(self.graph_input(res), tv.pack(self.decomposed, edge), enhance)
         if result is None:
             for key, why in self.graphs.failures.items():
                 if key not in self._graph_failures_logged:
@@ -360,25 +406,27 @@ class Trainer:
             return None
         values = result.values
         image_terms = {name: values[i + 1] for i, name in enumerate(result.names)}
+        depth = image_terms.pop("depth", None)  # already weighted into values[0]
         with record_function("step/backward"):
-            roots, grads = [image], [result.grad_image]
+            grad = result.grad_image
+            if depth is None:
+                roots, grads = [out.image], [grad]
+            else:
+                C = out.image.shape[-1]
+                roots, grads = [out.image, out.depth, out.alpha], [grad[..., :C], grad[..., C:C + 1], grad[..., C + 1:]]
             sh = None
             if self.decomposed:
                 sh = self.sh_loss()
                 if sh.requires_grad and self.cfg["loss"]["w_sh"]:
                     roots.append(self.cfg["loss"]["w_sh"] * sh)
                     grads.append(None)
-            depth = self.depth_loss(res, tv)
-            if depth is not None:
-                roots.append(self.cfg["loss"]["w_depth"] * depth)
-                grads.append(None)
             torch.autograd.backward(roots, grads)
             # The EnhancementNet's gradients are the graph's static buffers: read by this step's optimiser
             # step, overwritten only by the next replay (zero_grad sets .grad to None in between).
             for p, g in zip(self.graphs.params if enhance else [], result.param_grads):
                 p.grad = g if p.grad is None else p.grad + g
-        return self.assemble_terms(values[0], image_terms, None if sh is None else sh.detach(),
-                                   None if depth is None else depth.detach())
+        return self.assemble_terms(values[0], image_terms, None if sh is None else sh.detach(), depth,
+                                   depth_in_total=True)
 
     def render_view(self, tv: TrainView, step: int, graphed: bool = True) -> Dict[str, Tensor]:
         """The step's render of ``tv`` (no EnhancementNet: it runs inside the loss, where its losses need it);
