@@ -186,11 +186,12 @@ MODEL_CFG = {"illumination": {"pos_freqs": 10, "dir_freqs": 4, "hidden": 64, "de
 
 
 def make_model(decomposed=True, per_channel=False, illumination=None, n=400, dtype=torch.float32,
-               tone="illumination"):
+               tone="illumination", background="black"):
     enh = dict(MODEL_CFG["enhancement"], per_channel=per_channel, tone=tone)
     if tone == "exposure":  # the default's range and start
         enh.update(gamma_range=[0.25, 2.0], init_gamma=1.0)
-    cfg = {"illumination": dict(MODEL_CFG["illumination"], **(illumination or {})), "enhancement": enh}
+    cfg = {"illumination": dict(MODEL_CFG["illumination"], **(illumination or {})), "enhancement": enh,
+           "background": background}
     g = make_gaussians(n=n, dtype=torch.float64)
     with torch.no_grad():
         g.means.mul_(0.6)
@@ -201,6 +202,9 @@ def make_model(decomposed=True, per_channel=False, illumination=None, n=400, dty
             model.illumination.head[-1].weight.normal_(0, 0.5)
             model.enhancement.out.weight.normal_(0, 0.5)  # content-dependent gamma
             model.illum_ref.fill_(0.4)
+    if background == "mean":
+        with torch.no_grad():
+            model.background.copy_(torch.linspace(0.2, 0.7, model.background.numel()))
     return model.eval()
 
 
@@ -221,6 +225,29 @@ def test_renderer_equals_model_render(exposure, gamma, per_channel, tone):
     assert ref["rgb"].std() > 0.01  # not a blank frame
     for key in ("rgb", "R", "L", "S_rec", "gamma"):
         assert torch.allclose(res[key], ref[key], rtol=0, atol=1e-6), (key, (res[key] - ref[key]).abs().max())
+
+
+@pytest.mark.parametrize("decomposed", [True, False])
+@pytest.mark.parametrize("fused", [True, False])
+def test_background_fills_uncovered_pixels_in_both_renderers(decomposed, fused):
+    """model.background "mean": pixels no Gaussian covers show the background channels (R̂, L̂ or the colour),
+    partly covered ones blend into it, and the frame renderer composites it as model.render does."""
+    model = make_model(decomposed=decomposed, background="mean", dtype=torch.float64)
+    cam = make_camera(width=40, height=30, eye=(0.3, -0.2, -9.0))  # the Gaussians fill the middle of the frame
+    with torch.no_grad():
+        ref = model.render(cam, 3)
+        model.has_background = False  # the same model composited over black
+        plain = model.render(cam, 3)
+        model.has_background = True
+    T = 1.0 - ref["out"].alpha
+    assert float(T.max()) > 0.99 and float(T.min()) < 0.01  # the camera sees both empty space and Gaussians
+    channels = ref["out"].image
+    assert torch.allclose(channels, plain["out"].image + T * model.background, rtol=0, atol=1e-12)
+    empty = T[..., 0] > 1 - 1e-9
+    assert torch.allclose(channels[empty], model.background.expand(int(empty.sum()), -1), atol=1e-9)
+    res = InferenceRenderer(model, 3, fused=fused).render(cam)
+    for key in ("rgb", "R", "L") if decomposed else ("rgb",):
+        assert torch.allclose(res[key], ref[key], rtol=0, atol=1e-10), key
 
 
 def test_renderer_float64_and_torch_fallback():

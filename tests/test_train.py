@@ -11,6 +11,7 @@ from retinexgs.demo.synthetic import make_demo_scene
 from retinexgs.errors import UserError
 from retinexgs.train.config import load_config
 from retinexgs.train.run import eval_run, load_run, train_run
+from retinexgs.model.retinex_model import RetinexGSModel
 from retinexgs.train.trainer import Trainer, TrainingDiverged
 
 TINY = ["steps=6", "checkpoint.every=3", "log.every=1", "log.tensorboard=false", "model.sh_degree=1",
@@ -252,3 +253,27 @@ def test_paper_config_runs_end_to_end(scene_dir, tmp_path):
     paper = load_config(["paper"])
     assert paper["loss"]["sh_reduction"] == "sum" and paper["loss"]["enhance_trains_scene"] is True
     assert paper["loss"]["exp_on"] == "image" and paper["model"]["enhancement"]["ref_quantile"] is None
+
+
+def test_mean_background_comes_from_the_priors_and_travels_with_the_run(scene_dir, tmp_path):
+    """model.background "mean": the trainer sets it to the training views' mean R and L priors, the checkpoint
+    carries it, and a re-evaluation from the run folder renders with it (the same scores)."""
+    run = tmp_path / "run"
+    metrics = train_run(scene_dir, run, ["demo", "ablations/background_mean"], TINY + ["steps=2"], "cpu",
+                        progress=False, log=lambda s: None)
+    cfg, scene, model, step = load_run(run, "cpu")
+    assert cfg["model"]["background"] == "mean" and model.has_background
+    from retinexgs.retinex.cache import load_or_compute, scene_cache_root
+    dcfg = cfg["decomposer"]
+    priors = load_or_compute([v.image_path for v in scene.train], dcfg["method"], dict(dcfg["params"]) or None,
+                             cache_dir=scene_cache_root(scene.root, cfg["data"]["cache_dir"]), device="cpu",
+                             progress=False)
+    R = torch.stack([r.reshape(-1, 3).float().mean(0) for r, _ in priors]).mean(0)
+    L = torch.stack([l.float().mean() for _, l in priors]).mean()
+    torch.testing.assert_close(model.background, torch.cat([R, L.expand(3)]), rtol=1e-5, atol=1e-6)
+    assert float(model.background.min()) > 0.01  # not black
+    again = eval_run(run, "cpu", log=lambda s: None)
+    assert again["mean"]["psnr"] == pytest.approx(metrics["mean"]["psnr"], abs=1e-6)
+    # A run of the default has no background buffer: its checkpoints keep their keys.
+    default = RetinexGSModel(model.gaussians, load_config([])["model"])
+    assert not default.has_background and "background" not in default.state_dict()

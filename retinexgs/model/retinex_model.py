@@ -67,6 +67,11 @@ class RetinexGSModel(nn.Module):
             self.illumination = IlluminationField(**model_cfg["illumination"])
             self._set_enhancement(model_cfg["enhancement"])
             self.register_buffer("illum_ref", torch.ones(()))  # L_ref; set by the trainer from the 2D priors
+        # model.background "mean": uncovered pixels show [C] channel values (R̂ then L̂, or the baselines' colour)
+        # that the trainer sets from the training views, instead of black; a buffer, so checkpoints carry it.
+        self.has_background = model_cfg.get("background", "black") == "mean"
+        if self.has_background:
+            self.register_buffer("background", torch.zeros(6 if decomposed else 3))
 
     def _set_enhancement(self, enh_cfg: Dict) -> None:
         """A fresh EnhancementNet, the gamma's layout and the tone form from a ``model.enhancement`` section."""
@@ -145,7 +150,7 @@ class RetinexGSModel(nn.Module):
             center = (camera.center if center is None else center).to(g.means)
             colors = self.channels(center, active_degree)
         out = rasterize_gaussians(g.means, g.quats, g.scales, g.opacities, colors, camera, validate=validate,
-                                  render_depth=depth)
+                                  render_depth=depth, background=self.background if self.has_background else None)
         if not self.decomposed:
             return {"out": out, "rgb": out.image}
         R, L = out.image[..., :3], out.image[..., 3:6]

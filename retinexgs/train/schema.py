@@ -135,6 +135,7 @@ class Model(Section):
     sh_degree_every: Every
     init_opacity: Num(gt=0, le=1)
     max_init_points: Int(1)
+    background: Choice("black", "mean")
     illumination: Illumination
     enhancement: Enhancement
 

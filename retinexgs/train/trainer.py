@@ -225,6 +225,8 @@ class Trainer:
         self.model = RetinexGSModel(gaussians, mcfg, self.decomposed).to(self.device)
         if self.decomposed and state is None:
             self.model.illum_ref.fill_(self.illumination_reference())
+        if self.model.has_background and state is None:
+            self.model.background.copy_(self.mean_background())
         lr = self.cfg["lr"]
         g = self.model.gaussians
         groups = [
@@ -282,6 +284,21 @@ class Trainer:
             flat = L.reshape(-1).float()
             per_view.append(flat.kthvalue(min(flat.numel(), max(1, round(float(q) * flat.numel())))).values)
         return float(torch.stack(per_view).median().clamp_min(1e-3))
+
+    def mean_background(self) -> Tensor:
+        """``model.background: mean``: the channel values a render shows where no Gaussian covers a pixel, the
+        training views' means: R̂ of the reflectance priors and L̂ of the illumination priors (without priors, S
+        and its max-RGB), or the baselines' target colour. Under squared error the mean is the best constant for
+        what no view constrains; black is the darkest guess, and in dark photos it lets transparency pass for
+        dark content."""
+        def mean(maps: List[Tensor]) -> Tensor:
+            return torch.stack([m.reshape(-1, m.shape[-1]).float().mean(0) for m in maps]).mean(0)
+
+        if not self.decomposed:
+            return mean([tv.target for tv in self.views])
+        R = mean([tv.R if tv.R is not None else tv.S for tv in self.views])
+        L = mean([tv.L if tv.L is not None else tv.S.amax(-1, keepdim=True) for tv in self.views])
+        return torch.cat([R, L.expand(3)])
 
     # ---- one step ----------------------------------------------------------------------------------------
     def _means_lr(self, step: int) -> float:
