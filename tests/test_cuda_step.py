@@ -117,7 +117,7 @@ def check_config(scene_dir, tmp_path, name, device, emulate):
                                   "ablations/baseline_pre", "ablations/no_sh", "ablations/tone_illumination",
                                   "ablations/exp_on_illumination", "ablations/scene_gamma", "ablations/rec_huber",
                                   "ablations/rec_exposed", "ablations/rec_photo", "ablations/rec_ssim_noise",
-                                  "ablations/depth_smooth", "ablations/no_depth", "ablations/background_mean"])
+                                  "ablations/depth_smooth", "ablations/no_depth", "ablations/background_black"])
 def test_graphed_path_matches_eager_on_cpu(scene_dir, tmp_path, name, one_thread):
     tr = check_config(scene_dir, tmp_path, name, "cpu", emulate=True)
     assert len(tr.graphs) == 0  # nothing captured on the CPU

@@ -15,7 +15,7 @@ from retinexgs.errors import UserError
 from retinexgs.evaluate.metrics import psnr
 from retinexgs.export.bake import fibonacci_sphere, sh_basis, to_normalized
 from retinexgs.export.paths import interpolate_path, orbit_path, scene_center
-from retinexgs.export.ply import read_ply, write_ply
+from retinexgs.export.ply import read_background, read_ply, write_ply
 from retinexgs.render import rasterize_gaussians, spherical_harmonics
 from retinexgs.train.run import load_run
 from retinexgs.train.trainer import view_camera
@@ -49,12 +49,14 @@ def cli(*args):
     return main([*map(str, args), "--device", "cpu", "--quiet"])
 
 
-def render_ply(params, camera, degree):
-    """An exported PLY's Gaussians (already in the run's normalised frame) as a standard 3DGS viewer draws them."""
+def render_ply(params, camera, degree, background=None):
+    """An exported PLY's Gaussians (already in the run's normalised frame) as a standard 3DGS viewer draws them,
+    over ``background`` [3] (black by default)."""
     coeffs = torch.cat([params["sh_dc"], params["sh_rest"]], dim=1)
     colors = (spherical_harmonics(degree, params["means"] - camera.center.float(), coeffs) + 0.5).clamp_min(0.0)
     return rasterize_gaussians(params["means"], params["quats"], params["log_scales"].exp(),
-                               torch.sigmoid(params["opacity_logits"]), colors, camera).image
+                               torch.sigmoid(params["opacity_logits"]), colors, camera, background=background).image
+
 
 
 def test_ply_round_trip_is_exact_in_the_inria_layout(tmp_path):
@@ -120,12 +122,14 @@ def test_export_matches_the_full_enhanced_render(run_dir, tmp_path):
     torch.testing.assert_close(ply["means"], norm.to_world(model.gaussians.means.detach().double()).float())
     torch.testing.assert_close(ply["log_scales"], model.gaussians.log_scales.detach() - math.log(norm.scale))
     params = to_normalized(ply, norm)
+    background = read_background(out)  # the default's mean background: a viewer set to the recorded colour
+    assert background is not None and 0.05 < float(background.mean()) < 0.95
     values = []
     for view in scene.train + scene.test:
         cam = view_camera(view)
         with torch.no_grad():
             full = model.render(cam, 1)["rgb"]
-        values.append(psnr(render_ply(params, cam, 1).clamp(0, 1), full))
+        values.append(psnr(render_ply(params, cam, 1, background).clamp(0, 1), full))
     assert min(values) >= 33.0, values
 
 
@@ -134,11 +138,14 @@ def test_reflectance_only_export_matches_R(run_dir, tmp_path):
     assert cli("export", "--run", run_dir, "--out", out, "--reflectance-only") == 0
     cfg, scene, model, step = load_run(run_dir, "cpu")
     params = to_normalized(read_ply(out), scene.normalization)
+    background = read_background(out)  # R̂'s background: the mean reflectance prior
+    torch.testing.assert_close(background, model.background[:3].float(), rtol=0, atol=1e-4)
     for view in scene.train:
         cam = view_camera(view)
         with torch.no_grad():
             R = model.render(cam, 1)["R"]
-        assert psnr(render_ply(params, cam, 1), R) > 60.0  # only float32 rounding of the frame change differs
+        # only float32 rounding of the frame change (and the recorded background's 4 decimals) differ
+        assert psnr(render_ply(params, cam, 1, background), R) > 60.0
 
 
 def test_orbit_and_interpolated_paths_follow_the_training_cameras(run_dir):

@@ -202,7 +202,7 @@ def make_model(decomposed=True, per_channel=False, illumination=None, n=400, dty
             model.illumination.head[-1].weight.normal_(0, 0.5)
             model.enhancement.out.weight.normal_(0, 0.5)  # content-dependent gamma
             model.illum_ref.fill_(0.4)
-    if background == "mean":
+    if model.has_background:
         with torch.no_grad():
             model.background.copy_(torch.linspace(0.2, 0.7, model.background.numel()))
     return model.eval()
@@ -227,11 +227,17 @@ def test_renderer_equals_model_render(exposure, gamma, per_channel, tone):
         assert torch.allclose(res[key], ref[key], rtol=0, atol=1e-6), (key, (res[key] - ref[key]).abs().max())
 
 
-@pytest.mark.parametrize("decomposed", [True, False])
+def test_baselines_keep_a_black_background():
+    """The 3DGS baselines stay as published: model.background "mean" is RetinexGS's only."""
+    model = make_model(decomposed=False, background="mean", n=50)
+    assert not model.has_background and "background" not in model.state_dict()
+
+
 @pytest.mark.parametrize("fused", [True, False])
-def test_background_fills_uncovered_pixels_in_both_renderers(decomposed, fused):
-    """model.background "mean": pixels no Gaussian covers show the background channels (R̂, L̂ or the colour),
-    partly covered ones blend into it, and the frame renderer composites it as model.render does."""
+def test_background_fills_uncovered_pixels_in_both_renderers(fused):
+    """model.background "mean": pixels no Gaussian covers show the background channels (R̂, L̂), partly
+    covered ones blend into it, and the frame renderer composites it as model.render does."""
+    decomposed = True
     model = make_model(decomposed=decomposed, background="mean", dtype=torch.float64)
     cam = make_camera(width=40, height=30, eye=(0.3, -0.2, -9.0))  # the Gaussians fill the middle of the frame
     with torch.no_grad():

@@ -101,7 +101,7 @@ def test_a_run_with_the_exposure_tone_renders_exports_and_follows_the_exposure_c
     from retinexgs.cli import main
     from retinexgs.evaluate.metrics import psnr
     from retinexgs.export.bake import to_normalized
-    from retinexgs.export.ply import read_ply
+    from retinexgs.export.ply import read_background, read_ply
     from retinexgs.render import rasterize_gaussians, spherical_harmonics
     from retinexgs.train.run import load_run, render_function
     from retinexgs.train.trainer import view_camera
@@ -132,7 +132,8 @@ def test_a_run_with_the_exposure_tone_renders_exports_and_follows_the_exposure_c
         cam = view_camera(view)
         colors = (spherical_harmonics(1, params["means"] - cam.center.float(), coeffs) + 0.5).clamp_min(0.0)
         ply = rasterize_gaussians(params["means"], params["quats"], params["log_scales"].exp(),
-                                  torch.sigmoid(params["opacity_logits"]), colors, cam).image
+                                  torch.sigmoid(params["opacity_logits"]), colors, cam,
+                                  background=read_background(tmp_path / "s.ply")).image  # the viewer's, as recorded
         with torch.no_grad():
             values.append(psnr(ply.clamp(0, 1), model.render(cam, 1)["rgb"]))
     assert min(values) >= 30.0, values  # measured 41.8-44.0 dB here (CPU, torch 2.13)

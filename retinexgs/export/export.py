@@ -71,6 +71,14 @@ def export_run(run_dir: Path, out: Path, reflectance_only: bool = False, directi
                         f"colour: the {cfg['method']} baseline's SH as trained")
         if cfg["method"] == "post":
             log("note: the post baseline's 2D LR3M enhancement is applied to images and is not in the PLY")
+    if getattr(model, "has_background", False):  # model.background "mean": what the model shows where nothing is
+        bg = model.background.detach().float()
+        rgb = (model.tone_map(bg[None, :3], bg[None, 3:6], g.to(bg))[0][0] if bake else bg[:3]).clamp(0, 1)
+        text = " ".join(f"{x:.4f}" for x in rgb.tolist())
+        comments.append(f"background: {text} (RGB in [0, 1]: the model's colour where no Gaussian covers a pixel; "
+                        "set a viewer's background to it)")
+        log(f"background colour (set your viewer's background to it; the model renders it where no Gaussian "
+            f"covers a pixel): RGB {text}, #{''.join(f'{round(255 * x):02x}' for x in rgb.tolist())}")
     params = export_params(model, scene.normalization, sh)
     write_ply(out, params, comments)
     log(f"wrote {len(model.gaussians)} Gaussians (SH degree {model.gaussians.sh_degree}) to {out}")

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Dict, List, Sequence, Union
+from typing import Dict, List, Optional, Sequence, Union
 
 import numpy as np
 import torch
@@ -82,6 +82,16 @@ def write_ply(path: Union[str, Path], gaussians: Dict[str, ArrayLike], comments:
     element = plyfile.PlyElement.describe(data, "vertex")
     ply = plyfile.PlyData([element], text=False, byte_order="<", comments=[ascii_comment(c) for c in comments])
     return atomic_write(path, ply.write)
+
+
+def read_background(path: Union[str, Path]) -> Optional[torch.Tensor]:
+    """The background colour [3] (RGB in [0, 1]) that ``retinexgs export`` records in a PLY's header for a model
+    with a background (``model.background: mean``), or None: what the model shows where no Gaussian covers a
+    pixel, for a viewer's background."""
+    for comment in _plyfile().PlyData.read(str(path)).comments:
+        if comment.startswith("background: "):
+            return torch.tensor([float(x) for x in comment.split()[1:4]])
+    return None
 
 
 def read_ply(path: Union[str, Path]) -> Dict[str, torch.Tensor]:

@@ -67,11 +67,12 @@ class RetinexGSModel(nn.Module):
             self.illumination = IlluminationField(**model_cfg["illumination"])
             self._set_enhancement(model_cfg["enhancement"])
             self.register_buffer("illum_ref", torch.ones(()))  # L_ref; set by the trainer from the 2D priors
-        # model.background "mean": uncovered pixels show [C] channel values (R̂ then L̂, or the baselines' colour)
-        # that the trainer sets from the training views, instead of black; a buffer, so checkpoints carry it.
-        self.has_background = model_cfg.get("background", "black") == "mean"
+        # model.background "mean": uncovered pixels show [6] channel values (R̂ then L̂) that the trainer sets from
+        # the training views' priors, instead of black; a buffer, so checkpoints carry it. RetinexGS's only: the
+        # 3DGS baselines stay as published (black).
+        self.has_background = decomposed and model_cfg.get("background", "black") == "mean"
         if self.has_background:
-            self.register_buffer("background", torch.zeros(6 if decomposed else 3))
+            self.register_buffer("background", torch.zeros(6))
 
     def _set_enhancement(self, enh_cfg: Dict) -> None:
         """A fresh EnhancementNet, the gamma's layout and the tone form from a ``model.enhancement`` section."""

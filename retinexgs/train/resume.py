@@ -79,9 +79,10 @@ def run_lock(run_dir: Path) -> Iterator[None]:
 # not as today's default (which would re-render it differently). The tone form was the gamma on L̂ until
 # 2026-11-25, when the exposure tone became the default; the depth prior came in later that day, at weight 0.3
 # in the default (a run made before it, resumed, must not start using it); the reconstruction term was on the
-# dark photo's values (rec_domain photo) until the exposed SSIM became the default, later still.
+# dark photo's values (rec_domain photo) until the exposed SSIM became the default, later still; renders were over
+# black until the mean background became the default (2026-11-26).
 PREDATING_VALUES: Dict[str, Any] = {"model.enhancement.tone": "illumination", "loss.w_depth": 0.0,
-                                    "loss.rec_domain": "photo"}
+                                    "loss.rec_domain": "photo", "model.background": "black"}
 
 
 def _fill_missing(cfg: Config, default: Config, prefix: str, filled: List[str]) -> Config:

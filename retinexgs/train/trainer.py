@@ -286,16 +286,13 @@ class Trainer:
         return float(torch.stack(per_view).median().clamp_min(1e-3))
 
     def mean_background(self) -> Tensor:
-        """``model.background: mean``: the channel values a render shows where no Gaussian covers a pixel, the
+        """``model.background: mean``: the [6] channel values a render shows where no Gaussian covers a pixel, the
         training views' means: R̂ of the reflectance priors and L̂ of the illumination priors (without priors, S
-        and its max-RGB), or the baselines' target colour. Under squared error the mean is the best constant for
-        what no view constrains; black is the darkest guess, and in dark photos it lets transparency pass for
-        dark content."""
+        and its max-RGB). Under squared error the mean is the best constant for what no view constrains; black
+        is the darkest guess, and in dark photos it lets transparency pass for dark content."""
         def mean(maps: List[Tensor]) -> Tensor:
             return torch.stack([m.reshape(-1, m.shape[-1]).float().mean(0) for m in maps]).mean(0)
 
-        if not self.decomposed:
-            return mean([tv.target for tv in self.views])
         R = mean([tv.R if tv.R is not None else tv.S for tv in self.views])
         L = mean([tv.L if tv.L is not None else tv.S.amax(-1, keepdim=True) for tv in self.views])
         return torch.cat([R, L.expand(3)])
