@@ -71,7 +71,7 @@ def export_run(run_dir: Path, out: Path, reflectance_only: bool = False, directi
                         f"colour: the {cfg['method']} baseline's SH as trained")
         if cfg["method"] == "post":
             log("note: the post baseline's 2D LR3M enhancement is applied to images and is not in the PLY")
-    if getattr(model, "has_background", False):  # model.background "mean": what the model shows where nothing is
+    if model.has_background:  # model.background "mean": what the model shows where nothing is
         bg = model.background.detach().float()
         rgb = (model.tone_map(bg[None, :3], bg[None, 3:6], g.to(bg))[0][0] if bake else bg[:3]).clamp(0, 1)
         text = " ".join(f"{x:.4f}" for x in rgb.tolist())
