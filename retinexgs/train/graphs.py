@@ -7,10 +7,11 @@ rendered image (all but L_SH), replayed as one graph launch instead of a few hun
 
 A captured graph takes the rendered image [H,W,C] and the view's packed targets (S, and the 2D priors R, L;
 or the baselines' target) in static buffers (with the depth prior on, the image carries the render's depth and
-alpha as two more channels, and the targets the prior's edge weights: its term is graphed too), and leaves in static buffers: the gradient of the image losses'
-sum with respect to the image, the gradients of the networks that live entirely inside the loss (the
-EnhancementNet, while L_enhance is on), and every term's value. The trainer copies the image in (one copy),
-feeds the image gradient to the rasterizer's backward, and hands the network gradients to the optimiser.
+alpha as two more channels, and the targets the prior's edge weights: its term is graphed too), and leaves in
+static buffers: the gradient of the image losses' sum with respect to the image, the gradients of the networks
+that live entirely inside the loss (the EnhancementNet, while L_enhance is on), and every term's value. The
+trainer copies the image in (one copy), feeds the image gradient to the rasterizer's backward, and hands the
+network gradients to the optimiser.
 
 One graph per (image shape, dtype, targets' shape, enhancement on/off): the EnhancementNet and its losses
 switch on at a step of the schedule, views may differ in size. The loss function is the trainer's eager one,

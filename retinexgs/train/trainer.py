@@ -350,11 +350,17 @@ class Trainer:
         The eager path's; the graphed one computes the same inside the graph (:meth:`_graphed_loss`)."""
         if not self.depth_prior:
             return None
+        depth, alpha = self._depth_maps(res)
+        wx, wy = tv.edge_weights(self.cfg["loss"]["depth_edge"])
+        return losses.depth_smoothness_loss(to_bchw(depth), to_bchw(alpha), wx, wy)
+
+    @staticmethod
+    def _depth_maps(res: Dict[str, Tensor]) -> Tuple[Tensor, Tensor]:
+        """(depth, alpha) [H,W,1] of a render made with ``depth=True``, the depth prior's inputs."""
         out = res["out"]
         if out.depth is None:
             raise ValueError("loss.w_depth > 0 needs the render's depth: render with depth=True (render_view does)")
-        wx, wy = tv.edge_weights(self.cfg["loss"]["depth_edge"])
-        return losses.depth_smoothness_loss(to_bchw(out.depth), to_bchw(out.alpha), wx, wy)
+        return out.depth, out.alpha
 
     def assemble_terms(self, image_total: Tensor, image_terms: Dict[str, Tensor], sh: Optional[Tensor],
                        depth: Optional[Tensor] = None, depth_in_total: bool = False) -> Dict[str, Tensor]:
@@ -398,12 +404,9 @@ class Trainer:
     def graph_input(self, res: Dict[str, Tensor]) -> Tensor:
         """The captured loss's input [H,W,C(+2)]: the rendered channels, then the depth prior's depth and alpha
         (its ~60 small kernels run inside the graph instead of eagerly)."""
-        out = res["out"]
         if not self.depth_prior:
-            return out.image
-        if out.depth is None:
-            raise ValueError("loss.w_depth > 0 needs the render's depth: render with depth=True (render_view does)")
-        return torch.cat([out.image, out.depth, out.alpha], dim=-1)
+            return res["out"].image
+        return torch.cat([res["out"].image, *self._depth_maps(res)], dim=-1)
 
     def _backward_graphed(self, res: Dict[str, Tensor], tv: TrainView, step: int) -> Optional[Dict[str, Tensor]]:
         """The loss and its backward through the captured graph; None when this view must run eagerly."""
@@ -427,7 +430,8 @@ class Trainer:
                 roots, grads = [out.image], [grad]
             else:
                 C = out.image.shape[-1]
-                roots, grads = [out.image, out.depth, out.alpha], [grad[..., :C], grad[..., C:C + 1], grad[..., C + 1:]]
+                roots = [out.image, out.depth, out.alpha]
+                grads = [grad[..., :C], grad[..., C:C + 1], grad[..., C + 1:]]
             sh = None
             if self.decomposed:
                 sh = self.sh_loss()
