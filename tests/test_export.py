@@ -90,6 +90,16 @@ def test_ply_round_trip_is_exact_in_the_inria_layout(tmp_path):
     assert not np.any(v["nx"]) and not np.any(v["nz"])
 
 
+def test_read_background_skips_comments_it_did_not_write(tmp_path):
+    params = {k: torch.zeros(2, *shape) for k, shape in
+              [("means", (3,)), ("quats", (4,)), ("log_scales", (3,)), ("opacity_logits", ()), ("sh_dc", (1, 3)),
+               ("sh_rest", (3, 3))]}
+    assert read_background(write_ply(tmp_path / "a.ply", params, ["made by a test"])) is None
+    assert read_background(write_ply(tmp_path / "b.ply", params, ["background: white"])) is None
+    got = read_background(write_ply(tmp_path / "c.ply", params, ["background: 0.1 0.2 0.3 (RGB)"]))
+    assert torch.allclose(got, torch.tensor([0.1, 0.2, 0.3]))
+
+
 def test_read_ply_names_what_a_non_gaussian_ply_lacks(tmp_path):
     pts = np.zeros(3, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
     plyfile.PlyData([plyfile.PlyElement.describe(pts, "vertex")]).write(str(tmp_path / "points.ply"))

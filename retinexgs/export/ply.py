@@ -90,7 +90,10 @@ def read_background(path: Union[str, Path]) -> Optional[torch.Tensor]:
     pixel, for a viewer's background."""
     for comment in _plyfile().PlyData.read(str(path)).comments:
         if comment.startswith("background: "):
-            return torch.tensor([float(x) for x in comment.split()[1:4]])
+            try:  # another tool's comment of the same prefix is not ours: skip it
+                return torch.tensor([float(x) for x in comment.split()[1:4]]).reshape(3)
+            except (ValueError, RuntimeError):
+                continue
     return None
 
 
