@@ -73,8 +73,10 @@ CAM = make_camera(width=120, height=70, eye=(0.3, -0.2, -3.0))
 
 @pytest.mark.parametrize("per_channel", [False, True])
 @pytest.mark.parametrize("tone", ["illumination", "exposure"])
-def test_renderer_on_cuda_equals_model_render(per_channel, tone):
-    model = make_model(per_channel=per_channel, n=3000, tone=tone).cuda()
+@pytest.mark.parametrize("background", ["black", "mean"])
+def test_renderer_on_cuda_equals_model_render(per_channel, tone, background):
+    model = make_model(per_channel=per_channel, n=3000, tone=tone, background=background).cuda()
+    assert model.has_background == (background == "mean")
     r = InferenceRenderer(model, 3)
     assert r.fused
     # Each size renders eagerly first, then through its graph (captured on the second frame) with changing
@@ -102,7 +104,7 @@ def test_renderer_on_cuda_equals_model_render(per_channel, tone):
 
 @pytest.mark.parametrize("tone", ["illumination", "exposure"])
 def test_renderer_on_cuda_without_graphs_float64_and_baseline(tone):
-    model = make_model(n=2000, dtype=torch.float64, tone=tone).cuda()
+    model = make_model(n=2000, dtype=torch.float64, tone=tone, background="mean").cuda()
     with torch.no_grad():
         ref = model.render(CAM, 2, gamma=0.6)["rgb"]
     for graphs in (True, False):
