@@ -10,7 +10,12 @@ Each RUN is a trained run with ``renders/test/*.png`` (the panels ``retinexgs ev
   histogram match (any monotone curve). What these recover is tone and colour; what they leave is structure;
 - SSIM after a Gaussian blur of σ = 0.8 px (a gain means uncorrelated high-frequency error, e.g. noise);
 - SSIM's three terms (luminance, contrast, structure) and the ratio of local standard deviations (output / truth);
-- the per-channel affine slope: < 1 means the output has more contrast than the truth, > 1 less.
+- the per-channel affine slope: < 1 means the output has more contrast than the truth, > 1 less;
+- the exposure level: the output re-exposed in linear light, srgb(c·lin(output)) (what a change of the exposure
+  gain does, up to clipping of the 8-bit PNG), with the best c per view (an oracle that uses the truth: the most any
+  exposure rule could give) and with the c at which an averaging meter (the image's mean) or a centre-weighted
+  meter (a Gaussian weight of σ = 0.35 of the frame, as a camera's centre-weighted mode) reads 0.5 (rules that
+  do not look at the truth); and the mean of the output and of the truth.
 
 ``--ceiling`` runs (e.g. plain 3DGS trained on the normal-light photos themselves) are scored the same way: the
 3D reconstruction's own ceiling on those views. No GPU needed; the numbers of docs/benchmarks.md
@@ -29,6 +34,7 @@ import torch.nn.functional as F
 from PIL import Image
 
 from retinexgs.evaluate.metrics import psnr, ssim_metric
+from retinexgs.model.tone import linear_to_srgb, srgb_to_linear
 
 
 def panels(path: Path, count: int) -> List[torch.Tensor]:
@@ -111,6 +117,37 @@ def ssim_terms(x: torch.Tensor, y: torch.Tensor) -> Dict[str, float]:
             "std_ratio": float(sx.mean() / sy.mean())}
 
 
+def centre_weights(h: int, w: int, sigma: float = 0.35) -> torch.Tensor:
+    """[H,W] Gaussian weights about the frame's centre, σ a fraction of its height and width, summing to 1."""
+    y = (torch.arange(h, dtype=torch.float64) + 0.5 - h / 2) / (sigma * h)
+    x = (torch.arange(w, dtype=torch.float64) + 0.5 - w / 2) / (sigma * w)
+    wts = torch.exp(-(y[:, None] ** 2 + x[None, :] ** 2) / 2)
+    return wts / wts.sum()
+
+
+def exposure_for(meter, lin: torch.Tensor, target: float) -> float:
+    """The gain c with meter(srgb(c·lin)) = target (bisection over 0.2-5: every meter grows with c)."""
+    lo, hi = 0.2, 5.0
+    for _ in range(40):
+        c = (lo + hi) / 2
+        lo, hi = (c, hi) if meter(linear_to_srgb(c * lin)) < target else (lo, c)
+    return (lo + hi) / 2
+
+
+def level_terms(out: torch.Tensor, gt: torch.Tensor) -> Dict[str, float]:
+    """PSNR with the output re-exposed in linear light: the best gain c (a grid over 0.5-2), the averaging and
+    the centre-weighted meter at 0.5; that c, and the mean of output and truth."""
+    lin = srgb_to_linear(out.double())
+    gt = gt.double()
+    cw = centre_weights(*out.shape[:2])
+    meters = {"mean": lambda x: float(x.mean()), "centre": lambda x: float((x.mean(-1) * cw).sum())}
+    best_psnr, best_c = max((psnr(linear_to_srgb(c * lin), gt), c) for c in np.linspace(0.5, 2.0, 151).tolist())
+    row = {"psnr_gain": best_psnr, "gain": best_c, "mean_out": float(out.mean()), "mean_truth": float(gt.mean())}
+    for name, meter in meters.items():
+        row[f"psnr_{name}_meter"] = psnr(linear_to_srgb(exposure_for(meter, lin, 0.5) * lin), gt)
+    return row
+
+
 def analyse(run: Path) -> Dict[str, float]:
     """The averages described in the module docstring, over the run's test panels."""
     files = sorted((run / "renders" / "test").glob("*.png"))
@@ -127,7 +164,7 @@ def analyse(run: Path) -> Dict[str, float]:
                      "psnr_affine": psnr(aff, gt), "ssim_affine": ssim_metric(aff, gt),
                      "psnr_hist": psnr(hm, gt), "ssim_hist": ssim_metric(hm, gt),
                      "ssim_blur": ssim_metric(blur(out, 0.8), gt),
-                     **{f"term_{k}": v for k, v in terms.items()},
+                     **{f"term_{k}": v for k, v in terms.items()}, **level_terms(out, gt),
                      **{f"slope_{c}": s for c, s in zip("rgb", slopes)}})
     return {k: float(np.mean([r[k] for r in rows])) for k in rows[0]} | {"views": len(rows)}
 
@@ -138,15 +175,17 @@ def main(argv: List[str]) -> int:
     ap.add_argument("--ceiling", nargs="*", type=Path, default=[], help="runs scored as reconstruction ceilings")
     args = ap.parse_args(argv)
     print("| run | PSNR / SSIM | tone oracle: affine | tone oracle: histogram | SSIM, blur 0.8 px | "
-          "SSIM terms l / c / s | local std out/truth | affine slope r / g / b |")
-    print("|---|---|---|---|---|---|---|---|")
+          "SSIM terms l / c / s | local std out/truth | affine slope r / g / b | exposure oracle: best gain (c) | "
+          "meter at 0.5: mean / centre-weighted | mean out / truth |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for run in [*args.runs, *args.ceiling]:
         m = analyse(run)
         tag = " (ceiling)" if run in args.ceiling else ""
         print(f"| {run}{tag} | {m['psnr']:.2f} / {m['ssim']:.3f} | {m['psnr_affine']:.2f} / {m['ssim_affine']:.3f} | "
               f"{m['psnr_hist']:.2f} / {m['ssim_hist']:.3f} | {m['ssim_blur']:.3f} | "
               f"{m['term_l']:.3f} / {m['term_c']:.3f} / {m['term_s']:.3f} | {m['term_std_ratio']:.2f} | "
-              f"{m['slope_r']:.2f} / {m['slope_g']:.2f} / {m['slope_b']:.2f} |")
+              f"{m['slope_r']:.2f} / {m['slope_g']:.2f} / {m['slope_b']:.2f} | {m['psnr_gain']:.2f} ({m['gain']:.2f}) | "
+              f"{m['psnr_mean_meter']:.2f} / {m['psnr_centre_meter']:.2f} | {m['mean_out']:.3f} / {m['mean_truth']:.3f} |")
     return 0
 
 

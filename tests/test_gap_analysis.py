@@ -52,3 +52,33 @@ def test_missing_renders_is_a_clear_error(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(SystemExit, match="no renders/test"):
         ga.analyse(tmp_path / "empty")
+
+
+def test_an_exposure_change_is_recovered_by_the_best_gain(tmp_path):
+    """An output that is the truth with 0.8 of its light: the exposure oracle finds the gain 1/0.8 and undoes it
+    (up to 8 bits); the meters at 0.5 only see the output, so they land where its statistic says."""
+    ga = load()
+    from retinexgs.model.tone import linear_to_srgb, srgb_to_linear
+    import torch
+
+    def darker(t, rng):
+        return linear_to_srgb(0.8 * srgb_to_linear(torch.from_numpy(t))).numpy()
+
+    m = ga.analyse(fake_run(tmp_path, "exposure", darker))
+    assert m["psnr"] < 30 and m["psnr_gain"] > 40
+    assert m["gain"] == pytest.approx(1.25, abs=0.02)
+    assert m["mean_out"] < m["mean_truth"]
+    for meter in ("mean", "centre"):
+        assert m["psnr"] - 10 < m[f"psnr_{meter}_meter"] < m["psnr_gain"]
+
+
+def test_the_centre_weights_and_the_meter_bisection():
+    ga = load()
+    import torch
+    w = ga.centre_weights(30, 40)
+    assert float(w.sum()) == pytest.approx(1.0)
+    assert torch.allclose(w, w.flip(0)) and torch.allclose(w, w.flip(1))  # symmetric about the centre
+    assert float(w[14:16, 19:21].min()) == float(w.max()) > 2 * float(w[0, 0])  # highest at the centre
+    lin = torch.full((4, 4, 3), 0.1, dtype=torch.float64)
+    c = ga.exposure_for(lambda x: float(x.mean()), lin, 0.5)
+    assert float(ga.linear_to_srgb(c * lin).mean()) == pytest.approx(0.5, abs=1e-6)
