@@ -580,14 +580,16 @@ Tensor gaussian_colors(int degree, Tensor means, Tensor sh_dc, Tensor sh_rest, s
     return colors;
 }
 
-// [H, W, 3] srgb(gain · lin(R̂ ∘ L̂)) of a rendered [H, W, C >= 6] image (R̂ in channels 0-2, L̂ in 3-5) and a
-// gain [1] or [3] on the image's device: the exposure tone of retinexgs/model/tone.py, forward only.
-Tensor exposure_tone(Tensor image, Tensor gain) {
+// [H, W, 3] srgb(s(gain · lin(R̂ ∘ L̂))) of a rendered [H, W, C >= 6] image (R̂ in channels 0-2, L̂ in 3-5), a
+// gain [1] or [3] on the image's device and the highlight shoulder's knee s (>= 1: none): the exposure tone of
+// retinexgs/model/tone.py, forward only.
+Tensor exposure_tone(Tensor image, Tensor gain, double shoulder) {
     check_float(image, "image");
     RGS_CHECK_VALUE(image.dim() == 3 && image.size(2) >= 6, "image must be [H, W, C >= 6] (R̂, L̂), got shape ",
                     image.sizes());
     check_tensor(gain, "gain", {-1}, image);
     RGS_CHECK_VALUE(gain.size(0) == 1 || gain.size(0) == 3, "gain must have 1 or 3 entries, got ", gain.size(0));
+    RGS_CHECK_VALUE(shoulder > 0, "shoulder (the highlight knee) must be > 0, got ", shoulder);
     image = image.contiguous(), gain = gain.contiguous();
     const int64_t P = image.size(0) * image.size(1);
     const int C = int(image.size(2)), G = int(gain.size(0));
@@ -597,13 +599,13 @@ Tensor exposure_tone(Tensor image, Tensor gain) {
         if (image.is_cuda()) {
 #ifdef RGS_WITH_CUDA
             rgs::exposure_tone_cuda<scalar_t>(P, C, G, image.data_ptr<scalar_t>(), gain.data_ptr<scalar_t>(),
-                                              out.data_ptr<scalar_t>(), RGS_CUDA_STREAM(image));
+                                              shoulder, out.data_ptr<scalar_t>(), RGS_CUDA_STREAM(image));
 #else
             no_cuda();
 #endif
         } else {
             rgs::exposure_tone_cpu<scalar_t>(P, C, G, image.data_ptr<scalar_t>(), gain.data_ptr<scalar_t>(),
-                                             out.data_ptr<scalar_t>(), num_threads());
+                                             shoulder, out.data_ptr<scalar_t>(), num_threads());
         }
     });
     return out;
@@ -630,7 +632,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("gaussian_colors", &gaussian_colors, pybind11::arg("degree"), pybind11::arg("means"),
           pybind11::arg("sh_dc"), pybind11::arg("sh_rest"), pybind11::arg("center"), pybind11::arg("illum") = pybind11::none(),
           pybind11::arg("bound") = 1.0, pybind11::arg("weights") = pybind11::none());
-    m.def("exposure_tone", &exposure_tone, pybind11::arg("image"), pybind11::arg("gain"));
+    m.def("exposure_tone", &exposure_tone, pybind11::arg("image"), pybind11::arg("gain"),
+          pybind11::arg("shoulder") = 1.0);
     m.attr("max_illum_width") = rgs::kMaxIllumWidth;
     m.attr("max_illum_freqs") = rgs::kMaxIllumFreqs;
     m.def("set_num_threads", [](int n) { g_num_threads = n; },

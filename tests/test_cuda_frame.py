@@ -72,10 +72,10 @@ CAM = make_camera(width=120, height=70, eye=(0.3, -0.2, -3.0))
 
 
 @pytest.mark.parametrize("per_channel", [False, True])
-@pytest.mark.parametrize("tone", ["illumination", "exposure"])
+@pytest.mark.parametrize("tone, shoulder", [("illumination", 1.0), ("exposure", 1.0), ("exposure", 0.5)])
 @pytest.mark.parametrize("background", ["black", "mean"])
-def test_renderer_on_cuda_equals_model_render(per_channel, tone, background):
-    model = make_model(per_channel=per_channel, n=3000, tone=tone, background=background).cuda()
+def test_renderer_on_cuda_equals_model_render(per_channel, tone, shoulder, background):
+    model = make_model(per_channel=per_channel, n=3000, tone=tone, background=background, shoulder=shoulder).cuda()
     assert model.has_background == (background == "mean")
     r = InferenceRenderer(model, 3)
     assert r.fused
@@ -142,7 +142,8 @@ def test_fused_frame_launches_fewer_kernels():
 
 @pytest.mark.parametrize("dtype, atol", [(torch.float64, 1e-13), (torch.float32, 2e-6)])
 @pytest.mark.parametrize("gains", [1, 3])
-def test_exposure_tone_kernel_cuda_equals_cpu(dtype, atol, gains):
+@pytest.mark.parametrize("shoulder", [1.0, 0.5])
+def test_exposure_tone_kernel_cuda_equals_cpu(dtype, atol, gains, shoulder):
     """The frame graph's exposure-tone kernel: CUDA launcher against the CPU one (float32 within a few ulps:
     --use_fast_math's powf), NaN kept, a 7-channel strided image read like a contiguous one."""
     from test_exposure_tone_kernel import make_image
@@ -150,8 +151,9 @@ def test_exposure_tone_kernel_cuda_equals_cpu(dtype, atol, gains):
     img = make_image(h=37, w=53, c=7, dtype=dtype, seed=11)
     img[5, 6, 2] = float("nan")
     gain = torch.tensor([3.0, 11.0, 0.7][:gains], dtype=dtype)
-    cpu = kernels().exposure_tone(img, gain)
-    gpu = kernels().exposure_tone(img.cuda().transpose(0, 1).contiguous().transpose(0, 1), gain.cuda()).cpu()
+    cpu = kernels().exposure_tone(img, gain, shoulder)
+    gpu = kernels().exposure_tone(img.cuda().transpose(0, 1).contiguous().transpose(0, 1), gain.cuda(),
+                                  shoulder).cpu()
     torch.testing.assert_close(gpu, cpu, rtol=0, atol=atol, equal_nan=True)
     assert torch.isnan(gpu[5, 6, 2])
 

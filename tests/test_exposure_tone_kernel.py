@@ -17,25 +17,31 @@ def make_image(h=13, w=11, c=6, dtype=torch.float64, seed=0):
     return img
 
 
-def torch_twin(img, gamma, ref):
-    return tone_map(img[..., :3], img[..., 3:6], ref, gamma, "exposure")[0]
+def torch_twin(img, gamma, ref, shoulder=1.0):
+    return tone_map(img[..., :3], img[..., 3:6], ref, gamma, "exposure", shoulder=shoulder)[0]
 
 
+@pytest.mark.parametrize("shoulder", [1.0, 0.5, 0.05])
 @pytest.mark.parametrize("gamma", [[1.0], [0.4], [0.3, 0.9, 1.7], [2.0]])
-def test_kernel_equals_tone_map_float64(gamma):
+def test_kernel_equals_tone_map_float64(gamma, shoulder):
     img = make_image()
     g = torch.tensor(gamma, dtype=torch.float64)
     ref = torch.tensor(0.35, dtype=torch.float64)
-    out = kernels().exposure_tone(img, exposure_gain(ref, g))
-    torch.testing.assert_close(out, torch_twin(img, g, ref), rtol=0, atol=1e-14)
+    out = kernels().exposure_tone(img, exposure_gain(ref, g), shoulder)
+    torch.testing.assert_close(out, torch_twin(img, g, ref, shoulder), rtol=0, atol=1e-14)
+    if shoulder < 1:  # the shoulder moves the highlights, and only them
+        plain = kernels().exposure_tone(img, exposure_gain(ref, g))
+        moved = (out - plain).abs() > 1e-12
+        assert moved.any() and bool((out[moved] < plain[moved]).all())
 
 
-def test_kernel_equals_tone_map_float32_and_extra_channels():
+@pytest.mark.parametrize("shoulder", [1.0, 0.5])
+def test_kernel_equals_tone_map_float32_and_extra_channels(shoulder):
     img = make_image(c=7, dtype=torch.float32, seed=3)  # a 7th channel (not read) must not shift the pixels
     g = torch.tensor([0.6], dtype=torch.float32)
     ref = torch.tensor(0.2)
-    out = kernels().exposure_tone(img, exposure_gain(ref, g))
-    torch.testing.assert_close(out, torch_twin(img, g, ref), rtol=0, atol=2e-6)
+    out = kernels().exposure_tone(img, exposure_gain(ref, g), shoulder)
+    torch.testing.assert_close(out, torch_twin(img, g, ref, shoulder), rtol=0, atol=2e-6)
     assert out.shape == (13, 11, 3) and out.dtype == torch.float32
 
 
@@ -67,3 +73,8 @@ def test_gain_one_gives_back_the_product():
 def test_kernel_names_bad_arguments(image, gain, match):
     with pytest.raises((ValueError, TypeError), match=match):
         kernels().exposure_tone(image, gain)
+
+
+def test_kernel_names_a_bad_shoulder():
+    with pytest.raises(ValueError, match="shoulder"):
+        kernels().exposure_tone(torch.zeros(4, 4, 6), torch.ones(1), 0.0)

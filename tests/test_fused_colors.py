@@ -186,8 +186,8 @@ MODEL_CFG = {"illumination": {"pos_freqs": 10, "dir_freqs": 4, "hidden": 64, "de
 
 
 def make_model(decomposed=True, per_channel=False, illumination=None, n=400, dtype=torch.float32,
-               tone="illumination", background="black"):
-    enh = dict(MODEL_CFG["enhancement"], per_channel=per_channel, tone=tone)
+               tone="illumination", background="black", shoulder=1.0):
+    enh = dict(MODEL_CFG["enhancement"], per_channel=per_channel, tone=tone, shoulder=shoulder)
     if tone == "exposure":  # the default's range and start
         enh.update(gamma_range=[0.25, 2.0], init_gamma=1.0)
     cfg = {"illumination": dict(MODEL_CFG["illumination"], **(illumination or {})), "enhancement": enh,
@@ -213,9 +213,9 @@ CAM = make_camera(width=40, height=30, eye=(0.3, -0.2, -3.0))
 
 @pytest.mark.parametrize("exposure, gamma", [(None, None), (0.7, None), (None, 0.5), (1.3, 0.8)])
 @pytest.mark.parametrize("per_channel", [False, True])
-@pytest.mark.parametrize("tone", ["illumination", "exposure"])
-def test_renderer_equals_model_render(exposure, gamma, per_channel, tone):
-    model = make_model(per_channel=per_channel, tone=tone)
+@pytest.mark.parametrize("tone, shoulder", [("illumination", 1.0), ("exposure", 1.0), ("exposure", 0.5)])
+def test_renderer_equals_model_render(exposure, gamma, per_channel, tone, shoulder):
+    model = make_model(per_channel=per_channel, tone=tone, shoulder=shoulder)
     r = InferenceRenderer(model, 3, fused=True)
     assert r.fused
     res = r.render(CAM, exposure, gamma)
@@ -225,6 +225,11 @@ def test_renderer_equals_model_render(exposure, gamma, per_channel, tone):
     assert ref["rgb"].std() > 0.01  # not a blank frame
     for key in ("rgb", "R", "L", "S_rec", "gamma"):
         assert torch.allclose(res[key], ref[key], rtol=0, atol=1e-6), (key, (res[key] - ref[key]).abs().max())
+    if shoulder < 1 and gamma == 0.5:  # the bright setting has highlights: the shoulder must show in them
+        model.shoulder = 1.0
+        with torch.no_grad():
+            clipped = model.render(CAM, 3, exposure=exposure, gamma=gamma)["rgb"]
+        assert float((clipped - res["rgb"]).max()) > 0.005 and bool((res["rgb"] <= clipped + 1e-6).all())
 
 
 def test_baselines_keep_a_black_background():
@@ -320,13 +325,14 @@ def test_renderer_follows_model_changes():
         assert torch.allclose(renderer.render(CAM)["rgb"], ref, rtol=0, atol=1e-6)
 
 
-@pytest.mark.parametrize("tone", ["illumination", "signal", "exposure"])
-def test_enhance_graph_body_equals_model_enhance(tone):
+@pytest.mark.parametrize("tone, shoulder", [("illumination", 1.0), ("signal", 1.0), ("exposure", 1.0),
+                                             ("exposure", 0.5)])
+def test_enhance_graph_body_equals_model_enhance(tone, shoulder):
     """The maths the frame graph captures on CUDA (exposure and the fixed gamma as device tensors, the switch
     by torch.where), run eagerly on the CPU against RetinexGSModel.enhance for every setting."""
     from retinexgs.model.inference import _EnhanceGraph
     from retinexgs.model.tone import log_lin_ref
-    model = make_model(tone=tone, dtype=torch.float64)
+    model = make_model(tone=tone, dtype=torch.float64, shoulder=shoulder)
     g = torch.Generator().manual_seed(5)
     image = torch.cat([torch.rand(12, 9, 3, generator=g), torch.rand(12, 9, 3, generator=g) * 0.3], -1).double()
     body = _EnhanceGraph.__new__(_EnhanceGraph)  # its state without the capture (CUDA only)

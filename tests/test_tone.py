@@ -172,3 +172,68 @@ def test_the_exposure_tone_stays_finite_at_extreme_gammas():
         assert float(S[0, 0]) == 0.0
     S, _ = tone_map(R, L, torch.tensor(0.2), torch.tensor([1e-3]), "exposure")
     assert float(S[0, 1]) == pytest.approx(1.0, abs=1e-6) and float(S[0, 2]) == pytest.approx(1.0, abs=1e-6)
+
+
+def test_highlight_shoulder_passes_the_light_below_its_knee_and_rolls_off_above():
+    from retinexgs.model.tone import highlight_shoulder
+    v = torch.linspace(0, 6, 6001, dtype=torch.float64)
+    for knee in (0.2, 0.5, 0.8):
+        s = highlight_shoulder(v, knee)
+        below = v <= knee
+        assert torch.equal(s[below], v[below])
+        span = 1 - knee
+        want = knee + span * (1 - torch.exp(-(v[~below] - knee) / span))
+        assert torch.allclose(s[~below], want, rtol=0, atol=1e-15)
+        assert bool((s < 1).all()) and bool((torch.diff(s) > 0).all())  # below white, rising: no clip
+        # C¹ at the knee: slope 1 on both sides
+        h = 1e-7
+        up = (highlight_shoulder(torch.tensor([knee + h], dtype=torch.float64), knee) - knee) / h
+        assert float(up) == pytest.approx(1.0, abs=1e-6)
+    assert torch.equal(highlight_shoulder(v, 1.0), v)  # knee 1: the light as is (the sRGB encoding clips it)
+    nan = highlight_shoulder(torch.tensor([float("nan")]), 0.5)
+    assert torch.isnan(nan).all()  # a broken pixel stays visible
+
+
+def test_exposure_tone_with_a_shoulder_keeps_the_shadows_and_lowers_the_highlights():
+    torch.manual_seed(3)
+    R = torch.rand(6, 7, 3, dtype=torch.float64)
+    L = 0.02 + 0.3 * torch.rand(6, 7, 3, dtype=torch.float64)
+    ref = torch.tensor(0.3, dtype=torch.float64)
+    g = torch.tensor([0.7], dtype=torch.float64)
+    plain, plain_l = tone_map(R, L, ref, g, "exposure")
+    rolled, rolled_l = tone_map(R, L, ref, g, "exposure", shoulder=0.5)
+    knee = float(linear_to_srgb(torch.tensor(0.5, dtype=torch.float64)))
+    low = plain <= knee
+    assert low.any() and (~low).any()
+    assert torch.allclose(rolled[low], plain[low], rtol=0, atol=1e-15)
+    assert bool((rolled[~low] < plain[~low]).all()) and bool((rolled < 1).all())
+    assert bool((rolled_l <= plain_l + 1e-15).all())  # L_enh the same way
+
+
+def test_exposure_tone_with_a_shoulder_gradients_match_finite_differences():
+    torch.manual_seed(4)
+    R = (0.1 + 0.8 * torch.rand(3, 4, 3, dtype=torch.float64)).requires_grad_()
+    L = (0.05 + 0.25 * torch.rand(3, 4, 3, dtype=torch.float64)).requires_grad_()
+    g = torch.tensor([0.8], dtype=torch.float64, requires_grad=True)
+    ref = torch.tensor(0.3, dtype=torch.float64)
+    with torch.no_grad():  # some pixels on each side of the knee, none at it
+        lin = exposure_gain(ref, g) * srgb_to_linear(R * L)
+        assert bool((lin > 0.55).any()) and bool((lin < 0.45).any())
+    assert torch.autograd.gradcheck(lambda r, l, gg: tone_map(r, l, ref, gg, "exposure", shoulder=0.5), (R, L, g))
+    # far past the knee (a huge gain) the gradient is finite, not inf · 0
+    big = torch.tensor([0.05], dtype=torch.float64, requires_grad=True)
+    out, _ = tone_map(R.detach(), L.detach(), ref, big, "exposure", shoulder=0.5)
+    out.sum().backward()
+    assert torch.isfinite(big.grad).all()
+
+
+def test_schema_takes_a_shoulder_for_the_exposure_tone_only():
+    from retinexgs.errors import UserError
+    from retinexgs.train.config import load_config
+    assert load_config([], [])["model"]["enhancement"]["shoulder"] == 1.0
+    assert load_config(["ablations/shoulder"], [])["model"]["enhancement"]["shoulder"] == 0.5
+    for bad in ("0", "1.5", "-0.2"):
+        with pytest.raises((UserError, ValueError), match="shoulder"):
+            load_config([], [f"model.enhancement.shoulder={bad}"])
+    with pytest.raises((UserError, ValueError), match="shoulder"):
+        load_config(["ablations/tone_illumination"], ["model.enhancement.shoulder=0.5"])

@@ -46,7 +46,8 @@ def _bchw(x: torch.Tensor) -> torch.Tensor:
 def enhanced_maps(R: torch.Tensor, L: torch.Tensor, ref: float, g: float, cfg: Dict):
     """The model's (S_enh, L_enh) from 2D maps, in the config's tone form (:func:`retinexgs.model.tone.tone_map`)."""
     gamma = torch.tensor(float(g), dtype=R.dtype)
-    return tone_map(R, L.expand_as(R), torch.tensor(float(ref)), gamma, cfg["model"]["enhancement"]["tone"])
+    enh = cfg["model"]["enhancement"]
+    return tone_map(R, L.expand_as(R), torch.tensor(float(ref)), gamma, enh["tone"], shoulder=enh.get("shoulder", 1.0))
 
 
 def enhanced(R: torch.Tensor, L: torch.Tensor, ref: float, g: float, cfg: Dict) -> torch.Tensor:

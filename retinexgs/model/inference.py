@@ -150,7 +150,7 @@ class _EnhanceGraph:
             # One kernel for srgb(k·lin(R̂∘L̂)) (csrc: exposure_tone): in torch the two sRGB curves are ~20
             # elementwise kernels over the frame, and L_enh, which the frame does not show, as many again.
             gain = exposure_gain(self.model.illum_ref, g.reshape(-1), self.log_ref)
-            rgb = kernels().exposure_tone(self.image, gain)
+            rgb = kernels().exposure_tone(self.image, gain, self.model.shoulder)
         else:
             rgb, _ = self.model.tone_map(R, L, g.reshape(-1))
         return torch.cat([rgb.reshape(-1), g.reshape(-1)])

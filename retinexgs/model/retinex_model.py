@@ -81,6 +81,7 @@ class RetinexGSModel(nn.Module):
         self.per_channel_gamma = bool(enh.pop("per_channel", False))
         enh.pop("ref_quantile", None)  # the trainer's (it sets illum_ref)
         self.tone = str(enh.pop("tone", "illumination"))
+        self.shoulder = float(enh.pop("shoulder", 1.0))  # tone "exposure"'s highlight knee (1: the clip)
         self.enhancement = EnhancementNet(channels=3, **enh)
 
     def with_enhancement(self, enh_cfg: Dict) -> "RetinexGSModel":
@@ -113,7 +114,7 @@ class RetinexGSModel(nn.Module):
     def tone_map(self, R: Tensor, L: Tensor, gamma: Tensor) -> Tuple[Tensor, Tensor]:
         """(S_enh, L_enh) from R̂ [..., 3], the rendered L̂ [..., 3] and g ([1] or [3], broadcast over the last
         axis), in the model's tone form (``model.enhancement.tone``: :func:`retinexgs.model.tone.tone_map`)."""
-        return tone_map(R, L, self.illum_ref, gamma, self.tone, self.enhancement.eps)
+        return tone_map(R, L, self.illum_ref, gamma, self.tone, self.enhancement.eps, self.shoulder)
 
     def predict_gamma(self, L_bchw: Tensor) -> Tensor:
         """The EnhancementNet's gamma for a normalised L̂/L_ref [1,3,H,W]: one per image (the paper's single g,

@@ -17,6 +17,9 @@ With ℓ = clip(L̂ / L_ref, 0, 1) (L_ref: the scene's full light, a constant of
   tones scale g by X (:func:`apply_exposure`). A gamma curve on sRGB values instead lifts the
   shadows more than the mid-tones (it flattens the image); a gain keeps the scene's contrast as the longer
   exposure records it, up to the curve's clipping of highlights.
+  ``shoulder`` a < 1 rolls the highlights off instead of clipping them, as a camera's tone curve does: the gained
+  light v passes unchanged up to a and above it follows a + (1 − a)(1 − e^(−(v − a)/(1 − a))), which leaves a with
+  slope 1 and approaches white without reaching it (:func:`highlight_shoulder`). a = 1 is the clip.
 """
 from __future__ import annotations
 
@@ -25,8 +28,8 @@ from typing import Optional, Tuple
 import torch
 from torch import Tensor
 
-__all__ = ["TONES", "srgb_to_linear", "linear_to_srgb", "log_lin_ref", "exposure_gain", "apply_exposure",
-           "tone_map"]
+__all__ = ["TONES", "srgb_to_linear", "linear_to_srgb", "highlight_shoulder", "log_lin_ref", "exposure_gain",
+           "apply_exposure", "tone_map"]
 
 TONES = ("illumination", "signal", "exposure")
 
@@ -43,6 +46,17 @@ def linear_to_srgb(x: Tensor, clip: bool = True) -> Tensor:
     ``clip=False``: light past white keeps rising along the curve (a loss that must keep a gradient there)."""
     x = x.clamp(0.0, 1.0) if clip else x.clamp_min(0.0)
     return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp_min(0.0031308) ** (1.0 / 2.4) - 0.055)
+
+
+def highlight_shoulder(v: Tensor, knee: float) -> Tensor:
+    """Linear light v ≥ 0 with its highlights rolled off above ``knee`` (module docstring); knee ≥ 1: v as is
+    (linear_to_srgb clips it). C¹ at the knee; the clamp inside the exponent keeps the branch that torch.where
+    drops finite, so its gradient is never inf · 0."""
+    if knee >= 1.0:
+        return v
+    span = 1.0 - knee
+    rolled = knee + span * (1.0 - torch.exp(-(v - knee).clamp_min(0.0) / span))
+    return torch.where(v > knee, rolled, v)
 
 
 def log_lin_ref(illum_ref: Tensor, like: Tensor) -> Tensor:
@@ -78,7 +92,7 @@ def apply_exposure(gamma: Tensor, exposure, illum_ref: Tensor, tone: str,
 
 
 def tone_map(R: Tensor, L: Tensor, illum_ref: Tensor, gamma: Tensor, tone: str,
-             eps: float = 1e-3) -> Tuple[Tensor, Tensor]:
+             eps: float = 1e-3, shoulder: float = 1.0) -> Tuple[Tensor, Tensor]:
     """(S_enh, L_enh) of one tone form (module docstring) for rendered R̂ and L̂ of the same layout.
 
     Args:
@@ -88,10 +102,12 @@ def tone_map(R: Tensor, L: Tensor, illum_ref: Tensor, gamma: Tensor, tone: str,
         gamma: g, broadcastable against ``R`` (e.g. [3] for [..., 3] maps, [B,C,1,1] for [B,C,H,W]).
         tone: "illumination", "signal" or "exposure".
         eps: floor under ℓ (and R̂ for "signal") before the power, so its gradient stays finite at 0.
+        shoulder: the knee of tone "exposure"'s highlight roll-off (:func:`highlight_shoulder`; 1: the clip).
     """
     if tone == "exposure":
         k = exposure_gain(illum_ref, gamma)
-        return (linear_to_srgb(k * srgb_to_linear(R * L)), linear_to_srgb(k * srgb_to_linear(L)))
+        return (linear_to_srgb(highlight_shoulder(k * srgb_to_linear(R * L), shoulder)),
+                linear_to_srgb(highlight_shoulder(k * srgb_to_linear(L), shoulder)))
     if tone not in TONES:
         raise ValueError(f"tone must be one of {', '.join(TONES)}, got {tone!r}")
     light = (L / illum_ref.to(L)).clamp(0.0, 1.0).clamp_min(eps) ** gamma

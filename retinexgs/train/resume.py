@@ -82,7 +82,8 @@ def run_lock(run_dir: Path) -> Iterator[None]:
 # dark photo's values (rec_domain photo) until the exposed SSIM became the default, later still; renders were over
 # black until the mean background became the default (2026-11-26).
 PREDATING_VALUES: Dict[str, Any] = {"model.enhancement.tone": "illumination", "loss.w_depth": 0.0,
-                                    "loss.rec_domain": "photo", "model.background": "black"}
+                                    "loss.rec_domain": "photo", "model.background": "black",
+                                    "model.enhancement.shoulder": 1.0}
 
 
 def _fill_missing(cfg: Config, default: Config, prefix: str, filled: List[str]) -> Config:

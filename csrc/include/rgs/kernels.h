@@ -121,13 +121,14 @@ void gaussian_colors_cpu(int64_t N, int degree,
                          int num_threads);
 
 // ---- the enhancement's exposure tone (inference) ------------------------------------------------
-// out = srgb(gain · lin(R̂ ∘ L̂)) per channel (rgs/tone.h).
+// out = srgb(s(gain · lin(R̂ ∘ L̂))) per channel, s the highlight shoulder (rgs/tone.h).
 template <typename T>
 void exposure_tone_cpu(int64_t P,         // pixels
                        int C,             // channels per pixel of image (>= 6)
                        int G,             // gains: 1 (one) or 3 (per channel)
                        const T* image,    // [P, C]: R̂ in channels 0-2, L̂ in 3-5
                        const T* gain,     // [G]
+                       double knee,       // the shoulder's knee in linear light (>= 1: none, the clip)
                        T* out,            // [P, 3] out
                        int num_threads);
 

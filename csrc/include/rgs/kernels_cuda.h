@@ -76,6 +76,6 @@ void gaussian_colors_cuda(int64_t N, int degree, int rest, const T* means, const
 
 // Same as exposure_tone_cpu; gain in device memory (the frame graph computes it on the GPU).
 template <typename T>
-void exposure_tone_cuda(int64_t P, int C, int G, const T* image, const T* gain, T* out, void* stream);
+void exposure_tone_cuda(int64_t P, int C, int G, const T* image, const T* gain, double knee, T* out, void* stream);
 
 }  // namespace rgs
