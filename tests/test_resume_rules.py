@@ -305,7 +305,9 @@ def test_a_run_older_than_a_key_gets_the_behaviour_it_was_trained_with(run):
     assert raw["loss"]["w_depth"] == 0.3
     assert raw["loss"]["rec_domain"] == "exposed_ssim"
     assert raw["model"]["background"] == "mean"
+    assert raw["model"]["enhancement"]["shoulder"] == 0.5
     del raw["model"]["background"]
+    del raw["model"]["enhancement"]["shoulder"]
     del raw["model"]["enhancement"]["tone"]
     del raw["model"]["enhancement"]["per_view"]
     del raw["loss"]["w_depth"]
@@ -322,6 +324,7 @@ def test_a_run_older_than_a_key_gets_the_behaviour_it_was_trained_with(run):
     assert cfg["loss"]["rec_domain"] == "photo"  # trained with the reconstruction term on the dark values
     assert cfg["loss"]["rec_huber"] == 0.0
     assert cfg["model"]["background"] == "black"  # rendered over black: no background buffer in its checkpoints
+    assert cfg["model"]["enhancement"]["shoulder"] == 1.0  # its highlights clipped
     for key in ("model.enhancement.tone", "model.enhancement.per_view", "loss.w_depth", "loss.depth_edge",
-                "loss.rec_domain", "loss.rec_huber", "model.background"):
+                "loss.rec_domain", "loss.rec_huber", "model.background", "model.enhancement.shoulder"):
         assert key in lines[0]

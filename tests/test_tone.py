@@ -227,13 +227,19 @@ def test_exposure_tone_with_a_shoulder_gradients_match_finite_differences():
     assert torch.isfinite(big.grad).all()
 
 
-def test_schema_takes_a_shoulder_for_the_exposure_tone_only():
+def test_schema_takes_a_shoulder_in_0_1():
     from retinexgs.errors import UserError
     from retinexgs.train.config import load_config
-    assert load_config([], [])["model"]["enhancement"]["shoulder"] == 1.0
-    assert load_config(["ablations/shoulder"], [])["model"]["enhancement"]["shoulder"] == 0.5
+    assert load_config([], [])["model"]["enhancement"]["shoulder"] == 0.5  # the default since stop 28
+    assert load_config(["ablations/no_shoulder"], [])["model"]["enhancement"]["shoulder"] == 1.0
+    for pinned in ("paper", "ablations/background_black", "ablations/aniso_cap"):
+        assert load_config([pinned], [])["model"]["enhancement"]["shoulder"] == 1.0, pinned
     for bad in ("0", "1.5", "-0.2"):
         with pytest.raises((UserError, ValueError), match="shoulder"):
             load_config([], [f"model.enhancement.shoulder={bad}"])
-    with pytest.raises((UserError, ValueError), match="shoulder"):
-        load_config(["ablations/tone_illumination"], ["model.enhancement.shoulder=0.5"])
+    # the gamma tones do not read it: switching the default's tone needs no second setting
+    assert load_config([], ["model.enhancement.tone=illumination"])["model"]["enhancement"]["shoulder"] == 0.5
+    R, L = torch.rand(4, 4, 3, dtype=torch.float64), 0.3 * torch.rand(4, 4, 3, dtype=torch.float64)
+    ref, g = torch.tensor(0.3, dtype=torch.float64), torch.tensor([0.5], dtype=torch.float64)
+    for tone in ("illumination", "signal"):
+        assert torch.equal(tone_map(R, L, ref, g, tone, shoulder=0.5)[0], tone_map(R, L, ref, g, tone)[0])

@@ -114,7 +114,7 @@ class Enhancement(Section):
     tone: Choice("illumination", "signal", "exposure")
     ref_quantile: Annotated[Optional[Annotated[float, BeforeValidator(_yaml_number), Field(gt=0, le=1)]],
                             Expect("a quantile in (0, 1] (1 = the maximum) or null (no normalisation)")]
-    shoulder: Num(gt=0, le=1)
+    shoulder: Num(gt=0, le=1)  # tone "exposure"'s highlight knee; the gamma tones do not read it
 
     @model_validator(mode="after")
     def _ordered(self) -> "Enhancement":
@@ -128,9 +128,6 @@ class Enhancement(Section):
             # k = lin(L_ref)^(-1/g) needs a scene reference below 1: with L_ref = 1 the gain would be 1 for every g.
             raise ValueError("model.enhancement.tone 'exposure' needs a ref_quantile (the gain is set relative to "
                              "the scene's full light L_ref); null is only valid with 'illumination' or 'signal'")
-        if self.tone != "exposure" and self.shoulder < 1:
-            raise ValueError(f"model.enhancement.shoulder {self.shoulder} rolls off the highlights of tone 'exposure' "
-                             f"only; with tone '{self.tone}' it must be 1")
         return self
 
 
