@@ -15,7 +15,9 @@ Each RUN is a trained run with ``renders/test/*.png`` (the panels ``retinexgs ev
   gain does, up to clipping of the 8-bit PNG), with the best c per view (an oracle that uses the truth: the most any
   exposure rule could give) and with the c at which an averaging meter (the image's mean) or a centre-weighted
   meter (a Gaussian weight of σ = 0.35 of the frame, as a camera's centre-weighted mode) reads 0.5 (rules that
-  do not look at the truth); and the mean of the output and of the truth.
+  do not look at the truth); and the mean of the output and of the truth;
+- the tone's ends: the 1st, 50th and 99th percentiles of the output's and the truth's values (where a camera's
+  tone curve shows: its toe, its mid-grey, its shoulder).
 
 ``--ceiling`` runs (e.g. plain 3DGS trained on the normal-light photos themselves) are scored the same way: the
 3D reconstruction's own ceiling on those views. No GPU needed; the numbers of docs/benchmarks.md
@@ -143,6 +145,9 @@ def level_terms(out: torch.Tensor, gt: torch.Tensor) -> Dict[str, float]:
     meters = {"mean": lambda x: float(x.mean()), "centre": lambda x: float((x.mean(-1) * cw).sum())}
     best_psnr, best_c = max((psnr(linear_to_srgb(c * lin), gt), c) for c in np.linspace(0.5, 2.0, 151).tolist())
     row = {"psnr_gain": best_psnr, "gain": best_c, "mean_out": float(out.mean()), "mean_truth": float(gt.mean())}
+    for q in (1, 50, 99):
+        row[f"p{q}_out"] = float(torch.quantile(out.double().reshape(-1)[::7], q / 100))  # every 7th: quantile's size cap
+        row[f"p{q}_truth"] = float(torch.quantile(gt.reshape(-1)[::7], q / 100))
     for name, meter in meters.items():
         row[f"psnr_{name}_meter"] = psnr(linear_to_srgb(exposure_for(meter, lin, 0.5) * lin), gt)
     return row
@@ -176,8 +181,8 @@ def main(argv: List[str]) -> int:
     args = ap.parse_args(argv)
     print("| run | PSNR / SSIM | tone oracle: affine | tone oracle: histogram | SSIM, blur 0.8 px | "
           "SSIM terms l / c / s | local std out/truth | affine slope r / g / b | exposure oracle: best gain (c) | "
-          "meter at 0.5: mean / centre-weighted | mean out / truth |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+          "meter at 0.5: mean / centre-weighted | mean out / truth | p1, p50, p99 out / truth |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for run in [*args.runs, *args.ceiling]:
         m = analyse(run)
         tag = " (ceiling)" if run in args.ceiling else ""
@@ -185,7 +190,9 @@ def main(argv: List[str]) -> int:
               f"{m['psnr_hist']:.2f} / {m['ssim_hist']:.3f} | {m['ssim_blur']:.3f} | "
               f"{m['term_l']:.3f} / {m['term_c']:.3f} / {m['term_s']:.3f} | {m['term_std_ratio']:.2f} | "
               f"{m['slope_r']:.2f} / {m['slope_g']:.2f} / {m['slope_b']:.2f} | {m['psnr_gain']:.2f} ({m['gain']:.2f}) | "
-              f"{m['psnr_mean_meter']:.2f} / {m['psnr_centre_meter']:.2f} | {m['mean_out']:.3f} / {m['mean_truth']:.3f} |")
+              f"{m['psnr_mean_meter']:.2f} / {m['psnr_centre_meter']:.2f} | {m['mean_out']:.3f} / {m['mean_truth']:.3f} | "
+              f"{m['p1_out']:.3f}, {m['p50_out']:.3f}, {m['p99_out']:.3f} / "
+              f"{m['p1_truth']:.3f}, {m['p50_truth']:.3f}, {m['p99_truth']:.3f} |")
     return 0
 
 

@@ -68,6 +68,8 @@ def test_an_exposure_change_is_recovered_by_the_best_gain(tmp_path):
     assert m["psnr"] < 30 and m["psnr_gain"] > 40
     assert m["gain"] == pytest.approx(1.25, abs=0.02)
     assert m["mean_out"] < m["mean_truth"]
+    assert m["p50_out"] < m["p50_truth"] and m["p99_out"] < m["p99_truth"]
+    assert 0 <= m["p1_out"] <= m["p50_out"] <= m["p99_out"] <= 1
     for meter in ("mean", "centre"):
         assert m["psnr"] - 10 < m[f"psnr_{meter}_meter"] < m["psnr_gain"]
 
