@@ -147,7 +147,7 @@ class _EnhanceGraph:
         exposed = apply_exposure(g, self.exposure, self.model.illum_ref, self.model.tone, self.log_ref)
         g = torch.where(self.use_fixed, self.fixed, torch.where(self.exposure == 1.0, g, exposed))
         if self.model.tone == "exposure":
-            # One kernel for srgb(k·lin(R̂∘L̂)) (csrc: exposure_tone): in torch the two sRGB curves are ~20
+            # One kernel for srgb(s(k·lin(R̂∘L̂))) (csrc: exposure_tone): in torch the two sRGB curves are ~20
             # elementwise kernels over the frame, and L_enh, which the frame does not show, as many again.
             gain = exposure_gain(self.model.illum_ref, g.reshape(-1), self.log_ref)
             rgb = kernels().exposure_tone(self.image, gain, self.model.shoulder)
