@@ -20,7 +20,7 @@ def test_parse_seeds():
         quality.parse_seeds("0")
 
 
-def _fake_run(job, psnr, ssim, width=8, height=6, panels=5):
+def _fake_run(job, psnr, ssim, width=8, height=6, panels=5, aligned=None):
     job.run.mkdir(parents=True, exist_ok=True)
     views = []
     for k, name in enumerate(("a", "b")):
@@ -30,8 +30,11 @@ def _fake_run(job, psnr, ssim, width=8, height=6, panels=5):
         (job.run / "renders" / "test").mkdir(parents=True, exist_ok=True)
         Image.fromarray(img).save(job.run / "renders" / "test" / f"{name}.png")
         views.append({"view": f"{name}.jpg"})
+    mean = {"psnr": psnr, "ssim": ssim, "low_psnr": 7.0, "low_ssim": 0.2}
+    if aligned is not None:
+        mean.update(psnr_gt_mean=aligned[0], ssim_gt_mean=aligned[1])
     job.metrics_path.write_text(json.dumps({
-        "mean": {"psnr": psnr, "ssim": ssim, "low_psnr": 7.0, "low_ssim": 0.2}, "views": views,
+        "mean": mean, "views": views,
         "panels": " | ".join(["x"] * panels), "train": {"train_seconds": 10.0}}))
 
 
@@ -55,6 +58,21 @@ def test_table_mean_and_sample_std_over_seeds_and_scenes(tmp_path):
     top = 14  # the label strip
     # columns: low input (panel 0), each config's output (panel 1), the truth (last panel) — view "a" is row 0
     assert img[top + 2, 1, 0] == 0 and img[top + 2, 8 + 1, 0] == 40 and img[top + 2, 24 + 1, 0] == 80
+
+
+def test_aligned_table_reads_the_gt_mean_figures_and_skips_older_runs(tmp_path):
+    scenes = [tmp_path / "s1", tmp_path / "s2"]
+    jobs = quality.plan(scenes, ["default"], [0, 1], tmp_path / "runs")
+    for j in jobs:  # seed 1 of s2 was evaluated before the GT-mean keys existed
+        old = j.scene.name == "s2" and j.seed == 1
+        _fake_run(j, 20.0, 0.5, aligned=None if old else (30.0 + j.seed + (2 if j.scene.name == "s2" else 0), 0.9))
+    md = quality.table(jobs, ["default"], aligned=True)
+    row = next(line for line in md.splitlines() if line.startswith("| `default`"))
+    assert "(n=1/2)" in row and f"30.50 ± {math.sqrt(0.5):.2f} / 0.900 ± 0.000" in row and "| 32.00 / 0.900 |" in row
+    assert row.rstrip(" |").endswith("31.00 / 0.900")  # the mean over scenes: seed 0 only has both
+    assert "low input" not in md and "GT-mean" in md
+    plain = next(line for line in quality.table(jobs, ["default"]).splitlines() if line.startswith("| `default`"))
+    assert "20.00 ± 0.00 / 0.500 ± 0.000" in plain and "(n=2)" in plain
 
 
 def test_texture_split_and_proxy_gamma():

@@ -63,6 +63,40 @@ def test_metrics_reject_bad_shapes():
         M.ssim_metric(torch.zeros(1, 16, 16, 3), torch.zeros(1, 16, 16, 3))
 
 
+def test_gt_mean_align_matches_the_grey_mean_and_clips():
+    rng = np.random.default_rng(1)
+    y = rng.random((12, 16, 3)) * 0.8
+    x = y * 0.4  # the truth at another brightness: aligned, nothing is left of the error
+    a = M.gt_mean_align(x, y)
+    assert a.dtype == torch.float64 and a.shape == (12, 16, 3)
+    assert M.psnr(a, y) > 100 and M.psnr(x, y) < 15
+    grey = lambda z: float((np.asarray(z) @ np.array([0.299, 0.587, 0.114])).mean())  # noqa: E731
+    # an image with a different structure: its grey mean is moved onto the truth's, up to the clip at 1
+    z = rng.random((12, 16, 3)) * 0.2
+    assert grey(M.gt_mean_align(z, y)) == pytest.approx(grey(y), rel=1e-12)
+    bright = M.gt_mean_align(np.full((4, 4, 3), 0.1) + np.eye(4)[..., None] * 0.5, np.full((4, 4, 3), 0.9))
+    # grey mean 0.225 -> factor 4: 0.1 -> 0.4, 0.6 -> 2.4, clipped at white
+    assert float(bright.max()) == 1.0 and float(bright.min()) == pytest.approx(0.4, abs=1e-12)
+    # the colour balance is kept: one factor for all three channels
+    c = np.stack([y[..., 0] * 0.5, y[..., 1] * 0.5, y[..., 2] * 0.5], -1)
+    np.testing.assert_allclose(np.asarray(M.gt_mean_align(c, y)), y, atol=1e-12)
+    # grey images, and a black output (nothing to scale) stays black
+    g = M.gt_mean_align(y[..., 0] * 0.5, y[..., 0])
+    assert g.shape == (12, 16) and M.psnr(g, y[..., 0]) > 100
+    assert float(M.gt_mean_align(np.zeros((4, 4, 3)), np.ones((4, 4, 3))).abs().max()) == 0.0
+
+
+def test_gt_mean_align_rejects_bad_input():
+    with pytest.raises(ValueError, match="shape mismatch"):
+        M.gt_mean_align(torch.zeros(4, 4, 3), torch.zeros(4, 5, 3))
+    with pytest.raises(ValueError, match="channels"):
+        M.gt_mean_align(torch.zeros(4, 4, 2), torch.zeros(4, 4, 2))
+    bad = torch.ones(4, 4, 3)
+    bad[0, 0, 0] = float("nan")
+    with pytest.raises(ValueError, match="non-finite"):
+        M.gt_mean_align(bad, torch.ones(4, 4, 3))
+
+
 def test_lpips_offline_check(monkeypatch):
     x = torch.rand(32, 32, 3)
     value, reason = M.lpips_metric(x, x)

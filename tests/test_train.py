@@ -3,6 +3,7 @@ pipeline end to end, and the bad-input cases of issue 6."""
 import json
 import shutil
 
+import numpy as np
 import pytest
 import torch
 
@@ -94,6 +95,10 @@ def test_train_run_end_to_end_and_eval(scene_dir, tmp_path):
     assert (run / "config.yaml").is_file() and (run / "metrics.json").is_file()
     assert len(list((run / "renders" / "test").glob("*.png"))) == 2
     assert metrics["mean"]["psnr"] > 0 and 0 < metrics["mean"]["ssim"] <= 1
+    # the GT-mean figures beside the plain ones, per view and in the mean
+    for row in metrics["views"]:
+        assert row["psnr_gt_mean"] > 0 and 0 < row["ssim_gt_mean"] <= 1
+    assert metrics["mean"]["psnr_gt_mean"] == pytest.approx(np.mean([r["psnr_gt_mean"] for r in metrics["views"]]))
     assert json.loads((run / "metrics.json").read_text())["mean"]["psnr"] == pytest.approx(metrics["mean"]["psnr"])
     again = eval_run(run, "cpu", log=lambda s: None)
     assert again["mean"]["psnr"] == pytest.approx(metrics["mean"]["psnr"], abs=1e-6)

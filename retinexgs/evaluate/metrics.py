@@ -10,6 +10,10 @@ Metrics are computed in float64 on the CPU side of the caller's device.
   RGB channel and averaged over channels and positions. This is what skimage's
   ``structural_similarity(..., gaussian_weights=True, use_sample_covariance=False, data_range=1,
   channel_axis=-1)`` and the NeRF-family evaluation code compute.
+- :func:`gt_mean_align`: the output scaled so that its grey mean equals the truth's (low-light enhancement's
+  "GT-mean" evaluation): PSNR / SSIM after it measure everything but the overall brightness, which for a method
+  that never sees a normal-light photo is the photographer's choice (docs/benchmarks.md, "Exposure-aligned").
+  Reported beside the plain figures, never instead of them.
 - :func:`lpips_metric`: LPIPS when the ``lpips`` package, its linear-layer weights and the torchvision
   backbone weights are already on this machine; never downloads. Returns (value, "") or (None, reason).
 """
@@ -25,7 +29,7 @@ import torch
 
 from retinexgs.train.losses import ssim as _ssim
 
-__all__ = ["psnr", "ssim_metric", "lpips_metric", "lpips_available"]
+__all__ = ["psnr", "ssim_metric", "gt_mean_align", "lpips_metric", "lpips_available"]
 
 ImageLike = Union[torch.Tensor, np.ndarray]
 
@@ -63,6 +67,32 @@ def ssim_metric(x: ImageLike, y: ImageLike) -> float:
     a = a.permute(2, 0, 1)[None]
     b = b.permute(2, 0, 1)[None]
     return float(_ssim(a, b, window=11, sigma=1.5, padding="valid", data_range=1.0))
+
+
+# Rec. 601 luma, the grey that the "GT-mean" convention's scaling is measured on (OpenCV's RGB -> GRAY).
+_GREY = (0.299, 0.587, 0.114)
+
+
+def gt_mean_align(x: ImageLike, y: ImageLike) -> torch.Tensor:
+    """``x`` times the ratio of ``y``'s grey mean to ``x``'s, clipped to [0, 1]: a float64 tensor of ``x``'s shape,
+    [H,W,3] (grey = Rec. 601 luma) or [H,W] / [H,W,1] (grey already).
+
+    The "GT-mean" evaluation of low-light enhancement: one factor on the output's values, chosen with the truth,
+    so that the two agree in overall brightness. What the aligned figures still measure is structure, colour and
+    tone; what they drop is the exposure level, which a method trained on the dark photos alone cannot know (a
+    normal-light photo's brightness is set by its photographer or camera). A black output (grey mean 0) stays
+    black.
+    """
+    flat = x.ndim == 2
+    a, b = _as_pair(x, y)
+    if a.shape[-1] not in (1, 3):
+        raise ValueError(f"gt_mean_align needs RGB or grey images, got {a.shape[-1]} channels")
+    w = torch.tensor(_GREY if a.shape[-1] == 3 else (1.0,), dtype=torch.float64)
+    ma, mb = float((a * w).sum(-1).mean()), float((b * w).sum(-1).mean())
+    if not (math.isfinite(ma) and math.isfinite(mb)):
+        raise ValueError("gt_mean_align: the images hold non-finite values")
+    out = a if ma <= 0.0 else (a * (mb / ma)).clamp(0.0, 1.0)
+    return out[..., 0] if flat else out
 
 
 def _hub_checkpoint_dir() -> Path:
