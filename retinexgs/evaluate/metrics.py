@@ -83,7 +83,7 @@ def gt_mean_align(x: ImageLike, y: ImageLike) -> torch.Tensor:
     normal-light photo's brightness is set by its photographer or camera). A black output (grey mean 0) stays
     black.
     """
-    flat = x.ndim == 2
+    flat = np.ndim(x) == 2  # before _as_pair adds the channel axis; np.ndim also takes nested lists
     a, b = _as_pair(x, y)
     if a.shape[-1] not in (1, 3):
         raise ValueError(f"gt_mean_align needs RGB or grey images, got {a.shape[-1]} channels")
