@@ -8,10 +8,12 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import signal
 import sys
+import threading
 from typing import List, Optional
 
-from retinexgs.errors import UserError
+from retinexgs.errors import Terminated, UserError
 from retinexgs.openmp import bound_openmp_spinning
 
 # Before any sub-command imports torch (they do so lazily): idle OpenMP threads spin briefly, then sleep.
@@ -45,21 +47,37 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _raise_terminated(signum, frame) -> None:
+    # A second SIGTERM during the clean-up ends the process at once.
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    raise Terminated()
+
+
 def main(argv: Optional[List[str]] = None) -> int:
-    """Run the command line; returns the process exit code."""
+    """Run the command line; returns the process exit code (2 for a UserError, 130 after Ctrl-C, 143 after
+    SIGTERM: both stop through the same clean-up, never a stack dump)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    restore = None
+    if threading.current_thread() is threading.main_thread():
+        restore = signal.signal(signal.SIGTERM, _raise_terminated)
     try:
         return int(args.func(args) or 0)
     except UserError as exc:
         print(f"retinexgs {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except Terminated:
+        print(f"retinexgs {args.command}: terminated", file=sys.stderr)
+        return 143
     except KeyboardInterrupt:
         print(f"retinexgs {args.command}: interrupted", file=sys.stderr)
         return 130
+    finally:
+        if restore is not None:  # main() called in-process (tests): leave the caller's handler as it was
+            signal.signal(signal.SIGTERM, restore)
 
 
 if __name__ == "__main__":

@@ -6,3 +6,8 @@ class UserError(Exception):
 
     The message names the offending file or argument and says what to do about it.
     """
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (``kill PID``, ``timeout``) received: raised in the main thread by the CLI's handler. A kind of
+    KeyboardInterrupt, so every clean-up made for Ctrl-C runs for it too; the CLI exits with 143."""

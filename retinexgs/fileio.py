@@ -5,12 +5,21 @@ reader (or a resumed run after a crash or SIGKILL) sees the old file or the new 
 """
 from __future__ import annotations
 
+import errno
 import os
 import tempfile
 from pathlib import Path
-from typing import BinaryIO, Callable, Union
+from typing import BinaryIO, Callable, Optional, Union
+
+from retinexgs.errors import UserError
 
 TMP_PREFIX = ".tmp-"
+_NO_SPACE_ERRNOS = {errno.ENOSPC, errno.EDQUOT}
+# torch.save into a file that stops taking bytes fails in its zip writer with these (not an OSError).
+_TORCH_WRITE_FAILED = ("unexpected pos", "file write failed", "PytorchStreamWriter failed")
+_OTHER_CAUSE = {errno.EROFS, errno.EACCES, errno.EPERM, errno.ENOENT, errno.EEXIST, errno.EISDIR, errno.ENOTDIR,
+                errno.ENAMETOOLONG}
+_NEARLY_FULL = 16 << 20  # bytes: an unexplained write failure with less than this free is taken as a full disk
 
 
 def _umask() -> int:
@@ -19,15 +28,67 @@ def _umask() -> int:
     return mask
 
 
-def atomic_write(path: Union[str, Path], write: Callable[[BinaryIO], None]) -> Path:
+def free_bytes(folder: Union[str, Path]) -> Optional[int]:
+    """Bytes available to this user on the file system holding ``folder`` (or its nearest existing parent);
+    None when that cannot be asked."""
+    p = Path(folder)
+    while not p.exists() and p.parent != p:
+        p = p.parent
+    try:
+        st = os.statvfs(p)
+    except (OSError, AttributeError):  # AttributeError: no statvfs (Windows)
+        return None
+    return st.f_bavail * st.f_frsize
+
+
+def is_out_of_space(exc: BaseException, folder: Union[str, Path]) -> bool:
+    """True when ``exc``, raised while writing into ``folder``, means the disk (or the quota) is full: an
+    OSError ENOSPC/EDQUOT (also found in its cause or context), torch's zip-writer failure (``unexpected pos``,
+    ``file write failed``), or any write error while ``folder``'s disk is nearly full (ffmpeg, a broken pipe)."""
+    seen = 0
+    e: Optional[BaseException] = exc
+    while e is not None and seen < 5:
+        if isinstance(e, OSError) and e.errno in _NO_SPACE_ERRNOS:
+            return True
+        if isinstance(e, RuntimeError) and any(m in str(e) for m in _TORCH_WRITE_FAILED):
+            return True
+        if "No space left on device" in str(e):
+            return True
+        e, seen = e.__cause__ or e.__context__, seen + 1
+    if isinstance(exc, OSError) and exc.errno in _OTHER_CAUSE:
+        return False  # a read-only mount also reports no free space: it is not "full"
+    if isinstance(exc, (OSError, RuntimeError)):
+        free = free_bytes(folder)
+        return free is not None and free < _NEARLY_FULL
+    return False
+
+
+def out_of_space_error(path: Union[str, Path], elsewhere: str = "--out") -> UserError:
+    """The error for a write of ``path`` that failed because its disk is full. ``elsewhere``: how the
+    caller's command moves this output to another disk (e.g. ``--out``, ``--set data.cache_dir=DIR``)."""
+    free = free_bytes(Path(path).parent)
+    mib = free / 2**20 if free is not None else 0.0
+    room = f" ({mib:.{1 if mib < 10 else 0}f} MiB free on that disk)" if free is not None else ""
+    where = f" with {elsewhere}" if elsewhere else ""
+    return UserError(f"no space left on device writing {path}{room}: free some space or write elsewhere{where}")
+
+
+def atomic_write(path: Union[str, Path], write: Callable[[BinaryIO], None], elsewhere: str = "--out") -> Path:
     """Call ``write(f)`` on a binary temporary file next to ``path`` and rename it to ``path`` when done.
 
     The folder is created if needed; the file gets the usual permissions (0666 minus the umask, where
     ``mkstemp`` alone would leave 0600); on any error the temporary file is removed and ``path`` untouched.
+    A full disk (see :func:`is_out_of_space`) raises a :class:`UserError` naming ``path``, the free space and
+    ``elsewhere`` (the caller's option for writing to another disk).
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=TMP_PREFIX, suffix=path.suffix, dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=TMP_PREFIX, suffix=path.suffix, dir=path.parent)
+    except OSError as exc:
+        if is_out_of_space(exc, path.parent):
+            raise out_of_space_error(path, elsewhere) from None
+        raise
     try:
         with os.fdopen(fd, "wb") as f:
             write(f)
@@ -35,15 +96,17 @@ def atomic_write(path: Union[str, Path], write: Callable[[BinaryIO], None]) -> P
             os.fsync(f.fileno())
         os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         try:
             os.unlink(tmp)
         except FileNotFoundError:
             pass
+        if isinstance(exc, Exception) and not isinstance(exc, UserError) and is_out_of_space(exc, path.parent):
+            raise out_of_space_error(path, elsewhere) from None
         raise
     return path
 
 
-def atomic_write_text(path: Union[str, Path], text: str) -> Path:
+def atomic_write_text(path: Union[str, Path], text: str, elsewhere: str = "--out") -> Path:
     """Write ``text`` (UTF-8) atomically to ``path``."""
-    return atomic_write(path, lambda f: f.write(text.encode("utf-8")))
+    return atomic_write(path, lambda f: f.write(text.encode("utf-8")), elsewhere)

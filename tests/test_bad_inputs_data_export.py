@@ -372,6 +372,66 @@ def test_unwritable_scene_names_the_cache_option_of_the_command(scene, tmp_path,
     assert str(scene / blocked) in err and hint in err and "pass cache_dir=" not in err, err
 
 
+class _ReadOnly:
+    """Makes every write, rename, delete and mkdir under ``root`` fail with EROFS while ``on``: tests run as
+    root here, where chmod cannot make a folder read-only (a read-only copy or mount of a scene)."""
+
+    def __init__(self, monkeypatch, root: Path):
+        import errno
+        import os
+        import tempfile
+
+        self.root, self.on = Path(root).resolve(), False
+
+        def guard(real, arg_of):
+            def wrapped(*a, **k):
+                target = arg_of(a, k)
+                if self.on and target is not None and (Path(target).resolve() == self.root
+                                                       or self.root in Path(target).resolve().parents):
+                    raise OSError(errno.EROFS, "Read-only file system", str(target))
+                return real(*a, **k)
+            return wrapped
+
+        first = lambda a, k: a[0] if a else None  # noqa: E731
+        for name in ("unlink", "mkdir", "rmdir", "replace", "rename"):
+            monkeypatch.setattr(os, name, guard(getattr(os, name), first))
+        for name in ("mkstemp", "mkdtemp", "TemporaryFile", "NamedTemporaryFile"):
+            monkeypatch.setattr(tempfile, name, guard(getattr(tempfile, name), lambda a, k: k.get("dir")))
+
+
+def test_read_only_scene_with_a_cache_is_read_and_a_needed_write_names_the_option(scene, tmp_path, capsys,
+                                                                                  monkeypatch):
+    from retinexgs.retinex.base import Decomposer
+
+    code, _, err = _cli(["decompose", "--data", scene, "--method", "lime", "--quiet"], capsys)
+    assert code == 0, err
+    ro = _ReadOnly(monkeypatch, scene)
+    ro.on = True
+    before = _tree(scene)
+    calls = []
+    real = Decomposer.decompose
+    monkeypatch.setattr(Decomposer, "decompose", lambda self, image: calls.append(1) or real(self, image))
+    # every entry is there: decompose and train read them from the read-only scene and write nothing into it
+    code, out, err = _cli(["decompose", "--data", scene, "--method", "lime", "--quiet"], capsys)
+    assert code == 0 and "3 reused" in out, err
+    _train(scene, tmp_path / "run")
+    assert calls == [] and _tree(scene) == before
+    # one entry missing: the write it needs fails with the command's option, no traceback
+    ro.on = False
+    sorted((scene / "retinex_cache").rglob("*.npz"))[0].unlink()
+    ro.on = True
+    before = _tree(scene)
+    code, _, err = _cli(["decompose", "--data", scene, "--method", "lime", "--quiet"], capsys)
+    assert code == 2 and "Traceback" not in err, err
+    assert "cannot write the cache folder" in err and str(scene / "retinex_cache") in err, err
+    assert "Read-only file system; put the caches elsewhere with --cache DIR" in err, err
+    code, _, err = _cli(["train", "--data", scene, "--out", tmp_path / "run2", "--device", "cpu", "--config", "demo",
+                         *[a for t in TINY for a in ("--set", t)]], capsys)
+    assert code == 2 and "Traceback" not in err, err
+    assert "Read-only file system; put the caches elsewhere with --set data.cache_dir=DIR" in err, err
+    assert _tree(scene) == before and not (tmp_path / "run2").exists()
+
+
 # ---- 1 and 6. COLMAP models through pycolmap: bad intrinsics named -----------------------------------------
 
 def test_colmap_camera_with_zero_focal_length_is_refused(scene):
@@ -396,3 +456,187 @@ def test_decompose_with_no_decomposer_configured_writes_nothing(scene, capsys):
                          "data.downscale=1.5", "--quiet"], capsys)
     assert code == 2 and "decomposer.method is none: there is nothing to decompose" in err, err
     assert _tree(scene) == before
+
+
+# ---- issue 36: render --frames/--fps, sfm's numeric options and a failed SfM --------------------------------
+
+@pytest.mark.parametrize("args, says", [
+    (["--frames", "100000000"], "--frames 100000000 is too many: at most 100000"),
+    (["--frames", "0"], "--frames must be at least 1, got 0"),
+    (["--fps", "inf"], "--fps must be a positive finite number of frames per second, got inf"),
+    (["--fps", "nan"], "--fps must be a positive finite number of frames per second, got nan"),
+    (["--fps", "0"], "--fps must be a positive finite number of frames per second, got 0"),
+])
+def test_render_frames_and_fps_are_refused_before_the_run_loads(tmp_path, capsys, monkeypatch, args, says):
+    import retinexgs.export.renders as renders
+
+    def refuse(*a, **k):  # 10^8 frames used to build a camera path silently for minutes after this
+        raise AssertionError("render loaded the run before checking --frames/--fps")
+
+    monkeypatch.setattr(renders, "load_run", refuse)
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.yaml").write_text("method: retinexgs\n")
+    code, _, err = _cli(["render", "--run", run, "--path", "orbit", "--format", "png", "--device", "cpu", *args],
+                        capsys)
+    assert code == 2 and says in err and "Traceback" not in err, err
+    assert sorted(p.name for p in run.iterdir()) == ["config.yaml"]
+
+
+@pytest.mark.parametrize("args, says", [
+    (["--max-features", "0"], "--max-features must be a positive number of SIFT features per photo"),
+    (["--threads", "-5"], "--threads must be -1 (all CPU threads, the default) or a positive count, got -5"),
+    (["--threads", "0"], "--threads must be -1"),
+])
+def test_sfm_numeric_options_are_refused_before_any_work(demo, tmp_path, capfd, args, says):
+    photos = tmp_path / "photos"
+    shutil.copytree(demo / "low", photos)
+    before = _tree(tmp_path)
+    code, _, err = _cli(["sfm", "--images", photos, "--enhance", "on", "--quiet", *args], capfd)
+    assert code == 2 and says in err and "Traceback" not in err and "Check failed" not in err, err
+    assert _tree(tmp_path) == before  # --threads -5 used to extract features first, leaving OUT/enhanced/
+
+
+def _noise_photos(folder: Path, n: int = 3) -> None:
+    """Dark photos of noise: nothing SfM can match."""
+    folder.mkdir(parents=True)
+    for i in range(n):
+        pixels = (np.random.RandomState(i).rand(120, 160, 3) * 40).astype(np.uint8)
+        Image.fromarray(pixels).save(folder / f"p{i}.jpg", quality=95)
+
+
+@pytest.mark.parametrize("user_folder", [False, True])
+def test_a_failed_sfm_removes_what_it_made_and_says_one_line(tmp_path, capfd, user_folder):
+    """The brightened copies (PHOTOS/retinexgs_sfm/enhanced/) go, a folder the user had there stays, and
+    COLMAP's glog ``E2026...`` line does not leak before the error (fd 2, so ``capfd``)."""
+    photos = tmp_path / "photos"
+    _noise_photos(photos)
+    if user_folder:
+        (photos / "retinexgs_sfm").mkdir()
+        (photos / "retinexgs_sfm" / "notes.txt").write_text("mine\n")
+    before = _tree(tmp_path)
+    code, out, err = _cli(["sfm", "--images", photos, "--enhance", "on", "--quiet"], capfd)
+    assert code == 2 and "Traceback" not in err, err
+    assert err.strip().splitlines() == [f"retinexgs sfm: error: SfM could not build a model from the 3 photos in "
+                                        f"{photos} (too few matching features); try brighter or more overlapping "
+                                        f"photos"], err
+    assert _tree(tmp_path) == before
+
+
+# ---- issue 36, part C: scenes accepted silently, misleading messages -----------------------------------------
+
+def _warnings(err: str) -> List[str]:
+    return [line for line in err.splitlines() if line.startswith("warning: ")]
+
+
+def test_one_training_view_is_refused_two_load(scene, capsys):
+    _edit_json(scene / "transforms_train.json", lambda d: d.update(frames=d["frames"][:2]))
+    assert len(load_scene(scene).train) == 2
+    _edit_json(scene / "transforms_train.json", lambda d: d.update(frames=d["frames"][:1]))
+    shutil.rmtree(scene / "retinexgs_cache", ignore_errors=True)
+    with pytest.raises(UserError, match=r"has only 1 training view \(low/0000\.png\); a 3D reconstruction needs at "
+                                        r"least 2 views"):
+        load_scene(scene)
+    assert not (scene / "retinexgs_cache").exists()
+
+
+def test_duplicate_frame_warns_with_the_same_pose_and_is_refused_with_another(scene, capsys):
+    _edit_json(scene / "transforms_train.json", lambda d: d["frames"].append(dict(d["frames"][0])))
+    capsys.readouterr()
+    assert len(load_scene(scene).train) == 4
+    assert _warnings(capsys.readouterr().err) == [
+        "warning: transforms_train.json frames 0 and 3 both list low/0000.png (same pose): the view counts twice in "
+        "training; remove the duplicate frame"]
+
+    def moved(d):
+        d["frames"][3]["transform_matrix"] = d["frames"][1]["transform_matrix"]
+
+    _edit_json(scene / "transforms_train.json", moved)
+    with pytest.raises(UserError, match=r"transforms_train\.json frames 0 and 3 both list low/0000\.png with "
+                                        r"different camera poses"):
+        load_scene(scene)
+
+
+def test_duplicate_file_by_another_spelling_is_found(scene, capsys):
+    def again(d):  # the same file without its extension
+        d["frames"].append(dict(d["frames"][1], file_path=d["frames"][1]["file_path"][:-4]))
+
+    _edit_json(scene / "transforms_train.json", again)
+    capsys.readouterr()
+    load_scene(scene)
+    assert "frames 1 and 3 both list low/0001.png" in capsys.readouterr().err
+
+
+def test_test_views_that_are_training_views_warn_and_are_recorded(scene, tmp_path, capsys):
+    train = json.loads((scene / "transforms_train.json").read_text())["frames"]
+
+    def add(d):
+        d["frames"].append(dict(train[1], file_path="high/" + Path(train[1]["file_path"]).name))
+
+    _edit_json(scene / "transforms_test.json", add)
+    capsys.readouterr()
+    load_scene(scene)
+    assert _warnings(capsys.readouterr().err) == [
+        "warning: 1 of 2 test views are also training views (low/0001.png): the test metrics are not held-out "
+        "(recorded as test_in_train in metrics.json); list them in one split only"]
+    _train(scene, tmp_path / "run")
+    metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert metrics["test_in_train"] == 1 and len(metrics["views"]) == 2
+
+
+def test_held_out_metrics_record_no_test_in_train(run_with_val):
+    assert "test_in_train" not in json.loads((run_with_val / "metrics.json").read_text())
+
+
+def test_json_size_that_disagrees_with_the_images_warns_once(scene, capsys):
+    before = load_scene(scene).train[0].fx
+    _edit_json(scene / "transforms_train.json", lambda d: d.update(w=48, h=36))
+    capsys.readouterr()
+    s = load_scene(scene)
+    assert _warnings(capsys.readouterr().err) == [
+        "warning: the transforms JSON gives w x h = 48x36 but the images are 24x18 (3 views, e.g. low/0000.png): the "
+        "intrinsics (focal length, principal point) are rescaled by 0.5 to fit the images"]
+    assert s.train[0].fx == pytest.approx(before / 2)  # fl_x was given for 48 pixels: rescaled, as before
+
+
+def test_a_consistent_scene_loads_without_warnings(scene, capsys):
+    capsys.readouterr()
+    load_scene(scene)
+    assert _warnings(capsys.readouterr().err) == []
+
+
+def test_demo_scene_without_test_views(tmp_path):
+    out = make_demo_scene(tmp_path / "s", n_train=3, n_test=0, width=24, height=18, n_points=50)
+    assert not (out / "transforms_test.json").exists()
+    s = load_scene(out)
+    assert len(s.train) == 3 and s.test == []
+
+
+def test_side_by_side_pngs_name_their_panels(run_with_val):
+    from retinexgs.evaluate.evaluate import LABEL_ROWS, to_uint8
+    from retinexgs.train.run import load_run
+
+    metrics = json.loads((run_with_val / "metrics.json").read_text())
+    n = metrics["panels"].count("|") + 1
+    assert metrics["label_rows"] == LABEL_ROWS and n == 5
+    (path,) = (run_with_val / "renders" / "test").glob("*.png")
+    png = np.asarray(Image.open(path).convert("RGB"))
+    w = png.shape[1] // n
+    assert png.shape[0] == LABEL_ROWS + 18 and w == 24
+    cells = [png[:LABEL_ROWS, i * w:(i + 1) * w] for i in range(n)]
+    assert all(int(c.max()) > 128 for c in cells)  # white text over black in every panel
+    assert len({c.tobytes() for c in cells}) == n  # five different names
+    # the panels themselves are below the strip, untouched: the first is the dark input
+    _, scene, _, _ = load_run(run_with_val, "cpu")
+    assert np.array_equal(png[LABEL_ROWS:, :w], to_uint8(scene.test[0].image))
+
+
+def test_duplicate_image_in_a_colmap_model_warns(scene, capsys):
+    images = scene / "colmap_sparse" / "0" / "images.txt"
+    first = next(line for line in images.read_text().splitlines() if line and not line.startswith("#"))
+    images.write_text(images.read_text() + " ".join(["99"] + first.split()[1:]) + "\n\n")  # another id, same file
+    capsys.readouterr()
+    assert len(load_scene(scene, reader="colmap").train) == 4
+    assert _warnings(capsys.readouterr().err) == [
+        "warning: the train split lists low/0000.png twice (same pose): the view counts twice in training; remove "
+        "the duplicate frame"]

@@ -8,6 +8,7 @@ for the prepared inputs of ``SETUPS``). They run in-process through ``retinexgs.
 "Writes nothing": the test folder's tree (names, sizes, modification times) is the same before and after,
 except the documented caches a case lists in ``allow`` (none do today).
 """
+import json
 import os
 import shutil
 import subprocess
@@ -99,6 +100,14 @@ def setup_photos(root, o, n=2, corrupt=False):
         (photos / "9999.jpg").write_bytes(NOT_AN_IMAGE)
 
 
+def setup_one_view(root, o):
+    """The scene with one training frame left in transforms_train.json."""
+    path = _scene(root, o) / "transforms_train.json"
+    data = json.loads(path.read_text())
+    data["frames"] = data["frames"][:1]
+    path.write_text(json.dumps(data))
+
+
 SETUPS: Dict[str, Callable[[Path, Dict], None]] = {
     "nothing": lambda root, o: None,
     "empty_dir": lambda root, o: (root / "empty").mkdir(),
@@ -123,6 +132,8 @@ SETUPS: Dict[str, Callable[[Path, Dict], None]] = {
     "photos_empty": lambda root, o: (root / "photos").mkdir(),
     "photos_one": lambda root, o: setup_photos(root, o, n=1),
     "photos_corrupt": lambda root, o: setup_photos(root, o, n=2, corrupt=True),
+    "photos_two": lambda root, o: setup_photos(root, o, n=2),
+    "one_view": setup_one_view,
 }
 
 
@@ -166,7 +177,7 @@ CASES: List[Case] = [
     Case("train-missing-config", TRAIN + ["--data", "{root}/scene", "--config", "{root}/nosuch.yaml"],
          "nosuch.yaml' not found", "scene"),
     Case("train-unknown-set-key", TRAIN + ["--data", "{root}/scene", "--set", "loss.w_typo=1"],
-         "unknown config key --set loss.'w_typo'", "scene"),
+         "unknown config key --set loss.w_typo (known", "scene"),
     Case("train-set-without-equals", TRAIN + ["--data", "{root}/scene", "--set", "steps"],
          "must look like key.sub=value", "scene"),
     Case("train-set-malformed-value", TRAIN + ["--data", "{root}/scene", "--set", "steps=[1"],
@@ -188,7 +199,7 @@ CASES: List[Case] = [
     Case("resume-malformed-config", ["train", "--out", "{root}/run", "--resume", *T],
          "{root}/run/config.yaml is not valid YAML", "run_bad_config"),
     Case("resume-unknown-set-key", ["train", "--out", "{root}/run", "--resume", "--set", "typo=1", *T],
-         "unknown config key --set 'typo'", "run"),
+         "unknown config key --set typo (known", "run"),
     # eval
     Case("eval-missing-run", ["eval", "--run", "{root}/missing", "--device", "cpu"], "is not a run folder"),
     Case("eval-empty-folder", ["eval", "--run", "{root}/empty", "--device", "cpu"], "no config.yaml", "empty_dir"),
@@ -204,13 +215,19 @@ CASES: List[Case] = [
          "run_without_checkpoint"),
     Case("eval-corrupt-image", ["eval", "--run", "{root}/run", "--device", "cpu"],
          "cannot read image {root}/scene/high/0003.png", "run_corrupt_scene"),
-    Case("eval-scene-gone", ["eval", "--run", "{root}/run", "--device", "cpu"], "deleted_scene does not exist",
+    Case("eval-scene-gone", ["eval", "--run", "{root}/run", "--device", "cpu"], "deleted_scene, does not exist",
          "run_scene_gone"),
     # demo (only the refusals: a real demo trains for minutes)
     Case("demo-out-is-a-file", ["demo", "--out", "{root}/afile.txt", *T], "--out {root}/afile.txt is a file", "a_file"),
     Case("demo-out-not-empty", ["demo", "--out", "{root}/busy", *T], "already exists", "busy_out"),
     Case("demo-zero-steps", ["demo", "--out", "{root}/demo", "--steps", "0", *T], "--steps must be a positive"),
     Case("demo-negative-steps", ["demo", "--out", "{root}/demo", "--steps", "-5", *T], "--steps must be a positive"),
+    # issue 36: --overwrite on a folder the demo did not make gave the message of a plain refusal
+    Case("demo-overwrite-not-a-demo-folder", ["demo", "--out", "{root}/busy", "--overwrite", *T],
+         "--overwrite only replaces a folder the demo made itself", "busy_out"),
+    # issue 36: a single training view trained to 1 Gaussian
+    Case("train-one-view", TRAIN + ["--data", "{root}/scene"], "has only 1 training view (low/0000.png); a 3D "
+         "reconstruction needs at least 2 views", "one_view"),
     # decompose
     Case("decompose-missing-scene", ["decompose", "--data", "{root}/missing", "--quiet"], "not found: {root}/missing"),
     Case("decompose-empty-folder", ["decompose", "--data", "{root}/empty", "--quiet"], "no images", "empty_dir"),
@@ -226,6 +243,10 @@ CASES: List[Case] = [
          "are missing: {root}/scene/low/0001.png", "json_missing_image"),
     Case("decompose-bad-device", ["decompose", "--data", "{root}/scene", "--device", "tpu", "--quiet"],
          "invalid choice: 'tpu'", "scene"),
+    # issue 36: a missing --images-subdir fell back to the scene folder silently
+    Case("decompose-missing-images-subdir", ["decompose", "--data", "{root}/scene", "--images-subdir", "nope",
+                                             "--method", "lime", "--quiet"],
+         "--images-subdir nope: {root}/scene/nope is not a folder (it does not exist)", "scene"),
     # sfm
     Case("sfm-missing-folder", ["sfm", "--images", "{root}/missing", "--quiet"], "{root}/missing does not exist"),
     Case("sfm-empty-folder", ["sfm", "--images", "{root}/photos", "--quiet"], "is empty", "photos_empty"),
@@ -233,6 +254,11 @@ CASES: List[Case] = [
     Case("sfm-corrupt-photo", ["sfm", "--images", "{root}/photos", "--quiet"],
          "cannot read image {root}/photos/9999.jpg", "photos_corrupt"),
     Case("sfm-images-is-a-file", ["sfm", "--images", "{root}/afile.txt", "--quiet"], "afile.txt", "a_file"),
+    # issue 36: pycolmap's "Check failed", the second after feature extraction had written OUT/enhanced/
+    Case("sfm-zero-features", ["sfm", "--images", "{root}/photos", "--max-features", "0", "--quiet"],
+         "--max-features must be a positive number", "photos_two"),
+    Case("sfm-negative-threads", ["sfm", "--images", "{root}/photos", "--enhance", "on", "--threads", "-5",
+                                  "--quiet"], "--threads must be -1 (all CPU threads", "photos_two"),
 ]
 
 # ---- render / export (retinexgs.export; rows used only while those commands exist) ----------------------------
@@ -242,12 +268,19 @@ RENDER_EXPORT_CASES: List[Case] = [
     Case("render-truncated-checkpoint", ["render", "--run", "{root}/run", *T], "step_000003.pt is unreadable",
          "truncated_checkpoint"),
     Case("render-malformed-config", ["render", "--run", "{root}/run", *T], "is not valid YAML", "run_bad_config"),
+    Case("render-fps-not-finite", ["render", "--run", "{root}/run", "--path", "orbit", "--fps", "inf", *T],
+         "--fps must be a positive finite number", "run"),  # issue 36 (--frames 10^8: test_bad_inputs_data_export)
     Case("export-missing-run", ["export", "--run", "{root}/missing", "--out", "{root}/x.ply", *T],
          "is not a run folder"),
     Case("export-truncated-checkpoint", ["export", "--run", "{root}/run", "--out", "{root}/x.ply", *T],
          "step_000003.pt is unreadable", "truncated_checkpoint"),
     Case("export-malformed-config", ["export", "--run", "{root}/run", "--out", "{root}/x.ply", *T],
          "is not valid YAML", "run_bad_config"),
+    # issue 36: an existing folder as --out suggested --force, which then refused it
+    Case("export-out-is-a-folder", ["export", "--run", "{root}/run", "--out", "{root}/run", *T],
+         "--out {root}/run is a folder; --out is the .ply file to write, e.g. --out {root}/run/point_cloud.ply", "run"),
+    Case("export-out-is-a-folder-force", ["export", "--run", "{root}/run", "--out", "{root}/run", "--force", *T],
+         "--out {root}/run is a folder; --out is the .ply file to write", "run"),
     # view (issue 14): the run and the address are checked before viser is needed; more in test_view_server.py.
     Case("view-missing-run", ["view", "--run", "{root}/missing", "--device", "cpu"], "is not a run folder"),
     Case("view-truncated-checkpoint", ["view", "--run", "{root}/run", "--device", "cpu"],

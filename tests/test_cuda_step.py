@@ -136,7 +136,7 @@ def test_graphed_training_loop_matches_eager_on_cpu(scene_dir, tmp_path, one_thr
     assert abs(n_eager - n_graphed) <= max(2, 0.01 * n_eager), (n_eager, n_graphed)
     assert eager.keys() == graphed.keys()
     for k in eager:
-        if k != "seconds":
+        if k not in ("seconds", "total_seconds"):  # timings
             assert graphed[k] == pytest.approx(eager[k], rel=1e-3, abs=1e-7), k
 
 

@@ -376,7 +376,8 @@ def test_projections_consistent_after_undistort_and_downscale(tmp_path, downscal
     root = tmp_path / "blobs"
     save(root / "low" / "a.png", _blob_image(cam, BLOB_POINTS))
     save(root / "high" / "a.png", _blob_image(cam, BLOB_POINTS))
-    write_transforms(root, cam, [c2w, c2w], ["a.png"], set(), [_blob_image(cam, BLOB_POINTS)])
+    # two views (a scene of one is refused); the second, b.png, is a copy: the test looks at a.png
+    write_transforms(root, cam, [c2w, c2w], ["a.png", "b.png"], set(), [_blob_image(cam, BLOB_POINTS)] * 2)
     before = _snapshot(root)
     s = load_scene(root, downscale=downscale, normalize=False, num_random_points=100)
     v = s.train[0]

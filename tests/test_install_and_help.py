@@ -165,6 +165,22 @@ def test_help_has_descriptions_and_no_markup(capsys):
         assert all(a.help for a in sub._actions), f"retinexgs {name}: an option without help"
 
 
+def test_bench_help_lists_every_benchmark_and_exits_0():
+    """Issue 36: ``python -m retinexgs.bench --help`` printed only a usage line, with exit code 2."""
+    from retinexgs.bench.__main__ import BENCHES
+
+    p = subprocess.run([sys.executable, "-m", "retinexgs.bench", "--help"], capture_output=True, text=True,
+                       timeout=60, cwd=REPO)
+    assert p.returncode == 0 and p.stderr == "", p.stderr
+    entries = {ln.split()[0]: ln for ln in p.stdout.split("benchmarks:\n", 1)[1].splitlines() if ln[2:3] != " "}
+    assert sorted(entries) == sorted(BENCHES), p.stdout
+    assert all(len(ln.split()) > 3 for ln in entries.values()), p.stdout  # each with what it measures
+    assert "NAME --help" in p.stdout
+    p = subprocess.run([sys.executable, "-m", "retinexgs.bench", "nosuch"], capture_output=True, text=True,
+                       timeout=60, cwd=REPO)
+    assert p.returncode == 2 and "unknown benchmark 'nosuch'" in p.stderr, p.stderr
+
+
 def test_decompose_device_auto(tmp_path, monkeypatch, capsys, one_thread):
     assert resolve_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)

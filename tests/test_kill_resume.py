@@ -292,3 +292,42 @@ def test_a_non_finite_loss_between_checks_is_named_with_its_step(tiny_scene, tmp
     with pytest.raises(TrainingDiverged, match=r"^loss term sh became non-finite at step 5; the last good"):
         tr.train()
     assert [p.name for p in list_checkpoints(run)] == ["step_000003.pt"]
+
+
+def test_sigterm_stops_training_quietly_with_143_and_the_run_resumes(tiny_scene, tmp_path):
+    """Issue 36: ``kill PID`` / ``timeout`` on train ends like Ctrl-C (one line, exit 143), not with glog's
+    ``*** Aborted at ... SIGTERM received`` stack dump, which importing pycolmap installs (the COLMAP reader
+    imports it: ``data.reader=colmap``); the checkpoints written so far stay and ``--resume`` finishes."""
+    run = tmp_path / "run"
+    steps = 40
+    sets = [a for s in SETTINGS + [f"steps={steps}", "data.reader=colmap", "density.stop=20"]
+            for a in ("--set", s)]
+    proc = _start(["--data", str(tiny_scene), "--out", str(run), "--config", "demo", *sets], tmp_path / "t.log")
+    try:
+        t0 = time.monotonic()
+        while not list_checkpoints(run) and proc.poll() is None:  # the first checkpoint is written
+            assert time.monotonic() - t0 < PROCESS_TIMEOUT_S, "no checkpoint"
+            time.sleep(0.02)
+        assert proc.poll() is None, (tmp_path / "t.log").read_text(errors="replace")
+        proc.send_signal(signal.SIGTERM)
+        rc = proc.wait(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(timeout=30)
+    text = (tmp_path / "t.log").read_text(errors="replace")
+    assert rc == 143, text
+    assert "retinexgs train: terminated" in text, text
+    assert "Aborted at" not in text and "@ 0x" not in text and "Traceback" not in text, text
+    step = _check_run_folder(run, 2)
+    assert 2 <= step < steps, text
+    proc = _start(["--out", str(run), "--resume"], tmp_path / "resume.log")
+    try:
+        rc = proc.wait(timeout=PROCESS_TIMEOUT_S)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(timeout=30)
+    text = (tmp_path / "resume.log").read_text(errors="replace")
+    assert rc == 0 and f"(step {step})" in text, text
+    assert _check_run_folder(run, step) == steps

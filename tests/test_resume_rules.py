@@ -2,11 +2,13 @@
 refused by name; --data is checked against the run's scene (--relocate-scene for a moved one); one trainer
 per run folder (a lock); --out that cannot hold a run is refused before the scene is loaded."""
 import fcntl
+import json
 import os
 import shutil
 from pathlib import Path
 
 import pytest
+import torch
 import yaml
 
 from retinexgs.cli import main
@@ -328,3 +330,37 @@ def test_a_run_older_than_a_key_gets_the_behaviour_it_was_trained_with(run):
     for key in ("model.enhancement.tone", "model.enhancement.per_view", "loss.w_depth", "loss.depth_edge",
                 "loss.rec_domain", "loss.rec_huber", "model.background", "model.enhancement.shoulder"):
         assert key in lines[0]
+
+
+@pytest.mark.parametrize("argv", [["eval"], ["render"], ["export", "--out", "OUT/fox.ply"]])
+def test_a_run_whose_scene_moved_says_how_to_relocate_it(run, tmp_path, capsys, argv):
+    """eval, render and export of a run whose scene folder is gone name the folder and the --relocate-scene fix."""
+    cfg = recorded(run)
+    cfg["scene"] = str(tmp_path / "gone")
+    (run / "config.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
+    argv = [a.replace("OUT", str(tmp_path)) for a in argv]
+    code, out, err = cli([argv[0], "--run", str(run), *argv[1:], "--device", "cpu"], capsys)
+    assert code == 2, err
+    assert str(tmp_path / "gone") in err and "--resume --data NEW_SCENE --relocate-scene" in err, err
+
+
+def test_train_seconds_add_up_over_resumed_sessions(originals, tmp_path, capsys, one_thread):
+    """A resumed run reports the training time of all its sessions, not only the last one (issue 36)."""
+    run = tmp_path / "run"
+    logs = []
+    train_run(originals[0], run, ["demo"], TINY + ["steps=4"], "cpu", progress=False, log=logs.append)
+    state = torch.load(latest_checkpoint(run), weights_only=False)
+    first = state["train_seconds"]
+    assert first > 0
+    # Pretend the first session took 1000 s: the resumed run's total must include it.
+    state["train_seconds"] = 1000.0
+    torch.save(state, latest_checkpoint(run))
+    logs.clear()
+    metrics = train_run(None, run, [], ["steps=6"], "cpu", resume=True, progress=False, log=logs.append)
+    took = [m for m in logs if m.startswith("trained 6 steps")]
+    assert took and "in all" in took[0] and "this session" in took[0], logs
+    total = json.loads((run / "metrics.json").read_text())["train"]["train_seconds"]
+    assert 1000.0 <= total < 1000.0 + 600, total  # the first session's 1000 s are counted
+    assert torch.load(latest_checkpoint(run), weights_only=False)["train_seconds"] >= 1000.0
+    records = [json.loads(line) for line in (run / "train_log.jsonl").read_text().splitlines()]
+    assert records[-1]["seconds"] >= 1000.0

@@ -424,6 +424,101 @@ def test_command_errors(tmp_path):
     assert _no_temp_files(tmp_path)
 
 
+# ---------------------------------------------------------------- cache: content keys, sweep, --clean/--info
+
+def _entries(root: Path) -> list:
+    return sorted(p.relative_to(root) for p in root.rglob("*.npz"))
+
+
+def test_copied_or_renamed_scene_reuses_its_entries(tmp_path, count_calls, capsys):
+    import shutil
+
+    _write_scene(tmp_path / "a", n=3)
+    assert _run_cli(["decompose", "--data", str(tmp_path / "a"), "--method", "lime", "--quiet"]) == 0
+    assert len(count_calls) == 3
+    shutil.copytree(tmp_path / "a", tmp_path / "b")
+    assert _run_cli(["decompose", "--data", str(tmp_path / "b"), "--method", "lime", "--quiet"]) == 0
+    assert len(count_calls) == 3 and "3 reused" in capsys.readouterr().out  # nothing recomputed
+    assert _entries(tmp_path / "b" / "retinex_cache") == _entries(tmp_path / "a" / "retinex_cache")
+    assert len(_entries(tmp_path / "b" / "retinex_cache")) == 3  # not 3 + 3 stale path-keyed ones
+    (tmp_path / "b" / "low" / "0001.png").rename(tmp_path / "b" / "low" / "renamed.png")
+    out = rcache.load_or_compute(sorted((tmp_path / "b" / "low").glob("*.png")), "lime", progress=False,
+                                 sweep=True)
+    assert len(count_calls) == 3 and len(out) == 3  # same bytes under another name: the same entry
+
+
+def test_stale_entries_are_swept_and_only_ours(tmp_path, count_calls, capsys):
+    paths = _write_scene(tmp_path, n=3)
+    scene = str(tmp_path)
+    assert _run_cli(["decompose", "--data", scene, "--method", "lime", "--quiet"]) == 0
+    assert _run_cli(["decompose", "--data", scene, "--method", "lime", "--set", "decomposer.params.alpha=0.3",
+                     "--quiet", "--preview"]) == 0
+    root = tmp_path / "retinex_cache"
+    lime, lime3 = (root / f"lime-{get_decomposer('lime', p).cache_key()}" for p in ({}, {"alpha": 0.3}))
+    assert len(list(lime.glob("*.npz"))) == len(list(lime3.glob("*.npz"))) == 3
+    old = lime / "0000-0123456789.npz"  # an entry of the older, path-keyed format
+    old.write_bytes(b"old entry")
+    mine = [lime / "notes.npz", lime / "0000-nothex.npz", root / "README", lime / "preview-keep.txt"]
+    for p in mine:
+        p.write_text("not a cache entry")
+    paths[2].unlink()  # a photo removed from the scene
+    img = np.asarray(Image.open(paths[1])).copy()
+    img[:4] = 255
+    Image.fromarray(img).save(paths[1])  # a photo edited
+    capsys.readouterr()
+    assert _run_cli(["decompose", "--data", scene, "--method", "lime", "--quiet"]) == 0
+    out = capsys.readouterr().out
+    # lime: the edited photo's old entry, the removed photo's, the old-format one; alpha=0.3: the first two
+    assert "1 computed, 1 reused from cache, 5 stale entries deleted" in out, out
+    current = {rcache.content_hash(p) for p in paths[:2]}
+    for folder in (lime, lime3):  # other settings keep the entries of the current photos only
+        hashes = {p.stem.rsplit("-", 1)[1] for p in folder.glob("*.npz") if p not in mine}
+        assert hashes == (current if folder == lime else current - {rcache.content_hash(paths[1])}), folder
+    assert len(list((lime3 / "preview").glob("*.png"))) == 1  # the swept entries' previews went with them
+    assert not old.exists() and all(p.exists() for p in mine)
+    # library callers (a subset of a scene's photos) sweep nothing unless asked
+    rcache.load_or_compute(paths[:1], "lime", cache_dir=root, progress=False)
+    assert len(list(lime.glob("*-" + "?" * 16 + ".npz"))) == 2
+
+
+def test_decompose_info_and_clean_delete_the_cache_and_only_it(tmp_path, capsys):
+    _write_scene(tmp_path, n=2)
+    scene = str(tmp_path)
+    assert _run_cli(["decompose", "--data", scene, "--method", "lime", "--quiet", "--preview"]) == 0
+    assert _run_cli(["decompose", "--data", scene, "--method", "lime", "--set", "decomposer.params.alpha=0.3",
+                     "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert f"cache {tmp_path / 'retinex_cache'}: 4 entries in 2 setting(s)" in out, out
+    root = tmp_path / "retinex_cache"
+    lime = root / f"lime-{get_decomposer('lime').cache_key()}"
+    keep = [root / "mine.txt", lime / "mine.npz", tmp_path / "low" / "0000.png"]
+    (root / "mine.txt").write_text("user file")
+    (lime / "mine.npz").write_text("user file")
+    (tmp_path / "retinexgs_cache").mkdir()  # another cache of the scene: not --clean's business
+    (tmp_path / "retinexgs_cache" / "x.png").write_bytes(b"x")
+    before = {p: p.stat().st_mtime_ns for p in tmp_path.rglob("*") if p.is_file()}
+    assert _run_cli(["decompose", "--data", scene, "--info"]) == 0
+    info = capsys.readouterr().out
+    import re
+    assert re.search(r'lime-\w+: lime \{"alpha": 0\.15, .*\}: 2 entries, 2 preview\(s\), ', info), info
+    assert re.search(r'lime-\w+: lime \{"alpha": 0\.3, .*\}: 2 entries, ', info), info
+    assert {p: p.stat().st_mtime_ns for p in tmp_path.rglob("*") if p.is_file()} == before  # --info writes nothing
+    assert _run_cli(["decompose", "--data", scene, "--clean"]) == 0
+    assert "deleted 4 cached decomposition(s)" in capsys.readouterr().out
+    left = sorted(p for p in tmp_path.rglob("*") if p.is_file())
+    assert left == sorted(keep + [tmp_path / "low" / "0001.png", tmp_path / "retinexgs_cache" / "x.png"]), left
+    assert sorted(p.name for p in root.iterdir()) == [lime.name, "mine.txt"]
+    assert _run_cli(["decompose", "--data", scene, "--info"]) == 0
+    assert ": 0 entries in 1 setting(s), 0.0 MiB" in capsys.readouterr().out  # the folder holding mine.npz
+    (root / "mine.txt").unlink()
+    (lime / "mine.npz").unlink()
+    assert _run_cli(["decompose", "--data", scene, "--clean"]) == 0 and not root.exists()
+    assert _run_cli(["decompose", "--data", scene, "--info"]) == 0
+    assert ": empty" in capsys.readouterr().out
+    with pytest.raises(UserError, match="do not go together"):
+        _run_cli(["decompose", "--data", scene, "--clean", "--info"])
+
+
 # ---------------------------------------------------------------- metrics
 
 def test_psnr_and_ssim():

@@ -133,3 +133,81 @@ def test_the_absolute_gamma_slider_spans_the_runs_gamma_range():
     assert gamma_slider_range(model(0.25, 2.0)) == (0.12, 2.5)  # the exposure tone (the default)
     assert gamma_slider_range(model(0.1, 1.0)) == (0.05, 1.25)  # the gamma tones
     assert gamma_slider_range(None) == (0.05, 1.5)  # a baseline: the slider is disabled anyway
+
+
+# ---- issue 36: addresses that cannot be bound fail at once (viser retried them forever, silently) ----------
+
+def _main_within(argv, seconds=60.0):
+    """``main(argv)`` in a thread: (exit code, finished in time). A hang fails the test instead of stalling it."""
+    import threading
+
+    result = {}
+    thread = threading.Thread(target=lambda: result.setdefault("code", main(argv)), daemon=True)
+    thread.start()
+    thread.join(seconds)
+    return result.get("code"), not thread.is_alive()
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--host", "999.1.1.1"], "--host '999.1.1.1' is not an IP address or a host name that resolves"),
+    (["--host", "192.0.2.1"], "--host 192.0.2.1: not an address of this machine"),  # TEST-NET-1
+    (["--port", "65536"], "--port must be 0..65535"),
+])
+def test_an_address_that_cannot_be_bound_fails_fast(run_dir, capsys, args, message):
+    code, finished = _main_within(["view", "--run", str(run_dir), "--device", "cpu", *args])
+    assert finished, "view hung on an address it cannot bind"
+    err = capsys.readouterr().err
+    assert code == 2 and message in err and "Traceback" not in err, err
+
+
+def test_a_port_the_user_may_not_bind_fails_fast(run_dir, capsys, monkeypatch):
+    """A non-root user binding port 1 (tests run as root here: the bind is refused by a stand-in)."""
+    import socket
+
+    def refuse(self, address):
+        raise PermissionError(13, "Permission denied")
+
+    monkeypatch.setattr(socket.socket, "bind", refuse)
+    code, finished = _main_within(["view", "--run", str(run_dir), "--device", "cpu", "--port", "1"])
+    assert finished, "view hung on a port it may not bind"
+    err = capsys.readouterr().err
+    assert code == 2 and "--port 1: no permission to bind 127.0.0.1:1 (ports below 1024 need root)" in err, err
+
+
+def test_a_taken_port_still_moves_on_to_the_next_free_one(run_dir):
+    pytest.importorskip("viser")
+    import socket
+
+    from retinexgs.view.server import view_run
+
+    with socket.socket() as held:
+        held.bind(("127.0.0.1", 0))
+        held.listen()
+        port = held.getsockname()[1]
+        viewer = view_run(run_dir, "127.0.0.1", port, "cpu", log=lambda s: None, block=False)
+        try:
+            assert viewer.server.get_port() != port
+        finally:
+            viewer.stop()
+
+
+def test_sigterm_stops_the_viewer_quietly_with_143(run_dir):
+    pytest.importorskip("viser")
+    import re
+    import signal
+    import subprocess
+
+    proc = subprocess.Popen([sys.executable, "-m", "retinexgs", "view", "--run", str(run_dir), "--port", "0",
+                             "--device", "cpu"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        for line in proc.stdout:
+            if re.search(r"retinexgs view: .* at http://", line):
+                break
+        proc.send_signal(signal.SIGTERM)
+        out = proc.communicate(timeout=20)[0]
+        assert proc.returncode == 143, out
+        assert "retinexgs view: terminated" in out and "Aborted at" not in out and "Traceback" not in out, out
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()

@@ -1,6 +1,10 @@
 """``python -m retinexgs.bench NAME [options]``: run one benchmark script (raster, lr3m, fps, ...)."""
+import ast
 import importlib
+import importlib.util
 import sys
+import textwrap
+from pathlib import Path
 
 from retinexgs.openmp import bound_openmp_spinning
 
@@ -10,9 +14,36 @@ BENCHES = {"raster": "retinexgs.bench.raster", "lr3m": "retinexgs.bench.lr3m", "
            "train-speed": "retinexgs.bench.train_speed"}
 
 
+USAGE = f"usage: python -m retinexgs.bench {{{','.join(BENCHES)}}} [options]"
+
+
+def _summary(module: str) -> str:
+    """The first paragraph of a benchmark's docstring, read without importing it (torch is slow to load)."""
+    spec = importlib.util.find_spec(module)
+    if spec is None or not spec.origin:
+        return "(not part of this build)"
+    doc = ast.get_docstring(ast.parse(Path(spec.origin).read_text(encoding="utf-8"))) or ""
+    return " ".join(doc.split("\n\n")[0].split()).replace("``", "")
+
+
+def help_text() -> str:
+    """``--help``: the usage line and one entry per benchmark."""
+    intro = ("Run one RetinexGS benchmark (figures and how to read them: docs/benchmarks.md). Each benchmark "
+             "has its own options: python -m retinexgs.bench NAME --help")
+    lines = [USAGE, "", *textwrap.wrap(intro, 110), "", "benchmarks:"]
+    for name, module in BENCHES.items():
+        lines += textwrap.wrap(_summary(module), 110, initial_indent=f"  {name:<13}", subsequent_indent=" " * 15)
+    return "\n".join(lines)
+
+
 def main() -> int:
+    if len(sys.argv) >= 2 and sys.argv[1] in ("-h", "--help", "help"):
+        print(help_text())
+        return 0
     if len(sys.argv) < 2 or sys.argv[1] not in BENCHES:
-        print(f"usage: python -m retinexgs.bench {{{','.join(BENCHES)}}} [options]", file=sys.stderr)
+        unknown = f"unknown benchmark {sys.argv[1]!r}; " if len(sys.argv) >= 2 else ""
+        print(f"{USAGE}\npython -m retinexgs.bench: error: {unknown}choose one of {', '.join(BENCHES)} "
+              "(--help lists what each measures)", file=sys.stderr)
         return 2
     name = sys.argv[1]
     if name in ("quality", "proxy", "retone"):  # not the timing benchmarks: their figures keep libgomp's default

@@ -203,6 +203,8 @@ def contact_sheet(jobs: Sequence[Job], configs: Sequence[str], scene: str, out: 
         cols, labels = [], []
         for k, c in enumerate(c for c in configs if c in chosen):
             img = Image.open(chosen[c].run / "renders" / "test" / f"{name}.png").convert("RGB")
+            top = int(read_metrics(chosen[c]).get("label_rows", 0))  # the strip naming the panels
+            img = img.crop((0, top, img.width, img.height))
             h = img.height
             panels = 5 if read_metrics(chosen[c]).get("panels", "").count("|") == 4 else 3
             w = img.width // panels

@@ -68,7 +68,20 @@ def _pycolmap():
     except ImportError:
         raise UserError("reading COLMAP models needs pycolmap (a dependency of retinexgs): "
                         "pip install pycolmap") from None
+    keep_python_sigterm()
     return pycolmap
+
+
+def keep_python_sigterm() -> None:
+    """Undo glog's failure-signal handler for SIGTERM, which importing pycolmap installs (it would turn
+    ``kill PID`` into a stack dump): Python's handler (the CLI's clean stop, or the default) is set again.
+    glog keeps its handlers for crashes (SIGSEGV, SIGABRT, ...)."""
+    import signal
+    import threading
+    if threading.current_thread() is threading.main_thread():
+        handler = signal.getsignal(signal.SIGTERM)
+        if handler is not None:
+            signal.signal(signal.SIGTERM, handler)
 
 
 def read_model(model_dir: Path) -> ColmapModel:

@@ -28,7 +28,7 @@ import torch
 from retinexgs.data.camera import Camera
 from retinexgs.data.images import image_size, list_images
 from retinexgs.data.raw import RawScene, RawView
-from retinexgs.data.scene import Normalization, Scene, View
+from retinexgs.data.scene import Normalization, Scene, View, warn
 from retinexgs.data.undistort import output_camera, plan_paths, process_all
 from retinexgs.errors import UserError
 
@@ -72,6 +72,80 @@ def _fit_camera(view: RawView) -> Camera:
     if abs(w / h - cam.width / cam.height) > 0.01 * cam.width / cam.height:
         raise UserError(f"image {view.image} is {w}x{h} pixels but its camera is {cam.width}x{cam.height}")
     return cam.scaled(w, h)
+
+
+def _shown(root: Path, path: Path) -> str:
+    """``path`` relative to the scene folder when it lies inside it (as the user listed it)."""
+    try:
+        return str(Path(path).relative_to(root))
+    except ValueError:
+        return str(path)
+
+
+def _split_label(raw: RawScene, split: str) -> str:
+    """Where a split's views are listed: the transforms JSON file, else 'the <split> split'."""
+    if raw.reader == "transforms":
+        return (f"transforms_{split}.json" if (Path(raw.root) / "transforms_train.json").is_file()
+                else "transforms.json")
+    return f"the {split} split"
+
+
+def _check_views(raw: RawScene) -> None:
+    """Refuse what cannot train, warn about what is doubtful:
+
+    * fewer than 2 training views: UserError (one photo has no parallax, so no 3D to reconstruct);
+    * one image file listed twice in a split: a warning when both frames have the same pose (the view just
+      counts twice), a UserError when the poses differ (one photo cannot be taken from two places);
+    * test views whose image is also a training view: a warning (the test metrics are not held-out; the
+      evaluation records the count in metrics.json as ``test_in_train``).
+    """
+    root = Path(raw.root)
+    if len(raw.train) < 2:
+        got = (f"only 1 training view ({_shown(root, raw.train[0].image)})" if raw.train
+               else "no training views")
+        raise UserError(f"{root} has {got}; a 3D reconstruction needs at least 2 views of the scene from "
+                        "different positions (in practice a dozen or more): add photos, or list more frames as "
+                        "training views")
+    for split in ("train", "test", "val"):
+        first: Dict[Path, int] = {}
+        for i, v in enumerate(getattr(raw, split)):
+            key = Path(v.image).resolve()
+            if key not in first:
+                first[key] = i
+                continue
+            j = first[key]
+            other = getattr(raw, split)[j]
+            label = _split_label(raw, split)
+            which = (f"{label} frames {j} and {i} both list {_shown(root, v.image)}" if raw.reader == "transforms"
+                     else f"{label} lists {_shown(root, v.image)} twice")
+            scale = 1.0 + float(np.abs(other.c2w[:3, 3]).max())
+            if not np.allclose(other.c2w, v.c2w, atol=1e-6 * scale):
+                raise UserError(f"{which} with different camera poses; one photo has one pose: remove the "
+                                "wrong frame")
+            warn(f"{which} (same pose): the view counts twice{' in training' if split == 'train' else ''}; "
+                 "remove the duplicate frame")
+    train = {Path(v.image).resolve() for v in raw.train}
+    shared = [v for v in raw.test if Path(v.image).resolve() in train]
+    if shared:
+        names = ", ".join(_shown(root, v.image) for v in shared[:3]) + (" ..." if len(shared) > 3 else "")
+        warn(f"{len(shared)} of {len(raw.test)} test views are also training views ({names}): the test metrics "
+             "are not held-out (recorded as test_in_train in metrics.json); list them in one split only")
+
+
+def _warn_rescaled(raw: RawScene, cams: Dict[int, Camera]) -> None:
+    """One warning per camera size that disagrees with its images' size (the intrinsics are rescaled)."""
+    seen: Dict[Tuple[int, int, int, int], List[RawView]] = {}
+    for v in raw.train + raw.test + raw.val:
+        declared, fitted = v.camera, cams[id(v)]
+        if (declared.width, declared.height) != (fitted.width, fitted.height):
+            seen.setdefault((declared.width, declared.height, fitted.width, fitted.height), []).append(v)
+    source = "the transforms JSON gives w x h =" if raw.reader == "transforms" else "the COLMAP camera is"
+    for (cw, ch, w, h), views in seen.items():
+        sx, sy = w / cw, h / ch
+        factor = f"{sx:.4g}" if abs(sx - sy) < 1e-3 * sx else f"{sx:.4g} x {sy:.4g}"
+        warn(f"{source} {cw}x{ch} but the image{'s are' if len(views) > 1 else ' is'} {w}x{h} "
+             f"({len(views)} view{'s' if len(views) > 1 else ''}, e.g. {_shown(Path(raw.root), views[0].image)}): "
+             f"the intrinsics (focal length, principal point) are rescaled by {factor} to fit the images")
 
 
 def _normalization(train: List[RawView]) -> Normalization:
@@ -150,8 +224,10 @@ def build_scene(raw: RawScene, downscale: float = 1, cache_dir: Optional[PathLik
     cache = Path(cache_dir) if cache_dir is not None else root / "retinexgs_cache"
     jobs: List[Tuple[Path, Path, Camera, Camera]] = []
     split_views: Dict[str, List[View]] = {}
+    _check_views(raw)
     all_raw = raw.train + raw.test + raw.val
     cams = {id(v): _fit_camera(v) for v in all_raw}
+    _warn_rescaled(raw, cams)
     _check_downscale(downscale, cams, all_raw)
     norm = _normalization(raw.train) if normalize else Normalization.identity()
     for split, rv in (("train", raw.train), ("test", raw.test), ("val", raw.val)):

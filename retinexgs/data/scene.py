@@ -9,6 +9,7 @@ camera equal to 1 (scale 1 if all train cameras coincide). A world point ``x`` b
 """
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import List, Optional, Union
@@ -19,6 +20,12 @@ import torch
 from retinexgs.data.camera import Camera
 
 ArrayLike = Union[np.ndarray, torch.Tensor]
+
+
+def warn(message: str) -> None:
+    """Report input that is doubtful but usable: one line ``warning: MESSAGE`` on stderr (the loaders' style;
+    refused input raises :class:`~retinexgs.errors.UserError` instead)."""
+    print(f"warning: {message}", file=sys.stderr, flush=True)
 
 
 @dataclass

@@ -9,7 +9,8 @@ from those copies; the mapper reads point colours from the originals.
 Output folder (default ``<scene>/retinexgs_sfm``): ``sparse/0`` (binary model), ``database.db``,
 ``enhanced/`` and ``retinexgs_sfm.json`` (the inputs and options of the run). A later call with the same
 photos (names, sizes, modification times) and options reuses the model. The model and database are
-built in a temporary folder and moved into place with ``os.replace``.
+built in a temporary folder and moved into place with ``os.replace``. A call that fails (or is interrupted)
+removes what it made: the output folder when it made it, else the ``enhanced/`` folder when it made that.
 """
 from __future__ import annotations
 
@@ -58,7 +59,32 @@ def _pycolmap():
         import pycolmap
     except ImportError:
         raise UserError("structure-from-motion needs pycolmap: pip install pycolmap") from None
+    from retinexgs.data.colmap import keep_python_sigterm
+    keep_python_sigterm()
     return pycolmap
+
+
+def check_sfm_numbers(max_num_features: int, max_image_size: int, num_threads: int) -> None:
+    """UserError for a feature count or image size below 1, or a thread count other than -1 or >= 1 (pycolmap
+    would fail on them with a C++ check, some only after extracting features)."""
+    def whole(x) -> bool:
+        return isinstance(x, int) and not isinstance(x, bool)
+
+    if not whole(max_num_features) or max_num_features < 1:
+        raise UserError(f"--max-features must be a positive number of SIFT features per photo (default 8192), "
+                        f"got {max_num_features!r}")
+    if not whole(max_image_size) or max_image_size < 1:
+        raise UserError(f"max_image_size must be a positive number of pixels, got {max_image_size!r}")
+    if not whole(num_threads) or not (num_threads == -1 or num_threads >= 1):
+        raise UserError(f"--threads must be -1 (all CPU threads, the default) or a positive count, got {num_threads!r}")
+
+
+def _topmost_missing(path: Path) -> Optional[Path]:
+    """The outermost folder of ``path`` that does not exist yet (the first one mkdir(parents=True) makes)."""
+    path, top = Path(path).absolute(), None
+    while not path.exists() and path.parent != path:
+        top, path = path, path.parent
+    return top
 
 
 def _stderr_progress(msg: str) -> None:
@@ -100,6 +126,7 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
     an empty folder, unreadable photos, or when no model can be built.
     """
     say = progress or (lambda _msg: None)
+    check_sfm_numbers(max_num_features, max_image_size, num_threads)
     image_dir = Path(images)
     if not image_dir.is_dir():
         raise UserError(f"image folder {image_dir} does not exist")
@@ -137,33 +164,47 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
     pycolmap = _pycolmap()
     t0 = time.perf_counter()
     stages = {}
+    made_out = _topmost_missing(out_dir)  # on failure this call removes what it made, never what was there
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise UserError(f"cannot create SfM output folder {out_dir}: {exc}") from None
+    made_enhanced = None
 
-    # 1. brightened + denoised copies for feature extraction
-    from retinexgs.data.enhance import enhance_for_features, folder_is_dark  # noqa: E402 (lazy: cv2)
-    do_enhance = folder_is_dark(paths) if enhance == "auto" else bool(enhance)
-    feature_dir = image_dir
-    if do_enhance:
-        feature_dir = out_dir / "enhanced"
-        say(f"brightening and denoising {len(paths)} dark photos into {feature_dir}")
+    def discard() -> None:
+        for made in (made_out, made_enhanced):
+            if made is not None:
+                shutil.rmtree(made, ignore_errors=True)
 
-        def work(p: Path) -> None:
-            dst = feature_dir / p.name
-            if not is_fresh(dst, p):
-                write_image_atomic(dst, enhance_for_features(read_image(p)), quality=97)
+    try:
+        # 1. brightened + denoised copies for feature extraction
+        from retinexgs.data.enhance import enhance_for_features, folder_is_dark  # noqa: E402 (lazy: cv2)
+        do_enhance = folder_is_dark(paths) if enhance == "auto" else bool(enhance)
+        feature_dir = image_dir
+        if do_enhance:
+            feature_dir = out_dir / "enhanced"
+            made_enhanced = None if feature_dir.exists() else feature_dir
+            say(f"brightening and denoising {len(paths)} dark photos into {feature_dir}")
 
-        with ThreadPoolExecutor(max_workers=min(8, os.cpu_count() or 1)) as pool:
-            list(pool.map(work, paths))
-        stages["enhance"] = time.perf_counter() - t0
+            def work(p: Path) -> None:
+                dst = feature_dir / p.name
+                if not is_fresh(dst, p):
+                    write_image_atomic(dst, enhance_for_features(read_image(p)), quality=97)
 
-    same_size = len(set(sizes.values())) == 1
-    names = [p.name for p in paths]
-    tmp = Path(tempfile.mkdtemp(prefix=".tmp-sfm-", dir=out_dir))
+            with ThreadPoolExecutor(max_workers=min(8, os.cpu_count() or 1)) as pool:
+                list(pool.map(work, paths))
+            stages["enhance"] = time.perf_counter() - t0
+
+        same_size = len(set(sizes.values())) == 1
+        names = [p.name for p in paths]
+        tmp = Path(tempfile.mkdtemp(prefix=".tmp-sfm-", dir=out_dir))
+    except BaseException:
+        discard()
+        raise
     old_level = pycolmap.logging.minloglevel
-    pycolmap.logging.minloglevel = 2  # COLMAP's INFO/WARNING lines would drown the progress display
+    # COLMAP's INFO/WARNING lines would drown the progress display, and its ERROR lines (a glog "E2026..."
+    # before our own message when no model is found) say less than the UserError: FATAL only.
+    pycolmap.logging.minloglevel = 3
     try:
         db = tmp / "database.db"
         t = time.perf_counter()
@@ -233,6 +274,9 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
         meta_tmp = tmp / "meta.json"
         meta_tmp.write_text(json.dumps(dict(signature=signature, result=result), indent=1))
         os.replace(meta_tmp, meta_path)
+    except BaseException:
+        discard()
+        raise
     finally:
         pycolmap.logging.minloglevel = old_level
         shutil.rmtree(tmp, ignore_errors=True)

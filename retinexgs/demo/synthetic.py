@@ -16,7 +16,7 @@ k ≈ 0.06–0.1 gives a ratio of only ~0.2–0.3 after the sRGB curve.
 Files written to ``out_dir`` (LOM layout, read by ``retinexgs.data.load_scene``):
     low/NNNN.png, high/NNNN.png          every view, identical names
     transforms_train.json                 frames list "low/NNNN.png"
-    transforms_test.json                  frames list "high/NNNN.png"
+    transforms_test.json                  frames list "high/NNNN.png" (not written when n_test=0)
         keys: camera_angle_x, camera_angle_y, fl_x, fl_y, cx, cy, w, h, frames[{file_path,
         transform_matrix}], transform_matrix = camera-to-world 4×4, OpenGL/Blender axes (x right,
         y up, z backward); cx, cy in the pixel-centre convention (pixel (0,0)'s centre is (0.5, 0.5)).
@@ -430,7 +430,8 @@ def make_demo_scene(out_dir: Union[str, Path], n_train: int = 12, n_test: int = 
     train = [c for c in cams if c.split == "train"]
     test = [c for c in cams if c.split == "test"]
     (out / "transforms_train.json").write_text(json.dumps(_transforms_json(train, "low"), indent=2))
-    (out / "transforms_test.json").write_text(json.dumps(_transforms_json(test, "high"), indent=2))
+    if test:  # n_test=0: no test split (no transforms_test.json), as a scene without one
+        (out / "transforms_test.json").write_text(json.dumps(_transforms_json(test, "high"), indent=2))
     (out / "split.json").write_text(json.dumps({"train": [c.name for c in train], "test": [c.name for c in test]},
                                                indent=2))
     pts = _sample_points(n_points, np.random.default_rng([seed, 3]))

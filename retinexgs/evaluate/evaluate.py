@@ -23,15 +23,46 @@ def to_uint8(img: torch.Tensor) -> np.ndarray:
     return (x.numpy() * 255 + 0.5).astype(np.uint8)
 
 
-def save_png(img: torch.Tensor, path: Path) -> None:
-    """Write an [H,W,C] image in [0,1] as PNG, atomically."""
+def save_png(img: torch.Tensor, path: Path, labels: Optional[List[str]] = None) -> None:
+    """Write an [H,W,C] image in [0,1] as PNG, atomically. With ``labels`` (one per equal-width panel side by
+    side) a strip of :data:`LABEL_ROWS` rows naming the panels is added above the image (its pixels untouched)."""
     arr = to_uint8(img)
+    if labels:
+        arr = np.concatenate([label_strip(labels, arr.shape[1] // len(labels)), arr], axis=0)
     atomic_write(path, lambda f: Image.fromarray(arr).save(f, format="PNG"))
+
+
+# Rows of the strip naming the panels above a side-by-side PNG (recorded as "label_rows" in metrics.json: a
+# tool that reads the panels' pixels skips them), and its font size.
+LABEL_ROWS = 15
+_LABEL_FONT = 11
+
+
+def label_strip(labels: List[str], panel_width: int) -> np.ndarray:
+    """[LABEL_ROWS, panel_width * len(labels), 3] uint8: each label in white on black at the left of its panel,
+    cut at the panel's edge (Pillow's built-in font)."""
+    from PIL import ImageDraw, ImageFont
+
+    try:
+        font = ImageFont.load_default(size=_LABEL_FONT)
+    except TypeError:  # Pillow < 10.1: the fixed bitmap font
+        font = ImageFont.load_default()
+    rows = LABEL_ROWS
+    strip = np.zeros((rows, panel_width * len(labels), 3), np.uint8)
+    for i, text in enumerate(labels):
+        cell = Image.new("RGB", (panel_width, rows))
+        ImageDraw.Draw(cell).text((2, 1), text, fill=(255, 255, 255), font=font)
+        strip[:, i * panel_width:(i + 1) * panel_width] = np.asarray(cell)
+    return strip
 
 
 def atomic_json(obj: Dict, path: Path) -> None:
     """Write ``obj`` as indented JSON, atomically."""
     atomic_write_text(path, json.dumps(obj, indent=2))
+
+
+# The side-by-side PNGs' panel names (the strip above them), in panel order; R and L only for RetinexGS runs.
+PANEL_LABELS = ["dark input", "output", "R (reflectance)", "L (illumination)", "normal-light truth"]
 
 
 def evaluate(render_fn: Callable, scene: Scene, out_dir: Path, use_lpips: bool = True,
@@ -48,6 +79,9 @@ def evaluate(render_fn: Callable, scene: Scene, out_dir: Path, use_lpips: bool =
         log(f"evaluation skipped: {reason}")
         atomic_json({"skipped": reason, **(extra or {})}, out_dir / "metrics.json")
         return None
+    # A test view whose photo is also a training view (the loader warns): its figures are not held-out.
+    train_files = {Path(v.source_path or v.image_path).resolve() for v in scene.train}
+    test_in_train = sum(Path(v.source_path or v.image_path).resolve() in train_files for v in views)
     rows: List[Dict] = []
     lpips_reason = ""
     for view in views:
@@ -66,15 +100,22 @@ def evaluate(render_fn: Callable, scene: Scene, out_dir: Path, use_lpips: bool =
                 row["lpips"] = value
         rows.append(row)
         panels = [low, rgb]
+        labels = PANEL_LABELS[:2]
         if "R" in res:
             L = res["L"].float().cpu()
             panels += [res["R"].float().cpu(), L / L.amax().clamp_min(1e-6)]
+            labels = PANEL_LABELS[:4]
         panels.append(gt)
+        labels = labels + PANEL_LABELS[4:]
         save_png(torch.cat([p.float().cpu()[..., :3] if p.shape[-1] >= 3 else p.float().cpu().expand(
-            *p.shape[:-1], 3) for p in panels], dim=1), out_dir / "renders" / "test" / f"{Path(view.name).stem}.png")
+            *p.shape[:-1], 3) for p in panels], dim=1), out_dir / "renders" / "test" / f"{Path(view.name).stem}.png",
+            labels)
     mean = {k: float(np.mean([r[k] for r in rows])) for k in rows[0] if k != "view"}
     metrics = {"mean": mean, "views": rows, "panels": "low input | output | R̂ | L̂ (normalised) | ground truth"
-               if "R" in res else "low input | output | ground truth"}
+               if "R" in res else "low input | output | ground truth",
+               "label_rows": LABEL_ROWS}  # the PNGs' strip naming the panels, above them
+    if test_in_train:
+        metrics["test_in_train"] = test_in_train
     metrics.update(extra or {})
     if use_lpips and "lpips" not in mean:
         metrics["lpips_unavailable"] = lpips_reason
@@ -83,5 +124,7 @@ def evaluate(render_fn: Callable, scene: Scene, out_dir: Path, use_lpips: bool =
     log(f"test views: PSNR {mean['psnr']:.2f} dB, SSIM {mean['ssim']:.3f}"
         + (f", LPIPS {mean['lpips']:.3f}" if "lpips" in mean else "")
         + f"  (brightness aligned to the truth, GT-mean: {mean['psnr_gt_mean']:.2f} dB, {mean['ssim_gt_mean']:.3f})"
-        + f"  (low input: PSNR {mean['low_psnr']:.2f} dB, SSIM {mean['low_ssim']:.3f})")
+        + f"  (low input: PSNR {mean['low_psnr']:.2f} dB, SSIM {mean['low_ssim']:.3f})"
+        + (f"  (not held-out: {test_in_train} of {len(views)} test views are training views)" if test_in_train
+           else ""))
     return metrics

@@ -2,9 +2,13 @@
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
+from retinexgs.errors import UserError
 from retinexgs.export import DEFAULT_DIRECTIONS, PATH_KINDS
+
+MAX_FRAMES = 100_000  # 55 minutes at 30 fps; a path of more frames is a typo (it would build silently for minutes)
 
 
 def _add_common(p: argparse.ArgumentParser) -> None:
@@ -32,7 +36,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                                              "RUN/renders/<views> or RUN/renders/path_<kind>.mp4")
     p.add_argument("--maps", default="enhanced", help="comma-separated: enhanced,R,L,depth,low (default enhanced)")
     p.add_argument("--path", default=None, help=f"camera path: {' or '.join(PATH_KINDS)} (implies --views path)")
-    p.add_argument("--frames", type=int, default=120, help="frames of the path (default 120)")
+    p.add_argument("--frames", type=int, default=120,
+                   help=f"frames of the path (default 120, at most {MAX_FRAMES})")
     p.add_argument("--fps", type=float, default=30.0, help="frames per second of the video (default 30)")
     p.add_argument("--format", default="mp4", help="mp4 (default) or png: how a path is written")
     p.set_defaults(func=_render)
@@ -49,9 +54,21 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_export)
 
 
+def check_frames_and_fps(frames: int, fps: float) -> None:
+    """UserError for --frames outside 1..MAX_FRAMES or an --fps that is not a positive finite number."""
+    if frames < 1:
+        raise UserError(f"--frames must be at least 1, got {frames}")
+    if frames > MAX_FRAMES:
+        raise UserError(f"--frames {frames} is too many: at most {MAX_FRAMES} (55 minutes of video at 30 fps, "
+                        "already hours to render); render a long video in parts")
+    if not (math.isfinite(fps) and fps > 0):
+        raise UserError(f"--fps must be a positive finite number of frames per second, got {fps:g}")
+
+
 def _render(args: argparse.Namespace) -> int:
     from retinexgs.export.renders import parse_maps, render_run
 
+    check_frames_and_fps(args.frames, args.fps)  # before the run loads: 10^8 frames used to build for minutes
     render_run(args.run, args.views, args.out, parse_maps(args.maps), args.exposure, args.gamma, args.path,
                args.frames, args.fps, args.format, args.device, args.force, progress=not args.quiet)
     return 0

@@ -36,12 +36,12 @@ def check_enhancement_flags(cfg: Dict, run_dir: Path, exposure: Optional[float],
 def refuse_existing(paths: Iterable[Path], force: bool) -> None:
     """Refuse to overwrite existing outputs unless ``force``: name the first one (and count the rest)."""
     existing = [p for p in paths if Path(p).exists()]
+    for p in existing:  # first: --force would not help (it replaces files, never a folder)
+        if Path(p).is_dir():
+            raise UserError(f"{p} is a folder; --out must name a file here")
     if existing and not force:
         more = f" (and {len(existing) - 1} more output files)" if len(existing) > 1 else ""
         raise UserError(f"{existing[0]} already exists{more}; pass --force to overwrite, or choose another --out")
-    for p in existing:
-        if Path(p).is_dir():
-            raise UserError(f"{p} is a folder; --out must name a file here")
 
 
 

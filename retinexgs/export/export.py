@@ -40,6 +40,9 @@ def export_run(run_dir: Path, out: Path, reflectance_only: bool = False, directi
     if bake and directions < k:
         raise UserError(f"--directions must be at least {k} to fit the run's degree-{cfg['model']['sh_degree']} "
                         f"SH ({k} coefficients), got {directions}")
+    if out.is_dir():  # --force replaces a file, never a folder: do not suggest it
+        raise UserError(f"--out {out} is a folder; --out is the .ply file to write, e.g. "
+                        f"--out {out / 'point_cloud.ply'}")
     refuse_existing([out], force)
     check_writable_folder(out)  # before the model load and the bake, which take the time
 

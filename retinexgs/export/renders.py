@@ -28,7 +28,7 @@ from retinexgs.evaluate.evaluate import save_png, to_uint8
 from retinexgs.export.common import check_enhancement_flags, check_writable_folder, read_run_config, refuse_existing
 from retinexgs.export import PATH_KINDS
 from retinexgs.export.paths import camera_path
-from retinexgs.fileio import TMP_PREFIX, atomic_write
+from retinexgs.fileio import TMP_PREFIX, atomic_write, is_out_of_space, out_of_space_error
 from retinexgs.render import Camera, rasterize_gaussians
 from retinexgs.train.run import load_run, render_function
 from retinexgs.train.trainer import active_sh_degree, view_camera
@@ -58,12 +58,13 @@ def _need_ffmpeg() -> None:
 
 
 def depth_range(model, views: Sequence[View]) -> Tuple[float, float]:
-    """(near, far): the 2nd and 98th percentiles of the visible Gaussian centres' depths over all views."""
+    """(near, far): the 2nd and 98th percentiles of the visible Gaussian centres' depths over the views (at most
+    ~256 of them, spread over a long camera path: silent work before the progress bar)."""
     g = model.gaussians
     keep = g.opacities.detach() > 0.05
     means = (g.means.detach()[keep] if bool(keep.any()) else g.means.detach()).double().cpu()
     lo, hi = [], []
-    for v in views:
+    for v in views[:: max(1, len(views) // 256)]:
         w2c = v.world_to_camera()
         z = means @ w2c[2, :3] + w2c[2, 3]
         z = z[z > 0.01]
@@ -189,12 +190,17 @@ def render_run(run_dir: Path, views: Optional[str] = None, out: Optional[Path] =
         writers = [imageio.get_writer(str(f), format="FFMPEG", mode="I", fps=fps, codec="libx264", quality=8,
                                       macro_block_size=1, ffmpeg_log_level="error") for f in tmp_files]
         try:
-            for view in bar:
-                for writer, img in zip(writers, _frame_maps(fn, model, view, maps, zrange).values()):
-                    writer.append_data(_even(to_uint8(img)))
-        finally:
-            for writer in writers:
-                writer.close()
+            try:
+                for view in bar:
+                    for writer, img in zip(writers, _frame_maps(fn, model, view, maps, zrange).values()):
+                        writer.append_data(_even(to_uint8(img)))
+            finally:
+                for writer in writers:
+                    writer.close()
+        except (OSError, RuntimeError) as exc:  # ffmpeg writes the file itself: a full disk shows as a broken pipe
+            if is_out_of_space(exc, out.parent):
+                raise out_of_space_error(targets[0]) from None
+            raise
         for src, dst in zip(tmp_files, targets):
             with open(src, "rb") as f_in:
                 atomic_write(dst, lambda f_out: shutil.copyfileobj(f_in, f_out))

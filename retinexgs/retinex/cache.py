@@ -1,10 +1,16 @@
 """Per-scene cache of decompositions on disk.
 
-Layout: ``<root>/<method>-<key>/<stem>-<pathhash>.npz`` where ``root`` defaults to
-``<scene>/retinex_cache`` and ``key`` = :func:`retinexgs.retinex.base.cache_key` (method + params +
-algorithm version). Each ``.npz`` holds ``R`` [H,W,3] and ``L`` [H,W,1] as float16 plus a JSON ``meta``
-string naming the source image, its size and mtime (ns) and the key. An entry is trusted only if all of
-these still match, so an edited photo or a changed parameter is recomputed.
+Layout: ``<root>/<method>-<key>/<stem>-<contenthash>.npz`` where ``root`` defaults to
+``<scene>/retinex_cache``, ``key`` = :func:`retinexgs.retinex.base.cache_key` (method + params +
+algorithm version) and ``contenthash`` = the first 16 hex digits of the SHA-256 of the photo's bytes. Each
+``.npz`` holds ``R`` [H,W,3] and ``L`` [H,W,1] as float16 plus a JSON ``meta`` string with the content hash,
+byte size, method and key (and the photo's name, for humans). An entry is found by its content hash (under
+any stem) and trusted only if its meta matches, so an edited photo or a changed parameter is recomputed,
+while a copied, moved or renamed scene reuses its entries. With ``sweep=True`` (``train``, ``decompose``)
+entries of photos the scene no longer has are deleted, in every ``<method>-<key>`` folder of the root
+(entries of other settings for the current photos are kept: switching back is free); entries of the older
+path-keyed format (``<stem>-<10 hex>.npz``) are never read and are swept as stale. :func:`clean_cache`
+removes all of it, :func:`cache_summary` describes it (``retinexgs decompose --clean`` / ``--info``).
 
 Writes are atomic: the file is written under a ``.tmp-`` name in the same folder, flushed and fsynced,
 then ``os.replace``d into place. An interrupted run leaves at worst a ``.tmp-`` file, which is never read
@@ -12,9 +18,12 @@ then ``os.replace``d into place. An interrupted run leaves at worst a ``.tmp-`` 
 """
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import os
+import re
+import shutil
 import time
 from pathlib import Path
 from typing import Any, Dict, Iterable, List, Optional, Sequence, Tuple, Union
@@ -69,38 +78,62 @@ def entry_dir(cache_root: PathLike, method: str, params: Any = None) -> Path:
     return Path(cache_root) / f"{dec.name}-{dec.cache_key()}"
 
 
-def _entry_name(image_path: Path) -> str:
-    tag = hashlib.sha1(str(image_path.resolve()).encode("utf-8")).hexdigest()[:10]
-    return f"{image_path.stem}-{tag}.npz"
+# Names this module writes, and nothing else is ever deleted: settings folders ``<method>-<12 hex>``,
+# entries ``<stem>-<16 hex>.npz`` (content-keyed; ``<stem>-<10 hex>.npz``: the older path-keyed format),
+# their previews ``preview/<entry stem>.png`` and each folder's ``params.json``.
+_SETTINGS_DIR = re.compile(r"^[a-z0-9_]+-[0-9a-f]{12}$")
+_ENTRY = re.compile(r"^.+-(?P<hash>[0-9a-f]{16}|[0-9a-f]{10})\.npz$")
+_HASH_LEN = 16
+_UNWRITABLE = (errno.EROFS, errno.EACCES, errno.EPERM)
 
 
-def _source_meta(image_path: Path, key: str, method: str) -> Dict[str, Any]:
-    st = image_path.stat()
-    return {"source": str(image_path.resolve()), "size": int(st.st_size), "mtime_ns": int(st.st_mtime_ns),
-            "key": key, "method": method}
+def content_hash(image_path: PathLike) -> str:
+    """The first 16 hex digits of the SHA-256 of the file's bytes: what an entry is keyed by."""
+    h = hashlib.sha256()
+    with open(image_path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()[:_HASH_LEN]
 
 
-def _atomic_write(path: Path, write) -> None:
-    """Write via a temp file in the same folder + fsync + os.replace; the temp file never survives an error."""
-    atomic_write(path, write)
+def _entry_name(image_path: Path, digest: str) -> str:
+    return f"{image_path.stem}-{digest}.npz"
 
 
-def save_entry(path: Path, r: torch.Tensor, l: torch.Tensor, meta: Dict[str, Any]) -> None:
+def _source_meta(image_path: Path, key: str, method: str, digest: str) -> Dict[str, Any]:
+    """What an entry must record to be trusted for this photo and these settings."""
+    return {"content": digest, "size": int(image_path.stat().st_size), "key": key, "method": method}
+
+
+def _atomic_write(path: Path, write, hint: str = "") -> None:
+    """Write via a temp file in the same folder + fsync + os.replace; the temp file never survives an error.
+    A cache folder that cannot be written (read-only scene) or a full disk -> UserError naming ``hint``."""
+    try:
+        atomic_write(path, write, elsewhere=hint)
+    except OSError as exc:
+        if exc.errno not in _UNWRITABLE:
+            raise
+        where = f"; put the caches elsewhere with {hint}" if hint else ""
+        raise UserError(f"cannot write the cache folder {path.parent}: {exc.strerror or exc}{where}") from None
+
+
+def save_entry(path: Path, r: torch.Tensor, l: torch.Tensor, meta: Dict[str, Any], hint: str = "") -> None:
     """Atomically store R [H,W,3], L [H,W,1] (float16) and ``meta`` at ``path``."""
     r16 = r.detach().to("cpu", torch.float32).numpy().astype(np.float16)
     l16 = l.detach().to("cpu", torch.float32).numpy().astype(np.float16)
     meta_arr = np.array(json.dumps(meta, sort_keys=True))
-    _atomic_write(path, lambda f: np.savez(f, R=r16, L=l16, meta=meta_arr))
+    _atomic_write(path, lambda f: np.savez(f, R=r16, L=l16, meta=meta_arr), hint)
 
 
 def load_entry(path: Path, expected: Dict[str, Any]) -> Optional[Tuple[torch.Tensor, torch.Tensor]]:
-    """(R, L) as float32 CPU tensors if ``path`` exists, loads and its meta equals ``expected``; else None."""
+    """(R, L) as float32 CPU tensors if ``path`` exists, loads and its meta has every item of ``expected``;
+    else None."""
     if not path.is_file():
         return None
     try:
         with np.load(path, allow_pickle=False) as z:
             meta = json.loads(str(z["meta"]))
-            if meta != expected:
+            if not isinstance(meta, dict) or any(meta.get(k) != v for k, v in expected.items()):
                 return None
             r = torch.from_numpy(z["R"].astype(np.float32))
             l = torch.from_numpy(z["L"].astype(np.float32))
@@ -121,12 +154,138 @@ def _sweep_stale_temps(folder: Path) -> None:
             pass
 
 
-def _save_preview(path: Path, r: torch.Tensor, l: torch.Tensor, gamma: float = 2.2) -> None:
+def _save_preview(path: Path, r: torch.Tensor, l: torch.Tensor, gamma: float = 2.2, hint: str = "") -> None:
     from PIL import Image
 
     img = enhance_for_viewing(r.float(), l.float(), gamma)
     arr = (img.clamp(0, 1).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
-    _atomic_write(path, lambda f: Image.fromarray(arr).save(f, format="PNG"))
+    _atomic_write(path, lambda f: Image.fromarray(arr).save(f, format="PNG"), hint)
+
+
+def _entries_by_hash(folder: Path) -> Dict[str, Path]:
+    """Content hash -> an entry file of ``folder`` (content-keyed names only)."""
+    found: Dict[str, Path] = {}
+    try:
+        names = sorted(os.listdir(folder))
+    except OSError:
+        return found
+    for name in names:
+        m = _ENTRY.match(name)
+        if m and len(m.group("hash")) == _HASH_LEN:
+            found.setdefault(m.group("hash"), folder / name)
+    return found
+
+
+def _settings_folders(root: Path) -> List[Path]:
+    try:
+        return sorted(p for p in Path(root).iterdir() if p.is_dir() and _SETTINGS_DIR.match(p.name))
+    except OSError:
+        return []
+
+
+def _entry_files(folder: Path) -> List[Path]:
+    try:
+        return sorted(p for p in folder.iterdir() if p.is_file() and _ENTRY.match(p.name))
+    except OSError:
+        return []
+
+
+def _remove(path: Path) -> int:
+    """Delete one file; its size, or 0 if it could not be deleted (a read-only cache is left as it is)."""
+    try:
+        size = path.stat().st_size
+        path.unlink()
+        return size
+    except OSError:
+        return 0
+
+
+def sweep_stale(root: PathLike, keep_hashes: Iterable[str]) -> int:
+    """Delete the entries (and their previews) under ``root`` whose content hash is not in ``keep_hashes``,
+    old path-keyed entries included, in every ``<method>-<key>`` folder; a folder left with nothing but its
+    ``params.json`` goes too. Only files named as this module names them are touched; files that cannot be
+    deleted (read-only cache) are left. Returns the number of entries deleted."""
+    keep = set(keep_hashes)
+    removed = 0
+    for folder in _settings_folders(Path(root)):
+        for entry in _entry_files(folder):
+            if _ENTRY.match(entry.name).group("hash") in keep:
+                continue
+            if _remove(entry):
+                removed += 1
+                _remove(folder / "preview" / f"{entry.stem}.png")
+        _drop_if_empty(folder)
+    return removed
+
+
+def _drop_if_empty(folder: Path) -> None:
+    """Remove a settings folder that holds no entry any more (only ``params.json`` / an empty preview/)."""
+    try:
+        if _entry_files(folder):
+            return
+        preview = folder / "preview"
+        if preview.is_dir() and not any(preview.iterdir()):
+            preview.rmdir()
+        rest = [p.name for p in folder.iterdir()]
+        if rest in ([], ["params.json"]):
+            (folder / "params.json").unlink(missing_ok=True)
+            folder.rmdir()
+    except OSError:
+        pass
+
+
+def cache_summary(root: PathLike) -> List[Dict[str, Any]]:
+    """One dict per ``<method>-<key>`` folder under ``root``: ``folder``, ``method``, ``params`` (from its
+    ``params.json``, or None), ``entries`` (content-keyed), ``old_entries`` (path-keyed format, never read),
+    ``previews`` and ``bytes`` (all of these files)."""
+    out = []
+    for folder in _settings_folders(Path(root)):
+        entries = _entry_files(folder)
+        previews = sorted((folder / "preview").glob("*.png")) if (folder / "preview").is_dir() else []
+        try:
+            params = json.loads((folder / "params.json").read_text()).get("params")
+        except (OSError, ValueError, AttributeError):
+            params = None
+        size = sum(p.stat().st_size for p in entries + previews)
+        old = sum(1 for p in entries if len(_ENTRY.match(p.name).group("hash")) != _HASH_LEN)
+        out.append({"folder": str(folder), "method": folder.name.rsplit("-", 1)[0], "params": params,
+                    "entries": len(entries) - old, "old_entries": old, "previews": len(previews), "bytes": size})
+    return out
+
+
+def clean_cache(root: PathLike) -> Tuple[int, int]:
+    """Delete every decomposition under ``root`` (entries, previews, ``params.json``, temporaries of an
+    interrupted write) and the folders left empty, ``root`` included; files this module did not name are
+    left where they are. Returns (entries deleted, bytes freed); UserError if something cannot be deleted."""
+    root = Path(root)
+    count = freed = 0
+    for folder in _settings_folders(root):
+        victims = _entry_files(folder)
+        extra = [folder / "params.json"] + sorted(folder.glob(_TMP_PREFIX + "*"))
+        preview = folder / "preview"
+        if preview.is_dir():
+            extra += sorted(p for p in preview.iterdir() if p.is_file() and
+                            (p.suffix == ".png" and _ENTRY.match(p.stem + ".npz") or p.name.startswith(_TMP_PREFIX)))
+        for p in victims + extra:
+            if not p.is_file():
+                continue
+            try:
+                size = p.stat().st_size
+                p.unlink()
+            except OSError as exc:
+                raise UserError(f"cannot delete {p}: {exc.strerror or exc}") from None
+            freed += size
+            count += p in victims
+        for d in (preview, folder):
+            try:
+                d.rmdir()
+            except OSError:  # missing, or holds a file we did not write
+                pass
+    try:
+        root.rmdir()
+    except OSError:
+        pass
+    return count, freed
 
 
 def resolve_device(device: Union[str, torch.device, None]) -> torch.device:
@@ -143,13 +302,16 @@ def resolve_device(device: Union[str, torch.device, None]) -> torch.device:
 
 def decompose_images(image_paths: Sequence[PathLike], method: str = "lr3m", params: Any = None,
                      cache_dir: Optional[PathLike] = None, device: Union[str, torch.device] = "cpu", *,
-                     keep: bool = True, preview: bool = False, progress: bool = True, cache_hint: str = ""
-                     ) -> Tuple[List[Optional[Tuple[torch.Tensor, torch.Tensor]]], Dict[str, Any]]:
+                     keep: bool = True, preview: bool = False, progress: bool = True, cache_hint: str = "",
+                     sweep: bool = False) -> Tuple[List[Optional[Tuple[torch.Tensor, torch.Tensor]]], Dict[str, Any]]:
     """Make sure every image has a valid cache entry; return (results, report).
 
     ``results[i]`` is (R, L) on the CPU when ``keep`` else None. ``report`` has ``folder`` (the entry
-    folder), ``computed`` and ``reused`` counts and ``files`` (entry paths, in input order).
-    ``cache_hint``: the caller's spelling of the cache option, named when the cache cannot be created.
+    folder), ``computed``, ``reused`` and ``swept`` counts and ``files`` (entry paths, in input order).
+    ``cache_hint``: the caller's spelling of the cache option, named when the cache cannot be created or
+    written (a read-only scene) or its disk is full. Entries present and valid are read from a read-only
+    cache; only a needed write fails. ``sweep``: ``image_paths`` are all the photos the cache root serves
+    (a scene's train views): once all are in place, entries of other photos are deleted (:func:`sweep_stale`).
     """
     paths = [Path(p) for p in image_paths]
     if not paths:
@@ -167,11 +329,13 @@ def decompose_images(image_paths: Sequence[PathLike], method: str = "lr3m", para
     settings = folder / "params.json"
     if not settings.is_file():  # for humans: what produced this folder
         text = json.dumps({"method": dec.name, "params": params_to_dict(dec.params)}, indent=2, sort_keys=True)
-        _atomic_write(settings, lambda f: f.write(text.encode("utf-8")))
+        _atomic_write(settings, lambda f: f.write(text.encode("utf-8")), cache_hint)
 
     results: List[Optional[Tuple[torch.Tensor, torch.Tensor]]] = []
     files: List[str] = []
     computed = reused = 0
+    by_hash = _entries_by_hash(folder)
+    hashes = []
     iterator: Iterable[Path] = paths
     bar = None
     if progress:
@@ -182,17 +346,21 @@ def decompose_images(image_paths: Sequence[PathLike], method: str = "lr3m", para
         for p in iterator:
             if not p.is_file():
                 raise UserError(f"image not found: {p}")
-            target = folder / _entry_name(p)
-            meta = _source_meta(p, dec.cache_key(), dec.name)
+            digest = content_hash(p)
+            hashes.append(digest)
+            meta = _source_meta(p, dec.cache_key(), dec.name, digest)
+            target = by_hash.get(digest, folder / _entry_name(p, digest))  # any name: a renamed photo too
             hit = load_entry(target, meta)
             if hit is None:
+                target = folder / _entry_name(p, digest)
                 image = read_image(p).to(dev)
                 try:
                     r, l = dec.decompose(image)
                 except ValueError as exc:  # e.g. an all-black photo
                     raise UserError(f"cannot decompose {p}: {exc}") from None
                 r, l = r.to("cpu", torch.float32), l.to("cpu", torch.float32)
-                save_entry(target, r, l, meta)
+                save_entry(target, r, l, {**meta, "source": p.name}, cache_hint)
+                by_hash[digest] = target
                 # What later runs will load is the float16 copy: return exactly that.
                 hit = (r.half().float(), l.half().float())
                 computed += 1
@@ -201,25 +369,27 @@ def decompose_images(image_paths: Sequence[PathLike], method: str = "lr3m", para
             if preview:
                 pv = folder / "preview" / f"{target.stem}.png"
                 if not pv.is_file() or pv.stat().st_mtime_ns < target.stat().st_mtime_ns:
-                    pv.parent.mkdir(exist_ok=True)
-                    _save_preview(pv, hit[0], hit[1], 2.2)
+                    _save_preview(pv, hit[0], hit[1], 2.2, cache_hint)
             results.append(hit if keep else None)
             files.append(str(target))
     finally:
         if bar is not None:
             bar.close()
-    return results, {"folder": str(folder), "computed": computed, "reused": reused, "files": files}
+    swept = sweep_stale(root, hashes) if sweep else 0
+    return results, {"folder": str(folder), "computed": computed, "reused": reused, "swept": swept, "files": files}
 
 
 def load_or_compute(image_paths: Sequence[PathLike], method: str = "lr3m", params: Any = None,
                     cache_dir: Optional[PathLike] = None, device: Union[str, torch.device] = "cpu", *,
-                    progress: bool = True, cache_hint: str = "") -> List[Tuple[torch.Tensor, torch.Tensor]]:
+                    progress: bool = True, cache_hint: str = "", sweep: bool = False
+                    ) -> List[Tuple[torch.Tensor, torch.Tensor]]:
     """(R [H,W,3], L [H,W,1]) float32 CPU tensors for each image, from the cache or freshly computed.
 
     ``params``: a params dataclass or a dict of overrides (None = defaults). ``cache_dir``: the cache root
     (default ``<scene>/retinex_cache``, see :func:`default_cache_root`); entries go in
-    ``<cache_dir>/<method>-<key>/``. ``device``: where missing entries are computed.
+    ``<cache_dir>/<method>-<key>/``. ``device``: where missing entries are computed. ``sweep``: delete the
+    entries of photos not in ``image_paths`` (see :func:`decompose_images`).
     """
     results, _ = decompose_images(image_paths, method, params, cache_dir, device, keep=True, progress=progress,
-                                  cache_hint=cache_hint)
+                                  cache_hint=cache_hint, sweep=sweep)
     return [r for r in results if r is not None]

@@ -30,12 +30,17 @@ def _resolve_frame(scene: Path, file_path: str) -> Path:
     return p
 
 
-def list_scene_images(scene: Path, images_subdir: str = "low") -> List[Path]:
-    """The photos to decompose for a scene folder (see the ``decompose`` help); raises UserError."""
+def list_scene_images(scene: Path, images_subdir: Optional[str] = None) -> List[Path]:
+    """The photos to decompose for a scene folder (see the ``decompose`` help); raises UserError. A named
+    ``images_subdir`` must exist; without one, ``low/`` is used when there is one, else the scene folder."""
     if not scene.exists():
         raise UserError(f"scene folder not found: {scene}")
     if not scene.is_dir():
         raise UserError(f"--data must be a scene folder, got a file: {scene}")
+    if images_subdir is not None and not (scene / images_subdir).is_dir():
+        raise UserError(f"--images-subdir {images_subdir}: {scene / images_subdir} is not a folder"
+                        + ("" if (scene / images_subdir).exists() else " (it does not exist)"))
+    images_subdir = "low" if images_subdir is None else images_subdir
     transforms = scene / "transforms_train.json"
     if transforms.is_file():
         try:
@@ -78,6 +83,8 @@ def run(args: argparse.Namespace) -> int:
     from retinexgs.train.config import load_config
 
     scene = Path(args.data).expanduser()
+    if args.clean or args.info:
+        return _clean_or_info(scene, args)
     paths = list_scene_images(scene, args.images_subdir)
     overrides = list(args.set or [])
     if args.method is not None:
@@ -110,11 +117,60 @@ def run(args: argparse.Namespace) -> int:
     cache_root = scene_cache_root(scene, cfg["data"]["cache_dir"])
     _, report = decompose_images(paths, dcfg["method"], dict(dcfg["params"]) or None, cache_root,
                                  args.device, keep=False, preview=args.preview, progress=not args.quiet,
-                                 cache_hint=hint)
+                                 cache_hint=hint, sweep=True)
+    n = report["swept"]
+    swept = f", {n} stale entr{'y' if n == 1 else 'ies'} deleted" if n else ""
     print(f"{len(paths)} view(s) decomposed with {dcfg['method']}: {report['computed']} computed, "
-          f"{report['reused']} reused from cache -> {report['folder']}")
+          f"{report['reused']} reused from cache{swept} -> {report['folder']}")
     if args.preview:
         print(f"previews: {Path(report['folder']) / 'preview'}")
+    print(_cache_size_line(cache_root))
+    return 0
+
+
+def _mib(n: int) -> str:
+    return f"{n / 2**20:.1f} MiB"
+
+
+def _cache_size_line(root: Path) -> str:
+    from retinexgs.retinex.cache import cache_summary
+
+    rows = cache_summary(root)
+    entries = sum(r["entries"] + r["old_entries"] for r in rows)
+    return (f"cache {root}: {entries} entr{'y' if entries == 1 else 'ies'} in {len(rows)} setting(s), "
+            f"{_mib(sum(r['bytes'] for r in rows))} (see --info; --clean deletes them)")
+
+
+def _clean_or_info(scene: Path, args: argparse.Namespace) -> int:
+    """``--info``: list the scene's decomposition cache; ``--clean``: delete it. Neither loads the scene."""
+    from retinexgs.retinex.cache import cache_summary, clean_cache, scene_cache_root
+    from retinexgs.train.config import load_config
+
+    if args.clean and args.info:
+        raise UserError("--clean and --info do not go together: --info lists the cache, --clean deletes it")
+    if not scene.is_dir():
+        raise UserError(f"scene folder not found: {scene}" if not scene.exists()
+                        else f"--data must be a scene folder, got a file: {scene}")
+    overrides = list(args.set or [])
+    if args.cache:
+        overrides.append(f"data.cache_dir={Path(args.cache).expanduser()}")
+    root = scene_cache_root(scene, load_config(args.config or [], overrides)["data"]["cache_dir"])
+    if args.info:
+        rows = cache_summary(root)
+        if not rows:
+            print(f"cache {root}: empty")
+            return 0
+        for r in rows:
+            params = json.dumps(r["params"], sort_keys=True) if r["params"] is not None else "?"
+            old = f" + {r['old_entries']} of the old format (never read; the next run deletes them)" \
+                if r["old_entries"] else ""
+            pv = f", {r['previews']} preview(s)" if r["previews"] else ""
+            print(f"{Path(r['folder']).name}: {r['method']} {params}: {r['entries']} entr"
+                  f"{'y' if r['entries'] == 1 else 'ies'}{old}{pv}, {_mib(r['bytes'])}")
+        print(_cache_size_line(root))
+        return 0
+    count, freed = clean_cache(root)
+    print(f"deleted {count} cached decomposition(s), {_mib(freed)}, from {root}")
     return 0
 
 
@@ -129,8 +185,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "scene with poses (transforms JSON or COLMAP model) is loaded as train loads it "
                     "(undistorted, downscaled by data.downscale) and its train views are decomposed; a "
                     "folder of photos without poses has every .jpg/.jpeg/.png in SCENE/<images-subdir>/ "
-                    "(or SCENE) decomposed. Cached entries are reused unless the photo or the parameters "
-                    "changed.")
+                    "(or SCENE) decomposed. Entries are keyed by the photo's content and the settings, so "
+                    "they are reused unless the photo or the parameters changed (also in a copy of the "
+                    "scene); entries of photos the scene no longer has are deleted. The last line gives "
+                    "the cache's size; --info lists it, --clean deletes it.")
     p.add_argument("--data", required=True, metavar="SCENE", help="scene folder")
     p.add_argument("--method", default=None, choices=available_methods(),
                    help="decomposer (default: decomposer.method of the config, lr3m)")
@@ -143,9 +201,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="config override file or name in configs/, as for train; repeatable")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override one config key as for train, e.g. --set data.downscale=2; repeatable")
-    p.add_argument("--images-subdir", default="low", metavar="NAME",
-                   help="photo subfolder used when there is no transforms_train.json (default: low)")
+    p.add_argument("--images-subdir", default=None, metavar="NAME",
+                   help="photo subfolder used when there is no transforms_train.json (default: low when "
+                        "there is one, else SCENE itself)")
     p.add_argument("--preview", action="store_true",
                    help="also write a viewable PNG per view, R*(L/max L)^(1/2.2), into <entry folder>/preview/")
+    p.add_argument("--info", action="store_true",
+                   help="list the scene's decomposition cache (one line per method and parameters: entries, "
+                        "MiB) and exit; nothing is computed or written")
+    p.add_argument("--clean", action="store_true",
+                   help="delete the scene's decomposition cache (SCENE/retinex_cache, or DIR/retinex with "
+                        "--cache DIR) and exit: the cached entries, previews and params.json of every method "
+                        "and parameter set; other files there are kept. train recomputes what it needs")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)

@@ -13,6 +13,7 @@ from typing import Any, Dict, List, Optional
 import torch
 
 from retinexgs.errors import UserError
+from retinexgs.fileio import is_out_of_space, out_of_space_error
 
 _PATTERN = re.compile(r"step_(\d+)\.pt$")
 _TEMP_PATTERN = re.compile(r"^\.step_\d+\.pt\..*\.tmp$")  # what atomic_save leaves when killed mid-write
@@ -34,17 +35,25 @@ def list_checkpoints(run: Path) -> List[Path]:
 def atomic_save(obj: Any, path: Path) -> None:
     """torch.save to a temporary file in the same folder, fsync, then rename over ``path``."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as exc:
+        if is_out_of_space(exc, path.parent):
+            raise out_of_space_error(path) from None
+        raise
     try:
         with os.fdopen(fd, "wb") as f:
             torch.save(obj, f)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         if os.path.exists(tmp):
             os.unlink(tmp)
+        # a full disk: torch's zip writer says "unexpected pos ..." / "file write failed" (not ENOSPC)
+        if isinstance(exc, Exception) and is_out_of_space(exc, path.parent):
+            raise out_of_space_error(path) from None
         raise
 
 

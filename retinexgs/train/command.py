@@ -7,6 +7,7 @@ import time
 from pathlib import Path
 
 from retinexgs.errors import UserError
+from retinexgs.fileio import atomic_write_text
 
 
 def _add_common(p: argparse.ArgumentParser) -> None:
@@ -95,6 +96,9 @@ def _demo(args: argparse.Namespace) -> int:
     if out.exists() and not out.is_dir():
         raise UserError(f"--out {out} is a file; the demo needs a folder (choose another --out)")
     if out.exists() and any(out.iterdir()):
+        if args.overwrite and not marker.exists():
+            raise UserError(f"{out} already exists and was not made by `retinexgs demo` (no {marker.name} in it); "
+                            "--overwrite only replaces a folder the demo made itself: choose another --out")
         if not (args.overwrite and marker.exists()):
             raise UserError(f"{out} already exists; choose another --out"
                             + (" or pass --overwrite to replace the earlier demo" if marker.exists() else ""))
@@ -102,7 +106,7 @@ def _demo(args: argparse.Namespace) -> int:
     overrides = [f"steps={args.steps}"] if args.steps is not None else []
     load_config(["demo"], overrides)  # a missing or broken config fails here, before anything is written
     out.mkdir(parents=True, exist_ok=True)
-    marker.write_text("made by `retinexgs demo`; safe to delete\n")
+    atomic_write_text(marker, "made by `retinexgs demo`; safe to delete\n")  # a full disk: a UserError
     t0 = time.time()
     scene = make_demo_scene(out / "scene")
     print(f"demo scene written to {scene} ({time.time() - t0:.1f} s)")

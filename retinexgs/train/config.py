@@ -57,7 +57,7 @@ def merge(base: Config, override: Config, where: str, strict: bool = True) -> Co
     out = copy.deepcopy(base)
     for key, value in override.items():
         if strict and key not in out:
-            raise UserError(f"unknown config key {where}{key!r} (known: {', '.join(sorted(out))})")
+            raise UserError(f"unknown config key {where}{key} (known: {', '.join(sorted(out))})")
         if isinstance(out.get(key), dict) and isinstance(value, dict) and key != "params":
             out[key] = merge(out[key], value, f"{where}{key}.", strict)
         else:

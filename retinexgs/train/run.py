@@ -116,10 +116,14 @@ def _train_and_evaluate(trainer: Trainer, cfg: Dict, scene: Scene, run_dir: Path
         log(f"{run_dir} has already finished its {cfg['steps']} steps")
     else:
         values = trainer.train()
-        stats.update(train_seconds=round(values["seconds"], 1), steps=cfg["steps"])
+        values.setdefault("total_seconds", values["seconds"])
+        stats.update(train_seconds=round(values["total_seconds"], 1), steps=cfg["steps"])
         if device.startswith("cuda"):
             stats["peak_gpu_memory_gb"] = round(torch.cuda.max_memory_allocated() / 2**30, 3)
-        log(f"trained {cfg['steps']} steps in {values['seconds']:.0f} s, {len(trainer.model.gaussians)} Gaussians"
+        resumed = values["total_seconds"] - values["seconds"] > 0.5
+        took = (f"{values['total_seconds']:.0f} s in all ({values['seconds']:.0f} s this session)" if resumed
+                else f"{values['seconds']:.0f} s")
+        log(f"trained {cfg['steps']} steps in {took}, {len(trainer.model.gaussians)} Gaussians"
             + (f", peak GPU memory {stats['peak_gpu_memory_gb']:.2f} GB" if "peak_gpu_memory_gb" in stats else ""))
     stats["gaussians"] = len(trainer.model.gaussians)
     return evaluate(render_function(trainer.model, cfg, trainer.active_degree(cfg["steps"])), scene, run_dir,
@@ -165,6 +169,10 @@ def load_run(run_dir: Path, device: Optional[str] = None) -> Tuple[Dict, Scene, 
     if ckpt is None:
         raise UserError(f"run folder {run_dir} has no checkpoint (checkpoints/step_*.pt); train it first")
     cfg, scene_path = read_run_config(run_dir)
+    if not Path(scene_path).is_dir():  # the run folder outlives its scene's location: say how to re-point it
+        raise UserError(f"the scene of run {run_dir}, {scene_path}, does not exist (recorded in {run_dir / 'config.yaml'}); "
+                        f"if it moved, point the run at it once with `retinexgs train --out {run_dir} --resume "
+                        "--data NEW_SCENE --relocate-scene`")
     state = load_checkpoint(ckpt)
     gstate = {k[len("gaussians."):]: v for k, v in state["model"].items() if k.startswith("gaussians.")}
     model = RetinexGSModel(GaussianModel.empty_like_state(gstate, cfg["model"]["sh_degree"]), cfg["model"],

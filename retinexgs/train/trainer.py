@@ -17,7 +17,7 @@ from torch.profiler import record_function
 
 from retinexgs.data import Scene, View
 from retinexgs.errors import UserError
-from retinexgs.fileio import atomic_write_text
+from retinexgs.fileio import atomic_write_text, is_out_of_space, out_of_space_error
 from retinexgs.model.density import DensityController
 from retinexgs.model.gaussians import GaussianModel
 from retinexgs.model.retinex_model import RetinexGSModel
@@ -141,6 +141,19 @@ def enhancement_objective(model: RetinexGSModel, c: Dict, R_img: Tensor, L_img: 
         scale_invariant=c["enhance_scale_invariant"])
 
 
+def _append_record(f, record: Dict) -> None:
+    """Append one JSON line to the unbuffered ``train_log.jsonl`` (whole lines: a killed run leaves no cut
+    line); a full disk raises a UserError naming the file."""
+    data = (json.dumps(record) + "\n").encode("utf-8")
+    try:
+        while data:
+            data = data[f.write(data):]
+    except OSError as exc:
+        if is_out_of_space(exc, Path(f.name).parent):
+            raise out_of_space_error(f.name) from None
+        raise
+
+
 def decompose_views(views: List[View], cfg: Dict, device: str, progress: bool, scene_root: Path) -> List:
     """(R, L) per view from the per-scene cache (computed where missing; ``retinexgs decompose`` fills the
     same cache, see :func:`retinexgs.retinex.cache.scene_cache_root`)."""
@@ -150,7 +163,7 @@ def decompose_views(views: List[View], cfg: Dict, device: str, progress: bool, s
     return load_or_compute([v.image_path for v in views], dcfg["method"], dict(dcfg["params"]) or None,
                            cache_dir=scene_cache_root(scene_root, cfg["data"]["cache_dir"]),
                            device=dcfg["device"] or device, progress=progress,
-                           cache_hint="--set data.cache_dir=DIR")
+                           cache_hint="--set data.cache_dir=DIR", sweep=True)
 
 
 class Trainer:
@@ -162,6 +175,8 @@ class Trainer:
         backward apart, the gradients fed back) eagerly, for tests and op counts (:mod:`retinexgs.train.graphs`)."""
         self.cfg, self.scene, self.run = cfg, scene, Path(run_dir)
         self.device, self.progress, self.log = torch.device(device), progress, log
+        self.seconds_before: float = 0.0  # training time recorded by the checkpoint resumed from
+        self._session_start: Optional[float] = None  # set while train() runs
         if not scene.train:
             raise UserError(f"scene {scene.root} has no training views")
         self.method = cfg["method"]
@@ -252,6 +267,8 @@ class Trainer:
             for group in self.optimizer.param_groups:  # the config's rates: a resume may change them
                 group["lr"] = rates[group["name"]]
             self.step = int(state["step"])
+            # Training time of the steps the checkpoint holds (older checkpoints did not record it: 0).
+            self.seconds_before = float(state.get("train_seconds", 0.0))
             torch.set_rng_state(state["rng"])
             random.setstate(state["py_rng"])
             self.order = list(state.get("order", []))
@@ -565,7 +582,13 @@ class Trainer:
                 "optimizer": self.optimizer.state_dict(), "rng": torch.get_rng_state(),
                 "py_rng": random.getstate(), "order": list(self.order), "density": self.density.state_dict(), "normalization": {
                     "center": self.scene.normalization.center, "scale": self.scene.normalization.scale},
-                "scene_root": str(self.scene.root), "train_views": [v.name for v in self.scene.train]}
+                "scene_root": str(self.scene.root), "train_views": [v.name for v in self.scene.train],
+                "train_seconds": self.train_seconds()}
+
+    def train_seconds(self) -> float:
+        """Seconds spent training the steps so far, over every session of the run (a resumed run adds its
+        time to what its checkpoint recorded; the steps lost to a kill since the last checkpoint do not count)."""
+        return self.seconds_before + (time.time() - self._session_start if self._session_start else 0.0)
 
     def save(self) -> Path:
         """Write a checkpoint of the current step (after checking every step since the last check)."""
@@ -582,9 +605,9 @@ class Trainer:
         writer = self._tensorboard()
         log_path = self.run / "train_log.jsonl"
         values: Dict[str, float] = {}
-        t0 = time.time()
+        t0 = self._session_start = time.time()
         bar = tqdm(total=end, initial=self.step, disable=not self.progress, desc="train", dynamic_ncols=True)
-        with open(log_path, "a") as log_file:
+        with open(log_path, "ab", buffering=0) as log_file:  # unbuffered: a record is on disk when written
             while self.step < end:
                 if not self.order:
                     self.order = list(range(len(self.views)))
@@ -595,15 +618,14 @@ class Trainer:
                 values = self.train_step(self.step, self.views[self.order.pop()], check=check)
                 event = values.pop("event", None)
                 if event:
-                    log_file.write(json.dumps({"step": self.step, "event": event, "gaussians": len(self.model.gaussians)}) + "\n")
-                    log_file.flush()
+                    _append_record(log_file, {"step": self.step, "event": event,
+                                              "gaussians": len(self.model.gaussians)})
                 if self.step % self.cfg["log"]["every"] == 0 or self.step == end:
                     n = len(self.model.gaussians)
                     bar.set_postfix({k: f"{v:.4f}" for k, v in values.items() if k in
                                      ("total", "sup_rec", "sup_r", "sup_l", "exp", "rgb")} | {"N": n})
-                    log_file.write(json.dumps({"step": self.step, "gaussians": n, "seconds": time.time() - t0,
-                                               **values}) + "\n")
-                    log_file.flush()  # whole lines on disk: a killed run leaves no cut line
+                    _append_record(log_file, {"step": self.step, "gaussians": n, "seconds": self.train_seconds(),
+                                               **values})
                     if writer:
                         for k, v in values.items():
                             writer.add_scalar(f"loss/{k}", v, self.step)
@@ -615,6 +637,8 @@ class Trainer:
         if writer:
             writer.close()
         values["seconds"] = time.time() - t0
+        values["total_seconds"] = self.train_seconds()
+        self.seconds_before, self._session_start = values["total_seconds"], None
         return values
 
     def _tensorboard(self):

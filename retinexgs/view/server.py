@@ -12,7 +12,7 @@ import time
 from dataclasses import replace
 from typing import Callable, Dict, Optional, Tuple
 
-from retinexgs.errors import UserError
+from retinexgs.errors import Terminated, UserError
 from retinexgs.render import Camera
 from retinexgs.view.camera import ViewerCamera, average_up, camera_to_viewer
 from retinexgs.view.frame import FrameRenderer, FrameSettings
@@ -150,6 +150,7 @@ class RunViewer:
         self.frames = 0
         self.last_frame = None  # the newest frame sent to any client (for tests and diagnostics)
         self._clients: Dict[int, _Client] = {}
+        check_bindable(host, port)  # viser retries a failed bind on the next port forever: it would hang
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
         self.server.scene.set_up_direction(average_up(list(cameras.values())) if cameras else "+z")
         self.server.on_client_connect(self._connect)
@@ -191,11 +192,49 @@ def snap_cameras(scene) -> Dict[str, Camera]:
 
 
 def check_address(host: str, port: int) -> None:
-    """UserError for a port outside 0..65535 or an empty host."""
+    """UserError for a port outside 0..65535, an empty host, or an address that cannot be bound
+    (:func:`check_bindable`)."""
     if not isinstance(port, int) or not 0 <= port <= 65535:
         raise UserError(f"--port must be 0..65535 (0 picks a free port), got {port}")
     if not host:
         raise UserError("--host is empty; give an address to bind, e.g. 127.0.0.1")
+    check_bindable(host, port)
+
+
+def check_bindable(host: str, port: int) -> None:
+    """UserError when ``host`` is not an address (or name) of this machine, or ``port`` may not be bound there
+    (a port below 1024 without root). A port in use is fine: the server takes the next free one.
+
+    viser's server thread swallows every bind error and tries the next port, a thousand times, for each
+    address; the caller waits on it without a timeout, so such an address would hang ``view`` silently."""
+    import errno
+    import socket
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except (OSError, UnicodeError) as exc:
+        reason = getattr(exc, "strerror", None) or str(exc)
+        raise UserError(f"--host {host!r} is not an IP address or a host name that resolves ({reason}); "
+                        "e.g. 127.0.0.1 (this machine only) or 0.0.0.0 (every interface)") from None
+    bound = False
+    for family, kind, proto, _, address in infos:
+        with socket.socket(family, kind, proto) as sock:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as asyncio's server binds
+            if family == socket.AF_INET6 and hasattr(socket, "IPV6_V6ONLY"):
+                sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 1)
+            try:
+                sock.bind(address)
+                bound = True
+            except PermissionError:
+                raise UserError(f"--port {port}: no permission to bind {host}:{port} (ports below 1024 need "
+                                "root); use a port from 1024 up, or 0 for any free port") from None
+            except OSError as exc:
+                if exc.errno == errno.EADDRINUSE:  # taken: the server moves on to the next free port
+                    bound = True
+                elif exc.errno != errno.EADDRNOTAVAIL:  # (one family of a name may be missing, as in asyncio)
+                    raise UserError(f"cannot bind --host {host} --port {port}: {exc.strerror or exc}") from None
+    if not bound:
+        raise UserError(f"--host {host}: not an address of this machine, cannot bind it (use 127.0.0.1 for "
+                        "this machine only or 0.0.0.0 for every interface)")
 
 
 def view_run(run_dir, host: str = "127.0.0.1", port: int = 8080, device: Optional[str] = None,
@@ -217,8 +256,10 @@ def view_run(run_dir, host: str = "127.0.0.1", port: int = 8080, device: Optiona
         _announce(viewer, run_dir, step, len(model.gaussians), host, log)
         while True:
             time.sleep(1.0)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         log("retinexgs view: stopping")
+        if isinstance(exc, Terminated):  # SIGTERM: the CLI says "terminated" and exits with 143
+            raise
     finally:
         viewer.stop()
     return viewer
