@@ -39,13 +39,24 @@ from retinexgs.evaluate.metrics import psnr, ssim_metric
 from retinexgs.model.tone import linear_to_srgb, srgb_to_linear
 
 
-def panels(path: Path, count: int) -> List[torch.Tensor]:
-    """The ``count`` [H,W,3] panels of one evaluation PNG (equal widths side by side)."""
-    a = np.asarray(Image.open(path).convert("RGB")).astype(np.float32) / 255.0
+def panels(path: Path, count: int, top: int = 0) -> List[torch.Tensor]:
+    """The ``count`` [H,W,3] panels of one evaluation PNG (equal widths side by side) below its ``top`` rows (the
+    strip naming the panels: metrics.json's ``label_rows``)."""
+    a = np.asarray(Image.open(path).convert("RGB")).astype(np.float32)[top:] / 255.0
     if a.shape[1] % count:
         raise SystemExit(f"{path}: width {a.shape[1]} is not {count} equal panels")
     w = a.shape[1] // count
     return [torch.from_numpy(a[:, i * w:(i + 1) * w].copy()) for i in range(count)]
+
+
+def label_rows(run: Path) -> int:
+    """Rows of the panel-name strip above the run's evaluation PNGs (0 for runs evaluated before it existed)."""
+    import json
+
+    try:
+        return int(json.loads((run / "metrics.json").read_text()).get("label_rows", 0))
+    except (OSError, ValueError):
+        return 0
 
 
 def panel_count(run: Path) -> int:
@@ -158,9 +169,9 @@ def analyse(run: Path) -> Dict[str, float]:
     files = sorted((run / "renders" / "test").glob("*.png"))
     if not files:
         raise SystemExit(f"{run}: no renders/test/*.png (evaluate the run first: retinexgs eval --run {run})")
-    rows, count = [], panel_count(run)
+    rows, count, top = [], panel_count(run), label_rows(run)
     for path in files:
-        p = panels(path, count)
+        p = panels(path, count, top)
         out, gt = p[1], p[-1]
         aff, slopes = affine_fit(out, gt)
         hm = histogram_match(out, gt)

@@ -1,0 +1,456 @@
+#!/usr/bin/env bash
+# The one entry point for work on the GPU (device) machine: build the CUDA extension, then one MODE.
+#
+#   bash scripts/device.sh MODE [--option VALUE ...] [ARG ...]      (bash scripts/device.sh help: this text)
+#
+# Through the device tool: `run` executes a bash command in the repository root of a copy of this working tree
+# on a GPU machine and returns what the command wrote under $OUT (at most 8 files, 2 folders down; every mode
+# below keeps to that and packs the rest into $OUT/logs.tgz). Nothing can be fetched there, and a fresh machine
+# is bare, so carry (git-ignored folders, 64 MiB in all, see /work/.library/device/README.md):
+#   .data  the scenes, copied once from the shared data folder beside the checkout (../shared/data travels only
+#          as a shared/ folder inside the checkout; if the checkout has one, shared/data is used when .data is
+#          absent): mkdir -p .data && cp -r ../shared/data/fox-dark ../shared/data/lom .data/
+#   .whl   the wheels the machine lacks, for Python 3.12 manylinux x86_64 (the README's `pip download` line):
+#          pydantic, pydantic-core, annotated-types, typing-inspection (a requirement since issue 15), pycolmap
+#          (the scenes' COLMAP points), plyfile; gsplat for --vs gsplat. Installed into /tmp/site.
+# e.g. run(command="bash scripts/device.sh quality '0,:default:fox-dark,lom/buu,lom/sofa,lom/bike:4'",
+#          carry=[".data", ".whl"], timeout_s=600)
+# On a machine still warm, a second call reuses the build (build/), the wheels, the scene copy (/tmp/data) and
+# finished runs (/tmp/runs). Environment: OUT (default ./gpu_out), DATA (.data), WHL (.whl),
+# TORCH_CUDA_ARCH_LIST (9.0: H100/H200), MAX_JOBS (16). Every option below may also be given as the upper-case
+# environment variable (--fps-run X = FPS_RUN=X).
+#
+# Modes and what each writes under $OUT (always also logs.tgz: build log and every other log):
+#   quality [GROUP...]  the quality benchmark: each GROUP = SEEDS:CONFIG[,CONFIG]:SCENE[,SCENE]:JOBS trains its
+#       configs x scenes x seeds with `python -m retinexgs.bench quality` (JOBS side by side), all groups at once
+#       on the one GPU; then one table over every group. Without GROUP, one group from --seeds (default "0,"),
+#       --configs (default), --scenes (fox-dark,lom/buu,lom/sofa,lom/bike), --jobs (4); lists with commas or
+#       spaces, e.g. quality --seeds 3 --configs "default ablations/baseline_pre" --jobs 6. SEEDS as bench quality's --seeds: a list has a comma ("0," is seed 0, "0,1,2"), a bare
+#       number is a count ("3" = seeds 0-2). SCENE: a folder under .data. Options: --limit S (520: the groups
+#       stop S s after the call began; finished runs stay, and the same command on the warm machine resumes
+#       cut-off runs from their checkpoints, every 2000 steps), --steps N (override every config's steps),
+#       --set KEY=VALUE (repeatable, every run), --seeds-all LIST (seeds of the final table; default: those of
+#       the groups), --alone GROUP (trained first with the GPU to itself: a training time to report),
+#       --tests "FILES" (pytest beside the trainings: nothing there is timed), --test-limit S (200),
+#       --fps-run RUN (after the trainings, the FPS bench on that run; default the fox-dark default seed-0 run
+#       when trained). Sizing, H100: build 130-170 s on a fresh machine; 8 trainings side by side about 420 s,
+#       6 about 340, 4 about 225.
+#       -> quality.md (table + contact sheets' names), runs.tgz (metrics, logs, tables, contact sheets; no
+#          checkpoints or renders), alone.md (--alone), tests.log (--tests), fps.txt (--fps-run / fox-dark seed 0)
+#   train [JOB...]  trainings through `python -m retinexgs train`, JOB = NAME[:CONFIG[:SCENE[:SEED]]] (default
+#       `default`: configs/default.yaml on --scene fox-dark, --seed 0); prints each one's wall time, training
+#       seconds, Gaussians, PSNR / SSIM. Options: --jobs N (1: in turn; N side by side, e.g. the same seed twice
+#       for the run-to-run spread), --steps N, --set KEY=VALUE, --scene, --seed.
+#       -> train.txt (the summary), runs.tgz (metrics, configs, logs)
+#   speed [STAGE...]  timings (default stages: train fps trainspeed raster profile):
+#       train      a --scene training alone for each --seeds' first seed, the others side by side (wall time)
+#       fps        `bench fps` on the trained run (or --run RUN) at 640x360 and 500x375, --fps-runs times
+#                  (fused frame vs torch path vs rasterization; launches per frame; --vs gsplat adds gsplat)
+#       trainspeed `bench train-speed` on synthetic scenes (--vs gsplat) and on --scene after 3100 warm-up steps
+#       raster     `bench raster --vs ${VS:-reference}`, --raster-runs times
+#       profile    scripts/profiling.py train on --scene (300 warm-up steps, 30 profiled)
+#       fprofile   scripts/profiling.py frame --fused on the run      rprofile  scripts/profiling.py raster
+#       lr3m       scripts/profiling.py lr3m on --scene's first low-light photo
+#       export     `retinexgs export` and `retinexgs render --maps enhanced,R,L` of the run, timed
+#       ab         A/B training time against another checkout --old DIR (a plain copy, e.g. `git archive REV |
+#                  tar x -C .ab_old`, carried): old, new, old, new... (--repeats 2) on one card, so that a
+#                  speed change is compared on the same card (cards of one kind differ by a few per cent)
+#       Options: --scene fox-dark, --seeds "0" (e.g. "0 1 2"), --config NAME, --set KEY=VALUE, --run RUN,
+#       --vs gsplat (its kernels JIT-build, ~80 s, started beside our build), --fps-runs 1, --raster-runs 1,
+#       --old DIR, --repeats 2.
+#       -> STAGE.txt for each stage run (train.txt, fps.txt, trainspeed.txt, raster.txt, profile.txt, ...);
+#          more than 8 files in all are packed into all.tgz
+#   tests [TEST...] [-- PYTEST_OPTION...]  the GPU tests: pytest on TEST (default tests/test_cuda*.py
+#       tests/test_fused_colors.py tests/test_raster_finite_check.py), the CUDA fuzz (scripts/fuzz_cuda.py: CUDA vs
+#       the CPU kernels over the shared corpus) and compute-sanitizer on scripts/sanitize.py's targets. Options:
+#       --test-limit S (200), --fuzz-cases N (300; 0 skips), --sanitizer "memcheck racecheck" (none skips),
+#       --targets "raster frame". Exit status 1 if any part failed.
+#       -> tests.log, fuzz_cuda.log, sanitizer.log
+#   scale [ARGS...]  the large-scene benchmark, `python -m retinexgs.bench scale ARGS` (scenes under /tmp/data)
+#       where retinexgs/bench/scale.py exists; otherwise it says it is not available in this build and exits 2.
+#   build  the set-up alone (wheels, build, GPU and torch versions); -> nothing but logs.tgz
+#   compile  every csrc/cuda/*.cu through nvcc for sm_89 and sm_90, without torch, a GPU or the set-up (what CI
+#       runs where nvcc exists): a syntax or type error in a kernel fails here.
+set -uo pipefail
+cd "$(dirname "$0")/.." || exit 1
+T0=$(date +%s)
+OUT=${OUT:-gpu_out}
+DATA=${DATA:-}
+WHL=${WHL:-.whl}
+LOGS=/tmp/device-logs
+SETS=()
+
+die() { echo "device.sh: $*" >&2; exit 1; }
+elapsed() { echo $(( $(date +%s) - T0 )); }
+usage() { sed -n '2,/^set -uo/p' "$0" | sed '$d; s/^# \{0,1\}//'; }
+
+# parse "OPTION..." ARGS...: --option VALUE or --option=VALUE sets $OPTION (upper case, - as _), --set KEY=VALUE
+# adds to SETS; anything else goes to the array ARGS, and everything after -- to the array PASS.
+parse() {
+  local allowed=" $1 " k v; shift
+  ARGS=() PASS=()
+  while [ $# -gt 0 ]; do
+    case $1 in
+      --) shift; PASS=("$@"); break ;;
+      --*=*) k=${1%%=*}; v=${1#*=}; shift ;;
+      --*) k=$1; [ $# -ge 2 ] || die "$1 needs a value"; v=$2; shift 2 ;;
+      *) ARGS+=("$1"); shift; continue ;;
+    esac
+    k=${k#--}
+    if [ "$k" = set ]; then SETS+=(--set "$v"); continue; fi
+    [[ $allowed == *" $k "* ]] || die "unknown option --$k for $MODE (options:${allowed% })"
+    k=${k//-/_}
+    printf -v "${k^^}" '%s' "$v"
+  done
+}
+
+# The shared set-up of every GPU mode: wheels, environment, build with CUDA; the scenes with stage_data.
+setup() {
+  mkdir -p "$OUT" "$LOGS"
+  export PYTHONUNBUFFERED=1 MAX_JOBS=${MAX_JOBS:-16} TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0}
+  SITE=
+  if compgen -G "$WHL/*.whl" > /dev/null; then
+    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site \
+      "$WHL"/*.whl > "$LOGS/wheels.log" 2>&1 || { tail -20 "$LOGS/wheels.log"; die "the wheels in $WHL did not install"; }
+    SITE=/tmp/site
+  fi
+  export PYTHONPATH="$PWD${SITE:+:$SITE}${PYTHONPATH:+:$PYTHONPATH}"
+  python3 -c "import pydantic" 2> /dev/null \
+    || die "pydantic is missing here: carry its wheels in $WHL (see the header of scripts/device.sh)"
+  nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
+  python3 -c "import torch; print('torch', torch.__version__, 'CUDA', torch.version.cuda)"
+  local t=$SECONDS
+  python3 setup.py build_ext --inplace > "$LOGS/build.log" 2>&1 \
+    || { grep -E "error" -A3 "$LOGS/build.log" | head -40; tail -20 "$LOGS/build.log"; cp "$LOGS/build.log" "$OUT/";
+         die "build failed (build.log)"; }
+  python3 -c "import sys, torch, retinexgs._C as C; sys.exit(0 if C.has_cuda else 1)" \
+    || die "retinexgs._C was built without its CUDA kernels (see build.log in logs.tgz)"
+  echo "build: $(( SECONDS - t )) s (TORCH_CUDA_ARCH_LIST=$TORCH_CUDA_ARCH_LIST)"
+}
+
+# Copy the scenes to /tmp/data (missing files only: a warm machine keeps the earlier copy).
+stage_data() {
+  local src=$DATA
+  if [ -z "$src" ]; then
+    for d in .data shared/data; do [ -d "$d" ] && { src=$d; break; }; done
+  fi
+  [ -n "$src" ] && [ -d "$src" ] || die "no scenes: carry .data (a copy of ../shared/data), or set DATA"
+  mkdir -p /tmp/data && { cp -rn "$src"/. /tmp/data/ 2>&1 | grep -v "behavior of -n is non-portable"; true; }
+}
+need_scene() { [ -d "/tmp/data/$1" ] || die "scene $1 is not under ${DATA:-.data} (/tmp/data has: $(ls /tmp/data))"; }
+need_train_wheels() {
+  python3 -c "import pycolmap, plyfile" 2> /dev/null \
+    || die "pycolmap or plyfile is missing here: carry their wheels in $WHL (see the header)"
+}
+
+# Each mode ends here: the logs into logs.tgz; more than the 8 files the device tool returns into all.tgz.
+finish() {
+  local rc=${1:-0}
+  [ -d "$LOGS" ] && tar czf "$OUT/logs.tgz" -C "$LOGS" . 2> /dev/null
+  if [ "$(find "$OUT" -type f | wc -l)" -gt 8 ]; then
+    tar czf /tmp/device-all.tgz -C "$OUT" . && find "$OUT" -mindepth 1 -delete && mv /tmp/device-all.tgz "$OUT/all.tgz"
+    echo "(more than 8 files under \$OUT: packed into all.tgz)"
+  fi
+  echo "total: $(elapsed) s"
+  exit "$rc"
+}
+
+metrics() {  # metrics LABEL RUN: one line of a run's metrics.json
+  python3 - "$1" "$2" << 'EOF'
+import json, sys
+label, run = sys.argv[1:]
+try:
+    m = json.load(open(f"{run}/metrics.json"))
+except OSError:
+    sys.exit(print(f"{label}: no metrics.json"))
+t, mean = m.get("train", {}), m.get("mean", {})
+print(f"{label}: train {t.get('train_seconds', '?')} s, {t.get('gaussians', '?')} Gaussians, "
+      f"PSNR {mean.get('psnr', float('nan')):.3f}, SSIM {mean.get('ssim', float('nan')):.4f}")
+EOF
+}
+
+commas() { tr -s ', ' '\n' <<< "$1" | grep -v '^$' | paste -sd, -; }  # "a b,c" -> a,b,c
+
+seeds_of() {  # a bench-quality seed spec -> its seeds, one a line
+  if [[ $1 == *,* ]]; then tr ',' '\n' <<< "$1" | grep -v '^$'; elif [ "$1" -gt 0 ] 2> /dev/null; then seq 0 $(( $1 - 1 )); fi
+}
+
+fps_bench() {  # fps_bench RUN FILE: the FPS bench at 640x360 and 500x375
+  local size
+  for size in "" "--width 500 --height 375"; do
+    # shellcheck disable=SC2086  # $size: two options or none
+    timeout 120 python3 -m retinexgs.bench fps --run "$1" --device cuda $size ${VS:+--vs "$VS"} 2>&1 \
+      | grep -v -i warn | tee -a "$2"
+  done
+}
+
+# ---------------------------------------------------------------------------------------------------- quality
+# quality's groups: SEEDS:CONFIGS:SCENES:JOBS. note_group checks one and adds it to the final table's lists;
+# run_group NAME GROUP trains it with `bench quality` until --limit.
+note_group() {
+  local seeds configs scenes jobs s
+  IFS=: read -r seeds configs scenes jobs <<< "$1"
+  [ -n "$jobs" ] && [ -n "$scenes" ] && [ -n "$configs" ] || die "group $1 is not SEEDS:CONFIGS:SCENES:JOBS"
+  # shellcheck disable=SC2206  # configs: comma-separated names
+  ALL_CONFIGS+=(${configs//,/ })
+  for s in ${scenes//,/ }; do need_scene "$s"; ALL_SCENES+=("/tmp/data/$s"); done
+  mapfile -t -O "${#ALL_SEEDS[@]}" ALL_SEEDS < <(seeds_of "$seeds")
+}
+run_group() {
+  local seeds configs scenes jobs s dirs=() left
+  IFS=: read -r seeds configs scenes jobs <<< "$2"
+  for s in ${scenes//,/ }; do dirs+=("/tmp/data/$s"); done
+  left=$(( LIMIT - $(elapsed) ))
+  [ "$left" -gt 0 ] || { echo "group $1 ($2): no time left under --limit $LIMIT"; return; }
+  # shellcheck disable=SC2086  # configs: comma-separated names
+  timeout "$left" python3 -m retinexgs.bench quality --scenes "${dirs[@]}" --configs ${configs//,/ } \
+    --seeds "$seeds" --runs /tmp/runs --jobs "$jobs" --device cuda "${EXTRA[@]}" --out "/tmp/runs/$1.md" \
+    > "/tmp/runs/$1.log" 2>&1
+}
+
+mode_quality() {
+  LIMIT=${LIMIT:-520} STEPS=${STEPS:-} SEEDS_ALL=${SEEDS_ALL:-} ALONE=${ALONE:-} TESTS=${TESTS:-}
+  TEST_LIMIT=${TEST_LIMIT:-200} FPS_RUN=${FPS_RUN:-}
+  SEEDS=${SEEDS:-0,} CONFIGS=${CONFIGS:-default} SCENES=${SCENES:-fox-dark,lom/buu,lom/sofa,lom/bike} JOBS=${JOBS:-4}
+  parse "seeds configs scenes jobs limit steps seeds-all alone tests test-limit fps-run" "$@"
+  local groups=("${ARGS[@]}")
+  if [ ${#groups[@]} -eq 0 ]; then  # one group from the options (lists: commas or spaces)
+    groups=("$SEEDS:$(commas "$CONFIGS"):$(commas "$SCENES"):$JOBS")
+  fi
+  setup; need_train_wheels; stage_data
+  mkdir -p /tmp/runs
+  EXTRA=("${SETS[@]}"); [ -n "$STEPS" ] && EXTRA+=(--steps "$STEPS")
+  local group i=0 pids=()
+  ALL_CONFIGS=() ALL_SCENES=() ALL_SEEDS=()
+  for group in ${ALONE:+"$ALONE"} "${groups[@]}"; do note_group "$group"; done  # every scene there, first
+  if [ -n "$ALONE" ]; then
+    run_group alone "$ALONE"
+    cp /tmp/runs/alone.md "$OUT/alone.md" 2> /dev/null
+    echo "== alone ($ALONE):"; grep -E "^(ok|FAIL|reused)" /tmp/runs/alone.log
+  fi
+  for group in "${groups[@]}"; do
+    run_group "group$i" "$group" &
+    pids+=($!); i=$((i + 1))
+  done
+  if [ -n "$TESTS" ]; then  # beside the trainings: nothing in the tests is timed
+    # shellcheck disable=SC2086  # a list of test files
+    timeout "$TEST_LIMIT" python3 -X faulthandler -m pytest -q -p no:cacheprovider --tb=short -rf $TESTS \
+      > "$OUT/tests.log" 2>&1
+    echo "tests: exit $? at $(elapsed) s"; grep -E "^FAILED|passed|failed" "$OUT/tests.log" | head -20
+  fi
+  wait "${pids[@]}"
+  [ -n "$SEEDS_ALL" ] || SEEDS_ALL=$(printf '%s\n' "${ALL_SEEDS[@]}" | sort -nu | paste -sd, -)
+  [[ $SEEDS_ALL == *,* ]] || SEEDS_ALL="$SEEDS_ALL,"
+  # One table and one contact sheet per scene over every group (nothing is trained here).
+  # shellcheck disable=SC2046  # one word a scene / config
+  python3 -m retinexgs.bench quality --no-train --scenes $(printf '%s\n' "${ALL_SCENES[@]}" | awk '!s[$0]++') \
+    --configs $(printf '%s\n' "${ALL_CONFIGS[@]}" | awk '!s[$0]++') --seeds "$SEEDS_ALL" --runs /tmp/runs \
+    --out "$OUT/quality.md" > "$LOGS/table.log" 2>&1 || tail -5 "$LOGS/table.log"
+  # Every group's outcome; a group that trained nothing (a bad seed spec such as "0", a count of zero: "0," is
+  # seed 0) shows its error instead.
+  for f in /tmp/runs/group*.log; do echo "== $f"; grep -E "^(ok|FAIL|reused)|runs in" "$f" || tail -3 "$f"; done
+  local run=${FPS_RUN:-/tmp/runs/fox-dark/default/seed0}
+  [ -f "$run/metrics.json" ] && fps_bench "$run" "$OUT/fps.txt"
+  tar czf "$OUT/runs.tgz" --exclude='*.pt' --exclude='tb' --exclude='renders' -C /tmp runs 2> /dev/null
+  finish 0
+}
+
+# ------------------------------------------------------------------------------------------------------ train
+mode_train() {
+  JOBS=${JOBS:-1} STEPS=${STEPS:-} SCENE=${SCENE:-fox-dark} SEED=${SEED:-0}
+  parse "jobs steps scene seed" "$@"
+  local specs=("${ARGS[@]}"); [ ${#specs[@]} -gt 0 ] || specs=(default)
+  setup; need_train_wheels; stage_data
+  local extra=("${SETS[@]}"); [ -n "$STEPS" ] && extra+=(--set "steps=$STEPS")
+  local spec name cfg scene seed args
+  mkdir -p /tmp/train
+  for spec in "${specs[@]}"; do
+    IFS=: read -r name cfg scene seed <<< "$spec"
+    scene=${scene:-$SCENE}; seed=${seed:-$SEED}; need_scene "$scene"
+    args=(); [ -n "$cfg" ] && args+=(--config "$cfg")
+    while [ "$(jobs -rp | wc -l)" -ge "$JOBS" ]; do wait -n; done
+    rm -rf "/tmp/train/$name"
+    (
+      t=$SECONDS
+      python3 -m retinexgs train --data "/tmp/data/$scene" --out "/tmp/train/$name" --device cuda --quiet \
+        "${args[@]}" --set "seed=$seed" "${extra[@]}" > "/tmp/train/$name.log" 2>&1
+      echo "== $name (${cfg:-default}, $scene, seed $seed): exit $? in $(( SECONDS - t )) s wall"
+      metrics "   $name" "/tmp/train/$name"
+    ) | tee -a "$OUT/train.txt" &
+  done
+  wait
+  tar czf "$OUT/runs.tgz" --exclude='*.pt' --exclude='tb' --exclude='renders' -C /tmp train 2> /dev/null
+  finish 0
+}
+
+# ------------------------------------------------------------------------------------------------------ speed
+mode_speed() {
+  SCENE=${SCENE:-fox-dark} SEEDS=${SEEDS:-0} CONFIG=${CONFIG:-} RUN=${RUN:-} VS=${VS:-} FPS_RUNS=${FPS_RUNS:-1}
+  RASTER_RUNS=${RASTER_RUNS:-1} OLD=${OLD:-} REPEATS=${REPEATS:-2}
+  parse "scene seeds config run vs fps-runs raster-runs old repeats" "$@"
+  [ ${#PASS[@]} -eq 0 ] || die "speed takes no arguments after --"
+  local stages=" ${ARGS[*]:-train fps trainspeed raster profile} "
+  has() { [[ $stages == *" $1 "* ]]; }
+  for s in $stages; do
+    [[ " train fps trainspeed raster profile fprofile rprofile lr3m export ab " == *" $s "* ]] \
+      || die "unknown speed stage $s"
+  done
+  setup
+  if [ "$VS" = gsplat ]; then  # JIT-build gsplat's kernels now: nothing is timed before the wait below
+    (python3 -c "
+import torch, gsplat
+n = 64; d = 'cuda'
+gsplat.rasterization(torch.randn(n, 3, device=d), torch.randn(n, 4, device=d), torch.rand(n, 3, device=d) * .1,
+    torch.rand(n, device=d), torch.rand(n, 3, device=d), torch.eye(4, device=d)[None],
+    torch.tensor([[[50., 0, 32], [0, 50., 32], [0, 0, 1]]], device=d), 64, 64)
+print('gsplat ready')" > "$LOGS/gsplat_build.log" 2>&1; echo "gsplat JIT: exit $? at $(elapsed) s") &
+  fi
+  local cfg=(); [ -n "$CONFIG" ] && cfg=(--config "$CONFIG")
+  local scene=/tmp/data/$SCENE slug=${SCENE//\//-} t s
+  read -r -a seeds <<< "$SEEDS"
+  local run=${RUN:-/tmp/speed/$slug/seed${seeds[0]}} train=0
+  # A trained run for fps / fprofile / export: --run, else the train stage's first seed (trained if missing).
+  if [ -n "$RUN" ]; then
+    [ -f "$RUN/config.yaml" ] || die "--run $RUN: no trained run there"
+  elif has fps || has fprofile || has export; then
+    [ -f "$run/metrics.json" ] || train=1
+  fi
+  has train && train=1
+  if [ $train = 1 ] || has trainspeed || has profile || has lr3m || has ab; then
+    need_train_wheels; stage_data; need_scene "$SCENE"
+  fi
+  wait  # gsplat's build, before anything is timed
+  if [ $train = 1 ]; then
+    t=$SECONDS
+    python3 -m retinexgs train --data "$scene" --out "/tmp/speed/$slug/seed${seeds[0]}" --device cuda --quiet \
+      "${cfg[@]}" --set "seed=${seeds[0]}" "${SETS[@]}" > "$LOGS/train${seeds[0]}.log" 2>&1
+    echo "train $SCENE seed ${seeds[0]} alone: exit $? in $(( SECONDS - t )) s wall" | tee -a "$OUT/train.txt"
+    t=$SECONDS
+    for s in "${seeds[@]:1}"; do
+      python3 -m retinexgs train --data "$scene" --out "/tmp/speed/$slug/seed$s" --device cuda --quiet \
+        "${cfg[@]}" --set "seed=$s" "${SETS[@]}" > "$LOGS/train$s.log" 2>&1 &
+    done
+    wait
+    [ ${#seeds[@]} -gt 1 ] && echo "seeds ${seeds[*]:1} side by side: $(( SECONDS - t )) s wall" | tee -a "$OUT/train.txt"
+    for s in "${seeds[@]}"; do metrics "seed $s" "/tmp/speed/$slug/seed$s" | tee -a "$OUT/train.txt"; done
+  fi
+  if has fps && [ -f "$run/config.yaml" ]; then
+    for _ in $(seq "$FPS_RUNS"); do fps_bench "$run" "$OUT/fps.txt"; done  # frames move run to run
+  fi
+  if has trainspeed; then
+    timeout 150 python3 -m retinexgs.bench train-speed --device cuda ${VS:+--vs "$VS"} 2>&1 | tee "$OUT/trainspeed.txt"
+    timeout 100 python3 -m retinexgs.bench train-speed --device cuda --data "$scene" "${cfg[@]}" --warmup 3100 \
+      --steps 30 2>&1 | tee -a "$OUT/trainspeed.txt"
+  fi
+  if has raster; then  # ratios move run to run: --raster-runs 2 repeats the bench in the same call
+    for _ in $(seq "$RASTER_RUNS"); do
+      timeout 150 python3 -m retinexgs.bench raster --device cuda --vs "${VS:-reference}" 2>&1 | tee -a "$OUT/raster.txt"
+    done
+  fi
+  if has profile; then
+    timeout 150 python3 scripts/profiling.py train "$scene" --steps 300 --profile 30 "${cfg[@]}" > "$OUT/profile.txt" 2>&1
+    grep -v -i warn "$OUT/profile.txt" | head -4
+  fi
+  if has fprofile; then
+    timeout 100 python3 scripts/profiling.py frame "$run" --fused > "$OUT/fprofile.txt" 2>&1; head -1 "$OUT/fprofile.txt"
+  fi
+  if has rprofile; then
+    timeout 200 python3 scripts/profiling.py raster > "$OUT/rprofile.txt" 2>&1; grep "==" "$OUT/rprofile.txt"
+  fi
+  if has lr3m; then
+    local img; img=$(find "$scene/low" -maxdepth 1 -type f | sort | head -1)
+    timeout 200 python3 scripts/profiling.py lr3m "$img" 2>&1 | tee "$OUT/lr3m.txt"
+  fi
+  if has export; then
+    t=$SECONDS
+    python3 -m retinexgs export --run "$run" --out /tmp/speed/export.ply --device cuda --quiet 2>&1 | tail -2
+    python3 -m retinexgs render --run "$run" --views test --maps enhanced,R,L --device cuda --out /tmp/speed/render \
+      --quiet 2>&1 | tail -1
+    echo "export + render: $(( SECONDS - t )) s" | tee "$OUT/export.txt"
+  fi
+  if has ab; then
+    [ -n "$OLD" ] && [ -d "$OLD" ] || die "speed ab needs --old DIR (a carried copy of the other commit's files)"
+    local old new=$PWD i side dir
+    old=$(cd "$OLD" && pwd)
+    t=$SECONDS
+    (cd "$old" && python3 setup.py build_ext --inplace > "$LOGS/build_old.log" 2>&1) || die "the --old build failed"
+    echo "old build: $(( SECONDS - t )) s"
+    for i in $(seq "$REPEATS"); do
+      for side in old new; do
+        dir=$old; [ $side = new ] && dir=$new
+        rm -rf "/tmp/ab/$side-$i"
+        (cd "$dir" && PYTHONPATH="$dir${SITE:+:$SITE}" python3 -m retinexgs train --data "$scene" "${cfg[@]}" \
+          --set seed=0 "${SETS[@]}" --out "/tmp/ab/$side-$i" --device cuda --quiet > "$LOGS/ab-$side-$i.log" 2>&1)
+        metrics "$side-$i" "/tmp/ab/$side-$i" | tee -a "$OUT/ab.txt"
+      done
+    done
+  fi
+  finish 0
+}
+
+# ------------------------------------------------------------------------------------------------------ tests
+mode_tests() {
+  TEST_LIMIT=${TEST_LIMIT:-200} FUZZ_CASES=${FUZZ_CASES:-300} SANITIZER=${SANITIZER:-memcheck racecheck}
+  TARGETS=${TARGETS:-raster frame}
+  parse "test-limit fuzz-cases sanitizer targets" "$@"
+  local tests=("${ARGS[@]}") rc=0 status tool target
+  [ ${#tests[@]} -gt 0 ] || tests=(tests/test_cuda*.py tests/test_fused_colors.py tests/test_raster_finite_check.py)
+  setup
+  timeout "$TEST_LIMIT" python3 -X faulthandler -m pytest -q -p no:cacheprovider --tb=short -rfs "${tests[@]}" "${PASS[@]}" \
+    > "$OUT/tests.log" 2>&1
+  status=$?; [ $status -eq 0 ] || rc=1
+  echo "tests: exit $status"; grep -E "^FAILED|passed|failed|launches per frame" "$OUT/tests.log" | head -30
+  if [ "$FUZZ_CASES" -gt 0 ]; then  # CUDA against the CPU kernels over the fuzz corpus
+    timeout 120 python3 scripts/fuzz_cuda.py --cases "$FUZZ_CASES" > "$OUT/fuzz_cuda.log" 2>&1
+    status=$?; [ $status -eq 0 ] || rc=1
+    echo "fuzz_cuda: exit $status, $(grep -c "^FAIL" "$OUT/fuzz_cuda.log") failing"; tail -1 "$OUT/fuzz_cuda.log" | cut -c1-400
+  fi
+  if [ "$SANITIZER" != none ]; then
+    command -v compute-sanitizer > /dev/null || { echo "compute-sanitizer is not on this machine"; TARGETS=; rc=1; }
+    for target in $TARGETS; do
+      for tool in $SANITIZER; do
+        echo "===== compute-sanitizer --tool $tool: scripts/sanitize.py $target" >> "$OUT/sanitizer.log"
+        timeout 200 compute-sanitizer --tool "$tool" --error-exitcode 9 python3 scripts/sanitize.py "$target" \
+          >> "$OUT/sanitizer.log" 2>&1
+        status=$?; [ $status -eq 0 ] || rc=1
+        echo "compute-sanitizer $tool $target: exit $status ($(grep -E 'ERROR SUMMARY|RACECHECK SUMMARY' \
+          "$OUT/sanitizer.log" | tail -1))"
+      done
+    done
+  fi
+  finish $rc
+}
+
+# ------------------------------------------------------------------------------------------------------ scale
+mode_scale() {
+  if [ ! -f retinexgs/bench/scale.py ] && [ ! -f retinexgs/bench/scale/__init__.py ]; then
+    echo "device.sh scale: the large-scene benchmark (retinexgs.bench.scale) is not available in this build" >&2
+    exit 2
+  fi
+  setup; need_train_wheels; stage_data
+  python3 -m retinexgs.bench scale "$@"
+  finish $?
+}
+
+# ---------------------------------------------------------------------------------------------------- compile
+mode_compile() {
+  command -v nvcc > /dev/null || die "nvcc not found"
+  shopt -s nullglob
+  local srcs=(csrc/cuda/*.cu) f out
+  if [ ${#srcs[@]} -eq 0 ]; then echo "no CUDA sources"; exit 0; fi
+  out=$(mktemp -d)
+  for f in "${srcs[@]}"; do
+    nvcc -std=c++20 -O3 -Icsrc/include -gencode arch=compute_89,code=sm_89 -gencode arch=compute_90,code=sm_90 \
+      -Xcompiler -Wall -c "$f" -o "$out/$(basename "${f%.cu}").o" || { rm -rf "$out"; exit 1; }
+    echo "nvcc ok: $f (sm_89, sm_90)"
+  done
+  rm -rf "$out"
+}
+
+MODE=${1:-help}; shift || true
+case $MODE in
+  quality | train | speed | tests | scale | compile) "mode_$MODE" "$@" ;;
+  build) parse "" "$@"; setup; finish 0 ;;
+  help | -h | --help) usage ;;
+  *) usage >&2; echo >&2; die "unknown mode $MODE" ;;
+esac
