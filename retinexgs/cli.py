@@ -21,11 +21,11 @@ bound_openmp_spinning()
 
 # Stage modules that contribute sub-commands, in the order ``--help`` lists them.
 _COMMAND_MODULES = [
-    "retinexgs.train.command",
-    "retinexgs.retinex.command",
-    "retinexgs.data.command",
-    "retinexgs.export.command",
-    "retinexgs.view.command",
+    "retinexgs.commands.train",
+    "retinexgs.commands.decompose",
+    "retinexgs.commands.sfm",
+    "retinexgs.commands.export",
+    "retinexgs.commands.view",
 ]
 
 

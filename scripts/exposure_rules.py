@@ -61,8 +61,8 @@ def score(views: List[Tuple[torch.Tensor, torch.Tensor, torch.Tensor]], ref: tor
 
 
 def main(argv: List[str]) -> int:
-    from retinexgs.train.run import load_run
-    from retinexgs.train.trainer import active_sh_degree, view_camera
+    from retinexgs.run.folder import load_run
+    from retinexgs.run.render import active_sh_degree, view_camera
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("runs", nargs="+", type=Path)

@@ -45,8 +45,7 @@ from typing import Dict, List, Optional, Tuple
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
-from fuzz_corpus import (ARG_NAMES, build_case, invariant_problems, linear_loss,  # noqa: E402
-                         random_recipe, render_case)
+from fuzz_corpus import (ARG_NAMES, build_case, invariant_problems, random_recipe, render_case)
 
 from retinexgs.render import has_cuda  # noqa: E402
 

@@ -38,8 +38,8 @@ import torch
 # ---------------------------------------------------------------------------------------------------- train
 def profile_train(args: argparse.Namespace) -> None:
     """Where a training step's time goes (GPU)."""
-    from retinexgs.train.config import load_config
-    from retinexgs.train.run import open_scene
+    from retinexgs.run.config import load_config
+    from retinexgs.run.folder import open_scene
     from retinexgs.train.trainer import Trainer
 
     cfg = load_config(args.config, [f"loss.enhance_from={args.steps // 2}"] + args.overrides)
@@ -76,8 +76,8 @@ def profile_train(args: argparse.Namespace) -> None:
 def profile_frame(args: argparse.Namespace) -> None:
     """The full enhanced render of a trained run (GPU)."""
     from retinexgs.model.inference import InferenceRenderer
-    from retinexgs.train.run import load_run
-    from retinexgs.train.trainer import active_sh_degree, view_camera
+    from retinexgs.run.folder import load_run
+    from retinexgs.run.render import active_sh_degree, view_camera
 
     cfg, scene, model, step = load_run(args.run, "cuda")
     model.eval()
@@ -109,9 +109,9 @@ def profile_raster(args: argparse.Namespace) -> None:
     """Kernel-level profile of the raster bench's forward, per case (GPU)."""
     from torch.profiler import ProfilerActivity, profile
 
-    from retinexgs.bench.raster import render_ours, render_ours_unchecked
+    from retinexgs.bench.raster_ours import render_ours, render_ours_unchecked
     from retinexgs.bench.raster_cuda import CASES, render_gsplat
-    from retinexgs.bench.scenes import orbit_camera, random_scene
+    from retinexgs.demo.splats import orbit_camera, random_scene
 
     fns = {"ours": render_ours, "unchecked": render_ours_unchecked}
     try:
@@ -245,8 +245,8 @@ def count_calls(module, names, when=None) -> Dict[str, int]:
 def count_ops(args: argparse.Namespace) -> None:
     """Operators per training step as the backends see them (CPU or GPU)."""
     from retinexgs.render import _backend
-    from retinexgs.train.config import load_config
-    from retinexgs.train.run import open_scene
+    from retinexgs.run.config import load_config
+    from retinexgs.run.folder import open_scene
     from retinexgs.train.trainer import Trainer
 
     device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")

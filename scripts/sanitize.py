@@ -24,8 +24,8 @@ TESTS = Path(__file__).resolve().parents[1] / "tests"
 
 
 def sanitize_raster() -> None:
-    from retinexgs.bench.raster import render_ours
-    from retinexgs.bench.scenes import orbit_camera, random_scene
+    from retinexgs.bench.raster_ours import render_ours
+    from retinexgs.demo.splats import orbit_camera, random_scene
 
     for n, w, h in [(3000, 97, 61), (500, 33, 17)]:
         scene = {k: v.requires_grad_() for k, v in random_scene(n, device="cuda").items()}

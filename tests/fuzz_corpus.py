@@ -13,7 +13,6 @@ principal points off-centre; 1..7 channels, a background or none, a depth channe
 """
 from __future__ import annotations
 
-import math
 import random
 from typing import Dict, List, Optional
 

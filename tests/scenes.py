@@ -59,7 +59,7 @@ def tiny_trained_run(base, overrides=TINY_RUN, n_train=3, n_test=1, width=24, he
     (default TINY_RUN). With ``baseline_overrides`` a second run, ``base/base``, is trained with them too and
     (scene, run, baseline run) is returned."""
     from retinexgs.demo.synthetic import make_demo_scene
-    from retinexgs.train.run import train_run
+    from retinexgs.train.runner import train_run
 
     scene = make_demo_scene(base / "scene", n_train=n_train, n_test=n_test, width=width, height=height,
                             n_points=n_points)

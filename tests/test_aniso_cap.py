@@ -8,8 +8,8 @@ import torch
 from retinexgs.errors import UserError
 from retinexgs.model.density import DensityController
 from retinexgs.model.gaussians import GaussianModel
-from retinexgs.train.config import load_config
-from retinexgs.train.schedule import build_schedule
+from retinexgs.run.config import load_config
+from retinexgs.model.schedule import build_schedule
 from test_train import scene_dir, trainer_for  # noqa: F401  (the fixture)
 
 

@@ -184,7 +184,7 @@ def run_with_val(tmp_path_factory, demo):
     scene = base / "scene"
     shutil.copytree(demo, scene)
     shutil.copy(scene / "transforms_test.json", scene / "transforms_val.json")
-    from retinexgs.train.run import train_run
+    from retinexgs.train.runner import train_run
 
     n = torch.get_num_threads()
     torch.set_num_threads(1)
@@ -301,7 +301,7 @@ def no_decomposition(monkeypatch):
 
 
 def _train(scene: Path, out: Path, extra=()) -> None:
-    from retinexgs.train.run import train_run
+    from retinexgs.train.runner import train_run
 
     n = torch.get_num_threads()
     torch.set_num_threads(1)
@@ -614,7 +614,7 @@ def test_demo_scene_without_test_views(tmp_path):
 
 def test_side_by_side_pngs_name_their_panels(run_with_val):
     from retinexgs.evaluate.evaluate import LABEL_ROWS, to_uint8
-    from retinexgs.train.run import load_run
+    from retinexgs.run.folder import load_run
 
     metrics = json.loads((run_with_val / "metrics.json").read_text())
     n = metrics["panels"].count("|") + 1

@@ -8,8 +8,9 @@ import pytest
 import torch
 from PIL import Image
 
-from retinexgs.bench import proxy, quality
-from retinexgs.train.config import load_config
+from retinexgs.bench import quality
+from retinexgs.train import proxy
+from retinexgs.run.config import load_config
 
 
 def test_parse_seeds():
@@ -98,7 +99,7 @@ def test_a_cut_off_run_resumes_from_its_checkpoint_and_its_time_is_left_out(tmp_
     """run_job: a run folder with a checkpoint but no metrics (cut off by a time limit) continues with
     ``train --resume``; one without a checkpoint starts again; the resumed run's partial train time is not
     averaged into the table."""
-    from retinexgs.train.checkpoint import latest_checkpoint
+    from retinexgs.run.checkpoint import latest_checkpoint
 
     jobs = quality.plan([tmp_path / "s1"], ["default"], [0, 1], tmp_path / "runs")
     calls = []

@@ -2,10 +2,10 @@
 import pytest
 import torch
 
-from retinexgs.bench import retone
+from retinexgs.train import retone
 from retinexgs.errors import UserError
-from retinexgs.train.run import load_run
-from retinexgs.train.trainer import active_sh_degree, view_camera
+from retinexgs.run.folder import load_run
+from retinexgs.run.render import active_sh_degree, view_camera
 
 from scenes import TINY_RUN, tiny_trained_run
 

@@ -23,7 +23,7 @@ import torch
 import yaml
 
 from retinexgs.cli import build_parser, main
-from retinexgs.train.checkpoint import latest_checkpoint
+from retinexgs.run.checkpoint import latest_checkpoint
 from scenes import TINY_RUN, tiny_trained_run
 
 REPO = Path(__file__).resolve().parent.parent

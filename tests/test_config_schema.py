@@ -6,8 +6,8 @@ import yaml
 
 from retinexgs.cli import main
 from retinexgs.errors import UserError
-from retinexgs.train.config import configs_dir, load_config, read_yaml, validate
-from retinexgs.train.schema import ConfigSchema
+from retinexgs.run.config import configs_dir, load_config, read_yaml, validate
+from retinexgs.run.schema import ConfigSchema
 
 SHIPPED = sorted(p for p in configs_dir().rglob("*.yaml"))
 

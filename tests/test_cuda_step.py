@@ -11,7 +11,7 @@ from retinexgs.data import load_scene
 from retinexgs.demo.synthetic import make_demo_scene
 from retinexgs.model.tone import srgb_to_linear
 from retinexgs.train import losses
-from retinexgs.train.config import configs_dir, load_config
+from retinexgs.run.config import configs_dir, load_config
 from retinexgs.train.trainer import Trainer, pad_edges, to_bchw, unpack_edges, unpack_targets
 
 CUDA = torch.cuda.is_available()

@@ -462,7 +462,7 @@ def test_sfm_registers_all_views(sfm_photos):
 def test_sfm_on_dark_photos_uses_enhanced_copies(sfm_photos, tmp_path):
     out = tmp_path / "out"
     parser = argparse.ArgumentParser()
-    from retinexgs.data import command
+    from retinexgs.commands import sfm as command
     command.register(parser.add_subparsers(dest="command"))
     args = parser.parse_args(["sfm", "--images", str(sfm_photos["dark"]), "--out", str(out), "--quiet"])
     before = _snapshot(sfm_photos["dark"])

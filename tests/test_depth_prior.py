@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from retinexgs.train import losses
-from retinexgs.train.config import load_config
+from retinexgs.run.config import load_config
 from test_train import scene_dir, trainer_for  # noqa: F401  (the fixture)
 
 

@@ -11,7 +11,6 @@ import traceback
 from pathlib import Path
 from typing import List, Tuple
 
-import numpy as np
 import pytest
 import torch
 
@@ -68,7 +67,7 @@ def demo(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def run(tmp_path_factory, demo):
-    from retinexgs.train.run import train_run
+    from retinexgs.train.runner import train_run
 
     base = tmp_path_factory.mktemp("run")
     shutil.copytree(demo, base / "scene")
@@ -131,7 +130,7 @@ def test_train_log_line_on_a_full_disk(tmp_path):
 
 @pytest.mark.parametrize("exc", FULL, ids=IDS)
 def test_checkpoint_on_a_full_disk_keeps_the_previous_one(tmp_path, monkeypatch, exc):
-    from retinexgs.train.checkpoint import list_checkpoints, load_checkpoint, save_checkpoint
+    from retinexgs.run.checkpoint import list_checkpoints, load_checkpoint, save_checkpoint
 
     first = save_checkpoint(tmp_path, 1, {"step": 1, "model": {"w": torch.ones(3)}})
     monkeypatch.setattr(torch, "save", _fail_with(exc))

@@ -17,8 +17,8 @@ from retinexgs.export.bake import fibonacci_sphere, sh_basis, to_normalized
 from retinexgs.export.paths import interpolate_path, orbit_path, scene_center
 from retinexgs.export.ply import read_background, read_ply, write_ply
 from retinexgs.render import rasterize_gaussians, spherical_harmonics
-from retinexgs.train.run import load_run
-from retinexgs.train.trainer import view_camera
+from retinexgs.run.folder import load_run
+from retinexgs.run.render import view_camera
 from scenes import tiny_trained_run
 
 # Opaque Gaussians on dense points: coverage like a trained scene's (alpha near 1 where there is content), which is

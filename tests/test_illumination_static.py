@@ -10,7 +10,7 @@ from retinexgs.model.illumination import positional_encoding
 from retinexgs.model.inference import fused_gaussian_colors
 from retinexgs.model.retinex_model import RetinexGSModel
 from retinexgs.render import has_cuda
-from retinexgs.train.config import load_config
+from retinexgs.run.config import load_config
 from test_fused_colors import SHAPES, make_field, make_gaussians, torch_colors
 
 

@@ -20,8 +20,8 @@ from retinexgs.evaluate.evaluate import save_png
 from retinexgs.openmp import SPIN_COUNT
 from retinexgs.render import get_num_threads
 from retinexgs.retinex.cache import resolve_device
-from retinexgs.train.config import load_config
-from retinexgs.train.run import train_run
+from retinexgs.run.config import load_config
+from retinexgs.train.runner import train_run
 
 REPO = Path(__file__).resolve().parent.parent
 README = (REPO / "README.md").read_text()

@@ -12,5 +12,5 @@ def test_build_py_ships_the_configs_inside_the_package(tmp_path):
     shipped = tmp_path / "retinexgs" / "configs"
     wanted = sorted(p.relative_to(ROOT / "configs") for p in (ROOT / "configs").rglob("*.yaml"))
     assert wanted and sorted(p.relative_to(shipped) for p in shipped.rglob("*.yaml")) == wanted
-    # The installed layout is what retinexgs.train.config.configs_dir() looks for next to the package.
+    # The installed layout is what retinexgs.run.config.configs_dir() looks for next to the package.
     assert (shipped / "default.yaml").read_text() == (ROOT / "configs" / "default.yaml").read_text()

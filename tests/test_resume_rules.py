@@ -14,11 +14,11 @@ import yaml
 from retinexgs.cli import main
 from retinexgs.demo.synthetic import make_demo_scene
 from retinexgs.errors import UserError
-from retinexgs.train import run as run_module
-from retinexgs.train.checkpoint import latest_checkpoint
-from retinexgs.train.config import load_config
+from retinexgs.train import runner as run_module
+from retinexgs.run.checkpoint import latest_checkpoint
+from retinexgs.run.config import load_config
 from retinexgs.train.resume import run_lock
-from retinexgs.train.run import train_run
+from retinexgs.train.runner import train_run
 from retinexgs.train.trainer import Trainer
 from scenes import TINY_RUN, tiny_trained_run
 
@@ -301,7 +301,7 @@ def test_a_run_older_than_a_key_gets_the_behaviour_it_was_trained_with(run):
     """A config.yaml without keys added later is filled from default.yaml, except keys whose default changed since
     they were added: a run from before ``model.enhancement.tone`` was trained with the gamma on L̂, so it must
     render that way, not with today's default tone."""
-    from retinexgs.train.resume import read_run_config
+    from retinexgs.run.folder import read_run_config
     raw = recorded(run)
     assert raw["model"]["enhancement"]["tone"] == "exposure"  # a run made today records it
     assert raw["loss"]["w_depth"] == 0.3

@@ -366,7 +366,7 @@ def test_interrupted_write_leaves_nothing_trusted(tmp_path, monkeypatch):
 # ---------------------------------------------------------------- command
 
 def _run_cli(argv):
-    from retinexgs.retinex.command import register
+    from retinexgs.commands.decompose import register
     parser = argparse.ArgumentParser(prog="retinexgs")
     register(parser.add_subparsers(dest="command"))
     args = parser.parse_args(argv)

@@ -10,9 +10,10 @@ import torch
 from retinexgs.data import load_scene
 from retinexgs.demo.synthetic import make_demo_scene
 from retinexgs.errors import UserError
-from retinexgs.train.config import load_config
-from retinexgs.train.schedule import build_schedule
-from retinexgs.train.trainer import Trainer, active_sh_degree
+from retinexgs.run.config import load_config
+from retinexgs.model.schedule import build_schedule
+from retinexgs.train.trainer import Trainer
+from retinexgs.run.render import active_sh_degree
 
 
 def events(sched, steps):

@@ -89,7 +89,7 @@ def test_exposure_tone_gradients_match_finite_differences(shoulder, seed, light)
 
 def test_schema_refuses_the_exposure_tone_without_a_scene_reference():
     from retinexgs.errors import UserError
-    from retinexgs.train.config import load_config
+    from retinexgs.run.config import load_config
     cfg = load_config([], [])
     assert cfg["model"]["enhancement"]["tone"] == "exposure"  # the default since 2026-11-25
     with pytest.raises((UserError, ValueError), match="ref_quantile"):
@@ -108,8 +108,9 @@ def test_a_run_with_the_exposure_tone_renders_exports_and_follows_the_exposure_c
     from retinexgs.export.bake import to_normalized
     from retinexgs.export.ply import read_background, read_ply
     from retinexgs.render import rasterize_gaussians, spherical_harmonics
-    from retinexgs.train.run import load_run, render_function
-    from retinexgs.train.trainer import view_camera
+    from retinexgs.run.folder import load_run
+    from retinexgs.run.render import render_function
+    from retinexgs.run.render import view_camera
     from scenes import tiny_trained_run
 
     tiny = ["steps=4", "checkpoint.every=4", "log.tensorboard=false", "model.sh_degree=1", "model.sh_degree_every=2",
@@ -229,7 +230,7 @@ def test_exposure_tone_with_a_shoulder_has_finite_gradients_far_past_the_knee():
 
 def test_schema_takes_a_shoulder_in_0_1():
     from retinexgs.errors import UserError
-    from retinexgs.train.config import load_config
+    from retinexgs.run.config import load_config
     assert load_config([], [])["model"]["enhancement"]["shoulder"] == 0.5  # the default since stop 28
     assert load_config(["ablations/no_shoulder"], [])["model"]["enhancement"]["shoulder"] == 1.0
     for pinned in ("paper", "ablations/background_black", "ablations/aniso_cap"):

@@ -10,8 +10,10 @@ import torch
 from retinexgs.data import load_scene
 from retinexgs.demo.synthetic import make_demo_scene
 from retinexgs.errors import UserError
-from retinexgs.train.config import load_config
-from retinexgs.train.run import eval_run, load_run, train_run
+from retinexgs.run.config import load_config
+from retinexgs.evaluate.evaluate import eval_run
+from retinexgs.run.folder import load_run
+from retinexgs.train.runner import train_run
 from retinexgs.model.retinex_model import RetinexGSModel
 from retinexgs.train.trainer import Trainer, TrainingDiverged
 
@@ -171,7 +173,7 @@ def test_bad_config_values_are_named(tmp_path):
 
 def test_cli_resume_needs_no_data_and_train_without_data_is_refused(scene_dir, tmp_path, capsys):
     from retinexgs.cli import main
-    from retinexgs.train.checkpoint import latest_checkpoint
+    from retinexgs.run.checkpoint import latest_checkpoint
 
     run = tmp_path / "run"
     sets = [a for s in TINY + ["steps=3"] for a in ("--set", s)]

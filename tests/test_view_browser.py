@@ -10,7 +10,7 @@ import pytest
 from PIL import Image
 
 from retinexgs.demo.synthetic import make_demo_scene
-from retinexgs.train.run import train_run
+from retinexgs.train.runner import train_run
 from polling import wait_until
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")

@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from retinexgs.train.run import load_run, render_function
-from retinexgs.train.trainer import active_sh_degree, view_camera
+from retinexgs.run.folder import load_run
+from retinexgs.run.render import render_function
+from retinexgs.run.render import active_sh_degree, view_camera
 from retinexgs.evaluate.evaluate import to_uint8
 from retinexgs.view.camera import (ViewerCamera, average_up, camera_to_viewer, matrix_to_quat, quat_to_matrix,
                                    viewer_to_camera)

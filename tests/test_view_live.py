@@ -11,7 +11,7 @@ import pytest
 
 from retinexgs.cli import main
 from retinexgs.demo.synthetic import make_demo_scene
-from retinexgs.train.run import train_run
+from retinexgs.train.runner import train_run
 from retinexgs.view.live import StepGate
 from polling import wait_until
 
@@ -59,7 +59,7 @@ def test_train_view_renders_while_training_and_stops_after(scene, tmp_path, monk
     steps = 300
     thread = threading.Thread(target=lambda: result.update(metrics=train_run(
         scene, tmp_path / "run", ["demo"], TINY + [f"steps={steps}"], "cpu", progress=False, log=logs.append,
-        view=("127.0.0.1", 0))))
+        on_trainer=live.live_viewer("127.0.0.1", 0))))
     thread.start()
     try:
         assert _wait(lambda: viewers), logs

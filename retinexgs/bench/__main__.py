@@ -10,8 +10,8 @@ from retinexgs.openmp import bound_openmp_spinning
 
 BENCHES = {"raster": "retinexgs.bench.raster", "lr3m": "retinexgs.bench.lr3m", "fps": "retinexgs.bench.fps",
            "quality": "retinexgs.bench.quality",
-           "proxy": "retinexgs.bench.proxy", "retone": "retinexgs.bench.retone",
-           "train-speed": "retinexgs.bench.train_speed"}
+           "proxy": "retinexgs.train.proxy", "retone": "retinexgs.train.retone",
+           "train-speed": "retinexgs.train.speed"}
 
 
 USAGE = f"usage: python -m retinexgs.bench {{{','.join(BENCHES)}}} [options]"

@@ -87,8 +87,8 @@ def benchmark(run: Path, device: Optional[str] = None, width: Optional[int] = No
     for ``run``; on CUDA also the launches per frame of the two full stages (over ``launch_frames`` frames)."""
     from retinexgs.model.inference import InferenceRenderer
     from retinexgs.errors import UserError
-    from retinexgs.train.run import load_run
-    from retinexgs.train.trainer import active_sh_degree, view_camera
+    from retinexgs.run.folder import load_run
+    from retinexgs.run.render import active_sh_degree, view_camera
 
     cfg, scene, model, step = load_run(run, device)
     model.eval()

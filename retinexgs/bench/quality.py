@@ -25,6 +25,7 @@ from typing import Dict, List, Optional, Sequence
 import numpy as np
 
 from retinexgs.fileio import atomic_write_text
+from retinexgs.data.scene import scene_label
 
 
 @dataclass(frozen=True)
@@ -39,13 +40,6 @@ class Job:
     @property
     def metrics_path(self) -> Path:
         return self.run / "metrics.json"
-
-
-def scene_label(scene: Path) -> str:
-    """``lom/buu`` for .../lom/buu, ``fox-dark`` for .../fox-dark (the parent is kept when it is a collection)."""
-    scene = Path(scene).resolve()
-    return f"{scene.parent.name}/{scene.name}" if scene.parent.name.lower() in ("lom", "llnerf", "data_lom") \
-        else scene.name
 
 
 def config_slug(config: str) -> str:
@@ -87,7 +81,7 @@ def run_job(job: Job, device: str, steps: Optional[int], extra: Sequence[str]) -
     device call's time limit) continues from its newest checkpoint, so the steps it trained are not paid for
     twice; it is marked (:data:`RESUMED`) and its train time, which then covers only the last segment, is left
     out of the table. Without a checkpoint it starts again."""
-    from retinexgs.train.checkpoint import latest_checkpoint
+    from retinexgs.run.checkpoint import latest_checkpoint
 
     if job.metrics_path.is_file():
         return f"reused  {job.run}"

@@ -3,7 +3,7 @@
     python -m retinexgs.bench raster --device cpu
     python -m retinexgs.bench raster --device cuda --vs gsplat
 
-Each case renders SH-degree-3 colours of a random scene (see :mod:`retinexgs.bench.scenes`) and reports the
+Each case renders SH-degree-3 colours of a random scene (see :mod:`retinexgs.demo.splats`) and reports the
 median forward and forward+backward wall time in ms over ``--repeats`` runs after a warm-up.
 """
 from __future__ import annotations
@@ -15,25 +15,12 @@ from typing import Callable, Dict, List, Optional, Tuple
 
 import torch
 
-from retinexgs.bench.scenes import orbit_camera, random_scene
-from retinexgs.render import Camera, get_num_threads, rasterize_gaussians, set_num_threads, spherical_harmonics
+from retinexgs.demo.splats import orbit_camera, random_scene
+from retinexgs.render import Camera, get_num_threads, set_num_threads
 from retinexgs.render.reference import rasterize_gaussians_reference, spherical_harmonics_reference
+from retinexgs.bench.raster_ours import render_ours
 
 RenderFn = Callable[[Dict[str, torch.Tensor], Camera, int], torch.Tensor]
-
-
-def render_ours(scene: Dict[str, torch.Tensor], cam: Camera, degree: int, validate: bool = True) -> torch.Tensor:
-    """Our render of ``scene``; ``validate=False`` skips the public API's NaN/inf check (done inside the
-    projection kernel, read at binning's sync), as the trainer and the frame renderer do."""
-    dirs = scene["means"] - cam.center.to(scene["means"])
-    colors = torch.clamp_min(spherical_harmonics(degree, dirs, scene["sh"]) + 0.5, 0.0)
-    return rasterize_gaussians(scene["means"], scene["quats"], scene["scales"], scene["opacities"], colors,
-                               cam, validate=validate).image
-
-
-def render_ours_unchecked(scene: Dict[str, torch.Tensor], cam: Camera, degree: int) -> torch.Tensor:
-    """:func:`render_ours` without the input check."""
-    return render_ours(scene, cam, degree, validate=False)
 
 
 def render_reference(scene: Dict[str, torch.Tensor], cam: Camera, degree: int) -> torch.Tensor:

@@ -12,8 +12,8 @@ from typing import Callable, Dict, List, Tuple
 
 import torch
 
-from retinexgs.bench.raster import render_ours, render_ours_unchecked
-from retinexgs.bench.scenes import orbit_camera, random_scene
+from retinexgs.bench.raster_ours import render_ours, render_ours_unchecked
+from retinexgs.demo.splats import orbit_camera, random_scene
 from retinexgs.render import Camera
 
 CASES: List[Tuple[int, int, int]] = [(200_000, 600, 400), (1_000_000, 1280, 720), (3_000_000, 1920, 1080)]

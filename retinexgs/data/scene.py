@@ -186,3 +186,10 @@ class Scene:
         paired = sum(v.paired_path is not None for v in self.test)
         return (f"{self.root} [{self.reader}]: {len(self.train)} train / {len(self.test)} test views "
                 f"({paired} test views paired), {res}, {len(self.points)} {self.points_source} points")
+
+
+def scene_label(scene: Path) -> str:
+    """``lom/buu`` for .../lom/buu, ``fox-dark`` for .../fox-dark (the parent is kept when it is a collection)."""
+    scene = Path(scene).resolve()
+    return f"{scene.parent.name}/{scene.name}" if scene.parent.name.lower() in ("lom", "llnerf", "data_lom") \
+        else scene.name

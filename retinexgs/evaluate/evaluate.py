@@ -13,6 +13,8 @@ from PIL import Image
 from retinexgs.data import Scene
 from retinexgs.evaluate.metrics import gt_mean_align, lpips_metric, psnr, ssim_metric
 from retinexgs.fileio import atomic_write, atomic_write_text
+from retinexgs.run.folder import load_run
+from retinexgs.run.render import active_sh_degree, render_function
 
 
 def to_uint8(img: torch.Tensor) -> np.ndarray:
@@ -128,3 +130,10 @@ def evaluate(render_fn: Callable, scene: Scene, out_dir: Path, use_lpips: bool =
         + (f"  (not held-out: {test_in_train} of {len(views)} test views are training views)" if test_in_train
            else ""))
     return metrics
+
+
+def eval_run(run_dir: Path, device: Optional[str] = None, log: Callable[[str], None] = print) -> Optional[Dict]:
+    """Re-evaluate a saved run (rewrites metrics.json and renders/test)."""
+    cfg, scene, model, step = load_run(run_dir, device)
+    return evaluate(render_function(model, cfg, active_sh_degree(cfg, step)), scene, Path(run_dir),
+                    cfg["eval"]["lpips"], log)

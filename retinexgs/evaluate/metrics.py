@@ -22,12 +22,12 @@ from __future__ import annotations
 import importlib.util
 import math
 from pathlib import Path
-from typing import Dict, Optional, Tuple, Union
+from typing import Any, Callable, Dict, Optional, Tuple, Union
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
-from retinexgs.train.losses import ssim as _ssim
 
 __all__ = ["psnr", "ssim_metric", "gt_mean_align", "lpips_metric", "lpips_available"]
 
@@ -40,6 +40,98 @@ _BACKBONE_FILES = {
     "squeeze": "squeezenet1_1-b8a52dc0.pth",
 }
 _LPIPS_CACHE: Dict[Tuple[str, str], object] = {}
+
+
+def check_bchw(*xs: torch.Tensor) -> None:
+    """Raise unless every tensor is [B,C,H,W]."""
+    for x in xs:
+        if x.dim() != 4:
+            raise ValueError(f"expected a [B,C,H,W] tensor, got shape {tuple(x.shape)}")
+
+
+def gaussian_window(size: int = 11, sigma: float = 1.5, dtype: torch.dtype = torch.float32,
+                    device=None) -> torch.Tensor:
+    """Normalised 1D Gaussian [size] centred on the middle tap."""
+    r = torch.arange(size, dtype=torch.float64) - (size - 1) / 2.0
+    g = torch.exp(-(r ** 2) / (2.0 * sigma ** 2))
+    return (g / g.sum()).to(dtype=dtype, device=device)
+
+
+# The losses' constant filter weights (the SSIM window, the noise mask) by what they are for, channels, dtype and
+# device: built once, not every call (a training step would otherwise copy them to the GPU each time, and a
+# captured CUDA graph cannot contain the host->device copy at all). Entries are never dropped: a captured graph
+# reads them by address. They are tiny (a few numbers per channel).
+CONSTANTS: Dict[tuple, Any] = {}
+
+
+def cached_constant(key: tuple, build: Callable[[], Any]) -> Any:
+    """``CONSTANTS[key]``, built by ``build()`` the first time."""
+    w = CONSTANTS.get(key)
+    if w is None:
+        w = CONSTANTS[key] = build()
+    return w
+
+
+def gaussian_filter_weights(c: int, size: int, sigma: float, dtype: torch.dtype, device) -> Tuple[torch.Tensor, torch.Tensor]:
+    """The (horizontal [c,1,1,k], vertical [c,1,k,1]) weights of the separable depthwise Gaussian filter."""
+    def build() -> Tuple[torch.Tensor, torch.Tensor]:
+        g = gaussian_window(size, sigma, dtype, device)
+        return g.reshape(1, 1, 1, size).repeat(c, 1, 1, 1), g.reshape(1, 1, size, 1).repeat(c, 1, 1, 1)
+    return cached_constant(("gauss", c, size, float(sigma), dtype, torch.device(device or "cpu")), build)
+
+
+def gaussian_filter(x: torch.Tensor, size: int, sigma: float, pad: int) -> torch.Tensor:
+    """Separable depthwise Gaussian filter of [B,C,H,W] with zero padding ``pad``."""
+    c = x.shape[1]
+    wx, wy = gaussian_filter_weights(c, size, sigma, x.dtype, x.device)
+    x = F.conv2d(x, wx, padding=(0, pad), groups=c)
+    return F.conv2d(x, wy, padding=(pad, 0), groups=c)
+
+
+def ssim(x: torch.Tensor, y: torch.Tensor, window: int = 11, sigma: float = 1.5, padding: str = "same",
+         data_range: float = 1.0, reduction: str = "mean", c2_extra: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """Structural similarity (Wang et al. 2004) with a Gaussian window, per channel.
+
+    SSIM = (2μxμy + C1)(2σxy + C2) / ((μx² + μy² + C1)(σx² + σy² + C2)),
+    C1 = (0.01·R)², C2 = (0.03·R)², where μ, σ², σxy are Gaussian-weighted local moments
+    (population, not sample, covariance).
+
+    Args:
+        x, y: [B,C,H,W].
+        window, sigma: Gaussian window size (odd) and standard deviation.
+        padding: "same" = zero padding of window//2 (3DGS's training SSIM; the map has the input size)
+                 or "valid" = no padding (the standard evaluation SSIM; needs H, W ≥ window).
+        data_range: R, the dynamic range of the images (1 for [0,1]).
+        reduction: "mean" (scalar over everything) or "none" (the SSIM map).
+        c2_extra: added to C2, broadcast against [B,C,1,1]. C2 sets the variance below which SSIM stops comparing
+            structure; raised by a noisy y's noise variance (:func:`noise_variance`), SSIM no longer asks x to
+            reproduce y's contrast at the noise's scale, which x could only do by fitting that very noise.
+    """
+    check_bchw(x, y)
+    if x.shape != y.shape:
+        raise ValueError(f"shape mismatch {tuple(x.shape)} vs {tuple(y.shape)}")
+    if window % 2 != 1:
+        raise ValueError("window must be odd")
+    if padding not in ("same", "valid"):
+        raise ValueError("padding must be 'same' or 'valid'")
+    if padding == "valid" and min(x.shape[-2:]) < window:
+        raise ValueError(f"image {tuple(x.shape[-2:])} smaller than the {window}x{window} window")
+    pad = window // 2 if padding == "same" else 0
+    c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
+    # The five local moments in one filter pass (2 convolutions instead of 10: training is launch-bound).
+    moments = gaussian_filter(torch.cat([x, y, x * x, y * y, x * y], dim=1), window, sigma, pad)
+    mx, my, exx, eyy, exy = moments.chunk(5, dim=1)
+    sxx = exx - mx * mx
+    syy = eyy - my * my
+    sxy = exy - mx * my
+    if c2_extra is not None:
+        c2 = c2 + c2_extra
+    s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
+    if reduction == "none":
+        return s
+    if reduction == "mean":
+        return s.mean()
+    raise ValueError("reduction must be 'mean' or 'none'")
 
 
 def _as_pair(x: ImageLike, y: ImageLike) -> Tuple[torch.Tensor, torch.Tensor]:
@@ -66,7 +158,7 @@ def ssim_metric(x: ImageLike, y: ImageLike) -> float:
     a, b = _as_pair(x, y)
     a = a.permute(2, 0, 1)[None]
     b = b.permute(2, 0, 1)[None]
-    return float(_ssim(a, b, window=11, sigma=1.5, padding="valid", data_range=1.0))
+    return float(ssim(a, b, window=11, sigma=1.5, padding="valid", data_range=1.0))
 
 
 # Rec. 601 luma, the grey that the "GT-mean" convention's scaling is measured on (OpenCV's RGB -> GRAY).

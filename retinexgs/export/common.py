@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Dict, Iterable, Optional
 
 from retinexgs.errors import UserError
-from retinexgs.train.config import read_yaml
+from retinexgs.run.config import read_yaml
 
 
 def read_run_config(run_dir: Path) -> Dict:

@@ -18,8 +18,8 @@ from retinexgs.export.bake import bake_enhanced_sh, export_params, mean_gamma, r
 from retinexgs.export.common import check_enhancement_flags, check_writable_folder, read_run_config, refuse_existing
 from retinexgs.export.ply import write_ply
 from retinexgs.model.tone import apply_exposure
-from retinexgs.train.run import load_run
-from retinexgs.train.trainer import active_sh_degree, view_camera
+from retinexgs.run.folder import load_run
+from retinexgs.run.render import active_sh_degree, view_camera
 
 
 def export_run(run_dir: Path, out: Path, reflectance_only: bool = False, directions: int = DEFAULT_DIRECTIONS,

@@ -30,8 +30,9 @@ from retinexgs.export import PATH_KINDS
 from retinexgs.export.paths import camera_path
 from retinexgs.fileio import TMP_PREFIX, atomic_write, is_out_of_space, out_of_space_error
 from retinexgs.render import Camera, rasterize_gaussians
-from retinexgs.train.run import load_run, render_function
-from retinexgs.train.trainer import active_sh_degree, view_camera
+from retinexgs.run.folder import load_run
+from retinexgs.run.render import render_function
+from retinexgs.run.render import active_sh_degree, view_camera
 
 MAPS = ("enhanced", "R", "L", "depth", "low")
 DECOMPOSED_MAPS = ("R", "L", "low")

@@ -11,7 +11,7 @@ from torch import Tensor, nn
 from retinexgs.model.gaussians import PARAM_NAMES, GaussianModel
 from retinexgs.render import RenderOutput
 from retinexgs.render.reference import quat_to_rotmat
-from retinexgs.train.schedule import Schedule
+from retinexgs.model.schedule import Schedule
 
 
 def _edit_params(model: GaussianModel, optimizer: torch.optim.Optimizer,
@@ -37,7 +37,7 @@ class DensityController:
 
     def __init__(self, cfg: Dict, scene_extent: float, schedule: Schedule) -> None:
         self.cfg = cfg
-        self.schedule = schedule  # when to densify and reset, in steps (retinexgs.train.schedule)
+        self.schedule = schedule  # when to densify and reset, in steps (retinexgs.model.schedule)
         self.extent = float(scene_extent)
         self.grad_accum: Optional[Tensor] = None
         self.count: Optional[Tensor] = None

@@ -25,11 +25,12 @@ picks the paper's, configs/default.yaml the product's, with the reasons in the f
 """
 from __future__ import annotations
 
-from typing import Any, Callable, Dict, Optional, Tuple
+from typing import Dict, Optional, Tuple
 
 import torch
 import torch.nn.functional as F
 
+from retinexgs.evaluate.metrics import cached_constant, check_bchw, gaussian_window, ssim
 from retinexgs.model.tone import linear_to_srgb, srgb_to_linear
 
 __all__ = [
@@ -50,95 +51,6 @@ def to_bchw(x: torch.Tensor) -> torch.Tensor:
     raise ValueError(f"expected [H,W,C] or [B,C,H,W], got shape {tuple(x.shape)}")
 
 
-def _check4(*xs: torch.Tensor) -> None:
-    for x in xs:
-        if x.dim() != 4:
-            raise ValueError(f"expected a [B,C,H,W] tensor, got shape {tuple(x.shape)}")
-
-
-def gaussian_window(size: int = 11, sigma: float = 1.5, dtype: torch.dtype = torch.float32,
-                    device=None) -> torch.Tensor:
-    """Normalised 1D Gaussian [size] centred on the middle tap."""
-    r = torch.arange(size, dtype=torch.float64) - (size - 1) / 2.0
-    g = torch.exp(-(r ** 2) / (2.0 * sigma ** 2))
-    return (g / g.sum()).to(dtype=dtype, device=device)
-
-
-# The losses' constant filter weights (the SSIM window, the noise mask) by what they are for, channels, dtype and
-# device: built once, not every call (a training step would otherwise copy them to the GPU each time, and a
-# captured CUDA graph cannot contain the host->device copy at all). Entries are never dropped: a captured graph
-# reads them by address. They are tiny (a few numbers per channel).
-_WEIGHTS: Dict[tuple, Any] = {}
-
-
-def _constant(key: tuple, build: Callable[[], Any]) -> Any:
-    """``_WEIGHTS[key]``, built by ``build()`` the first time."""
-    w = _WEIGHTS.get(key)
-    if w is None:
-        w = _WEIGHTS[key] = build()
-    return w
-
-
-def _filter_weights(c: int, size: int, sigma: float, dtype: torch.dtype, device) -> Tuple[torch.Tensor, torch.Tensor]:
-    """The (horizontal [c,1,1,k], vertical [c,1,k,1]) weights of the separable depthwise Gaussian filter."""
-    def build() -> Tuple[torch.Tensor, torch.Tensor]:
-        g = gaussian_window(size, sigma, dtype, device)
-        return g.reshape(1, 1, 1, size).repeat(c, 1, 1, 1), g.reshape(1, 1, size, 1).repeat(c, 1, 1, 1)
-    return _constant(("gauss", c, size, float(sigma), dtype, torch.device(device or "cpu")), build)
-
-
-def _filter(x: torch.Tensor, size: int, sigma: float, pad: int) -> torch.Tensor:
-    """Separable depthwise Gaussian filter of [B,C,H,W] with zero padding ``pad``."""
-    c = x.shape[1]
-    wx, wy = _filter_weights(c, size, sigma, x.dtype, x.device)
-    x = F.conv2d(x, wx, padding=(0, pad), groups=c)
-    return F.conv2d(x, wy, padding=(pad, 0), groups=c)
-
-
-def ssim(x: torch.Tensor, y: torch.Tensor, window: int = 11, sigma: float = 1.5, padding: str = "same",
-         data_range: float = 1.0, reduction: str = "mean", c2_extra: Optional[torch.Tensor] = None) -> torch.Tensor:
-    """Structural similarity (Wang et al. 2004) with a Gaussian window, per channel.
-
-    SSIM = (2μxμy + C1)(2σxy + C2) / ((μx² + μy² + C1)(σx² + σy² + C2)),
-    C1 = (0.01·R)², C2 = (0.03·R)², where μ, σ², σxy are Gaussian-weighted local moments
-    (population, not sample, covariance).
-
-    Args:
-        x, y: [B,C,H,W].
-        window, sigma: Gaussian window size (odd) and standard deviation.
-        padding: "same" = zero padding of window//2 (3DGS's training SSIM; the map has the input size)
-                 or "valid" = no padding (the standard evaluation SSIM; needs H, W ≥ window).
-        data_range: R, the dynamic range of the images (1 for [0,1]).
-        reduction: "mean" (scalar over everything) or "none" (the SSIM map).
-        c2_extra: added to C2, broadcast against [B,C,1,1]. C2 sets the variance below which SSIM stops comparing
-            structure; raised by a noisy y's noise variance (:func:`noise_variance`), SSIM no longer asks x to
-            reproduce y's contrast at the noise's scale, which x could only do by fitting that very noise.
-    """
-    _check4(x, y)
-    if x.shape != y.shape:
-        raise ValueError(f"shape mismatch {tuple(x.shape)} vs {tuple(y.shape)}")
-    if window % 2 != 1:
-        raise ValueError("window must be odd")
-    if padding not in ("same", "valid"):
-        raise ValueError("padding must be 'same' or 'valid'")
-    if padding == "valid" and min(x.shape[-2:]) < window:
-        raise ValueError(f"image {tuple(x.shape[-2:])} smaller than the {window}x{window} window")
-    pad = window // 2 if padding == "same" else 0
-    c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
-    # The five local moments in one filter pass (2 convolutions instead of 10: training is launch-bound).
-    moments = _filter(torch.cat([x, y, x * x, y * y, x * y], dim=1), window, sigma, pad)
-    mx, my, exx, eyy, exy = moments.chunk(5, dim=1)
-    sxx = exx - mx * mx
-    syy = eyy - my * my
-    sxy = exy - mx * my
-    if c2_extra is not None:
-        c2 = c2 + c2_extra
-    s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
-    if reduction == "none":
-        return s
-    if reduction == "mean":
-        return s.mean()
-    raise ValueError("reduction must be 'mean' or 'none'")
 
 
 def robust_abs(err: torch.Tensor, delta: float = 0.0) -> torch.Tensor:
@@ -163,7 +75,7 @@ _NOISE_MASK = ((1.0, -2.0, 1.0), (-2.0, 4.0, -2.0), (1.0, -2.0, 1.0))
 
 def _noise_mask(c: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
     """Immerkær's mask as depthwise weights [c,1,3,3] (kept in ``_WEIGHTS``, like the SSIM window)."""
-    return _constant(("noise", c, dtype, torch.device(device)),
+    return cached_constant(("noise", c, dtype, torch.device(device)),
                      lambda: torch.tensor(_NOISE_MASK, dtype=dtype, device=device).expand(c, 1, 3, 3).contiguous())
 
 
@@ -174,7 +86,7 @@ def noise_variance(y: torch.Tensor) -> torch.Tensor:
     the median of its magnitude, unlike the mean, ignores the few pixels on edges and texture (a Gaussian's
     median |r| is 0.6745 of its σ).
     """
-    _check4(y)
+    check_bchw(y)
     if min(y.shape[-2:]) < 3:
         raise ValueError(f"noise_variance needs an image of at least 3×3, got {tuple(y.shape[-2:])}")
     b, c, h, w = y.shape
@@ -201,7 +113,7 @@ def l1_ssim(x: torch.Tensor, y: torch.Tensor, lambda_ssim: float = 0.2, huber: f
     :func:`robust_abs` with that δ. ``ssim_xy``: the pair the SSIM part compares, when it is not (x, y).
     ``ssim_noise``: the SSIM's C2 is raised by its target's noise variance (:func:`noise_variance`).
     """
-    _check4(x, y)
+    check_bchw(x, y)
     if x.shape != y.shape:
         x, y = torch.broadcast_tensors(x, y)
     l1 = robust_abs(x - y, huber).mean()
@@ -224,7 +136,7 @@ def reconstruction_loss(rec: torch.Tensor, S: torch.Tensor, lambda_ssim: float =
                         gain: Optional[torch.Tensor] = None, l1_exposed: bool = True,
                         ssim_noise: bool = False) -> torch.Tensor:
     """Ls(R̂∘L̂, S) alone (no 2D priors), with the options of :func:`supervision_loss`'s reconstruction term."""
-    _check4(rec, S)
+    check_bchw(rec, S)
     (x, y), (xs, ys) = _reconstruction_pairs(rec, S, gain, l1_exposed)
     return l1_ssim(x, y, lambda_ssim, huber, None if xs is x else (xs, ys), ssim_noise)
 
@@ -248,7 +160,7 @@ def supervision_loss(R_hat: torch.Tensor, L_hat: torch.Tensor, R: torch.Tensor, 
     Returns:
         (total, {"sup_r", "sup_l", "sup_rec"}) — the unweighted terms, for logging.
     """
-    _check4(R_hat, L_hat, R, L, S)
+    check_bchw(R_hat, L_hat, R, L, S)
     # The three Ls terms as one channel-stacked L1 + SSIM (SSIM is per channel, so stacking changes no value;
     # it is one set of kernels instead of three). Each pair is broadcast to a common channel count first.
     (rec, target), (rec_s, target_s) = _reconstruction_pairs(R_hat * L_hat, S, rec_gain, rec_l1_exposed)
@@ -283,7 +195,7 @@ def tv_loss(R_hat: torch.Tensor) -> torch.Tensor:
     Anisotropic L1 of forward differences, each direction averaged over its own (B·C·H·(W−1) or
     B·C·(H−1)·W) entries, so the value does not depend on the image size.
     """
-    _check4(R_hat)
+    check_bchw(R_hat)
     dx = (R_hat[..., :, 1:] - R_hat[..., :, :-1]).abs()
     dy = (R_hat[..., 1:, :] - R_hat[..., :-1, :]).abs()
     zero = R_hat.new_zeros(())
@@ -293,7 +205,7 @@ def tv_loss(R_hat: torch.Tensor) -> torch.Tensor:
 def edge_weights(guide: torch.Tensor, edge: float) -> Tuple[torch.Tensor, torch.Tensor]:
     """exp(−edge·|∂I|) of the channel mean I of ``guide`` [B,C,H,W]: ([B,1,H,W−1], [B,1,H−1,W]) weights of
     the horizontal and vertical forward differences; near 1 in flat regions, small across the image's edges."""
-    _check4(guide)
+    check_bchw(guide)
     g = guide.mean(1, keepdim=True)
     wx = torch.exp(-edge * (g[..., :, 1:] - g[..., :, :-1]).abs())
     wy = torch.exp(-edge * (g[..., 1:, :] - g[..., :-1, :]).abs())
@@ -315,7 +227,7 @@ def depth_smoothness_loss(depth: torch.Tensor, alpha: torch.Tensor, wx: torch.Te
     training views' colours; a view past them shows that as floaters. Smooth disparity, except across the
     guide's edges, is the prior that decides such regions.
     """
-    _check4(depth, alpha, wx, wy)
+    check_bchw(depth, alpha, wx, wy)
     covered = (alpha >= min_alpha).to(depth.dtype)
     disp = alpha / depth.clamp_min(eps) * covered
     disp = disp / (disp.sum() / covered.sum().clamp_min(1.0)).detach().clamp_min(eps)
@@ -369,7 +281,7 @@ def spatial_consistency_loss(enh: torch.Tensor, orig: torch.Tensor, pool: int = 
     brightened image's gradients with the dark input's, so it rewards a darker output (it trades
     brightness for contrast); with it only the *structure* of the contrast is compared.
     """
-    _check4(enh, orig)
+    check_bchw(enh, orig)
     if scale_invariant:
         enh, orig = _mean_normalized(enh), _mean_normalized(orig)
     if form == "paper":
@@ -394,7 +306,7 @@ def exposure_loss(enh: torch.Tensor, E: float = 0.6, patch: int = 16, form: str 
     per image: a single parameter cannot move every patch to E, and per-patch errors then pull it towards
     flattening the contrast). form="l2": mean (Y_k − E)² (Zero-DCE's code); "l1": mean |Y_k − E| (Eq. 9).
     """
-    _check4(enh)
+    check_bchw(enh)
     y = enh.mean(1, keepdim=True)
     y = y.mean(dim=(2, 3), keepdim=True) if patch == 0 else F.avg_pool2d(y, patch)
     if form == "l2":
@@ -415,7 +327,7 @@ def color_constancy_loss(enh: torch.Tensor, mode: str = "paper", eps: float = 1e
     mode="zero_dce": sqrt((m_r−m_g)^4 + (m_r−m_b)^4 + (m_g−m_b)^4 + eps) (Zero-DCE's code; eps keeps
     the gradient finite at a grey image).
     """
-    _check4(enh)
+    check_bchw(enh)
     if enh.shape[1] != 3:
         raise ValueError("color_constancy_loss needs 3 channels")
     m = enh.mean(dim=(2, 3))

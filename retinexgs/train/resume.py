@@ -4,16 +4,15 @@ checked against the run's scene)."""
 from __future__ import annotations
 
 import contextlib
-import copy
 import fcntl
 import os
 import tempfile
 from pathlib import Path
-from typing import Any, Callable, Dict, Iterable, Iterator, List, Optional, Sequence, Tuple
+from typing import Any, Dict, Iterable, Iterator, Optional, Sequence, Tuple
 
 from retinexgs.errors import UserError
 from retinexgs.fileio import TMP_PREFIX
-from retinexgs.train.config import Config, configs_dir, load_config, read_yaml
+from retinexgs.run.config import Config, load_config
 
 # Keys a resumed run may change: they act from the next step on (the run's length, its logging and
 # checkpointing, learning rates, loss weights, the density and SH schedules, evaluation, the cache folder).
@@ -74,46 +73,6 @@ def run_lock(run_dir: Path) -> Iterator[None]:
 
 
 # ---- the config of a resumed run ----------------------------------------------------------------------------
-
-# Keys whose default changed after they were added: a run made before the key existed behaved as the value here,
-# not as today's default (which would re-render it differently). The tone form was the gamma on L̂ until
-# 2026-11-25, when the exposure tone became the default; the depth prior came in later that day, at weight 0.3
-# in the default (a run made before it, resumed, must not start using it); the reconstruction term was on the
-# dark photo's values (rec_domain photo) until the exposed SSIM became the default, later still; renders were over
-# black until the mean background became the default (2026-11-26).
-PREDATING_VALUES: Dict[str, Any] = {"model.enhancement.tone": "illumination", "loss.w_depth": 0.0,
-                                    "loss.rec_domain": "photo", "model.background": "black",
-                                    "model.enhancement.shoulder": 1.0}
-
-
-def _fill_missing(cfg: Config, default: Config, prefix: str, filled: List[str]) -> Config:
-    """Keys added to default.yaml after the run was made get the behaviour the run had: the value in
-    :data:`PREDATING_VALUES` where the default changed since, else their default (a run folder outlives versions)."""
-    out = dict(cfg)
-    for key, value in default.items():
-        if key not in out:
-            out[key] = copy.deepcopy(PREDATING_VALUES.get(prefix + key, value))
-            filled.append(prefix + key)
-        elif isinstance(value, dict) and isinstance(out[key], dict) and key != "params":
-            out[key] = _fill_missing(out[key], value, f"{prefix}{key}.", filled)
-    return out
-
-
-def read_run_config(run_dir: Path, log: Optional[Callable[[str], None]] = None) -> Tuple[Config, Path]:
-    """(validated config, scene path) recorded in ``run_dir/config.yaml``."""
-    path = Path(run_dir) / "config.yaml"
-    if not path.is_file():
-        raise UserError(f"{run_dir} is not a run folder (no config.yaml)")
-    raw = read_yaml(path)
-    scene = raw.pop("scene", None)
-    if not isinstance(scene, str):
-        raise UserError(f"{path} does not name the run's scene (key 'scene'); it is not a RetinexGS run config")
-    filled: List[str] = []
-    raw = _fill_missing(raw, read_yaml(configs_dir() / "default.yaml"), "", filled)
-    if filled and log is not None:
-        log(f"{path} predates config keys {', '.join(filled)}: using the values that match how it was trained")
-    return load_config(base=raw, base_label=str(path)), Path(scene)
-
 
 def _leaves(cfg: Config, prefix: str = "") -> Dict[str, Any]:
     out: Dict[str, Any] = {}

@@ -11,36 +11,26 @@ from pathlib import Path
 from typing import Callable, Dict, List, Optional, Tuple
 
 import torch
-import yaml
 from torch import Tensor
 from torch.profiler import record_function
 
 from retinexgs.data import Scene, View
 from retinexgs.errors import UserError
-from retinexgs.fileio import atomic_write_text, is_out_of_space, out_of_space_error
+from retinexgs.fileio import is_out_of_space, out_of_space_error
 from retinexgs.model.density import DensityController
 from retinexgs.model.gaussians import GaussianModel
 from retinexgs.model.retinex_model import RetinexGSModel
 from retinexgs.model.tone import exposure_gain
 from retinexgs.render import Camera
 from retinexgs.train import losses
-from retinexgs.train.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
+from retinexgs.run.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
 from retinexgs.train.graphs import ChannelGraphs, LossGraphs
-from retinexgs.train.schedule import build_schedule
+from retinexgs.model.schedule import build_schedule
+from retinexgs.run.render import view_camera
 
 
 class TrainingDiverged(UserError):
     """A loss term or parameter became non-finite; the last good checkpoint is left intact."""
-
-
-def active_sh_degree(cfg: Dict, step: int) -> int:
-    """The SH degree the model renders with after ``step`` steps (it grows by one every sh_degree_every)."""
-    return build_schedule(cfg).sh_degree_at(step)
-
-
-def view_camera(view: View) -> Camera:
-    """The renderer's camera for a data-layer view."""
-    return Camera(view.world_to_camera(), view.fx, view.fy, view.cx, view.cy, view.width, view.height)
 
 
 def scene_extent(scene: Scene) -> float:
@@ -653,8 +643,3 @@ class Trainer:
         return SummaryWriter(str(self.run / "tb"))
 
 
-def write_run_config(run: Path, cfg: Dict, scene_path: Path) -> None:
-    """The resolved config of a run (what resume, eval, render and export read back)."""
-    data = dict(cfg)
-    data["scene"] = str(Path(scene_path).resolve())
-    atomic_write_text(run / "config.yaml", yaml.safe_dump(data, sort_keys=False))

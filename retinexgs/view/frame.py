@@ -20,7 +20,7 @@ from retinexgs.data.scene import View
 from retinexgs.evaluate.evaluate import to_uint8
 from retinexgs.export.renders import depth_range, render_depth
 from retinexgs.model.inference import InferenceRenderer
-from retinexgs.train.run import render_function
+from retinexgs.run.render import render_function
 from retinexgs.view.camera import ViewerCamera, viewer_to_camera
 
 VIEW_MAPS = ("enhanced", "R", "L", "low", "depth")

@@ -55,3 +55,9 @@ def start_live_viewer(trainer, scene, host: str, port: int, log: Callable[[str],
     log(f"retinexgs train --view: the live scene at {viewer.url} (stops when training ends; afterwards use "
         "retinexgs view --run RUN)")
     return viewer
+
+
+def live_viewer(host: str, port: int) -> Callable:
+    """``train_run``'s ``on_trainer`` hook for ``train --view``: serve the trainer's model at ``host:port``; returns
+    the function that stops the server when training ends."""
+    return lambda trainer, scene, log: start_live_viewer(trainer, scene, host, port, log).stop

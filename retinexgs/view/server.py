@@ -183,7 +183,7 @@ class RunViewer:
 
 def snap_cameras(scene) -> Dict[str, Camera]:
     """'train: NAME' / 'test: NAME' -> camera, for the snap list."""
-    from retinexgs.train.trainer import view_camera
+    from retinexgs.run.render import view_camera
     out: Dict[str, Camera] = {}
     for split in ("train", "test"):
         for v in getattr(scene, split):
@@ -242,8 +242,8 @@ def view_run(run_dir, host: str = "127.0.0.1", port: int = 8080, device: Optiona
     """Serve ``run_dir`` in the browser; with ``block``, until Ctrl-C. The address, then the run, then the
     viser install are checked, each with a UserError."""
     check_address(host, port)
-    from retinexgs.train.run import load_run
-    from retinexgs.train.trainer import active_sh_degree
+    from retinexgs.run.folder import load_run
+    from retinexgs.run.render import active_sh_degree
     cfg, scene, model, step = load_run(run_dir, device)
     import_viser()
     renderer = FrameRenderer(model, cfg, active_sh_degree(cfg, step), scene.train)

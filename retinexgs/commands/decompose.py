@@ -80,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
     from retinexgs.data.images import read_image
     from retinexgs.retinex.base import available_methods
     from retinexgs.retinex.cache import decompose_images, scene_cache_root
-    from retinexgs.train.config import load_config
+    from retinexgs.run.config import load_config
 
     scene = Path(args.data).expanduser()
     if args.clean or args.info:
@@ -104,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
     if _has_poses(scene, cfg["data"]["cache_dir"]):
         # Decompose exactly the images train will read: undistorted and downscaled copies where the scene
         # needs them, so that train finds every entry in the cache.
-        from retinexgs.train.run import open_scene
+        from retinexgs.run.folder import open_scene
 
         paths = [v.image_path for v in open_scene(scene, cfg, cache_hint=hint).train]
     else:
@@ -144,7 +144,7 @@ def _cache_size_line(root: Path) -> str:
 def _clean_or_info(scene: Path, args: argparse.Namespace) -> int:
     """``--info``: list the scene's decomposition cache; ``--clean``: delete it. Neither loads the scene."""
     from retinexgs.retinex.cache import cache_summary, clean_cache, scene_cache_root
-    from retinexgs.train.config import load_config
+    from retinexgs.run.config import load_config
 
     if args.clean and args.info:
         raise UserError("--clean and --info do not go together: --info lists the cache, --clean deletes it")

@@ -62,23 +62,24 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _train(args: argparse.Namespace) -> int:
-    from retinexgs.train.run import train_run
+    from retinexgs.train.runner import train_run
 
     if args.data is None and not args.resume:
         raise UserError("--data SCENE is required (only --resume can do without it: the run knows its scene)")
-    view = None
+    on_trainer = None
     if args.view:  # checked before any work: a missing viser or a bad port must not cost a training run
+        from retinexgs.view.live import live_viewer
         from retinexgs.view.server import check_address, import_viser
         check_address(args.view_host, args.view_port)
         import_viser()
-        view = (args.view_host, args.view_port)
+        on_trainer = live_viewer(args.view_host, args.view_port)
     train_run(args.data, args.out, args.config, args.set, args.device, args.resume, progress=not args.quiet,
-              relocate_scene=args.relocate_scene, view=view)
+              relocate_scene=args.relocate_scene, on_trainer=on_trainer)
     return 0
 
 
 def _eval(args: argparse.Namespace) -> int:
-    from retinexgs.train.run import eval_run
+    from retinexgs.evaluate.evaluate import eval_run
 
     eval_run(args.run, args.device)
     return 0
@@ -86,8 +87,8 @@ def _eval(args: argparse.Namespace) -> int:
 
 def _demo(args: argparse.Namespace) -> int:
     from retinexgs.demo.synthetic import make_demo_scene
-    from retinexgs.train.config import load_config
-    from retinexgs.train.run import train_run
+    from retinexgs.run.config import load_config
+    from retinexgs.train.runner import train_run
 
     out = args.out
     marker = out / ".retinexgs-demo"

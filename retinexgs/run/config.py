@@ -1,5 +1,5 @@
 """Configs as data: ``configs/default.yaml`` deep-merged with override files and ``key.sub=value`` overrides,
-then checked against one typed schema (:mod:`retinexgs.train.schema`) before any work starts. Unknown keys are
+then checked against one typed schema (:mod:`retinexgs.run.schema`) before any work starts. Unknown keys are
 errors, so a typo in an override never silently does nothing."""
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ import yaml
 from pydantic import ValidationError
 
 from retinexgs.errors import UserError
-from retinexgs.train.schedule import check_schedule
-from retinexgs.train.schema import ConfigSchema, field_expectation
+from retinexgs.model.schedule import check_schedule
+from retinexgs.run.schema import ConfigSchema, field_expectation
 
 Config = Dict[str, Any]
 
@@ -93,7 +93,7 @@ def _note_sources(data: Config, prefix: Tuple[str, ...], label: str, sources: Di
 def load_config(files: Iterable[str] = (), overrides: Iterable[str] = (), base: Optional[Config] = None,
                 base_label: Optional[str] = None) -> Config:
     """default.yaml (or ``base``), then each file, then each ``key=value`` override, validated by the schema
-    (:mod:`retinexgs.train.schema`) and the schedule checks; returns the validated config as a plain dict."""
+    (:mod:`retinexgs.run.schema`) and the schedule checks; returns the validated config as a plain dict."""
     if base is None:
         cfg, base_label = read_yaml(configs_dir() / "default.yaml"), str(configs_dir() / "default.yaml")
     else:

@@ -95,7 +95,7 @@ def texture_split(R: torch.Tensor, L: torch.Tensor) -> float:
 
 def _views(scene_dir: Path, n: int, cfg: Dict) -> List[Tuple[torch.Tensor, torch.Tensor]]:
     """(dark image, normal-light image) of ``n`` evenly spaced paired training views."""
-    from retinexgs.train.run import open_scene
+    from retinexgs.run.folder import open_scene
 
     scene = open_scene(scene_dir, cfg)
     paired = [v for v in scene.train if v.paired_path is not None] or [v for v in scene.test if v.paired_path]
@@ -109,7 +109,7 @@ def run(scenes: Sequence[Path], configs: Sequence[str], n_views: int, device: st
         betas: Sequence[float] = (), overrides: Sequence[str] = ()) -> str:
     """The proxy table and the texture-split table (markdown)."""
     from retinexgs.retinex import decompose
-    from retinexgs.train.config import load_config
+    from retinexgs.run.config import load_config
 
     cfgs = {name: load_config([] if name == "default" else [name], overrides) for name in configs}
     base = cfgs[configs[0]]
@@ -121,7 +121,7 @@ def run(scenes: Sequence[Path], configs: Sequence[str], n_views: int, device: st
     split_rows: Dict[str, List[str]] = {}
     labels = []
     for scene in scenes:
-        from retinexgs.bench.quality import scene_label
+        from retinexgs.data.scene import scene_label
         labels.append(scene_label(scene))
         views = _views(Path(scene), n_views, base)
         params = dict(base["decomposer"]["params"])

@@ -64,7 +64,7 @@ def Choice(*values: str) -> Any:
     return Annotated[Literal[values], Expect("one of " + ", ".join(values))]  # type: ignore[valid-type]
 
 
-# Schedule points (retinexgs.train.schedule): a decimal 0..1 is a fraction of `steps`, so the schedule follows the
+# Schedule points (retinexgs.model.schedule): a decimal 0..1 is a fraction of `steps`, so the schedule follows the
 # run length; an integer is an absolute step number (sklearn's test_size convention).
 Step = Annotated[Union[Annotated[StrictInt, Field(ge=0)], Annotated[float, Field(ge=0, le=1)]],
                  Expect("a fraction of steps 0..1 (a decimal, e.g. 0.3) or an absolute step (an integer >= 0)")]

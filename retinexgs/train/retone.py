@@ -53,7 +53,7 @@ def _allowed(key: Tuple[str, ...]) -> bool:
 def variant_config(run_cfg: Dict, name: str, overrides: Sequence[str] = ()) -> Dict:
     """The run's config with config file ``name`` ("default": none) and then ``overrides`` (KEY=VALUE) applied,
     checked to change only the enhancement (UserError naming the first other key it changes)."""
-    from retinexgs.train.config import load_config
+    from retinexgs.run.config import load_config
 
     if name == "default" and not overrides:
         return copy.deepcopy(run_cfg)
@@ -92,8 +92,8 @@ def run(runs: Sequence[Path], configs: Sequence[str], steps: int, device: str, s
         overrides: Sequence[str] = ()) -> str:
     """The markdown table: per run and config, test PSNR / SSIM (mean ± sample std over the EnhancementNet's
     ``seeds``: its initialisation and view order; the scene is the run's) and the mean predicted gamma."""
-    from retinexgs.train.run import load_run
-    from retinexgs.train.trainer import active_sh_degree, view_camera
+    from retinexgs.run.folder import load_run
+    from retinexgs.run.render import active_sh_degree, view_camera
 
     lines = ["| run | config | PSNR / SSIM (± over enhancement seeds) | mean g |", "|---|---|---|---|"]
     for run_dir in runs:

@@ -4,7 +4,7 @@ for our rasterizer and for gsplat's in the same step, side by side.
     python -m retinexgs.bench train-speed --device cuda [--vs gsplat] [--sizes 100k,1M,3M] [--width 1280 --height 720]
     python -m retinexgs.bench train-speed --device cuda --data SCENE [--config NAME] [--steps 300]
 
-Synthetic sweep (the default): random Gaussians (:mod:`retinexgs.bench.scenes`) with the default config's
+Synthetic sweep (the default): random Gaussians (:mod:`retinexgs.demo.splats`) with the default config's
 illumination MLP and SH degree 3, one camera, random targets for R, L and S. One step is what the trainer does
 before the enhancement losses start: per-Gaussian SH colours and illumination MLP, one 6-channel rasterization,
 the supervision (L1 + SSIM of R̂, L̂ and R̂∘L̂), TV and SH losses, backward, fused Adam. The gsplat step is the
@@ -34,7 +34,7 @@ from typing import Callable, Dict, List, Optional, Tuple
 
 import torch
 
-from retinexgs.bench.scenes import orbit_camera, random_scene
+from retinexgs.demo.splats import orbit_camera, random_scene
 from retinexgs.render import Camera, rasterize_gaussians
 
 
@@ -156,7 +156,7 @@ def synthetic_step(n: int, width: int, height: int, device: torch.device, raster
     from retinexgs.model.gaussians import GaussianModel
     from retinexgs.model.retinex_model import RetinexGSModel
     from retinexgs.train import losses
-    from retinexgs.train.config import load_config
+    from retinexgs.run.config import load_config
 
     cfg = load_config()
     sc = random_scene(n, 3, seed)
@@ -195,8 +195,8 @@ def synthetic_step(n: int, width: int, height: int, device: torch.device, raster
 
 def trainer_step(scene_path: Path, config: List[str], device: torch.device, run_dir: Path) -> Callable[[], None]:
     """The real trainer's next step on ``scene_path`` (it keeps training across calls)."""
-    from retinexgs.train.config import load_config
-    from retinexgs.train.run import open_scene
+    from retinexgs.run.config import load_config
+    from retinexgs.run.folder import open_scene
     from retinexgs.train.trainer import Trainer
 
     cfg = load_config(config)

@@ -1,0 +1,113 @@
+"""Run folders: create, train, resume, reload and evaluate (what the train / eval / demo commands call)."""
+from __future__ import annotations
+
+import contextlib
+from pathlib import Path
+from typing import Callable, Dict, Iterable, Optional
+
+import torch
+
+from retinexgs.data import Scene
+from retinexgs.errors import UserError
+from retinexgs.evaluate.evaluate import evaluate
+from retinexgs.run.checkpoint import latest_checkpoint, load_checkpoint
+from retinexgs.run.config import load_config
+from retinexgs.train.resume import check_same_views, check_writable_folder, is_empty_run_folder, resume_config, resume_scene, run_lock
+from retinexgs.run.folder import read_run_config
+from retinexgs.model.schedule import build_schedule
+from retinexgs.train.trainer import Trainer
+from retinexgs.run.folder import write_run_config
+from retinexgs.run.folder import open_scene, pick_device
+from retinexgs.run.render import render_function
+
+
+def _checkpoint_step(run_dir: Path) -> int:
+    ckpt = latest_checkpoint(run_dir)
+    return int(ckpt.stem.split("_")[-1]) if ckpt is not None else 0
+
+
+def train_run(scene_path: Optional[Path], run_dir: Path, config_files: Iterable[str] = (),
+              overrides: Iterable[str] = (), device: Optional[str] = None, resume: bool = False,
+              progress: bool = True, log: Callable[[str], None] = print,
+              relocate_scene: bool = False,
+              on_trainer: Optional[Callable[[Trainer, Scene, Callable[[str], None]], Callable[[], None]]] = None
+              ) -> Optional[Dict]:
+    """Train (or resume) a run and evaluate it; returns the test metrics (None when there are none).
+
+    Everything cheap is checked before the scene is loaded: the config (schema and schedule), ``--out``
+    (a writable folder, empty for a new run), and on resume the run's lock, the keys a resume may change and
+    ``--data`` against the run's scene. Overrides given on resume are recorded in the run's config.yaml.
+    ``on_trainer(trainer, scene, log)``: called once the run is set up, before the first step; it returns a
+    function called when training ends (``train --view`` serves the live model this way: ``retinexgs.view.live``)."""
+    run_dir = Path(run_dir)
+    device = pick_device(device)
+    config_files, overrides = list(config_files), list(overrides)
+    changes: Dict = {}
+    relocating = False
+    with contextlib.ExitStack() as stack:
+        if resume:
+            if not (run_dir / "config.yaml").is_file():
+                raise UserError(f"--resume: {run_dir} is not a run folder (no config.yaml)")
+            check_writable_folder(run_dir)
+            stack.enter_context(run_lock(run_dir))
+            recorded, recorded_scene = read_run_config(run_dir, log)
+            cfg, changes = resume_config(recorded, config_files, overrides, run_dir, _checkpoint_step(run_dir))
+            scene_path, relocating = resume_scene(recorded_scene, scene_path, relocate_scene, run_dir)
+        else:
+            if relocate_scene:
+                raise UserError("--relocate-scene applies only with --resume (it points a run at its moved scene)")
+            check_writable_folder(run_dir)
+            if not is_empty_run_folder(run_dir):
+                raise UserError(f"run folder {run_dir} already exists and is not empty; pass --resume to continue "
+                                "it or choose another --out")
+            cfg = load_config(config_files, overrides)
+        scene = open_scene(Path(scene_path), cfg)
+        log(scene.summary())
+        if relocating:
+            ckpt = latest_checkpoint(run_dir)
+            names = load_checkpoint(ckpt).get("train_views") if ckpt is not None else None
+            if not check_same_views(names, [v.name for v in scene.train], recorded_scene, Path(scene_path)):
+                log(f"--relocate-scene: {run_dir} has no record of its training views to compare with (a "
+                    "checkpoint from an older version); the new scene is taken as it is")
+        log(build_schedule(cfg).describe())
+        if device.startswith("cuda"):
+            torch.cuda.reset_peak_memory_stats()
+        # The trainer reads every image and decomposition first: bad input fails before the run folder is made.
+        trainer = Trainer(cfg, scene, run_dir, device, resume=resume, progress=progress, log=log)
+        if not resume:
+            run_dir.mkdir(parents=True, exist_ok=True)
+            stack.enter_context(run_lock(run_dir))
+            if not is_empty_run_folder(run_dir):  # another trainer made it while this one was loading
+                raise UserError(f"run folder {run_dir} was filled by another trainer meanwhile; choose another --out")
+        if not resume or changes or relocating:
+            write_run_config(run_dir, cfg, scene_path)  # atomic: a later --resume continues with these settings
+            for key, (old, new) in changes.items():
+                log(f"--resume: {key} {old!r} -> {new!r} (recorded in {run_dir / 'config.yaml'})")
+            if relocating:
+                log(f"--relocate-scene: the run now reads its scene from {Path(scene_path).resolve()}")
+        if on_trainer is not None:
+            stack.callback(on_trainer(trainer, scene, log))
+        return _train_and_evaluate(trainer, cfg, scene, run_dir, device, log)
+
+
+def _train_and_evaluate(trainer: Trainer, cfg: Dict, scene: Scene, run_dir: Path, device: str,
+                        log: Callable[[str], None]) -> Optional[Dict]:
+    stats: Dict = {"device": torch.cuda.get_device_name() if device.startswith("cuda") else "cpu"}
+    if trainer.step >= cfg["steps"]:
+        log(f"{run_dir} has already finished its {cfg['steps']} steps")
+    else:
+        values = trainer.train()
+        values.setdefault("total_seconds", values["seconds"])
+        stats.update(train_seconds=round(values["total_seconds"], 1), steps=cfg["steps"])
+        if device.startswith("cuda"):
+            stats["peak_gpu_memory_gb"] = round(torch.cuda.max_memory_allocated() / 2**30, 3)
+        resumed = values["total_seconds"] - values["seconds"] > 0.5
+        took = (f"{values['total_seconds']:.0f} s in all ({values['seconds']:.0f} s this session)" if resumed
+                else f"{values['seconds']:.0f} s")
+        log(f"trained {cfg['steps']} steps in {took}, {len(trainer.model.gaussians)} Gaussians"
+            + (f", peak GPU memory {stats['peak_gpu_memory_gb']:.2f} GB" if "peak_gpu_memory_gb" in stats else ""))
+    stats["gaussians"] = len(trainer.model.gaussians)
+    return evaluate(render_function(trainer.model, cfg, trainer.active_degree(cfg["steps"])), scene, run_dir,
+                    cfg["eval"]["lpips"], log, extra={"train": stats})
+
+
