@@ -70,9 +70,10 @@ setup(
     install_requires=["torch>=2.1", "numpy", "pyyaml", "tqdm", "pillow", "opencv-contrib-python-headless>=4.8",
                       "pycolmap>=4.0", "plyfile", "pydantic>=2"],
     extras_require={
-        # viser and selenium: the viewer's server and browser tests (the browser test also needs Debian's
-        # chromium and chromium-driver, installed by .ci/run; without them it is skipped).
-        "test": ["pytest", "hypothesis", "scipy", "imageio[ffmpeg]", "viser>=1.1", "selenium"],
+        # import-linter: the layer contracts (.importlinter). viser and selenium: the viewer's server and browser
+        # tests (the browser test also needs Debian's chromium and chromium-driver, installed by .ci/run; without
+        # them it is skipped).
+        "test": ["pytest", "hypothesis", "scipy", "imageio[ffmpeg]", "viser>=1.1", "selenium", "import-linter>=2.1"],
         # Video paths (render --path) and TensorBoard logging (log.tensorboard, off by default).
         "io": ["imageio[ffmpeg]", "tensorboard"],
         # The web viewer (retinexgs view).

@@ -24,6 +24,10 @@ from typing import Callable, Dict, List, Optional
 import torch
 
 from retinexgs.render import Camera, rasterize_gaussians
+from retinexgs.model.inference import InferenceRenderer
+from retinexgs.errors import UserError
+from retinexgs.run.folder import load_run
+from retinexgs.run.render import active_sh_degree, view_camera
 
 STAGES = ("full", "full (fused)", "raster")
 # Runtime/driver calls that start GPU work: kernels, graphs, copies and fills.
@@ -85,10 +89,6 @@ def benchmark(run: Path, device: Optional[str] = None, width: Optional[int] = No
               launch_frames: int = 5) -> Dict[str, object]:
     """Median ms / FPS of the full enhanced render (torch path and fused path) and of the rasterization alone
     for ``run``; on CUDA also the launches per frame of the two full stages (over ``launch_frames`` frames)."""
-    from retinexgs.model.inference import InferenceRenderer
-    from retinexgs.errors import UserError
-    from retinexgs.run.folder import load_run
-    from retinexgs.run.render import active_sh_degree, view_camera
 
     cfg, scene, model, step = load_run(run, device)
     model.eval()
@@ -180,7 +180,6 @@ def main(argv: Optional[List[str]] = None) -> int:
     if args.frames < 1 or args.warmup < 0 or args.launch_frames < 0 or any(
             size is not None and size < 1 for size in (args.width, args.height)):
         parser.error("--frames, --width and --height must be at least 1, --warmup and --launch-frames at least 0")
-    from retinexgs.errors import UserError
 
     try:
         print(format_result(benchmark(args.run, args.device, args.width, args.height, args.frames, args.warmup,

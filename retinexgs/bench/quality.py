@@ -26,6 +26,7 @@ import numpy as np
 
 from retinexgs.fileio import atomic_write_text
 from retinexgs.data.scene import scene_label
+from retinexgs.run.checkpoint import latest_checkpoint
 
 
 @dataclass(frozen=True)
@@ -81,7 +82,6 @@ def run_job(job: Job, device: str, steps: Optional[int], extra: Sequence[str]) -
     device call's time limit) continues from its newest checkpoint, so the steps it trained are not paid for
     twice; it is marked (:data:`RESUMED`) and its train time, which then covers only the last segment, is left
     out of the table. Without a checkpoint it starts again."""
-    from retinexgs.run.checkpoint import latest_checkpoint
 
     if job.metrics_path.is_file():
         return f"reused  {job.run}"

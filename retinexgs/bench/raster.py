@@ -19,6 +19,7 @@ from retinexgs.demo.splats import orbit_camera, random_scene
 from retinexgs.render import Camera, get_num_threads, set_num_threads
 from retinexgs.render.reference import rasterize_gaussians_reference, spherical_harmonics_reference
 from retinexgs.bench.raster_ours import render_ours
+from retinexgs.bench.raster_cuda import run_cuda
 
 RenderFn = Callable[[Dict[str, torch.Tensor], Camera, int], torch.Tensor]
 
@@ -102,7 +103,6 @@ def main(argv: Optional[List[str]] = None) -> int:
             cases = [(2_000, 160, 120)]
         run_cpu(cases, args.repeats or (3 if args.quick else 7), args.reference_max_work)
         return 0
-    from retinexgs.bench.raster_cuda import run_cuda  # noqa: WPS433 (needs a GPU build)
 
     return run_cuda(args)
 

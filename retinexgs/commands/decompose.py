@@ -68,8 +68,8 @@ def list_scene_images(scene: Path, images_subdir: Optional[str] = None) -> List[
 def _has_poses(scene: Path, cache_dir: Optional[str]) -> bool:
     """True when ``train`` would load the scene without computing SfM: a transforms JSON, a COLMAP model, or
     the SfM model an earlier ``train``/``sfm`` cached for it."""
-    from retinexgs.data.colmap import find_model_dir
-    from retinexgs.data.transforms_json import has_transforms
+    from retinexgs.data.colmap import find_model_dir  # lazy: --help stays fast
+    from retinexgs.data.transforms_json import has_transforms  # lazy: --help stays fast
 
     sfm = Path(cache_dir) / "sfm" if cache_dir else scene / "retinexgs_sfm"
     return has_transforms(scene) or find_model_dir(scene) is not None or (sfm / "retinexgs_sfm.json").is_file()
@@ -77,10 +77,10 @@ def _has_poses(scene: Path, cache_dir: Optional[str]) -> bool:
 
 def run(args: argparse.Namespace) -> int:
     """Entry point of ``retinexgs decompose``."""
-    from retinexgs.data.images import read_image
-    from retinexgs.retinex.base import available_methods
-    from retinexgs.retinex.cache import decompose_images, scene_cache_root
-    from retinexgs.run.config import load_config
+    from retinexgs.data.images import read_image  # lazy: --help stays fast
+    from retinexgs.retinex.base import available_methods  # lazy: --help stays fast
+    from retinexgs.retinex.cache import decompose_images, scene_cache_root  # lazy: --help stays fast
+    from retinexgs.run.config import load_config  # lazy: --help stays fast
 
     scene = Path(args.data).expanduser()
     if args.clean or args.info:
@@ -104,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
     if _has_poses(scene, cfg["data"]["cache_dir"]):
         # Decompose exactly the images train will read: undistorted and downscaled copies where the scene
         # needs them, so that train finds every entry in the cache.
-        from retinexgs.run.folder import open_scene
+        from retinexgs.run.folder import open_scene  # lazy: --help stays fast
 
         paths = [v.image_path for v in open_scene(scene, cfg, cache_hint=hint).train]
     else:
@@ -133,7 +133,7 @@ def _mib(n: int) -> str:
 
 
 def _cache_size_line(root: Path) -> str:
-    from retinexgs.retinex.cache import cache_summary
+    from retinexgs.retinex.cache import cache_summary  # lazy: --help stays fast
 
     rows = cache_summary(root)
     entries = sum(r["entries"] + r["old_entries"] for r in rows)
@@ -143,8 +143,8 @@ def _cache_size_line(root: Path) -> str:
 
 def _clean_or_info(scene: Path, args: argparse.Namespace) -> int:
     """``--info``: list the scene's decomposition cache; ``--clean``: delete it. Neither loads the scene."""
-    from retinexgs.retinex.cache import cache_summary, clean_cache, scene_cache_root
-    from retinexgs.run.config import load_config
+    from retinexgs.retinex.cache import cache_summary, clean_cache, scene_cache_root  # lazy: --help stays fast
+    from retinexgs.run.config import load_config  # lazy: --help stays fast
 
     if args.clean and args.info:
         raise UserError("--clean and --info do not go together: --info lists the cache, --clean deletes it")
@@ -176,7 +176,7 @@ def _clean_or_info(scene: Path, args: argparse.Namespace) -> int:
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``decompose`` sub-command."""
-    from retinexgs.retinex.base import available_methods
+    from retinexgs.retinex.base import available_methods  # lazy: --help stays fast
 
     p = subparsers.add_parser(
         "decompose", help="split each low-light photo of a scene into reflectance R and illumination L (cached)",

@@ -66,7 +66,7 @@ def check_frames_and_fps(frames: int, fps: float) -> None:
 
 
 def _render(args: argparse.Namespace) -> int:
-    from retinexgs.export.renders import parse_maps, render_run
+    from retinexgs.export.renders import parse_maps, render_run  # lazy: --help stays fast
 
     check_frames_and_fps(args.frames, args.fps)  # before the run loads: 10^8 frames used to build for minutes
     render_run(args.run, args.views, args.out, parse_maps(args.maps), args.exposure, args.gamma, args.path,
@@ -75,7 +75,7 @@ def _render(args: argparse.Namespace) -> int:
 
 
 def _export(args: argparse.Namespace) -> int:
-    from retinexgs.export.export import export_run
+    from retinexgs.export.export import export_run  # lazy: --help stays fast
 
     export_run(args.run, args.out, args.reflectance_only, args.directions, args.exposure, args.gamma,
                args.device, args.force, progress=not args.quiet)

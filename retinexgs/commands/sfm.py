@@ -31,7 +31,7 @@ def register(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run SfM for parsed ``args`` and print a summary; returns the exit code."""
-    from retinexgs.data.sfm import run_sfm
+    from retinexgs.data.sfm import run_sfm  # lazy: --help stays fast
 
     enhance = {"auto": "auto", "on": True, "off": False}[args.enhance]
     result = run_sfm(args.images, args.out, matching=args.matching, enhance=enhance,

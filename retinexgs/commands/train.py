@@ -62,14 +62,14 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _train(args: argparse.Namespace) -> int:
-    from retinexgs.train.runner import train_run
+    from retinexgs.train.runner import train_run  # lazy: --help stays fast
 
     if args.data is None and not args.resume:
         raise UserError("--data SCENE is required (only --resume can do without it: the run knows its scene)")
     on_trainer = None
     if args.view:  # checked before any work: a missing viser or a bad port must not cost a training run
-        from retinexgs.view.live import live_viewer
-        from retinexgs.view.server import check_address, import_viser
+        from retinexgs.view.live import live_viewer  # lazy: the viewer (viser) loads only with --view
+        from retinexgs.view.server import check_address, import_viser  # lazy: the viewer (viser) loads only with --view
         check_address(args.view_host, args.view_port)
         import_viser()
         on_trainer = live_viewer(args.view_host, args.view_port)
@@ -79,16 +79,16 @@ def _train(args: argparse.Namespace) -> int:
 
 
 def _eval(args: argparse.Namespace) -> int:
-    from retinexgs.evaluate.evaluate import eval_run
+    from retinexgs.evaluate.evaluate import eval_run  # lazy: --help stays fast
 
     eval_run(args.run, args.device)
     return 0
 
 
 def _demo(args: argparse.Namespace) -> int:
-    from retinexgs.demo.synthetic import make_demo_scene
-    from retinexgs.run.config import load_config
-    from retinexgs.train.runner import train_run
+    from retinexgs.demo.synthetic import make_demo_scene  # lazy: --help stays fast
+    from retinexgs.run.config import load_config  # lazy: --help stays fast
+    from retinexgs.train.runner import train_run  # lazy: --help stays fast
 
     out = args.out
     marker = out / ".retinexgs-demo"

@@ -19,6 +19,7 @@ import numpy as np
 from retinexgs.data.camera import Camera, c2w_from_w2c, camera_from_colmap, check_rotation
 from retinexgs.data.raw import RawScene, RawView
 from retinexgs.errors import UserError
+from retinexgs.data.pairing import check_same_files
 
 # Where load_scene looks for a model inside a scene folder, in order.
 MODEL_SUBDIRS = (".", "sparse/0", "sparse", "colmap_sparse/0", "colmap_sparse", "colmap/sparse/0")
@@ -215,7 +216,6 @@ def choose_image_dir(root: Path, names: Sequence[str], given: Optional[Path], wh
 def read_colmap_scene(root: Path, model_dir: Optional[Path] = None, images: Optional[Path] = None,
                       test_every: int = 0, reader: str = "colmap") -> RawScene:
     """Read a scene folder with a COLMAP model into a :class:`RawScene`."""
-    from retinexgs.data.pairing import check_same_files
 
     root = Path(root)
     model_dir = Path(model_dir) if model_dir is not None else find_model_dir(root)

@@ -19,6 +19,7 @@ from typing import Sequence
 import numpy as np
 
 from retinexgs.data.images import read_image, resize_image
+from retinexgs.data.undistort import _cv2 as get
 
 # Median luminance (sRGB, 0..1) under which a folder counts as dark and gets enhanced.
 DARK_MEDIAN_LUMA = 0.25
@@ -30,7 +31,6 @@ METHOD = f"gain-to-{TARGET_MEDIAN_LINEAR}+gauss-{BLUR_SIGMA_PX}"
 
 
 def _cv2():
-    from retinexgs.data.undistort import _cv2 as get
     return get()
 
 

@@ -31,6 +31,11 @@ from retinexgs.data.raw import RawScene, RawView
 from retinexgs.data.scene import Normalization, Scene, View, warn
 from retinexgs.data.undistort import output_camera, plan_paths, process_all
 from retinexgs.errors import UserError
+from retinexgs.data.colmap import find_model_dir
+from retinexgs.data.transforms_json import has_transforms
+from retinexgs.data.transforms_json import read_transforms_scene
+from retinexgs.data.colmap import read_colmap_scene
+from retinexgs.data.sfm import run_sfm
 
 READERS = ("auto", "transforms", "colmap", "sfm")
 PathLike = Union[str, Path]
@@ -38,8 +43,6 @@ PathLike = Union[str, Path]
 
 def detect_reader(root: Path, images: Optional[PathLike] = None) -> str:
     """The reader that fits ``root`` (see the module docstring); UserError when none does."""
-    from retinexgs.data.colmap import find_model_dir
-    from retinexgs.data.transforms_json import has_transforms
 
     if has_transforms(root):
         return "transforms"
@@ -292,14 +295,10 @@ def load_scene(path: PathLike, reader: str = "auto", downscale: float = 1, *, im
     if reader == "auto":
         reader = detect_reader(root, images)
     if reader == "transforms":
-        from retinexgs.data.transforms_json import read_transforms_scene
         raw = read_transforms_scene(root)
     elif reader == "colmap":
-        from retinexgs.data.colmap import read_colmap_scene
         raw = read_colmap_scene(root, images=images, test_every=test_every)
     else:
-        from retinexgs.data.colmap import read_colmap_scene
-        from retinexgs.data.sfm import run_sfm
         image_dir = _sfm_image_dir(root, images)
         if image_dir is None:
             where = images if images is not None else f"{root} or {root / 'images'}"

@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from retinexgs.data.camera import Camera
+from retinexgs.data.images import load_image_tensor
 
 ArrayLike = Union[np.ndarray, torch.Tensor]
 
@@ -107,13 +108,11 @@ class View:
         if self.paired_path is None:
             return None
         if self._paired is None:
-            from retinexgs.data.images import load_image_tensor
             self._paired = load_image_tensor(self.paired_path)
         return self._paired
 
     def load_image(self) -> torch.Tensor:
         """Read the input image from disk (not cached) as float32 [H,W,3] in [0,1]."""
-        from retinexgs.data.images import load_image_tensor
         return load_image_tensor(self.image_path)
 
     def release_images(self) -> None:

@@ -28,6 +28,9 @@ from typing import Callable, List, Optional, Union
 from retinexgs.data.camera import COLMAP_MODELS
 from retinexgs.data.images import image_size, is_fresh, list_images, read_image, write_image_atomic
 from retinexgs.errors import UserError
+from retinexgs.data.colmap import keep_python_sigterm
+from retinexgs.data.enhance import METHOD as enhance_method
+from retinexgs.data.enhance import enhance_for_features, folder_is_dark
 
 EXHAUSTIVE_MAX = 100
 Progress = Callable[[str], None]
@@ -59,7 +62,6 @@ def _pycolmap():
         import pycolmap
     except ImportError:
         raise UserError("structure-from-motion needs pycolmap: pip install pycolmap") from None
-    from retinexgs.data.colmap import keep_python_sigterm
     keep_python_sigterm()
     return pycolmap
 
@@ -142,7 +144,6 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
         matching = "exhaustive" if len(paths) <= EXHAUSTIVE_MAX else "sequential"
     out_dir = Path(out) if out is not None else default_sfm_dir(image_dir)
     sizes = {p.name: image_size(p) for p in paths}  # also rejects unreadable files early
-    from retinexgs.data.enhance import METHOD as enhance_method
     options = dict(matching=matching, enhance=str(enhance), enhance_method=enhance_method, camera_model=camera_model,
                    single_camera=single_camera, max_num_features=max_num_features,
                    max_image_size=max_image_size, seed=seed)
@@ -178,7 +179,6 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
 
     try:
         # 1. brightened + denoised copies for feature extraction
-        from retinexgs.data.enhance import enhance_for_features, folder_is_dark  # noqa: E402 (lazy: cv2)
         do_enhance = folder_is_dark(paths) if enhance == "auto" else bool(enhance)
         feature_dir = image_dir
         if do_enhance:

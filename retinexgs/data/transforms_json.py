@@ -26,6 +26,7 @@ from retinexgs.data.images import IMAGE_EXTENSIONS, image_size
 from retinexgs.data.pairing import check_same_files
 from retinexgs.data.raw import RawScene, RawView
 from retinexgs.errors import UserError
+from retinexgs.data.colmap import find_model_dir, points_in_frame_of, read_model
 
 SPLITS = ("train", "test", "val")
 _INTRINSIC_KEYS = ("fl_x", "fl_y", "camera_angle_x", "camera_angle_y", "cx", "cy", "w", "h",
@@ -169,7 +170,6 @@ def read_split_json(root: Path, json_path: Path) -> List[RawView]:
 
 def read_transforms_scene(root: Path) -> RawScene:
     """Read a transforms-JSON scene folder (see the module docstring)."""
-    from retinexgs.data.colmap import find_model_dir, points_in_frame_of, read_model
 
     root = Path(root)
     if (root / "low").is_dir() and (root / "high").is_dir():

@@ -200,7 +200,7 @@ class InferenceRenderer:
         # Tile culling (pairs only where a Gaussian reaches alpha >= 1/255) changes no pixel, only the work split:
         # fewer pairs to sort and composite against a pair count that tests every tile twice. None: off on CUDA,
         # where on the trained fox-dark (83k Gaussians, H100) it costs 0.15-0.2 ms a frame more than it saves;
-        # on on the CPU, where compositing dominates and it gained a few % (docs/benchmarks.md).
+        # on on the CPU, where compositing dominates and it gained a few % (docs/experiments/2026-11-22-raster-vs-gsplat.md).
         self.cull_tiles: Optional[bool] = None
         self._side: Optional["torch.cuda.Stream"] = None  # created on the first CUDA frame
         self._graphs: "OrderedDict[Tuple, _EnhanceGraph]" = OrderedDict()

@@ -12,9 +12,9 @@ def kernels() -> ModuleType:
     import torch  # noqa: F401  (loads libtorch before the extension)
 
     try:
-        from retinexgs import _C
+        from retinexgs import _C  # lazy: a missing build fails here, with the message below
     except ImportError as exc:
-        import retinexgs
+        import retinexgs  # only to name the folder in the message
 
         where = Path(retinexgs.__file__).resolve().parent
         raise ImportError(

@@ -15,6 +15,7 @@ from typing import Any, Tuple
 
 from retinexgs.retinex.base import (Decomposer, available_methods, cache_key, enhance_for_viewing,
                                     get_decomposer, validate_image)
+from retinexgs.retinex.cache import load_or_compute as _impl
 
 __all__ = ["decompose", "get_decomposer", "available_methods", "cache_key", "enhance_for_viewing",
            "validate_image", "Decomposer", "load_or_compute"]
@@ -30,5 +31,4 @@ def decompose(image: Any, method: str = "lr3m", **params: Any) -> Tuple[Any, Any
 
 def load_or_compute(*args: Any, **kwargs: Any):
     """See :func:`retinexgs.retinex.cache.load_or_compute` (imported lazily)."""
-    from retinexgs.retinex.cache import load_or_compute as _impl
     return _impl(*args, **kwargs)

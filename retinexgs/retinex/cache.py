@@ -33,6 +33,7 @@ import torch
 from retinexgs.errors import UserError
 from retinexgs.fileio import TMP_PREFIX, atomic_write
 from retinexgs.retinex.base import enhance_for_viewing, get_decomposer, params_to_dict
+from retinexgs.data.images import load_image_tensor
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png")
 CACHE_DIRNAME = "retinex_cache"
@@ -47,7 +48,6 @@ PathLike = Union[str, os.PathLike]
 def read_image(path: PathLike) -> torch.Tensor:
     """Read a photo as float32 [H,W,3] in [0,1] (8 or 16 bit, see :mod:`retinexgs.data.images`); raises
     UserError naming the file if it cannot be read."""
-    from retinexgs.data.images import load_image_tensor  # local import: keeps ``import retinexgs.retinex`` light
 
     p = Path(path)
     if not p.is_file():

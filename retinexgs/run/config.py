@@ -120,7 +120,7 @@ def _describe_error(err: Dict[str, Any], sources: Dict[Tuple[str, ...], str], ba
     kind = err["type"]
     if kind == "extra_forbidden":
         extra = ".".join(str(p) for p in err["loc"])
-        return f"{label}: unknown config key {extra} (not in the config schema, retinexgs/train/schema.py)"
+        return f"{label}: unknown config key {extra} (not in the config schema, retinexgs/run/schema.py)"
     if kind == "missing":
         return f"{label}: config key {name} is missing"
     if kind == "value_error":  # a cross-field check of a section: its message names the keys

@@ -11,6 +11,7 @@ from retinexgs.model.inference import InferenceRenderer
 from retinexgs.model.retinex_model import RetinexGSModel
 from retinexgs.model.schedule import build_schedule
 from retinexgs.render import Camera
+from retinexgs.retinex import decompose, enhance_for_viewing
 
 
 def active_sh_degree(cfg: Dict, step: int) -> int:
@@ -44,7 +45,6 @@ def render_function(model: RetinexGSModel, cfg: Dict, degree: int, exposure: Opt
             else:
                 res = model.render(camera, degree, exposure=exposure, gamma=gamma)
             if cfg["method"] == "post":
-                from retinexgs.retinex import decompose, enhance_for_viewing
                 method = cfg["decomposer"]["method"] if cfg["decomposer"]["method"] != "none" else "lr3m"
                 R, L = decompose(res["rgb"].clamp(0, 1), method, **cfg["decomposer"]["params"])
                 res = dict(res, rgb=enhance_for_viewing(R, L))

@@ -32,6 +32,8 @@ import torch
 from torch import Tensor
 from torch.profiler import record_function
 
+from retinexgs.model.retinex_model import GaussianChannels
+
 # (image [H,W,C], packed targets [H,W,K], enhancement on) -> (the image losses' sum, {name: term}).
 LossFn = Callable[[Tensor, Tensor, bool], Tuple[Tensor, Dict[str, Tensor]]]
 
@@ -244,7 +246,6 @@ class ChannelGraphs:
     def run(self, active_degree: int, center: Tensor) -> Optional[Tensor]:
         """The channels [N,C] (differentiable in the Gaussians and the illumination field); None: evaluate
         them eagerly (not CUDA, or the capture failed)."""
-        from retinexgs.model.retinex_model import GaussianChannels
 
         g = self.model.gaussians
         degree = self.model.channel_degree(active_degree)

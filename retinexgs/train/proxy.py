@@ -7,7 +7,7 @@ the minimiser (on a grid) of that config's L_enhance on S_enh = R·(L/L_ref)^g, 
 chosen views of the config's quantile of L; the table gives the PSNR of that S_enh against the normal-light
 photo. It is what the 3D model does with perfect 2D priors and a perfect EnhancementNet, in seconds on a CPU:
 a way to compare enhancement losses before spending GPU time (it tracked our 3D runs within 2.5 dB on the dev
-scenes; docs/benchmarks.md). No normal-light photo is used except for scoring.
+scenes; docs/experiments/2026-11-23-enhancement-losses.md). No normal-light photo is used except for scoring.
 
 The texture split: the share of the high-pass energy (x − Gaussian blur σ = 2 px, of log luminance) of
 log S = log R + log L that lands in log L versus log R. Texture in L is what a gamma on L compresses.
@@ -25,6 +25,10 @@ import torch.nn.functional as F
 from retinexgs.evaluate.metrics import ssim_metric
 from retinexgs.model.tone import tone_map
 from retinexgs.train import losses
+from retinexgs.run.folder import open_scene
+from retinexgs.retinex import decompose
+from retinexgs.run.config import load_config
+from retinexgs.data.scene import scene_label
 
 GAMMAS = torch.linspace(0.1, 1.0, 91)  # the gamma tones' range (the oracles of the gamma on L)
 RAW_GAMMAS = torch.linspace(0.05, 1.0, 96)
@@ -95,7 +99,6 @@ def texture_split(R: torch.Tensor, L: torch.Tensor) -> float:
 
 def _views(scene_dir: Path, n: int, cfg: Dict) -> List[Tuple[torch.Tensor, torch.Tensor]]:
     """(dark image, normal-light image) of ``n`` evenly spaced paired training views."""
-    from retinexgs.run.folder import open_scene
 
     scene = open_scene(scene_dir, cfg)
     paired = [v for v in scene.train if v.paired_path is not None] or [v for v in scene.test if v.paired_path]
@@ -108,8 +111,6 @@ def _views(scene_dir: Path, n: int, cfg: Dict) -> List[Tuple[torch.Tensor, torch
 def run(scenes: Sequence[Path], configs: Sequence[str], n_views: int, device: str,
         betas: Sequence[float] = (), overrides: Sequence[str] = ()) -> str:
     """The proxy table and the texture-split table (markdown)."""
-    from retinexgs.retinex import decompose
-    from retinexgs.run.config import load_config
 
     cfgs = {name: load_config([] if name == "default" else [name], overrides) for name in configs}
     base = cfgs[configs[0]]
@@ -121,7 +122,6 @@ def run(scenes: Sequence[Path], configs: Sequence[str], n_views: int, device: st
     split_rows: Dict[str, List[str]] = {}
     labels = []
     for scene in scenes:
-        from retinexgs.data.scene import scene_label
         labels.append(scene_label(scene))
         views = _views(Path(scene), n_views, base)
         params = dict(base["decomposer"]["params"])

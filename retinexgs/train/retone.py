@@ -31,6 +31,10 @@ import torch
 
 from retinexgs.errors import UserError
 from retinexgs.evaluate.metrics import psnr, ssim_metric
+from retinexgs.run.config import load_config
+from retinexgs.train.trainer import enhancement_objective, to_bchw
+from retinexgs.run.folder import load_run
+from retinexgs.run.render import active_sh_degree, view_camera
 
 ENHANCEMENT_LOSS_KEYS = ("w_spa", "w_exp", "w_col", "exposure_E", "exp_on", "exp_patch", "exp_form", "spa_form",
                          "enhance_scale_invariant")
@@ -53,7 +57,6 @@ def _allowed(key: Tuple[str, ...]) -> bool:
 def variant_config(run_cfg: Dict, name: str, overrides: Sequence[str] = ()) -> Dict:
     """The run's config with config file ``name`` ("default": none) and then ``overrides`` (KEY=VALUE) applied,
     checked to change only the enhancement (UserError naming the first other key it changes)."""
-    from retinexgs.run.config import load_config
 
     if name == "default" and not overrides:
         return copy.deepcopy(run_cfg)
@@ -71,7 +74,6 @@ def retone(model, cfg: Dict, train_maps: List[Tuple[torch.Tensor, torch.Tensor, 
            seed: int = 0):
     """A copy of ``model`` whose EnhancementNet (and tone form) follow ``cfg`` and is trained ``steps`` steps on
     ``train_maps`` [(R̂, L̂, S)] with ``cfg``'s L_enhance; the scene's parameters are shared, not trained."""
-    from retinexgs.train.trainer import enhancement_objective, to_bchw
 
     if cfg["loss"]["enhance_trains_scene"]:
         raise UserError("loss.enhance_trains_scene is true: the enhancement then changes the scene, re-train it")
@@ -92,8 +94,6 @@ def run(runs: Sequence[Path], configs: Sequence[str], steps: int, device: str, s
         overrides: Sequence[str] = ()) -> str:
     """The markdown table: per run and config, test PSNR / SSIM (mean ± sample std over the EnhancementNet's
     ``seeds``: its initialisation and view order; the scene is the run's) and the mean predicted gamma."""
-    from retinexgs.run.folder import load_run
-    from retinexgs.run.render import active_sh_degree, view_camera
 
     lines = ["| run | config | PSNR / SSIM (± over enhancement seeds) | mean g |", "|---|---|---|---|"]
     for run_dir in runs:

@@ -36,6 +36,13 @@ import torch
 
 from retinexgs.demo.splats import orbit_camera, random_scene
 from retinexgs.render import Camera, rasterize_gaussians
+from retinexgs.model.gaussians import GaussianModel
+from retinexgs.model.retinex_model import RetinexGSModel
+from retinexgs.train import losses
+from retinexgs.run.config import load_config
+from retinexgs.run.folder import open_scene
+from retinexgs.train.trainer import Trainer
+from retinexgs.errors import UserError
 
 
 def parse_size(text: str) -> int:
@@ -153,10 +160,6 @@ def _gsplat_rasterize(means, quats, scales, opacities, colors, cam: Camera) -> t
 def synthetic_step(n: int, width: int, height: int, device: torch.device, rasterizer: str = "ours",
                    seed: int = 0) -> Callable[[], None]:
     """One training step of a random scene of ``n`` Gaussians (see the module docstring), as a closure."""
-    from retinexgs.model.gaussians import GaussianModel
-    from retinexgs.model.retinex_model import RetinexGSModel
-    from retinexgs.train import losses
-    from retinexgs.run.config import load_config
 
     cfg = load_config()
     sc = random_scene(n, 3, seed)
@@ -195,9 +198,6 @@ def synthetic_step(n: int, width: int, height: int, device: torch.device, raster
 
 def trainer_step(scene_path: Path, config: List[str], device: torch.device, run_dir: Path) -> Callable[[], None]:
     """The real trainer's next step on ``scene_path`` (it keeps training across calls)."""
-    from retinexgs.run.config import load_config
-    from retinexgs.run.folder import open_scene
-    from retinexgs.train.trainer import Trainer
 
     cfg = load_config(config)
     tr = Trainer(cfg, open_scene(scene_path, cfg), run_dir, str(device), progress=False, log=lambda s: None)
@@ -241,7 +241,6 @@ def main(argv: Optional[List[str]] = None) -> int:
     args = parser.parse_args(argv)
     if args.steps < 1 or args.warmup < 0 or args.width < 1 or args.height < 1:
         parser.error("--steps, --width and --height must be at least 1 and --warmup at least 0")
-    from retinexgs.errors import UserError
 
     device = torch.device(args.device)
     if device.type == "cuda" and not torch.cuda.is_available():

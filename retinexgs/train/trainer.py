@@ -27,6 +27,8 @@ from retinexgs.run.checkpoint import latest_checkpoint, load_checkpoint, save_ch
 from retinexgs.train.graphs import ChannelGraphs, LossGraphs
 from retinexgs.model.schedule import build_schedule
 from retinexgs.run.render import view_camera
+from retinexgs.retinex.cache import load_or_compute, scene_cache_root
+from retinexgs.retinex import enhance_for_viewing
 
 
 class TrainingDiverged(UserError):
@@ -147,7 +149,6 @@ def _append_record(f, record: Dict) -> None:
 def decompose_views(views: List[View], cfg: Dict, device: str, progress: bool, scene_root: Path) -> List:
     """(R, L) per view from the per-scene cache (computed where missing; ``retinexgs decompose`` fills the
     same cache, see :func:`retinexgs.retinex.cache.scene_cache_root`)."""
-    from retinexgs.retinex.cache import load_or_compute, scene_cache_root
 
     dcfg = cfg["decomposer"]
     return load_or_compute([v.image_path for v in views], dcfg["method"], dict(dcfg["params"]) or None,
@@ -206,7 +207,6 @@ class Trainer:
                                     f"{tuple(tv.S.shape[:2])}; delete the retinex cache")
                 tv.R, tv.L = R.to(dev), L.to(dev)
                 if self.method == "pre":
-                    from retinexgs.retinex import enhance_for_viewing
                     tv.target = enhance_for_viewing(tv.R, tv.L)
         for tv in views:
             if tv.target is None:

@@ -16,6 +16,9 @@ from retinexgs.errors import Terminated, UserError
 from retinexgs.render import Camera
 from retinexgs.view.camera import ViewerCamera, average_up, camera_to_viewer
 from retinexgs.view.frame import FrameRenderer, FrameSettings
+from retinexgs.run.render import view_camera
+from retinexgs.run.folder import load_run
+from retinexgs.run.render import active_sh_degree
 
 MOVING_SCALE = 0.5   # frames rendered while the camera moves are this much smaller (when enabled)
 SETTLE_SECONDS = 0.3  # no camera update for this long: render the full-resolution frame
@@ -183,7 +186,6 @@ class RunViewer:
 
 def snap_cameras(scene) -> Dict[str, Camera]:
     """'train: NAME' / 'test: NAME' -> camera, for the snap list."""
-    from retinexgs.run.render import view_camera
     out: Dict[str, Camera] = {}
     for split in ("train", "test"):
         for v in getattr(scene, split):
@@ -242,8 +244,6 @@ def view_run(run_dir, host: str = "127.0.0.1", port: int = 8080, device: Optiona
     """Serve ``run_dir`` in the browser; with ``block``, until Ctrl-C. The address, then the run, then the
     viser install are checked, each with a UserError."""
     check_address(host, port)
-    from retinexgs.run.folder import load_run
-    from retinexgs.run.render import active_sh_degree
     cfg, scene, model, step = load_run(run_dir, device)
     import_viser()
     renderer = FrameRenderer(model, cfg, active_sh_degree(cfg, step), scene.train)
