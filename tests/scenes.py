@@ -84,3 +84,21 @@ def load_script(name: str):
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
+
+
+def run_cli(argv, capsys):
+    """Run ``retinexgs ARGV`` in-process: (exit code, stdout, stderr); a traceback is returned in stderr."""
+    import traceback
+
+    from retinexgs.cli import main
+
+    capsys.readouterr()
+    try:
+        code = main([str(a) for a in argv])
+    except SystemExit as exc:
+        code = exc.code if isinstance(exc.code, int) else 1
+    except BaseException:  # noqa: BLE001 - a traceback is what the bad-input tests look for
+        captured = capsys.readouterr()
+        return -1, captured.out, captured.err + "\nTraceback (escaped main):\n" + traceback.format_exc()
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err

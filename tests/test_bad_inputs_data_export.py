@@ -8,37 +8,25 @@ from __future__ import annotations
 
 import json
 import shutil
-import traceback
 from pathlib import Path
-from typing import List, Tuple
+from typing import List
 
 import numpy as np
 import pytest
 import torch
 from PIL import Image
 
-from retinexgs.cli import main
 from retinexgs.data import load_scene
 from retinexgs.data.images import load_image_tensor, read_image
 from retinexgs.demo.synthetic import make_demo_scene
 from retinexgs.errors import UserError
+from scenes import run_cli
 
 TINY = ["steps=3", "checkpoint.every=3", "log.every=1", "log.tensorboard=false", "model.sh_degree=1",
         "model.max_init_points=300", "decomposer.method=lime", "eval.lpips=false"]
 
 
-def _cli(argv: List[str], capsys) -> Tuple[int, str, str]:
-    """Run ``retinexgs ARGV`` in-process: (exit code, stdout, stderr); a traceback is returned in stderr."""
-    capsys.readouterr()
-    try:
-        code = main([str(a) for a in argv])
-    except SystemExit as exc:
-        code = exc.code if isinstance(exc.code, int) else 1
-    except BaseException:  # noqa: BLE001 - a traceback is what these tests look for
-        captured = capsys.readouterr()
-        return -1, captured.out, captured.err + "\nTraceback (escaped main):\n" + traceback.format_exc()
-    captured = capsys.readouterr()
-    return code, captured.out, captured.err
+_cli = run_cli
 
 
 def _tree(root: Path):

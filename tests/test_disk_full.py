@@ -7,17 +7,15 @@ from __future__ import annotations
 import errno
 import io
 import shutil
-import traceback
 from pathlib import Path
-from typing import List, Tuple
 
 import pytest
 import torch
 
-from retinexgs.cli import main
 from retinexgs.demo.synthetic import make_demo_scene
 from retinexgs.errors import UserError
 from retinexgs.fileio import atomic_write, atomic_write_text
+from scenes import run_cli
 
 TINY = ["steps=3", "checkpoint.every=3", "log.every=1", "log.tensorboard=false", "model.sh_degree=1",
         "model.max_init_points=300", "decomposer.method=lime", "eval.lpips=false"]
@@ -27,17 +25,7 @@ FULL = [OSError(errno.ENOSPC, "No space left on device"), OSError(errno.EDQUOT, 
 IDS = ["ENOSPC", "EDQUOT", "torch-unexpected-pos", "torch-file-write-failed"]
 
 
-def _cli(argv: List[str], capsys) -> Tuple[int, str, str]:
-    capsys.readouterr()
-    try:
-        code = main([str(a) for a in argv])
-    except SystemExit as exc:
-        code = exc.code if isinstance(exc.code, int) else 1
-    except BaseException:  # noqa: BLE001 - a traceback is what these tests look for
-        captured = capsys.readouterr()
-        return -1, captured.out, captured.err + "\nTraceback (escaped main):\n" + traceback.format_exc()
-    captured = capsys.readouterr()
-    return code, captured.out, captured.err
+_cli = run_cli
 
 
 def _no_temps(folder: Path) -> bool:
