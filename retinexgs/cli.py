@@ -24,6 +24,7 @@ _COMMAND_MODULES = [
     "retinexgs.commands.train",
     "retinexgs.commands.decompose",
     "retinexgs.commands.sfm",
+    "retinexgs.commands.sensor",
     "retinexgs.commands.export",
     "retinexgs.commands.view",
 ]

@@ -135,3 +135,24 @@ def test_a_cut_off_run_resumes_from_its_checkpoint_and_its_time_is_left_out(tmp_
         j.metrics_path.write_text(json.dumps(m))
     row = next(line for line in quality.table(jobs, ["default"]).splitlines() if line.startswith("| `default`"))
     assert "(2k Gaussians)" in row
+
+
+def test_noise_ladder_darkens_each_level_once_and_names_the_columns(tmp_path, monkeypatch, capsys):
+    """--noise-ladder: one dark scene per ladder level (reused on a second call), the runs' columns SCENE@LEVEL."""
+    from retinexgs.data.sensor import NOISE_LADDER
+    from retinexgs.demo.synthetic import make_demo_scene
+
+    src = make_demo_scene(tmp_path / "fox", n_train=2, n_test=1, width=32, height=24, n_points=100)
+    trained = []
+    monkeypatch.setattr(quality, "run_job", lambda job, *a: trained.append(job) or f"{job.run}: skipped")
+    assert quality.main(["--scenes", str(src), "--noise-ladder", "--runs", str(tmp_path / "runs"), "--seeds", "0,",
+                         "--jobs", "1"]) in (0, 1)
+    levels = [label for label, _, _ in NOISE_LADDER]
+    assert sorted(j.scene.name for j in trained) == sorted(f"fox@{label}" for label in levels)
+    made = {p.name: (p / "sensor.json").stat().st_mtime_ns for p in (tmp_path / "runs" / "ladder").iterdir()}
+    assert sorted(made) == sorted(f"fox@{label}" for label in levels)
+    quality.main(["--scenes", str(src), "--noise-ladder", "--runs", str(tmp_path / "runs"), "--seeds", "0,",
+                  "--no-train"])
+    assert {p.name: (p / "sensor.json").stat().st_mtime_ns for p in (tmp_path / "runs" / "ladder").iterdir()} == made
+    assert quality.main(["--scenes", str(tmp_path / "runs"), "--noise-ladder", "--runs", str(tmp_path / "r2")]) == 2
+    assert "has no high/ folder" in capsys.readouterr().err

@@ -247,6 +247,14 @@ CASES: List[Case] = [
     Case("decompose-missing-images-subdir", ["decompose", "--data", "{root}/scene", "--images-subdir", "nope",
                                              "--method", "lime", "--quiet"],
          "--images-subdir nope: {root}/scene/nope is not a folder (it does not exist)", "scene"),
+    # darken, noise (issue 32: the sensor model)
+    Case("darken-missing-data", ["darken", "--data", "{root}/missing", "--out", "{root}/dark", "--quiet"],
+         "{root}/missing is not a folder"),
+    Case("darken-zero-exposure", ["darken", "--data", "{root}/scene", "--out", "{root}/dark", "--exposure", "0"],
+         "--exposure must be in (0, 1]", "scene"),
+    Case("darken-bad-cast", ["darken", "--data", "{root}/scene", "--out", "{root}/dark", "--cast", "1,1"],
+         "expected three gains R,G,B", "scene"),
+    Case("noise-empty-folder", ["noise", "--data", "{root}/photos"], "no photos in {root}/photos", "photos_empty"),
     # sfm
     Case("sfm-missing-folder", ["sfm", "--images", "{root}/missing", "--quiet"], "{root}/missing does not exist"),
     Case("sfm-empty-folder", ["sfm", "--images", "{root}/photos", "--quiet"], "is empty", "photos_empty"),

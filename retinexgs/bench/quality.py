@@ -18,14 +18,16 @@ import subprocess
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence
 
 import numpy as np
 
-from retinexgs.fileio import atomic_write_text
 from retinexgs.data.scene import scene_label
+from retinexgs.data.sensor import NOISE_LADDER, SensorModel, darken_scene
+from retinexgs.errors import UserError
+from retinexgs.fileio import atomic_write_text
 from retinexgs.run.checkpoint import latest_checkpoint
 
 
@@ -228,6 +230,28 @@ def contact_sheet(jobs: Sequence[Job], configs: Sequence[str], scene: str, out: 
     return out
 
 
+def ladder_scenes(scenes: Sequence[Path], root: Path, exposure: float) -> List[Path]:
+    """Every scene darkened at every level of the noise ladder (made once: a level whose sensor.json records the
+    same model is reused), as ``root/SCENE@LEVEL`` folders, scene-major."""
+    out: List[Path] = []
+    for scene in scenes:
+        if not (Path(scene) / "high").is_dir():
+            raise UserError(f"{scene} has no high/ folder of normal-light photos to darken")
+        for label, full_well, read_noise in NOISE_LADDER:
+            model = SensorModel(exposure=exposure, full_well=full_well, read_noise=read_noise)
+            dst = root / f"{scene_label(Path(scene)).replace('/', '-')}@{label}"
+            done = dst / "sensor.json"
+            if done.is_file() and json.loads(done.read_text())["model"] == json.loads(json.dumps(asdict(model))):
+                out.append(dst)
+                continue
+            if dst.exists():
+                shutil.rmtree(dst)  # a level made with another model (or cut off): made again
+            darken_scene(Path(scene), dst, model, seed=0, progress=False)
+            print(f"noise ladder: {dst} ({label})", flush=True)
+            out.append(dst)
+    return out
+
+
 def main(argv: Sequence[str]) -> int:
     ap = argparse.ArgumentParser(prog="python -m retinexgs.bench quality", description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenes", nargs="+", type=Path, required=True, help="scene folders")
@@ -241,10 +265,21 @@ def main(argv: Sequence[str]) -> int:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="extra override for every run")
     ap.add_argument("--out", type=Path, default=None, help="markdown file (default RUNS/quality.md)")
     ap.add_argument("--no-train", action="store_true", help="only tabulate the runs that exist")
+    ap.add_argument("--noise-ladder", action="store_true",
+                    help="train each scene's normal-light photos (high/) darkened at every level of the noise "
+                         "ladder instead (retinexgs.data.sensor.NOISE_LADDER: clean to 1000 e- full well, read "
+                         "noise 6 e-), each level a column SCENE@LEVEL; the dark scenes go to RUNS/ladder/")
+    ap.add_argument("--ladder-exposure", type=float, default=0.05, help="the ladder's exposure k (default 0.05)")
     args = ap.parse_args(list(argv))
     for s in args.scenes:
         if not s.is_dir():
             print(f"scene folder {s} does not exist", file=sys.stderr)
+            return 2
+    if args.noise_ladder:
+        try:
+            args.scenes = ladder_scenes(args.scenes, args.runs / "ladder", args.ladder_exposure)
+        except UserError as exc:
+            print(f"--noise-ladder: {exc}", file=sys.stderr)
             return 2
     try:
         seeds = parse_seeds(args.seeds)

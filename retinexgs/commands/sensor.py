@@ -1,0 +1,97 @@
+"""The ``retinexgs darken`` and ``retinexgs noise`` sub-commands: the low-light sensor model of
+:mod:`retinexgs.data.sensor` (darken normal-light photos into a dark capture; estimate a capture's noise)."""
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+from typing import Tuple
+
+from retinexgs.errors import UserError
+
+
+def _cast(text: str) -> Tuple[float, float, float]:
+    try:
+        gains = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected three gains R,G,B such as 1.1,1,0.8, got {text!r}") from None
+    if len(gains) != 3:
+        raise argparse.ArgumentTypeError(f"expected three gains R,G,B such as 1.1,1,0.8, got {text!r}")
+    return gains  # type: ignore[return-value]
+
+
+def register(subparsers) -> None:
+    """Add the ``darken`` and ``noise`` sub-commands to the CLI's sub-parsers."""
+    p = subparsers.add_parser(
+        "darken", help="turn normal-light photos into a dark, noisy capture (a documented sensor model)",
+        description="Darken the normal-light photos of --data with a camera sensor model: exposure (and its "
+                    "jitter between views), a colour cast, Poisson shot noise at --full-well electrons, Gaussian "
+                    "read noise, 8-bit sRGB and JPEG (retinexgs/data/sensor.py has the equations). A scene in "
+                    "LOM's layout (high/ + transforms_*.json) becomes a new scene with low/ written from high/, "
+                    "ready to train and score; a plain folder of photos becomes a folder of dark photos. "
+                    "OUT/sensor.json records the model, the seed and each view's exposure.")
+    p.add_argument("--data", required=True, type=Path, help="a scene with high/ photos, or a folder of photos")
+    p.add_argument("--out", required=True, type=Path, help="the new folder (must not exist or be empty)")
+    p.add_argument("--exposure", type=float, default=0.05, help="share of the light recorded, k (default 0.05)")
+    p.add_argument("--exposure-jitter", type=float, default=0.1,
+                   help="each view's exposure is k·(1 ± this), uniform (default 0.1)")
+    p.add_argument("--full-well", type=float, default=1500.0,
+                   help="electrons at full scale: fewer = more shot noise (default 1500; 0 = noise-free)")
+    p.add_argument("--read-noise", type=float, default=4.0, help="read noise in electrons (default 4)")
+    p.add_argument("--cast", type=_cast, default=(1.0, 1.0, 1.0), metavar="R,G,B",
+                   help="channel gains of a colour cast, e.g. 0.8,1,1.25 for blue (default 1,1,1)")
+    p.add_argument("--jpeg-quality", type=int, default=90, help="JPEG quality, 0 = PNG (default 90)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_darken)
+
+    q = subparsers.add_parser(
+        "noise", help="estimate the sensor noise of a capture from its photos",
+        description="Estimate, per colour channel, the noise of the photos in --data (or its low/ folder) as "
+                    "var = a·y + b in linear light (shot noise a = 1/full well, read noise b), from the photos "
+                    "alone; prints the fitted full well and the noise's standard deviation at the photos' "
+                    "median and 90th-percentile levels. JPEG removes part of the noise: the figures are a "
+                    "lower bound of the sensor's.")
+    q.add_argument("--data", required=True, type=Path, help="a scene (its low/ photos) or a folder of photos")
+    q.add_argument("--photos", type=int, default=8, help="photos to read, spread over the capture (default 8)")
+    q.set_defaults(func=_noise)
+
+
+def _darken(args: argparse.Namespace) -> int:
+    from retinexgs.data.sensor import SensorModel, darken_scene  # lazy: --help stays fast
+
+    model = SensorModel(exposure=args.exposure, exposure_jitter=args.exposure_jitter,
+                        full_well=args.full_well or None, read_noise=args.read_noise, cast=args.cast,
+                        jpeg_quality=args.jpeg_quality)
+    report = darken_scene(args.data, args.out, model, seed=args.seed, progress=not args.quiet)
+    print(f"{report.photos} dark photos written to {report.out} (model and exposures in "
+          f"{report.out / 'sensor.json'})")
+    return 0
+
+
+def _noise(args: argparse.Namespace) -> int:
+    import numpy as np  # lazy: --help stays fast
+
+    from retinexgs.data.images import list_images, read_image_float  # lazy: --help stays fast
+    from retinexgs.data.sensor import estimate_capture_noise, srgb_to_linear  # lazy: --help stays fast
+
+    folder = args.data / "low" if (args.data / "low").is_dir() else args.data
+    if not folder.is_dir():
+        raise UserError(f"{args.data} is not a folder")
+    photos = list_images(folder)
+    if not photos:
+        raise UserError(f"no photos in {folder}")
+    if args.photos < 1:
+        raise UserError(f"--photos must be at least 1, got {args.photos}")
+    est = estimate_capture_noise(photos, args.photos)
+    lin = srgb_to_linear(read_image_float(photos[len(photos) // 2]).astype(np.float64))
+    print(f"{folder}: {len(photos)} photos, noise from {min(args.photos, len(photos))}")
+    for name, c in zip("RGB", range(3)):
+        fw = est.full_well[c]
+        print(f"  {name}: full well {'inf' if math.isinf(fw) else f'{fw:.0f}'} e-, a={est.a[c]:.3g}, b={est.b[c]:.3g}")
+    for q in (0.5, 0.9):
+        y = float(np.quantile(lin, q))
+        s = est.sigma_at(y)
+        print(f"  sigma at the {int(q * 100)}th-percentile level (linear {y:.4f}): "
+              + ", ".join(f"{v:.5f}" for v in s) + f"  (SNR {y / max(np.mean(s), 1e-12):.1f})")
+    return 0

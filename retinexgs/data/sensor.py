@@ -1,0 +1,270 @@
+"""A documented low-light sensor model, and the noise of a photo estimated from its own pixels.
+
+Darkening (``retinexgs darken``, the noise ladder of ``bench quality``): a normal-light photo ``x`` (sRGB, 8 or 16
+bit) becomes what a camera at a short exposure records, in linear light:
+
+    e_c  = Poisson(lin(x_c) · g_c · k_v · W) + Normal(0, r²)      electrons of channel c
+    y_c  = clip(e_c / W, 0, 1)                                  the raw value, full well = 1
+    out  = JPEG_q(round(255 · srgb(y)))                         the 8-bit photo the user gets
+
+with ``k_v = k · (1 + U(-j, j))`` the view's exposure (``k`` the exposure ratio, ``j`` its jitter between views),
+``g_c`` the channel gains of a colour cast (white balance the camera got wrong), ``W`` the full well in
+electrons (the sensor's saturation: fewer electrons = more shot noise), ``r`` the read noise in electrons and ``q``
+the JPEG quality. A mid-grey pixel (lin 0.18) at k = 0.03 and W = 1500 holds about 8 electrons: SNR ≈ 3, a phone's
+night photo. ``full_well=None`` is noise-free (the ladder's clean level).
+
+Estimation (:func:`estimate_noise`): the same model seen from the photo. In linear light the variance of a raw
+value is ``a · y + b`` with ``a = 1/W`` (shot noise) and ``b = (r/W)²`` (read noise), per channel. The residual of
+a 3×3 second-difference filter (Immerkær 1996; its taps' squares sum to 36) carries the noise and little of a
+smooth image; its robust spread (MAD) in bins of local brightness, fitted by ``a · y + b``, gives both numbers.
+JPEG removes part of the noise, so estimates from JPEG photos are lower than the sensor's truth (measured in
+``docs/experiments/2026-11-26-noise-estimate.md``).
+"""
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from retinexgs.data.images import list_images, read_image_float, write_image_atomic
+from retinexgs.errors import UserError
+from retinexgs.fileio import atomic_write_text
+
+
+def srgb_to_linear(x: np.ndarray) -> np.ndarray:
+    """sRGB [0,1] -> linear light (IEC 61966-2-1)."""
+    x = np.clip(x, 0.0, 1.0)
+    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
+
+
+def linear_to_srgb(y: np.ndarray) -> np.ndarray:
+    """linear light [0,1] -> sRGB [0,1]."""
+    y = np.clip(y, 0.0, 1.0)
+    return np.where(y <= 0.0031308, 12.92 * y, 1.055 * np.power(y, 1 / 2.4) - 0.055)
+
+
+@dataclass(frozen=True)
+class SensorModel:
+    """The low-light capture of the module docstring; every field is one of its symbols."""
+
+    exposure: float = 0.05                    # k: the share of the normal-light signal that is recorded
+    exposure_jitter: float = 0.1              # j: each view's exposure is k · (1 ± j), uniform
+    full_well: Optional[float] = 1500.0       # W, electrons at raw 1 (None: noise-free)
+    read_noise: float = 4.0                   # r, electrons (standard deviation)
+    cast: Tuple[float, float, float] = (1.0, 1.0, 1.0)  # g_c, the colour cast's channel gains
+    jpeg_quality: int = 90                    # q (0: PNG, lossless)
+
+    def check(self) -> None:
+        """UserError naming the first field out of range."""
+        if not (0 < self.exposure <= 1):
+            raise UserError(f"--exposure must be in (0, 1] (the share of the light recorded), got {self.exposure}")
+        if not (0 <= self.exposure_jitter < 1):
+            raise UserError(f"--exposure-jitter must be in [0, 1), got {self.exposure_jitter}")
+        if self.full_well is not None and not (self.full_well > 0 and math.isfinite(self.full_well)):
+            raise UserError(f"--full-well must be a positive number of electrons, got {self.full_well}")
+        if not (self.read_noise >= 0 and math.isfinite(self.read_noise)):
+            raise UserError(f"--read-noise must be >= 0 electrons, got {self.read_noise}")
+        if len(self.cast) != 3 or not all(g > 0 and math.isfinite(g) for g in self.cast):
+            raise UserError(f"--cast must be three positive channel gains R,G,B, got {self.cast}")
+        if not (0 <= self.jpeg_quality <= 100):
+            raise UserError(f"--jpeg-quality must be 0 (PNG) to 100, got {self.jpeg_quality}")
+
+    def view_exposure(self, rng: np.random.Generator) -> float:
+        """k_v, one view's exposure."""
+        return self.exposure * (1.0 + rng.uniform(-self.exposure_jitter, self.exposure_jitter))
+
+    def capture(self, srgb: np.ndarray, k_view: float, rng: np.random.Generator) -> np.ndarray:
+        """The raw linear values y [H,W,3] in [0,1] of a normal-light sRGB photo [H,W,3] in [0,1]."""
+        signal = srgb_to_linear(srgb.astype(np.float64)) * np.asarray(self.cast) * k_view
+        if self.full_well is None:
+            return np.clip(signal, 0.0, 1.0)
+        electrons = rng.poisson(np.clip(signal, 0.0, None) * self.full_well).astype(np.float64)
+        electrons += rng.normal(0.0, self.read_noise, size=electrons.shape)
+        return np.clip(electrons / self.full_well, 0.0, 1.0)
+
+    def darken(self, srgb: np.ndarray, k_view: float, rng: np.random.Generator) -> np.ndarray:
+        """The 8-bit sRGB photo [H,W,3] uint8 (before JPEG) of a normal-light sRGB photo in [0,1]."""
+        return np.round(linear_to_srgb(self.capture(srgb, k_view, rng)) * 255.0).astype(np.uint8)
+
+
+# The noise ladder of issue 32: (label, full well, read noise), from clean to a phone's worst night photo.
+NOISE_LADDER: List[Tuple[str, Optional[float], float]] = [
+    ("clean", None, 0.0), ("8000e", 8000.0, 2.0), ("3000e", 3000.0, 3.0), ("1500e", 1500.0, 4.0), ("1000e", 1000.0, 6.0)]
+
+
+@dataclass
+class DarkenReport:
+    """What :func:`darken_scene` wrote."""
+
+    out: Path
+    photos: int
+    exposures: Dict[str, float] = field(default_factory=dict)
+
+
+def _scene_photos(src: Path) -> Tuple[Path, List[Tuple[Path, str]]]:
+    """(the folder of normal-light photos, [(photo, the darkened file's path relative to the output)])."""
+    high = src / "high"
+    if high.is_dir():  # a LOM-style scene: high/NAME -> low/NAME (LOM pairs the two folders by file name)
+        return high, [(p, f"low/{p.name}") for p in list_images(high)]
+    return src, [(p, p.name) for p in list_images(src)]
+
+
+def darken_scene(src: Path, out: Path, model: SensorModel, seed: int = 0, progress: bool = True) -> DarkenReport:
+    """Darken the normal-light photos of ``src`` into the new folder ``out``.
+
+    ``src`` is a scene in LOM's layout (``high/`` photos with ``transforms_*.json``, ``split.json``,
+    ``colmap_sparse/``; the poses are copied, ``high/`` too, and ``low/`` is written from ``high/``, so the result
+    trains and scores like LOM's own scenes) or a plain folder of photos (darkened beside nothing else).
+    ``out/sensor.json`` records the model, the seed and every view's exposure."""
+    model.check()
+    src, out = Path(src), Path(out)
+    if not src.is_dir():
+        raise UserError(f"{src} is not a folder of photos or a scene folder")
+    if out.exists() and any(out.iterdir()):
+        raise UserError(f"{out} already exists and is not empty; choose another --out")
+    folder, jobs = _scene_photos(src)
+    if not jobs:
+        raise UserError(f"no photos in {folder} (looked for .png/.jpg/.jpeg/.tif files)")
+    rng = np.random.default_rng(seed)
+    report = DarkenReport(out, len(jobs))
+    out.mkdir(parents=True, exist_ok=True)
+    try:
+        if folder != src:
+            for item in sorted(src.iterdir()):
+                if item.name in ("low", "retinex_cache", "retinexgs_sfm") or item.name.startswith("."):
+                    continue
+                if item.is_dir():
+                    shutil.copytree(item, out / item.name)
+                else:
+                    shutil.copy2(item, out / item.name)
+        from tqdm import tqdm
+        for photo, rel in tqdm(jobs, desc="darken", disable=not progress, dynamic_ncols=True):
+            k = model.view_exposure(rng)
+            dark = model.darken(read_image_float(photo), k, rng)
+            target = out / rel  # the source's name and format: a .png keeps the JPEG's loss, losslessly
+            if model.jpeg_quality and target.suffix.lower() not in (".jpg", ".jpeg"):
+                dark = jpeg_roundtrip(dark, model.jpeg_quality)
+            write_image_atomic(target, dark, quality=model.jpeg_quality or 95)
+            report.exposures[rel] = round(k, 6)
+        atomic_write_text(out / "sensor.json", json.dumps(
+            {"model": asdict(model), "seed": seed, "source": str(src.resolve()),
+             "view_exposures": report.exposures}, indent=1))
+    except BaseException:
+        shutil.rmtree(out, ignore_errors=True)  # nothing half-made is left behind
+        raise
+    return report
+
+
+def jpeg_roundtrip(rgb: np.ndarray, quality: int) -> np.ndarray:
+    """uint8 [H,W,3] as a camera's JPEG at ``quality`` would decode it."""
+    import io
+
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(rgb, "RGB").save(buf, format="JPEG", quality=quality)
+    buf.seek(0)
+    with Image.open(buf) as im:
+        return np.asarray(im.convert("RGB"), dtype=np.uint8)
+
+
+# ---- the noise of a photo ------------------------------------------------------------------------------------
+
+# Immerkær's 3×3 mask: zero on planes and ramps; for white noise of variance s² the response has variance 36 s².
+_MASK = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], dtype=np.float64)
+
+
+def _filter3(x: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """'valid' 3×3 correlation of [H,W]."""
+    H, W = x.shape
+    out = np.zeros((H - 2, W - 2))
+    for i in range(3):
+        for j in range(3):
+            if k[i, j]:
+                out += k[i, j] * x[i:i + H - 2, j:j + W - 2]
+    return out
+
+
+@dataclass(frozen=True)
+class NoiseEstimate:
+    """Per channel, the raw-variance model ``var = a · y + b`` in linear light, and what it implies."""
+
+    a: Tuple[float, float, float]   # shot-noise slope (1 / full well, in raw units)
+    b: Tuple[float, float, float]   # read-noise floor (variance)
+    bins: int                       # brightness bins the fit used (summed over channels)
+
+    def sigma_at(self, y: float) -> Tuple[float, float, float]:
+        """The noise's standard deviation per channel at raw linear level ``y``."""
+        return tuple(math.sqrt(max(a * y + b, 0.0)) for a, b in zip(self.a, self.b))  # type: ignore[return-value]
+
+    @property
+    def full_well(self) -> Tuple[float, float, float]:
+        """1 / a: the electrons a raw value of 1 holds (inf where no shot noise was seen)."""
+        return tuple(1.0 / a if a > 0 else math.inf for a in self.a)  # type: ignore[return-value]
+
+
+def estimate_noise(srgb: np.ndarray, bins: int = 16, min_pixels: int = 400) -> NoiseEstimate:
+    """The Poisson-Gaussian noise of one photo [H,W,3] in sRGB [0,1], per channel (module docstring).
+
+    Pixels are binned by the local mean (3×3, linear); in each bin the residual's MAD gives a robust σ (edges and
+    texture are the outliers it ignores); ``var = a · y + b`` is fitted to the bins by least squares weighted by
+    their pixel counts, with a, b ≥ 0."""
+    if srgb.ndim != 3 or srgb.shape[-1] != 3 or min(srgb.shape[:2]) < 8:
+        raise ValueError(f"expected an [H,W,3] photo of at least 8x8 pixels, got shape {tuple(srgb.shape)}")
+    lin = srgb_to_linear(srgb.astype(np.float64))
+    box = np.ones((3, 3)) / 9.0
+    a_all, b_all, used = [], [], 0
+    for c in range(3):
+        x = lin[..., c]
+        resid = _filter3(x, _MASK) / 6.0  # σ of white noise, per pixel
+        level = _filter3(x, box)
+        ok = (level > 0.0) & (level < 0.9)  # clipped pixels have no noise to see
+        lv, rs = level[ok], resid[ok]
+        if lv.size < min_pixels:
+            a_all.append(0.0)
+            b_all.append(0.0)
+            continue
+        edges = np.unique(np.quantile(lv, np.linspace(0, 1, bins + 1)))
+        means, variances, counts = [], [], []
+        for lo, hi in zip(edges[:-1], edges[1:]):
+            sel = (lv >= lo) & (lv < hi) if hi < edges[-1] else (lv >= lo) & (lv <= hi)
+            n = int(sel.sum())
+            if n < max(30, min_pixels // bins):
+                continue
+            r = rs[sel]
+            sigma = 1.4826 * np.median(np.abs(r - np.median(r)))
+            means.append(float(lv[sel].mean()))
+            variances.append(float(sigma ** 2))
+            counts.append(n)
+        if len(means) < 2:
+            a_all.append(0.0)
+            b_all.append(float(variances[0]) if variances else 0.0)
+            continue
+        y, v, w = np.array(means), np.array(variances), np.sqrt(np.array(counts, dtype=np.float64))
+        A = np.stack([y, np.ones_like(y)], axis=1) * w[:, None]
+        (a, b), *_ = np.linalg.lstsq(A, v * w, rcond=None)
+        if a < 0:  # no shot noise seen: the floor alone
+            a, b = 0.0, float(np.average(v, weights=w))
+        elif b < 0:  # no read noise seen: the slope alone, through the origin
+            a, b = float(np.sum(w * w * y * v) / np.sum(w * w * y * y)), 0.0
+        a_all.append(float(a))
+        b_all.append(float(b))
+        used += len(means)
+    return NoiseEstimate(tuple(a_all), tuple(b_all), used)  # type: ignore[arg-type]
+
+
+def estimate_capture_noise(photos: Sequence[Path], max_photos: int = 8) -> NoiseEstimate:
+    """The median per-channel model over up to ``max_photos`` photos of a capture (spread evenly)."""
+    photos = list(photos)
+    if not photos:
+        raise UserError("no photos to estimate the noise of")
+    step = max(1, len(photos) // max_photos)
+    ests = [estimate_noise(read_image_float(p)) for p in photos[::step][:max_photos]]
+    a = tuple(float(np.median([e.a[c] for e in ests])) for c in range(3))
+    b = tuple(float(np.median([e.b[c] for e in ests])) for c in range(3))
+    return NoiseEstimate(a, b, sum(e.bins for e in ests))  # type: ignore[arg-type]

@@ -1,0 +1,112 @@
+"""The low-light sensor model (retinexgs darken) and the noise estimate from photos (retinexgs noise), issue 32."""
+import json
+import math
+
+import numpy as np
+import pytest
+
+from retinexgs.data import load_scene
+from retinexgs.data.images import read_image_float
+from retinexgs.data.sensor import (NOISE_LADDER, SensorModel, darken_scene, estimate_noise, linear_to_srgb,
+                                   srgb_to_linear)
+from retinexgs.demo.synthetic import make_demo_scene
+from scenes import run_cli
+
+
+def smooth_image(h=240, w=320):
+    yy, xx = np.mgrid[0:h, 0:w] / max(h, w)
+    return np.stack([0.2 + 0.5 * xx, 0.3 + 0.5 * yy, 0.5 + 0.3 * np.sin(3 * xx)], -1).clip(0, 1)
+
+
+def test_capture_has_the_model_s_mean_and_variance():
+    """Raw values: mean lin(x)·g·k, variance lin·g·k/W + (r/W)² (Poisson + Gaussian), per channel."""
+    rng = np.random.default_rng(0)
+    x = np.full((400, 400, 3), 0.5)
+    m = SensorModel(exposure=0.1, exposure_jitter=0.0, full_well=2000.0, read_noise=5.0, cast=(0.8, 1.0, 1.25))
+    y = m.capture(x, 0.1, rng)
+    signal = srgb_to_linear(np.array(0.5)) * np.array(m.cast) * 0.1
+    assert np.allclose(y.reshape(-1, 3).mean(0), signal, rtol=0.01)
+    want = signal / 2000.0 + (5.0 / 2000.0) ** 2
+    assert np.allclose(y.reshape(-1, 3).var(0), want, rtol=0.05)
+    clean = SensorModel(full_well=None).capture(x, 0.1, rng)
+    assert np.allclose(clean, srgb_to_linear(np.array(0.5)) * 0.1)
+
+
+def test_noise_estimate_recovers_the_sensor_on_a_lossless_capture():
+    rng = np.random.default_rng(1)
+    for W, r in [(1500.0, 4.0), (8000.0, 2.0)]:
+        m = SensorModel(exposure=0.1, exposure_jitter=0.0, full_well=W, read_noise=r, jpeg_quality=0)
+        photo = np.round(linear_to_srgb(m.capture(smooth_image(), 0.1, rng)) * 255) / 255
+        est = estimate_noise(photo)
+        for c in range(3):
+            assert est.full_well[c] == pytest.approx(W, rel=0.15), (W, est)
+        y = 0.02
+        assert np.mean(est.sigma_at(y)) == pytest.approx(math.sqrt(y / W + (r / W) ** 2), rel=0.1)
+    clean = np.round(smooth_image() * 255) / 255
+    assert max(estimate_noise(clean).a) < 1e-5  # no shot noise in a noise-free photo
+    with pytest.raises(ValueError, match="at least 8x8"):
+        estimate_noise(np.zeros((4, 4, 3)))
+
+
+def test_noisier_ladder_levels_estimate_noisier(tmp_path):
+    """The ladder's levels are ordered by the noise they make, as the estimate sees it through JPEG."""
+    src = make_demo_scene(tmp_path / "src", n_train=2, n_test=1, width=96, height=72, n_points=300)
+    sigmas = []
+    for label, W, r in NOISE_LADDER:
+        out = tmp_path / label
+        darken_scene(src, out, SensorModel(exposure=0.2, full_well=W, read_noise=r), seed=0, progress=False)
+        sigmas.append(np.mean(estimate_noise(read_image_float(out / "low" / "0000.png")).sigma_at(0.05)))
+    # a tiny textured scene: its texture sets a floor under the clean level; the noisy levels rise above it
+    assert sigmas[0] < sigmas[-2] < sigmas[-1], sigmas
+    assert sigmas[-1] > 2 * sigmas[0], sigmas
+
+
+def test_darken_scene_writes_a_trainable_scene_and_records_the_model(tmp_path):
+    src = make_demo_scene(tmp_path / "src", n_train=3, n_test=1, width=48, height=36, n_points=200)
+    out = tmp_path / "dark"
+    m = SensorModel(exposure=0.05, full_well=1000.0, read_noise=6.0, cast=(0.8, 1.0, 1.25))
+    report = darken_scene(src, out, m, seed=3, progress=False)
+    assert report.photos == 4
+    scene = load_scene(out)
+    assert len(scene.train) == 3 and len(scene.test) == 1
+    high = read_image_float(src / "high" / "0000.png")
+    low = read_image_float(out / "low" / "0000.png")
+    assert low.mean() < 0.6 * high.mean()
+    # the cast: blue over red, relative to the normal-light photo
+    assert low[..., 2].mean() / low[..., 0].mean() > high[..., 2].mean() / high[..., 0].mean()
+    info = json.loads((out / "sensor.json").read_text())
+    assert info["seed"] == 3 and info["model"]["full_well"] == 1000.0 and len(info["view_exposures"]) == 4
+    # the same seed gives the same photos
+    darken_scene(src, tmp_path / "again", m, seed=3, progress=False)
+    assert (out / "low" / "0001.png").read_bytes() == (tmp_path / "again" / "low" / "0001.png").read_bytes()
+
+
+def test_darken_refuses_bad_input_and_leaves_nothing(tmp_path, capsys):
+    src = make_demo_scene(tmp_path / "src", n_train=2, n_test=1, width=32, height=24, n_points=100)
+    cases = [(["--exposure", "0"], "--exposure must be in (0, 1]"),
+             (["--full-well", "-5"], "--full-well must be a positive"),
+             (["--read-noise", "nan"], "--read-noise must be >= 0"),
+             (["--cast", "1,0,1"], "--cast must be three positive"),
+             (["--jpeg-quality", "101"], "--jpeg-quality must be 0"),
+             ]
+    for extra, message in cases:
+        code, out, err = run_cli(["darken", "--data", src, "--out", tmp_path / "o", "--quiet", *extra], capsys)
+        assert code == 2 and message in err and "Traceback" not in err, (extra, err)
+        assert not (tmp_path / "o").exists()
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "mine.txt").write_text("user file")
+    code, out, err = run_cli(["darken", "--data", src, "--out", tmp_path / "full", "--quiet"], capsys)
+    assert code == 2 and "already exists and is not empty" in err
+    assert (tmp_path / "full" / "mine.txt").read_text() == "user file"
+    code, out, err = run_cli(["darken", "--data", tmp_path / "nope", "--out", tmp_path / "o2"], capsys)
+    assert code == 2 and "is not a folder" in err
+    (tmp_path / "empty").mkdir()
+    code, out, err = run_cli(["noise", "--data", tmp_path / "empty"], capsys)
+    assert code == 2 and "no photos" in err
+
+
+def test_noise_command_prints_the_estimate(tmp_path, capsys):
+    src = make_demo_scene(tmp_path / "src", n_train=2, n_test=1, width=96, height=72, n_points=300)
+    code, out, err = run_cli(["noise", "--data", src], capsys)
+    assert code == 0, err
+    assert "full well" in out and "sigma at the 50th-percentile level" in out
