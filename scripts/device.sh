@@ -66,8 +66,14 @@
 #       --test-limit S (200), --fuzz-cases N (300; 0 skips), --sanitizer "memcheck racecheck" (none skips),
 #       --targets "raster frame". Exit status 1 if any part failed.
 #       -> tests.log, fuzz_cuda.log, sanitizer.log
-#   scale [ARGS...]  the large-scene benchmark, `python -m retinexgs.bench scale ARGS` (scenes under /tmp/data)
-#       where retinexgs/bench/scale.py exists; otherwise it says it is not available in this build and exits 2.
+#   scale [ARGS...]  the large-scene benchmark, `python -m retinexgs.bench scale ARGS` (its --help): a synthetic
+#       dark scene (default 1000 views at 1920x1080, generated on the GPU into /tmp/retinexgs-scale while the
+#       extension builds, reused on a warm machine) or --scene NAME (a folder under .data, or a path), trained with
+#       each --gpus count at equal --views-seen. Options of this script: --limit S (560: the benchmark stops S s
+#       after the call began; the tables keep the runs that finished). Tables and runs go to --out (default
+#       /tmp/scale). E.g. run(command="bash scripts/device.sh scale --gpus 1,2,4 --views-seen 2000 --decompose none",
+#       kind="nvidia-h100-x4", carry=[".whl"]). Where retinexgs/bench/scale.py is missing it exits 2.
+#       -> scale.md (the table, the memory estimate), scale.json (every figure), runs.tgz (metrics, configs, logs)
 #   build  the set-up alone (wheels, build, GPU and torch versions); -> nothing but logs.tgz
 #   compile  every csrc/cuda/*.cu through nvcc for sm_89 and sm_90, without torch, a GPU or the set-up (what CI
 #       runs where nvcc exists): a syntax or type error in a kernel fails here.
@@ -105,7 +111,8 @@ parse() {
 }
 
 # The shared set-up of every GPU mode: wheels, environment, build with CUDA; the scenes with stage_data.
-setup() {
+setup() { setup_env; setup_build; }
+setup_env() {  # the wheels and the environment (enough for code that needs no compiled extension)
   mkdir -p "$OUT" "$LOGS"
   export PYTHONUNBUFFERED=1 MAX_JOBS=${MAX_JOBS:-16} TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0}
   SITE=
@@ -119,6 +126,8 @@ setup() {
     || die "pydantic is missing here: carry its wheels in $WHL (see the header of scripts/device.sh)"
   nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
   python3 -c "import torch; print('torch', torch.__version__, 'CUDA', torch.version.cuda)"
+}
+setup_build() {  # the CUDA extension (setup_env first)
   local t=$SECONDS
   python3 setup.py build_ext --inplace > "$LOGS/build.log" 2>&1 \
     || { grep -E "error" -A3 "$LOGS/build.log" | head -40; tail -20 "$LOGS/build.log"; cp "$LOGS/build.log" "$OUT/";
@@ -427,9 +436,44 @@ mode_scale() {
     echo "device.sh scale: the large-scene benchmark (retinexgs.bench.scale) is not available in this build" >&2
     exit 2
   fi
-  setup; need_train_wheels; stage_data
-  python3 -m retinexgs.bench scale "$@"
-  finish $?
+  LIMIT=${LIMIT:-560}
+  # Every argument goes to the benchmark but --limit (this script's); --scene NAME not an existing path is a scene
+  # under .data (staged to /tmp/data); without --out the tables go to /tmp/scale; generated scenes stay in /tmp.
+  local args=() out=/tmp/scale have_out=0 stage=0 a next=
+  for a in "$@"; do
+    case $next in
+      limit) LIMIT=$a; next=; continue ;;
+      scene) [[ $a == /* ]] || [ -e "$a" ] || { a=/tmp/data/$a; stage=1; }; next= ;;
+      out) out=$a; next= ;;
+    esac
+    case $a in
+      --limit) next=limit; continue ;;
+      --limit=*) LIMIT=${a#*=}; continue ;;
+      --scene) next=scene ;;
+      --scene=*) a=${a#*=}; [[ $a == /* ]] || [ -e "$a" ] || { a=/tmp/data/$a; stage=1; }; a=--scene=$a ;;
+      --out) next=out; have_out=1 ;;
+      --out=*) out=${a#*=}; have_out=1 ;;
+    esac
+    args+=("$a")
+  done
+  [ -n "$next" ] && die "--$next needs a value"
+  [ $have_out = 1 ] || args+=(--out "$out")
+  setup_env
+  [ $stage = 1 ] && stage_data
+  # The scene is generated (on the GPU) while the extension builds: it needs neither the build nor the wheels.
+  timeout "$LIMIT" python3 -m retinexgs.bench scale "${args[@]}" --generate-only > "$LOGS/generate.log" 2>&1 &
+  local gen=$!
+  setup_build; need_train_wheels
+  wait $gen || { tail -20 "$LOGS/generate.log"; die "the scene's generation failed (generate.log in logs.tgz)"; }
+  grep -E "^scene:|views/s" "$LOGS/generate.log" | tail -2
+  local left=$(( LIMIT - $(elapsed) )) rc
+  [ "$left" -gt 0 ] || die "no time left under --limit $LIMIT"
+  timeout "$left" python3 -m retinexgs.bench scale "${args[@]}" 2>&1 | tee "$LOGS/scale.log"
+  rc=${PIPESTATUS[0]}
+  [ "$rc" = 124 ] && echo "device.sh scale: cut off at --limit $LIMIT s; the tables hold the runs that finished"
+  cp "$out/scale.md" "$out/scale.json" "$OUT/" 2> /dev/null
+  tar czf "$OUT/runs.tgz" --exclude='*.pt' --exclude='tb' --exclude='renders' -C "$out" . 2> /dev/null
+  finish "$rc"
 }
 
 # ---------------------------------------------------------------------------------------------------- compile

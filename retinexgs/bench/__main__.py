@@ -1,4 +1,4 @@
-"""``python -m retinexgs.bench NAME [options]``: run one benchmark script (raster, lr3m, fps, ...)."""
+"""``python -m retinexgs.bench NAME [options]``: run one benchmark script (raster, lr3m, fps, quality, scale, ...)."""
 import ast
 import importlib
 import importlib.util
@@ -9,7 +9,7 @@ from pathlib import Path
 from retinexgs.openmp import bound_openmp_spinning
 
 BENCHES = {"raster": "retinexgs.bench.raster", "lr3m": "retinexgs.bench.lr3m", "fps": "retinexgs.bench.fps",
-           "quality": "retinexgs.bench.quality",
+           "quality": "retinexgs.bench.quality", "scale": "retinexgs.bench.scale",
            "proxy": "retinexgs.train.proxy", "retone": "retinexgs.train.retone",
            "train-speed": "retinexgs.train.speed"}
 
@@ -46,7 +46,7 @@ def main() -> int:
               "(--help lists what each measures)", file=sys.stderr)
         return 2
     name = sys.argv[1]
-    if name in ("quality", "proxy", "retone"):  # not the timing benchmarks: their figures keep libgomp's default
+    if name in ("quality", "proxy", "retone", "scale"):  # trainings in child processes (scale: the scene's writer)
         bound_openmp_spinning()  # before torch loads; these often share the CPU with trainings (docs/benchmarks.md)
     try:
         module = importlib.import_module(BENCHES[name])
