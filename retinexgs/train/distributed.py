@@ -22,7 +22,9 @@ group: it is the plain run. Collectives time out after ``RETINEXGS_DIST_TIMEOUT`
 barriers, which wait for one rank's scene reading or its share of the decomposition, after
 ``RETINEXGS_DIST_SETUP_TIMEOUT``, default 4 h), and a failed or timed-out collective becomes a
 :class:`RankFailure` that names the rank and what it was waiting for. The NCCL collectives run in eager code,
-never inside the CUDA graphs the trainer captures (torch holds a capture back until pending NCCL work is done).
+never inside the CUDA graphs the trainer captures; a capture that fails for any reason (NCCL's watchdog thread
+querying its events during a capture was a known torch issue, handled in recent torch) is logged by the trainer
+and that part runs eagerly.
 """
 from __future__ import annotations
 
