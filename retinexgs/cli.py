@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import signal
 import sys
 import threading
@@ -54,6 +55,15 @@ def _raise_terminated(signum, frame) -> None:
     raise Terminated()
 
 
+def _rank_note() -> str:
+    """Under torchrun with several ranks: which rank this is, and why it may have been stopped."""
+    world, rank = os.environ.get("WORLD_SIZE", ""), os.environ.get("RANK", "")
+    if not world.isdigit() or int(world) < 2:
+        return ""
+    return (f" (rank {rank} of {world}: torchrun stops every rank once one fails; the failed rank's error is "
+            "printed above or in torchrun's summary)")
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     """Run the command line; returns the process exit code (2 for a UserError, 130 after Ctrl-C, 143 after
     SIGTERM: both stop through the same clean-up, never a stack dump)."""
@@ -62,6 +72,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    args.argv = list(sys.argv[1:] if argv is None else argv)  # as given (train --gpus re-launches with them)
     restore = None
     if threading.current_thread() is threading.main_thread():
         restore = signal.signal(signal.SIGTERM, _raise_terminated)
@@ -71,7 +82,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"retinexgs {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except Terminated:
-        print(f"retinexgs {args.command}: terminated", file=sys.stderr)
+        print(f"retinexgs {args.command}: terminated{_rank_note()}", file=sys.stderr)
         return 143
     except KeyboardInterrupt:
         print(f"retinexgs {args.command}: interrupted", file=sys.stderr)

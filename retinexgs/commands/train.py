@@ -2,7 +2,9 @@
 from __future__ import annotations
 
 import argparse
+import os
 import shutil
+import sys
 import time
 from pathlib import Path
 
@@ -38,6 +40,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "command)")
     p.add_argument("--view-port", type=int, default=8080, help="port of --view (default 8080; 0 = any free one)")
     p.add_argument("--view-host", default="127.0.0.1", help="address --view binds (default 127.0.0.1)")
+    p.add_argument("--gpus", type=int, default=None, metavar="N",
+                   help="train on N GPUs of this machine, data parallel over views (N x train.views_per_rank "
+                        "views a step): re-launches itself through torchrun (the same as torchrun --nproc_per_node N "
+                        "-m retinexgs train ...); 1 = the plain run; with --device cpu, N CPU "
+                        "processes (gloo), for testing")
     _add_common(p)
     p.set_defaults(func=_train)
 
@@ -66,6 +73,10 @@ def _train(args: argparse.Namespace) -> int:
 
     if args.data is None and not args.resume:
         raise UserError("--data SCENE is required (only --resume can do without it: the run knows its scene)")
+    if args.gpus is not None:
+        code = _launch_ranks(args)
+        if code is not None:
+            return code
     on_trainer = None
     if args.view:  # checked before any work: a missing viser or a bad port must not cost a training run
         from retinexgs.view.live import live_viewer  # lazy: the viewer (viser) loads only with --view
@@ -76,6 +87,25 @@ def _train(args: argparse.Namespace) -> int:
     train_run(args.data, args.out, args.config, args.set, args.device, args.resume, progress=not args.quiet,
               relocate_scene=args.relocate_scene, on_trainer=on_trainer)
     return 0
+
+
+def _launch_ranks(args: argparse.Namespace):
+    """``train --gpus N``: torchrun's exit code after running N ranks, or None to train in this process (N = 1,
+    or this process is already one of torchrun's ranks)."""
+    n = args.gpus
+    if n < 1:
+        raise UserError(f"--gpus must be a number of GPUs >= 1, got {n}")
+    world = os.environ.get("WORLD_SIZE")
+    if world is not None:  # one of the ranks (torchrun given --gpus by hand): the launch is done
+        if world != str(n):
+            raise UserError(f"--gpus {n} inside torchrun with WORLD_SIZE={world}: give torchrun's --nproc_per_node "
+                            "or --gpus, not both")
+        return None
+    if n == 1:
+        return None
+    from retinexgs.train.distributed import relaunch  # lazy: torch loads only to train
+
+    return relaunch(n, args.device, getattr(args, "argv", sys.argv[1:]))
 
 
 def _eval(args: argparse.Namespace) -> int:

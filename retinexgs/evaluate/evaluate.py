@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Callable, Dict, List, Optional
+from typing import Any, Callable, Dict, List, Optional, Tuple
 
 import numpy as np
 import torch
@@ -68,25 +68,32 @@ PANEL_LABELS = ["dark input", "output", "R (reflectance)", "L (illumination)", "
 
 
 def evaluate(render_fn: Callable, scene: Scene, out_dir: Path, use_lpips: bool = True,
-             log: Callable[[str], None] = print, extra: Optional[Dict] = None) -> Optional[Dict]:
+             log: Callable[[str], None] = print, extra: Optional[Dict] = None, shard: Tuple[int, int] = (0, 1),
+             gather: Optional[Callable[[Any], List[Any]]] = None) -> Optional[Dict]:
     """Render every test view with ``render_fn(view) -> dict`` (key ``rgb``, optional ``R``, ``L``), compare
     with its paired normal-light image, write ``out_dir/renders/test/*.png`` and ``out_dir/metrics.json``.
 
     Returns the metrics, or None (with the reason logged and written) when there is nothing to compare.
+    ``shard`` = (rank, ranks) with ``gather`` (every rank's object, in rank order, on every rank): this
+    process renders and scores the test views ``i % ranks == rank`` (writing their PNGs); the rows are gathered
+    into the test views' order, and rank 0 alone writes metrics.json (the same file as one process writes).
     """
+    rank, ranks = shard
     views = [v for v in scene.test if v.paired_path is not None]
     if not views:
         reason = ("the scene has no test views" if not scene.test else
                   "the test views have no paired normal-light images")
         log(f"evaluation skipped: {reason}")
-        atomic_json({"skipped": reason, **(extra or {})}, out_dir / "metrics.json")
+        if rank == 0:
+            atomic_json({"skipped": reason, **(extra or {})}, out_dir / "metrics.json")
         return None
     # A test view whose photo is also a training view (the loader warns): its figures are not held-out.
     train_files = {Path(v.source_path or v.image_path).resolve() for v in scene.train}
     test_in_train = sum(Path(v.source_path or v.image_path).resolve() in train_files for v in views)
     rows: List[Dict] = []
     lpips_reason = ""
-    for view in views:
+    has_maps = False  # the renders have R and L (a RetinexGS run)
+    for view in views[rank::ranks]:
         with torch.no_grad():
             res = render_fn(view)
         gt = view.paired_image
@@ -103,6 +110,7 @@ def evaluate(render_fn: Callable, scene: Scene, out_dir: Path, use_lpips: bool =
         rows.append(row)
         panels = [low, rgb]
         labels = PANEL_LABELS[:2]
+        has_maps = "R" in res
         if "R" in res:
             L = res["L"].float().cpu()
             panels += [res["R"].float().cpu(), L / L.amax().clamp_min(1e-6)]
@@ -112,9 +120,16 @@ def evaluate(render_fn: Callable, scene: Scene, out_dir: Path, use_lpips: bool =
         save_png(torch.cat([p.float().cpu()[..., :3] if p.shape[-1] >= 3 else p.float().cpu().expand(
             *p.shape[:-1], 3) for p in panels], dim=1), out_dir / "renders" / "test" / f"{Path(view.name).stem}.png",
             labels)
+    if gather is not None:  # every rank's rows back in the test views' order (rank r scored r, r + N, ...)
+        parts = gather((rows, has_maps, lpips_reason))
+        order = [None] * len(views)
+        for r, (part, maps, reason) in enumerate(parts):
+            order[r::ranks] = part
+            has_maps, lpips_reason = has_maps or maps, lpips_reason or reason
+        rows = order
     mean = {k: float(np.mean([r[k] for r in rows])) for k in rows[0] if k != "view"}
     metrics = {"mean": mean, "views": rows, "panels": "low input | output | R̂ | L̂ (normalised) | ground truth"
-               if "R" in res else "low input | output | ground truth",
+               if has_maps else "low input | output | ground truth",
                "label_rows": LABEL_ROWS}  # the PNGs' strip naming the panels, above them
     if test_in_train:
         metrics["test_in_train"] = test_in_train
@@ -122,7 +137,8 @@ def evaluate(render_fn: Callable, scene: Scene, out_dir: Path, use_lpips: bool =
     if use_lpips and "lpips" not in mean:
         metrics["lpips_unavailable"] = lpips_reason
         log(f"LPIPS not reported: {lpips_reason}")
-    atomic_json(metrics, out_dir / "metrics.json")
+    if rank == 0:
+        atomic_json(metrics, out_dir / "metrics.json")
     log(f"test views: PSNR {mean['psnr']:.2f} dB, SSIM {mean['ssim']:.3f}"
         + (f", LPIPS {mean['lpips']:.3f}" if "lpips" in mean else "")
         + f"  (brightness aligned to the truth, GT-mean: {mean['psnr_gt_mean']:.2f} dB, {mean['ssim_gt_mean']:.3f})"

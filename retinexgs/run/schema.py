@@ -216,6 +216,8 @@ class Eval(Section):
 
 class Train(Section):
     cuda_graphs: Bool
+    views_per_rank: Int(1)
+    lr_batch_scaling: Choice("sqrt", "linear", "none")
 
 
 class ConfigSchema(Section):

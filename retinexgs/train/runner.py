@@ -19,6 +19,7 @@ from retinexgs.train.trainer import Trainer
 from retinexgs.run.folder import write_run_config
 from retinexgs.run.folder import open_scene, pick_device
 from retinexgs.run.render import render_function
+from retinexgs.train.distributed import Distributed, gradient_params, init_from_env
 
 
 def _checkpoint_step(run_dir: Path) -> int:
@@ -38,9 +39,33 @@ def train_run(scene_path: Optional[Path], run_dir: Path, config_files: Iterable[
     (a writable folder, empty for a new run), and on resume the run's lock, the keys a resume may change and
     ``--data`` against the run's scene. Overrides given on resume are recorded in the run's config.yaml.
     ``on_trainer(trainer, scene, log)``: called once the run is set up, before the first step; it returns a
-    function called when training ends (``train --view`` serves the live model this way: ``retinexgs.view.live``)."""
+    function called when training ends (``train --view`` serves the live model this way: ``retinexgs.view.live``).
+
+    Launched by torchrun with several ranks (:mod:`retinexgs.train.distributed`), every rank runs this: the
+    checks everywhere, then rank 0 reads the scene first (its caches) and the others after it, the
+    decomposition in shards, rank 0 alone creates and locks the run folder and writes in it (the others are
+    quiet), the evaluation in shards; the metrics are returned on every rank."""
     run_dir = Path(run_dir)
     device = pick_device(device)
+    dist, device = init_from_env(device)
+    ok = False
+    try:
+        result = _train_run(dist, scene_path, run_dir, config_files, overrides, device, resume,
+                            progress and dist.is_main, log if dist.is_main else _quiet, relocate_scene,
+                            on_trainer if dist.is_main else None)
+        ok = True
+        return result
+    finally:
+        dist.close(ok)
+
+
+def _quiet(message: str) -> None:
+    """The log of ranks other than 0."""
+
+
+def _train_run(dist: Distributed, scene_path: Optional[Path], run_dir: Path, config_files: Iterable[str],
+               overrides: Iterable[str], device: str, resume: bool, progress: bool, log: Callable[[str], None],
+               relocate_scene: bool, on_trainer) -> Optional[Dict]:
     config_files, overrides = list(config_files), list(overrides)
     changes: Dict = {}
     relocating = False
@@ -49,7 +74,8 @@ def train_run(scene_path: Optional[Path], run_dir: Path, config_files: Iterable[
             if not (run_dir / "config.yaml").is_file():
                 raise UserError(f"--resume: {run_dir} is not a run folder (no config.yaml)")
             check_writable_folder(run_dir)
-            stack.enter_context(run_lock(run_dir))
+            if dist.is_main:
+                stack.enter_context(run_lock(run_dir))
             recorded, recorded_scene = read_run_config(run_dir, log)
             cfg, changes = resume_config(recorded, config_files, overrides, run_dir, _checkpoint_step(run_dir))
             scene_path, relocating = resume_scene(recorded_scene, scene_path, relocate_scene, run_dir)
@@ -61,7 +87,14 @@ def train_run(scene_path: Optional[Path], run_dir: Path, config_files: Iterable[
                 raise UserError(f"run folder {run_dir} already exists and is not empty; pass --resume to continue "
                                 "it or choose another --out")
             cfg = load_config(config_files, overrides)
-        scene = open_scene(Path(scene_path), cfg)
+        # Every rank has checked --out before rank 0 creates anything in it.
+        dist.barrier("every rank's checks of the run folder")
+        # Rank 0 reads the scene first: it fills the scene's caches (undistorted or downscaled photos, SfM).
+        if dist.is_main:
+            scene = open_scene(Path(scene_path), cfg)
+        dist.barrier("rank 0's reading of the scene")
+        if not dist.is_main:
+            scene = open_scene(Path(scene_path), cfg)
         log(scene.summary())
         if relocating:
             ckpt = latest_checkpoint(run_dir)
@@ -72,14 +105,18 @@ def train_run(scene_path: Optional[Path], run_dir: Path, config_files: Iterable[
         log(build_schedule(cfg).describe())
         if device.startswith("cuda"):
             torch.cuda.reset_peak_memory_stats()
+        if dist.enabled:
+            log(f"{dist.world} ranks ({dist.backend}), {dist.world * cfg['train']['views_per_rank']} views a step")
+        dist.decompose_shard(scene, cfg, device, progress)
         # The trainer reads every image and decomposition first: bad input fails before the run folder is made.
-        trainer = Trainer(cfg, scene, run_dir, device, resume=resume, progress=progress, log=log)
-        if not resume:
+        trainer = Trainer(cfg, scene, run_dir, device, resume=resume, progress=progress, log=log, dist=dist)
+        if not resume and dist.is_main:
             run_dir.mkdir(parents=True, exist_ok=True)
             stack.enter_context(run_lock(run_dir))
             if not is_empty_run_folder(run_dir):  # another trainer made it while this one was loading
                 raise UserError(f"run folder {run_dir} was filled by another trainer meanwhile; choose another --out")
-        if not resume or changes or relocating:
+        dist.barrier("rank 0's creation of the run folder")
+        if (not resume or changes or relocating) and dist.is_main:
             write_run_config(run_dir, cfg, scene_path)  # atomic: a later --resume continues with these settings
             for key, (old, new) in changes.items():
                 log(f"--resume: {key} {old!r} -> {new!r} (recorded in {run_dir / 'config.yaml'})")
@@ -87,11 +124,12 @@ def train_run(scene_path: Optional[Path], run_dir: Path, config_files: Iterable[
                 log(f"--relocate-scene: the run now reads its scene from {Path(scene_path).resolve()}")
         if on_trainer is not None:
             stack.callback(on_trainer(trainer, scene, log))
-        return _train_and_evaluate(trainer, cfg, scene, run_dir, device, log)
+        return _train_and_evaluate(trainer, cfg, scene, run_dir, device, log, dist)
 
 
 def _train_and_evaluate(trainer: Trainer, cfg: Dict, scene: Scene, run_dir: Path, device: str,
-                        log: Callable[[str], None]) -> Optional[Dict]:
+                        log: Callable[[str], None], dist: Optional[Distributed] = None) -> Optional[Dict]:
+    dist = dist if dist is not None else Distributed()
     stats: Dict = {"device": torch.cuda.get_device_name() if device.startswith("cuda") else "cpu"}
     if trainer.step >= cfg["steps"]:
         log(f"{run_dir} has already finished its {cfg['steps']} steps")
@@ -101,6 +139,9 @@ def _train_and_evaluate(trainer: Trainer, cfg: Dict, scene: Scene, run_dir: Path
         stats.update(train_seconds=round(values["total_seconds"], 1), steps=cfg["steps"])
         if device.startswith("cuda"):
             stats["peak_gpu_memory_gb"] = round(torch.cuda.max_memory_allocated() / 2**30, 3)
+        # The large-scene benchmark's figures (ranks 1 for a plain run), gathered from every rank.
+        stats.update(dist.training_stats(trainer.batch_size, trainer.session_views, values["seconds"],
+                                         trainer.time_to_first_step, gradient_params(trainer.optimizer)))
         resumed = values["total_seconds"] - values["seconds"] > 0.5
         took = (f"{values['total_seconds']:.0f} s in all ({values['seconds']:.0f} s this session)" if resumed
                 else f"{values['seconds']:.0f} s")
@@ -108,6 +149,7 @@ def _train_and_evaluate(trainer: Trainer, cfg: Dict, scene: Scene, run_dir: Path
             + (f", peak GPU memory {stats['peak_gpu_memory_gb']:.2f} GB" if "peak_gpu_memory_gb" in stats else ""))
     stats["gaussians"] = len(trainer.model.gaussians)
     return evaluate(render_function(trainer.model, cfg, trainer.active_degree(cfg["steps"])), scene, run_dir,
-                    cfg["eval"]["lpips"], log, extra={"train": stats})
+                    cfg["eval"]["lpips"], log, extra={"train": stats}, shard=(dist.rank, dist.world),
+                    gather=(lambda rows: dist.gather_objects(rows, "the evaluation's rows")) if dist.enabled else None)
 
 

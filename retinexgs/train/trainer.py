@@ -2,6 +2,7 @@
 control, logging, atomic checkpoints and resume, and the final evaluation."""
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import random
@@ -24,6 +25,7 @@ from retinexgs.model.tone import exposure_gain
 from retinexgs.render import Camera
 from retinexgs.train import losses
 from retinexgs.run.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
+from retinexgs.train.distributed import Distributed, gradient_params, lr_batch_factor, process_start_time, take_gradients
 from retinexgs.train.graphs import ChannelGraphs, LossGraphs
 from retinexgs.model.schedule import build_schedule
 from retinexgs.run.render import view_camera
@@ -161,9 +163,11 @@ class Trainer:
     """Trains one run folder. ``resume`` continues from its newest checkpoint."""
 
     def __init__(self, cfg: Dict, scene: Scene, run_dir: Path, device: str = "cpu", resume: bool = False,
-                 progress: bool = True, log: Callable[[str], None] = print, emulate_graphs: bool = False) -> None:
+                 progress: bool = True, log: Callable[[str], None] = print, emulate_graphs: bool = False,
+                 dist: Optional[Distributed] = None) -> None:
         """``emulate_graphs``: on the CPU, run the CUDA-graph path of the step (the image losses' forward and
-        backward apart, the gradients fed back) eagerly, for tests and op counts (:mod:`retinexgs.train.graphs`)."""
+        backward apart, the gradients fed back) eagerly, for tests and op counts (:mod:`retinexgs.train.graphs`).
+        ``dist``: this rank among several (:mod:`retinexgs.train.distributed`); None: the plain run."""
         self.cfg, self.scene, self.run = cfg, scene, Path(run_dir)
         self.device, self.progress, self.log = torch.device(device), progress, log
         self.seconds_before: float = 0.0  # training time recorded by the checkpoint resumed from
@@ -190,6 +194,7 @@ class Trainer:
                 state = load_checkpoint(ckpt)
                 self.log(f"resuming from {ckpt} (step {state['step']})")
         self._build(state, emulate_graphs)
+        self._setup_batch(dist)
 
     # ---- set-up ----------------------------------------------------------------------------------------
     def _prepare_views(self) -> List[TrainView]:
@@ -468,37 +473,63 @@ class Trainer:
             return self.model.render(tv.camera, self.active_degree(step), validate=False, enhance=False,
                                      center=tv.center, colors=colors, depth=self.depth_prior)
 
-    def train_step(self, step: int, tv: TrainView, check: bool = True) -> Dict[str, float]:
-        """One optimisation step on view ``tv``. With ``check`` (and always before densification or an opacity
-        reset) the loss terms and parameters of every step since the last check are checked for NaN/inf
-        (:class:`TrainingDiverged`) and this step's loss values are returned; otherwise nothing is read back
-        from the device (the step never waits for the GPU, except for binning's pair count) and the result
-        holds only a density event, if any."""
+    def train_step(self, step: int, tv, check: bool = True) -> Dict[str, float]:
+        """One optimisation step on view ``tv`` (or on this rank's list of the step's views: each is rendered
+        and back-propagated in turn, the gradients summed). With ``check`` (and always before densification or
+        an opacity reset) the loss terms and parameters of every step since the last check are checked for
+        NaN/inf (:class:`TrainingDiverged`) and this step's loss values (the mean over the step's views) are
+        returned; otherwise nothing is read back from the device (the step never waits for the GPU, except for
+        binning's pair count) and the result holds only a density event, if any. A batch of B > 1 views
+        (``batch_size``: ranks × ``train.views_per_rank``) steps on the mean gradient over the B views: one
+        all-reduce of the gradients across the ranks after the backward, before the optimiser step; the
+        density statistics are summed over the ranks before a densification, and rank 0's Gaussians broadcast
+        after any density event (:mod:`retinexgs.train.distributed`)."""
+        views = list(tv) if isinstance(tv, (list, tuple)) else [tv]
         for group in self.optimizer.param_groups:
             if group["name"] == "means":
-                group["lr"] = self._means_lr(step)
-        res = self.render_view(tv, step)
-        terms = self._backward_graphed(res, tv, step) if self.graphs is not None else None
-        if terms is None:
-            with record_function("step/loss"):
-                terms = self.loss(res, tv, step)
-            with record_function("step/backward"):
-                terms["total"].backward()
-        with record_function("step/watch"):
-            self._watch(terms, step)
-        with record_function("step/density"):
-            self.density.update(res["out"], tv.camera.width, tv.camera.height)
+                group["lr"] = self._means_lr(step) * self.lr_scale
+        several = len(views) > 1
+        acc, per_view = None, []
+        for view in views:
+            res = self.render_view(view, step)
+            terms = self._backward_graphed(res, view, step) if self.graphs is not None else None
+            if terms is None:
+                with record_function("step/loss"):
+                    terms = self.loss(res, view, step)
+                with record_function("step/backward"):
+                    terms["total"].backward()
+            if several:  # this view's gradients go into the step's sum (p.grad free for the next view)
+                per_view.append({k: v.detach() for k, v in terms.items()})
+                acc = take_gradients(gradient_params(self.optimizer), acc)
+            else:
+                with record_function("step/watch"):
+                    self._watch(terms, step)
+            with record_function("step/density"):
+                self.density.update(res["out"], view.camera.width, view.camera.height)
+            del res
+        if several:
+            for p, g in zip(gradient_params(self.optimizer), acc):
+                p.grad = g
+            with record_function("step/watch"):
+                self._watch({k: sum(t[k] for t in per_view) / len(per_view) for k in per_view[0]}, step)
+        if self.batch_size > 1:
+            with record_function("step/all_reduce"):
+                self.dist.reduce_gradients(gradient_params(self.optimizer), self.batch_size, step, verify=check)
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         self.density.limit_anisotropy(self.model.gaussians)
         values: Dict[str, float] = {}
         if check or self.schedule.densify_at(step) or self.schedule.reset_at(step):
             with record_function("step/check"):
-                values = self.check_finite(step)
-        size = max(tv.camera.width, tv.camera.height)
+                values = self.dist.mean_values(self.check_finite(step), step)
+        size = max(max(v.camera.width, v.camera.height) for v in views)
+        if self.dist.enabled and self.schedule.densify_at(step):
+            size = self.dist.reduce_density_statistics(self.density, len(self.model.gaussians), size, step)
         event = self.density.step(step, self.model.gaussians, self.optimizer, size)
         if event:
             values["event"] = event  # type: ignore[assignment]
+            if self.dist.enabled:
+                values["ranks_agree"] = self.dist.sync_gaussians(self.model.gaussians, self.optimizer, step)
         return values
 
     # ---- divergence -------------------------------------------------------------------------------------
@@ -567,23 +598,58 @@ class Trainer:
         return values
 
     # ---- the loop ----------------------------------------------------------------------------------------
+    def _setup_batch(self, dist: Optional[Distributed]) -> None:
+        """A step's batch: ``batch_size`` = ranks × ``train.views_per_rank`` views; every learning rate scaled
+        by ``train.lr_batch_scaling`` of it (1 for a batch of one view). With several ranks, rank 0's model
+        state (parameters and buffers: ``illum_ref``, the mean background) is broadcast to the others."""
+        self.dist = dist if dist is not None else Distributed(device=self.device)
+        tcfg = self.cfg["train"]
+        self.batch_size = self.dist.world * int(tcfg.get("views_per_rank", 1))
+        self.lr_scale = lr_batch_factor(tcfg.get("lr_batch_scaling", "sqrt"), self.batch_size)
+        if self.lr_scale != 1.0:
+            for group in self.optimizer.param_groups:
+                group["lr"] *= self.lr_scale
+        self.time_to_first_step: Optional[float] = None  # seconds from the process's start to step 1's end
+        self.session_views = 0  # views trained on in the last train() call, over every rank
+        if self.dist.enabled:
+            self.dist.broadcast_(list(self.model.state_dict().values()), "the model's initial state")
+
+    def _batch_indices(self) -> List[int]:
+        """This rank's views of the next step: the next ``batch_size`` entries of the shared view order (a new
+        shuffle of every view, the same on every rank, each time it runs out), entries r, r + N, ... for rank
+        r of N. One rank taking B views and N ranks taking B / N each see the same views in each step."""
+        batch = []
+        for _ in range(self.batch_size):
+            if not self.order:
+                self.order = list(range(len(self.views)))
+                random.shuffle(self.order)
+                if self.dist.enabled:  # seeded alike on every rank; rank 0's, should anything have drawn apart
+                    self.order = self.dist.broadcast_object(self.order, "the view order")
+            batch.append(self.order.pop())
+        return batch[self.dist.rank::self.dist.world]
+
     def checkpoint_state(self) -> Dict:
         return {"step": self.step, "config": self.cfg, "model": self.model.state_dict(),
                 "optimizer": self.optimizer.state_dict(), "rng": torch.get_rng_state(),
                 "py_rng": random.getstate(), "order": list(self.order), "density": self.density.state_dict(), "normalization": {
                     "center": self.scene.normalization.center, "scale": self.scene.normalization.scale},
                 "scene_root": str(self.scene.root), "train_views": [v.name for v in self.scene.train],
-                "train_seconds": self.train_seconds()}
+                "train_seconds": self.train_seconds(),
+                # For information (a checkpoint resumes with any number of ranks): how it was trained.
+                "ranks": self.dist.world, "views_per_step": self.batch_size}
 
     def train_seconds(self) -> float:
         """Seconds spent training the steps so far, over every session of the run (a resumed run adds its
         time to what its checkpoint recorded; the steps lost to a kill since the last checkpoint do not count)."""
         return self.seconds_before + (time.time() - self._session_start if self._session_start else 0.0)
 
-    def save(self) -> Path:
-        """Write a checkpoint of the current step (after checking every step since the last check)."""
+    def save(self) -> Optional[Path]:
+        """Write a checkpoint of the current step (after checking every step since the last check); only rank 0
+        writes (None on the others: the ranks' parameters are identical)."""
         if self._checked_through < self.step:
             self.check_finite(self.step)
+        if not self.dist.is_main:
+            return None
         return save_checkpoint(self.run, self.step, self.checkpoint_state(), self.cfg["checkpoint"]["keep"])
 
     def train(self, stop_after: Optional[int] = None) -> Dict[str, float]:
@@ -592,25 +658,35 @@ class Trainer:
 
         total_steps = self.cfg["steps"]
         end = total_steps if stop_after is None else min(total_steps, self.step + stop_after)
-        writer = self._tensorboard()
+        main = self.dist.is_main  # only rank 0 logs, shows progress and writes
+        writer = self._tensorboard() if main else None
         log_path = self.run / "train_log.jsonl"
         values: Dict[str, float] = {}
         t0 = self._session_start = time.time()
-        bar = tqdm(total=end, initial=self.step, disable=not self.progress, desc="train", dynamic_ncols=True)
-        with open(log_path, "ab", buffering=0) as log_file:  # unbuffered: a record is on disk when written
+        first = self.step + 1
+        bar = tqdm(total=end, initial=self.step, disable=not self.progress or not main, desc="train",
+                   dynamic_ncols=True)
+        # unbuffered: a record is on disk when written
+        with open(log_path, "ab", buffering=0) if main else contextlib.nullcontext() as log_file:
             while self.step < end:
-                if not self.order:
-                    self.order = list(range(len(self.views)))
-                    random.shuffle(self.order)
+                indices = self._batch_indices()
                 self.step += 1
+                self.dist.test_fault(self.step)
                 check = (self.step % self.cfg["log"]["every"] == 0 or self.step == end
                          or self.step % self.cfg["checkpoint"]["every"] == 0)
-                values = self.train_step(self.step, self.views[self.order.pop()], check=check)
+                views = [self.views[i] for i in indices]
+                values = self.train_step(self.step, views[0] if len(views) == 1 else views, check=check)
+                if self.step == first:
+                    if self.device.type == "cuda":
+                        torch.cuda.synchronize(self.device)
+                    self.time_to_first_step = time.time() - process_start_time()
                 event = values.pop("event", None)
-                if event:
+                agree = values.pop("ranks_agree", None)
+                if event and log_file is not None:
                     _append_record(log_file, {"step": self.step, "event": event,
-                                              "gaussians": len(self.model.gaussians)})
-                if self.step % self.cfg["log"]["every"] == 0 or self.step == end:
+                                              "gaussians": len(self.model.gaussians)}
+                                   | ({} if agree is None else {"ranks_agree": agree}))
+                if log_file is not None and (self.step % self.cfg["log"]["every"] == 0 or self.step == end):
                     n = len(self.model.gaussians)
                     bar.set_postfix({k: f"{v:.4f}" for k, v in values.items() if k in
                                      ("total", "sup_rec", "sup_r", "sup_l", "exp", "rgb")} | {"N": n})
@@ -627,6 +703,7 @@ class Trainer:
         if writer:
             writer.close()
         values["seconds"] = time.time() - t0
+        self.session_views = (self.step - first + 1) * self.batch_size  # this session's views, all ranks
         values["total_seconds"] = self.train_seconds()
         self.seconds_before, self._session_start = values["total_seconds"], None
         return values
