@@ -112,6 +112,9 @@ def evaluate(render_fn: Callable, scene: Scene, out_dir: Path, use_lpips: bool =
         save_png(torch.cat([p.float().cpu()[..., :3] if p.shape[-1] >= 3 else p.float().cpu().expand(
             *p.shape[:-1], 3) for p in panels], dim=1), out_dir / "renders" / "test" / f"{Path(view.name).stem}.png",
             labels)
+        # One test view's images at a time: a big capture's test set is not kept in memory.
+        view.release_images()
+        del panels, low, gt, rgb, aligned
     mean = {k: float(np.mean([r[k] for r in rows])) for k in rows[0] if k != "view"}
     metrics = {"mean": mean, "views": rows, "panels": "low input | output | R̂ | L̂ (normalised) | ground truth"
                if "R" in res else "low input | output | ground truth",

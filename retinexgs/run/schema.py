@@ -216,6 +216,8 @@ class Eval(Section):
 
 class Train(Section):
     cuda_graphs: Bool
+    stream_views: Choice("auto", "always", "never")
+    views_on_device_gb: Num(ge=0)
 
 
 class ConfigSchema(Section):
