@@ -120,6 +120,9 @@ def evaluate(render_fn: Callable, scene: Scene, out_dir: Path, use_lpips: bool =
         save_png(torch.cat([p.float().cpu()[..., :3] if p.shape[-1] >= 3 else p.float().cpu().expand(
             *p.shape[:-1], 3) for p in panels], dim=1), out_dir / "renders" / "test" / f"{Path(view.name).stem}.png",
             labels)
+        # One test view's images at a time: a big capture's test set is not kept in memory.
+        view.release_images()
+        del panels, low, gt, rgb, aligned
     if gather is not None:  # every rank's rows back in the test views' order (rank r scored r, r + N, ...)
         parts = gather((rows, has_maps, lpips_reason))
         order = [None] * len(views)

@@ -11,6 +11,9 @@ entries of photos the scene no longer has are deleted, in every ``<method>-<key>
 (entries of other settings for the current photos are kept: switching back is free); entries of the older
 path-keyed format (``<stem>-<10 hex>.npz``) are never read and are swept as stale. :func:`clean_cache`
 removes all of it, :func:`cache_summary` describes it (``retinexgs decompose --clean`` / ``--info``).
+The root also holds the trainer's view stores, ``views-<settings>-<8 hex>.bin`` (the photos and priors of a
+scene's training views in one memory-mapped file, :mod:`retinexgs.train.views`); :func:`clean_cache` removes
+them too.
 
 Writes are atomic: the file is written under a ``.tmp-`` name in the same folder, flushed and fsynced,
 then ``os.replace``d into place. An interrupted run leaves at worst a ``.tmp-`` file, which is never read
@@ -25,7 +28,7 @@ import os
 import re
 import time
 from pathlib import Path
-from typing import Any, Dict, Iterable, List, Optional, Sequence, Tuple, Union
+from typing import Any, Dict, Iterable, Iterator, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 import torch
@@ -83,6 +86,8 @@ def entry_dir(cache_root: PathLike, method: str, params: Any = None) -> Path:
 _SETTINGS_DIR = re.compile(r"^[a-z0-9_]+-[0-9a-f]{12}$")
 _ENTRY = re.compile(r"^.+-(?P<hash>[0-9a-f]{16}|[0-9a-f]{10})\.npz$")
 _HASH_LEN = 16
+# The trainer's view stores in the root (retinexgs.train.views names them so).
+_VIEW_STORE = re.compile(r"^views-[a-z0-9_]+(-[0-9a-f]{12})?-[0-9a-f]{8}\.bin$")
 _UNWRITABLE = (errno.EROFS, errno.EACCES, errno.EPERM)
 
 
@@ -254,8 +259,9 @@ def cache_summary(root: PathLike) -> List[Dict[str, Any]]:
 
 def clean_cache(root: PathLike) -> Tuple[int, int]:
     """Delete every decomposition under ``root`` (entries, previews, ``params.json``, temporaries of an
-    interrupted write) and the folders left empty, ``root`` included; files this module did not name are
-    left where they are. Returns (entries deleted, bytes freed); UserError if something cannot be deleted."""
+    interrupted write), the trainer's view stores in ``root`` and the folders left empty, ``root`` included;
+    files this module did not name are left where they are. Returns (entries deleted, bytes freed); UserError if
+    something cannot be deleted."""
     root = Path(root)
     count = freed = 0
     for folder in _settings_folders(root):
@@ -281,6 +287,18 @@ def clean_cache(root: PathLike) -> Tuple[int, int]:
             except OSError:  # missing, or holds a file we did not write
                 pass
     try:
+        stores = sorted(p for p in root.iterdir() if p.is_file() and (
+            _VIEW_STORE.match(p.name) or p.name.startswith(_TMP_PREFIX) and p.suffix == ".bin"))
+    except OSError:
+        stores = []
+    for p in stores:
+        try:
+            size = p.stat().st_size
+            p.unlink()
+        except OSError as exc:
+            raise UserError(f"cannot delete {p}: {exc.strerror or exc}") from None
+        freed += size
+    try:
         root.rmdir()
     except OSError:
         pass
@@ -299,18 +317,17 @@ def resolve_device(device: Union[str, torch.device, None]) -> torch.device:
     return dev
 
 
-def decompose_images(image_paths: Sequence[PathLike], method: str = "lr3m", params: Any = None,
-                     cache_dir: Optional[PathLike] = None, device: Union[str, torch.device] = "cpu", *,
-                     keep: bool = True, preview: bool = False, progress: bool = True, cache_hint: str = "",
-                     sweep: bool = False) -> Tuple[List[Optional[Tuple[torch.Tensor, torch.Tensor]]], Dict[str, Any]]:
-    """Make sure every image has a valid cache entry; return (results, report).
-
-    ``results[i]`` is (R, L) on the CPU when ``keep`` else None. ``report`` has ``folder`` (the entry
-    folder), ``computed``, ``reused`` and ``swept`` counts and ``files`` (entry paths, in input order).
-    ``cache_hint``: the caller's spelling of the cache option, named when the cache cannot be created or
-    written (a read-only scene) or its disk is full. Entries present and valid are read from a read-only
-    cache; only a needed write fails. ``sweep``: ``image_paths`` are all the photos the cache root serves
-    (a scene's train views): once all are in place, entries of other photos are deleted (:func:`sweep_stale`).
+def iter_decompositions(image_paths: Sequence[PathLike], method: str = "lr3m", params: Any = None,
+                        cache_dir: Optional[PathLike] = None, device: Union[str, torch.device] = "cpu", *,
+                        preview: bool = False, progress: bool = True, cache_hint: str = "", sweep: bool = False,
+                        report: Optional[Dict[str, Any]] = None
+                        ) -> Iterator[Tuple[torch.Tensor, torch.Tensor]]:
+    """(R [H,W,3], L [H,W,1]) float32 CPU tensors for each image in turn, from the cache or computed and
+    written to it before they are yielded: the caller holds one image's priors at a time, and an interrupted
+    run keeps every entry written so far. The values are the cache's float16 ones (a freshly computed entry is
+    rounded as it is stored). ``report`` (a dict, filled as it goes): ``folder``, ``computed``, ``reused``,
+    ``swept`` and ``files``, as :func:`decompose_images` returns it; the sweep (``sweep=True``) runs once the
+    last image has been yielded and the caller asks for the next. Other arguments: :func:`decompose_images`.
     """
     paths = [Path(p) for p in image_paths]
     if not paths:
@@ -330,9 +347,8 @@ def decompose_images(image_paths: Sequence[PathLike], method: str = "lr3m", para
         text = json.dumps({"method": dec.name, "params": params_to_dict(dec.params)}, indent=2, sort_keys=True)
         _atomic_write(settings, lambda f: f.write(text.encode("utf-8")), cache_hint)
 
-    results: List[Optional[Tuple[torch.Tensor, torch.Tensor]]] = []
-    files: List[str] = []
-    computed = reused = 0
+    report = report if report is not None else {}
+    report.update(folder=str(folder), computed=0, reused=0, swept=0, files=[])
     by_hash = _entries_by_hash(folder)
     hashes = []
     iterator: Iterable[Path] = paths
@@ -357,25 +373,49 @@ def decompose_images(image_paths: Sequence[PathLike], method: str = "lr3m", para
                     r, l = dec.decompose(image)
                 except ValueError as exc:  # e.g. an all-black photo
                     raise UserError(f"cannot decompose {p}: {exc}") from None
+                del image
                 r, l = r.to("cpu", torch.float32), l.to("cpu", torch.float32)
                 save_entry(target, r, l, {**meta, "source": p.name}, cache_hint)
                 by_hash[digest] = target
                 # What later runs will load is the float16 copy: return exactly that.
                 hit = (r.half().float(), l.half().float())
-                computed += 1
+                del r, l
+                report["computed"] += 1
             else:
-                reused += 1
+                report["reused"] += 1
             if preview:
                 pv = folder / "preview" / f"{target.stem}.png"
                 if not pv.is_file() or pv.stat().st_mtime_ns < target.stat().st_mtime_ns:
                     _save_preview(pv, hit[0], hit[1], 2.2, cache_hint)
-            results.append(hit if keep else None)
-            files.append(str(target))
+            report["files"].append(str(target))
+            yield hit
+            hit = None  # the caller's reference is the only one left
     finally:
         if bar is not None:
             bar.close()
-    swept = sweep_stale(root, hashes) if sweep else 0
-    return results, {"folder": str(folder), "computed": computed, "reused": reused, "swept": swept, "files": files}
+    report["swept"] = sweep_stale(root, hashes) if sweep else 0
+
+
+def decompose_images(image_paths: Sequence[PathLike], method: str = "lr3m", params: Any = None,
+                     cache_dir: Optional[PathLike] = None, device: Union[str, torch.device] = "cpu", *,
+                     keep: bool = True, preview: bool = False, progress: bool = True, cache_hint: str = "",
+                     sweep: bool = False) -> Tuple[List[Optional[Tuple[torch.Tensor, torch.Tensor]]], Dict[str, Any]]:
+    """Make sure every image has a valid cache entry; return (results, report).
+
+    ``results[i]`` is (R, L) on the CPU when ``keep`` else None. ``report`` has ``folder`` (the entry
+    folder), ``computed``, ``reused`` and ``swept`` counts and ``files`` (entry paths, in input order).
+    ``cache_hint``: the caller's spelling of the cache option, named when the cache cannot be created or
+    written (a read-only scene) or its disk is full. Entries present and valid are read from a read-only
+    cache; only a needed write fails. ``sweep``: ``image_paths`` are all the photos the cache root serves
+    (a scene's train views): once all are in place, entries of other photos are deleted (:func:`sweep_stale`).
+    One image's priors at a time: :func:`iter_decompositions`.
+    """
+    report: Dict[str, Any] = {}
+    results: List[Optional[Tuple[torch.Tensor, torch.Tensor]]] = []
+    for hit in iter_decompositions(image_paths, method, params, cache_dir, device, preview=preview,
+                                   progress=progress, cache_hint=cache_hint, sweep=sweep, report=report):
+        results.append(hit if keep else None)
+    return results, report
 
 
 def load_or_compute(image_paths: Sequence[PathLike], method: str = "lr3m", params: Any = None,

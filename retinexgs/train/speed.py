@@ -196,10 +196,12 @@ def synthetic_step(n: int, width: int, height: int, device: torch.device, raster
     return step
 
 
-def trainer_step(scene_path: Path, config: List[str], device: torch.device, run_dir: Path) -> Callable[[], None]:
-    """The real trainer's next step on ``scene_path`` (it keeps training across calls)."""
+def trainer_step(scene_path: Path, config: List[str], device: torch.device, run_dir: Path,
+                 overrides: Optional[List[str]] = None) -> Callable[[], None]:
+    """The real trainer's next step on ``scene_path`` (it keeps training across calls); ``overrides``: --set
+    key=value items (e.g. ``train.stream_views=always``)."""
 
-    cfg = load_config(config)
+    cfg = load_config(config, list(overrides or []))
     tr = Trainer(cfg, open_scene(scene_path, cfg), run_dir, str(device), progress=False, log=lambda s: None)
 
     def step() -> None:  # the body of Trainer.train's loop, without its logging and checkpoints
@@ -238,6 +240,8 @@ def main(argv: Optional[List[str]] = None) -> int:
                         "to time the phase with the enhancement losses)")
     parser.add_argument("--data", type=Path, default=None, help="time the real trainer on this scene instead")
     parser.add_argument("--config", action="append", default=[], help="config name(s) for --data")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="config override for --data (e.g. train.stream_views=always); repeatable")
     args = parser.parse_args(argv)
     if args.steps < 1 or args.warmup < 0 or args.width < 1 or args.height < 1:
         parser.error("--steps, --width and --height must be at least 1 and --warmup at least 0")
@@ -251,15 +255,21 @@ def main(argv: Optional[List[str]] = None) -> int:
     if args.data is not None:
         with tempfile.TemporaryDirectory() as run:
             try:
-                step = trainer_step(args.data, args.config, device, Path(run))
+                step = trainer_step(args.data, args.config, device, Path(run), args.set)
             except UserError as exc:
                 print(f"bench train-speed: error: {exc}")
                 return 2
             m = measure(step, args.steps, args.warmup, device)
             n = len(step.trainer.model.gaussians)  # type: ignore[attr-defined]
             last = step.trainer.step  # type: ignore[attr-defined]
-            print(f"trainer on {args.data} ({' '.join(args.config) or 'default'}), steps 1-{last}, timed after "
-                  f"step {args.warmup}; {n} Gaussians at the end")
+            print(f"trainer on {args.data} ({' '.join(args.config + args.set) or 'default'}), steps 1-{last}, "
+                  f"timed after step {args.warmup}; {n} Gaussians at the end")
+            views = step.trainer.views  # type: ignore[attr-defined]
+            if getattr(step.trainer, "streamed", False):  # type: ignore[attr-defined]
+                print(f"views streamed: {views.hits} prefetched, {views.misses} loaded on demand; "
+                      f"{views.slot_bytes / 2**20:.0f} MiB of view buffers on the device")
+            else:
+                print("views preloaded on the device")
             print(HEADER + " |\n|---|---|---|---|---|---|")
             print(_row("trainer", m))
         return 0

@@ -7,9 +7,8 @@ import json
 import math
 import random
 import time
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Tuple
+from typing import Callable, Dict, Iterator, List, Optional, Sequence, Tuple
 
 import torch
 from torch import Tensor
@@ -22,15 +21,17 @@ from retinexgs.model.density import DensityController
 from retinexgs.model.gaussians import GaussianModel
 from retinexgs.model.retinex_model import RetinexGSModel
 from retinexgs.model.tone import exposure_gain
-from retinexgs.render import Camera
 from retinexgs.train import losses
 from retinexgs.run.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
 from retinexgs.train.distributed import Distributed, gradient_params, lr_batch_factor, process_start_time, take_gradients
 from retinexgs.train.graphs import ChannelGraphs, LossGraphs
+from retinexgs.train.views import (TrainView, StreamedViews, ViewStatistics, ViewStore, check_prior_size,  # noqa: F401
+                                   check_store_space, choose_streaming, gib, make_train_view, pad_edges,
+                                   preload_bytes_per_pixel, store_fingerprint, store_path, store_size_estimate,
+                                   stream_set_up, unpack_edges, unpack_targets)
 from retinexgs.model.schedule import build_schedule
 from retinexgs.run.render import view_camera
-from retinexgs.retinex.cache import load_or_compute, scene_cache_root
-from retinexgs.retinex import enhance_for_viewing
+from retinexgs.retinex.cache import entry_dir, iter_decompositions, scene_cache_root
 
 
 class TrainingDiverged(UserError):
@@ -45,77 +46,6 @@ def scene_extent(scene: Scene) -> float:
 
 def to_bchw(x: Tensor) -> Tensor:
     return x.permute(2, 0, 1).unsqueeze(0)
-
-
-@dataclass
-class TrainView:
-    """A training view on the device: camera, low-light image S and its 2D priors / baseline target."""
-
-    camera: Camera
-    S: Tensor                   # [H,W,3]
-    R: Optional[Tensor] = None  # [H,W,3]
-    L: Optional[Tensor] = None  # [H,W,1]
-    target: Optional[Tensor] = None  # [H,W,3], baselines
-    center: Optional[Tensor] = None  # [3] the camera centre on the device (the renderer's view directions)
-    packed: Optional[Tensor] = None  # [H,W,K] the loss's targets in one tensor (the CUDA graphs' input)
-    edges: Optional[Tuple[Tensor, Tensor]] = None  # ([1,1,H,W-1], [1,1,H-1,W]) the depth prior's edge weights
-
-    def edge_weights(self, edge: float) -> Tuple[Tensor, Tensor]:
-        """:func:`losses.edge_weights` of the view's reflectance prior R (of S without priors), built once."""
-        if self.edges is None:
-            self.edges = losses.edge_weights(to_bchw(self.R if self.R is not None else self.S), edge)
-        return self.edges
-
-    def pack(self, decomposed: bool, depth_edge: Optional[float] = None) -> Tensor:
-        """The loss's targets as one contiguous [H,W,K] tensor, built once: S (+ R, L) or the baselines' target
-        (one copy into a captured graph's input instead of three). With ``depth_edge`` (the depth prior is on)
-        the prior's edge weights follow as the last two channels (:func:`pad_edges`)."""
-        if self.packed is None:
-            if not decomposed:
-                self.packed = self.target.contiguous()
-                return self.packed
-            maps = [self.S] if self.R is None else [self.S, self.R, self.L]
-            if depth_edge is not None:
-                maps.append(pad_edges(*self.edge_weights(depth_edge)))
-            if len(maps) == 1:
-                self.packed = self.S.contiguous()
-                return self.packed
-            self.packed = torch.cat(maps, dim=-1)
-            # The view's maps become views of the packed tensor: no second copy on the device.
-            same_target = self.target is self.S
-            S, R, L = unpack_targets(self.packed, True, depth_edge is not None)
-            self.S = S
-            if self.R is not None:
-                self.R, self.L = R, L
-            if same_target:
-                self.target = self.S
-        return self.packed
-
-
-def pad_edges(wx: Tensor, wy: Tensor) -> Tensor:
-    """The depth prior's edge weights ([1,1,H,W-1], [1,1,H-1,W]) as one [H,W,2] map, zero in the last column
-    (x) and row (y), to travel with a view's packed targets; :func:`unpack_edges` inverts it."""
-    H, W = wy.shape[-2] + 1, wx.shape[-1] + 1
-    out = wx.new_zeros(H, W, 2)
-    out[:, :-1, 0] = wx[0, 0]
-    out[:-1, :, 1] = wy[0, 0]
-    return out
-
-
-def unpack_edges(packed: Tensor) -> Tuple[Tensor, Tensor]:
-    """(wx [1,1,H,W-1], wy [1,1,H-1,W]) from the last two channels of a view's packed targets (views)."""
-    return packed[None, None, :, :-1, -2], packed[None, None, :-1, :, -1]
-
-
-def unpack_targets(packed: Tensor, decomposed: bool, edges: bool = False
-                   ) -> Tuple[Tensor, Optional[Tensor], Optional[Tensor]]:
-    """(S or the target, R, L) from :meth:`TrainView.pack` (views, no copies); ``edges``: it was packed with
-    the depth prior's edge weights."""
-    if not decomposed:
-        return packed, None, None
-    if packed.shape[-1] - (2 if edges else 0) == 3:
-        return (packed[..., :3] if edges else packed), None, None
-    return packed[..., :3], packed[..., 3:6], packed[..., 6:7]
 
 
 def enhancement_objective(model: RetinexGSModel, c: Dict, R_img: Tensor, L_img: Tensor, S_b: Tensor
@@ -148,15 +78,16 @@ def _append_record(f, record: Dict) -> None:
         raise
 
 
-def decompose_views(views: List[View], cfg: Dict, device: str, progress: bool, scene_root: Path) -> List:
-    """(R, L) per view from the per-scene cache (computed where missing; ``retinexgs decompose`` fills the
-    same cache, see :func:`retinexgs.retinex.cache.scene_cache_root`)."""
+def decompose_views(views: List[View], cfg: Dict, device: str, progress: bool, scene_root: Path) -> Iterator:
+    """(R, L) per view, one view at a time, from the per-scene cache (computed and written where missing;
+    ``retinexgs decompose`` fills the same cache, see :func:`retinexgs.retinex.cache.scene_cache_root`). Run it
+    to its end: the cache's sweep of other photos' entries follows the last view."""
 
     dcfg = cfg["decomposer"]
-    return load_or_compute([v.image_path for v in views], dcfg["method"], dict(dcfg["params"]) or None,
-                           cache_dir=scene_cache_root(scene_root, cfg["data"]["cache_dir"]),
-                           device=dcfg["device"] or device, progress=progress,
-                           cache_hint="--set data.cache_dir=DIR", sweep=True)
+    return iter_decompositions([v.image_path for v in views], dcfg["method"], dict(dcfg["params"]) or None,
+                               cache_dir=scene_cache_root(scene_root, cfg["data"]["cache_dir"]),
+                               device=dcfg["device"] or device, progress=progress,
+                               cache_hint="--set data.cache_dir=DIR", sweep=True)
 
 
 class Trainer:
@@ -181,6 +112,7 @@ class Trainer:
         self.depth_prior = self.decomposed and cfg["loss"]["w_depth"] > 0
         torch.manual_seed(cfg["seed"])
         random.seed(cfg["seed"])
+        self._setup_dist = dist  # _prepare_views: rank 0 alone writes a shared view store
         self.views = self._prepare_views()
         self.extent = scene_extent(scene)
         self.step = 0
@@ -197,27 +129,88 @@ class Trainer:
         self._setup_batch(dist)
 
     # ---- set-up ----------------------------------------------------------------------------------------
-    def _prepare_views(self) -> List[TrainView]:
+    def _prepare_views(self) -> Sequence[TrainView]:
+        """The training views on the device: preloaded (a list of :class:`TrainView`) or streamed from the
+        scene's view store (:class:`StreamedViews`), as ``train.stream_views`` and ``train.views_on_device_gb``
+        decide (:mod:`retinexgs.train.views`). Either way the photos and priors are read one view at a time,
+        and the set-up statistics are gathered as they pass (:meth:`view_statistics`)."""
         cfg, dev = self.cfg, self.device
-        views = [TrainView(view_camera(v), v.image.to(dev)) for v in self.scene.train]
         needs_priors = self.method in ("retinexgs", "pre") and cfg["decomposer"]["method"] != "none"
         if self.method == "pre" and cfg["decomposer"]["method"] == "none":
             raise UserError("the pre-enhancement baseline needs a decomposer (decomposer.method lr3m or lime)")
+        train = self.scene.train
+        cameras = [view_camera(v) for v in train]
+        # Once, not every step: the camera centre is computed on the host and copied to the device.
+        centers = [cam.center.to(dev, torch.float32) for cam in cameras]
+        pixels = sum(v.width * v.height for v in train)
+        preload = pixels * preload_bytes_per_pixel(self.method, needs_priors, self.depth_prior)
+        tcfg = cfg["train"]
+        self.streamed = choose_streaming(tcfg["stream_views"], preload, tcfg["views_on_device_gb"])
+        if self.streamed and int(tcfg.get("views_per_rank", 1)) > 1:
+            # A streamed view stays valid on the device for one step; a batch of several views on one rank would
+            # need them all at once. Several ranks with one view each stream as they are.
+            raise UserError(f"train.views_per_rank={tcfg['views_per_rank']} needs the training views on the device, "
+                            f"but they are streamed ({gib(preload)} preloaded would exceed train.views_on_device_gb="
+                            f"{tcfg['views_on_device_gb']:g}, or train.stream_views=always): use several ranks with "
+                            "one view each (--gpus N), or train.stream_views=never if they fit")
+        # What set-up needs from every view (the illumination reference, the mean background): RetinexGS's.
+        self._stats: Optional[ViewStatistics] = None
+        stats = ViewStatistics(cfg["model"]["enhancement"]["ref_quantile"]) if self.decomposed else None
+        priors: Optional[Iterator] = None
         if needs_priors:
-            self.log(f"2D priors: {cfg['decomposer']['method']} on {len(views)} views (cached per scene)")
-            priors = decompose_views(self.scene.train, cfg, str(dev), self.progress, self.scene.root)
-            for tv, (R, L) in zip(views, priors):
-                if R.shape[:2] != tv.S.shape[:2]:
-                    raise UserError(f"cached decomposition has size {tuple(R.shape[:2])} but the view is "
-                                    f"{tuple(tv.S.shape[:2])}; delete the retinex cache")
-                tv.R, tv.L = R.to(dev), L.to(dev)
-                if self.method == "pre":
-                    tv.target = enhance_for_viewing(tv.R, tv.L)
-        for tv in views:
-            if tv.target is None:
-                tv.target = tv.S
-            # Once, not every step: the camera centre is computed on the host and copied to the device.
-            tv.center = tv.camera.center.to(dev, torch.float32)
+            self.log(f"2D priors: {cfg['decomposer']['method']} on {len(train)} views (cached per scene)")
+        if not self.streamed:
+            self.log(f"views: preloaded on the device ({gib(preload)} for {len(train)} views; streamed above "
+                     f"train.views_on_device_gb={tcfg['views_on_device_gb']:g})")
+            if needs_priors:
+                priors = decompose_views(train, cfg, str(dev), self.progress, self.scene.root)
+            views: List[TrainView] = []
+            for i, v in enumerate(train):
+                S = v.image.to(dev)
+                v.release_images()  # the device copy is the one kept (on the CPU: the same tensor)
+                R = L = None
+                if priors is not None:
+                    R, L = next(priors)
+                    check_prior_size(R, S)
+                    R, L = R.to(dev), L.to(dev)
+                tv = make_train_view(cameras[i], centers[i], S, R, L, self.method)
+                if stats is not None:
+                    stats.add(tv.S, tv.R, tv.L)
+                views.append(tv)
+            for _ in priors or ():  # the cache's sweep runs once the last view has gone by
+                pass
+            self._stats = stats
+            return views
+        root = scene_cache_root(self.scene.root, cfg["data"]["cache_dir"])
+        dcfg = cfg["decomposer"]
+        tag = entry_dir(root, dcfg["method"], dict(dcfg["params"]) or None).name if needs_priors else "none"
+        paths = [v.image_path for v in train]
+        sizes = [(v.height, v.width) for v in train]
+        path = store_path(root, paths, tag)
+        fingerprint = store_fingerprint(paths, sizes, tag)
+        dist = self._setup_dist
+        shared = dist is not None and dist.enabled  # ranks on one machine share the store file: rank 0 writes it
+        if shared and dist.rank != 0:
+            dist.barrier("the view store, which rank 0 writes")
+        store = ViewStore.open(path, fingerprint)
+        hint = "put it elsewhere with --set data.cache_dir=DIR, or preload with --set train.stream_views=never"
+        if store is None:
+            check_store_space(path, store_size_estimate(sizes, needs_priors), hint)
+            self.log(f"views: streamed ({gib(preload)} preloaded would exceed train.views_on_device_gb="
+                     f"{tcfg['views_on_device_gb']:g}); writing the view store {path}")
+            if needs_priors:
+                priors = decompose_views(train, cfg, str(dev), self.progress, self.scene.root)
+            items = stream_set_up(train, priors, dev, stats)
+            store = ViewStore.build(path, fingerprint, needs_priors, items, "--set data.cache_dir=DIR")
+            self._stats = stats
+        else:
+            self.log(f"views: streamed from the view store {path} ({gib(store.nbytes)})")
+        if shared and dist.rank == 0:
+            dist.barrier("the view store, which rank 0 writes")
+        views = StreamedViews(store, cameras, centers, dev, self.method,
+                              cfg["loss"]["depth_edge"] if self.depth_prior else None,
+                              upcoming=self._upcoming_views)
+        self.log(f"views: {gib(views.slot_bytes)} of reused buffers on the device")
         return views
 
     def _build(self, state: Optional[Dict], emulate_graphs: bool = False) -> None:
@@ -287,27 +280,25 @@ class Trainer:
         training views of the ``model.enhancement.ref_quantile`` quantile of the 2D prior L (of max-RGB of S
         without priors, the usual initial illumination estimate). 1 when the quantile is null (no
         normalisation: L_enh = L̂^g as the paper writes it)."""
-        q = self.cfg["model"]["enhancement"]["ref_quantile"]
-        if q is None:
-            return 1.0
-        per_view = []
-        for tv in self.views:
-            L = tv.L if tv.L is not None else tv.S.amax(dim=-1)
-            flat = L.reshape(-1).float()
-            per_view.append(flat.kthvalue(min(flat.numel(), max(1, round(float(q) * flat.numel())))).values)
-        return float(torch.stack(per_view).median().clamp_min(1e-3))
+        return self.view_statistics().illumination_reference()
 
     def mean_background(self) -> Tensor:
         """``model.background: mean``: the [6] channel values a render shows where no Gaussian covers a pixel, the
         training views' means: R̂ of the reflectance priors and L̂ of the illumination priors (without priors, S
         and its max-RGB). Under squared error the mean is the best constant for what no view constrains; black
         is the darkest guess, and in dark photos it lets transparency pass for dark content."""
-        def mean(maps: List[Tensor]) -> Tensor:
-            return torch.stack([m.reshape(-1, m.shape[-1]).float().mean(0) for m in maps]).mean(0)
+        return self.view_statistics().mean_background()
 
-        R = mean([tv.R if tv.R is not None else tv.S for tv in self.views])
-        L = mean([tv.L if tv.L is not None else tv.S.amax(-1, keepdim=True) for tv in self.views])
-        return torch.cat([R, L.expand(3)])
+    def view_statistics(self) -> ViewStatistics:
+        """Every training view's contribution to :meth:`illumination_reference` and :meth:`mean_background`,
+        gathered at set-up as the views were read, or (a reused view store) now, one view at a time."""
+        if self._stats is None:
+            stats = ViewStatistics(self.cfg["model"]["enhancement"]["ref_quantile"])
+            for i in range(len(self.views)):
+                tv = self.views.get(i, prefetch=False) if isinstance(self.views, StreamedViews) else self.views[i]
+                stats.add(tv.S, tv.R, tv.L)
+            self._stats = stats
+        return self._stats
 
     # ---- one step ----------------------------------------------------------------------------------------
     def _means_lr(self, step: int) -> float:
@@ -613,6 +604,12 @@ class Trainer:
         self.session_views = 0  # views trained on in the last train() call, over every rank
         if self.dist.enabled:
             self.dist.broadcast_(list(self.model.state_dict().values()), "the model's initial state")
+
+    def _upcoming_views(self) -> List[int]:
+        """This rank's views of the next two steps, nearest first, as far as the current order holds them (what
+        the streamed views prefetch): entries r and r + B from the order's end, for rank r of a batch of B."""
+        r, b = self.dist.rank, self.batch_size
+        return [self.order[-1 - r - k * b] for k in range(2) if r + k * b < len(self.order)]
 
     def _batch_indices(self) -> List[int]:
         """This rank's views of the next step: the next ``batch_size`` entries of the shared view order (a new

@@ -1,0 +1,414 @@
+"""Training views streamed from the host's view store (retinexgs/train/views.py, issue 34) against the
+preloaded ones: the store's bytes, the packed targets built on the device, the set-up statistics, a few
+training steps, reuse and rebuild of the store, bounded memory while it is built, the prefetch order, and
+the choice between the two. The store is lossless (8-bit photos, the cache's float16 priors), so the views
+and statistics are bit-identical; through the graphed step (``emulate_graphs`` on the CPU, the CUDA default)
+so is training. The CPU's eager step reads the streamed maps as views of the packed targets (as the graphed
+step always does), which changes a reduction order: its losses agree to 1e-4 relative (measured: 1.5e-5).
+CUDA tests at the end (skipped without a GPU)."""
+import gc
+import os
+import weakref
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+import retinexgs.train.trainer as trainer_mod
+import retinexgs.train.views as views_mod
+from retinexgs.data import load_scene
+from retinexgs.data.scene import View
+from retinexgs.demo.synthetic import make_demo_scene
+from retinexgs.errors import UserError
+from retinexgs.evaluate.evaluate import evaluate
+from retinexgs.retinex.cache import clean_cache, iter_decompositions
+from retinexgs.run.config import load_config
+from retinexgs.train.resume import RESUMABLE
+from retinexgs.train.trainer import Trainer
+from retinexgs.train.views import (StreamedViews, ViewStore, choose_streaming, compact_photo, photo_table,
+                                   preload_bytes_per_pixel, store_fingerprint)
+
+TINY = ["steps=8", "checkpoint.every=4", "log.every=1", "log.tensorboard=false", "model.sh_degree=1",
+        "model.sh_degree_every=2", "model.max_init_points=300", "loss.enhance_from=3", "density.start=1",
+        "density.every=3", "density.stop=7", "decomposer.method=lime"]
+
+CUDA = torch.cuda.is_available()
+try:
+    from retinexgs.render import has_cuda
+    CUDA = CUDA and has_cuda()
+except ImportError:  # pragma: no cover
+    CUDA = False
+needs_cuda = pytest.mark.skipif(not CUDA, reason="needs a CUDA GPU and retinexgs built with its CUDA kernels")
+
+
+@pytest.fixture(scope="module")
+def scene_dir(tmp_path_factory):
+    return make_demo_scene(tmp_path_factory.mktemp("scene") / "demo", n_train=5, n_test=2, width=40, height=30,
+                           n_points=400)
+
+
+def make(scene_dir, run: Path, mode: str, extra=(), device="cpu", emulate=False, logs=None, resume=False,
+         method="retinexgs") -> Trainer:
+    cfg = load_config(["demo"], TINY + [f"method={method}", f"train.stream_views={mode}"] + list(extra))
+    run.mkdir(parents=True, exist_ok=True)
+    log = logs.append if logs is not None else (lambda s: None)
+    return Trainer(cfg, load_scene(scene_dir), run, device, resume=resume, progress=False, log=log,
+                   emulate_graphs=emulate)
+
+
+def store_files(scene_dir):
+    return sorted((Path(scene_dir) / "retinex_cache").glob("views-*.bin"))
+
+
+# ---- the choice ---------------------------------------------------------------------------------------------
+
+def test_threshold_picks_preload_or_stream():
+    assert preload_bytes_per_pixel("retinexgs", True, True) == 44  # packed S,R,L + edges, and the edge maps
+    assert preload_bytes_per_pixel("retinexgs", True, False) == 28
+    assert preload_bytes_per_pixel("3dgs", False, False) == 12
+    assert preload_bytes_per_pixel("pre", True, False) == 40
+    # 1000 views at 1080p with RetinexGS's defaults: 91 GB preloaded, streamed under the 2 GB default.
+    big = 1000 * 1920 * 1080 * preload_bytes_per_pixel("retinexgs", True, True)
+    assert choose_streaming("auto", big, 2.0)
+    assert not choose_streaming("auto", 1.9e9, 2.0) and choose_streaming("auto", 2.1e9, 2.0)
+    assert choose_streaming("always", 1.0, 2.0) and not choose_streaming("never", big, 2.0)
+    assert choose_streaming("auto", 1.0, 0.0)
+    with pytest.raises(ValueError):
+        choose_streaming("sometimes", 1.0, 2.0)
+    assert "train" in RESUMABLE  # the switch and the budget may change on --resume: the values are the same
+
+
+def test_trainer_follows_the_threshold(scene_dir, tmp_path):
+    # 5 views of 40x30 at 44 B/px = 264 kB: preloaded under a 1 MB budget, streamed under 0.1 MB.
+    small = make(scene_dir, tmp_path / "a", "auto", ["train.views_on_device_gb=0.001"])
+    assert not small.streamed and isinstance(small.views, list)
+    big = make(scene_dir, tmp_path / "b", "auto", ["train.views_on_device_gb=0.0001"])
+    assert big.streamed and isinstance(big.views, StreamedViews)
+
+
+def test_config_refuses_a_bad_mode():
+    with pytest.raises(UserError, match="stream_views"):
+        load_config(["demo"], ["train.stream_views=sometimes"])
+    with pytest.raises(UserError, match="views_on_device_gb"):
+        load_config(["demo"], ["train.views_on_device_gb=-1"])
+
+
+# ---- compact photos ------------------------------------------------------------------------------------------
+
+def test_compact_photo_is_exact_and_smallest():
+    rng = np.random.default_rng(0)
+    k8 = rng.integers(0, 256, (7, 5, 3)).astype(np.uint8)
+    k16 = rng.integers(0, 65536, (7, 5, 3)).astype(np.uint16)
+    a8 = torch.from_numpy(k8.astype(np.float32) / 255.0)  # as retinexgs.data.images reads them
+    a16 = torch.from_numpy(k16.astype(np.float32) / 65535.0)
+    c8, c16 = compact_photo(a8), compact_photo(a16)
+    assert c8.dtype == np.uint8 and np.array_equal(c8, k8)
+    assert c16.dtype == np.uint16 and np.array_equal(c16, k16)
+    assert np.array_equal(photo_table("uint16")[c16], a16.numpy())
+    odd = a8 * 0.999  # a reader that scales otherwise: kept as it is
+    assert compact_photo(odd).dtype == np.float32 and np.array_equal(compact_photo(odd), odd.numpy())
+
+
+# ---- streamed = preloaded ------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("method,extra", [("retinexgs", []), ("retinexgs", ["loss.w_depth=0"]),
+                                          ("retinexgs", ["decomposer.method=none"]), ("3dgs", []), ("pre", [])])
+def test_streamed_views_equal_the_preloaded(scene_dir, tmp_path, method, extra):
+    pre = make(scene_dir, tmp_path / "pre", "never", extra, method=method)
+    st = make(scene_dir, tmp_path / "st", "always", extra, method=method)
+    store = st.views.store
+    edge = pre.cfg["loss"]["depth_edge"] if pre.depth_prior else None
+    for i in reversed(range(len(pre.views))):  # out of order: every view loaded on demand
+        a, b = pre.views[i], st.views[i]
+        # The store's bytes: the photo's 8-bit samples, the priors as the cache's float16 (exactly the floats).
+        photo = store.photo(i)
+        assert photo.dtype == np.uint8
+        assert np.array_equal(photo, np.asarray(Image.open(pre.scene.train[i].image_path).convert("RGB")))
+        R16, L16 = store.priors_of(i)
+        if a.R is not None and method == "retinexgs":
+            assert np.array_equal(R16, a.R.half().numpy()) and np.array_equal(L16, a.L.half().numpy())
+            assert torch.equal(a.R.half().float(), a.R) and torch.equal(a.L.half().float(), a.L)  # lossless
+        # The packed targets built on the device equal the preloaded view's pack().
+        assert torch.equal(b.packed, a.pack(pre.decomposed, edge))
+        assert b.packed.shape[-1] == a.packed.shape[-1]
+        assert torch.equal(b.target, a.target) and torch.equal(b.S, a.S)
+        if a.R is not None and method == "retinexgs":
+            assert torch.equal(b.R, a.R) and torch.equal(b.L, a.L)
+        if edge is not None:
+            assert all(torch.equal(x, y) and x.is_contiguous() for x, y in zip(b.edges, a.edge_weights(edge)))
+        assert torch.equal(b.center, a.center) and b.camera is st.views.cameras[i]
+
+
+def test_set_up_statistics_are_the_same(scene_dir, tmp_path):
+    pre = make(scene_dir, tmp_path / "pre", "never")
+    st = make(scene_dir, tmp_path / "st", "always")
+    assert pre.illumination_reference() == st.illumination_reference()
+    assert torch.equal(pre.mean_background(), st.mean_background())
+    assert torch.equal(pre.model.illum_ref, st.model.illum_ref) and torch.equal(pre.model.background,
+                                                                               st.model.background)
+    # The formulas that read every view on the device at once (before issue 34), on the preloaded views.
+    q = pre.cfg["model"]["enhancement"]["ref_quantile"]
+    refs = []
+    for tv in pre.views:
+        flat = tv.L.reshape(-1).float()
+        refs.append(flat.kthvalue(min(flat.numel(), max(1, round(float(q) * flat.numel())))).values)
+    assert pre.illumination_reference() == float(torch.stack(refs).median().clamp_min(1e-3))
+    R = torch.stack([tv.R.reshape(-1, 3).float().mean(0) for tv in pre.views]).mean(0)
+    L = torch.stack([tv.L.reshape(-1, 1).float().mean(0) for tv in pre.views]).mean(0)
+    assert torch.equal(pre.mean_background(), torch.cat([R, L.expand(3)]))
+    # A reused store gathers them again from the store: the same values.
+    again = make(scene_dir, tmp_path / "again", "always")
+    assert again._stats is None or len(again._stats) == len(again.views)
+    assert again.illumination_reference() == pre.illumination_reference()
+    assert torch.equal(again.mean_background(), pre.mean_background())
+
+
+def params(tr):
+    return {n: p.detach().clone() for n, p in tr.model.named_parameters()}
+
+
+def test_training_streamed_matches_preloaded(scene_dir, tmp_path):
+    """8 steps (enhancement on from step 3, two densifications): through the graphed step the losses and
+    parameters are identical; eagerly the losses agree to 1e-4 relative."""
+    runs = {}
+    for mode in ("never", "always"):
+        for emulate in (True, False):
+            tr = make(scene_dir, tmp_path / f"{mode}-{emulate}", mode, emulate=emulate)
+            if mode == "always":  # loads so far: the statistics' pass over a store built by an earlier test
+                tr.views.hits = tr.views.misses = 0
+            logs = []
+            for step in range(1, 9):
+                tr.step = step
+                if not tr.order:
+                    tr.order = [4, 2, 0, 3, 1]
+                logs.append(tr.train_step(step, tr.views[tr.order.pop()], check=True))
+            runs[mode, emulate] = logs, params(tr), tr
+    (la, pa, _), (lb, pb, st) = runs["never", True], runs["always", True]
+    assert la == lb
+    assert pa.keys() == pb.keys() and all(torch.equal(pa[k], pb[k]) for k in pa)
+    assert st.views.misses == 2 and st.views.hits == 6  # one load on demand per epoch start
+    (la, _, _), (lb, _, _) = runs["never", False], runs["always", False]
+    worst = max(abs(a[k] - b[k]) / max(abs(a[k]), 1e-6) for a, b in zip(la, lb) for k in a if k != "event")
+    assert worst < 1e-4, worst
+
+
+def test_threaded_prefetch_gives_the_same_views(scene_dir, tmp_path):
+    st = make(scene_dir, tmp_path / "st", "always")
+    pre = make(scene_dir, tmp_path / "pre", "never")
+    order = [3, 1, 4, 0, 2, 2, 0]
+    threaded = StreamedViews(st.views.store, st.views.cameras, st.views.centers, st.device, st.method,
+                             st.cfg["loss"]["depth_edge"], threaded=True)
+    try:
+        pending = list(order)
+        threaded.upcoming = lambda: pending[:-3:-1]
+        pending.reverse()
+        while pending:
+            i = pending.pop()
+            tv = threaded[i]
+            assert torch.equal(tv.packed, pre.views[i].pack(True, st.cfg["loss"]["depth_edge"]))
+            if pending:  # the next view is on the device, the one after it read (or being read) on the host
+                assert pending[-1] in threaded._holds
+            if len(pending) > 1 and pending[-2] not in threaded._holds:
+                assert pending[-2] in threaded._staged
+        assert threaded.hits >= len(order) - 2
+    finally:
+        threaded.close()
+
+
+def test_device_buffers_are_reused(scene_dir, tmp_path):
+    st = make(scene_dir, tmp_path / "st", "always")
+    ptrs = {st.views[i].packed.data_ptr() for _ in range(3) for i in range(len(st.views))}
+    assert len(ptrs) <= 3
+    assert st.views.slot_bytes == 3 * 4 * (40 * 30 * 9 + 39 * 30 + 29 * 40)  # packed + edge maps, 3 slots
+
+
+def test_prefetch_of_the_next_view_precedes_the_render(scene_dir, tmp_path, monkeypatch):
+    st = make(scene_dir, tmp_path / "st", "always")
+    views = st.views
+    views._holds = [None] * len(views._holds)  # forget what the statistics' pass left in the buffers
+    views.hits = views.misses = 0
+    events = []
+    load = views._load
+
+    def traced_load(i, slot, prefetched):
+        events.append(("load", i, prefetched))
+        return load(i, slot, prefetched)
+
+    monkeypatch.setattr(views, "_load", traced_load)
+    render = st.render_view
+
+    def traced_render(tv, step, graphed=True):
+        view = next(i for i, c in enumerate(views.cameras) if c is tv.camera)
+        nxt = st.order[-1] if st.order else None
+        on_its_way = nxt in views._holds
+        events.append(("render", view, nxt, on_its_way))
+        return render(tv, step, graphed)
+
+    monkeypatch.setattr(st, "render_view", traced_render)
+    st.train(stop_after=8)
+    renders = [k for k, e in enumerate(events) if e[0] == "render"]
+    assert len(renders) == 8
+    for k in renders:
+        nxt = events[k][2]
+        if nxt is None:  # the epoch's last step: the next order is drawn after it
+            continue
+        # The next view was sent for (or is still there, from an earlier step) before this step's render.
+        assert events[k][3], (k, events)
+        assert any(e[0] == "load" and e[1] == nxt for e in events[:k]), (k, events)
+    first_of_epoch = 2
+    assert views.misses == first_of_epoch and views.hits == 8 - first_of_epoch
+    assert sum(1 for e in events if e[0] == "load" and e[2]) >= 8 - first_of_epoch - 1
+
+
+# ---- the store on disk ---------------------------------------------------------------------------------------
+
+def test_store_is_reused_on_resume_and_rebuilt_when_the_scene_changes(tmp_path):
+    scene = make_demo_scene(tmp_path / "scene", n_train=3, n_test=1, width=24, height=18, n_points=200)
+    logs = []
+    tr = make(scene, tmp_path / "run", "always", logs=logs)
+    (path,) = store_files(scene)
+    assert any("writing the view store" in s for s in logs)
+    tr.train(stop_after=4)
+    tr.views.close()
+    before = path.stat().st_mtime_ns, path.stat().st_ino
+    logs.clear()
+    resumed = make(scene, tmp_path / "run", "always", logs=logs, resume=True)
+    assert resumed.step == 4
+    assert any("streamed from the view store" in s for s in logs) and not any("writing" in s for s in logs)
+    assert (path.stat().st_mtime_ns, path.stat().st_ino) == before
+    resumed.train(stop_after=2)
+    # A changed photo (same name, new pixels): the store is written again and holds the new pixels.
+    photo = load_scene(scene).train[1].image_path
+    arr = np.asarray(Image.open(photo).convert("RGB")).copy()
+    arr[:4, :4] = 200
+    Image.fromarray(arr).save(photo)
+    os.utime(photo, ns=(before[0] + 10**9, before[0] + 10**9))
+    logs.clear()
+    changed = make(scene, tmp_path / "run2", "always", logs=logs)
+    assert any("writing the view store" in s for s in logs)
+    assert store_files(scene) == [path]  # replaced in place
+    assert np.array_equal(changed.views.store.photo(1), arr)
+    # A store cut short is not trusted.
+    with open(path, "r+b") as f:
+        f.truncate(path.stat().st_size - 10)
+    fp = changed.views.store.fingerprint
+    assert ViewStore.open(path, fp) is None
+    logs.clear()
+    make(scene, tmp_path / "run3", "always", logs=logs)
+    assert any("writing the view store" in s for s in logs)
+    # Other settings, other store; `retinexgs decompose --clean` removes them all.
+    make(scene, tmp_path / "run4", "always", ["decomposer.method=none"])
+    assert len(store_files(scene)) == 2
+    clean_cache(Path(scene) / "retinex_cache")
+    assert store_files(scene) == []
+
+
+def test_fingerprint_follows_the_photos(scene_dir):
+    scene = load_scene(scene_dir)
+    paths = [v.image_path for v in scene.train]
+    sizes = [(v.height, v.width) for v in scene.train]
+    fp = store_fingerprint(paths, sizes, "lime-x")
+    assert fp == store_fingerprint(paths, sizes, "lime-x")
+    assert fp != store_fingerprint(paths, sizes, "none")
+    assert fp != store_fingerprint(paths[::-1], sizes[::-1], "lime-x")
+    assert fp != store_fingerprint(paths, [(h, w + 1) for h, w in sizes], "lime-x")
+
+
+def test_a_store_that_cannot_fit_is_refused_before_decoding(scene_dir, tmp_path, monkeypatch):
+    monkeypatch.setattr(views_mod, "free_bytes", lambda folder: 1000)
+    reads = []
+    monkeypatch.setattr(View, "load_image", lambda self: reads.append(self) or torch.zeros(1))
+    with pytest.raises(UserError, match="no space left on device for the view store"):
+        make(scene_dir, tmp_path / "run", "always", ["data.cache_dir=" + str(tmp_path / "elsewhere")])
+    assert not reads
+
+
+def test_building_the_store_holds_at_most_two_views(tmp_path, monkeypatch):
+    scene = make_demo_scene(tmp_path / "scene", n_train=10, n_test=1, width=24, height=18, n_points=200)
+    photos, priors, alive = [], [], []
+    load = View.load_image
+
+    def counted(self):
+        gc.collect()
+        alive.append((sum(r() is not None for r in photos), sum(r() is not None for r in priors)))
+        image = load(self)
+        photos.append(weakref.ref(image))
+        return image
+
+    decompose = trainer_mod.decompose_views
+
+    def counted_priors(*args, **kwargs):
+        for R, L in decompose(*args, **kwargs):
+            priors.append(weakref.ref(R))
+            yield R, L
+
+    monkeypatch.setattr(View, "load_image", counted)
+    monkeypatch.setattr(trainer_mod, "decompose_views", counted_priors)
+    tr = make(scene, tmp_path / "run", "always")
+    assert len(photos) == 10 and len(priors) == 10
+    assert max(p for p, _ in alive) <= 1 and max(q for _, q in alive) <= 2, alive
+    assert all(v._image is None for v in tr.scene.train)
+    # Preloaded on the CPU, the photos are the device copies the trainer keeps; the View drops its own.
+    pre = make(scene, tmp_path / "pre", "never")
+    assert all(v._image is None for v in pre.scene.train)
+
+
+def test_decomposition_streams_one_view_at_a_time(scene_dir, tmp_path):
+    paths = [v.image_path for v in load_scene(scene_dir).train]
+    root = tmp_path / "cache"
+    report = {}
+    it = iter_decompositions(paths, "lime", None, root, progress=False, sweep=True, report=report)
+    R, L = next(it)
+    folder = Path(report["folder"])
+    assert len(list(folder.glob("*.npz"))) == 1 and report["computed"] == 1  # written as it goes
+    assert R.shape == (30, 40, 3) and L.shape == (30, 40, 1)
+    assert torch.equal(R.half().float(), R)
+    rest = list(it)
+    assert len(rest) == len(paths) - 1 and report["computed"] == len(paths) and report["swept"] == 0
+    report2 = {}
+    again = list(iter_decompositions(paths, "lime", None, root, progress=False, report=report2))
+    assert report2["reused"] == len(paths) and torch.equal(again[0][0], R)
+
+
+def test_evaluation_releases_each_test_view(scene_dir, tmp_path):
+    scene = load_scene(scene_dir)
+    seen = []
+
+    def render(view):
+        seen.append(sum(v._image is not None or v._paired is not None for v in scene.test))
+        return {"rgb": torch.full((view.height, view.width, 3), 0.5)}
+
+    evaluate(render, scene, tmp_path, use_lpips=False, log=lambda s: None)
+    assert seen == [0, 0] and all(v._image is None and v._paired is None for v in scene.test)
+
+
+# ---- CUDA ----------------------------------------------------------------------------------------------------
+
+@needs_cuda
+def test_cuda_streamed_training_matches_preloaded(scene_dir, tmp_path):
+    """On the GPU (CUDA graphs, the worker thread and side stream): the same losses and parameters after 8 steps,
+    the packed targets equal, and the views' device memory does not depend on the view count."""
+    runs = {}
+    for mode in ("never", "always"):
+        tr = make(scene_dir, tmp_path / mode, mode, device="cuda")
+        if mode == "always":
+            tr.views.hits = tr.views.misses = 0
+        logs = []
+        for step in range(1, 9):
+            tr.step = step
+            if not tr.order:
+                tr.order = [4, 2, 0, 3, 1]
+            logs.append(tr.train_step(step, tr.views[tr.order.pop()], check=True))
+        torch.cuda.synchronize()
+        runs[mode] = logs, params(tr), tr
+    assert runs["never"][0] == runs["always"][0]
+    pa, pb = runs["never"][1], runs["always"][1]
+    assert all(torch.equal(pa[k], pb[k]) for k in pa)
+    pre, st = runs["never"][2], runs["always"][2]
+    assert st.views.hits == 6 and st.views.misses == 2
+    edge = pre.cfg["loss"]["depth_edge"]
+    for i in [1, 3, 0, 2, 4, 4, 1]:
+        assert torch.equal(st.views[i].packed, pre.views[i].pack(True, edge))
+    st.views.close()
