@@ -403,9 +403,16 @@ def test_cuda_streamed_training_matches_preloaded(scene_dir, tmp_path):
             logs.append(tr.train_step(step, tr.views[tr.order.pop()], check=True))
         torch.cuda.synchronize()
         runs[mode] = logs, params(tr), tr
-    assert runs["never"][0] == runs["always"][0]
+    # The first step alike to the bit; later ones within float32 rounding: the CUDA backward sums each Gaussian's
+    # gradient with atomics, whose order (so the last bits) changes from run to run, preloaded or streamed alike
+    # (seen on an H100: 1e-7 relative at step 5).
+    first_never, first_always = runs["never"][0][0], runs["always"][0][0]
+    assert first_never == first_always
+    for a, b in zip(runs["never"][0], runs["always"][0]):
+        assert a.keys() == b.keys()
+        assert all(b[k] == pytest.approx(a[k], rel=1e-4, abs=1e-7) for k in a), (a, b)
     pa, pb = runs["never"][1], runs["always"][1]
-    assert all(torch.equal(pa[k], pb[k]) for k in pa)
+    assert all(torch.allclose(pa[k], pb[k], rtol=1e-4, atol=1e-6) for k in pa)
     pre, st = runs["never"][2], runs["always"][2]
     assert st.views.hits == 6 and st.views.misses == 2
     edge = pre.cfg["loss"]["depth_edge"]
