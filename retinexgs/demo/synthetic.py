@@ -40,6 +40,8 @@ from typing import Dict, List, Sequence, Tuple, Union
 import numpy as np
 from PIL import Image
 
+from retinexgs.data.sensor import linear_to_srgb, srgb_to_linear
+
 __all__ = ["DemoCamera", "demo_cameras", "cast_rays", "render_linear", "make_demo_scene",
            "srgb_to_linear", "linear_to_srgb", "SCENE_CENTER"]
 
@@ -58,18 +60,6 @@ AMBIENT_RGB = np.array([0.55, 0.62, 0.75]) * 0.35
 SCENE_CENTER = np.array([0.0, 0.35, 0.0])
 # Object ids returned by cast_rays.
 MISS, GROUND, BOX_ID = -1, 0, 100  # spheres are 1, 2, 3
-
-
-def srgb_to_linear(c: np.ndarray) -> np.ndarray:
-    """sRGB-encoded [0,1] -> linear light."""
-    c = np.clip(c, 0.0, 1.0)
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
-
-
-def linear_to_srgb(x: np.ndarray) -> np.ndarray:
-    """Linear light -> sRGB-encoded [0,1] (clipped)."""
-    x = np.clip(x, 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055)
 
 
 # ----------------------------------------------------------------------------------------------------
