@@ -257,6 +257,16 @@ def cache_summary(root: PathLike) -> List[Dict[str, Any]]:
     return out
 
 
+def _delete(path: Path) -> int:
+    """Delete ``path``; its size in bytes. UserError naming it if it cannot be deleted."""
+    try:
+        size = path.stat().st_size
+        path.unlink()
+    except OSError as exc:
+        raise UserError(f"cannot delete {path}: {exc.strerror or exc}") from None
+    return size
+
+
 def clean_cache(root: PathLike) -> Tuple[int, int]:
     """Delete every decomposition under ``root`` (entries, previews, ``params.json``, temporaries of an
     interrupted write), the trainer's view stores in ``root`` and the folders left empty, ``root`` included;
@@ -272,15 +282,9 @@ def clean_cache(root: PathLike) -> Tuple[int, int]:
             extra += sorted(p for p in preview.iterdir() if p.is_file() and
                             (p.suffix == ".png" and _ENTRY.match(p.stem + ".npz") or p.name.startswith(_TMP_PREFIX)))
         for p in victims + extra:
-            if not p.is_file():
-                continue
-            try:
-                size = p.stat().st_size
-                p.unlink()
-            except OSError as exc:
-                raise UserError(f"cannot delete {p}: {exc.strerror or exc}") from None
-            freed += size
-            count += p in victims
+            if p.is_file():
+                freed += _delete(p)
+                count += p in victims
         for d in (preview, folder):
             try:
                 d.rmdir()
@@ -292,12 +296,7 @@ def clean_cache(root: PathLike) -> Tuple[int, int]:
     except OSError:
         stores = []
     for p in stores:
-        try:
-            size = p.stat().st_size
-            p.unlink()
-        except OSError as exc:
-            raise UserError(f"cannot delete {p}: {exc.strerror or exc}") from None
-        freed += size
+        freed += _delete(p)
     try:
         root.rmdir()
     except OSError:
