@@ -169,6 +169,18 @@ def params(tr):
     return {n: p.detach().clone() for n, p in tr.model.named_parameters()}
 
 
+
+def eight_steps(tr):
+    """The loss values of 8 training steps over the views in a fixed order (4, 2, 0, 3, 1, ...)."""
+    logs = []
+    for step in range(1, 9):
+        tr.step = step
+        if not tr.order:
+            tr.order = [4, 2, 0, 3, 1]
+        logs.append(tr.train_step(step, tr.views[tr.order.pop()], check=True))
+    return logs
+
+
 def test_training_streamed_matches_preloaded(scene_dir, tmp_path):
     """8 steps (enhancement on from step 3, two densifications): through the graphed step the losses and
     parameters are identical; eagerly the losses agree to 1e-4 relative."""
@@ -178,12 +190,7 @@ def test_training_streamed_matches_preloaded(scene_dir, tmp_path):
             tr = make(scene_dir, tmp_path / f"{mode}-{emulate}", mode, emulate=emulate)
             if mode == "always":  # loads so far: the statistics' pass over a store built by an earlier test
                 tr.views.hits = tr.views.misses = 0
-            logs = []
-            for step in range(1, 9):
-                tr.step = step
-                if not tr.order:
-                    tr.order = [4, 2, 0, 3, 1]
-                logs.append(tr.train_step(step, tr.views[tr.order.pop()], check=True))
+            logs = eight_steps(tr)
             runs[mode, emulate] = logs, params(tr), tr
     (la, pa, _), (lb, pb, st) = runs["never", True], runs["always", True]
     assert la == lb
@@ -395,12 +402,7 @@ def test_cuda_streamed_training_matches_preloaded(scene_dir, tmp_path):
         tr = make(scene_dir, tmp_path / mode, mode, device="cuda")
         if mode == "always":
             tr.views.hits = tr.views.misses = 0
-        logs = []
-        for step in range(1, 9):
-            tr.step = step
-            if not tr.order:
-                tr.order = [4, 2, 0, 3, 1]
-            logs.append(tr.train_step(step, tr.views[tr.order.pop()], check=True))
+        logs = eight_steps(tr)
         torch.cuda.synchronize()
         runs[mode] = logs, params(tr), tr
     # The first step alike to the bit; later ones within float32 rounding: the CUDA backward sums each Gaussian's
