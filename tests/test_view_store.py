@@ -169,7 +169,6 @@ def params(tr):
     return {n: p.detach().clone() for n, p in tr.model.named_parameters()}
 
 
-
 def eight_steps(tr):
     """The loss values of 8 training steps over the views in a fixed order (4, 2, 0, 3, 1, ...)."""
     logs = []
