@@ -156,3 +156,20 @@ def test_noise_ladder_darkens_each_level_once_and_names_the_columns(tmp_path, mo
     assert {p.name: (p / "sensor.json").stat().st_mtime_ns for p in (tmp_path / "runs" / "ladder").iterdir()} == made
     assert quality.main(["--scenes", str(tmp_path / "runs"), "--noise-ladder", "--runs", str(tmp_path / "r2")]) == 2
     assert "has no high/ folder" in capsys.readouterr().err
+
+
+def test_colour_table_reads_the_colour_error_and_skips_older_runs(tmp_path):
+    scenes = [tmp_path / "s1", tmp_path / "s2"]
+    jobs = quality.plan(scenes, ["default", "ablations/baseline_pre"], [0, 1], tmp_path / "runs")
+    for j in jobs:
+        _fake_run(j, 20.0, 0.5)
+        if j.scene.name == "s2" and j.config == "ablations/baseline_pre":
+            continue  # evaluated before the key existed
+        m = json.loads(j.metrics_path.read_text())
+        m["mean"].update(delta_e_gt_mean=2.0 + j.seed + (3.0 if j.config == "default" else 0.0),
+                         low_delta_e_gt_mean=9.5)
+        j.metrics_path.write_text(json.dumps(m))
+    md = quality.colour_table(jobs, ["default", "ablations/baseline_pre"])
+    assert "| low input | 9.50 | 9.50 |" in md
+    assert f"| `default` | 5.50 ± {math.sqrt(0.5):.2f} | 5.50 ± {math.sqrt(0.5):.2f} |" in md
+    assert f"| `ablations/baseline_pre` | 2.50 ± {math.sqrt(0.5):.2f} | – |" in md

@@ -142,3 +142,24 @@ def test_lpips_runs_when_everything_is_local(tmp_path, monkeypatch):
         assert reason == "" and value == pytest.approx(0.25)  # inputs mapped to [-1,1]: difference 0.5
     finally:
         sys.modules.pop("lpips", None)  # the fake must not leak into other tests
+
+
+def test_colour_error_sees_a_cast_not_the_exposure():
+    """Issue 32's colour measure: ΔE of the average colours after GT-mean alignment."""
+    from retinexgs.evaluate.metrics import colour_error, mean_colour_lab
+
+    rng = np.random.default_rng(0)
+    truth = rng.uniform(0.1, 0.6, size=(16, 16, 3))
+    assert colour_error(truth, truth) == pytest.approx(0.0, abs=1e-9)
+    # darker by one factor: removed by the alignment (up to the clip at white, not reached here)
+    assert colour_error(truth * 0.5, truth) < 0.5
+    # a blue cast is a colour error, in the blue direction (CIELAB b* lower)
+    cast = np.clip(truth * np.array([0.8, 1.0, 1.3]), 0, 1)
+    assert colour_error(cast, truth) > 5.0
+    assert mean_colour_lab(cast)[2] < mean_colour_lab(truth)[2]
+    # white is L* 100, a* = b* = 0 (D65); mid-grey sRGB 0.5 is L* ≈ 53.4
+    L, a, b = mean_colour_lab(np.ones((4, 4, 3)))
+    assert (L, a, b) == pytest.approx((100.0, 0.0, 0.0), abs=0.05)
+    assert mean_colour_lab(np.full((4, 4, 3), 0.5))[0] == pytest.approx(53.39, abs=0.05)
+    with pytest.raises(ValueError, match="RGB"):
+        mean_colour_lab(np.zeros((4, 4, 1)))

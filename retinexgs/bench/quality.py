@@ -174,6 +174,29 @@ def table(jobs: Sequence[Job], configs: Sequence[str], aligned: bool = False) ->
         "mean column averages each seed's scene means (seeds with every scene only).\n"
 
 
+def colour_table(jobs: Sequence[Job], configs: Sequence[str]) -> str:
+    """Markdown: per scene and config the colour error ``delta_e_gt_mean`` (CIELAB ΔE of the average colours after
+    the GT-mean alignment, :func:`retinexgs.evaluate.metrics.colour_error`), mean ± sample std over seeds, the
+    dark input's first; runs evaluated before the key existed are left out ("–")."""
+    scenes = list(dict.fromkeys(scene_label(j.scene) for j in jobs))
+    values: Dict = {}
+    low: Dict[str, float] = {}
+    for j in jobs:
+        m = read_metrics(j)
+        if m is None or "delta_e_gt_mean" not in m["mean"]:
+            continue
+        s = scene_label(j.scene)
+        values.setdefault((s, j.config), []).append(m["mean"]["delta_e_gt_mean"])
+        low[s] = m["mean"]["low_delta_e_gt_mean"]
+    lines = ["| config | " + " | ".join(scenes) + " |", "|" + "---|" * (len(scenes) + 1),
+             "| low input | " + " | ".join(f"{low[s]:.2f}" if s in low else "–" for s in scenes) + " |"]
+    for c in configs:
+        lines.append(f"| `{c}` | " + " | ".join(_mean_std(values.get((s, c), []), 2) for s in scenes) + " |")
+    return "\n".join(lines) + "\n\nColour error: CIELAB ΔE (1976) between the average colours of the output, " \
+        "brightness-aligned to its truth (GT-mean), and of the truth; a colour cast raises it, the exposure does " \
+        "not (issue 32). Lower is better.\n"
+
+
 def contact_sheet(jobs: Sequence[Job], configs: Sequence[str], scene: str, out: Path, views: int = 2) -> Optional[Path]:
     """low | each config (lowest seed) | truth for the first ``views`` test views, from the runs' side-by-side
     PNGs (their first panel is the low input, the second the output, the last the normal-light truth). Each column
@@ -298,6 +321,8 @@ def main(argv: Sequence[str]) -> int:
     md = table(jobs, args.configs)
     if any(m is not None and "psnr_gt_mean" in m["mean"] for m in map(read_metrics, jobs)):
         md += "\n" + table(jobs, args.configs, aligned=True)
+    if any(m is not None and "delta_e_gt_mean" in m["mean"] for m in map(read_metrics, jobs)):
+        md += "\n" + colour_table(jobs, args.configs)
     sheets = []
     for scene in dict.fromkeys(scene_label(j.scene) for j in jobs):
         path = contact_sheet(jobs, args.configs, scene, args.runs / f"sheet_{scene.replace('/', '-')}.png")

@@ -187,6 +187,29 @@ def gt_mean_align(x: ImageLike, y: ImageLike) -> torch.Tensor:
     return out[..., 0] if flat else out
 
 
+# sRGB (linear, D65) -> CIE XYZ, and the D65 white, for the colour-error metric.
+_RGB_TO_XYZ = ((0.4124564, 0.3575761, 0.1804375), (0.2126729, 0.7151522, 0.0721750), (0.0193339, 0.1191920, 0.9503041))
+_D65 = (0.95047, 1.0, 1.08883)
+
+
+def mean_colour_lab(x: ImageLike) -> Tuple[float, float, float]:
+    """CIELAB (D65) of the average colour of an sRGB [H,W,3] image in [0,1]: the pixels averaged in linear light."""
+    a, _ = _as_pair(x, x)
+    if a.shape[-1] != 3:
+        raise ValueError(f"mean_colour_lab needs an RGB image, got {a.shape[-1]} channels")
+    lin = torch.where(a <= 0.04045, a / 12.92, ((a + 0.055) / 1.055) ** 2.4).reshape(-1, 3).mean(0)
+    xyz = torch.tensor(_RGB_TO_XYZ, dtype=torch.float64) @ lin / torch.tensor(_D65, dtype=torch.float64)
+    f = torch.where(xyz > (6 / 29) ** 3, xyz.clamp_min(0) ** (1 / 3), xyz / (3 * (6 / 29) ** 2) + 4 / 29)
+    return float(116 * f[1] - 16), float(500 * (f[0] - f[1])), float(200 * (f[1] - f[2]))
+
+
+def colour_error(x: ImageLike, y: ImageLike) -> float:
+    """Issue 32's colour measure: the CIELAB ΔE (1976) between the average colours of ``x`` after
+    :func:`gt_mean_align` to ``y`` and of ``y``. A colour cast shows in it; the exposure level does not."""
+    lx, ly = mean_colour_lab(gt_mean_align(x, y)), mean_colour_lab(y)
+    return math.sqrt(sum((p - q) ** 2 for p, q in zip(lx, ly)))
+
+
 def _hub_checkpoint_dir() -> Path:
     """torch.hub's checkpoint folder (TORCH_HOME respected), without touching the network."""
     return Path(torch.hub.get_dir()) / "checkpoints"
