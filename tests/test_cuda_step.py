@@ -12,7 +12,8 @@ from retinexgs.demo.synthetic import make_demo_scene
 from retinexgs.model.tone import srgb_to_linear
 from retinexgs.train import losses
 from retinexgs.run.config import configs_dir, load_config
-from retinexgs.train.trainer import Trainer, pad_edges, to_bchw, unpack_edges, unpack_targets
+from retinexgs.train.trainer import Trainer, to_bchw
+from retinexgs.train.views import pad_edges, unpack_edges, unpack_targets
 
 CUDA = torch.cuda.is_available()
 try:

@@ -25,10 +25,10 @@ from retinexgs.train import losses
 from retinexgs.run.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
 from retinexgs.train.distributed import Distributed, gradient_params, lr_batch_factor, process_start_time, take_gradients
 from retinexgs.train.graphs import ChannelGraphs, LossGraphs
-from retinexgs.train.views import (TrainView, StreamedViews, ViewStatistics, ViewStore, check_prior_size,  # noqa: F401
-                                   check_store_space, choose_streaming, gib, make_train_view, pad_edges,
-                                   preload_bytes_per_pixel, store_fingerprint, store_path, store_size_estimate,
-                                   stream_set_up, unpack_edges, unpack_targets)
+from retinexgs.train.views import (TrainView, StreamedViews, ViewStatistics, ViewStore, check_prior_size,
+                                   check_store_space, choose_streaming, gib, make_train_view, preload_bytes_per_pixel,
+                                   store_fingerprint, store_path, store_size_estimate, stream_set_up, unpack_edges,
+                                   unpack_targets)
 from retinexgs.model.schedule import build_schedule
 from retinexgs.run.render import view_camera
 from retinexgs.retinex.cache import entry_dir, iter_decompositions, scene_cache_root
