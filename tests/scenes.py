@@ -5,6 +5,7 @@ import importlib.util
 import math
 from pathlib import Path
 
+import pytest
 import torch
 
 from retinexgs.render import Camera
@@ -102,3 +103,13 @@ def run_cli(argv, capsys):
         return -1, captured.out, captured.err + "\nTraceback (escaped main):\n" + traceback.format_exc()
     captured = capsys.readouterr()
     return code, captured.out, captured.err
+
+
+# The CUDA tests' condition: a GPU and a build with the CUDA kernels (they are skipped on CI's CPU machine).
+CUDA = torch.cuda.is_available()
+try:
+    from retinexgs.render import has_cuda
+    CUDA = CUDA and has_cuda()
+except ImportError:  # pragma: no cover
+    CUDA = False
+needs_cuda = pytest.mark.skipif(not CUDA, reason="needs a CUDA GPU and retinexgs built with its CUDA kernels")

@@ -14,14 +14,7 @@ from retinexgs.train import losses
 from retinexgs.run.config import configs_dir, load_config
 from retinexgs.train.trainer import Trainer, to_bchw
 from retinexgs.train.views import pad_edges, unpack_edges, unpack_targets
-
-CUDA = torch.cuda.is_available()
-try:
-    from retinexgs.render import has_cuda
-    CUDA = CUDA and has_cuda()
-except ImportError:  # pragma: no cover
-    CUDA = False
-needs_cuda = pytest.mark.skipif(not CUDA, reason="needs a CUDA GPU and retinexgs built with its CUDA kernels")
+from scenes import needs_cuda
 
 TINY = ["steps=20", "log.every=1", "log.tensorboard=false", "model.sh_degree=1", "model.sh_degree_every=2",
         "model.max_init_points=300", "loss.enhance_from=3", "density.start=100", "checkpoint.every=100"]

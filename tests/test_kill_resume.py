@@ -51,6 +51,16 @@ def _env():
     return env
 
 
+def _finish(proc) -> int:
+    """The process's exit code once it ends (killed if it outlives PROCESS_TIMEOUT_S: a hang fails the test)."""
+    try:
+        return proc.wait(timeout=PROCESS_TIMEOUT_S)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(timeout=30)
+
+
 def _start(args, log_path: Path) -> subprocess.Popen:
     out = open(log_path, "wb")
     try:
@@ -139,12 +149,7 @@ def test_sigkill_at_random_moments_then_resume_finishes(tiny_scene, tmp_path):
     assert stale not in list_checkpoints(run)
     # The last resume runs to the end, then evaluates.
     proc = _start(["--out", str(run), "--resume"], tmp_path / "final.log")
-    try:
-        rc = proc.wait(timeout=PROCESS_TIMEOUT_S)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(timeout=30)
+    rc = _finish(proc)
     text = (tmp_path / "final.log").read_text(errors="replace")
     assert rc == 0 and "Traceback" not in text, text
     assert f"(step {last_step})" in text or "already finished" in text, text
@@ -322,12 +327,7 @@ def test_sigterm_stops_training_quietly_with_143_and_the_run_resumes(tiny_scene,
     step = _check_run_folder(run, 2)
     assert 2 <= step < steps, text
     proc = _start(["--out", str(run), "--resume"], tmp_path / "resume.log")
-    try:
-        rc = proc.wait(timeout=PROCESS_TIMEOUT_S)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(timeout=30)
+    rc = _finish(proc)
     text = (tmp_path / "resume.log").read_text(errors="replace")
     assert rc == 0 and f"(step {step})" in text, text
     assert _check_run_folder(run, step) == steps

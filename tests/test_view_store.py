@@ -29,18 +29,11 @@ from retinexgs.train.resume import RESUMABLE
 from retinexgs.train.trainer import Trainer
 from retinexgs.train.views import (StreamedViews, ViewStore, choose_streaming, compact_photo, photo_table,
                                    preload_bytes_per_pixel, store_fingerprint)
+from scenes import needs_cuda
 
 TINY = ["steps=8", "checkpoint.every=4", "log.every=1", "log.tensorboard=false", "model.sh_degree=1",
         "model.sh_degree_every=2", "model.max_init_points=300", "loss.enhance_from=3", "density.start=1",
         "density.every=3", "density.stop=7", "decomposer.method=lime"]
-
-CUDA = torch.cuda.is_available()
-try:
-    from retinexgs.render import has_cuda
-    CUDA = CUDA and has_cuda()
-except ImportError:  # pragma: no cover
-    CUDA = False
-needs_cuda = pytest.mark.skipif(not CUDA, reason="needs a CUDA GPU and retinexgs built with its CUDA kernels")
 
 
 @pytest.fixture(scope="module")
