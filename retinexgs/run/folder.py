@@ -66,10 +66,12 @@ def load_run(run_dir: Path, device: Optional[str] = None) -> Tuple[Dict, Scene, 
 # 2026-11-25, when the exposure tone became the default; the depth prior came in later that day, at weight 0.3
 # in the default (a run made before it, resumed, must not start using it); the reconstruction term was on the
 # dark photo's values (rec_domain photo) until the exposed SSIM became the default, later still; renders were over
-# black until the mean background became the default (2026-11-26).
+# black until the mean background became the default (2026-11-26), and blind to the capture's noise until
+# issue 32 (the noise floor of the exposed SSIM, the camera's clipped noise).
 PREDATING_VALUES: Dict[str, Any] = {"model.enhancement.tone": "illumination", "loss.w_depth": 0.0,
                                     "loss.rec_domain": "photo", "model.background": "black",
-                                    "model.enhancement.shoulder": 1.0}
+                                    "model.enhancement.shoulder": 1.0, "loss.rec_noise_floor": False,
+                                    "loss.rec_camera_noise": False}
 
 
 def _fill_missing(cfg: Config, default: Config, prefix: str, filled: List[str]) -> Config:

@@ -163,6 +163,8 @@ class Loss(Section):
     rec_huber: Num(ge=0, le=1)
     rec_domain: Choice("photo", "exposed", "exposed_ssim")
     rec_ssim_noise: Bool
+    rec_noise_floor: Bool
+    rec_camera_noise: Bool
     w_depth: Num(ge=0)
     depth_edge: Num(ge=0)
 

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 from typing import Dict, Optional, Tuple
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -34,7 +35,8 @@ from retinexgs.evaluate.metrics import cached_constant, check_bchw, gaussian_win
 from retinexgs.model.tone import linear_to_srgb, srgb_to_linear
 
 __all__ = [
-    "to_bchw", "gaussian_window", "ssim", "noise_variance", "robust_abs", "exposed", "l1_ssim", "reconstruction_loss",
+    "to_bchw", "gaussian_window", "ssim", "noise_variance", "robust_abs", "exposed", "camera_expectation", "l1_ssim",
+    "reconstruction_loss",
     "supervision_loss", "tv_loss", "edge_weights", "depth_smoothness_loss", "sh_sparsity_loss",
     "spatial_consistency_loss", "exposure_loss", "color_constancy_loss", "enhancement_loss",
 ]
@@ -105,6 +107,30 @@ def exposed(x: torch.Tensor, gain: torch.Tensor) -> torch.Tensor:
     return linear_to_srgb(gain * srgb_to_linear(x, clip=False), clip=False)
 
 
+# Gauss–Hermite rule (probabilists'): E[f(Z)] ≈ Σ w_i f(z_i) for Z ~ N(0, 1). Eight nodes put the clipped,
+# sRGB-encoded mean within 0.001 of a Monte Carlo mean at every level of fountain-dark's sensor (1500 e⁻, 4 e⁻).
+_GH_Z, _GH_W = np.polynomial.hermite_e.hermegauss(8)
+_GH = tuple(zip(_GH_Z.tolist(), (_GH_W / _GH_W.sum()).tolist()))
+
+
+def camera_expectation(x: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """What a camera records on average from sRGB-encoded light ``x`` [B,C,H,W]: E[srgb(max(0, lin(x) + n))],
+    n ~ N(0, a·lin(x) + b) per channel (``a``, ``b`` [1,C,1,1] or broadcastable: the capture's Poisson–Gaussian
+    noise in linear light, :mod:`retinexgs.train.noise`), by an 8-node Gauss–Hermite rule.
+
+    Why: a sensor's noise is clipped at black, so a dark photo's values average above the light that made them
+    (about 0.4σ at black), and the sRGB curve's bend lowers the mid-tones' average a little. A render compared
+    with the photo as it is must lift its blacks to match; compared through this, it can keep the light.
+    Equals ``x`` where the noise is 0 (to the encoding's precision)."""
+    m = srgb_to_linear(x, clip=False)
+    sigma = (a * m + b).clamp_min(1e-12).sqrt()
+    out = None
+    for z, w in _GH:
+        term = w * linear_to_srgb(m + z * sigma, clip=False)
+        out = term if out is None else out + term
+    return out
+
+
 def l1_ssim(x: torch.Tensor, y: torch.Tensor, lambda_ssim: float = 0.2, huber: float = 0.0,
             ssim_xy: Optional[Tuple[torch.Tensor, torch.Tensor]] = None, ssim_noise: bool = False) -> torch.Tensor:
     """Ls(x, y) = (1−λ)·mean|x−y| + λ·(1 − SSIM(x, y)): 3DGS's photometric loss, SSIM with "same" padding.
@@ -134,9 +160,12 @@ def _reconstruction_pairs(rec: torch.Tensor, S: torch.Tensor, gain: Optional[tor
 
 def reconstruction_loss(rec: torch.Tensor, S: torch.Tensor, lambda_ssim: float = 0.2, huber: float = 0.0,
                         gain: Optional[torch.Tensor] = None, l1_exposed: bool = True,
-                        ssim_noise: bool = False) -> torch.Tensor:
+                        ssim_noise: bool = False, camera: Optional[Tuple[torch.Tensor, torch.Tensor]] = None
+                        ) -> torch.Tensor:
     """Ls(R̂∘L̂, S) alone (no 2D priors), with the options of :func:`supervision_loss`'s reconstruction term."""
     check_bchw(rec, S)
+    if camera is not None:
+        rec = camera_expectation(rec, *camera)
     (x, y), (xs, ys) = _reconstruction_pairs(rec, S, gain, l1_exposed)
     return l1_ssim(x, y, lambda_ssim, huber, None if xs is x else (xs, ys), ssim_noise)
 
@@ -144,7 +173,8 @@ def reconstruction_loss(rec: torch.Tensor, S: torch.Tensor, lambda_ssim: float =
 def supervision_loss(R_hat: torch.Tensor, L_hat: torch.Tensor, R: torch.Tensor, L: torch.Tensor,
                      S: torch.Tensor, w_r: float = 0.5, w_l: float = 0.5, w_s: float = 1.0,
                      lambda_ssim: float = 0.2, rec_huber: float = 0.0, rec_gain: Optional[torch.Tensor] = None,
-                     rec_l1_exposed: bool = True, rec_ssim_noise: bool = False) -> Tuple[torch.Tensor, Terms]:
+                     rec_l1_exposed: bool = True, rec_ssim_noise: bool = False,
+                     camera: Optional[Tuple[torch.Tensor, torch.Tensor]] = None) -> Tuple[torch.Tensor, Terms]:
     """L_sup of Eq. 4: w_r·Ls(R̂, R) + w_l·Ls(L̂, L) + w_s·Ls(R̂∘L̂, S).
 
     Args:
@@ -156,6 +186,8 @@ def supervision_loss(R_hat: torch.Tensor, L_hat: torch.Tensor, R: torch.Tensor, 
             (:func:`exposed`) instead of the dark values, and so does its L1 if ``rec_l1_exposed``.
         rec_ssim_noise: the reconstruction term's SSIM has its C2 raised by its target's noise variance
             (:func:`noise_variance`, ``ssim``'s ``c2_extra``); the priors' SSIM is unchanged.
+        camera: (a, b), the capture's noise: R̂∘L̂ is compared with S through :func:`camera_expectation` (the
+            priors' terms are not: R and L are the decomposer's estimates, not photos).
 
     Returns:
         (total, {"sup_r", "sup_l", "sup_rec"}) — the unweighted terms, for logging.
@@ -163,7 +195,10 @@ def supervision_loss(R_hat: torch.Tensor, L_hat: torch.Tensor, R: torch.Tensor, 
     check_bchw(R_hat, L_hat, R, L, S)
     # The three Ls terms as one channel-stacked L1 + SSIM (SSIM is per channel, so stacking changes no value;
     # it is one set of kernels instead of three). Each pair is broadcast to a common channel count first.
-    (rec, target), (rec_s, target_s) = _reconstruction_pairs(R_hat * L_hat, S, rec_gain, rec_l1_exposed)
+    rec = R_hat * L_hat
+    if camera is not None:
+        rec = camera_expectation(rec, *camera)
+    (rec, target), (rec_s, target_s) = _reconstruction_pairs(rec, S, rec_gain, rec_l1_exposed)
     pairs = [torch.broadcast_tensors(a, b) for a, b in ((R_hat, R), (L_hat, L), (rec, target))]
     sizes = [a.shape[1] for a, _ in pairs]
     x = torch.cat([a for a, _ in pairs], dim=1)

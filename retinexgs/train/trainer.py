@@ -25,6 +25,7 @@ from retinexgs.train import losses
 from retinexgs.run.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
 from retinexgs.train.distributed import Distributed, gradient_params, lr_batch_factor, process_start_time, take_gradients
 from retinexgs.train.graphs import ChannelGraphs, LossGraphs
+from retinexgs.train.noise import CaptureNoise
 from retinexgs.train.views import (TrainView, StreamedViews, ViewStatistics, ViewStore, check_prior_size,
                                    check_store_space, choose_streaming, gib, make_train_view, preload_bytes_per_pixel,
                                    store_fingerprint, store_path, store_size_estimate, stream_set_up, unpack_edges,
@@ -230,6 +231,7 @@ class Trainer:
             self.model.illum_ref.fill_(self.illumination_reference())
         if self.model.has_background and state is None:
             self.model.background.copy_(self.mean_background())
+        self._set_up_noise(state)
         lr = self.cfg["lr"]
         g = self.model.gaussians
         groups = [
@@ -274,6 +276,31 @@ class Trainer:
             params = self.model.enhancement.used_parameters() if self.decomposed else []
             self.graphs = LossGraphs(self._graphed_loss, params, emulate=emulate_graphs)
             self.channel_graphs = ChannelGraphs(self.model, emulate=emulate_graphs)
+
+    def _set_up_noise(self, state: Optional[Dict]) -> None:
+        """The capture's noise (:mod:`retinexgs.train.noise`) where ``loss.rec_noise_floor`` or
+        ``loss.rec_camera_noise`` uses it: measured at set-up (or read from the checkpoint, so a resume trains
+        on the same figures), then the reconstruction's gain cap and the camera's (a, b) as device tensors made
+        once (the captured CUDA graphs read them)."""
+        c = self.cfg["loss"]
+        self.capture_noise: Optional[CaptureNoise] = None
+        self.rec_gain_cap: Optional[Tensor] = None
+        self.camera_noise: Optional[Tuple[Tensor, Tensor]] = None
+        if not self.decomposed or not (c["rec_noise_floor"] or c["rec_camera_noise"]):
+            return
+        saved = (state or {}).get("capture_noise")
+        noise = CaptureNoise.from_state(saved) if saved else self.view_statistics().noise.result()
+        dist = self._setup_dist
+        if dist is not None and dist.enabled:  # rank 0's figures everywhere (each rank measured the same views)
+            noise = dist.broadcast_object(noise, "the capture's noise")
+        if noise is None:
+            return
+        self.capture_noise = noise
+        self.log(noise.describe())
+        if c["rec_noise_floor"] and c["rec_domain"] != "photo" and math.isfinite(noise.gain_cap()):
+            self.rec_gain_cap = torch.tensor(noise.gain_cap(), dtype=torch.float32, device=self.device)
+        if c["rec_camera_noise"]:
+            self.camera_noise = noise.camera(self.device)
 
     def illumination_reference(self) -> float:
         """L_ref, the scene's "full light" level that the enhancement normalises L̂ by: the median over the
@@ -325,15 +352,17 @@ class Trainer:
         gain = None
         if c["rec_domain"] != "photo":  # the tone's gain at g = 1, 1 / lin(L_ref): a constant of the scene
             gain = exposure_gain(self.model.illum_ref, R_hat.new_ones(()))
+            if self.rec_gain_cap is not None:  # no higher than the photos' noise allows (train/noise.py)
+                gain = torch.minimum(gain, self.rec_gain_cap)
         l1_exposed = c["rec_domain"] == "exposed"
         if R is not None:
             sup, sup_terms = losses.supervision_loss(R_hat, L_hat, to_bchw(R), to_bchw(L), S_b, c["w_r"],
                                                      c["w_l"], c["w_s"], c["lambda_ssim"], c["rec_huber"], gain,
-                                                     l1_exposed, c["rec_ssim_noise"])
+                                                     l1_exposed, c["rec_ssim_noise"], self.camera_noise)
             terms.update(sup_terms)
         else:  # no 2D priors: only the reconstruction is supervised
             terms["sup_rec"] = losses.reconstruction_loss(R_hat * L_hat, S_b, c["lambda_ssim"], c["rec_huber"],
-                                                          gain, l1_exposed, c["rec_ssim_noise"])
+                                                          gain, l1_exposed, c["rec_ssim_noise"], self.camera_noise)
             sup = c["w_s"] * terms["sup_rec"]
         terms["tv"] = losses.tv_loss(R_hat)
         total = sup + c["w_tv"] * terms["tv"]
@@ -632,6 +661,7 @@ class Trainer:
                     "center": self.scene.normalization.center, "scale": self.scene.normalization.scale},
                 "scene_root": str(self.scene.root), "train_views": [v.name for v in self.scene.train],
                 "train_seconds": self.train_seconds(),
+                "capture_noise": self.capture_noise.state_dict() if self.capture_noise is not None else None,
                 # For information (a checkpoint resumes with any number of ranks): how it was trained.
                 "ranks": self.dist.world, "views_per_step": self.batch_size}
 
