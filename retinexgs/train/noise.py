@@ -10,26 +10,32 @@ does with it (issue 32; each a config switch with its reason in configs/default.
   (:func:`retinexgs.train.losses.camera_expectation`) under the Poisson–Gaussian noise measured here, so the
   blacks of the output are not lifted by the positive mean of clipped noise.
 
-Measured on the first :data:`MEASURED_VIEWS` training views (as they are read, one at a time): per view,
-:func:`retinexgs.data.sensor.estimate_noise` (``var = a·y + b`` per channel in linear light) and the exposed
-noise σ (Immerkær, the largest channel) at each gain of :data:`GAINS`; the capture's figures are the medians over
-those views. Through 8-bit JPEG both see about 0.4–0.9 of the true σ (docs/experiments/2026-11-26-noise-estimate.md):
-the cap errs towards the exposed SSIM, the black level towards too little correction.
+Measured on :data:`MEASURED_VIEWS` training photos spread over the capture, as the camera wrote them (the user's
+files, a central crop of at most :data:`CROP` pixels a side): undistortion and resizing interpolate between pixels,
+which hides noise from a 3×3 estimate (fountain-dark's σ reads 0.6× through OpenCV's undistortion) but not from
+SSIM's 11×11 window. Per photo, :func:`retinexgs.data.sensor.estimate_noise` (``var = a·y + b`` per channel in
+linear light) and the exposed noise σ (Immerkær, the largest channel) at each gain of :data:`GAINS`; the capture's
+figures are the medians over the photos, divided by ``data.downscale`` (a d×d average divides white noise's σ by d).
+Through 8-bit JPEG both see about 0.4–0.9 of the true σ (docs/experiments/2026-11-26-noise-estimate.md): the cap
+errs towards the exposed SSIM, the black level towards too little correction.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
-from typing import Dict, List, Optional, Tuple
+from pathlib import Path
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from retinexgs.data.images import read_image_float
 from retinexgs.data.sensor import estimate_noise
 from retinexgs.train.losses import exposed, noise_variance
 
 MEASURED_VIEWS = 8
+CROP = 1024
 # Exposure gains at which the exposed noise is measured: 1 to 256 in half stops (a scene's gain 1 / lin(L_ref) is
 # 2–60 on the dev scenes); the cap is interpolated between them, log-linearly.
 GAINS: Tuple[float, ...] = tuple(2.0 ** (k / 2.0) for k in range(17))
@@ -90,31 +96,52 @@ def exposed_noise_sigma(S: Tensor, gains: Tuple[float, ...] = GAINS) -> List[flo
     return out
 
 
-class NoiseMeter:
-    """Gathers :class:`CaptureNoise` from the first ``views`` photos that pass through :meth:`add`."""
+def centre_crop(photo: np.ndarray, size: int = CROP) -> np.ndarray:
+    """The central ``size`` × ``size`` pixels of [H,W,3] (all of a side that is shorter)."""
+    h, w = photo.shape[:2]
+    top, left = max(0, (h - size) // 2), max(0, (w - size) // 2)
+    return photo[top:top + size, left:left + size]
 
-    def __init__(self, views: int = MEASURED_VIEWS) -> None:
-        self.max_views = views
+
+class NoiseMeter:
+    """Gathers :class:`CaptureNoise` from the photos given to :meth:`add` (module docstring)."""
+
+    def __init__(self, device: torch.device = torch.device("cpu")) -> None:
+        self.device = torch.device(device)
         self._a: List[Tuple[float, ...]] = []
         self._b: List[Tuple[float, ...]] = []
         self._sigma: List[List[float]] = []
 
-    def add(self, S: Tensor) -> None:
-        if len(self._sigma) >= self.max_views or S.shape[0] < 8 or S.shape[1] < 8:
+    def add(self, photo: np.ndarray) -> None:
+        """One photo [H,W,3] in sRGB [0,1] as the camera wrote it (cropped here); smaller than 8×8: skipped."""
+        photo = centre_crop(np.asarray(photo, dtype=np.float32))
+        if photo.ndim != 3 or photo.shape[0] < 8 or photo.shape[1] < 8:
             return
-        est = estimate_noise(S.detach().float().cpu().numpy())
+        est = estimate_noise(photo)
         self._a.append(est.a)
         self._b.append(est.b)
-        self._sigma.append(exposed_noise_sigma(S))
+        self._sigma.append(exposed_noise_sigma(torch.from_numpy(np.ascontiguousarray(photo)).to(self.device)))
 
-    def result(self) -> Optional[CaptureNoise]:
-        """The medians over the measured views; None when no view was measured."""
+    def result(self, downscale: float = 1.0) -> Optional[CaptureNoise]:
+        """The medians over the photos, for training images ``downscale`` times smaller; None without photos."""
         if not self._sigma:
             return None
-        a = tuple(float(v) for v in np.median(np.array(self._a), axis=0))
-        b = tuple(float(v) for v in np.median(np.array(self._b), axis=0))
-        sigma = tuple(float(v) for v in np.median(np.array(self._sigma), axis=0))
+        d = float(downscale)
+        a = tuple(float(v) / (d * d) for v in np.median(np.array(self._a), axis=0))
+        b = tuple(float(v) / (d * d) for v in np.median(np.array(self._b), axis=0))
+        sigma = tuple(float(v) / d for v in np.median(np.array(self._sigma), axis=0))
         return CaptureNoise(a, b, GAINS, sigma, len(self._sigma))  # type: ignore[arg-type]
 
 
-__all__ = ["CaptureNoise", "NoiseMeter", "exposed_noise_sigma", "GAINS", "SSIM_K2", "MEASURED_VIEWS"]
+def measure_capture_noise(photos: Sequence[Path], downscale: float = 1.0, device: torch.device = torch.device("cpu"),
+                          views: int = MEASURED_VIEWS) -> Optional[CaptureNoise]:
+    """:class:`CaptureNoise` of up to ``views`` of ``photos`` (the user's files), spread evenly over them."""
+    photos = list(photos)
+    meter = NoiseMeter(device)
+    for p in photos[::max(1, len(photos) // views)][:views]:
+        meter.add(read_image_float(p))
+    return meter.result(downscale)
+
+
+__all__ = ["CaptureNoise", "NoiseMeter", "measure_capture_noise", "exposed_noise_sigma", "centre_crop", "GAINS",
+           "SSIM_K2", "MEASURED_VIEWS", "CROP"]

@@ -25,7 +25,7 @@ from retinexgs.train import losses
 from retinexgs.run.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
 from retinexgs.train.distributed import Distributed, gradient_params, lr_batch_factor, process_start_time, take_gradients
 from retinexgs.train.graphs import ChannelGraphs, LossGraphs
-from retinexgs.train.noise import CaptureNoise
+from retinexgs.train.noise import CaptureNoise, measure_capture_noise
 from retinexgs.train.views import (TrainView, StreamedViews, ViewStatistics, ViewStore, check_prior_size,
                                    check_store_space, choose_streaming, gib, make_train_view, preload_bytes_per_pixel,
                                    store_fingerprint, store_path, store_size_estimate, stream_set_up, unpack_edges,
@@ -289,7 +289,11 @@ class Trainer:
         if not self.decomposed or not (c["rec_noise_floor"] or c["rec_camera_noise"]):
             return
         saved = (state or {}).get("capture_noise")
-        noise = CaptureNoise.from_state(saved) if saved else self.view_statistics().noise.result()
+        if saved:
+            noise = CaptureNoise.from_state(saved)
+        else:
+            noise = measure_capture_noise([v.source_path or v.image_path for v in self.scene.train],
+                                          self.cfg["data"]["downscale"], self.device)
         dist = self._setup_dist
         if dist is not None and dist.enabled:  # rank 0's figures everywhere (each rank measured the same views)
             noise = dist.broadcast_object(noise, "the capture's noise")

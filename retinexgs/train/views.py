@@ -37,7 +37,6 @@ from retinexgs.fileio import atomic_write, free_bytes
 from retinexgs.render import Camera
 from retinexgs.retinex import enhance_for_viewing
 from retinexgs.train import losses
-from retinexgs.train.noise import NoiseMeter
 
 
 def _bchw(x: Tensor) -> Tensor:
@@ -166,12 +165,10 @@ class ViewStatistics:
     """What set-up needs from every view, gathered one view at a time on the device (the same float32 maps and
     operations as when every view sat on the device at once, so the same values): the illumination reference
     (per view the ``quantile`` of L, or of S's max-RGB without priors; their median over views) and the mean
-    background (the views' mean R and L, or S and its max-RGB), and the capture's noise
-    (:class:`retinexgs.train.noise.NoiseMeter`, the first views' photos)."""
+    background (the views' mean R and L, or S and its max-RGB)."""
 
     def __init__(self, quantile: Optional[float]) -> None:
         self.quantile = quantile
-        self.noise = NoiseMeter()
         self._refs: List[Tensor] = []
         self._mean_r: List[Tensor] = []
         self._mean_l: List[Tensor] = []
@@ -181,7 +178,6 @@ class ViewStatistics:
 
     def add(self, S: Tensor, R: Optional[Tensor], L: Optional[Tensor]) -> None:
         """One view's maps (contiguous copies are taken of views into a packed tensor: same reduction order)."""
-        self.noise.add(S)
         light = (L if L is not None else S.amax(dim=-1, keepdim=True)).contiguous()
         if self.quantile is not None:
             flat = light.reshape(-1).float()
