@@ -492,9 +492,9 @@ class StreamedViews(Sequence):
     memory pool (their intermediates, kept: ~50 B per pixel of the largest layout, 0.1 GB at 1920x1080):
     replays are serialised on the side stream and leave nothing in the pool that outlives them. The event waits and
     records and the host-to-device copy stay outside the graph (a capture cannot wait on an event recorded
-    outside it; the staging buffer varies). A capture that fails leaves that layout eager, with one log line;
-    ``emulate_graphs`` runs the same bookkeeping on the CPU (the "graph" re-runs the eager conversion on the
-    static buffers), for tests.
+    outside it; the staging buffer varies). A capture that fails leaves that layout eager, with one line to
+    ``log``; ``emulate_graphs`` runs the same bookkeeping on the CPU (the "graph" re-runs the eager conversion
+    on the static buffers), for tests.
     """
 
     def __init__(self, store: ViewStore, cameras: Sequence[Camera], centers: Sequence[Tensor],
