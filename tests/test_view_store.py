@@ -261,6 +261,120 @@ def test_prefetch_of_the_next_view_precedes_the_render(scene_dir, tmp_path, monk
     assert sum(1 for e in events if e[0] == "load" and e[2]) >= 8 - first_of_epoch - 1
 
 
+# ---- the conversion as a CUDA graph (emulated on the CPU) ----------------------------------------------------
+
+LAYOUTS = [(30, 40, "uint8"), (30, 40, "uint16"), (16, 20, "float32"), (16, 20, "uint8"), (30, 40, "uint8")]
+CAMERAS = [object() for _ in LAYOUTS]  # handed on with each view, never read
+
+
+def mixed_store(path: Path, priors: bool) -> ViewStore:
+    """A store of views of two sizes and the three photo types (4 layouts), random contents."""
+    rng = np.random.default_rng(7)
+    items = []
+    for k, (h, w, dtype) in enumerate(LAYOUTS):
+        if dtype == "float32":
+            photo = rng.random((h, w, 3), dtype=np.float32)
+        else:
+            photo = rng.integers(0, np.iinfo(dtype).max + 1, (h, w, 3), dtype=dtype)
+        R = rng.random((h, w, 3)).astype(np.float16) if priors else None
+        L = rng.random((h, w, 1)).astype(np.float16) if priors else None
+        items.append((f"v{k}", photo, R, L))
+    return ViewStore.build(path, "mixed", priors, items, "hint")
+
+
+def streamed(store: ViewStore, device, method: str, depth_edge, **kw) -> StreamedViews:
+    centers = [torch.full((3,), float(k), device=device) for k in range(len(store))]
+    return StreamedViews(store, CAMERAS, centers, device, method, depth_edge, **kw)
+
+
+def assert_same_view(a, b) -> None:
+    """Two TrainViews with the same maps, bit for bit, and the same camera and centre."""
+    assert a.packed.shape == b.packed.shape and torch.equal(a.packed, b.packed)
+    for name in ("S", "R", "L", "target"):
+        x, y = getattr(a, name), getattr(b, name)
+        assert (x is None) == (y is None), name
+        assert x is None or (x.shape == y.shape and torch.equal(x, y)), name
+    assert (a.edges is None) == (b.edges is None)
+    if a.edges is not None:
+        assert all(x.is_contiguous() and torch.equal(x, y) for x, y in zip(a.edges, b.edges))
+    assert a.camera is b.camera and torch.equal(a.center, b.center)
+
+
+GRAPHED_CASES = [("retinexgs", True, 10.0), ("retinexgs", True, None), ("retinexgs", False, 10.0),
+                 ("retinexgs", False, None), ("pre", True, None), ("3dgs", False, None)]
+
+
+def compare_graphed_with_eager(tmp_path, device, method, priors, depth_edge, **graphed_kw) -> StreamedViews:
+    """Views converted through the (slot, layout) graphs equal the eager conversion over a long random run of
+    loads (every layout into every slot, on demand); returns the graphed StreamedViews (closed)."""
+    store = mixed_store(tmp_path / "views.bin", priors)
+    eager = streamed(store, device, method, depth_edge, graphs=False)
+    graphed = streamed(store, device, method, depth_edge, **graphed_kw)
+    assert graphed._graphed and not eager._graphed
+    try:
+        order = np.random.default_rng(3).integers(0, len(store), 100).tolist()
+        for i in order:
+            assert_same_view(graphed.get(i, prefetch=False), eager.get(i, prefetch=False))
+        assert graphed.misses == eager.misses > 30
+    finally:
+        eager.close()
+        graphed.close()
+    return graphed
+
+
+@pytest.mark.parametrize("method,priors,depth_edge", GRAPHED_CASES)
+def test_graphed_conversion_equals_the_eager(tmp_path, method, priors, depth_edge):
+    views = compare_graphed_with_eager(tmp_path, "cpu", method, priors, depth_edge, emulate_graphs=True)
+    # The first view of each layout converts eagerly (the warm-up); each later load into a slot captures once.
+    layouts = {key[1:] for key in views._graphs}
+    assert len(layouts) == 4 and len(views._graphs) <= 3 * 4 and not views.graph_failures
+    assert views.slot_bytes > sum(t.numel() * 4 for t in views._slots)  # the emulation's own device bytes
+
+
+def test_a_failed_capture_converts_eagerly_and_says_so(tmp_path, monkeypatch):
+    logs = []
+    store = mixed_store(tmp_path / "views.bin", True)
+    views = streamed(store, "cpu", "retinexgs", 10.0, emulate_graphs=True, log=logs.append)
+    eager = streamed(store, "cpu", "retinexgs", 10.0)
+
+    def fail(i, slot, data):
+        raise RuntimeError("not capturable")
+
+    monkeypatch.setattr(views, "_capture", fail)
+    for i in [0, 1, 2, 3, 4] * 4:
+        assert_same_view(views.get(i, prefetch=False), eager.get(i, prefetch=False))
+    assert not views._graphs and len(views.graph_failures) == 4
+    assert len(logs) == 4 and all("not capturable" in s and "convert eagerly" in s for s in logs), logs
+
+
+def test_graphed_layouts_are_bounded(tmp_path, monkeypatch):
+    monkeypatch.setattr(views_mod, "MAX_GRAPHED_LAYOUTS", 2)
+    views = compare_graphed_with_eager(tmp_path, "cpu", "retinexgs", True, 10.0, emulate_graphs=True)
+    assert len({key[1:] for key in views._graphs}) == 2
+
+
+def test_a_capture_that_leaves_a_map_outside_the_slot_is_refused(tmp_path, monkeypatch):
+    logs = []
+    store = mixed_store(tmp_path / "views.bin", True)
+    views = streamed(store, "cpu", "retinexgs", 10.0, emulate_graphs=True, log=logs.append)
+    convert = views._convert
+
+    def stray(i, slot, data):
+        tv = convert(i, slot, data)
+        tv.L = tv.L.clone()  # a map of its own, which a replay would not refresh
+        return tv
+
+    monkeypatch.setattr(views, "_convert", stray)
+    for i in [0, 4, 0, 4]:
+        views.get(i, prefetch=False)
+    assert not views._graphs and len(logs) == 1 and "not in the slot's buffer" in logs[0]
+
+
+def test_the_cpu_trainer_converts_eagerly(scene_dir, tmp_path):
+    st = make(scene_dir, tmp_path / "st", "always")
+    assert not st.views._graphed and st.views._bytes is st.views._staging  # the CPU path as it was
+
+
 # ---- the store on disk ---------------------------------------------------------------------------------------
 
 def test_store_is_reused_on_resume_and_rebuilt_when_the_scene_changes(tmp_path):
@@ -413,7 +527,36 @@ def test_cuda_streamed_training_matches_preloaded(scene_dir, tmp_path):
         assert rel.median() <= 1e-3, (k, float(rel.median()))
     pre, st = runs["never"][2], runs["always"][2]
     assert st.views.hits == 6 and st.views.misses == 2
+    assert st.views._graphs and not st.views.graph_failures  # the conversion replayed as CUDA graphs
     edge = pre.cfg["loss"]["depth_edge"]
     for i in [1, 3, 0, 2, 4, 4, 1]:
         assert torch.equal(st.views[i].packed, pre.views[i].pack(True, edge))
     st.views.close()
+
+
+@needs_cuda
+@pytest.mark.parametrize("method,priors,depth_edge", GRAPHED_CASES)
+def test_cuda_graphed_conversion_equals_the_eager(tmp_path, monkeypatch, method, priors, depth_edge):
+    """The slot's captured conversion (one graph launch per load) gives the eager conversion's maps bit for bit,
+    for every layout (two sizes; uint8, uint16 and float32 photos) in every slot; once every (slot, layout) is
+    captured, a load runs no eager conversion."""
+    cuda = torch.device("cuda")
+    views = compare_graphed_with_eager(tmp_path, cuda, method, priors, depth_edge)
+    assert not views.graph_failures, views.graph_failures
+    assert len({key[1:] for key in views._graphs}) == 4
+    eager = streamed(views.store, cuda, method, depth_edge, graphs=False)
+    again = streamed(views.store, cuda, method, depth_edge)
+    try:
+        for i in [0, 1, 2, 3, 4] * 6:
+            again.get(i, prefetch=False)
+        assert len(again._graphs) == 3 * 4 and not again.graph_failures
+
+        def no_eager(*args):
+            raise AssertionError("an eager conversion after every capture")
+
+        monkeypatch.setattr(again, "_convert", no_eager)
+        for i in [3, 0, 4, 2, 1, 1, 0, 2]:
+            assert_same_view(again.get(i, prefetch=False), eager.get(i, prefetch=False))
+    finally:
+        eager.close()
+        again.close()

@@ -210,7 +210,7 @@ class Trainer:
             dist.barrier("the view store, which rank 0 writes")
         views = StreamedViews(store, cameras, centers, dev, self.method,
                               cfg["loss"]["depth_edge"] if self.depth_prior else None,
-                              upcoming=self._upcoming_views)
+                              upcoming=self._upcoming_views, graphs=bool(tcfg["cuda_graphs"]), log=self.log)
         self.log(f"views: {gib(views.slot_bytes)} of reused buffers on the device")
         return views
 

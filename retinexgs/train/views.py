@@ -444,6 +444,20 @@ class _Inline:
         pass
 
 
+@dataclass
+class _SlotGraph:
+    """One device slot's conversion of one view layout, captured: ``replay()`` refills the slot's packed
+    buffer from its compact device bytes (the graph's static input and output); ``view`` is what the captured
+    conversion left, its maps views of the slot's buffer (a load hands on a copy with the view's camera)."""
+
+    replay: Callable[[], None]
+    view: TrainView
+
+
+# Distinct view layouts (size, photo type) whose conversion is captured; further ones convert eagerly.
+MAX_GRAPHED_LAYOUTS = 8
+
+
 class StreamedViews(Sequence):
     """The training views as a sequence of :class:`TrainView`, streamed from a :class:`ViewStore`: ``views[i]``
     brings view i to the device (at once if it was not prefetched), then starts the next views that
@@ -465,12 +479,29 @@ class StreamedViews(Sequence):
     last handed on (the step that used it is queued before it); a staging buffer only after its copy's event.
     On the CPU the same code converts from the staging buffer directly, and host reads run in the calling
     thread unless ``threaded`` (a test's choice; on CUDA the default).
+
+    The conversion as a CUDA graph (``graphs``, the trainer's ``train.cuda_graphs``): the step is launch-bound,
+    and the eager conversion is ~20 small kernels and their Python (lookup table, float16 to float32, the edge
+    maps, packing) per view. Its input (the slot's device bytes) and output (the slot's packed buffer) are
+    allocated once, and for one layout (size, photo type, offsets: the same for every view of that size) it
+    is the same kernels on the same addresses every time, so each (slot, layout) is captured once and then
+    replayed: one launch, the same kernels, so the same values. The first view of a layout converts eagerly
+    (the capture's warm-up); the next load of it into each slot captures, on the side stream, in
+    ``thread_local`` mode (a live viewer renders from another thread between steps; this runs between steps,
+    outside the trainer's own captures, on the main thread like them), then replays. The graphs share one
+    memory pool (their intermediates, kept: ~50 B per pixel of the largest layout, 0.1 GB at 1920x1080):
+    replays are serialised on the side stream and leave nothing in the pool that outlives them. The event waits and
+    records and the host-to-device copy stay outside the graph (a capture cannot wait on an event recorded
+    outside it; the staging buffer varies). A capture that fails leaves that layout eager, with one line to
+    ``log``; ``emulate_graphs`` runs the same bookkeeping on the CPU (the "graph" re-runs the eager conversion
+    on the static buffers), for tests.
     """
 
     def __init__(self, store: ViewStore, cameras: Sequence[Camera], centers: Sequence[Tensor],
                  device: torch.device, method: str, depth_edge: Optional[float],
                  upcoming: Optional[Callable[[], Sequence[int]]] = None, slots: int = 3,
-                 threaded: Optional[bool] = None) -> None:
+                 threaded: Optional[bool] = None, graphs: bool = True, emulate_graphs: bool = False,
+                 log: Optional[Callable[[str], None]] = None) -> None:
         if len(store) != len(cameras):
             raise ValueError(f"the view store has {len(store)} views, the scene {len(cameras)}")
         if slots < 3:
@@ -491,8 +522,16 @@ class StreamedViews(Sequence):
                        for _ in range(slots)]
         self._staging = [torch.empty(span, dtype=torch.uint8, pin_memory=cuda) for _ in range(slots)]
         self._staging_np = [t.numpy() for t in self._staging]  # what the worker thread writes
-        self._bytes = [torch.empty(span, dtype=torch.uint8, device=self.device) for _ in range(slots)] if cuda \
-            else self._staging
+        # Graphed conversion: on CUDA (``graphs``), or emulated on the CPU (a test's choice).
+        self._emulate = bool(emulate_graphs) and not cuda
+        self._graphed = (cuda and bool(graphs)) or self._emulate
+        self._bytes = [torch.empty(span, dtype=torch.uint8, device=self.device) for _ in range(slots)] \
+            if cuda or self._emulate else self._staging
+        self._graphs: Dict[tuple, _SlotGraph] = {}  # per (slot,) + layout
+        self._graph_layouts: set = set()  # layouts converted once eagerly: their captures may follow
+        self.graph_failures: Dict[tuple, str] = {}  # layouts whose capture failed (they convert eagerly)
+        self._pool = None  # the graphs' shared memory pool
+        self._log = log
         self._tables = {dtype: torch.from_numpy(photo_table(dtype)).to(self.device)
                         for dtype in sorted({v.photo_dtype for v in store.views} & set(_PHOTO_LEVELS))}
         # Device slots: the view each holds, its TrainView, when each was last handed out or filled.
@@ -566,7 +605,7 @@ class StreamedViews(Sequence):
     def slot_bytes(self) -> int:
         """Device bytes of the reused buffers (all slots)."""
         return sum(t.numel() * t.element_size() for t in self._slots) + \
-            (sum(t.numel() for t in self._bytes) if self._cuda else 0)
+            (sum(t.numel() for t in self._bytes) if self._bytes is not self._staging else 0)
 
     # -- internals ------------------------------------------------------------------------------------------
     def _touch(self, used: List[int], k: int) -> None:
@@ -613,15 +652,69 @@ class StreamedViews(Sequence):
         self._staged.pop(i)[1].result()
         n = self.store.views[i].nbytes
         if not self._cuda:
-            return self._convert(i, slot, self._staging[b][:n])
+            if not self._emulate:
+                return self._convert(i, slot, self._staging[b][:n])
+            dev = self._bytes[slot][:n]
+            dev.copy_(self._staging[b][:n])
+            return self._convert_graphed(i, slot, dev)
         with torch.cuda.stream(self._side):
             self._side.wait_event(self._released[slot])  # the last step that read this slot is done
             dev = self._bytes[slot][:n]
             dev.copy_(self._staging[b][:n], non_blocking=True)
             self._copied[b].record(self._side)
-            tv = self._convert(i, slot, dev)
+            tv = self._convert_graphed(i, slot, dev) if self._graphed else self._convert(i, slot, dev)
             self._ready[slot].record(self._side)
         return tv
+
+    def _convert_graphed(self, i: int, slot: int, data: Tensor) -> TrainView:
+        """:meth:`_convert` through the slot's captured graph of the view's layout (captured now if this layout
+        was converted before, eagerly while it is new or its capture failed). ``data``: the slot's device bytes
+        (the start of ``self._bytes[slot]``, the graph's static input); on CUDA the side stream is current."""
+        rec = self.store.views[i]
+        layout = (rec.height, rec.width, rec.photo_dtype, rec.photo, rec.R, rec.L, rec.nbytes)
+        g = self._graphs.get((slot,) + layout)
+        if g is None:
+            if layout in self.graph_failures or layout not in self._graph_layouts:
+                if len(self._graph_layouts) < MAX_GRAPHED_LAYOUTS:
+                    self._graph_layouts.add(layout)  # the eager run before its first capture: the warm-up
+                return self._convert(i, slot, data)
+            try:
+                g = self._capture(i, slot, data)
+            except Exception as err:  # e.g. an op that cannot be captured: this layout converts eagerly
+                why = f"{type(err).__name__}: {err}"
+                self.graph_failures[layout] = why
+                if self._log is not None:
+                    self._log(f"CUDA graph capture of a streamed view's conversion failed for {rec.width}x"
+                              f"{rec.height} views ({why}); they convert eagerly")
+                return self._convert(i, slot, data)
+            self._graphs[(slot,) + layout] = g
+        g.replay()
+        # A new TrainView (its own lazily built fields, e.g. a baseline's edge maps) on the captured maps.
+        v = g.view
+        return TrainView(self.cameras[i], v.S, v.R, v.L, v.target, self.centers[i], v.packed, v.edges)
+
+    def _capture(self, i: int, slot: int, data: Tensor) -> _SlotGraph:
+        """Capture :meth:`_convert` of view ``i``'s layout from ``data`` into ``slot`` (not run: replay it)."""
+        if self._emulate:  # the CPU's stand-in: the same conversion re-run on the same static buffers
+            view = self._convert(i, slot, data)
+            replay: Callable[[], None] = lambda: self._convert(i, slot, data)
+            pool = None
+        else:
+            graph = torch.cuda.CUDAGraph()
+            # thread_local: only this thread's unsafe calls break the capture (a live viewer's frames may
+            # allocate meanwhile); the side stream is the current one (its copy is queued before).
+            with torch.cuda.graph(graph, pool=self._pool, stream=self._side, capture_error_mode="thread_local"):
+                view = self._convert(i, slot, data)
+            replay, pool = graph.replay, graph.pool()
+        # Every map handed on must be in the slot's buffer: the graph rewrites only that (its intermediates
+        # live in the pool and are overwritten by the next replay of any graph).
+        storage = self._slots[slot].untyped_storage().data_ptr()
+        maps = [view.S, view.R, view.L, view.target, view.packed, *(view.edges or ())]
+        if any(t is not None and t.untyped_storage().data_ptr() != storage for t in maps):
+            raise RuntimeError("a converted map is not in the slot's buffer")
+        if self._pool is None:  # the first graph's pool, shared by the next captures
+            self._pool = pool
+        return _SlotGraph(replay, view)
 
     def _convert(self, i: int, slot: int, data: Tensor) -> TrainView:
         """The view's float32 maps from its compact bytes ``data`` (on the device), packed into the slot."""
