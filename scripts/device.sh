@@ -47,6 +47,7 @@
 #       fps        `bench fps` on the trained run (or --run RUN) at 640x360 and 500x375, --fps-runs times
 #                  (fused frame vs torch path vs rasterization; launches per frame; --vs gsplat adds gsplat)
 #       trainspeed `bench train-speed` on synthetic scenes (--vs gsplat) and on --scene after 3100 warm-up steps
+#       stream     `bench train-speed` on --scene with train.stream_views=never, then always, --repeats times
 #       raster     `bench raster --vs ${VS:-reference}`, --raster-runs times
 #       profile    scripts/profiling.py train on --scene (300 warm-up steps, 30 profiled)
 #       fprofile   scripts/profiling.py frame --fused on the run      rprofile  scripts/profiling.py raster
@@ -301,7 +302,7 @@ mode_speed() {
   local stages=" ${ARGS[*]:-train fps trainspeed raster profile} "
   has() { [[ $stages == *" $1 "* ]]; }
   for s in $stages; do
-    [[ " train fps trainspeed raster profile fprofile rprofile lr3m export ab " == *" $s "* ]] \
+    [[ " train fps trainspeed stream raster profile fprofile rprofile lr3m export ab " == *" $s "* ]] \
       || die "unknown speed stage $s"
   done
   setup
@@ -325,7 +326,7 @@ print('gsplat ready')" > "$LOGS/gsplat_build.log" 2>&1; echo "gsplat JIT: exit $
     [ -f "$run/metrics.json" ] || train=1
   fi
   has train && train=1
-  if [ $train = 1 ] || has trainspeed || has profile || has lr3m || has ab; then
+  if [ $train = 1 ] || has trainspeed || has stream || has profile || has lr3m || has ab; then
     need_train_wheels; stage_data; need_scene "$SCENE"
   fi
   wait  # gsplat's build, before anything is timed
@@ -350,6 +351,15 @@ print('gsplat ready')" > "$LOGS/gsplat_build.log" 2>&1; echo "gsplat JIT: exit $
     timeout 150 python3 -m retinexgs.bench train-speed --device cuda ${VS:+--vs "$VS"} 2>&1 | tee "$OUT/trainspeed.txt"
     timeout 100 python3 -m retinexgs.bench train-speed --device cuda --data "$scene" "${cfg[@]}" --warmup 3100 \
       --steps 30 2>&1 | tee -a "$OUT/trainspeed.txt"
+  fi
+  if has stream; then  # streamed vs preloaded views, alternated --repeats times on this card (issue 34's ≤ 1.05×)
+    for _ in $(seq "$REPEATS"); do
+      for mode in never always; do
+        echo "== train.stream_views=$mode" >> "$OUT/stream.txt"
+        timeout 120 python3 -m retinexgs.bench train-speed --device cuda --data "$scene" "${cfg[@]}" --warmup 3100 \
+          --steps 200 --set "train.stream_views=$mode" 2>&1 | tee -a "$OUT/stream.txt"
+      done
+    done
   fi
   if has raster; then  # ratios move run to run: --raster-runs 2 repeats the bench in the same call
     for _ in $(seq "$RASTER_RUNS"); do

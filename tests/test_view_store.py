@@ -549,7 +549,7 @@ def test_cuda_graphed_conversion_equals_the_eager(tmp_path, monkeypatch, method,
     try:
         for i in [0, 1, 2, 3, 4] * 6:
             again.get(i, prefetch=False)
-        assert len(again._graphs) == 3 * 4 and not again.graph_failures
+        assert len(again._graphs) == 3 * 4 and not again.graph_failures, (again.graph_failures, list(again._graphs))
 
         def no_eager(*args):
             raise AssertionError("an eager conversion after every capture")
