@@ -138,7 +138,7 @@ def test_graphed_training_loop_matches_eager_on_cpu(scene_dir, tmp_path, one_thr
 
 @pytest.mark.parametrize("name", ["default", "ablations/tone_illumination", "ablations/rec_huber",
                                   "ablations/rec_exposed", "ablations/rec_photo", "ablations/rec_ssim_noise",
-                                  "ablations/no_depth"])
+                                  "ablations/no_depth", "ablations/noise_blind", "ablations/camera_noise"])
 def test_eager_loss_is_the_papers_sum(scene_dir, tmp_path, one_thread, name):
     """Trainer.loss (the reference of the graphed path) against the loss functions composed by hand:
     L_sup + w_tv·L_TV + w_sh·L_SH + L_enhance on the detached R̂, L̂ (the default; L_exp on the image, or on
@@ -152,9 +152,11 @@ def test_eager_loss_is_the_papers_sum(scene_dir, tmp_path, one_thread, name):
     R_hat, L_hat, S = to_bchw(res["R"]), to_bchw(res["L"]), to_bchw(tv.S)
     # the reconstruction term's options: the g = 1 exposure is 1 / lin(L_ref)
     gain = 1.0 / srgb_to_linear(tr.model.illum_ref) if c["rec_domain"] != "photo" else None
+    if gain is not None and c["rec_noise_floor"]:  # capped at the photos' noise floor (train/noise.py)
+        gain = min(float(gain), tr.capture_noise.gain_cap())
     sup, _ = losses.supervision_loss(R_hat, L_hat, to_bchw(tv.R), to_bchw(tv.L), S, c["w_r"], c["w_l"], c["w_s"],
                                      c["lambda_ssim"], c["rec_huber"], gain, c["rec_domain"] == "exposed",
-                                     c["rec_ssim_noise"])
+                                     c["rec_ssim_noise"], tr.capture_noise.camera("cpu") if c["rec_camera_noise"] else None)
     out = tr.model.enhance(res["R"].detach(), res["L"].detach())
     enh, _ = losses.enhancement_loss(to_bchw(out["rgb"]), S, c["w_spa"], c["w_exp"], c["w_col"], c["exposure_E"],
                                      illumination=to_bchw(out["L_enh"]) if c["exp_on"] == "illumination" else None,

@@ -1,0 +1,156 @@
+"""Issue 32's noise-aware training: the camera's clipped noise (losses.camera_expectation), the capture's noise
+measured at set-up and the exposed SSIM's gain capped at the noise floor (train/noise.py), in the trainer."""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from retinexgs.data import load_scene
+from retinexgs.data.sensor import SensorModel, linear_to_srgb
+from retinexgs.demo.synthetic import make_demo_scene
+from retinexgs.run.checkpoint import latest_checkpoint, load_checkpoint
+from retinexgs.run.config import load_config
+from retinexgs.train import noise as N
+from retinexgs.train.losses import camera_expectation
+from retinexgs.train.trainer import Trainer
+
+
+def _srgb(y):
+    y = np.maximum(y, 0.0)
+    return np.where(y <= 0.0031308, 12.92 * y, 1.055 * np.maximum(y, 0.0031308) ** (1 / 2.4) - 0.055)
+
+
+def _lin(x):
+    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
+
+
+@pytest.mark.parametrize("a,b", [(1 / 1500, (4 / 1500) ** 2), (1 / 3000, (2 / 3000) ** 2)])
+def test_camera_expectation_is_the_mean_of_the_clipped_noisy_encoding(a, b):
+    """E[srgb(max(0, lin(x) + n))], n ~ N(0, a·lin(x) + b), against a Monte Carlo mean: the blacks rise (clipped
+    noise is positive on average), the mid-tones fall a little (the sRGB curve bends down)."""
+    x = np.array([0.0, 0.01, 0.05, 0.1, 0.2, 0.4, 0.7])
+    m = _lin(x)
+    z = np.random.default_rng(0).standard_normal(400_000)
+    mc = np.array([_srgb(mi + np.sqrt(a * mi + b) * z).mean() for mi in m])
+    got = camera_expectation(torch.tensor(x).reshape(1, 1, 1, -1), torch.tensor(a), torch.tensor(b))
+    np.testing.assert_allclose(got.flatten().numpy(), mc, atol=1.5e-3)
+    assert float(got.flatten()[0]) > 3e-3  # a black render is recorded above black (about one 8-bit level)
+    assert float(got.flatten()[3]) < 0.1  # a dark mid-tone a little below its light
+
+
+def test_camera_expectation_without_noise_is_the_render_and_keeps_a_gradient():
+    x = torch.rand(1, 3, 5, 7, dtype=torch.float64) * 0.9 + 0.05
+    zero = torch.zeros(1, 3, 1, 1, dtype=torch.float64)
+    torch.testing.assert_close(camera_expectation(x, zero, zero), x, atol=1e-5, rtol=0)
+    a = torch.tensor([1e-3, 5e-4, 2e-3], dtype=torch.float64).reshape(1, 3, 1, 1)
+    b = torch.tensor([1e-5, 4e-6, 2e-5], dtype=torch.float64).reshape(1, 3, 1, 1)
+    x = (torch.rand(1, 3, 4, 4, dtype=torch.float64) * 0.8 + 0.1).requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda t: camera_expectation(t, a, b), (x,), eps=1e-7, atol=1e-6)
+
+
+def _noise(sigma, gains=N.GAINS):
+    return N.CaptureNoise((0.0,) * 3, (0.0,) * 3, tuple(gains), tuple(sigma), 1)
+
+
+def test_gain_cap_interpolates_where_the_exposed_noise_reaches_the_limit():
+    # σ = 0.01·g: the limit 0.03 is reached at g = 3, between the grid's 2.83 and 4 (log-linear is exact here)
+    assert _noise([0.01 * g for g in N.GAINS]).gain_cap() == pytest.approx(3.0, rel=1e-9)
+    assert math.isinf(_noise([1e-4 * g for g in N.GAINS]).gain_cap())  # a clean capture: no cap
+    assert _noise([0.05] * len(N.GAINS)).gain_cap() == N.GAINS[0]  # noisy even at gain 1: the smallest gain
+    assert _noise([0.01 * g for g in N.GAINS]).gain_cap(limit=0.08) == pytest.approx(8.0, rel=1e-9)
+
+
+def _photo(model, seed=0, size=(160, 200)):
+    h, w = size
+    yy, xx = np.mgrid[0:h, 0:w] / max(h, w)
+    smooth = np.stack([0.3 + 0.5 * xx, 0.35 + 0.4 * yy, 0.5 + 0.3 * np.sin(3 * xx)], -1).clip(0, 1)
+    return np.round(linear_to_srgb(model.capture(smooth, model.exposure, np.random.default_rng(seed))) * 255) / 255
+
+
+def test_noise_meter_caps_a_noisy_capture_and_not_a_clean_one():
+    noisy, clean = N.NoiseMeter(), N.NoiseMeter()
+    for s in range(3):
+        noisy.add(_photo(SensorModel(exposure=0.03, exposure_jitter=0, full_well=1000.0, read_noise=6.0,
+                                     jpeg_quality=0), s))
+        clean.add(_photo(SensorModel(exposure=0.03, exposure_jitter=0, full_well=None, jpeg_quality=0), s))
+    n, c = noisy.result(), clean.result()
+    assert n.views == 3 and n.sigma[0] > 5 * c.sigma[0]
+    assert math.isfinite(n.gain_cap()) and n.gain_cap() < 30
+    assert c.gain_cap() > n.gain_cap() * 4
+    assert min(n.a) > 0  # shot noise seen
+    # a training image d times smaller: white noise's σ / d, its variance model / d²
+    half = noisy.result(downscale=2)
+    assert half.sigma == pytest.approx(tuple(s / 2 for s in n.sigma))
+    assert half.a == pytest.approx(tuple(v / 4 for v in n.a)) and half.b == pytest.approx(tuple(v / 4 for v in n.b))
+    assert N.NoiseMeter().result() is None
+
+
+def test_centre_crop_bounds_the_measured_pixels():
+    assert N.centre_crop(np.zeros((3000, 2000, 3)), 1024).shape == (1024, 1024, 3)
+    assert N.centre_crop(np.zeros((500, 2000, 3)), 1024).shape == (500, 1024, 3)
+
+
+TINY = ["steps=4", "checkpoint.every=2", "log.every=1", "log.tensorboard=false", "model.sh_degree=1",
+        "model.max_init_points=300", "decomposer.method=lime", "eval.lpips=false"]
+
+
+@pytest.fixture(scope="module")
+def scenes(tmp_path_factory):
+    base = tmp_path_factory.mktemp("noise")
+    kw = dict(n_train=3, n_test=1, width=96, height=72, n_points=300)
+    return (make_demo_scene(base / "noisy", full_well=300.0, read_noise=8.0, **kw),
+            make_demo_scene(base / "clean", full_well=1e9, read_noise=0.0, **kw))
+
+
+def _trainer(scene, run, extra=(), resume=False, log=lambda s: None):
+    cfg = load_config(["demo"], TINY + list(extra))
+    run.mkdir(parents=True, exist_ok=True)
+    return Trainer(cfg, load_scene(scene), run, "cpu", resume=resume, progress=False, log=log)
+
+
+def test_trainer_caps_the_exposed_ssim_of_a_noisy_capture_and_resumes_with_the_same_figures(scenes, tmp_path,
+                                                                                         monkeypatch):
+    lines = []
+    tr = _trainer(scenes[0], tmp_path / "run", log=lines.append)
+    noise = tr.capture_noise
+    assert noise is not None and math.isfinite(noise.gain_cap())
+    assert float(tr.rec_gain_cap) == pytest.approx(noise.gain_cap())
+    assert any(line.startswith("capture noise") for line in lines)
+    tr.train(stop_after=2)
+    assert load_checkpoint(latest_checkpoint(tmp_path / "run"))["capture_noise"] == noise.state_dict()
+
+    def no_measure(*a, **k):
+        raise AssertionError("a resume measures the noise again")
+
+    monkeypatch.setattr("retinexgs.train.trainer.measure_capture_noise", no_measure)
+    resumed = _trainer(scenes[0], tmp_path / "run", resume=True)
+    assert resumed.capture_noise == noise and float(resumed.rec_gain_cap) == float(tr.rec_gain_cap)
+    resumed.train()
+
+
+def test_a_clean_capture_trains_exactly_as_the_noise_blind_default(scenes, tmp_path):
+    """No cap is reached on a clean capture: the losses and parameters equal ablations/noise_blind's."""
+    runs = {}
+    for name, extra in [("default", []), ("blind", ["loss.rec_noise_floor=false", "loss.rec_camera_noise=false"])]:
+        torch.manual_seed(0)
+        tr = _trainer(scenes[1], tmp_path / name, extra)
+        if name == "default":
+            assert tr.capture_noise is not None and math.isinf(tr.capture_noise.gain_cap())
+            assert tr.rec_gain_cap is None
+        else:
+            assert tr.capture_noise is None
+        tr.train()
+        runs[name] = {k: v.detach().clone() for k, v in tr.model.state_dict().items()}
+    for k, v in runs["default"].items():
+        torch.testing.assert_close(runs["blind"][k], v, rtol=0, atol=0, msg=k)
+
+
+def test_the_cap_changes_training_on_a_noisy_capture(scenes, tmp_path):
+    """The switch does something where the noise reaches the floor (the test above cannot pass vacuously)."""
+    states = []
+    for name, extra in [("default", []), ("blind", ["loss.rec_noise_floor=false"])]:
+        tr = _trainer(scenes[0], tmp_path / name, extra)
+        tr.train()
+        states.append(tr.model.gaussians.sh_dc.detach().clone())
+    assert not torch.equal(states[0], states[1])
