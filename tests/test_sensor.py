@@ -110,3 +110,5 @@ def test_noise_command_prints_the_estimate(tmp_path, capsys):
     code, out, err = run_cli(["noise", "--data", src], capsys)
     assert code == 0, err
     assert "full well" in out and "sigma at the 50th-percentile level" in out
+    # the demo's noise reaches SSIM's constant: training caps the exposed SSIM's gain (train/noise.py)
+    assert "training (loss.rec_noise_floor): the exposed SSIM's gain is capped at" in out

@@ -94,4 +94,11 @@ def _noise(args: argparse.Namespace) -> int:
         s = est.sigma_at(y)
         print(f"  sigma at the {int(q * 100)}th-percentile level (linear {y:.4f}): "
               + ", ".join(f"{v:.5f}" for v in s) + f"  (SNR {y / max(np.mean(s), 1e-12):.1f})")
+    from retinexgs.train.noise import measure_capture_noise  # lazy: --help stays fast (and torch)
+    cap = measure_capture_noise(photos, views=args.photos)
+    if cap is not None:  # what training does with it (loss.rec_noise_floor)
+        g = cap.gain_cap()
+        print("  training (loss.rec_noise_floor): the exposed SSIM's gain is "
+              + ("not capped (the noise stays under SSIM's constant)" if math.isinf(g) else f"capped at {g:.2f}")
+              + " (at full resolution; data.downscale divides the noise)")
     return 0
