@@ -59,6 +59,9 @@ def test_gain_cap_interpolates_where_the_exposed_noise_reaches_the_limit():
     assert math.isinf(_noise([1e-4 * g for g in N.GAINS]).gain_cap())  # a clean capture: no cap
     assert _noise([0.05] * len(N.GAINS)).gain_cap() == N.GAINS[0]  # noisy even at gain 1: the smallest gain
     assert _noise([0.01 * g for g in N.GAINS]).gain_cap(limit=0.08) == pytest.approx(8.0, rel=1e-9)
+    # a flat (e.g. black) photo measures no noise at the low gains: a finite cap at the first gain above the limit
+    cap = _noise([0.0] * 4 + [0.05] * (len(N.GAINS) - 4)).gain_cap()
+    assert N.GAINS[3] < cap <= N.GAINS[4]
 
 
 def _photo(model, seed=0, size=(160, 200)):

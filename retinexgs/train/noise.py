@@ -60,7 +60,7 @@ class CaptureNoise:
             return self.gains[0]
         for k in range(1, len(self.gains)):
             if self.sigma[k] > limit:
-                s0, s1 = math.log(self.sigma[k - 1]), math.log(self.sigma[k])
+                s0, s1 = (math.log(max(v, 1e-12)) for v in (self.sigma[k - 1], self.sigma[k]))
                 t = (math.log(limit) - s0) / (s1 - s0) if s1 > s0 else 0.0
                 return math.exp(math.log(self.gains[k - 1]) + t * (math.log(self.gains[k]) - math.log(self.gains[k - 1])))
         return math.inf

@@ -292,7 +292,9 @@ class Trainer:
         if saved:
             noise = CaptureNoise.from_state(saved)
         else:
-            noise = measure_capture_noise([v.source_path or v.image_path for v in self.scene.train],
+            # The user's files where they still exist (undistorted copies hide part of the noise), else the copies.
+            noise = measure_capture_noise([v.source_path if v.source_path is not None and Path(v.source_path).is_file()
+                                           else v.image_path for v in self.scene.train],
                                           self.cfg["data"]["downscale"], self.device)
         dist = self._setup_dist
         if dist is not None and dist.enabled:  # rank 0's figures everywhere (each rank measured the same views)
