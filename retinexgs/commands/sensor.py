@@ -50,7 +50,8 @@ def register(subparsers) -> None:
         description="Estimate, per colour channel, the noise of the photos in --data (or its low/ folder) as "
                     "var = a·y + b in linear light (shot noise a = 1/full well, read noise b), from the photos "
                     "alone; prints the fitted full well and the noise's standard deviation at the photos' "
-                    "median and 90th-percentile levels. JPEG removes part of the noise: the figures are a "
+                    "median and 90th-percentile levels (each photo's central 1024x1024 pixels at most), and the cap "
+                    "training puts on the exposed SSIM. JPEG removes part of the noise: the figures are a "
                     "lower bound of the sensor's.")
     q.add_argument("--data", required=True, type=Path, help="a scene (its low/ photos) or a folder of photos")
     q.add_argument("--photos", type=int, default=8, help="photos to read, spread over the capture (default 8)")
@@ -73,7 +74,8 @@ def _noise(args: argparse.Namespace) -> int:
     import numpy as np  # lazy: --help stays fast
 
     from retinexgs.data.images import list_images, read_image_float  # lazy: --help stays fast
-    from retinexgs.data.sensor import estimate_capture_noise, srgb_to_linear  # lazy: --help stays fast
+    from retinexgs.data.sensor import NoiseEstimate, srgb_to_linear  # lazy: --help stays fast
+    from retinexgs.train.noise import measure_capture_noise  # lazy: --help stays fast (and torch)
 
     folder = args.data / "low" if (args.data / "low").is_dir() else args.data
     if not folder.is_dir():
@@ -83,7 +85,11 @@ def _noise(args: argparse.Namespace) -> int:
         raise UserError(f"no photos in {folder}")
     if args.photos < 1:
         raise UserError(f"--photos must be at least 1, got {args.photos}")
-    est = estimate_capture_noise(photos, args.photos)
+    # The measure training uses (train/noise.py): each photo read once, for the noise model and the SSIM's cap.
+    cap = measure_capture_noise(photos, views=args.photos)
+    if cap is None:
+        raise UserError(f"no photo in {folder} is 8x8 pixels or larger")
+    est = NoiseEstimate(cap.a, cap.b, 0)
     lin = srgb_to_linear(read_image_float(photos[len(photos) // 2]).astype(np.float64))
     print(f"{folder}: {len(photos)} photos, noise from {min(args.photos, len(photos))}")
     for name, c in zip("RGB", range(3)):
@@ -94,11 +100,8 @@ def _noise(args: argparse.Namespace) -> int:
         s = est.sigma_at(y)
         print(f"  sigma at the {int(q * 100)}th-percentile level (linear {y:.4f}): "
               + ", ".join(f"{v:.5f}" for v in s) + f"  (SNR {y / max(np.mean(s), 1e-12):.1f})")
-    from retinexgs.train.noise import measure_capture_noise  # lazy: --help stays fast (and torch)
-    cap = measure_capture_noise(photos, views=args.photos)
-    if cap is not None:  # what training does with it (loss.rec_noise_floor)
-        g = cap.gain_cap()
-        print("  training (loss.rec_noise_floor): the exposed SSIM's gain is "
-              + ("not capped (the noise stays under SSIM's constant)" if math.isinf(g) else f"capped at {g:.2f}")
-              + " (at full resolution; data.downscale divides the noise)")
+    g = cap.gain_cap()  # what training does with it (loss.rec_noise_floor)
+    print("  training (loss.rec_noise_floor): the exposed SSIM's gain is "
+          + ("not capped (the noise stays under SSIM's constant)" if math.isinf(g) else f"capped at {g:.2f}")
+          + " (at full resolution; data.downscale divides the noise)")
     return 0

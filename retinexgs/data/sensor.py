@@ -27,7 +27,7 @@ import math
 import shutil
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
@@ -256,15 +256,3 @@ def estimate_noise(srgb: np.ndarray, bins: int = 16, min_pixels: int = 400) -> N
         b_all.append(float(b))
         used += len(means)
     return NoiseEstimate(tuple(a_all), tuple(b_all), used)  # type: ignore[arg-type]
-
-
-def estimate_capture_noise(photos: Sequence[Path], max_photos: int = 8) -> NoiseEstimate:
-    """The median per-channel model over up to ``max_photos`` photos of a capture (spread evenly)."""
-    photos = list(photos)
-    if not photos:
-        raise UserError("no photos to estimate the noise of")
-    step = max(1, len(photos) // max_photos)
-    ests = [estimate_noise(read_image_float(p)) for p in photos[::step][:max_photos]]
-    a = tuple(float(np.median([e.a[c] for e in ests])) for c in range(3))
-    b = tuple(float(np.median([e.b[c] for e in ests])) for c in range(3))
-    return NoiseEstimate(a, b, sum(e.bins for e in ests))  # type: ignore[arg-type]

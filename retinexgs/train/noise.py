@@ -89,11 +89,9 @@ class CaptureNoise:
 def exposed_noise_sigma(S: Tensor, gains: Tuple[float, ...] = GAINS) -> List[float]:
     """The noise σ of one photo ``S`` [H,W,3] (sRGB, [0,1]) exposed by each gain (the largest channel's)."""
     x = S.detach().float().permute(2, 0, 1).unsqueeze(0)
-    out = []
-    for g in gains:
-        var = noise_variance(exposed(x, x.new_tensor(g)))
-        out.append(float(var.amax().sqrt()))
-    return out
+    # One host sync for all the gains.
+    sigma = torch.stack([noise_variance(exposed(x, x.new_tensor(g))).amax().sqrt() for g in gains])
+    return sigma.tolist()
 
 
 def centre_crop(photo: np.ndarray, size: int = CROP) -> np.ndarray:
