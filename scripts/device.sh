@@ -31,7 +31,9 @@
 #       cut-off runs from their checkpoints, every 2000 steps), --steps N (override every config's steps),
 #       --set KEY=VALUE (repeatable, every run), --seeds-all LIST (seeds of the final table; default: those of
 #       the groups), --alone GROUP (trained first with the GPU to itself: a training time to report),
-#       --tests "FILES" (pytest beside the trainings: nothing there is timed), --test-limit S (200),
+#       --tests "FILES" (pytest beside the trainings: nothing there is timed), --test-limit S (200), --ladder 1
+#       (each SCENE's high/ photos darkened at every noise-ladder level, bench quality --noise-ladder: one group
+#       a scene, since a group darkens its scenes as it starts),
 #       --fps-run RUN (after the trainings, the FPS bench on that run; default the fox-dark default seed-0 run
 #       when trained). Sizing, H100: build 130-170 s on a fresh machine; 8 trainings side by side about 420 s,
 #       6 about 340, 4 about 225.
@@ -222,7 +224,8 @@ mode_quality() {
   LIMIT=${LIMIT:-520} STEPS=${STEPS:-} SEEDS_ALL=${SEEDS_ALL:-} ALONE=${ALONE:-} TESTS=${TESTS:-}
   TEST_LIMIT=${TEST_LIMIT:-200} FPS_RUN=${FPS_RUN:-}
   SEEDS=${SEEDS:-0,} CONFIGS=${CONFIGS:-default} SCENES=${SCENES:-fox-dark,lom/buu,lom/sofa,lom/bike} JOBS=${JOBS:-4}
-  parse "seeds configs scenes jobs limit steps seeds-all alone tests test-limit fps-run" "$@"
+  LADDER=${LADDER:-0}
+  parse "seeds configs scenes jobs limit steps seeds-all alone tests test-limit fps-run ladder" "$@"
   local groups=("${ARGS[@]}")
   if [ ${#groups[@]} -eq 0 ]; then  # one group from the options (lists: commas or spaces)
     groups=("$SEEDS:$(commas "$CONFIGS"):$(commas "$SCENES"):$JOBS")
@@ -230,6 +233,7 @@ mode_quality() {
   setup; need_train_wheels; stage_data
   mkdir -p /tmp/runs
   EXTRA=("${SETS[@]}"); [ -n "$STEPS" ] && EXTRA+=(--steps "$STEPS")
+  local ladder=(); [ "$LADDER" = 1 ] && ladder=(--noise-ladder) && EXTRA+=(--noise-ladder)
   local group i=0 pids=()
   ALL_CONFIGS=() ALL_SCENES=() ALL_SEEDS=()
   for group in ${ALONE:+"$ALONE"} "${groups[@]}"; do note_group "$group"; done  # every scene there, first
@@ -255,7 +259,7 @@ mode_quality() {
   # shellcheck disable=SC2046  # one word a scene / config
   python3 -m retinexgs.bench quality --no-train --scenes $(printf '%s\n' "${ALL_SCENES[@]}" | awk '!s[$0]++') \
     --configs $(printf '%s\n' "${ALL_CONFIGS[@]}" | awk '!s[$0]++') --seeds "$SEEDS_ALL" --runs /tmp/runs \
-    --out "$OUT/quality.md" > "$LOGS/table.log" 2>&1 || tail -5 "$LOGS/table.log"
+    "${ladder[@]}" --out "$OUT/quality.md" > "$LOGS/table.log" 2>&1 || tail -5 "$LOGS/table.log"
   # Every group's outcome; a group that trained nothing (a bad seed spec such as "0", a count of zero: "0," is
   # seed 0) shows its error instead.
   for f in /tmp/runs/group*.log; do echo "== $f"; grep -E "^(ok|FAIL|reused)|runs in" "$f" || tail -3 "$f"; done

@@ -30,6 +30,7 @@ from torch import Tensor, nn
 from retinexgs.model.gaussians import GaussianModel
 from retinexgs.model.illumination import IlluminationField, encoded_dim
 from retinexgs.model.tone import apply_exposure, exposure_gain, log_lin_ref
+from retinexgs.render import cuda_graphs
 from retinexgs.render._backend import kernels
 from retinexgs.render.camera import Camera
 
@@ -136,7 +137,7 @@ class _EnhanceGraph:
         torch.cuda.current_stream(like.device).wait_stream(side)
         self.graph = torch.cuda.CUDAGraph()
         # thread_local: the viewer captures from its server thread while the main thread may use CUDA.
-        with torch.cuda.graph(self.graph, capture_error_mode="thread_local"):
+        with cuda_graphs.capture(self.graph, capture_error_mode="thread_local"):
             self.out = self._body()
 
     def _body(self) -> Tensor:

@@ -33,6 +33,7 @@ from torch import Tensor
 from torch.profiler import record_function
 
 from retinexgs.model.retinex_model import GaussianChannels
+from retinexgs.render import cuda_graphs
 
 # (image [H,W,C], packed targets [H,W,K], enhancement on) -> (the image losses' sum, {name: term}).
 LossFn = Callable[[Tensor, Tensor, bool], Tuple[Tensor, Dict[str, Tensor]]]
@@ -107,7 +108,7 @@ class LossGraphs:
         # Forward and backward in one capture (autograd's device thread launches onto the capturing stream, as
         # in torch.cuda.make_graphed_callables); a private memory pool per graph. The live viewer renders from
         # another thread only between steps (its gate).
-        with torch.cuda.graph(graph):
+        with cuda_graphs.capture(graph):
             result = self._step(static_image, static_packed, enhance)
         return _Captured(graph, static_image, static_packed, result)
 

@@ -34,7 +34,7 @@ from torch import Tensor
 
 from retinexgs.errors import UserError
 from retinexgs.fileio import atomic_write, free_bytes
-from retinexgs.render import Camera
+from retinexgs.render import Camera, cuda_graphs
 from retinexgs.retinex import enhance_for_viewing
 from retinexgs.train import losses
 
@@ -703,7 +703,7 @@ class StreamedViews(Sequence):
             graph = torch.cuda.CUDAGraph()
             # thread_local: only this thread's unsafe calls break the capture (a live viewer's frames may
             # allocate meanwhile); the side stream is the current one (its copy is queued before).
-            with torch.cuda.graph(graph, pool=self._pool, stream=self._side, capture_error_mode="thread_local"):
+            with cuda_graphs.capture(graph, pool=self._pool, stream=self._side, capture_error_mode="thread_local"):
                 view = self._convert(i, slot, data)
             replay, pool = graph.replay, graph.pool()
         # Every map handed on must be in the slot's buffer: the graph rewrites only that (its intermediates

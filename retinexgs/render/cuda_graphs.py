@@ -1,0 +1,46 @@
+"""One way to capture a CUDA graph for every capture site (the trainer's step, the frame renderer, streamed views).
+
+:func:`capture` is ``torch.cuda.graph`` with Python's cyclic garbage collector held off while the graph records.
+Why: since torch 2.x the capture no longer runs ``gc.collect()`` on entry, so a dead reference cycle that holds
+an older ``CUDAGraph`` (a finished trainer, a dropped view stream) can be collected by an allocation *during*
+the capture; its destructor then resets its graph, and that is "operation not permitted when stream is
+capturing (function reset)", a capture that fails at random. Collecting first and pausing the collector
+makes the capture depend only on what it records.
+"""
+from __future__ import annotations
+
+import contextlib
+import gc
+import threading
+from typing import Iterator
+
+import torch
+
+__all__ = ["capture"]
+
+# Captures may overlap (a live viewer's frame graph on its server thread beside the trainer's): the collector
+# is paused by the first and re-enabled by the last, and only if it was on before the first.
+_lock = threading.Lock()
+_depth = 0
+_was_on = True
+
+
+@contextlib.contextmanager
+def capture(graph: "torch.cuda.CUDAGraph", **kwargs) -> Iterator[None]:
+    """``with torch.cuda.graph(graph, **kwargs)`` after a full collection and with the collector paused until
+    the capture ends (re-enabled only if it was on)."""
+    global _depth, _was_on
+    gc.collect()
+    with _lock:
+        if _depth == 0:
+            _was_on = gc.isenabled()
+            gc.disable()
+        _depth += 1
+    try:
+        with torch.cuda.graph(graph, **kwargs):
+            yield
+    finally:
+        with _lock:
+            _depth -= 1
+            if _depth == 0 and _was_on:
+                gc.enable()
