@@ -265,7 +265,7 @@ mode_quality() {
   for f in /tmp/runs/group*.log; do echo "== $f"; grep -E "^(ok|FAIL|reused)|runs in" "$f" || tail -3 "$f"; done
   local run=${FPS_RUN:-/tmp/runs/fox-dark/default/seed0}
   [ -f "$run/metrics.json" ] && fps_bench "$run" "$OUT/fps.txt"
-  tar czf "$OUT/runs.tgz" --exclude='*.pt' --exclude='tb' --exclude='renders' -C /tmp runs 2> /dev/null
+  tar czf "$OUT/runs.tgz" --exclude='*.pt' --exclude='tb' --exclude='renders' --exclude='runs/ladder' -C /tmp runs 2> /dev/null
   finish 0
 }
 

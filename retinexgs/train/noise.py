@@ -42,6 +42,14 @@ GAINS: Tuple[float, ...] = tuple(2.0 ** (k / 2.0) for k in range(17))
 SSIM_K2 = 0.03  # SSIM's C2 = (K2 · range)², range 1: the noise σ at which the noise variance equals C2
 
 
+def sigma_limit(share: float) -> float:
+    """The exposed noise σ at which a flat patch of the render loses ``share`` of SSIM's structure term to the
+    photo's noise: cs = C2 / (C2 + σ²) = 1 − share, so σ = K2 · √(share / (1 − share)). share 0.5: σ = K2."""
+    if not 0.0 < share < 1.0:
+        raise ValueError(f"the noise share must lie in (0, 1), got {share}")
+    return SSIM_K2 * math.sqrt(share / (1.0 - share))
+
+
 @dataclass(frozen=True)
 class CaptureNoise:
     """A capture's noise: per channel ``var = a·y + b`` in linear light, and the exposed photos' noise σ at
@@ -78,12 +86,12 @@ class CaptureNoise:
         return cls(tuple(state["a"]), tuple(state["b"]), tuple(state["gains"]), tuple(state["sigma"]),
                    int(state["views"]))  # type: ignore[arg-type]
 
-    def describe(self) -> str:
-        """One line for the training log."""
+    def describe(self, limit: float = SSIM_K2) -> str:
+        """One line for the training log (the cap at noise σ ``limit``)."""
         sig = ", ".join(f"{math.sqrt(max(a * 0.01 + b, 0.0)):.4f}" for a, b in zip(self.a, self.b))
-        cap = self.gain_cap()
+        cap = self.gain_cap(limit)
         return (f"capture noise (median of {self.views} views): σ at linear 0.01 = {sig} (R, G, B); exposed SSIM "
-                f"gain capped at {'none' if math.isinf(cap) else f'{cap:.2f}'} (noise σ ≤ {SSIM_K2})")
+                f"gain capped at {'none' if math.isinf(cap) else f'{cap:.2f}'} (noise σ ≤ {limit:.4f})")
 
 
 def exposed_noise_sigma(S: Tensor, gains: Tuple[float, ...] = GAINS) -> List[float]:
@@ -142,4 +150,4 @@ def measure_capture_noise(photos: Sequence[Path], downscale: float = 1.0, device
 
 
 __all__ = ["CaptureNoise", "NoiseMeter", "measure_capture_noise", "exposed_noise_sigma", "centre_crop", "GAINS",
-           "SSIM_K2", "MEASURED_VIEWS", "CROP"]
+           "SSIM_K2", "MEASURED_VIEWS", "CROP", "sigma_limit"]

@@ -25,7 +25,7 @@ from retinexgs.train import losses
 from retinexgs.run.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
 from retinexgs.train.distributed import Distributed, gradient_params, lr_batch_factor, process_start_time, take_gradients
 from retinexgs.train.graphs import ChannelGraphs, LossGraphs
-from retinexgs.train.noise import CaptureNoise, measure_capture_noise
+from retinexgs.train.noise import CaptureNoise, measure_capture_noise, sigma_limit
 from retinexgs.train.views import (TrainView, StreamedViews, ViewStatistics, ViewStore, check_prior_size,
                                    check_store_space, choose_streaming, gib, make_train_view, preload_bytes_per_pixel,
                                    store_fingerprint, store_path, store_size_estimate, stream_set_up, unpack_edges,
@@ -302,9 +302,11 @@ class Trainer:
         if noise is None:
             return
         self.capture_noise = noise
-        self.log(noise.describe())
-        if c["rec_noise_floor"] and c["rec_domain"] != "photo" and math.isfinite(noise.gain_cap()):
-            self.rec_gain_cap = torch.tensor(noise.gain_cap(), dtype=torch.float32, device=self.device)
+        limit = sigma_limit(c["rec_noise_share"])
+        self.log(noise.describe(limit))
+        cap = noise.gain_cap(limit)
+        if c["rec_noise_floor"] and c["rec_domain"] != "photo" and math.isfinite(cap):
+            self.rec_gain_cap = torch.tensor(cap, dtype=torch.float32, device=self.device)
         if c["rec_camera_noise"]:
             self.camera_noise = noise.camera(self.device)
 
