@@ -64,6 +64,27 @@ def test_gain_cap_interpolates_where_the_exposed_noise_reaches_the_limit():
     assert N.GAINS[3] < cap <= N.GAINS[4]
 
 
+def test_sigma_limit_is_the_noise_at_which_a_flat_render_loses_that_share_of_the_structure_term():
+    assert N.sigma_limit(0.5) == pytest.approx(N.SSIM_K2)
+    for share in (0.1, 0.3, 0.9):
+        s2, c2 = N.sigma_limit(share) ** 2, N.SSIM_K2 ** 2
+        assert 1.0 - c2 / (c2 + s2) == pytest.approx(share)  # cs of a flat render against noise of that σ
+    for bad in (0.0, 1.0, -0.1):
+        with pytest.raises(ValueError, match="share"):
+            N.sigma_limit(bad)
+
+
+def test_the_trainer_places_the_cap_at_the_configured_share(tmp_path):
+    # moderate noise (the fixture's noisy scene is capped at gain 1 by either share)
+    scene = make_demo_scene(tmp_path / "scene", full_well=3000.0, read_noise=3.0, n_train=3, n_test=1, width=96,
+                            height=72, n_points=300)
+    half = _trainer(scene, tmp_path / "half")
+    most = _trainer(scene, tmp_path / "most", ["loss.rec_noise_share=0.9"])
+    noise = half.capture_noise
+    assert float(most.rec_gain_cap) == pytest.approx(noise.gain_cap(N.sigma_limit(0.9)))
+    assert float(most.rec_gain_cap) > float(half.rec_gain_cap)  # more noise let through: a higher gain
+
+
 def _photo(model, seed=0, size=(160, 200)):
     h, w = size
     yy, xx = np.mgrid[0:h, 0:w] / max(h, w)
