@@ -1,11 +1,12 @@
 """One way to capture a CUDA graph for every capture site (the trainer's step, the frame renderer, streamed views).
 
 :func:`capture` is ``torch.cuda.graph`` with Python's cyclic garbage collector held off while the graph records.
-Why: since torch 2.x the capture no longer runs ``gc.collect()`` on entry, so a dead reference cycle that holds
-an older ``CUDAGraph`` (a finished trainer, a dropped view stream) can be collected by an allocation *during*
-the capture; its destructor then resets its graph, and that is "operation not permitted when stream is
-capturing (function reset)", a capture that fails at random. Collecting first and pausing the collector
-makes the capture depend only on what it records.
+Why: ``torch.cuda.graph`` no longer runs ``gc.collect()`` on entry (only under
+``torch.compiler.config.force_cudagraph_gc``), so a dead reference cycle that holds an older ``CUDAGraph`` (a
+finished trainer, a dropped view stream) can be collected by an allocation *during* the capture, and its
+destructor resets that graph. The likely source of a capture that failed once at random beside other work with
+"operation not permitted when stream is capturing (function reset)" (docs/benchmarks.md, correctness on the
+device). Collecting first and pausing the collector leaves the capture only what it records.
 """
 from __future__ import annotations
 
