@@ -112,3 +112,23 @@ def test_noise_command_prints_the_estimate(tmp_path, capsys):
     assert "full well" in out and "sigma at the 50th-percentile level" in out
     # the demo's noise reaches SSIM's constant: training caps the exposed SSIM's gain (train/noise.py)
     assert "training (loss.rec_noise_floor): the exposed SSIM's gain is capped at" in out
+    assert "loss.rec_noise_share 0.5;" in out  # the default config's share
+
+
+def _printed_cap(out):
+    line = next(ln for ln in out.splitlines() if "the exposed SSIM's gain is" in ln)
+    return float(line.split("capped at ")[1].split()[0]) if "capped at" in line else float("inf")
+
+
+def test_noise_command_places_the_cap_at_the_given_share(tmp_path, capsys):
+    src = make_demo_scene(tmp_path / "src", n_train=2, n_test=1, width=96, height=72, n_points=300, full_well=3000.0,
+                          read_noise=3.0)
+    caps = {}
+    for share in ("0.1", "0.5", "0.9"):
+        code, out, err = run_cli(["noise", "--data", src, "--share", share], capsys)
+        assert code == 0, err
+        caps[share] = _printed_cap(out)
+    assert caps["0.1"] < caps["0.5"] < caps["0.9"]  # more noise let through: a higher gain
+    for bad in ("0", "1", "-0.2"):
+        code, out, err = run_cli(["noise", "--data", src, "--share", bad], capsys)
+        assert code == 2 and "--share must lie between 0 and 1" in err

@@ -55,6 +55,8 @@ def register(subparsers) -> None:
                     "lower bound of the sensor's.")
     q.add_argument("--data", required=True, type=Path, help="a scene (its low/ photos) or a folder of photos")
     q.add_argument("--photos", type=int, default=8, help="photos to read, spread over the capture (default 8)")
+    q.add_argument("--share", type=float, default=None,
+                   help="loss.rec_noise_share, where training places the cap (default: configs/default.yaml's)")
     q.set_defaults(func=_noise)
 
 
@@ -75,7 +77,8 @@ def _noise(args: argparse.Namespace) -> int:
 
     from retinexgs.data.images import list_images, read_image_float  # lazy: --help stays fast
     from retinexgs.data.sensor import NoiseEstimate, srgb_to_linear  # lazy: --help stays fast
-    from retinexgs.train.noise import measure_capture_noise  # lazy: --help stays fast (and torch)
+    from retinexgs.run.config import load_config  # lazy: --help stays fast
+    from retinexgs.train.noise import measure_capture_noise, sigma_limit  # lazy: --help stays fast (and torch)
 
     folder = args.data / "low" if (args.data / "low").is_dir() else args.data
     if not folder.is_dir():
@@ -85,6 +88,9 @@ def _noise(args: argparse.Namespace) -> int:
         raise UserError(f"no photos in {folder}")
     if args.photos < 1:
         raise UserError(f"--photos must be at least 1, got {args.photos}")
+    share = load_config(["default"])["loss"]["rec_noise_share"] if args.share is None else args.share
+    if not 0.0 < share < 1.0:
+        raise UserError(f"--share must lie between 0 and 1 (exclusive), got {share}")
     # The measure training uses (train/noise.py): each photo read once, for the noise model and the SSIM's cap.
     cap = measure_capture_noise(photos, views=args.photos)
     if cap is None:
@@ -100,8 +106,9 @@ def _noise(args: argparse.Namespace) -> int:
         s = est.sigma_at(y)
         print(f"  sigma at the {int(q * 100)}th-percentile level (linear {y:.4f}): "
               + ", ".join(f"{v:.5f}" for v in s) + f"  (SNR {y / max(np.mean(s), 1e-12):.1f})")
-    g = cap.gain_cap()  # what training does with it (loss.rec_noise_floor)
+    limit = sigma_limit(share)
+    g = cap.gain_cap(limit)  # what training does with it (loss.rec_noise_floor, loss.rec_noise_share)
     print("  training (loss.rec_noise_floor): the exposed SSIM's gain is "
-          + ("not capped (the noise stays under SSIM's constant)" if math.isinf(g) else f"capped at {g:.2f}")
-          + " (at full resolution; data.downscale divides the noise)")
+          + (f"not capped (the noise stays under σ = {limit:.4f})" if math.isinf(g) else f"capped at {g:.2f}")
+          + f" (loss.rec_noise_share {share:g}; at full resolution; data.downscale divides the noise)")
     return 0
