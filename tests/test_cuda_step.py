@@ -12,6 +12,7 @@ from retinexgs.demo.synthetic import make_demo_scene
 from retinexgs.model.tone import srgb_to_linear
 from retinexgs.train import losses
 from retinexgs.run.config import configs_dir, load_config
+from retinexgs.train.noise import sigma_limit
 from retinexgs.train.trainer import Trainer, to_bchw
 from retinexgs.train.views import pad_edges, unpack_edges, unpack_targets
 from scenes import needs_cuda
@@ -138,7 +139,8 @@ def test_graphed_training_loop_matches_eager_on_cpu(scene_dir, tmp_path, one_thr
 
 @pytest.mark.parametrize("name", ["default", "ablations/tone_illumination", "ablations/rec_huber",
                                   "ablations/rec_exposed", "ablations/rec_photo", "ablations/rec_ssim_noise",
-                                  "ablations/no_depth", "ablations/noise_blind", "ablations/camera_noise"])
+                                  "ablations/no_depth", "ablations/noise_blind", "ablations/camera_noise",
+                                  "ablations/noise_share_10"])
 def test_eager_loss_is_the_papers_sum(scene_dir, tmp_path, one_thread, name):
     """Trainer.loss (the reference of the graphed path) against the loss functions composed by hand:
     L_sup + w_tv·L_TV + w_sh·L_SH + L_enhance on the detached R̂, L̂ (the default; L_exp on the image, or on
@@ -153,7 +155,7 @@ def test_eager_loss_is_the_papers_sum(scene_dir, tmp_path, one_thread, name):
     # the reconstruction term's options: the g = 1 exposure is 1 / lin(L_ref)
     gain = 1.0 / srgb_to_linear(tr.model.illum_ref) if c["rec_domain"] != "photo" else None
     if gain is not None and c["rec_noise_floor"]:  # capped at the photos' noise floor (train/noise.py)
-        gain = min(float(gain), tr.capture_noise.gain_cap())
+        gain = min(float(gain), tr.capture_noise.gain_cap(sigma_limit(c["rec_noise_share"])))
     sup, _ = losses.supervision_loss(R_hat, L_hat, to_bchw(tv.R), to_bchw(tv.L), S, c["w_r"], c["w_l"], c["w_s"],
                                      c["lambda_ssim"], c["rec_huber"], gain, c["rec_domain"] == "exposed",
                                      c["rec_ssim_noise"], tr.capture_noise.camera("cpu") if c["rec_camera_noise"] else None)

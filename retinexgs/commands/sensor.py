@@ -89,8 +89,10 @@ def _noise(args: argparse.Namespace) -> int:
     if args.photos < 1:
         raise UserError(f"--photos must be at least 1, got {args.photos}")
     share = load_config(["default"])["loss"]["rec_noise_share"] if args.share is None else args.share
-    if not 0.0 < share < 1.0:
-        raise UserError(f"--share must lie between 0 and 1 (exclusive), got {share}")
+    try:
+        limit = sigma_limit(share)
+    except ValueError:
+        raise UserError(f"--share must lie between 0 and 1 (exclusive), got {share}") from None
     # The measure training uses (train/noise.py): each photo read once, for the noise model and the SSIM's cap.
     cap = measure_capture_noise(photos, views=args.photos)
     if cap is None:
@@ -106,7 +108,6 @@ def _noise(args: argparse.Namespace) -> int:
         s = est.sigma_at(y)
         print(f"  sigma at the {int(q * 100)}th-percentile level (linear {y:.4f}): "
               + ", ".join(f"{v:.5f}" for v in s) + f"  (SNR {y / max(np.mean(s), 1e-12):.1f})")
-    limit = sigma_limit(share)
     g = cap.gain_cap(limit)  # what training does with it (loss.rec_noise_floor, loss.rec_noise_share)
     print("  training (loss.rec_noise_floor): the exposed SSIM's gain is "
           + (f"not capped (the noise stays under σ = {limit:.4f})" if math.isinf(g) else f"capped at {g:.2f}")
