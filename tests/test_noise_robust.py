@@ -178,3 +178,92 @@ def test_the_cap_changes_training_on_a_noisy_capture(scenes, tmp_path):
         tr.train()
         states.append(tr.model.gaussians.sh_dc.detach().clone())
     assert not torch.equal(states[0], states[1])
+
+
+# ---- density.noise_aware: the noise probe and the densification statistic ---------------------------------------
+def test_noise_share_is_the_noise_part_of_the_gradient_energy():
+    from retinexgs.model.density import noise_share
+    t = lambda *v: torch.tensor(v, dtype=torch.float32)  # noqa: E731
+    share = noise_share(grad_sq=t(8.0, 8.0, 2.0, 5.0, 0.0), count=t(2, 2, 2, 0, 1),
+                        noise_sq=t(1.0, 0.0, 9.0, 1.0, 1.0), noise_count=t(1, 3, 1, 1, 1))
+    # 1/4 of a mean energy of 4; none; more than all (clamped); never seen by the training; no training gradient
+    torch.testing.assert_close(share, t(0.25, 0.0, 1.0, 0.0, 0.0))
+
+
+@pytest.mark.parametrize("aware", [False, True])
+def test_densification_statistic_keeps_the_gradient_the_noise_does_not_explain(aware):
+    from retinexgs.model.density import DensityController
+    from retinexgs.model.schedule import build_schedule
+    cfg = load_config([], [f"density.noise_aware={str(aware).lower()}"])
+    d = DensityController(cfg["density"], 1.0, build_schedule(cfg))
+    d._ensure(3, torch.device("cpu"))
+    d.grad_accum += torch.tensor([4.0, 4.0, 4.0])
+    d.grad_sq += torch.tensor([16.0, 16.0, 16.0])
+    d.count += 2
+    d.noise_sq += torch.tensor([0.0, 6.0, 100.0])  # no noise; 6 / (16 / 2) = 3/4 of the energy; all of it
+    d.noise_count += torch.tensor([1.0, 1.0, 1.0])
+    want = torch.tensor([2.0, 1.0, 0.0]) if aware else torch.tensor([2.0, 2.0, 2.0])
+    torch.testing.assert_close(d.densification_statistic(), want)
+
+
+def _probe(a=1 / 300, b=(8 / 300) ** 2, seed=0):
+    return N.NoiseProbe(N.CaptureNoise((a,) * 3, (b,) * 3, (1.0,), (0.0,), 1), torch.device("cpu"), seed)
+
+
+def test_the_probe_sees_no_gradient_without_noise_and_leaves_the_random_stream_alone():
+    image = torch.rand(24, 32, 6, dtype=torch.float64) * 0.8 + 0.1
+    gain = torch.tensor(4.0, dtype=torch.float64)
+    before = torch.get_rng_state()
+    g0 = _probe(0.0, 0.0).image_gradient(image, gain, 0.2, 1.0)
+    assert g0.abs().max() < 1e-9  # the render is the noise-free photo: SSIM is at its maximum
+    g = _probe().image_gradient(image, gain, 0.2, 1.0)
+    assert torch.equal(torch.get_rng_state(), before)
+    assert g.abs().max() > 1e-5
+    torch.testing.assert_close(_probe(seed=3).image_gradient(image, gain, 0.2, 1.0),
+                               _probe(seed=3).image_gradient(image, gain, 0.2, 1.0), rtol=0, atol=0)
+
+
+def test_the_probe_draws_the_capture_noise():
+    probe = _probe(a=2e-3, b=1e-4)
+    clean = torch.full((1, 3, 200, 200), 0.5)
+    lin = lambda x: torch.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)  # noqa: E731
+    diff = lin(probe.noisy(clean)) - lin(clean)
+    m = float(lin(torch.tensor(0.5)))
+    assert float(diff.std()) == pytest.approx(math.sqrt(2e-3 * m + 1e-4), rel=0.03)
+    assert abs(float(diff.mean())) < 3e-3
+
+
+def test_the_probe_gradient_is_the_backward_of_the_ssim_against_a_noisy_render(scenes, tmp_path):
+    from retinexgs.evaluate.metrics import ssim
+    from retinexgs.train.losses import exposed
+    tr = _trainer(scenes[0], tmp_path / "run", ["density.noise_aware=true"])
+    assert tr.noise_probe is not None
+    tv, gain = tr.views[0], tr.rec_gain()
+    res = tr.render_view(tv, 1, graphed=False)
+    tr.noise_probe.generator.manual_seed(5)
+    g = tr.noise_probe.means2d_gradient(res["out"], gain, 0.2, 1.0)
+    res["out"].image.sum().backward()  # the render's graph survives the probe for the step's own backward
+    out = tr.render_view(tv, 1, graphed=False)["out"]
+    tr.noise_probe.generator.manual_seed(5)
+    rec = (out.image[..., :3] * out.image[..., 3:6]).permute(2, 0, 1).unsqueeze(0)
+    target = tr.noise_probe.noisy(rec.detach())
+    (0.2 * (1.0 - ssim(exposed(rec, gain), exposed(target, gain)))).backward()
+    assert g.abs().sum() > 0
+    torch.testing.assert_close(g, out.means2d.grad, rtol=1e-4, atol=1e-9)
+
+
+def test_training_probes_the_noise_of_a_noisy_capture_more_than_of_a_clean_one(scenes, tmp_path):
+    extra = ["density.noise_aware=true", "steps=20", "density.start=0", "density.stop=10", "density.every=5",
+             "checkpoint.every=100"]
+    shares = []
+    for k, scene in enumerate(scenes):
+        tr = _trainer(scene, tmp_path / f"run{k}", extra)
+        tr.train(stop_after=4)
+        d = tr.density
+        assert float(d.noise_count.sum()) > 0 and float(d.grad_sq.sum()) > 0
+        seen = (d.count > 0) & (d.noise_count > 0)
+        from retinexgs.model.density import noise_share
+        shares.append(float(noise_share(d.grad_sq, d.count, d.noise_sq, d.noise_count)[seen].median()))
+        tr.train()  # densifies on the statistic through the end of the run
+        assert all(torch.isfinite(p).all() for p in tr.model.parameters())
+    assert shares[0] > 2 * shares[1], shares

@@ -32,6 +32,27 @@ def _edit_params(model: GaussianModel, optimizer: torch.optim.Optimizer,
         setattr(model, name, new)
 
 
+# The per-Gaussian statistics summed over views (and over ranks before a densification), and the one kept as a
+# running maximum. ``grad_sq``, ``noise_sq`` and ``noise_count`` serve ``density.noise_aware`` (noise_share).
+SUMMED = ("grad_accum", "count", "grad_sq", "noise_sq", "noise_count")
+MAXIMA = ("max_radius",)
+
+
+def noise_share(grad_sq: Tensor, count: Tensor, noise_sq: Tensor, noise_count: Tensor) -> Tensor:
+    """[N] the share of each Gaussian's view-space gradient energy that the capture's noise alone explains: the
+    mean squared gradient norm the noise probe measured (``noise_sq / noise_count``) over the mean squared norm of
+    the training gradients (``grad_sq / count``), clamped to [0, 1]; 0 where either was never seen.
+
+    Why: a training gradient is the scene's misfit plus the photo's noise, and independent parts add in energy,
+    E‖g‖² = ‖g_misfit‖² + E‖g_noise‖². A Gaussian whose gradient is mostly the noise's is densified to copy the
+    noise of the views it is seen in (speckle in every novel view); ``avg · √(1 − share)`` is the gradient the
+    noise does not explain, which is what densification should answer."""
+    m = grad_sq / count.clamp_min(1)
+    m_n = noise_sq / noise_count.clamp_min(1)
+    share = torch.where((count > 0) & (noise_count > 0) & (m > 0), m_n / m.clamp_min(1e-30), 0.0)
+    return share.clamp(0.0, 1.0)
+
+
 class DensityController:
     """Accumulates per-Gaussian screen-space gradient statistics and densifies/prunes on schedule."""
 
@@ -39,24 +60,38 @@ class DensityController:
         self.cfg = cfg
         self.schedule = schedule  # when to densify and reset, in steps (retinexgs.model.schedule)
         self.extent = float(scene_extent)
-        self.grad_accum: Optional[Tensor] = None
-        self.count: Optional[Tensor] = None
+        self.grad_accum: Optional[Tensor] = None  # Σ over views of the NDC gradient norm (3DGS's statistic)
+        self.count: Optional[Tensor] = None       # views that saw each Gaussian
+        self.grad_sq: Optional[Tensor] = None     # Σ of the squared norm
+        self.noise_sq: Optional[Tensor] = None    # Σ of the noise probe's squared norm (update_noise)
+        self.noise_count: Optional[Tensor] = None  # probed views that saw each Gaussian
         self.max_radius: Optional[Tensor] = None
         self._ndc_scale: Optional[tuple] = None  # ((width, height, device, dtype), [2] tensor)
 
     def state_dict(self) -> Dict[str, Optional[Tensor]]:
-        return {"grad_accum": self.grad_accum, "count": self.count, "max_radius": self.max_radius}
+        return {key: getattr(self, key) for key in SUMMED + MAXIMA}
 
     def load_state_dict(self, state: Dict[str, Optional[Tensor]], device: torch.device) -> None:
-        for key in ("grad_accum", "count", "max_radius"):
+        for key in SUMMED + MAXIMA:
             value = state.get(key)
             setattr(self, key, None if value is None else value.to(device))
+        if self.grad_accum is not None and (self.grad_sq is None or self.noise_sq is None):
+            # a checkpoint from before the squared statistics: they restart at this interval's remaining views
+            n, dev = self.grad_accum.shape[0], self.grad_accum.device
+            self.grad_sq, self.noise_sq, self.noise_count = (torch.zeros(n, device=dev) for _ in range(3))
 
     def _ensure(self, n: int, device: torch.device) -> None:
         if self.grad_accum is None or self.grad_accum.shape[0] != n:
-            self.grad_accum = torch.zeros(n, device=device)
-            self.count = torch.zeros(n, device=device)
-            self.max_radius = torch.zeros(n, device=device)
+            for key in SUMMED + MAXIMA:
+                setattr(self, key, torch.zeros(n, device=device))
+
+    def _ndc(self, grad: Tensor, width: int, height: int) -> Tensor:
+        """Pixel gradients [N,2] -> NDC gradients, the unit 3DGS's threshold is defined in (the scale is cached on
+        the device: a tensor built from numbers every step is a host->device copy)."""
+        key = (width, height, grad.device, grad.dtype)
+        if self._ndc_scale is None or self._ndc_scale[0] != key:
+            self._ndc_scale = (key, torch.tensor([width / 2.0, height / 2.0], device=grad.device, dtype=grad.dtype))
+        return grad.detach() * self._ndc_scale[1]
 
     def update(self, out: RenderOutput, width: int, height: int) -> None:
         """Add one view's statistics (call after backward, before the optimizer step)."""
@@ -65,17 +100,29 @@ class DensityController:
             return
         self._ensure(grad.shape[0], grad.device)
         visible = out.visible
-        # Pixel gradients -> NDC gradients (the unit 3DGS's threshold is defined in); the scale is cached on the
-        # device (a tensor built from numbers every step is a host->device copy).
-        key = (width, height, grad.device, grad.dtype)
-        if self._ndc_scale is None or self._ndc_scale[0] != key:
-            self._ndc_scale = (key, torch.tensor([width / 2.0, height / 2.0], device=grad.device, dtype=grad.dtype))
-        ndc = grad.detach() * self._ndc_scale[1]
+        norm = self._ndc(grad, width, height).norm(dim=-1).float()
         # Masked arithmetic, not boolean indexing: indexing would sync with the GPU every step.
-        self.grad_accum += torch.where(visible, ndc.norm(dim=-1).float(), 0.0)
+        self.grad_accum += torch.where(visible, norm, 0.0)
+        self.grad_sq += torch.where(visible, norm * norm, 0.0)
         self.count += visible
         # A culled Gaussian has radii (0, 0), so its max radius is 0 and leaves the running maximum as it is.
         torch.maximum(self.max_radius, out.radii.amax(dim=-1), out=self.max_radius)
+
+    def update_noise(self, grad: Tensor, visible: Tensor, width: int, height: int) -> None:
+        """Add one view's noise probe: ``grad`` [N,2], the pixel-space gradient of the 2D means that the capture's
+        noise alone gives (:class:`retinexgs.train.noise.NoiseProbe`), ``visible`` [N] bool."""
+        self._ensure(grad.shape[0], grad.device)
+        norm = self._ndc(grad, width, height).norm(dim=-1).float()
+        self.noise_sq += torch.where(visible, norm * norm, 0.0)
+        self.noise_count += visible
+
+    def densification_statistic(self) -> Tensor:
+        """[N] what the threshold is compared with: the mean NDC gradient norm over the views that saw each
+        Gaussian (3DGS), times √(1 − the noise's share of its energy) with ``noise_aware`` (:func:`noise_share`)."""
+        avg = self.grad_accum / self.count.clamp_min(1)
+        if self.cfg.get("noise_aware") and self.noise_sq is not None:
+            avg = avg * (1.0 - noise_share(self.grad_sq, self.count, self.noise_sq, self.noise_count)).sqrt()
+        return avg
 
     def step(self, step: int, model: GaussianModel, optimizer: torch.optim.Optimizer, image_size: int) -> str:
         """Run whatever the schedule asks for at ``step``; returns a short description ('' if nothing)."""
@@ -105,8 +152,15 @@ class DensityController:
                           image_size: int) -> str:
         c = self.cfg
         n = len(model)
-        avg = self.grad_accum / self.count.clamp_min(1)
+        avg = self.densification_statistic()
         selected = avg >= c["grad_threshold"]
+        noise_note = ""
+        if c.get("noise_aware") and self.noise_sq is not None and bool((self.noise_count > 0).any()):
+            seen = (self.count > 0) & (self.noise_count > 0)
+            share = noise_share(self.grad_sq, self.count, self.noise_sq, self.noise_count)[seen]
+            raw = self.grad_accum / self.count.clamp_min(1) >= c["grad_threshold"]
+            noise_note = (f" (noise: median share {float(share.median()):.2f}, "
+                          f"{int((raw & ~selected).sum())} held back)")
         room = max(0, int(c["max_gaussians"]) - n)
         if int(selected.sum()) > room:  # keep the largest gradients within the budget
             keep = avg.topk(room).indices if room > 0 else avg.new_zeros(0, dtype=torch.long)
@@ -140,8 +194,10 @@ class DensityController:
             prune[model.opacities.argmax()] = False
         keep = ~prune
         _edit_params(model, optimizer, lambda name, t, is_state: t[keep])
-        self.grad_accum = None
-        return f"densify +{int(clone.sum())} clone +{int(split.sum())} split -{int(prune.sum())} pruned"
+        for key in SUMMED + MAXIMA:  # the next interval starts afresh (_ensure: at the new Gaussian count)
+            setattr(self, key, None)
+        return (f"densify +{int(clone.sum())} clone +{int(split.sum())} split -{int(prune.sum())} pruned"
+                + noise_note)
 
     @torch.no_grad()
     def reset_opacity(self, model: GaussianModel, optimizer: torch.optim.Optimizer) -> None:

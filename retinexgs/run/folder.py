@@ -71,7 +71,8 @@ def load_run(run_dir: Path, device: Optional[str] = None) -> Tuple[Dict, Scene, 
 PREDATING_VALUES: Dict[str, Any] = {"model.enhancement.tone": "illumination", "loss.w_depth": 0.0,
                                     "loss.rec_domain": "photo", "model.background": "black",
                                     "model.enhancement.shoulder": 1.0, "loss.rec_noise_floor": False,
-                                    "loss.rec_camera_noise": False, "loss.rec_noise_share": 0.5}
+                                    "loss.rec_camera_noise": False, "loss.rec_noise_share": 0.5,
+                                    "density.noise_aware": False}
 
 
 def _fill_missing(cfg: Config, default: Config, prefix: str, filled: List[str]) -> Config:

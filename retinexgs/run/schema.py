@@ -193,6 +193,7 @@ class Density(Section):
     last_event: Step
     max_screen_fraction: Num(gt=0)
     max_gaussians: Int(1)
+    noise_aware: Bool
     max_aniso: Annotated[float, BeforeValidator(_yaml_number), Expect("0 (no cap) or a ratio >= 1")]
 
     @model_validator(mode="after")

@@ -45,6 +45,7 @@ import torch.distributed as dist
 from torch import Tensor, nn
 
 from retinexgs.errors import UserError
+from retinexgs.model.density import MAXIMA, SUMMED
 from retinexgs.model.gaussians import PARAM_NAMES
 from retinexgs.retinex.cache import decompose_images, scene_cache_root
 
@@ -266,22 +267,24 @@ class Distributed:
         return dict(zip(keys, (vec / self.world).tolist()))
 
     def reduce_density_statistics(self, density: Any, n: int, image_size: int, step: int) -> int:
-        """Before a densification: sum the density controller's per-Gaussian 2D-gradient norms and visibility
-        counts over the ranks and take the maximum of the screen radii, so every rank decides the same; returns
-        the largest image side of the batch's views (the screen-size prune's reference)."""
+        """Before a densification: sum the density controller's per-Gaussian statistics (2D-gradient norms, their
+        squares, the noise probe's, visibility counts) over the ranks and take the maximum of the screen radii, so
+        every rank decides the same; returns the largest image side of the batch's views (the screen-size prune's
+        reference)."""
         dev = self.device
         has = density.grad_accum is not None
-        zeros = lambda: torch.zeros(n, device=dev)  # noqa: E731
-        sums = torch.cat([density.grad_accum.float() if has else zeros(), density.count.float() if has else zeros(),
-                          torch.tensor([1.0 if has else 0.0], device=dev)])
-        maxima = torch.cat([density.max_radius.float() if has else zeros(),
-                            torch.tensor([float(image_size)], device=dev)])
+
+        def stats(keys: Sequence[str]) -> List[Tensor]:
+            return [getattr(density, k).float() if has and getattr(density, k) is not None
+                    else torch.zeros(n, device=dev) for k in keys]
+
+        sums = torch.cat(stats(SUMMED) + [torch.tensor([1.0 if has else 0.0], device=dev)])
+        maxima = torch.cat(stats(MAXIMA) + [torch.tensor([float(image_size)], device=dev)])
         self.all_reduce_(sums, f"the density statistics' all-reduce of step {step}")
         self.all_reduce_(maxima, f"the density statistics' all-reduce of step {step}", dist.ReduceOp.MAX)
-        if float(sums[-1]) > 0:
-            density.grad_accum, density.count, density.max_radius = sums[:n], sums[n:2 * n], maxima[:n]
-        else:
-            density.grad_accum = density.count = density.max_radius = None
+        for keys, values in ((SUMMED, sums), (MAXIMA, maxima)):
+            for i, key in enumerate(keys):
+                setattr(density, key, values[i * n:(i + 1) * n] if float(sums[-1]) > 0 else None)
         return int(maxima[-1])
 
     def _fingerprint(self, tensors: Sequence[Tensor]) -> Tensor:

@@ -25,7 +25,7 @@ from retinexgs.train import losses
 from retinexgs.run.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
 from retinexgs.train.distributed import Distributed, gradient_params, lr_batch_factor, process_start_time, take_gradients
 from retinexgs.train.graphs import ChannelGraphs, LossGraphs
-from retinexgs.train.noise import CaptureNoise, measure_capture_noise, sigma_limit
+from retinexgs.train.noise import CaptureNoise, NoiseProbe, measure_capture_noise, sigma_limit
 from retinexgs.train.views import (TrainView, StreamedViews, ViewStatistics, ViewStore, check_prior_size,
                                    check_store_space, choose_streaming, gib, make_train_view, preload_bytes_per_pixel,
                                    store_fingerprint, store_path, store_size_estimate, stream_set_up, unpack_edges,
@@ -286,7 +286,9 @@ class Trainer:
         self.capture_noise: Optional[CaptureNoise] = None
         self.rec_gain_cap: Optional[Tensor] = None
         self.camera_noise: Optional[Tuple[Tensor, Tensor]] = None
-        if not self.decomposed or not (c["rec_noise_floor"] or c["rec_camera_noise"]):
+        self.noise_probe: Optional[NoiseProbe] = None
+        noise_aware = bool(self.cfg["density"]["noise_aware"])
+        if not self.decomposed or not (c["rec_noise_floor"] or c["rec_camera_noise"] or noise_aware):
             return
         saved = (state or {}).get("capture_noise")
         if saved:
@@ -309,6 +311,9 @@ class Trainer:
             self.rec_gain_cap = torch.tensor(cap, dtype=torch.float32, device=self.device)
         if c["rec_camera_noise"]:
             self.camera_noise = noise.camera(self.device)
+        if noise_aware:  # its own random stream, one per rank (each rank probes its own views)
+            rank = dist.rank if dist is not None and dist.enabled else 0
+            self.noise_probe = NoiseProbe(noise, self.device, 1_000_003 * (self.cfg["seed"] + 1) + rank)
 
     def illumination_reference(self) -> float:
         """L_ref, the scene's "full light" level that the enhancement normalises L̂ by: the median over the
@@ -344,6 +349,29 @@ class Trainer:
     def active_degree(self, step: int) -> int:
         return self.schedule.sh_degree_at(step)
 
+    def rec_gain(self) -> Optional[Tensor]:
+        """The reconstruction's exposure gain (a scalar tensor; None for ``rec_domain: photo``): the tone's gain at
+        g = 1, 1 / lin(L_ref), a constant of the scene, capped where the photos' noise asks (train/noise.py)."""
+        if self.cfg["loss"]["rec_domain"] == "photo":
+            return None
+        ref = self.model.illum_ref
+        gain = exposure_gain(ref, ref.new_ones(()))
+        return gain if self.rec_gain_cap is None else torch.minimum(gain, self.rec_gain_cap)
+
+    def probe_noise(self, res: Dict[str, Tensor], view, step: int) -> None:
+        """``density.noise_aware``: on every probed step of the densification window, the gradient the capture's
+        noise alone gives this render's 2D means (:class:`NoiseProbe`) goes into the density statistics. Before
+        the step's backward, which frees the render's graph."""
+        sched = self.schedule
+        if self.noise_probe is None or not (sched.densify_start < step <= sched.densify_stop) \
+                or not self.noise_probe.due(step):
+            return
+        c = self.cfg["loss"]
+        with record_function("step/noise_probe"):
+            grad = self.noise_probe.means2d_gradient(res["out"], self.rec_gain(), c["lambda_ssim"], c["w_s"])
+            if grad is not None:
+                self.density.update_noise(grad, res["out"].visible, view.camera.width, view.camera.height)
+
     def image_loss(self, image: Tensor, S: Tensor, R: Optional[Tensor], L: Optional[Tensor],
                    enhance: bool) -> Tuple[Tensor, Dict[str, Tensor]]:
         """Every loss term that depends only on the rendered ``image`` [H,W,C] (all but L_SH) and their
@@ -357,11 +385,7 @@ class Trainer:
         R_img, L_img = image[..., :3], image[..., 3:6]
         R_hat, L_hat, S_b = to_bchw(R_img), to_bchw(L_img), to_bchw(S)
         terms: Dict[str, Tensor] = {}
-        gain = None
-        if c["rec_domain"] != "photo":  # the tone's gain at g = 1, 1 / lin(L_ref): a constant of the scene
-            gain = exposure_gain(self.model.illum_ref, R_hat.new_ones(()))
-            if self.rec_gain_cap is not None:  # no higher than the photos' noise allows (train/noise.py)
-                gain = torch.minimum(gain, self.rec_gain_cap)
+        gain = self.rec_gain()
         l1_exposed = c["rec_domain"] == "exposed"
         if R is not None:
             sup, sup_terms = losses.supervision_loss(R_hat, L_hat, to_bchw(R), to_bchw(L), S_b, c["w_r"],
@@ -520,6 +544,7 @@ class Trainer:
         acc, per_view = None, []
         for view in views:
             res = self.render_view(view, step)
+            self.probe_noise(res, view, step)
             terms = self._backward_graphed(res, view, step) if self.graphs is not None else None
             if terms is None:
                 with record_function("step/loss"):
