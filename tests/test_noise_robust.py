@@ -267,3 +267,38 @@ def test_training_probes_the_noise_of_a_noisy_capture_more_than_of_a_clean_one(s
         tr.train()  # densifies on the statistic through the end of the run
         assert all(torch.isfinite(p).all() for p in tr.model.parameters())
     assert shares[0] > 2 * shares[1], shares
+
+
+def _local_sigma(n):
+    """The noise σ that SSIM's window sees in a noise field n [1,C,H,W]: its Gaussian-weighted (σ 1.5 px, 11 px)
+    local variance, averaged over the image; the largest channel."""
+    import torch.nn.functional as F
+    g = torch.exp(-(torch.arange(11) - 5.0) ** 2 / (2 * 1.5 ** 2))
+    g = g / g.sum()
+    k = (g[:, None] * g[None, :]).expand(n.shape[1], 1, 11, 11).contiguous()
+    m, m2 = F.conv2d(n, k, groups=n.shape[1]), F.conv2d(n * n, k, groups=n.shape[1])
+    return float((m2 - m * m).mean(dim=(0, 2, 3)).max().sqrt())
+
+
+@pytest.mark.parametrize("full_well,read_noise", [(3000.0, 3.0), (1500.0, 4.0)])
+def test_the_exposed_noise_is_measured_as_ssim_sees_it_through_jpeg(full_well, read_noise):
+    """Through 8-bit JPEG the pixel-scale estimate misses most of a dark photo's noise; on 2×2 averages it reads
+    the noise that SSIM's window sees (the truth: the JPEG photo with noise minus the one without)."""
+    from retinexgs.data.sensor import jpeg_roundtrip
+    from retinexgs.train.losses import exposed
+    rng = np.random.default_rng(1)
+    yy, xx = np.mgrid[0:384, 0:384] / 384.0
+    scene = np.stack([0.5 + 0.3 * np.sin(2 * np.pi * (f * xx + 0.7 * f * yy) + ph)
+                      for f, ph in ((3, 0.0), (5, 1.0), (2, 2.0))], -1) * (0.6 + 0.4 * xx[..., None])
+    noisy_model = SensorModel(exposure=0.05, exposure_jitter=0.0, full_well=full_well, read_noise=read_noise)
+    clean_model = SensorModel(exposure=0.05, exposure_jitter=0.0, full_well=None, read_noise=0.0)
+    noisy = jpeg_roundtrip(noisy_model.darken(scene, 0.05, rng), 90) / 255.0
+    clean = jpeg_roundtrip(clean_model.darken(scene, 0.05, rng), 90) / 255.0
+    as_t = lambda x: torch.from_numpy(np.ascontiguousarray(x)).float().permute(2, 0, 1)[None]  # noqa: E731
+    gain = 8.0
+    truth = _local_sigma(exposed(as_t(noisy), torch.tensor(gain)) - exposed(as_t(clean), torch.tensor(gain)))
+    photo = torch.from_numpy(noisy).float()
+    got = N.exposed_noise_sigma(photo, (gain,))[0]
+    pixel = N.exposed_noise_sigma(photo, (gain,), scale=1)[0]
+    assert got == pytest.approx(truth, rel=0.15), (got, truth)
+    assert pixel < 0.6 * truth  # what the pixel scale alone read (the cap this replaced)

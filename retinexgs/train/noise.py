@@ -17,7 +17,8 @@ Measured on :data:`MEASURED_VIEWS` training photos spread over the capture, as t
 files, a central crop of at most :data:`CROP` pixels a side): undistortion and resizing interpolate between pixels,
 which hides noise from a 3×3 estimate (fountain-dark's σ reads 0.6× through OpenCV's undistortion) but not from
 SSIM's 11×11 window. Per photo, :func:`retinexgs.data.sensor.estimate_noise` (``var = a·y + b`` per channel in
-linear light) and the exposed noise σ (Immerkær, the largest channel) at each gain of :data:`GAINS`; the capture's
+linear light) and the exposed noise σ (Immerkær on 2×2 averages, the largest channel: :func:`exposed_noise_sigma`)
+at each gain of :data:`GAINS`; the capture's
 figures are the medians over the photos, divided by ``data.downscale`` (a d×d average divides white noise's σ by d).
 Through 8-bit JPEG both see about 0.4–0.9 of the true σ (docs/experiments/2026-11-26-noise-estimate.md): the cap
 errs towards the exposed SSIM, the black level towards too little correction.
@@ -31,6 +32,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from retinexgs.data.images import read_image_float
@@ -44,6 +46,7 @@ CROP = 1024
 # Exposure gains at which the exposed noise is measured: 1 to 256 in half stops (a scene's gain 1 / lin(L_ref) is
 # 2–60 on the dev scenes); the cap is interpolated between them, log-linearly.
 GAINS: Tuple[float, ...] = tuple(2.0 ** (k / 2.0) for k in range(17))
+NOISE_SCALE = 2  # the noise is measured on 2×2 averages of the photo (exposed_noise_sigma)
 SSIM_K2 = 0.03  # SSIM's C2 = (K2 · range)², range 1: the noise σ at which the noise variance equals C2
 
 
@@ -91,19 +94,35 @@ class CaptureNoise:
         return cls(tuple(state["a"]), tuple(state["b"]), tuple(state["gains"]), tuple(state["sigma"]),
                    int(state["views"]))  # type: ignore[arg-type]
 
-    def describe(self, limit: float = SSIM_K2) -> str:
-        """One line for the training log (the cap at noise σ ``limit``)."""
+    def describe(self, limit: float = SSIM_K2, gain: Optional[float] = None) -> str:
+        """One line for the training log (the cap at noise σ ``limit``; ``gain``: the scene's own exposure gain,
+        1 / lin(L_ref), which the cap applies to only when it is lower)."""
         sig = ", ".join(f"{math.sqrt(max(a * 0.01 + b, 0.0)):.4f}" for a, b in zip(self.a, self.b))
         cap = self.gain_cap(limit)
+        scene = "" if gain is None else f", the scene's gain {gain:.2f}"
         return (f"capture noise (median of {self.views} views): σ at linear 0.01 = {sig} (R, G, B); exposed SSIM "
-                f"gain capped at {'none' if math.isinf(cap) else f'{cap:.2f}'} (noise σ ≤ {limit:.4f})")
+                f"gain capped at {'none' if math.isinf(cap) else f'{cap:.2f}'} (noise σ ≤ {limit:.4f}{scene})")
 
 
-def exposed_noise_sigma(S: Tensor, gains: Tuple[float, ...] = GAINS) -> List[float]:
-    """The noise σ of one photo ``S`` [H,W,3] (sRGB, [0,1]) exposed by each gain (the largest channel's)."""
+def exposed_noise_sigma(S: Tensor, gains: Tuple[float, ...] = GAINS, scale: int = NOISE_SCALE) -> List[float]:
+    """The noise σ of one photo ``S`` [H,W,3] (sRGB, [0,1]) exposed by each gain (the largest channel's), as SSIM
+    sees it: Immerkær's estimate on the photo averaged over ``scale`` × ``scale`` pixels, times ``scale`` (the
+    factor by which such an average divides white noise's σ).
+
+    Why not at the pixel scale: JPEG's quantisation removes the finest frequencies of the noise, not the noise
+    at the 2–5 px scale that SSIM's window (Gaussian, σ 1.5 px) and a Gaussian splat fit. On photos darkened by
+    the sensor model, with the noise known, the pixel-scale estimate read 0.25–0.35 of the SSIM-visible σ at 8000
+    and 3000 e⁻, 0.55 at 1500 e⁻; averaged over 2×2 pixels it reads 0.93–1.13 at every level and gain
+    (docs/experiments/2026-11-26-noise-scale.md)."""
     x = S.detach().float().permute(2, 0, 1).unsqueeze(0)
+    if min(x.shape[-2:]) < 3 * scale:  # too small to average: the pixel scale
+        scale = 1
+
+    def pooled(y: Tensor) -> Tensor:
+        return F.avg_pool2d(y, scale) if scale > 1 else y
+
     # One host sync for all the gains.
-    sigma = torch.stack([noise_variance(exposed(x, x.new_tensor(g))).amax().sqrt() for g in gains])
+    sigma = torch.stack([noise_variance(pooled(exposed(x, x.new_tensor(g)))).amax().sqrt() * scale for g in gains])
     return sigma.tolist()
 
 
@@ -208,4 +227,4 @@ class NoiseProbe:
 
 
 __all__ = ["NoiseProbe", "CaptureNoise", "NoiseMeter", "measure_capture_noise", "exposed_noise_sigma", "centre_crop", "GAINS",
-           "SSIM_K2", "MEASURED_VIEWS", "CROP", "sigma_limit"]
+           "SSIM_K2", "NOISE_SCALE", "MEASURED_VIEWS", "CROP", "sigma_limit"]

@@ -305,7 +305,11 @@ class Trainer:
             return
         self.capture_noise = noise
         limit = sigma_limit(c["rec_noise_share"])
-        self.log(noise.describe(limit))
+        gain = None
+        if c["rec_domain"] != "photo":
+            ref = self.model.illum_ref
+            gain = float(exposure_gain(ref, ref.new_ones(())))
+        self.log(noise.describe(limit, gain))
         cap = noise.gain_cap(limit)
         if c["rec_noise_floor"] and c["rec_domain"] != "photo" and math.isfinite(cap):
             self.rec_gain_cap = torch.tensor(cap, dtype=torch.float32, device=self.device)
