@@ -306,8 +306,8 @@ class Trainer:
         self.capture_noise = noise
         limit = sigma_limit(c["rec_noise_share"])
         gain = None
-        if c["rec_domain"] != "photo":
-            ref = self.model.illum_ref
+        if c["rec_domain"] != "photo":  # L_ref: the checkpoint's on a resume (the model's is filled later)
+            ref = (state or {}).get("model", {}).get("illum_ref", self.model.illum_ref)
             gain = float(exposure_gain(ref, ref.new_ones(())))
         self.log(noise.describe(limit, gain))
         cap = noise.gain_cap(limit)
