@@ -302,3 +302,16 @@ def test_the_exposed_noise_is_measured_as_ssim_sees_it_through_jpeg(full_well, r
     pixel = N.exposed_noise_sigma(photo, (gain,), scale=1)[0]
     assert got == pytest.approx(truth, rel=0.15), (got, truth)
     assert pixel < 0.6 * truth  # what the pixel scale alone read (the cap this replaced)
+
+
+def test_a_checkpoint_from_before_the_squared_statistics_resumes():
+    """Density state written before grad_sq / noise_sq existed: they restart at zero, the old sums are kept."""
+    from retinexgs.model.density import DensityController
+    from retinexgs.model.schedule import build_schedule
+    cfg = load_config([], ["density.noise_aware=true"])
+    d = DensityController(cfg["density"], 1.0, build_schedule(cfg))
+    d.load_state_dict({"grad_accum": torch.tensor([1.0, 2.0]), "count": torch.tensor([1.0, 1.0]),
+                       "max_radius": torch.tensor([3.0, 4.0])}, torch.device("cpu"))
+    assert torch.equal(d.grad_sq, torch.zeros(2)) and torch.equal(d.noise_count, torch.zeros(2))
+    torch.testing.assert_close(d.densification_statistic(), torch.tensor([1.0, 2.0]))  # no noise measured yet
+    assert set(d.state_dict()) == {"grad_accum", "count", "grad_sq", "noise_sq", "noise_count", "max_radius"}
