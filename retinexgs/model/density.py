@@ -103,7 +103,8 @@ class DensityController:
         norm = self._ndc(grad, width, height).norm(dim=-1).float()
         # Masked arithmetic, not boolean indexing: indexing would sync with the GPU every step.
         self.grad_accum += torch.where(visible, norm, 0.0)
-        self.grad_sq += torch.where(visible, norm * norm, 0.0)
+        if self.cfg.get("noise_aware"):  # only its rule reads the squares (the default step keeps its launches)
+            self.grad_sq += torch.where(visible, norm * norm, 0.0)
         self.count += visible
         # A culled Gaussian has radii (0, 0), so its max radius is 0 and leaves the running maximum as it is.
         torch.maximum(self.max_radius, out.radii.amax(dim=-1), out=self.max_radius)
