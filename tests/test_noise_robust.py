@@ -315,3 +315,25 @@ def test_a_checkpoint_from_before_the_squared_statistics_resumes():
     assert torch.equal(d.grad_sq, torch.zeros(2)) and torch.equal(d.noise_count, torch.zeros(2))
     torch.testing.assert_close(d.densification_statistic(), torch.tensor([1.0, 2.0]))  # no noise measured yet
     assert set(d.state_dict()) == {"grad_accum", "count", "grad_sq", "noise_sq", "noise_count", "max_radius"}
+
+
+@pytest.mark.parametrize("scale", [1, 2])
+def test_the_trainer_measures_the_noise_at_the_configured_scale(scenes, tmp_path, monkeypatch, scale):
+    seen = {}
+    real = N.measure_capture_noise
+
+    def spy(*args, **kwargs):
+        seen.update(kwargs)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr("retinexgs.train.trainer.measure_capture_noise", spy)
+    tr = _trainer(scenes[0], tmp_path / "run", [f"loss.rec_noise_scale={scale}"])
+    assert seen["scale"] == scale
+    photos = [v.source_path or v.image_path for v in tr.scene.train]
+    assert tr.capture_noise == real(photos, 1.0, scale=scale)
+
+
+def test_a_bad_noise_scale_is_refused_by_name():
+    from retinexgs.errors import UserError
+    with pytest.raises(UserError, match="rec_noise_scale"):
+        load_config([], ["loss.rec_noise_scale=0"])

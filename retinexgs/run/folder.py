@@ -72,7 +72,7 @@ PREDATING_VALUES: Dict[str, Any] = {"model.enhancement.tone": "illumination", "l
                                     "loss.rec_domain": "photo", "model.background": "black",
                                     "model.enhancement.shoulder": 1.0, "loss.rec_noise_floor": False,
                                     "loss.rec_camera_noise": False, "loss.rec_noise_share": 0.5,
-                                    "density.noise_aware": False}
+                                    "density.noise_aware": False, "loss.rec_noise_scale": 1}
 
 
 def _fill_missing(cfg: Config, default: Config, prefix: str, filled: List[str]) -> Config:

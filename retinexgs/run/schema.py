@@ -165,6 +165,7 @@ class Loss(Section):
     rec_ssim_noise: Bool
     rec_noise_floor: Bool
     rec_noise_share: Num(gt=0, le=0.9)
+    rec_noise_scale: Int(1)
     rec_camera_noise: Bool
     w_depth: Num(ge=0)
     depth_edge: Num(ge=0)

@@ -136,8 +136,9 @@ def centre_crop(photo: np.ndarray, size: int = CROP) -> np.ndarray:
 class NoiseMeter:
     """Gathers :class:`CaptureNoise` from the photos given to :meth:`add` (module docstring)."""
 
-    def __init__(self, device: torch.device = torch.device("cpu")) -> None:
+    def __init__(self, device: torch.device = torch.device("cpu"), scale: int = NOISE_SCALE) -> None:
         self.device = torch.device(device)
+        self.scale = int(scale)  # exposed_noise_sigma's averaging (loss.rec_noise_scale)
         self._a: List[Tuple[float, ...]] = []
         self._b: List[Tuple[float, ...]] = []
         self._sigma: List[List[float]] = []
@@ -150,7 +151,8 @@ class NoiseMeter:
         est = estimate_noise(photo)
         self._a.append(est.a)
         self._b.append(est.b)
-        self._sigma.append(exposed_noise_sigma(torch.from_numpy(np.ascontiguousarray(photo)).to(self.device)))
+        self._sigma.append(exposed_noise_sigma(torch.from_numpy(np.ascontiguousarray(photo)).to(self.device),
+                                               scale=self.scale))
 
     def result(self, downscale: float = 1.0) -> Optional[CaptureNoise]:
         """The medians over the photos, for training images ``downscale`` times smaller; None without photos."""
@@ -164,10 +166,10 @@ class NoiseMeter:
 
 
 def measure_capture_noise(photos: Sequence[Path], downscale: float = 1.0, device: torch.device = torch.device("cpu"),
-                          views: int = MEASURED_VIEWS) -> Optional[CaptureNoise]:
+                          views: int = MEASURED_VIEWS, scale: int = NOISE_SCALE) -> Optional[CaptureNoise]:
     """:class:`CaptureNoise` of up to ``views`` of ``photos`` (the user's files), spread evenly over them."""
     photos = list(photos)
-    meter = NoiseMeter(device)
+    meter = NoiseMeter(device, scale)
     for p in photos[::max(1, len(photos) // views)][:views]:
         meter.add(read_image_float(p))
     return meter.result(downscale)
