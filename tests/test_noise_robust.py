@@ -337,3 +337,16 @@ def test_a_bad_noise_scale_is_refused_by_name():
     from retinexgs.errors import UserError
     with pytest.raises(UserError, match="rec_noise_scale"):
         load_config([], ["loss.rec_noise_scale=0"])
+
+
+def test_a_resume_draws_the_probe_noise_where_the_run_stopped(scenes, tmp_path):
+    extra = ["density.noise_aware=true", "steps=20", "density.start=0", "density.stop=10", "density.every=5",
+             "checkpoint.every=4"]
+    tr = _trainer(scenes[0], tmp_path / "run", extra)
+    tr.train(stop_after=4)
+    saved = load_checkpoint(latest_checkpoint(tmp_path / "run"))["noise_probe_rng"]
+    assert torch.equal(saved, tr.noise_probe.generator.get_state())
+    fresh = _trainer(scenes[0], tmp_path / "other", extra).noise_probe.generator.get_state()
+    assert not torch.equal(saved, fresh)  # the probe drew noise in those steps
+    resumed = _trainer(scenes[0], tmp_path / "run", extra, resume=True)
+    assert torch.equal(resumed.noise_probe.generator.get_state(), saved)

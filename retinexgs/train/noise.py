@@ -111,8 +111,8 @@ def exposed_noise_sigma(S: Tensor, gains: Tuple[float, ...] = GAINS, scale: int 
 
     Why not at the pixel scale: JPEG's quantisation removes the finest frequencies of the noise, not the noise
     at the 2–5 px scale that SSIM's window (Gaussian, σ 1.5 px) and a Gaussian splat fit. On photos darkened by
-    the sensor model, with the noise known, the pixel-scale estimate read 0.25–0.35 of the SSIM-visible σ at 8000
-    and 3000 e⁻, 0.55 at 1500 e⁻; averaged over 2×2 pixels it reads 0.93–1.13 at every level and gain
+    the sensor model, with the noise known, the pixel-scale estimate read 0.22–0.37 of the SSIM-visible σ at 8000
+    and 3000 e⁻, 0.49–0.57 at 1500 e⁻; averaged over 2×2 pixels it reads 0.94–1.19 at every level and gain
     (docs/experiments/2026-11-26-noise-scale.md)."""
     x = S.detach().float().permute(2, 0, 1).unsqueeze(0)
     if min(x.shape[-2:]) < 3 * scale:  # too small to average: the pixel scale

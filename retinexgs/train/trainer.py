@@ -318,6 +318,9 @@ class Trainer:
         if noise_aware:  # its own random stream, one per rank (each rank probes its own views)
             rank = dist.rank if dist is not None and dist.enabled else 0
             self.noise_probe = NoiseProbe(noise, self.device, 1_000_003 * (self.cfg["seed"] + 1) + rank)
+            probe_rng = (state or {}).get("noise_probe_rng")
+            if probe_rng is not None and not (dist is not None and dist.enabled):  # a resume draws on where it was
+                self.noise_probe.generator.set_state(probe_rng)
 
     def illumination_reference(self) -> float:
         """L_ref, the scene's "full light" level that the enhancement normalises L̂ by: the median over the
@@ -699,6 +702,7 @@ class Trainer:
                 "scene_root": str(self.scene.root), "train_views": [v.name for v in self.scene.train],
                 "train_seconds": self.train_seconds(),
                 "capture_noise": self.capture_noise.state_dict() if self.capture_noise is not None else None,
+                "noise_probe_rng": self.noise_probe.generator.get_state() if self.noise_probe is not None else None,
                 # For information (a checkpoint resumes with any number of ranks): how it was trained.
                 "ranks": self.dist.world, "views_per_step": self.batch_size}
 
