@@ -166,3 +166,33 @@ def test_two_gloo_ranks_at_equal_views_seen(tmp_path):
     assert one["status"] == two["status"] == "ok"
     assert two["ranks"] == 2 and two["steps"] == 8 and two["views_seen"] == one["views_seen"] == 16
     assert two["views_per_second"] > 0 and two["psnr"] is not None
+
+
+def test_seeds_aggregate_to_means_and_spread():
+    runs = [dict(gpus=2, seed=s, status="ok", steps=8, views_per_step=2, views_seen=16, ranks=2, notes=[],
+                 views_per_second=v, steps_per_second=v / 2, psnr=p, ssim=0.5, peak_gpu_gb_per_rank=[1.0, g], gaussians=1000 * (s + 1),
+                 views_per_second_after_first_step=v + 1, density_event_steps=4, density_event_overhead_seconds=0.5)
+            for s, v, p, g in ((0, 10.0, 20.0, 2.0), (1, 14.0, 22.0, 3.0))]
+    row = scale.aggregate(runs)
+    assert row["status"] == "ok" and row["seeds"] == [0, 1]
+    assert row["views_per_second"] == pytest.approx(12.0) and row["psnr"] == pytest.approx(21.0)
+    assert row["psnr_std"] == pytest.approx(2 ** 0.5) and row["peak_gpu_gb_per_rank"] == [1.0, 3.0]
+    failed = scale.aggregate(runs + [dict(gpus=2, seed=2, status="failed (exit 1, x.log)")])
+    assert failed["status"].startswith("ok for 2 of 3 seeds; failed") and failed["psnr"] == pytest.approx(21.0)
+    base = dict(runs[0], gpus=1, views_per_second_after_first_step=5.0)
+    md = scale.table([dict(base, seeds=[0]), row])
+    line = {r.split("|")[1].strip(): [c.strip() for c in r.split("|")[2:-1]] for r in md.splitlines()
+            if r.startswith("| ")}
+    assert line["views/s after step 1 (speed-up, efficiency)"] == ["5.00 (1.00×, 100 %)", "13.00 (2.60×, 130 %)"]
+    assert line["PSNR / SSIM (test views)"][1] == "21.00 ± 1.41 / 0.500 ± 0.000"
+    assert line["density events: steps timed; seconds beyond plain steps"][1] == "4; 0.50 s"
+
+
+def test_steady_timing_leaves_out_the_first_step_and_prices_the_events():
+    from retinexgs.train.distributed import steady_timing
+    # 101 steps of 2 views in 12 s: step 1 took 2 s, 10 event-timed steps 2 s, the 90 plain steps 8 s.
+    out = steady_timing(2, 202, 12.0, {"first_step_seconds": 2.0, "event_seconds": 2.0, "event_steps": 10})
+    assert out["views_per_second_after_first_step"] == pytest.approx(200 / 10.0)
+    assert out["plain_step_seconds"] == pytest.approx(8.0 / 90, abs=1e-6)
+    assert out["density_event_overhead_seconds"] == pytest.approx(2.0 - 10 * 8.0 / 90, abs=1e-3)
+    assert steady_timing(2, 202, 12.0, None) == {} and steady_timing(1, 1, 1.0, {"first_step_seconds": 1.0}) == {}

@@ -290,7 +290,41 @@ def summarize(ranks: int, metrics: Optional[Dict], wall: Optional[float], rss_gb
         notes.append("quality_missing")
     row["gaussians"] = t.get("gaussians")
     row["device"] = t.get("device")
+    for key in STEADY_KEYS:  # the steady rate and the density events' cost (recorded since 2026-11-26)
+        row[key] = t.get(key)
     return row, notes
+
+
+STEADY_KEYS = ("views_per_second_after_first_step", "first_step_seconds", "density_event_steps",
+               "density_event_overhead_seconds")
+MEANS = ("views_per_second", "steps_per_second", "host_rss_gb_max", "time_to_first_step", "train_seconds",
+         "wall_seconds", "gaussians", "psnr", "ssim") + STEADY_KEYS
+
+
+def aggregate(runs: Sequence[Dict]) -> Dict:
+    """One rank count's row over its seeds: the first run's keys, the mean of every figure in :data:`MEANS` over
+    the runs that finished (``psnr_std``/``ssim_std``/``views_per_second_std``: their sample spread), the
+    seeds, and the status "ok" when every run finished (else the first failure's)."""
+    runs = list(runs)
+    ok = [r for r in runs if r.get("status") == "ok"]
+    row = dict(ok[0] if ok else runs[0])
+    row["seeds"] = [r.get("seed", 0) for r in ok]
+    row["status"] = "ok" if ok and len(ok) == len(runs) else next(
+        (r.get("status", "?") for r in runs if r.get("status") != "ok"), "?")
+    if ok and len(ok) < len(runs):
+        row["status"] = f"ok for {len(ok)} of {len(runs)} seeds; " + row["status"]
+    for key in MEANS:
+        vals = [float(r[key]) for r in ok if r.get(key) is not None]
+        if len(vals) == len(ok) and vals:
+            row[key] = sum(vals) / len(vals)
+            if key in ("psnr", "ssim", "views_per_second") and len(vals) > 1:
+                mu = row[key]
+                row[f"{key}_std"] = math.sqrt(sum((v - mu) ** 2 for v in vals) / (len(vals) - 1))
+    if ok:
+        gpus = [r["peak_gpu_gb_per_rank"] for r in ok if r.get("peak_gpu_gb_per_rank")]
+        row["peak_gpu_gb_per_rank"] = [max(v) for v in zip(*gpus)] if gpus else None
+        row["notes"] = sorted({n for r in ok for n in r.get("notes", ())})
+    return row
 
 
 def _num(v, fmt: str) -> str:
@@ -320,10 +354,23 @@ def table(rows: Sequence[Dict]) -> str:
         lines.append(f"| {label} | " + " | ".join(fn(r) if always or r.get("status") == "ok" else "–"
                                                   for r in rows) + " |")
 
-    def speedup(r: Dict) -> Optional[float]:
-        if base is None or not r.get("views_per_second"):
+    def speedup(r: Dict, key: str = "views_per_second") -> Optional[float]:
+        if base is None or not r.get(key) or not base.get(key):
             return None
-        return r["views_per_second"] / base["views_per_second"]
+        return r[key] / base[key]
+
+    def pm(r: Dict, key: str, fmt: str) -> str:
+        std = r.get(f"{key}_std")
+        return _num(r.get(key), fmt) + ("" if std is None else f" ± {std:{fmt}}")
+
+    def steady(r: Dict) -> str:
+        v = r.get("views_per_second_after_first_step")
+        s = speedup(r, "views_per_second_after_first_step")
+        return "–" if v is None else f"{v:.2f}" + ("" if s is None else f" ({s:.2f}×, {100 * s / r['gpus']:.0f} %)")
+
+    def events(r: Dict) -> str:
+        n, over = r.get("density_event_steps"), r.get("density_event_overhead_seconds")
+        return "–" if n is None else f"{n:.0f}; {_num(over, '.2f')} s"
 
     def gpu(r: Dict) -> str:
         v = r.get("peak_gpu_gb_per_rank")
@@ -337,21 +384,30 @@ def table(rows: Sequence[Dict]) -> str:
         + mark(r, "ranks_missing"))
     add("steps (views seen)", lambda r: f"{_num(r['steps'], 'd')} ({_num(r['views_seen'], 'd')})"
         if r.get("status") == "ok" else f"{r.get('planned_steps', '–')} planned", always=True)
-    add("**views/s**", lambda r: _num(r["views_per_second"], ".2f") + mark(r, "views_fallback"))
-    add("steps/s", lambda r: _num(r["steps_per_second"], ".2f"))
+    add("seeds", lambda r: ", ".join(str(x) for x in r.get("seeds", [r.get("seed", 0)])))
+    add("**views/s**", lambda r: pm(r, "views_per_second", ".2f") + mark(r, "views_fallback"))
+    add("steps/s", lambda r: _num(r.get("steps_per_second"), ".2f"))
     add("speed-up (views/s over 1 GPU)", lambda r: "–" if speedup(r) is None else f"{speedup(r):.2f}×")
     add("efficiency (speed-up / N)", lambda r: "–" if speedup(r) is None else f"{100 * speedup(r) / r['gpus']:.0f} %")
+    add("views/s after step 1 (speed-up, efficiency)", steady)
+    add("first step (s)", lambda r: _num(r.get("first_step_seconds"), ".2f"))
+    add("density events: steps timed; seconds beyond plain steps", events)
     add("peak GPU memory per rank (GB)", gpu)
-    add("host RSS, largest rank (GB)", lambda r: _num(r["host_rss_gb_max"], ".2f") + mark(r, "rss_fallback"))
-    add("time to first step (s)", lambda r: _num(r["time_to_first_step"], ".1f") + mark(r, "first_missing"))
-    add("training time (s)", lambda r: _num(r["train_seconds"], ".1f"))
+    add("host RSS, largest rank (GB)", lambda r: _num(r.get("host_rss_gb_max"), ".2f") + mark(r, "rss_fallback"))
+    add("time to first step (s)", lambda r: _num(r.get("time_to_first_step"), ".1f") + mark(r, "first_missing"))
+    add("training time (s)", lambda r: _num(r.get("train_seconds"), ".1f"))
     add("wall time of the run (s)", lambda r: _num(r.get("wall_seconds"), ".0f"), always=True)
-    add("Gaussians at the end", lambda r: "–" if r["gaussians"] is None else f"{r['gaussians'] / 1000:.1f}k")
-    add("PSNR / SSIM (test views)", lambda r: ("–" if r["psnr"] is None else f"{r['psnr']:.2f} / {r['ssim']:.3f}")
+    add("Gaussians at the end", lambda r: "–" if r.get("gaussians") is None else f"{r['gaussians'] / 1000:.1f}k")
+    add("PSNR / SSIM (test views)", lambda r: ("–" if r.get("psnr") is None else
+                                               f"{pm(r, 'psnr', '.2f')} / {pm(r, 'ssim', '.3f')}")
         + mark(r, "quality_missing"))
     text = "\n".join(lines) + ("\n\nviews/s and steps/s over the training time (train_seconds: the steps alone); "
-                                "speed-up: views/s over the 1-GPU run's; efficiency: speed-up / N; wall time: the "
-                                "whole process (start, loading the views, training, evaluation); GB = 2^30 bytes.")
+                                "speed-up: views/s over the 1-GPU run's; efficiency: speed-up / N; after step 1: "
+                                "the first step (warm-up, graph captures; also in the time to first step) left out; "
+                                "density events: each event's step and the next (its re-captures) timed between "
+                                "syncs, less as many plain steps' time (the same events at any rank count); several "
+                                "seeds: means (± sample std); wall time: the whole process (start, loading the "
+                                "views, training, evaluation); GB = 2^30 bytes.")
     if marks:
         text += "\n\n" + "\n".join(f"({n}) {NOTES[k]}" for k, n in marks.items())
     return text + "\n"
@@ -445,6 +501,8 @@ def main(argv: Sequence[str]) -> int:
     ap.add_argument("--scenes-dir", type=Path, default=Path(tempfile.gettempdir()) / "retinexgs-scale",
                     help="where generated scenes are kept (one folder per parameter set, reused)")
     ap.add_argument("--gpus", default="1,2,4", help="rank counts to train, e.g. 1,2,4 (on the CPU: gloo processes)")
+    ap.add_argument("--seeds", default="0", help="training seeds, e.g. 0,1,2: every rank count trains once per seed "
+                    "(seed by seed); the table gives means (± std)")
     ap.add_argument("--views-seen", type=int, default=2000,
                     help="views every run sees: steps = ceil(V / (N x views per rank))")
     ap.add_argument("--views-per-rank", type=int, default=None,
@@ -462,6 +520,12 @@ def main(argv: Sequence[str]) -> int:
     args = ap.parse_args(list(argv))
     try:
         gpus = parse_gpus(args.gpus)
+        try:
+            seeds = list(dict.fromkeys(int(x) for x in args.seeds.replace(" ", ",").split(",") if x.strip()))
+        except ValueError:
+            raise ValueError(f"--seeds {args.seeds!r}: a comma-separated list of integers, e.g. 0,1,2") from None
+        if not seeds or min(seeds) < 0:
+            raise ValueError(f"--seeds {args.seeds!r}: one or more integers >= 0")
         if args.views_seen < 1 or (args.views_per_rank is not None and args.views_per_rank < 1):
             raise ValueError("--views-seen and --views-per-rank must be >= 1")
         if args.scene is None and (args.views < 1 or args.test_views < 0 or args.width < 2 or args.height < 2):
@@ -471,13 +535,13 @@ def main(argv: Sequence[str]) -> int:
         print(f"python -m retinexgs.bench scale: error: {exc}", file=sys.stderr)
         return 2
     try:
-        return _run(args, gpus, device)
+        return _run(args, gpus, device, seeds)
     except UserError as exc:
         print(f"python -m retinexgs.bench scale: error: {exc}", file=sys.stderr)
         return 2
 
 
-def _run(args: argparse.Namespace, gpus: List[int], device: str) -> int:
+def _run(args: argparse.Namespace, gpus: List[int], device: str, seeds: Sequence[int] = (0,)) -> int:
     t0 = time.perf_counter()
     scene, scene_info = make_scene(args, device)
     views, width, height = scene_size(scene)
@@ -531,11 +595,18 @@ def _run(args: argparse.Namespace, gpus: List[int], device: str) -> int:
               + (f" + {', '.join(f'`{s}`' for s in sets)}" if sets else "")
               + f", {args.views_seen} views seen per run, device {device}"
               + ("" if no_priors else ", decomposition done once beforehand"))
-    rows: List[Dict] = []
+    runs: Dict[int, List[Dict]] = {n: [] for n in gpus}
     failed = False
-    for n in gpus:
+    several = len(seeds) > 1
+
+    def rows_now() -> List[Dict]:
+        return [aggregate(runs[n]) if runs[n] else {"gpus": n, "planned_steps": steps_for(args.views_seen, n, vpr),
+                                                    "status": "not run"} for n in gpus]
+
+    for seed, n in [(s, n) for s in seeds for n in gpus]:
         steps = steps_for(args.views_seen, n, vpr)
-        row: Dict = {"gpus": n, "planned_steps": steps}
+        row: Dict = {"gpus": n, "planned_steps": steps, "seed": seed}
+        rows = runs[n]
         if gpu_count is not None and n > gpu_count:
             row["status"] = f"skipped: {gpu_count} GPU(s) here"
         elif n > 1 and not distributed:
@@ -543,15 +614,16 @@ def _run(args: argparse.Namespace, gpus: List[int], device: str) -> int:
         if "status" in row:
             print(f"{n} rank(s): {row['status']}", flush=True)
             rows.append(row)
-            write_report(args.out, header, rows, report, est_text)
+            write_report(args.out, header, rows_now(), report, est_text)
             continue
-        run = args.out / "runs" / f"gpus{n}"
+        name = f"gpus{n}" + (f"-seed{seed}" if several else "")
+        run = args.out / "runs" / name
         if run.exists():
             shutil.rmtree(run)
         run.parent.mkdir(parents=True, exist_ok=True)
-        cmd = train_command(scene, run, n, steps, device, args.config, sets)
-        print(f"{n} rank(s), {steps} steps: {' '.join(cmd[1:])}", flush=True)
-        rc, wall, rss = run_process(cmd, run.parent / f"gpus{n}.log", env)
+        cmd = train_command(scene, run, n, steps, device, args.config, sets + ([f"seed={seed}"] if seed else []))
+        print(f"{n} rank(s), seed {seed}, {steps} steps: {' '.join(cmd[1:])}", flush=True)
+        rc, wall, rss = run_process(cmd, run.parent / f"{name}.log", env)
         m = _metrics(run)
         summary, notes = summarize(n, m, wall, rss, vpr)
         row.update(summary, notes=notes, command=cmd[1:])
@@ -559,16 +631,17 @@ def _run(args: argparse.Namespace, gpus: List[int], device: str) -> int:
             row["status"] = "ok"
         else:
             failed = True
-            row["status"] = f"failed (exit {rc}, {run.parent / f'gpus{n}.log'})"
-            tail = (run.parent / f"gpus{n}.log").read_text(errors="replace").splitlines()[-15:]
+            row["status"] = f"failed (exit {rc}, {run.parent / f'{name}.log'})"
+            tail = (run.parent / f"{name}.log").read_text(errors="replace").splitlines()[-15:]
             print("\n".join(f"    | {line}" for line in tail), file=sys.stderr, flush=True)
         rows.append(row)
         vps = row.get("views_per_second")
         print(f"  {row['status']} in {wall:.0f} s" + (f": {vps:.2f} views/s" if vps else "") +
               (f", PSNR {row['psnr']:.2f}" if row.get("psnr") is not None else ""), flush=True)
-        write_report(args.out, header, rows, report, est_text)
+        write_report(args.out, header, rows_now(), report, est_text)
     report["total_seconds"] = round(time.perf_counter() - t0, 1)
-    md = write_report(args.out, header, rows, report, est_text)
+    report["seed_runs"] = [r for n in gpus for r in runs[n]]
+    md = write_report(args.out, header, rows_now(), report, est_text)
     print(md)
     print(f"table: {args.out / 'scale.md'}, figures: {args.out / 'scale.json'}")
     return 1 if failed else 0

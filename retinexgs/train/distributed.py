@@ -366,10 +366,13 @@ class Distributed:
         self.barrier("every rank's share of the decomposition")
 
     def training_stats(self, batch: int, views: int, seconds: float, time_to_first_step: Optional[float],
-                       params: Sequence[Tensor]) -> Dict[str, Any]:
+                       params: Sequence[Tensor], timing: Optional[Dict[str, float]] = None) -> Dict[str, Any]:
         """The benchmark's figures of a training session (metrics.json["train"]), gathered from every rank:
         ranks, views per step, time to the end of the first step, peak GPU memory and host RSS per rank,
-        views per second, and whether the ranks' parameters are identical at the end."""
+        views per second, and whether the ranks' parameters are identical at the end. ``timing`` (the trainer's
+        ``first_step_seconds``, ``event_seconds``, ``event_steps``) adds the steady rate: views per second
+        after the first step (its warm-up is in ``time_to_first_step`` already), and what the density events
+        cost beyond a plain step's time (a fixed cost per run: the same events whatever the rank count)."""
         local: Dict[str, Any] = {"rss": round(max_rss_gb(), 3)}
         if self.device.type == "cuda":
             local["gpu"] = round(torch.cuda.max_memory_allocated(self.device) / 2**30, 3)
@@ -379,6 +382,7 @@ class Distributed:
                                "host_rss_gb_per_rank": [r["rss"] for r in rows]}
         if time_to_first_step is not None:
             out["time_to_first_step"] = round(time_to_first_step, 3)
+        out.update(steady_timing(batch, views, seconds, timing))
         if self.device.type == "cuda":
             out["peak_gpu_memory_gb_per_rank"] = [r.get("gpu") for r in rows]
         out["ranks_in_sync"] = self.agree(list(params), "the parameters at the end of training")  # 1 rank: True
@@ -404,6 +408,25 @@ class Distributed:
         if ok:
             self.barrier("the end of the run")
             dist.destroy_process_group()
+
+
+def steady_timing(batch: int, views: int, seconds: float, timing: Optional[Dict[str, float]]) -> Dict[str, Any]:
+    """The steady figures of a session of ``views`` views (``batch`` a step) in ``seconds``: views per second
+    after the first step, and the density events' steps, seconds and overhead (their seconds less as many plain
+    steps' time); {} without ``timing`` or its first step's time."""
+    first = (timing or {}).get("first_step_seconds")
+    steps = views // max(1, batch)
+    if first is None or steps < 2 or seconds - first <= 0:
+        return {}
+    ev_s, ev_n = float(timing.get("event_seconds", 0.0)), int(timing.get("event_steps", 0))
+    out: Dict[str, Any] = {"first_step_seconds": round(first, 3),
+                           "views_per_second_after_first_step": round((views - batch) / (seconds - first), 3),
+                           "density_event_steps": ev_n, "density_event_seconds": round(ev_s, 3)}
+    plain_steps, plain_s = steps - 1 - ev_n, seconds - first - ev_s
+    if plain_steps > 0 and plain_s > 0:
+        out["plain_step_seconds"] = round(plain_s / plain_steps, 6)
+        out["density_event_overhead_seconds"] = round(ev_s - ev_n * plain_s / plain_steps, 3)
+    return out
 
 
 def _test_fault() -> Optional[Tuple[str, int, int]]:

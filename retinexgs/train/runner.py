@@ -141,7 +141,10 @@ def _train_and_evaluate(trainer: Trainer, cfg: Dict, scene: Scene, run_dir: Path
             stats["peak_gpu_memory_gb"] = round(torch.cuda.max_memory_allocated() / 2**30, 3)
         # The large-scene benchmark's figures (ranks 1 for a plain run), gathered from every rank.
         stats.update(dist.training_stats(trainer.batch_size, trainer.session_views, values["seconds"],
-                                         trainer.time_to_first_step, gradient_params(trainer.optimizer)))
+                                         trainer.time_to_first_step, gradient_params(trainer.optimizer),
+                                         {"first_step_seconds": trainer.first_step_seconds,
+                                          "event_seconds": trainer.event_seconds,
+                                          "event_steps": trainer.event_steps}))
         resumed = values["total_seconds"] - values["seconds"] > 0.5
         took = (f"{values['total_seconds']:.0f} s in all ({values['seconds']:.0f} s this session)" if resumed
                 else f"{values['seconds']:.0f} s")

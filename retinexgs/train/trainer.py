@@ -670,6 +670,8 @@ class Trainer:
             for group in self.optimizer.param_groups:
                 group["lr"] *= self.lr_scale
         self.time_to_first_step: Optional[float] = None  # seconds from the process's start to step 1's end
+        self.first_step_seconds: Optional[float] = None  # the last session's first step; train() sets these
+        self.event_seconds, self.event_steps = 0.0, 0
         self.session_views = 0  # views trained on in the last train() call, over every rank
         if self.dist.enabled:
             self.dist.broadcast_(list(self.model.state_dict().values()), "the model's initial state")
@@ -732,6 +734,11 @@ class Trainer:
         values: Dict[str, float] = {}
         t0 = self._session_start = time.time()
         first = self.step + 1
+        # What the steady step rate excludes (the scale benchmark's figures): the session's first step (warm-up,
+        # graph captures) and each density event with the step after it (its re-captures), timed between syncs.
+        self.first_step_seconds, self.event_seconds, self.event_steps = None, 0.0, 0
+        timed_from: Optional[Tuple[float, int]] = None
+        timed_through = 0
         bar = tqdm(total=end, initial=self.step, disable=not self.progress or not main, desc="train",
                    dynamic_ncols=True)
         # unbuffered: a record is on disk when written
@@ -743,11 +750,21 @@ class Trainer:
                 check = (self.step % self.cfg["log"]["every"] == 0 or self.step == end
                          or self.step % self.cfg["checkpoint"]["every"] == 0)
                 views = [self.views[i] for i in indices]
+                if self.step > first and (self.schedule.densify_at(self.step) or self.schedule.reset_at(self.step)):
+                    if timed_from is None:
+                        self._sync()
+                        timed_from = (time.time(), self.step)
+                    timed_through = self.step + 1
                 values = self.train_step(self.step, views[0] if len(views) == 1 else views, check=check)
                 if self.step == first:
-                    if self.device.type == "cuda":
-                        torch.cuda.synchronize(self.device)
+                    self._sync()
                     self.time_to_first_step = time.time() - process_start_time()
+                    self.first_step_seconds = time.time() - t0
+                if timed_from is not None and self.step >= min(timed_through, end):
+                    self._sync()
+                    self.event_seconds += time.time() - timed_from[0]
+                    self.event_steps += self.step - timed_from[1] + 1
+                    timed_from = None
                 event = values.pop("event", None)
                 agree = values.pop("ranks_agree", None)
                 if event and log_file is not None:
@@ -775,6 +792,10 @@ class Trainer:
         values["total_seconds"] = self.train_seconds()
         self.seconds_before, self._session_start = values["total_seconds"], None
         return values
+
+    def _sync(self) -> None:
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
 
     def _tensorboard(self):
         if not self.cfg["log"]["tensorboard"]:
