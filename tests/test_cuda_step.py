@@ -270,3 +270,27 @@ def test_cuda_step_has_no_host_sync_outside_checks(scene_dir, tmp_path):
         torch.cuda.set_sync_debug_mode("default")
     assert len(quiet) == 3 and quiet == list(range(quiet[0], quiet[0] + 3))  # consecutive: no step skipped
     assert tr.check_finite(quiet[-1])["total"] > 0
+
+
+@needs_cuda
+def test_channel_graphs_recapture_leanly_after_a_densification_and_skip_short_spans(scene_dir, tmp_path):
+    """The Gaussians' channel graphs are captured where they will be replayed at least MIN_REPLAYS times; after a
+    densification they are re-captured without warm-up or cache flushes (capture_lean) and still give the eager
+    path's values and gradients; a span shorter than MIN_REPLAYS runs eagerly, capturing nothing."""
+    tr = make_trainer(scene_dir, tmp_path / "cg", "default", "cuda",
+                      extra=["steps=1000", "density.start=2", "density.every=20", "density.stop=500",
+                             "model.sh_degree_every=1000"])
+    cg = tr.channel_graphs
+    assert tr.schedule.steps_unchanged(1) == 20 >= cg.MIN_REPLAYS
+    assert_same(step_gradients(tr, 0, 1, graphed=False), step_gradients(tr, 0, 1, graphed=True), 1e-4, 1e-5)
+    assert cg.captures == 1 and not cg.failures
+    n0 = len(tr.model.gaussians)
+    for step in range(1, 21):  # the densification of step 20 makes new Gaussian tensors
+        tr.train_step(step, tr.views[step % len(tr.views)], check=True)
+    assert tr.schedule.densify_at(20) and len(tr.model.gaussians) != n0
+    assert_same(step_gradients(tr, 1, 21, graphed=False), step_gradients(tr, 1, 21, graphed=True), 1e-4, 1e-5)
+    assert cg.captures == 2 and cg.deferred == 0 and not cg.failures
+    cg._key = None  # as if the Gaussians had just changed, 3 steps before the next densification
+    g = tr.model.gaussians
+    assert cg.run(tr.active_degree(37), tr.views[0].center, replays=tr.schedule.steps_unchanged(37)) is None
+    assert cg.deferred == 1 and cg.captures == 2 and g is tr.model.gaussians

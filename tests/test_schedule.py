@@ -11,7 +11,7 @@ from retinexgs.data import load_scene
 from retinexgs.demo.synthetic import make_demo_scene
 from retinexgs.errors import UserError
 from retinexgs.run.config import load_config
-from retinexgs.model.schedule import build_schedule
+from retinexgs.model.schedule import Schedule, build_schedule
 from retinexgs.train.trainer import Trainer
 from retinexgs.run.render import active_sh_degree
 
@@ -158,3 +158,20 @@ def test_the_check_catches_a_reset_on_the_last_step(small_scene, tmp_path, one_t
     before, after = short_run(small_scene, tmp_path / "run", RESET_ON_LAST_STEP + ["density.last_event=1.0",
                                                                                    "model.background=black"])
     assert after < before - 0.5
+
+def test_steps_unchanged_counts_to_the_next_densification_or_degree():
+    s = Schedule(steps=2000, densify_start=100, densify_stop=1000, densify_every=20, reset_every=600,
+                 enhance_from=600, sh_degree=3, sh_degree_every=200)
+
+    def brute(step):  # the steps from ``step`` rendering its degree and Gaussians, walked one by one
+        n, degree = 0, s.sh_degree_at(step)
+        for t in range(step, s.steps + 1):
+            if s.sh_degree_at(t) != degree:
+                break
+            n += 1
+            if s.densify_at(t):
+                break
+        return n
+
+    assert all(s.steps_unchanged(t) == brute(t) for t in range(1, s.steps + 1))
+    assert s.steps_unchanged(120) == 1 and s.steps_unchanged(121) == 20 and s.steps_unchanged(1990) == 11

@@ -63,6 +63,19 @@ class Schedule:
     def sh_degree_at(self, step: int) -> int:
         return min(self.sh_degree, step // self.sh_degree_every)
 
+    def steps_unchanged(self, step: int) -> int:
+        """How many steps from ``step`` on (itself included) render the Gaussians and the SH degree of ``step``:
+        up to the next densification (after its step's update, so that step still counts), the next SH degree
+        increase (not counted) or the end of the run. What a CUDA graph of them would be replayed for."""
+        end = self.steps
+        if self.densify_stop > self.densify_start and self.densify_every > 0:
+            nxt = max(-(-step // self.densify_every), self.densify_start // self.densify_every + 1) * self.densify_every
+            if nxt <= self.densify_stop:
+                end = min(end, nxt)
+        if self.sh_degree_at(step) < self.sh_degree:
+            end = min(end, (step // self.sh_degree_every + 1) * self.sh_degree_every - 1)
+        return max(1, end - step + 1)
+
     def resets(self) -> List[int]:
         if not self.reset_every:
             return []

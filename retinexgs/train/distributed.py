@@ -317,13 +317,15 @@ class Distributed:
         """After a density event: compare every rank's Gaussians with rank 0's, then broadcast rank 0's
         Gaussian parameters and their Adam moments (a rank whose count differs is resized first), so the ranks
         go on from identical models whatever the random draws of the event were. Returns whether they all
-        agreed before the broadcast (recorded in the run's log)."""
+        agreed before the broadcast (recorded in the run's log). One flat buffer per dtype serves both the
+        comparison (its fingerprint) and the broadcast: an event runs dozens of times a run, at every rank count."""
         groups = [g for g in optimizer.param_groups if g.get("name") in PARAM_NAMES]
         params = [g["params"][0] for g in groups]
-        agreed = self.agree(params, f"the Gaussians after the density event of step {step}")
-        n = torch.tensor([float(params[0].shape[0])], dtype=torch.float64, device=self.device)
+        mine = params[0].shape[0]
+        n = torch.tensor([float(mine)], dtype=torch.float64, device=self.device)
         self.broadcast_([n], "the Gaussian count")
-        if int(n) != params[0].shape[0]:
+        resized = int(n) != mine
+        if resized:
             self._resize(model, optimizer, groups, int(n))
         tensors: List[Tensor] = []
         for g in groups:
@@ -331,8 +333,24 @@ class Distributed:
             tensors.append(p.data)
             state = optimizer.state.get(p, {})
             tensors += [state[k] for k in ("exp_avg", "exp_avg_sq") if k in state]
-        self.broadcast_(tensors, f"the Gaussians and their Adam moments after the density event of step {step}")
-        return agreed
+        what = f"the Gaussians and their Adam moments after the density event of step {step}"
+        flats = []
+        for idx in self._flat_groups(tensors).values():
+            parts = [tensors[i] for i in idx]
+            flats.append((parts, torch.cat([t.detach().reshape(-1) for t in parts])))
+        fingerprint = torch.cat([self._fingerprint([flat]) for _, flat in flats]
+                                + [torch.tensor([float(len(tensors))], dtype=torch.float64, device=self.device)])
+        every = [torch.empty_like(fingerprint) for _ in range(self.world)]
+        with self._collective(f"comparing {what}"):
+            dist.all_gather(every, fingerprint)
+        for parts, flat in flats:
+            with self._collective(f"receiving {what} from rank 0"):
+                dist.broadcast(flat, src=0)
+            with torch.no_grad():
+                for t, chunk in zip(parts, flat.split([t.numel() for t in parts])):
+                    t.copy_(chunk.view_as(t))
+        rows = torch.stack(every).tolist()  # read after the broadcast is queued: one host sync, at the end
+        return not resized and all(r == rows[0] for r in rows)
 
     @staticmethod
     def _resize(model: nn.Module, optimizer: torch.optim.Optimizer, groups: List[Dict], n: int) -> None:

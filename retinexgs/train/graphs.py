@@ -180,13 +180,13 @@ class _ChannelCapture:
     What ``torch.cuda.make_graphed_callables`` builds, without its reference cycles: dropping this object
     frees the graphs and their memory at once (a run rebuilds them at every densification)."""
 
-    def __init__(self, module, gaussians: Tuple[Tensor, ...], center: Tensor, warmup: int) -> None:
+    def __init__(self, module, gaussians: Tuple[Tensor, ...], center: Tensor, warmup: int,
+                 side: "torch.cuda.Stream") -> None:
         self.center = center.detach().clone()
         self.inputs = tuple(gaussians) + (self.center,)
         self.params = tuple(module.parameters())
         self.diff = [t for t in self.inputs + self.params if t.requires_grad]
         device = center.device
-        side = torch.cuda.Stream(device=device)
         side.wait_stream(torch.cuda.current_stream(device))
         with torch.cuda.stream(side):
             for _ in range(warmup):
@@ -196,11 +196,14 @@ class _ChannelCapture:
         torch.cuda.current_stream(device).wait_stream(side)
         self.fwd, self.bwd = torch.cuda.CUDAGraph(), torch.cuda.CUDAGraph()
         pool = torch.cuda.graph_pool_handle()  # shared by the two: the backward reads the forward's saved tensors
-        with torch.cuda.graph(self.fwd, pool=pool):
+        # The lean capture: a re-capture at every densification must not drain the GPU's queue nor empty the
+        # allocator's caches, as torch.cuda.graph does (docs/benchmarks.md, Scale: 25-40 ms an event).
+        with cuda_graphs.capture_lean(self.fwd, side, pool):
             out = module(*self.inputs)
         self.grad_out = torch.empty_like(out)
-        with torch.cuda.graph(self.bwd, pool=pool):
+        with cuda_graphs.capture_lean(self.bwd, side, pool):
             self.grads = torch.autograd.grad(out, self.diff, self.grad_out)
+        torch.cuda.current_stream(device).wait_stream(side)
         self.out = out.detach()
 
 
@@ -237,16 +240,25 @@ class ChannelGraphs:
     ``emulate``: on the CPU run the same structure eagerly (tests, op counts).
     """
 
+    # A capture is made only where it will be replayed at least this many times before the Gaussians change
+    # again: it costs the host about as much as this many eager evaluations save (an event's step and the next,
+    # 2026-11-26 H100), and a short run's schedule densifies every few steps (500 steps: every 5).
+    MIN_REPLAYS = 8
+
     def __init__(self, model, warmup: int = 2, emulate: bool = False) -> None:
         self.model, self.warmup, self.emulate = model, int(warmup), bool(emulate)
         self._key: Optional[tuple] = None
         self._cap: Optional[_ChannelCapture] = None
         self._failed: Dict[tuple, str] = {}
+        self._side: Dict[torch.device, "torch.cuda.Stream"] = {}  # one capture stream per device
+        self._warmed: set = set()  # (device, SH degree): captured before, no eager warm-up needed again
         self.captures = 0
+        self.deferred = 0  # steps evaluated eagerly because the Gaussians were about to change
 
-    def run(self, active_degree: int, center: Tensor) -> Optional[Tensor]:
+    def run(self, active_degree: int, center: Tensor, replays: Optional[int] = None) -> Optional[Tensor]:
         """The channels [N,C] (differentiable in the Gaussians and the illumination field); None: evaluate
-        them eagerly (not CUDA, or the capture failed)."""
+        them eagerly (not CUDA, the capture failed, or ``replays``, the steps these Gaussians and this SH degree
+        are known to last, is below :attr:`MIN_REPLAYS`: then no graph is captured for them)."""
 
         g = self.model.gaussians
         degree = self.model.channel_degree(active_degree)
@@ -259,13 +271,26 @@ class ChannelGraphs:
             return _Emulated.apply(module, 4, *gaussians, center, *module.parameters())
         key = (degree, center.device, center.dtype) + tuple((t.data_ptr(), tuple(t.shape), t.dtype) for t in gaussians)
         if key != self._key:
-            self._key, self._cap = key, None  # the old graphs (and their memory) go with the old Gaussians
+            self._cap = None  # the old graphs (and their memory) go with the old Gaussians
             if key in self._failed:
+                self._key = key
                 return None
+            if replays is not None and replays < self.MIN_REPLAYS:
+                self._key = None  # decided again next step
+                self.deferred += 1
+                return None
+            self._key = key
+            device = center.device
+            side = self._side.get(device)
             try:
-                with torch.cuda.device(center.device):
+                with torch.cuda.device(device):
+                    if side is None:
+                        side = torch.cuda.Stream(device=device)
+                    warm = (device, degree, illumination is not None)
                     self._cap = _ChannelCapture(GaussianChannels(degree, illumination), gaussians, center,
-                                                self.warmup)
+                                                0 if warm in self._warmed else self.warmup, side)
+                self._side[device] = side
+                self._warmed.add(warm)
                 self.captures += 1
             except Exception as err:  # runs eagerly until the Gaussians change
                 self._failed[key] = f"{type(err).__name__}: {err}"

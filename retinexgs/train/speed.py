@@ -215,6 +215,55 @@ def trainer_step(scene_path: Path, config: List[str], device: torch.device, run_
     return step
 
 
+def profile_events(step: Callable[[], None], events: int, device: torch.device, top: int = 15) -> str:
+    """What a density event costs: ``events`` times, train up to the step before the next scheduled event, then
+    time (synchronised) the event's step and the one after it (its re-captures) under ``torch.profiler``, and as
+    many pairs of plain steps right after; returns the wall ms per pair of each and the host calls (CPU ops and
+    CUDA runtime calls) whose self time per pair grew most, as a table."""
+    tr = step.trainer  # type: ignore[attr-defined]
+    sched = tr.schedule
+
+    def is_event(s: int) -> bool:
+        return sched.densify_at(s) or sched.reset_at(s)
+
+    acts = [torch.profiler.ProfilerActivity.CPU] + ([torch.profiler.ProfilerActivity.CUDA]
+                                                    if device.type == "cuda" else [])
+    totals: Dict[str, List[float]] = {"event": [], "plain": []}
+    selfs: Dict[str, Dict[str, float]] = {"event": {}, "plain": {}}
+    done = 0
+    while done < events and tr.step < tr.cfg["steps"] - 4:
+        if not is_event(tr.step + 1) or is_event(tr.step + 2):
+            step()
+            continue
+        for kind in ("event", "plain"):
+            if kind == "plain" and (is_event(tr.step + 1) or is_event(tr.step + 2)):
+                break
+            _sync(device)
+            with torch.profiler.profile(activities=acts) as prof:
+                t0 = time.perf_counter()
+                step()
+                step()
+                _sync(device)
+                totals[kind].append((time.perf_counter() - t0) * 1e3)
+            for e in prof.key_averages():
+                selfs[kind][e.key] = selfs[kind].get(e.key, 0.0) + e.self_cpu_time_total / 1e3
+        else:
+            done += 1
+    if not totals["event"] or len(totals["plain"]) < len(totals["event"]):
+        return "no density event in reach (start --warmup inside the densification window)"
+    k = len(totals["event"])
+    ev, pl = statistics.median(totals["event"]), statistics.median(totals["plain"][:k])
+    lines = [f"{k} density events (the event's step and the next) against as many pairs of plain steps right "
+             f"after: {ev:.2f} against {pl:.2f} ms per pair (medians): {ev - pl:.2f} ms an event",
+             "| host call (self CPU time) | event pair ms | plain pair ms | difference |", "|---|---|---|---|"]
+    keys = set(selfs["event"]) | set(selfs["plain"])
+    diff = sorted(keys, key=lambda key: selfs["plain"].get(key, 0.0) - selfs["event"].get(key, 0.0))
+    for key in diff[:top]:
+        a, b = selfs["event"].get(key, 0.0) / k, selfs["plain"].get(key, 0.0) / k
+        lines.append(f"| {key[:70]} | {a:.2f} | {b:.2f} | {a - b:+.2f} |")
+    return "\n".join(lines)
+
+
 def _row(label: str, m: Dict[str, float], ref: Optional[Dict[str, float]] = None) -> str:
     def f(x: float) -> str:
         return "n/a" if not math.isfinite(x) else f"{x:.2f}"
@@ -242,6 +291,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--config", action="append", default=[], help="config name(s) for --data")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="config override for --data (e.g. train.stream_views=always); repeatable")
+    parser.add_argument("--events", type=int, default=0, help="with --data: also profile this many density events "
+                        "against plain steps (what each costs, and the host calls that grew)")
     args = parser.parse_args(argv)
     if args.steps < 1 or args.warmup < 0 or args.width < 1 or args.height < 1:
         parser.error("--steps, --width and --height must be at least 1 and --warmup at least 0")
@@ -272,6 +323,16 @@ def main(argv: Optional[List[str]] = None) -> int:
                 print("views preloaded on the device")
             print(HEADER + " |\n|---|---|---|---|---|---|")
             print(_row("trainer", m))
+            if args.events > 0:
+                print(profile_events(step, args.events, device))
+                graphs = step.trainer.channel_graphs  # type: ignore[attr-defined]
+                if graphs is not None:
+                    print(f"Gaussians' channel graphs: {graphs.captures} captures, {graphs.deferred} steps eager "
+                          "(the Gaussians about to change)")
+                    step.trainer.channel_graphs = None  # type: ignore[attr-defined]
+                    eager = measure(step, args.steps, 0, device)
+                    step.trainer.channel_graphs = graphs  # type: ignore[attr-defined]
+                    print(_row("trainer, channels eager", eager, m) + " (wall ratio to the graphed step)")
         return 0
     try:
         sizes = [parse_size(s) for s in args.sizes.split(",") if s.strip()]

@@ -523,7 +523,8 @@ class Trainer:
         with record_function("step/render"):
             colors = None
             if graphed and self.channel_graphs is not None:
-                colors = self.channel_graphs.run(self.active_degree(step), tv.center)
+                colors = self.channel_graphs.run(self.active_degree(step), tv.center,
+                                                 self.schedule.steps_unchanged(step))
                 for key, why in self.channel_graphs.failures.items():
                     if key not in self._graph_failures_logged:
                         self._graph_failures_logged.add(key)
