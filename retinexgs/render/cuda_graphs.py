@@ -47,9 +47,10 @@ def _collector_paused() -> Iterator[None]:
 def capture_lean(graph: "torch.cuda.CUDAGraph", stream: "torch.cuda.Stream", pool=None) -> Iterator[None]:
     """Record onto ``stream`` (which first waits for the current stream) into ``graph``, sharing ``pool``, with
     the collector paused, and none of ``torch.cuda.graph``'s preparations: no device synchronisation, no full
-    collection, no emptying of the device and pinned-host caches. Those cost 20-40 ms with a GPU-bound step in
-    flight (the queue drains, the caches are re-filled by cudaMalloc and cudaHostAlloc after); a graph recaptured
-    at every densification (the Gaussians' channels) pays them dozens of times a run. For re-captures of work
+    collection, no emptying of the device and pinned-host caches. With a GPU-bound step in flight those cost
+    most of a density event's 34-44 ms (the host waits for the queue, then cudaFree and cudaMalloc refill the
+    cache; docs/experiments/2026-11-26-scale-events.md), and the Gaussians' channels are re-captured at every
+    densification, dozens of times a run. For re-captures of work
     already run eagerly in this process (library handles and workspaces exist)."""
     stream.wait_stream(torch.cuda.current_stream(stream.device))
     with _collector_paused(), torch.cuda.stream(stream):

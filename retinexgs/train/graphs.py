@@ -197,7 +197,7 @@ class _ChannelCapture:
         self.fwd, self.bwd = torch.cuda.CUDAGraph(), torch.cuda.CUDAGraph()
         pool = torch.cuda.graph_pool_handle()  # shared by the two: the backward reads the forward's saved tensors
         # The lean capture: a re-capture at every densification must not drain the GPU's queue nor empty the
-        # allocator's caches, as torch.cuda.graph does (docs/benchmarks.md, Scale: 25-40 ms an event).
+        # allocator's caches, as torch.cuda.graph does (docs/experiments/2026-11-26-scale-events.md).
         with cuda_graphs.capture_lean(self.fwd, side, pool):
             out = module(*self.inputs)
         self.grad_out = torch.empty_like(out)
@@ -241,8 +241,9 @@ class ChannelGraphs:
     """
 
     # A capture is made only where it will be replayed at least this many times before the Gaussians change
-    # again: it costs the host about as much as this many eager evaluations save (an event's step and the next,
-    # 2026-11-26 H100), and a short run's schedule densifies every few steps (500 steps: every 5).
+    # again. A capture costs the host one eager evaluation (recorded, not run) plus the graphs' instantiation
+    # (0.7 ms an event, H100, 2026-11-26); a replay saves a few dozen launches: a span of a few steps cannot pay
+    # it back, and a short run densifies every few steps (500 steps: every 5). 8 is a round number, not tuned.
     MIN_REPLAYS = 8
 
     def __init__(self, model, warmup: int = 2, emulate: bool = False) -> None:
@@ -251,7 +252,7 @@ class ChannelGraphs:
         self._cap: Optional[_ChannelCapture] = None
         self._failed: Dict[tuple, str] = {}
         self._side: Dict[torch.device, "torch.cuda.Stream"] = {}  # one capture stream per device
-        self._warmed: set = set()  # (device, SH degree): captured before, no eager warm-up needed again
+        self._warmed: set = set()  # (device, SH degree, MLP or not): captured before, no eager warm-up again
         self.captures = 0
         self.deferred = 0  # steps evaluated eagerly because the Gaussians were about to change
 
