@@ -163,3 +163,22 @@ def test_colour_error_sees_a_cast_not_the_exposure():
     assert mean_colour_lab(np.full((4, 4, 3), 0.5))[0] == pytest.approx(53.39, abs=0.05)
     with pytest.raises(ValueError, match="RGB"):
         mean_colour_lab(np.zeros((4, 4, 1)))
+
+
+@pytest.mark.parametrize("pad", [0, 5])
+def test_float64_filter_by_shifted_sums_is_the_depthwise_convolution(pad):
+    """The evaluation's float64 CPU filter (sums of shifted slices) gives the conv2d filter's values and
+    gradients."""
+    import torch.nn.functional as F
+    from retinexgs.evaluate.metrics import gaussian_filter, gaussian_filter_weights
+
+    x = torch.rand(2, 3, 23, 31, dtype=torch.float64, requires_grad=True)
+    wx, wy = gaussian_filter_weights(3, 11, 1.5, torch.float64, "cpu")
+    ref = F.conv2d(F.conv2d(x, wx, padding=(0, pad), groups=3), wy, padding=(pad, 0), groups=3)
+    out = gaussian_filter(x, 11, 1.5, pad)
+    assert out.shape == ref.shape
+    torch.testing.assert_close(out, ref, rtol=1e-13, atol=1e-15)
+    g = torch.rand_like(ref)
+    (ga,) = torch.autograd.grad(out, x, g)
+    (gb,) = torch.autograd.grad(ref, x, g)
+    torch.testing.assert_close(ga, gb, rtol=1e-13, atol=1e-15)
