@@ -28,6 +28,7 @@ _was_on = True
 
 @contextlib.contextmanager
 def _collector_paused() -> Iterator[None]:
+    """Python's cyclic collector off until the outermost pause ends (re-enabled only if it was on)."""
     global _depth, _was_on
     with _lock:
         if _depth == 0:
@@ -50,8 +51,8 @@ def capture_lean(graph: "torch.cuda.CUDAGraph", stream: "torch.cuda.Stream", poo
     collection, no emptying of the device and pinned-host caches. With a GPU-bound step in flight those cost
     most of a density event's 34-44 ms (the host waits for the queue, then cudaFree and cudaMalloc refill the
     cache; docs/experiments/2026-11-26-scale-events.md), and the Gaussians' channels are re-captured at every
-    densification, dozens of times a run. For re-captures of work
-    already run eagerly in this process (library handles and workspaces exist)."""
+    densification, dozens of times a run. For re-captures of work already run eagerly in this process (library
+    handles and workspaces exist)."""
     stream.wait_stream(torch.cuda.current_stream(stream.device))
     with _collector_paused(), torch.cuda.stream(stream):
         graph.capture_begin(*(() if pool is None else (pool,)))
@@ -65,18 +66,6 @@ def capture_lean(graph: "torch.cuda.CUDAGraph", stream: "torch.cuda.Stream", poo
 def capture(graph: "torch.cuda.CUDAGraph", **kwargs) -> Iterator[None]:
     """``with torch.cuda.graph(graph, **kwargs)`` after a full collection and with the collector paused until
     the capture ends (re-enabled only if it was on)."""
-    global _depth, _was_on
     gc.collect()
-    with _lock:
-        if _depth == 0:
-            _was_on = gc.isenabled()
-            gc.disable()
-        _depth += 1
-    try:
-        with torch.cuda.graph(graph, **kwargs):
-            yield
-    finally:
-        with _lock:
-            _depth -= 1
-            if _depth == 0 and _was_on:
-                gc.enable()
+    with _collector_paused(), torch.cuda.graph(graph, **kwargs):
+        yield
