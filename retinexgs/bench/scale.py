@@ -308,7 +308,7 @@ def aggregate(runs: Sequence[Dict]) -> Dict:
     runs = list(runs)
     ok = [r for r in runs if r.get("status") == "ok"]
     row = dict(ok[0] if ok else runs[0])
-    row["seeds"] = [r.get("seed", 0) for r in ok]
+    row["seeds"] = [r.get("seed") for r in ok]
     row["status"] = "ok" if ok and len(ok) == len(runs) else next(
         (r.get("status", "?") for r in runs if r.get("status") != "ok"), "?")
     if ok and len(ok) < len(runs):
@@ -384,7 +384,7 @@ def table(rows: Sequence[Dict]) -> str:
         + mark(r, "ranks_missing"))
     add("steps (views seen)", lambda r: f"{_num(r['steps'], 'd')} ({_num(r['views_seen'], 'd')})"
         if r.get("status") == "ok" else f"{r.get('planned_steps', '–')} planned", always=True)
-    add("seeds", lambda r: ", ".join(str(x) for x in r.get("seeds", [r.get("seed", 0)])))
+    add("seeds", lambda r: ", ".join("config's" if x is None else str(x) for x in r.get("seeds", [r.get("seed")])))
     add("**views/s**", lambda r: pm(r, "views_per_second", ".2f") + mark(r, "views_fallback"))
     add("steps/s", lambda r: _num(r.get("steps_per_second"), ".2f"))
     add("speed-up (views/s over 1 GPU)", lambda r: "–" if speedup(r) is None else f"{speedup(r):.2f}×")
@@ -501,8 +501,8 @@ def main(argv: Sequence[str]) -> int:
     ap.add_argument("--scenes-dir", type=Path, default=Path(tempfile.gettempdir()) / "retinexgs-scale",
                     help="where generated scenes are kept (one folder per parameter set, reused)")
     ap.add_argument("--gpus", default="1,2,4", help="rank counts to train, e.g. 1,2,4 (on the CPU: gloo processes)")
-    ap.add_argument("--seeds", default="0", help="training seeds, e.g. 0,1,2: every rank count trains once per seed "
-                    "(seed by seed); the table gives means (± std)")
+    ap.add_argument("--seeds", default=None, help="training seeds, e.g. 0,1,2: every rank count trains once per seed "
+                    "(seed by seed; passed as --set seed=S); the table gives means (± std). Default: the config's")
     ap.add_argument("--views-seen", type=int, default=2000,
                     help="views every run sees: steps = ceil(V / (N x views per rank))")
     ap.add_argument("--views-per-rank", type=int, default=None,
@@ -521,10 +521,11 @@ def main(argv: Sequence[str]) -> int:
     try:
         gpus = parse_gpus(args.gpus)
         try:
-            seeds = list(dict.fromkeys(int(x) for x in args.seeds.replace(" ", ",").split(",") if x.strip()))
+            seeds: List[Optional[int]] = [None] if args.seeds is None else list(dict.fromkeys(
+                int(x) for x in args.seeds.replace(" ", ",").split(",") if x.strip()))
         except ValueError:
             raise ValueError(f"--seeds {args.seeds!r}: a comma-separated list of integers, e.g. 0,1,2") from None
-        if not seeds or min(seeds) < 0:
+        if not seeds or (args.seeds is not None and min(seeds) < 0):
             raise ValueError(f"--seeds {args.seeds!r}: one or more integers >= 0")
         if args.views_seen < 1 or (args.views_per_rank is not None and args.views_per_rank < 1):
             raise ValueError("--views-seen and --views-per-rank must be >= 1")
@@ -541,7 +542,7 @@ def main(argv: Sequence[str]) -> int:
         return 2
 
 
-def _run(args: argparse.Namespace, gpus: List[int], device: str, seeds: Sequence[int] = (0,)) -> int:
+def _run(args: argparse.Namespace, gpus: List[int], device: str, seeds: Sequence[Optional[int]] = (None,)) -> int:
     t0 = time.perf_counter()
     scene, scene_info = make_scene(args, device)
     views, width, height = scene_size(scene)
@@ -621,8 +622,8 @@ def _run(args: argparse.Namespace, gpus: List[int], device: str, seeds: Sequence
         if run.exists():
             shutil.rmtree(run)
         run.parent.mkdir(parents=True, exist_ok=True)
-        cmd = train_command(scene, run, n, steps, device, args.config, sets + ([f"seed={seed}"] if seed else []))
-        print(f"{n} rank(s), seed {seed}, {steps} steps: {' '.join(cmd[1:])}", flush=True)
+        cmd = train_command(scene, run, n, steps, device, args.config, sets + ([] if seed is None else [f"seed={seed}"]))
+        print(f"{n} rank(s), seed {'as configured' if seed is None else seed}, {steps} steps: {' '.join(cmd[1:])}", flush=True)
         rc, wall, rss = run_process(cmd, run.parent / f"{name}.log", env)
         m = _metrics(run)
         summary, notes = summarize(n, m, wall, rss, vpr)
