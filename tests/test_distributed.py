@@ -279,6 +279,31 @@ def test_learning_rates_scale_with_the_batch(scene, tmp_path, one_thread):
             assert four[name] == pytest.approx(one[name] * factor, rel=1e-12), (mode, name)
 
 
+def test_adam_betas_follow_the_batch_and_a_resume_takes_its_own(scene, tmp_path, one_thread):
+    from retinexgs.data import load_scene
+    from retinexgs.run.config import load_config
+    from retinexgs.train.distributed import adam_betas_for_batch
+    from retinexgs.train.trainer import Trainer
+
+    assert adam_betas_for_batch("power", 1) == adam_betas_for_batch("none", 4) == (0.9, 0.999)
+    assert adam_betas_for_batch("power", 4) == pytest.approx((0.9 ** 4, 0.999 ** 4), rel=1e-15)
+    with pytest.raises(ValueError, match="momentum_batch_scaling"):
+        adam_betas_for_batch("sqrt", 2)
+    s = load_scene(scene)
+
+    def betas(run, resume, *extra):
+        run.mkdir(exist_ok=True)
+        cfg = load_config(["demo"], OVERRIDES + ["steps=2", "train.momentum_batch_scaling=power"] + list(extra))
+        tr = Trainer(cfg, s, run, "cpu", resume=resume, progress=False, log=lambda m: None)
+        if not resume:
+            tr.train()
+        return {tuple(g["betas"]) for g in tr.optimizer.param_groups}
+
+    # Written with a batch of 4 (betas 0.9^4, 0.999^4), resumed with a batch of 1: torch's betas again.
+    assert betas(tmp_path / "r", False, "train.views_per_rank=4") == {adam_betas_for_batch("power", 4)}
+    assert betas(tmp_path / "r", True, "train.views_per_rank=1") == {(0.9, 0.999)}
+
+
 def _sync_worker(rank, world, port, out):
     os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank), WORLD_SIZE=str(world),
                       LOCAL_RANK=str(rank))

@@ -223,6 +223,7 @@ class Train(Section):
     cuda_graphs: Bool
     views_per_rank: Int(1)
     lr_batch_scaling: Choice("sqrt", "linear", "none")
+    momentum_batch_scaling: Choice("power", "none")
     stream_views: Choice("auto", "always", "never")
     views_on_device_gb: Num(ge=0)
 

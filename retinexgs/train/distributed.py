@@ -75,6 +75,22 @@ def lr_batch_factor(mode: str, batch: int) -> float:
     return math.sqrt(batch) if mode == "sqrt" else float(batch)
 
 
+MOMENTUM_BATCH_SCALING = ("power", "none")
+ADAM_BETAS = (0.9, 0.999)  # torch's defaults, the betas of a batch of one view
+
+
+def adam_betas_for_batch(mode: str, batch: int) -> Tuple[float, float]:
+    """Adam's (β1, β2) for a step of ``batch`` views (``train.momentum_batch_scaling``). ``power``: β^B, so that
+    the moments forget at the same rate per view seen as in a run of one view a step (B steps of β decay by β^B;
+    Grendel-GS's momentum rule); ``none``: torch's defaults. Exactly the defaults for B = 1."""
+    if mode not in MOMENTUM_BATCH_SCALING:
+        raise ValueError(f"train.momentum_batch_scaling must be one of {', '.join(MOMENTUM_BATCH_SCALING)}, "
+                         f"got {mode!r}")
+    if batch == 1 or mode == "none":
+        return ADAM_BETAS
+    return (ADAM_BETAS[0] ** batch, ADAM_BETAS[1] ** batch)
+
+
 def _env_seconds(name: str, default: float) -> float:
     raw = os.environ.get(name)
     if raw in (None, ""):

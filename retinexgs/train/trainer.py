@@ -23,7 +23,8 @@ from retinexgs.model.retinex_model import RetinexGSModel
 from retinexgs.model.tone import exposure_gain
 from retinexgs.train import losses
 from retinexgs.run.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
-from retinexgs.train.distributed import Distributed, gradient_params, lr_batch_factor, process_start_time, take_gradients
+from retinexgs.train.distributed import (Distributed, adam_betas_for_batch, gradient_params, lr_batch_factor,
+                                         process_start_time, take_gradients)
 from retinexgs.train.graphs import ChannelGraphs, LossGraphs
 from retinexgs.train.noise import CaptureNoise, NoiseProbe, measure_capture_noise, sigma_limit
 from retinexgs.train.views import (TrainView, StreamedViews, ViewStatistics, ViewStore, check_prior_size,
@@ -661,15 +662,18 @@ class Trainer:
     # ---- the loop ----------------------------------------------------------------------------------------
     def _setup_batch(self, dist: Optional[Distributed]) -> None:
         """A step's batch: ``batch_size`` = ranks × ``train.views_per_rank`` views; every learning rate scaled
-        by ``train.lr_batch_scaling`` of it (1 for a batch of one view). With several ranks, rank 0's model
+        by ``train.lr_batch_scaling`` of it (1 for a batch of one view), Adam's betas by
+        ``train.momentum_batch_scaling``. With several ranks, rank 0's model
         state (parameters and buffers: ``illum_ref``, the mean background) is broadcast to the others."""
         self.dist = dist if dist is not None else Distributed(device=self.device)
         tcfg = self.cfg["train"]
         self.batch_size = self.dist.world * int(tcfg.get("views_per_rank", 1))
         self.lr_scale = lr_batch_factor(tcfg.get("lr_batch_scaling", "sqrt"), self.batch_size)
-        if self.lr_scale != 1.0:
-            for group in self.optimizer.param_groups:
-                group["lr"] *= self.lr_scale
+        # Set on every start, a resume included: a checkpoint holds the betas of the batch it was written with.
+        self.adam_betas = adam_betas_for_batch(tcfg.get("momentum_batch_scaling", "none"), self.batch_size)
+        for group in self.optimizer.param_groups:
+            group["lr"] *= self.lr_scale
+            group["betas"] = self.adam_betas
         self.time_to_first_step: Optional[float] = None  # seconds from the process's start to step 1's end
         self.first_step_seconds: Optional[float] = None  # the last session's first step; train() sets these
         self.event_seconds, self.event_steps = 0.0, 0
