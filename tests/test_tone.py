@@ -244,3 +244,40 @@ def test_schema_takes_a_shoulder_in_0_1():
     ref, g = torch.tensor(0.3, dtype=torch.float64), torch.tensor([0.5], dtype=torch.float64)
     for tone in ("illumination", "signal"):
         assert torch.equal(tone_map(R, L, ref, g, tone, shoulder=0.5)[0], tone_map(R, L, ref, g, tone)[0])
+
+
+def test_the_highlight_meter_caps_the_target_where_more_than_its_share_would_blow_out():
+    from retinexgs.model.tone import highlight_capped_mean, highlight_shoulder
+
+    def image(bright_share, scale=1.0, n=10000):
+        lin = torch.full((n, 3), 0.02 * scale, dtype=torch.float64)
+        lin[: int(bright_share * n)] = 0.2 * scale  # a 10x brighter part of the frame
+        return linear_to_srgb(lin)
+
+    def mean_at_white(lin_white):  # the tone of the dim part (linear 0.1) and the bright part at linear `lin_white`
+        return lambda share: float(share * linear_to_srgb(highlight_shoulder(torch.tensor(lin_white), 0.5))
+                                   + (1 - share) * linear_to_srgb(highlight_shoulder(torch.tensor(0.1), 0.5)))
+
+    # 10 % bright, share 5 %: the exposure puts the bright part at white (1 before the shoulder), the rest at 0.1.
+    got = highlight_capped_mean(image(0.10), 0.5, 0.05, shoulder=0.5)
+    assert float(got) == pytest.approx(mean_at_white(1.0)(0.10), abs=1e-4) and float(got) < 0.5
+    # The same frame 3x darker in linear light: the same target (the meter reads the light's distribution).
+    assert float(highlight_capped_mean(image(0.10, scale=1 / 3), 0.5, 0.05, shoulder=0.5)) == pytest.approx(
+        float(got), abs=1e-4)
+    # 2 % bright: the exposure that blows out 5 % also blows out the dim 3 %... its mean is past 0.5: no cap.
+    assert float(highlight_capped_mean(image(0.02), 0.5, 0.05, shoulder=0.5)) == 0.5
+    # A larger share allowed: the cap falls away for the 10 % frame too.
+    assert float(highlight_capped_mean(image(0.10), 0.5, 0.2, shoulder=0.5)) == 0.5
+
+
+def test_the_highlight_meter_acts_only_on_the_whole_image_meter_of_the_exposure_tone():
+    from retinexgs.run.config import load_config
+    from retinexgs.train.trainer import highlight_meter_applies
+
+    cfg = load_config([])
+    assert cfg["loss"]["exp_highlight_share"] == 0.05  # the default since 2026-11-27
+    assert load_config(["ablations/meter_average"])["loss"]["exp_highlight_share"] == 0.0
+    assert highlight_meter_applies(cfg["model"]["enhancement"]["tone"], cfg["loss"])
+    for extra in (["model.enhancement.tone=illumination"], ["loss.exp_on=illumination"], ["loss.exp_patch=16"]):
+        c = load_config([], extra)  # accepted, and ignored there
+        assert not highlight_meter_applies(c["model"]["enhancement"]["tone"], c["loss"]), extra

@@ -28,7 +28,7 @@ from typing import Optional, Tuple
 import torch
 from torch import Tensor
 
-__all__ = ["TONES", "srgb_to_linear", "linear_to_srgb", "highlight_shoulder", "log_lin_ref", "exposure_gain",
+__all__ = ["TONES", "srgb_to_linear", "linear_to_srgb", "highlight_shoulder", "highlight_capped_mean", "log_lin_ref", "exposure_gain",
            "apply_exposure", "tone_map"]
 
 TONES = ("illumination", "signal", "exposure")
@@ -57,6 +57,22 @@ def highlight_shoulder(v: Tensor, knee: float) -> Tensor:
     span = 1.0 - knee
     rolled = knee + span * (1.0 - torch.exp(-(v - knee).clamp_min(0.0) / span))
     return torch.where(v > knee, rolled, v)
+
+
+def highlight_capped_mean(RL: Tensor, target: float, share: float, shoulder: float = 1.0) -> Tensor:
+    """The exposure meter's target for one image [..., 3] of R̂∘L̂ under tone ``exposure``: ``target`` (the mean an
+    averaging meter asks for), lowered to the mean of the exposure that takes exactly ``share`` of the pixels past
+    white (their brightest channel's linear light at 1 before the ``shoulder``) where that exposure is shorter.
+    A camera's highlight-protecting meter: expose for the average unless more than ``share`` of the frame would
+    blow out. The scale of R̂∘L̂ drops out (the exposure is found from its own quantile), so the result depends only
+    on the image's light distribution. A 0-d tensor, no gradient; a sort (no host sync: graph-capturable)."""
+    with torch.no_grad():
+        lin = srgb_to_linear(RL.detach().float())
+        peak = lin.amax(-1).flatten()
+        rank = min(peak.numel() - 1, max(0, int(round((1.0 - share) * (peak.numel() - 1)))))
+        white = torch.sort(peak).values[rank].clamp_min(1e-8)
+        capped = linear_to_srgb(highlight_shoulder(lin / white, shoulder)).mean()
+        return capped.clamp(max=float(target))
 
 
 def log_lin_ref(illum_ref: Tensor, like: Tensor) -> Tensor:

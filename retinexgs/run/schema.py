@@ -155,6 +155,7 @@ class Loss(Section):
     exp_on: Choice("illumination", "image")
     exp_patch: Int(0)
     exp_form: Choice("l2", "l1")
+    exp_highlight_share: Num(ge=0, le=0.5)
     spa_form: Choice("zero_dce", "paper")
     enhance_scale_invariant: Bool
     sh_reduction: Choice("mean", "sum")

@@ -36,7 +36,8 @@ from retinexgs.train.trainer import enhancement_objective, to_bchw
 from retinexgs.run.folder import load_run
 from retinexgs.run.render import active_sh_degree, view_camera
 
-ENHANCEMENT_LOSS_KEYS = ("w_spa", "w_exp", "w_col", "exposure_E", "exp_on", "exp_patch", "exp_form", "spa_form",
+ENHANCEMENT_LOSS_KEYS = ("w_spa", "w_exp", "w_col", "exposure_E", "exp_on", "exp_patch", "exp_form",
+                         "exp_highlight_share", "spa_form",
                          "enhance_scale_invariant")
 
 
