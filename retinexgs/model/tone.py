@@ -28,7 +28,8 @@ from typing import Optional, Tuple
 import torch
 from torch import Tensor
 
-__all__ = ["TONES", "srgb_to_linear", "linear_to_srgb", "highlight_shoulder", "highlight_capped_mean", "log_lin_ref", "exposure_gain",
+__all__ = ["TONES", "srgb_to_linear", "linear_to_srgb", "highlight_shoulder", "highlight_capped_mean", "log_lin_ref",
+           "exposure_gain",
            "apply_exposure", "tone_map"]
 
 TONES = ("illumination", "signal", "exposure")
