@@ -93,6 +93,15 @@ def test_texture_split_and_proxy_gamma():
     lin = lambda v: ((v + 0.055) / 1.055) ** 2.4  # noqa: E731  (sRGB decoding above 0.04045)
     g = proxy.proxy_gamma(R, torch.full((32, 32, 1), 0.1), R * 0.1, 0.4, load_config([]))
     assert g == pytest.approx(-math.log(lin(0.4)) / math.log(lin(0.5) / lin(0.07)), abs=0.011)
+    # The default's highlight cap, as in training: a frame whose tenth is 10x brighter than the rest would blow
+    # that tenth out at mean 0.5; metered with the cap the gamma is larger (a shorter exposure) than the averaging
+    # meter's alone (ablations/meter_average).
+    R = torch.full((32, 32, 3), 0.05)
+    R[:4] = 0.5
+    L, S = torch.full((32, 32, 1), 0.4), R * 0.4
+    capped = proxy.proxy_gamma(R, L, S, 0.4, load_config([]))
+    average = proxy.proxy_gamma(R, L, S, 0.4, load_config(["ablations/meter_average"]))
+    assert capped > average + 0.05, (capped, average)
 
 
 def test_a_cut_off_run_resumes_from_its_checkpoint_and_its_time_is_left_out(tmp_path, monkeypatch):

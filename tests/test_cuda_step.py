@@ -161,7 +161,7 @@ def test_eager_loss_is_the_papers_sum(scene_dir, tmp_path, one_thread, name):
                                      c["rec_ssim_noise"], tr.capture_noise.camera("cpu") if c["rec_camera_noise"] else None)
     out = tr.model.enhance(res["R"].detach(), res["L"].detach())
     E = c["exposure_E"]
-    if c["exp_highlight_share"] > 0 and tr.model.tone == "exposure" and c["exp_on"] == "image" and not c["exp_patch"]:
+    if c["exp_highlight_share"] > 0 and losses.highlight_meter_applies(tr.model.tone, c):
         E = highlight_capped_mean(res["R"] * res["L"], E, c["exp_highlight_share"], tr.model.shoulder)
     enh, _ = losses.enhancement_loss(to_bchw(out["rgb"]), S, c["w_spa"], c["w_exp"], c["w_col"], E,
                                      illumination=to_bchw(out["L_enh"]) if c["exp_on"] == "illumination" else None,

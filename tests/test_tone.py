@@ -272,7 +272,7 @@ def test_the_highlight_meter_caps_the_target_where_more_than_its_share_would_blo
 
 def test_the_highlight_meter_acts_only_on_the_whole_image_meter_of_the_exposure_tone():
     from retinexgs.run.config import load_config
-    from retinexgs.train.trainer import highlight_meter_applies
+    from retinexgs.train.losses import highlight_meter_applies
 
     cfg = load_config([])
     assert cfg["loss"]["exp_highlight_share"] == 0.05  # the default since 2026-11-27

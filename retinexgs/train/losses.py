@@ -351,6 +351,13 @@ def exposure_loss(enh: torch.Tensor, E: float = 0.6, patch: int = 16, form: str 
     raise ValueError("form must be 'l2' or 'l1'")
 
 
+def highlight_meter_applies(tone: str, c: Dict) -> bool:
+    """Whether ``loss.exp_highlight_share`` (config loss section ``c``) acts: it caps the target of the whole-image
+    meter of tone ``exposure`` (``exp_on: image``, ``exp_patch: 0``; :func:`retinexgs.model.tone.highlight_capped_mean`);
+    the other tones and meters (the paper's, the ablations') ignore it."""
+    return tone == "exposure" and c["exp_on"] == "image" and c["exp_patch"] == 0
+
+
 def color_constancy_loss(enh: torch.Tensor, mode: str = "paper", eps: float = 1e-12,
                          scale_invariant: bool = False) -> torch.Tensor:
     """L_col (Eq. 10): gray-world penalty on the per-image channel means m_r, m_g, m_b; batch mean.

@@ -50,12 +50,6 @@ def to_bchw(x: Tensor) -> Tensor:
     return x.permute(2, 0, 1).unsqueeze(0)
 
 
-def highlight_meter_applies(tone: str, c: Dict) -> bool:
-    """Whether ``loss.exp_highlight_share`` acts: it caps the target of the whole-image meter of tone ``exposure``
-    (``exp_on: image``, ``exp_patch: 0``); the other tones and meters (the paper's, the ablations') ignore it."""
-    return tone == "exposure" and c["exp_on"] == "image" and c["exp_patch"] == 0
-
-
 def enhancement_objective(model: RetinexGSModel, c: Dict, R_img: Tensor, L_img: Tensor, S_b: Tensor
                           ) -> Tuple[Tensor, Dict[str, Tensor]]:
     """L_enhance (weighted sum, unweighted terms) of the enhanced render of [H,W,3] maps R̂, L̂ against the
@@ -70,7 +64,7 @@ def enhancement_objective(model: RetinexGSModel, c: Dict, R_img: Tensor, L_img: 
     light = to_bchw(out["L_enh"]) if c["exp_on"] == "illumination" else None
     E = c["exposure_E"]
     share = float(c.get("exp_highlight_share", 0.0))
-    if share > 0 and highlight_meter_applies(model.tone, c):
+    if share > 0 and losses.highlight_meter_applies(model.tone, c):
         E = highlight_capped_mean(R_img * L_img, E, share, model.shoulder)
     return losses.enhancement_loss(
         to_bchw(out["rgb"]), S_b, c["w_spa"], c["w_exp"], c["w_col"], E,
