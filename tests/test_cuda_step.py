@@ -9,7 +9,7 @@ import torch
 
 from retinexgs.data import load_scene
 from retinexgs.demo.synthetic import make_demo_scene
-from retinexgs.model.tone import highlight_capped_mean, srgb_to_linear
+from retinexgs.model.tone import srgb_to_linear
 from retinexgs.train import losses
 from retinexgs.run.config import configs_dir, load_config
 from retinexgs.train.noise import sigma_limit
@@ -160,9 +160,7 @@ def test_eager_loss_is_the_papers_sum(scene_dir, tmp_path, one_thread, name):
                                      c["lambda_ssim"], c["rec_huber"], gain, c["rec_domain"] == "exposed",
                                      c["rec_ssim_noise"], tr.capture_noise.camera("cpu") if c["rec_camera_noise"] else None)
     out = tr.model.enhance(res["R"].detach(), res["L"].detach())
-    E = c["exposure_E"]
-    if c["exp_highlight_share"] > 0 and losses.highlight_meter_applies(tr.model.tone, c):
-        E = highlight_capped_mean(res["R"] * res["L"], E, c["exp_highlight_share"], tr.model.shoulder)
+    E = losses.exposure_target(c, tr.model.tone, res["R"] * res["L"], tr.model.shoulder)
     enh, _ = losses.enhancement_loss(to_bchw(out["rgb"]), S, c["w_spa"], c["w_exp"], c["w_col"], E,
                                      illumination=to_bchw(out["L_enh"]) if c["exp_on"] == "illumination" else None,
                                      exp_patch=c["exp_patch"],

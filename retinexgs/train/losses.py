@@ -32,7 +32,7 @@ import torch
 import torch.nn.functional as F
 
 from retinexgs.evaluate.metrics import cached_constant, check_bchw, gaussian_window, ssim
-from retinexgs.model.tone import linear_to_srgb, srgb_to_linear
+from retinexgs.model.tone import highlight_capped_mean, linear_to_srgb, srgb_to_linear
 
 __all__ = [
     "to_bchw", "gaussian_window", "ssim", "noise_variance", "robust_abs", "exposed", "camera_expectation", "l1_ssim",
@@ -356,6 +356,16 @@ def highlight_meter_applies(tone: str, c: Dict) -> bool:
     meter of tone ``exposure`` (``exp_on: image``, ``exp_patch: 0``; :func:`retinexgs.model.tone.highlight_capped_mean`);
     the other tones and meters (the paper's, the ablations') ignore it."""
     return tone == "exposure" and c["exp_on"] == "image" and c["exp_patch"] == 0
+
+
+def exposure_target(c: Dict, tone: str, RL: torch.Tensor, shoulder: float = 1.0):
+    """L_exp's target E for the image whose R̂∘L̂ is ``RL`` [..., 3]: ``c["exposure_E"]``, capped by the highlight
+    meter where :func:`highlight_meter_applies` (a 0-d tensor then, no gradient). Training and the 2D proxy both
+    meter through this."""
+    share = float(c.get("exp_highlight_share", 0.0))
+    if share > 0 and highlight_meter_applies(tone, c):
+        return highlight_capped_mean(RL, c["exposure_E"], share, shoulder)
+    return c["exposure_E"]
 
 
 def color_constancy_loss(enh: torch.Tensor, mode: str = "paper", eps: float = 1e-12,

@@ -23,7 +23,7 @@ import torch
 import torch.nn.functional as F
 
 from retinexgs.evaluate.metrics import ssim_metric
-from retinexgs.model.tone import highlight_capped_mean, tone_map
+from retinexgs.model.tone import tone_map
 from retinexgs.train import losses
 from retinexgs.run.folder import open_scene
 from retinexgs.retinex import decompose
@@ -66,9 +66,7 @@ def proxy_gamma(R: torch.Tensor, L: torch.Tensor, S: torch.Tensor, ref: float, c
     grid = torch.linspace(float(lo), float(hi), 1 + round(100 * (float(hi) - float(lo))))  # steps of 0.01
     best, best_g = float("inf"), float(grid[0])
     enh_cfg = cfg["model"]["enhancement"]
-    E = c["exposure_E"]
-    if c.get("exp_highlight_share", 0) > 0 and losses.highlight_meter_applies(enh_cfg["tone"], c):  # as training
-        E = float(highlight_capped_mean(R * L, E, c["exp_highlight_share"], enh_cfg.get("shoulder", 1.0)))
+    E = float(losses.exposure_target(c, enh_cfg["tone"], R * L, enh_cfg.get("shoulder", 1.0)))  # as training meters
     for g in grid.tolist():
         enh, light = enhanced_maps(R, L, ref, g, cfg)
         total, _ = losses.enhancement_loss(

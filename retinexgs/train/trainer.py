@@ -20,7 +20,7 @@ from retinexgs.fileio import is_out_of_space, out_of_space_error
 from retinexgs.model.density import DensityController
 from retinexgs.model.gaussians import GaussianModel
 from retinexgs.model.retinex_model import RetinexGSModel
-from retinexgs.model.tone import exposure_gain, highlight_capped_mean
+from retinexgs.model.tone import exposure_gain
 from retinexgs.train import losses
 from retinexgs.run.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
 from retinexgs.train.distributed import (Distributed, adam_betas_for_batch, gradient_params, lr_batch_factor,
@@ -53,8 +53,8 @@ def to_bchw(x: Tensor) -> Tensor:
 def enhancement_objective(model: RetinexGSModel, c: Dict, R_img: Tensor, L_img: Tensor, S_b: Tensor
                           ) -> Tuple[Tensor, Dict[str, Tensor]]:
     """L_enhance (weighted sum, unweighted terms) of the enhanced render of [H,W,3] maps R̂, L̂ against the
-    low-light view ``S_b`` [1,3,H,W], with the loss section ``c`` of a config (``exp_highlight_share`` > 0: L_exp's
-    target capped by :func:`retinexgs.model.tone.highlight_capped_mean`). Unless
+    low-light view ``S_b`` [1,3,H,W], with the loss section ``c`` of a config (L_exp's target from
+    :func:`retinexgs.train.losses.exposure_target`). Unless
     ``c["enhance_trains_scene"]``, R̂ and L̂ are detached: only the EnhancementNet learns from it."""
     if not c["enhance_trains_scene"]:
         # The paper trains the EnhancementNet alone with L_enhance: without this the exposure term would
@@ -62,10 +62,7 @@ def enhancement_objective(model: RetinexGSModel, c: Dict, R_img: Tensor, L_img: 
         R_img, L_img = R_img.detach(), L_img.detach()
     out = model.enhance(R_img, L_img)
     light = to_bchw(out["L_enh"]) if c["exp_on"] == "illumination" else None
-    E = c["exposure_E"]
-    share = float(c.get("exp_highlight_share", 0.0))
-    if share > 0 and losses.highlight_meter_applies(model.tone, c):
-        E = highlight_capped_mean(R_img * L_img, E, share, model.shoulder)
+    E = losses.exposure_target(c, model.tone, R_img * L_img, model.shoulder)
     return losses.enhancement_loss(
         to_bchw(out["rgb"]), S_b, c["w_spa"], c["w_exp"], c["w_col"], E,
         illumination=light, exp_patch=c["exp_patch"], exp_form=c["exp_form"], spa_form=c["spa_form"],
