@@ -672,10 +672,10 @@ class Trainer:
         self.batch_size = self.dist.world * int(tcfg.get("views_per_rank", 1))
         self.lr_scale = lr_batch_factor(tcfg.get("lr_batch_scaling", "sqrt"), self.batch_size)
         # Set on every start, a resume included: a checkpoint holds the betas of the batch it was written with.
-        self.adam_betas = adam_betas_for_batch(tcfg.get("momentum_batch_scaling", "power"), self.batch_size)
+        betas = adam_betas_for_batch(tcfg.get("momentum_batch_scaling", "power"), self.batch_size)
         for group in self.optimizer.param_groups:
             group["lr"] *= self.lr_scale
-            group["betas"] = self.adam_betas
+            group["betas"] = betas
         self.time_to_first_step: Optional[float] = None  # seconds from the process's start to step 1's end
         self.first_step_seconds: Optional[float] = None  # the last session's first step; train() sets these
         self.event_seconds, self.event_steps = 0.0, 0
