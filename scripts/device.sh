@@ -49,7 +49,8 @@
 #       fps        `bench fps` on the trained run (or --run RUN) at 640x360 and 500x375, --fps-runs times
 #                  (fused frame vs torch path vs rasterization; launches per frame; --vs gsplat adds gsplat)
 #       trainspeed `bench train-speed` on synthetic scenes (--vs gsplat) and on --scene after 3100 warm-up steps
-#       stream     `bench train-speed` on --scene with train.stream_views=never, then always, --repeats times
+#       stream     `bench train-speed` on --scene with train.stream_views=never, always (the store pinned whole),
+#                  always with train.views_pinned_gb=0 (staged view by view), --repeats times
 #       raster     `bench raster --vs ${VS:-reference}`, --raster-runs times
 #       profile    scripts/profiling.py train on --scene (300 warm-up steps, 30 profiled)
 #       fprofile   scripts/profiling.py frame --fused on the run      rprofile  scripts/profiling.py raster
@@ -358,10 +359,12 @@ print('gsplat ready')" > "$LOGS/gsplat_build.log" 2>&1; echo "gsplat JIT: exit $
   fi
   if has stream; then  # streamed vs preloaded views, alternated --repeats times on this card (issue 34's ≤ 1.05×)
     for _ in $(seq "$REPEATS"); do
-      for mode in never always; do
+      for mode in never always always:0; do  # always:0 = streamed through the staging thread (views_pinned_gb=0)
         echo "== train.stream_views=$mode" >> "$OUT/stream.txt"
+        local pin=()
+        [ "${mode#*:}" = 0 ] && pin=(--set train.views_pinned_gb=0)
         timeout 120 python3 -m retinexgs.bench train-speed --device cuda --data "$scene" "${cfg[@]}" --warmup 3100 \
-          --steps 200 --set "train.stream_views=$mode" 2>&1 | tee -a "$OUT/stream.txt"
+          --steps 200 --set "train.stream_views=${mode%%:*}" "${pin[@]}" 2>&1 | tee -a "$OUT/stream.txt"
       done
     done
   fi

@@ -216,6 +216,45 @@ def test_threaded_prefetch_gives_the_same_views(scene_dir, tmp_path):
         threaded.close()
 
 
+@pytest.mark.parametrize("emulate", [False, True])
+def test_a_small_store_is_held_whole_and_gives_the_same_views(tmp_path, emulate):
+    """A store within ``resident_bytes`` is read once into host memory: views copy straight from it (no
+    staging buffers, no worker thread) and equal those read view by view through the threaded staging."""
+    store = mixed_store(tmp_path / "views.bin", True)
+    whole = streamed(store, "cpu", "retinexgs", 10.0, resident_bytes=store.nbytes, emulate_graphs=emulate)
+    staged = streamed(store, "cpu", "retinexgs", 10.0, resident_bytes=store.nbytes - 1, threaded=True,
+                      emulate_graphs=emulate)
+    try:
+        assert whole.resident_bytes == store.nbytes and staged.resident_bytes == 0
+        assert whole._staging == [] and isinstance(whole._executor, views_mod._Inline)
+        assert np.array_equal(whole._resident.numpy(), np.fromfile(store.path, dtype=np.uint8))
+        assert len(staged._staging) == 3 and isinstance(staged._executor, views_mod.ThreadPoolExecutor)
+        order = np.random.default_rng(5).integers(0, len(store), 40).tolist()
+        pend_w, pend_s = list(reversed(order)), list(reversed(order))
+        whole.upcoming = lambda: pend_w[:-3:-1]
+        staged.upcoming = lambda: pend_s[:-3:-1]
+        while pend_w:
+            assert_same_view(whole[pend_w.pop()], staged[pend_s.pop()])
+            if pend_w:  # the next view is on its way to the "device" either way
+                assert pend_w[-1] in whole._holds and pend_s[-1] in staged._holds
+        assert whole.loads == staged.loads and whole.misses == staged.misses
+        assert not whole._staged  # nothing was ever staged
+    finally:
+        whole.close()
+        staged.close()
+
+
+def test_the_trainer_holds_a_small_store_in_host_memory(scene_dir, tmp_path):
+    logs = []
+    st = make(scene_dir, tmp_path / "st", "always", logs=logs)
+    assert st.views.resident_bytes == st.views.store.nbytes > 0
+    assert any("the store held in host memory" in s and "train.views_pinned_gb=4" in s for s in logs), logs
+    off = make(scene_dir, tmp_path / "off", "always", ["train.views_pinned_gb=0"])
+    assert off.views.resident_bytes == 0 and len(off.views._staging) == 3
+    with pytest.raises(UserError, match="views_pinned_gb"):
+        load_config(["demo"], ["train.views_pinned_gb=-1"])
+
+
 def test_device_buffers_are_reused(scene_dir, tmp_path):
     st = make(scene_dir, tmp_path / "st", "always")
     ptrs = {st.views[i].packed.data_ptr() for _ in range(3) for i in range(len(st.views))}

@@ -227,6 +227,7 @@ class Train(Section):
     momentum_batch_scaling: Choice("power", "none")
     stream_views: Choice("auto", "always", "never")
     views_on_device_gb: Num(ge=0)
+    views_pinned_gb: Num(ge=0)
 
 
 class ConfigSchema(Section):

@@ -213,8 +213,11 @@ class Trainer:
             dist.barrier("the view store, which rank 0 writes")
         views = StreamedViews(store, cameras, centers, dev, self.method,
                               cfg["loss"]["depth_edge"] if self.depth_prior else None,
-                              upcoming=self._upcoming_views, graphs=bool(tcfg["cuda_graphs"]), log=self.log)
-        self.log(f"views: {gib(views.slot_bytes)} of reused buffers on the device")
+                              upcoming=self._upcoming_views, graphs=bool(tcfg["cuda_graphs"]), log=self.log,
+                              resident_bytes=int(tcfg["views_pinned_gb"] * 1e9))
+        self.log(f"views: {gib(views.slot_bytes)} of reused buffers on the device" +
+                 (f"; the store held in {'pinned ' if dev.type == 'cuda' else ''}host memory ({gib(views.resident_bytes)}"
+                  f" <= train.views_pinned_gb={tcfg['views_pinned_gb']:g})" if views.resident_bytes else ""))
         return views
 
     def _build(self, state: Optional[Dict], emulate_graphs: bool = False) -> None:

@@ -9,7 +9,8 @@ trainer holds them (``train.stream_views``, ``train.views_on_device_gb``):
   :class:`StreamedViews` moves each step's view to the device into one of a few reused buffers, converts it
   to float32 and packs it there, prefetching the next view of the trainer's order while the current step
   runs (on CUDA: a worker thread fills a pinned staging buffer and copies it on a side stream; the main stream
-  waits on an event). Device memory no longer grows with the view count; host memory is the OS page cache.
+  waits on an event). Device memory no longer grows with the view count; host memory is the OS page cache,
+  except that a store up to ``train.views_pinned_gb`` is read once into pinned memory and copied from there.
 
 The store is lossless: the decomposition cache holds R and L as float16 (what a preloaded run reads back as
 float32), and an 8- or 16-bit photo read as float32 is k / 255 or k / 65535 exactly (a photo that is neither
@@ -295,6 +296,14 @@ class ViewStore:
         v = self.views[i]
         return self._map[v.start:v.start + v.nbytes]
 
+    def read_into(self, out: np.ndarray) -> None:
+        """The whole file's bytes into ``out`` (uint8, :attr:`nbytes` long), read in 64 MiB pieces."""
+        if out.shape != (self.nbytes,) or out.dtype != np.uint8:
+            raise ValueError(f"read_into needs a uint8 array of {self.nbytes} bytes, got {out.dtype} {out.shape}")
+        step = 64 << 20
+        for at in range(0, self.nbytes, step):
+            np.copyto(out[at:at + step], self._map[at:at + step])
+
     def photo(self, i: int) -> np.ndarray:
         v = self.views[i]
         n = v.height * v.width * 3 * np.dtype(v.photo_dtype).itemsize
@@ -471,6 +480,9 @@ class StreamedViews(Sequence):
     bytes (pinned on CUDA). A view returned stays valid until ``slots - 1`` more views have been fetched (the
     trainer uses each for one step).
 
+    A store of at most ``resident_bytes`` (``train.views_pinned_gb``) is instead read whole into one (pinned)
+    host buffer at the start: a view's copy then starts from it, with no staging and no worker thread.
+
     The worker thread only copies host memory (no CUDA call: a CUDA graph captured meanwhile on the main thread
     is safe). The main thread, between steps, queues on a side stream the non-blocking copy of a staged view to
     the device, its conversion to float32 (the photo through its bit depth's lookup table, the reader's
@@ -501,7 +513,7 @@ class StreamedViews(Sequence):
                  device: torch.device, method: str, depth_edge: Optional[float],
                  upcoming: Optional[Callable[[], Sequence[int]]] = None, slots: int = 3,
                  threaded: Optional[bool] = None, graphs: bool = True, emulate_graphs: bool = False,
-                 log: Optional[Callable[[str], None]] = None) -> None:
+                 log: Optional[Callable[[str], None]] = None, resident_bytes: int = 0) -> None:
         if len(store) != len(cameras):
             raise ValueError(f"the view store has {len(store)} views, the scene {len(cameras)}")
         if slots < 3:
@@ -520,7 +532,15 @@ class StreamedViews(Sequence):
         span = max(v.nbytes for v in store.views)
         self._slots = [torch.empty(self._slot_numel, dtype=torch.float32, device=self.device)
                        for _ in range(slots)]
-        self._staging = [torch.empty(span, dtype=torch.uint8, pin_memory=cuda) for _ in range(slots)]
+        # A store of at most ``resident_bytes`` is read once into (pinned) host memory: each view's copy then
+        # starts from it directly, with no staging and no worker thread, whose hand-offs (and GIL) cost a
+        # launch-bound step more host time than the copy itself.
+        self._resident: Optional[Tensor] = None
+        if store.nbytes <= resident_bytes:
+            self._resident = torch.empty(store.nbytes, dtype=torch.uint8, pin_memory=cuda)
+            store.read_into(self._resident.numpy())
+        self._staging = [] if self._resident is not None else \
+            [torch.empty(span, dtype=torch.uint8, pin_memory=cuda) for _ in range(slots)]
         self._staging_np = [t.numpy() for t in self._staging]  # what the worker thread writes
         # Graphed conversion: on CUDA (``graphs``), or emulated on the CPU (a test's choice).
         self._emulate = bool(emulate_graphs) and not cuda
@@ -550,7 +570,7 @@ class StreamedViews(Sequence):
             self._ready = [torch.cuda.Event() for _ in range(slots)]
             self._released = [torch.cuda.Event() for _ in range(slots)]
             self._copied = [torch.cuda.Event() for _ in range(slots)]  # per staging buffer
-        threaded = cuda if threaded is None else threaded
+        threaded = (cuda if threaded is None else threaded) and self._resident is None
         self._executor = ThreadPoolExecutor(1, thread_name_prefix="retinexgs-views") if threaded else _Inline()
 
     # -- the sequence ---------------------------------------------------------------------------------------
@@ -588,7 +608,7 @@ class StreamedViews(Sequence):
             ahead = [int(j) for j in self.upcoming()][:2]
             if ahead and ahead[0] not in self._holds:
                 self._load_into_free_slot(ahead[0], True)
-            for j in ahead[1:]:
+            for j in ahead[1:] if self._resident is None else ():
                 if j not in self._holds:
                     self._stage(j)
         return tv
@@ -600,6 +620,11 @@ class StreamedViews(Sequence):
                 job.result()
         finally:
             self._executor.shutdown(wait=True)
+
+    @property
+    def resident_bytes(self) -> int:
+        """Host bytes of the store held in (pinned) memory: all of it, or 0 (read view by view)."""
+        return 0 if self._resident is None else int(self._resident.numel())
 
     @property
     def slot_bytes(self) -> int:
@@ -648,20 +673,26 @@ class StreamedViews(Sequence):
         """View ``i`` into ``slot``: its staged bytes (read now if they are not), on CUDA copied to the device
         and converted on the side stream (the slot's ready event after it). Returns its TrainView."""
         self.loads.append((i, prefetched))
-        b = self._stage(i)
-        self._staged.pop(i)[1].result()
-        n = self.store.views[i].nbytes
+        rec = self.store.views[i]
+        n = rec.nbytes
+        if self._resident is not None:
+            b, src = None, self._resident[rec.start:rec.start + n]
+        else:
+            b = self._stage(i)
+            self._staged.pop(i)[1].result()
+            src = self._staging[b][:n]
         if not self._cuda:
             if not self._emulate:
-                return self._convert(i, slot, self._staging[b][:n])
+                return self._convert(i, slot, src)
             dev = self._bytes[slot][:n]
-            dev.copy_(self._staging[b][:n])
+            dev.copy_(src)
             return self._convert_graphed(i, slot, dev)
         with torch.cuda.stream(self._side):
             self._side.wait_event(self._released[slot])  # the last step that read this slot is done
             dev = self._bytes[slot][:n]
-            dev.copy_(self._staging[b][:n], non_blocking=True)
-            self._copied[b].record(self._side)
+            dev.copy_(src, non_blocking=True)
+            if b is not None:
+                self._copied[b].record(self._side)
             tv = self._convert_graphed(i, slot, dev) if self._graphed else self._convert(i, slot, dev)
             self._ready[slot].record(self._side)
         return tv
