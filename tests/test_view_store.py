@@ -244,6 +244,31 @@ def test_a_small_store_is_held_whole_and_gives_the_same_views(tmp_path, emulate)
         staged.close()
 
 
+def test_a_store_is_held_whole_only_within_the_memory_there_is(tmp_path, monkeypatch):
+    store = mixed_store(tmp_path / "views.bin", True)
+    logs = []
+    monkeypatch.setattr(views_mod, "available_host_bytes", lambda: 2 * store.nbytes - 2)
+    assert views_mod.hold_whole(store, 10 * store.nbytes, False) is None  # more than half of what is free
+    monkeypatch.setattr(views_mod, "available_host_bytes", lambda: 2 * store.nbytes)
+    assert views_mod.hold_whole(store, 10 * store.nbytes, False).numel() == store.nbytes
+    monkeypatch.setattr(views_mod, "available_host_bytes", lambda: None)  # unknown: the limit alone decides
+    assert views_mod.hold_whole(store, store.nbytes, False) is not None
+    assert views_mod.hold_whole(store, store.nbytes - 1, False) is None
+    real_empty = torch.empty
+
+    def refuse(*args, pin_memory=False, **kw):
+        if pin_memory:
+            raise RuntimeError("CUDA error: out of memory")
+        return real_empty(*args, **kw)
+
+    monkeypatch.setattr(views_mod.torch, "empty", refuse)
+    assert views_mod.hold_whole(store, store.nbytes, True, logs.append) is None
+    assert len(logs) == 1 and "pinned memory" in logs[0] and "view by view" in logs[0], logs
+    monkeypatch.undo()
+    avail = views_mod.available_host_bytes()  # this machine's, read from the OS
+    assert avail is None or 0 < avail < 2**50
+
+
 def test_the_trainer_holds_a_small_store_in_host_memory(scene_dir, tmp_path):
     logs = []
     st = make(scene_dir, tmp_path / "st", "always", logs=logs)

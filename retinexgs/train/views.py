@@ -453,6 +453,37 @@ class _Inline:
         pass
 
 
+def available_host_bytes() -> Optional[int]:
+    """The host memory the OS could give now (Linux ``MemAvailable``), or None where it cannot be read."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def hold_whole(store: ViewStore, limit: int, pinned: bool,
+               log: Optional[Callable[[str], None]] = None) -> Optional[Tensor]:
+    """The whole store read into one host tensor (page-locked if ``pinned``) when it is at most ``limit`` bytes
+    and at most half the host memory available now; else None (views are then read one at a time). A pinned
+    allocation the driver refuses falls back to None, with one line to ``log``."""
+    n = store.nbytes
+    avail = available_host_bytes()
+    if n > limit or (avail is not None and n > avail // 2):
+        return None
+    try:
+        whole = torch.empty(n, dtype=torch.uint8, pin_memory=pinned)
+    except RuntimeError as err:  # e.g. page-locked memory exhausted
+        if log is not None:
+            log(f"views: could not hold the view store in pinned memory ({gib(n)}: {err}); reading it view by view")
+        return None
+    store.read_into(whole.numpy())
+    return whole
+
+
 @dataclass
 class _SlotGraph:
     """One device slot's conversion of one view layout, captured: ``replay()`` refills the slot's packed
@@ -535,10 +566,7 @@ class StreamedViews(Sequence):
         # A store of at most ``resident_bytes`` is read once into (pinned) host memory: each view's copy then
         # starts from it directly, with no staging and no worker thread, whose hand-offs (and GIL) cost a
         # launch-bound step more host time than the copy itself.
-        self._resident: Optional[Tensor] = None
-        if store.nbytes <= resident_bytes:
-            self._resident = torch.empty(store.nbytes, dtype=torch.uint8, pin_memory=cuda)
-            store.read_into(self._resident.numpy())
+        self._resident = hold_whole(store, resident_bytes, cuda, log)
         self._staging = [] if self._resident is not None else \
             [torch.empty(span, dtype=torch.uint8, pin_memory=cuda) for _ in range(slots)]
         self._staging_np = [t.numpy() for t in self._staging]  # what the worker thread writes
@@ -824,5 +852,5 @@ def gib(nbytes: float) -> str:
 
 __all__ = ["TrainView", "pad_edges", "unpack_edges", "unpack_targets", "make_train_view", "packed_channels",
            "preload_bytes_per_pixel", "choose_streaming", "ViewStatistics", "compact_photo", "photo_table",
-           "ViewStore", "StoredView", "store_fingerprint", "store_path", "store_size_estimate", "check_store_space",
+           "ViewStore", "StoredView", "hold_whole", "available_host_bytes", "store_fingerprint", "store_path", "store_size_estimate", "check_store_space",
            "StreamedViews", "stream_set_up", "check_prior_size", "STREAM_MODES"]
