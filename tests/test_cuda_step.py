@@ -174,7 +174,7 @@ def test_eager_loss_is_the_papers_sum(scene_dir, tmp_path, one_thread, name):
             to_bchw(out.depth), to_bchw(out.alpha), *losses.edge_weights(to_bchw(tv.R), c["depth_edge"]))
     assert float(terms["total"].detach()) == pytest.approx(float(want.detach()), rel=1e-6)
     depth = ["depth"] if tr.depth_prior else []
-    assert list(terms) == ["sup_r", "sup_l", "sup_rec", "tv", "sh"] + depth + ["spa", "exp", "col", "total"]
+    assert list(terms) == ["sup_r", "sup_l", "sup_rec", "tv", "sh"] + depth + ["spa", "exp", "col", "exp_E", "total"]
 
 
 def test_edge_weights_travel_with_the_packed_targets():

@@ -55,7 +55,8 @@ def enhancement_objective(model: RetinexGSModel, c: Dict, R_img: Tensor, L_img: 
     """L_enhance (weighted sum, unweighted terms) of the enhanced render of [H,W,3] maps R̂, L̂ against the
     low-light view ``S_b`` [1,3,H,W], with the loss section ``c`` of a config (L_exp's target from
     :func:`retinexgs.train.losses.exposure_target`). Unless
-    ``c["enhance_trains_scene"]``, R̂ and L̂ are detached: only the EnhancementNet learns from it."""
+    ``c["enhance_trains_scene"]``, R̂ and L̂ are detached: only the EnhancementNet learns from it. The terms
+    include ``exp_E``, L_exp's target (for the log; not part of the sum)."""
     if not c["enhance_trains_scene"]:
         # The paper trains the EnhancementNet alone with L_enhance: without this the exposure term would
         # flatten R̂ and L̂ towards E instead of adjusting the gamma.
@@ -63,10 +64,13 @@ def enhancement_objective(model: RetinexGSModel, c: Dict, R_img: Tensor, L_img: 
     out = model.enhance(R_img, L_img)
     light = to_bchw(out["L_enh"]) if c["exp_on"] == "illumination" else None
     E = losses.exposure_target(c, model.tone, R_img * L_img, model.shoulder)
-    return losses.enhancement_loss(
+    total, terms = losses.enhancement_loss(
         to_bchw(out["rgb"]), S_b, c["w_spa"], c["w_exp"], c["w_col"], E,
         illumination=light, exp_patch=c["exp_patch"], exp_form=c["exp_form"], spa_form=c["spa_form"],
         scale_invariant=c["enhance_scale_invariant"])
+    # Logged, not a loss: L_exp's target, below exposure_E where the highlight meter caps it (issue 32).
+    terms["exp_E"] = E.detach().float() if torch.is_tensor(E) else torch.full((), float(E), device=R_img.device)
+    return total, terms
 
 
 def _append_record(f, record: Dict) -> None:
