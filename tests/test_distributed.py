@@ -229,9 +229,10 @@ def test_a_rank_that_dies_or_hangs_stops_the_others_with_a_clear_error(scene, tm
     assert f"rank 1 of 2 {'exits' if fault == 'die' else 'hangs'} at step 2" in err
     if fault == "hang":  # rank 0 waited for rank 1's gradients no longer than the timeout
         assert "rank 0 of 2: the gradient all-reduce of step 2 failed: no answer within 3 s" in err, err
-    else:  # rank 0 saw the closed connection, or torchrun stopped it first: either says so
+    else:  # rank 0 saw the closed connection, torchrun stopped it first, or (a loaded machine) its timeout came
         assert ("rank 0 of 2: the gradient all-reduce of step 2 failed: another rank stopped" in err
-                or "terminated (rank 0 of 2: torchrun stops every rank once one fails" in err), err
+                or "terminated (rank 0 of 2: torchrun stops every rank once one fails" in err
+                or "rank 0 of 2: the gradient all-reduce of step 2 failed: no answer within 3 s" in err), err
         assert "exitcode  : 3" in err  # torchrun's summary names the rank that exited, and how
     assert str(ROOT / "retinexgs") not in err  # one paragraph per rank, no traceback of ours
     assert seconds < 90
