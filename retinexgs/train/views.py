@@ -564,8 +564,8 @@ class StreamedViews(Sequence):
         self._slots = [torch.empty(self._slot_numel, dtype=torch.float32, device=self.device)
                        for _ in range(slots)]
         # A store of at most ``resident_bytes`` is read once into (pinned) host memory: each view's copy then
-        # starts from it directly, with no staging and no worker thread, whose hand-offs (and GIL) cost a
-        # launch-bound step more host time than the copy itself.
+        # starts from it directly, with no staging and no worker thread, which cost a launch-bound step ~0.3 ms
+        # of host time (fox-dark, H100: docs/benchmarks.md, Scale).
         self._resident = hold_whole(store, resident_bytes, cuda, log)
         self._staging = [] if self._resident is not None else \
             [torch.empty(span, dtype=torch.uint8, pin_memory=cuda) for _ in range(slots)]
