@@ -150,6 +150,7 @@ def test_quick_cpu_run(tmp_path):
     assert run["views_per_second"] > 0 and run["host_rss_gb_max"] > 0.1 and 0 < run["psnr"] < 60
     md = (tmp_path / "out" / "scale.md").read_text()
     assert "| status | ok |" in md and "| speed-up (views/s over 1 GPU) | 1.00× |" in md
+    assert "(2.0 passes over the training views)" in md and "A short run" not in md  # one rank count: no caveat
     # the scene is reused; a run that fails makes the benchmark fail, and says where its log is
     r = _bench(tmp_path, *QUICK, "--gpus", "1", "--decompose", "none", "--set", "loss.no_such_key=1")
     assert "reusing" in r.stdout and r.returncode == 1, r.stdout[-2000:]
@@ -166,6 +167,8 @@ def test_two_gloo_ranks_at_equal_views_seen(tmp_path):
     assert one["status"] == two["status"] == "ok"
     assert two["ranks"] == 2 and two["steps"] == 8 and two["views_seen"] == one["views_seen"] == 16
     assert two["views_per_second"] > 0 and two["psnr"] is not None
+    md = (tmp_path / "out" / "scale.md").read_text()
+    assert "A short run (under 20 passes)" in md and "more --views-seen" in md  # 2 passes: PSNR says little
 
 
 def test_seeds_aggregate_to_means_and_spread():
