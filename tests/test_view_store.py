@@ -17,7 +17,8 @@ import torch
 from PIL import Image
 
 import retinexgs.train.trainer as trainer_mod
-import retinexgs.train.views as views_mod
+import retinexgs.train.streamed_views as streamed_mod
+import retinexgs.train.view_store as store_mod
 from retinexgs.data import load_scene
 from retinexgs.data.scene import View
 from retinexgs.demo.synthetic import make_demo_scene
@@ -27,8 +28,9 @@ from retinexgs.retinex.cache import clean_cache, iter_decompositions
 from retinexgs.run.config import load_config
 from retinexgs.train.resume import RESUMABLE
 from retinexgs.train.trainer import Trainer
-from retinexgs.train.views import (StreamedViews, ViewStore, choose_streaming, compact_photo, photo_table,
-                                   preload_bytes_per_pixel, store_fingerprint)
+from retinexgs.train.streamed_views import StreamedViews
+from retinexgs.train.view_store import ViewStore, compact_photo, photo_table, store_fingerprint
+from retinexgs.train.views import choose_streaming, preload_bytes_per_pixel
 from scenes import needs_cuda
 
 TINY = ["steps=8", "checkpoint.every=4", "log.every=1", "log.tensorboard=false", "model.sh_degree=1",
@@ -226,9 +228,9 @@ def test_a_small_store_is_held_whole_and_gives_the_same_views(tmp_path, emulate)
                       emulate_graphs=emulate)
     try:
         assert whole.resident_bytes == store.nbytes and staged.resident_bytes == 0
-        assert whole._staging == [] and isinstance(whole._executor, views_mod._Inline)
+        assert whole._staging == [] and isinstance(whole._executor, streamed_mod._Inline)
         assert np.array_equal(whole._resident.numpy(), np.fromfile(store.path, dtype=np.uint8))
-        assert len(staged._staging) == 3 and isinstance(staged._executor, views_mod.ThreadPoolExecutor)
+        assert len(staged._staging) == 3 and isinstance(staged._executor, streamed_mod.ThreadPoolExecutor)
         order = np.random.default_rng(5).integers(0, len(store), 40).tolist()
         pend_w, pend_s = list(reversed(order)), list(reversed(order))
         whole.upcoming = lambda: pend_w[:-3:-1]
@@ -247,13 +249,13 @@ def test_a_small_store_is_held_whole_and_gives_the_same_views(tmp_path, emulate)
 def test_a_store_is_held_whole_only_within_the_memory_there_is(tmp_path, monkeypatch):
     store = mixed_store(tmp_path / "views.bin", True)
     logs = []
-    monkeypatch.setattr(views_mod, "available_host_bytes", lambda: 2 * store.nbytes - 2)
-    assert views_mod.hold_whole(store, 10 * store.nbytes, False) is None  # more than half of what is free
-    monkeypatch.setattr(views_mod, "available_host_bytes", lambda: 2 * store.nbytes)
-    assert views_mod.hold_whole(store, 10 * store.nbytes, False).numel() == store.nbytes
-    monkeypatch.setattr(views_mod, "available_host_bytes", lambda: None)  # unknown: the limit alone decides
-    assert views_mod.hold_whole(store, store.nbytes, False) is not None
-    assert views_mod.hold_whole(store, store.nbytes - 1, False) is None
+    monkeypatch.setattr(streamed_mod, "available_host_bytes", lambda: 2 * store.nbytes - 2)
+    assert streamed_mod.hold_whole(store, 10 * store.nbytes, False) is None  # more than half of what is free
+    monkeypatch.setattr(streamed_mod, "available_host_bytes", lambda: 2 * store.nbytes)
+    assert streamed_mod.hold_whole(store, 10 * store.nbytes, False).numel() == store.nbytes
+    monkeypatch.setattr(streamed_mod, "available_host_bytes", lambda: None)  # unknown: the limit alone decides
+    assert streamed_mod.hold_whole(store, store.nbytes, False) is not None
+    assert streamed_mod.hold_whole(store, store.nbytes - 1, False) is None
     real_empty = torch.empty
 
     def refuse(*args, pin_memory=False, **kw):
@@ -261,11 +263,11 @@ def test_a_store_is_held_whole_only_within_the_memory_there_is(tmp_path, monkeyp
             raise RuntimeError("CUDA error: out of memory")
         return real_empty(*args, **kw)
 
-    monkeypatch.setattr(views_mod.torch, "empty", refuse)
-    assert views_mod.hold_whole(store, store.nbytes, True, logs.append) is None
+    monkeypatch.setattr(streamed_mod.torch, "empty", refuse)
+    assert streamed_mod.hold_whole(store, store.nbytes, True, logs.append) is None
     assert len(logs) == 1 and "pinned memory" in logs[0] and "view by view" in logs[0], logs
     monkeypatch.undo()
-    avail = views_mod.available_host_bytes()  # this machine's, read from the OS
+    avail = streamed_mod.available_host_bytes()  # this machine's, read from the OS
     assert avail is None or 0 < avail < 2**50
 
 
@@ -412,7 +414,7 @@ def test_a_failed_capture_converts_eagerly_and_says_so(tmp_path, monkeypatch):
 
 
 def test_graphed_layouts_are_bounded(tmp_path, monkeypatch):
-    monkeypatch.setattr(views_mod, "MAX_GRAPHED_LAYOUTS", 2)
+    monkeypatch.setattr(streamed_mod, "MAX_GRAPHED_LAYOUTS", 2)
     views = compare_graphed_with_eager(tmp_path, "cpu", "retinexgs", True, 10.0, emulate_graphs=True)
     assert len({key[1:] for key in views._graphs}) == 2
 
@@ -494,7 +496,7 @@ def test_fingerprint_follows_the_photos(scene_dir):
 
 
 def test_a_store_that_cannot_fit_is_refused_before_decoding(scene_dir, tmp_path, monkeypatch):
-    monkeypatch.setattr(views_mod, "free_bytes", lambda folder: 1000)
+    monkeypatch.setattr(store_mod, "free_bytes", lambda folder: 1000)
     reads = []
     monkeypatch.setattr(View, "load_image", lambda self: reads.append(self) or torch.zeros(1))
     with pytest.raises(UserError, match="no space left on device for the view store"):

@@ -12,7 +12,7 @@ entries of photos the scene no longer has are deleted, in every ``<method>-<key>
 path-keyed format (``<stem>-<10 hex>.npz``) are never read and are swept as stale. :func:`clean_cache`
 removes all of it, :func:`cache_summary` describes it (``retinexgs decompose --clean`` / ``--info``).
 The root also holds the trainer's view stores, ``views-<settings>-<8 hex>.bin`` (the photos and priors of a
-scene's training views in one memory-mapped file, :mod:`retinexgs.train.views`); :func:`clean_cache` removes
+scene's training views in one memory-mapped file, :mod:`retinexgs.train.view_store`); :func:`clean_cache` removes
 them too.
 
 Writes are atomic: the file is written under a ``.tmp-`` name in the same folder, flushed and fsynced,
@@ -86,7 +86,7 @@ def entry_dir(cache_root: PathLike, method: str, params: Any = None) -> Path:
 _SETTINGS_DIR = re.compile(r"^[a-z0-9_]+-[0-9a-f]{12}$")
 _ENTRY = re.compile(r"^.+-(?P<hash>[0-9a-f]{16}|[0-9a-f]{10})\.npz$")
 _HASH_LEN = 16
-# The trainer's view stores in the root (retinexgs.train.views names them so).
+# The trainer's view stores in the root (retinexgs.train.view_store names them so).
 _VIEW_STORE = re.compile(r"^views-[a-z0-9_]+(-[0-9a-f]{12})?-[0-9a-f]{8}\.bin$")
 _UNWRITABLE = (errno.EROFS, errno.EACCES, errno.EPERM)
 

@@ -27,9 +27,11 @@ from retinexgs.train.distributed import (Distributed, adam_betas_for_batch, grad
                                          process_start_time, take_gradients)
 from retinexgs.train.graphs import ChannelGraphs, LossGraphs
 from retinexgs.train.noise import CaptureNoise, NoiseProbe, measure_capture_noise, sigma_limit
-from retinexgs.train.views import (TrainView, StreamedViews, ViewStatistics, ViewStore, check_prior_size,
-                                   check_store_space, choose_streaming, gib, make_train_view, preload_bytes_per_pixel,
-                                   store_fingerprint, store_path, store_size_estimate, stream_set_up, unpack_edges,
+from retinexgs.train.streamed_views import StreamedViews
+from retinexgs.train.view_store import (ViewStore, check_store_space, store_fingerprint, store_path,
+                                        store_size_estimate)
+from retinexgs.train.views import (TrainView, ViewStatistics, check_prior_size, choose_streaming, gib,
+                                   make_train_view, preload_bytes_per_pixel, stream_set_up, unpack_edges,
                                    unpack_targets)
 from retinexgs.model.schedule import build_schedule
 from retinexgs.run.render import view_camera
