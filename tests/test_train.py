@@ -74,6 +74,28 @@ def test_enhancement_losses_switch_on_at_enhance_from(scene_dir, tmp_path):
     torch.testing.assert_close(after["total"], before["total"] + extra)
 
 
+def test_the_loss_log_carries_the_exposure_meters_target(scene_dir, tmp_path):
+    """``exp_E`` (logged, not summed) is L_exp's target: 0.5, or the highlight meter's capped mean."""
+    from retinexgs.train import losses
+    from retinexgs.train.trainer import enhancement_objective
+
+    tr = trainer_for(scene_dir, tmp_path / "run")
+    c = tr.cfg["loss"]
+    H, W = 30, 40
+    R, L = torch.full((H, W, 3), 0.5), torch.full((H, W, 3), 0.02)  # the rendered light is RGB
+    R[: H // 5], L[: H // 5] = 1.0, 0.4  # a fifth of the frame 40x brighter: metered to 0.5 it would blow out
+    S_b = (R * L).permute(2, 0, 1).unsqueeze(0)
+    total, terms = enhancement_objective(tr.model, c, R, L, S_b)
+    want = losses.exposure_target(c, tr.model.tone, R * L, tr.model.shoulder)
+    assert float(terms["exp_E"]) == pytest.approx(float(want)) and float(terms["exp_E"]) < c["exposure_E"] - 0.05
+    parts = c["w_spa"] * terms["spa"] + c["w_exp"] * terms["exp"] + c["w_col"] * terms["col"]
+    assert float(total.detach()) == pytest.approx(float(parts.detach()))  # exp_E is not part of the sum
+    _, plain = enhancement_objective(tr.model, dict(c, exp_highlight_share=0.0), R, L, S_b)
+    assert float(plain["exp_E"]) == c["exposure_E"]
+    res = tr.model.render(tr.views[0].camera, 0, depth=tr.depth_prior)
+    assert "exp_E" in tr.loss(res, tr.views[0], step=4) and "exp_E" not in tr.loss(res, tr.views[0], step=3)
+
+
 def test_checkpoint_resume_gives_the_same_parameters(scene_dir, tmp_path):
     run = tmp_path / "run"
     tr = trainer_for(scene_dir, run)
