@@ -67,12 +67,14 @@ def load_run(run_dir: Path, device: Optional[str] = None) -> Tuple[Dict, Scene, 
 # in the default (a run made before it, resumed, must not start using it); the reconstruction term was on the
 # dark photo's values (rec_domain photo) until the exposed SSIM became the default, later still; renders were over
 # black until the mean background became the default (2026-11-26), and blind to the capture's noise until
-# issue 32 (the noise floor of the exposed SSIM, the camera's clipped noise).
+# issue 32 (the noise floor of the exposed SSIM, the camera's clipped noise). The exposure meter averaged until
+# the highlight cap (2026-11-27), and a batch of views stepped with torch's Adam betas until β^B (the same day).
 PREDATING_VALUES: Dict[str, Any] = {"model.enhancement.tone": "illumination", "loss.w_depth": 0.0,
                                     "loss.rec_domain": "photo", "model.background": "black",
                                     "model.enhancement.shoulder": 1.0, "loss.rec_noise_floor": False,
                                     "loss.rec_camera_noise": False, "loss.rec_noise_share": 0.5,
-                                    "density.noise_aware": False, "loss.rec_noise_scale": 1}
+                                    "density.noise_aware": False, "loss.rec_noise_scale": 1,
+                                    "loss.exp_highlight_share": 0.0, "train.momentum_batch_scaling": "none"}
 
 
 def _fill_missing(cfg: Config, default: Config, prefix: str, filled: List[str]) -> Config:
