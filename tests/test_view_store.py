@@ -278,8 +278,9 @@ def test_the_trainer_holds_a_small_store_in_host_memory(scene_dir, tmp_path):
     assert any("the store held in host memory" in s and "train.views_pinned_gb=4" in s for s in logs), logs
     off = make(scene_dir, tmp_path / "off", "always", ["train.views_pinned_gb=0"])
     assert off.views.resident_bytes == 0 and len(off.views._staging) == 3
-    with pytest.raises(UserError, match="views_pinned_gb"):
-        load_config(["demo"], ["train.views_pinned_gb=-1"])
+    for bad in ("-1", "1e400"):  # 1e400 reads as inf: every number in the schema must be finite
+        with pytest.raises(UserError, match="views_pinned_gb"):
+            load_config(["demo"], [f"train.views_pinned_gb={bad}"])
 
 
 def test_device_buffers_are_reused(scene_dir, tmp_path):

@@ -49,10 +49,11 @@ def Int(lo: Optional[int] = None, hi: Optional[int] = None) -> Any:
 
 
 def Num(ge: Optional[float] = None, gt: Optional[float] = None, le: Optional[float] = None) -> Any:
-    """A number (int or float, not a bool) within the bounds."""
+    """A finite number (int or float, not a bool) within the bounds (``1e400`` reads as inf: refused too)."""
     lo, lo_open = (gt, True) if gt is not None else (ge, False)
     text = f"a number {_range(lo, le, lo_open)}".strip()
-    return Annotated[float, BeforeValidator(_yaml_number), Field(ge=ge, gt=gt, le=le), Expect(text)]
+    return Annotated[float, BeforeValidator(_yaml_number), Field(ge=ge, gt=gt, le=le, allow_inf_nan=False),
+                     Expect(text)]
 
 
 Bool = Annotated[bool, Expect("true or false")]
