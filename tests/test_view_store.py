@@ -19,6 +19,7 @@ from PIL import Image
 import retinexgs.train.trainer as trainer_mod
 import retinexgs.train.streamed_views as streamed_mod
 import retinexgs.train.view_store as store_mod
+import retinexgs.train.views as views_mod
 from retinexgs.data import load_scene
 from retinexgs.data.scene import View
 from retinexgs.demo.synthetic import make_demo_scene
@@ -30,7 +31,7 @@ from retinexgs.train.resume import RESUMABLE
 from retinexgs.train.trainer import Trainer
 from retinexgs.train.streamed_views import StreamedViews
 from retinexgs.train.view_store import ViewStore, compact_photo, photo_table, store_fingerprint
-from retinexgs.train.views import choose_streaming, preload_bytes_per_pixel
+from retinexgs.train.views import ViewStatistics, choose_streaming, preload_bytes_per_pixel, stream_set_up
 from scenes import needs_cuda
 
 TINY = ["steps=8", "checkpoint.every=4", "log.every=1", "log.tensorboard=false", "model.sh_degree=1",
@@ -173,6 +174,39 @@ def eight_steps(tr):
             tr.order = [4, 2, 0, 3, 1]
         logs.append(tr.train_step(step, tr.views[tr.order.pop()], check=True))
     return logs
+
+
+@pytest.mark.parametrize("workers", [1, 3])
+def test_photos_read_ahead_on_threads_give_the_same_store_items(scene_dir, workers):
+    """The store's items and the set-up statistics do not depend on how many photos are decoded ahead."""
+    views = load_scene(scene_dir).train
+    device = torch.device("cpu")
+    ref_stats, stats = ViewStatistics(0.9), ViewStatistics(0.9)
+    fake = [(torch.rand(v.height, v.width, 3), torch.rand(v.height, v.width, 1)) for v in views]
+    ref = []
+    for v, (R, L) in zip(views, fake):  # one at a time, as before the read-ahead
+        image = v.load_image()
+        ref_stats.add(image, R, L)
+        ref.append((v.name, compact_photo(image), R.numpy().astype(np.float16), L.numpy().astype(np.float16)))
+    got = list(stream_set_up(views, iter(fake), device, stats, workers=workers))
+    assert [g[0] for g in got] == [r[0] for r in ref]
+    for g, r in zip(got, ref):
+        assert g[1].dtype == r[1].dtype and all(np.array_equal(a, b) for a, b in zip(g[1:], r[1:]))
+    assert stats.illumination_reference() == ref_stats.illumination_reference() and torch.equal(stats.mean_background(),
+    ref_stats.mean_background())
+    assert all(v._image is None for v in views)  # nothing kept on the views
+
+
+def test_an_unreadable_photo_stops_the_read_ahead_with_its_error(scene_dir, tmp_path):
+    import shutil
+    copy = tmp_path / "scene"
+    shutil.copytree(scene_dir, copy)
+    views = load_scene(copy).train
+    views[2].image_path.write_bytes(b"not an image")
+    it = stream_set_up(views, None, torch.device("cpu"), None, workers=3)
+    assert [next(it)[0] for _ in range(2)] == [views[0].name, views[1].name]
+    with pytest.raises(UserError, match=views[2].image_path.name):
+        next(it)
 
 
 def test_training_streamed_matches_preloaded(scene_dir, tmp_path):
@@ -505,7 +539,9 @@ def test_a_store_that_cannot_fit_is_refused_before_decoding(scene_dir, tmp_path,
     assert not reads
 
 
-def test_building_the_store_holds_at_most_two_views(tmp_path, monkeypatch):
+def test_building_the_store_holds_a_bounded_number_of_views(tmp_path, monkeypatch):
+    """Photos in memory: the one being written and those read ahead (one a thread); priors: at most two."""
+    monkeypatch.setattr(views_mod, "read_ahead_workers", lambda: 2)
     scene = make_demo_scene(tmp_path / "scene", n_train=10, n_test=1, width=24, height=18, n_points=200)
     photos, priors, alive = [], [], []
     load = View.load_image
@@ -528,7 +564,7 @@ def test_building_the_store_holds_at_most_two_views(tmp_path, monkeypatch):
     monkeypatch.setattr(trainer_mod, "decompose_views", counted_priors)
     tr = make(scene, tmp_path / "run", "always")
     assert len(photos) == 10 and len(priors) == 10
-    assert max(p for p, _ in alive) <= 1 and max(q for _, q in alive) <= 2, alive
+    assert max(p for p, _ in alive) <= 3 and max(q for _, q in alive) <= 2, alive
     assert all(v._image is None for v in tr.scene.train)
     # Preloaded on the CPU, the photos are the device copies the trainer keeps; the View drops its own.
     pre = make(scene, tmp_path / "pre", "never")

@@ -22,8 +22,11 @@ This module holds the view on the device and the choice between the two; the sto
 """
 from __future__ import annotations
 
+import os
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Iterable, Iterator, List, Optional, Tuple
+from typing import Deque, Iterable, Iterator, List, Optional, Tuple
 
 import numpy as np
 import torch
@@ -197,25 +200,62 @@ class ViewStatistics:
         return torch.cat([R, L.expand(3)])
 
 
+def _read_compact(view) -> Tuple[Tensor, np.ndarray]:
+    """A view's photo as the trainer reads it (float32 [H,W,3]) and in its compact stored form."""
+    image = view.load_image()
+    return image, compact_photo(image)
+
+
+def read_ahead_workers() -> int:
+    """Threads that decode photos ahead of the store's writer: PIL's decoder and numpy release the GIL, so a
+    1080p JPEG's ~0.1 s of decoding and compacting runs in parallel; at most 8, so that host memory stays at a
+    few views (each ~31 B/px in flight)."""
+    return max(1, min(8, (os.cpu_count() or 1) - 1))
+
+
 def stream_set_up(views: Iterable, priors: Optional[Iterator], device: torch.device,
-                  stats: Optional[ViewStatistics]) -> Iterator[Tuple[str, np.ndarray, Optional[np.ndarray],
-                                                                     Optional[np.ndarray]]]:
+                  stats: Optional[ViewStatistics], workers: Optional[int] = None
+                  ) -> Iterator[Tuple[str, np.ndarray, Optional[np.ndarray], Optional[np.ndarray]]]:
     """The items of :meth:`ViewStore.build` from the scene's views (each photo read, then released) and
     their priors (an iterator of (R, L) float32 CPU tensors, run to its end; None: no priors), gathering
-    ``stats`` on ``device`` from the same float32 maps a preloaded run trains on."""
-    for v in views:
-        image = v.image
+    ``stats`` on ``device`` from the same float32 maps a preloaded run trains on.
+
+    The photos are decoded ``workers`` views ahead (default :func:`read_ahead_workers`) on threads, in order;
+    the items and the statistics are those of reading them one at a time. An unreadable photo raises its
+    error when its turn comes."""
+    workers = read_ahead_workers() if workers is None else max(1, int(workers))
+    queue: Deque[Tuple[object, Future]] = deque()
+    pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="retinexgs-read")
+    it = iter(views)
+
+    def submit() -> bool:
+        v = next(it, None)
+        if v is None:
+            return False
         v.release_images()
-        R = L = None
-        if priors is not None:
-            R, L = next(priors)
-            check_prior_size(R, image)
-        if stats is not None:
-            stats.add(image.to(device), None if R is None else R.to(device), None if L is None else L.to(device))
-        photo = compact_photo(image)
-        del image
-        yield (v.name, photo, None if R is None else R.numpy().astype(np.float16),
-               None if L is None else L.numpy().astype(np.float16))
+        queue.append((v, pool.submit(_read_compact, v)))
+        return True
+
+    try:
+        while len(queue) <= workers and submit():  # one more than the threads: the next is ready
+            pass
+        while queue:
+            v, job = queue.popleft()
+            image, photo = job.result()
+            submit()
+            R = L = None
+            if priors is not None:
+                R, L = next(priors)
+                check_prior_size(R, image)
+            if stats is not None:
+                stats.add(image.to(device), None if R is None else R.to(device), None if L is None else L.to(device))
+            del image
+            yield (v.name, photo, None if R is None else R.numpy().astype(np.float16),
+                   None if L is None else L.numpy().astype(np.float16))
+    finally:
+        for _, job in queue:
+            job.cancel()
+        pool.shutdown(wait=True)
     for _ in priors or ():  # e.g. the decomposition cache's sweep, after its last view
         pass
 
@@ -232,5 +272,5 @@ def gib(nbytes: float) -> str:
 
 
 __all__ = ["TrainView", "pad_edges", "unpack_edges", "unpack_targets", "make_train_view", "packed_channels",
-           "preload_bytes_per_pixel", "choose_streaming", "ViewStatistics", "stream_set_up", "check_prior_size", "gib",
+           "preload_bytes_per_pixel", "choose_streaming", "ViewStatistics", "stream_set_up", "read_ahead_workers", "check_prior_size", "gib",
            "STREAM_MODES"]
