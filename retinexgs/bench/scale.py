@@ -604,8 +604,9 @@ def _run(args: argparse.Namespace, gpus: List[int], device: str, seeds: Sequence
     if len(gpus) > 1 and args.views_seen < SHORT_RUN_PASSES * views:
         # What the PSNR column can say: measured on one H100 (docs/experiments/2026-11-27-batch-views-seen.md).
         header += (f"\n\nA short run (under {SHORT_RUN_PASSES} passes): at equal views seen a batch of several views "
-                   "makes fewer optimiser steps, and in a short run it trails one view a step (a batch of 4: −0.76 dB "
-                   "at 10 passes, +0.66 dB at 40, on one H100). Compare PSNR with more --views-seen.")
+                   "makes fewer optimiser steps, and in a short run it trails one view a step (a batch of 4: −0.37 dB "
+                   "at 8 passes on 4 H100s, −0.76 dB at 10 and +0.66 dB at 40 on one). Compare PSNR with more "
+                   "--views-seen.")
     runs: Dict[int, List[Dict]] = {n: [] for n in gpus}
     failed = False
     several = len(seeds) > 1
