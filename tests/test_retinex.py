@@ -532,3 +532,22 @@ def test_psnr_and_ssim():
     assert math.isclose(float(ssim(x, x * 0 + x.mean())), float(ssim(x * 0 + x.mean(), x)), rel_tol=1e-6)
     b = torch.stack([x, noisy])
     assert psnr(b, torch.stack([x, x])).shape == (2,)
+
+
+def test_the_decomposer_benchmark_resizes_and_reports_memory(tmp_path, capsys):
+    """`bench lr3m --resize HxW` decomposes the photos at that size and gives each method's memory."""
+    from retinexgs.bench import lr3m as bench_lr3m
+    for sub in ("low", "high"):
+        (tmp_path / sub).mkdir()
+    noisy, clean = synthetic_scene(0, 24, 32)[:2]
+    Image.fromarray((noisy.numpy() * 60).astype(np.uint8)).save(tmp_path / "low" / "a.png")
+    Image.fromarray((clean.numpy() * 255).astype(np.uint8)).save(tmp_path / "high" / "a.png")
+    out = tmp_path / "r.json"
+    assert bench_lr3m.main(["--data", str(tmp_path), "--methods", "lime", "--resize", "30x40", "--json", str(out)]) == 0
+    assert "(30, 40)" in capsys.readouterr().out
+    rep = json.loads(out.read_text())
+    assert rep["meta"]["resize"] == [30, 40]
+    assert rep["rows"]["lime"]["memory_gib"] >= 0.0 and "RSS" in rep["rows"]["lime"]["memory"]
+    for bad in ("30", "4x40", "ax40"):
+        with pytest.raises(SystemExit):
+            bench_lr3m.main(["--data", str(tmp_path), "--resize", bad])

@@ -5,12 +5,17 @@
 For each method: seconds per image (wall clock; CUDA synchronised; the first image is also timed) and
 PSNR/SSIM of the viewable enhancement S' = R∘(L/max L)^{1/2.2} against ``high/``, next to PSNR/SSIM of
 the raw low photo. Prints one table; ``--json FILE`` also writes the numbers.
+
+Memory: on CUDA each image's peak allocated bytes beyond what was held before it; on the CPU the process's peak
+RSS growth since the start (a high-water mark: give one method per process for its own figure). ``--resize HxW``
+decomposes the photos resized (bilinear) to that size, e.g. 3000x4000 for a 12 MP photo, as a memory probe.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import platform
+import resource
 import statistics
 import sys
 import time
@@ -42,6 +47,30 @@ def _sync(dev: torch.device) -> None:
         torch.cuda.synchronize(dev)
 
 
+def _size(text: str) -> tuple:
+    try:
+        h, w = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected HxW, e.g. 3000x4000, got {text!r}") from None
+    if h < 8 or w < 8:
+        raise argparse.ArgumentTypeError(f"a size of at least 8x8 is needed, got {text!r}")
+    return h, w
+
+
+def _resize(img: torch.Tensor, size) -> torch.Tensor:
+    """[H,W,3] in [0,1] resized (bilinear) to ``size`` = (h, w), or as it is for None."""
+    if size is None or tuple(img.shape[:2]) == tuple(size):
+        return img
+    x = torch.nn.functional.interpolate(img.permute(2, 0, 1)[None], size=size, mode="bilinear", align_corners=False)
+    return x[0].permute(1, 2, 0).clamp(0.0, 1.0).contiguous()
+
+
+def _rss_gib() -> float:
+    """The process's peak resident set so far, GiB (Linux reports KiB, macOS bytes)."""
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / (2 ** 30 if sys.platform == "darwin" else 2 ** 20)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", required=True, help="scene folder with low/ and high/")
@@ -50,6 +79,8 @@ def main(argv=None) -> int:
     ap.add_argument("--methods", default="lr3m,lime", help="comma-separated methods")
     ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0 = leave as is)")
     ap.add_argument("--json", default=None, help="also write the results to this JSON file")
+    ap.add_argument("--resize", type=_size, default=None, metavar="HxW",
+                    help="decompose the photos resized to HxW (a memory and time probe for big photos)")
     args = ap.parse_args(argv)
 
     if args.threads > 0:
@@ -60,42 +91,53 @@ def main(argv=None) -> int:
           + (f" ({torch.cuda.get_device_name(dev)})" if dev.type == "cuda" else
              f" ({platform.processor() or platform.machine()}, {torch.get_num_threads()} threads)")
           + f", torch {torch.__version__}")
-    lows = [read_image(lo) for lo, _ in pairs]
-    highs = [read_image(hi) for _, hi in pairs]
+    lows = [_resize(read_image(lo), args.resize) for lo, _ in pairs]
+    highs = [_resize(read_image(hi), args.resize) for _, hi in pairs]
+    rss0 = _rss_gib()
     raw_p = [float(psnr(lo, hi)) for lo, hi in zip(lows, highs)]
     raw_s = [float(ssim(lo, hi)) for lo, hi in zip(lows, highs)]
     rows: Dict[str, Dict[str, float]] = {
         "raw low": {"s_per_image": float("nan"), "psnr": statistics.mean(raw_p), "ssim": statistics.mean(raw_s)}}
     for method in [m.strip() for m in args.methods.split(",") if m.strip()]:
         dec = get_decomposer(method)
-        times, ps, ss, cpu = [], [], [], []
+        times, ps, ss, cpu, mem = [], [], [], [], []
         for (lo_path, _), lo, hi in zip(pairs, lows, highs):
             x = lo.to(dev)
             _sync(dev)
+            if dev.type == "cuda":
+                held = torch.cuda.memory_allocated(dev)
+                torch.cuda.reset_peak_memory_stats(dev)
             t0, c0 = time.perf_counter(), time.process_time()
             r, l = dec.decompose(x)
             _sync(dev)
             times.append(time.perf_counter() - t0)
             cpu.append(time.process_time() - c0)
+            mem.append((torch.cuda.max_memory_allocated(dev) - held) / 2 ** 30 if dev.type == "cuda"
+                       else _rss_gib() - rss0)
             enh = enhance_for_viewing(r, l, 2.2).cpu()
             ps.append(float(psnr(enh, hi)))
             ss.append(float(ssim(enh, hi)))
-            print(f"  {method:5s} {lo_path.name}: {times[-1]:7.2f} s (cpu {cpu[-1]:6.1f} s)  "
-                  f"PSNR {ps[-1]:6.2f} dB  SSIM {ss[-1]:.3f}", flush=True)
+            print(f"  {method:5s} {lo_path.name} {tuple(x.shape[:2])}: {times[-1]:7.2f} s (cpu {cpu[-1]:6.1f} s)  "
+                  f"PSNR {ps[-1]:6.2f} dB  SSIM {ss[-1]:.3f}  memory {mem[-1]:.2f} GiB "
+                  f"({mem[-1] * 2 ** 30 / (x.shape[0] * x.shape[1]):.0f} B/px)", flush=True)
         rows[method] = {"s_per_image": statistics.mean(times), "s_median": statistics.median(times),
                         "cpu_s_per_image": statistics.mean(cpu), "psnr": statistics.mean(ps),
-                        "ssim": statistics.mean(ss), "key": dec.cache_key()}
+                        "ssim": statistics.mean(ss), "key": dec.cache_key(), "memory_gib": max(mem),
+                        "memory": "peak CUDA allocation beyond the held" if dev.type == "cuda"
+                        else "peak RSS growth since the start (high-water)"}
     print()
-    print("| method | s / image (mean) | PSNR vs high (dB) | SSIM vs high | ΔPSNR vs raw low |")
-    print("|---|---|---|---|---|")
+    print("| method | s / image (mean) | PSNR vs high (dB) | SSIM vs high | ΔPSNR vs raw low | memory (GiB) |")
+    print("|---|---|---|---|---|---|")
     base = rows["raw low"]["psnr"]
     for name, row in rows.items():
         secs = "—" if name == "raw low" else f"{row['s_per_image']:.2f}"
         delta = "—" if name == "raw low" else f"{row['psnr'] - base:+.2f}"
-        print(f"| {name} | {secs} | {row['psnr']:.2f} | {row['ssim']:.3f} | {delta} |")
+        memory = f"{row['memory_gib']:.2f}" if "memory_gib" in row else "—"
+        print(f"| {name} | {secs} | {row['psnr']:.2f} | {row['ssim']:.3f} | {delta} | {memory} |")
     if args.json:
         meta = {"date": datetime.now(timezone.utc).isoformat(timespec="seconds"), "device": str(dev),
                 "images": [str(lo) for lo, _ in pairs], "threads": torch.get_num_threads(),
+                "resize": list(args.resize) if args.resize else None,
                 "torch": torch.__version__}
         Path(args.json).write_text(json.dumps({"meta": meta, "rows": rows}, indent=2))
     return 0
