@@ -151,11 +151,17 @@ def test_quick_cpu_run(tmp_path):
     md = (tmp_path / "out" / "scale.md").read_text()
     assert "| status | ok |" in md and "| speed-up (views/s over 1 GPU) | 1.00× |" in md
     assert "(2.0 passes over the training views)" in md and "A short run" not in md  # one rank count: no caveat
-    # the scene is reused; a run that fails makes the benchmark fail, and says where its log is
-    r = _bench(tmp_path, *QUICK, "--gpus", "1", "--decompose", "none", "--set", "loss.no_such_key=1")
+    # --reuse reads a finished run's row back instead of training it again (same --out, same command)
+    r = _bench(tmp_path, *QUICK, "--gpus", "1", "--reuse")
+    assert r.returncode == 0 and "reused the finished run" in r.stdout, r.stdout[-2000:] + r.stderr[-2000:]
+    assert json.loads((tmp_path / "out" / "scale.json").read_text())["runs"] == [run]
+    # the scene is reused; another command is trained even with --reuse; a run that fails makes the benchmark
+    # fail, and says where its log is
+    r = _bench(tmp_path, *QUICK, "--gpus", "1", "--decompose", "none", "--set", "loss.no_such_key=1", "--reuse")
     assert "reusing" in r.stdout and r.returncode == 1, r.stdout[-2000:]
     (run,) = json.loads((tmp_path / "out" / "scale.json").read_text())["runs"]
     assert run["status"].startswith("failed (exit") and "gpus1.log" in run["status"]
+    assert not (tmp_path / "out" / "runs" / "gpus1.row.json").exists()  # the failed run left no row to reuse
 
 
 @pytest.mark.skipif(importlib.util.find_spec("retinexgs.train.distributed") is None,

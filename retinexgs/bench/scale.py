@@ -490,6 +490,22 @@ def write_report(out: Path, header: str, rows: List[Dict], report: Dict, estimat
     return md
 
 
+def _row_file(run: Path) -> Path:
+    return run.parent / f"{run.name}.row.json"
+
+
+def finished_row(run: Path, cmd: Sequence[str]) -> Optional[Dict]:
+    """The row of a run an earlier call finished with the same command line (``--reuse``), or None."""
+    try:
+        saved = json.loads(_row_file(run).read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(saved, dict) or saved.get("command") != list(cmd[1:]) or _metrics(run) is None:
+        return None
+    row = saved.get("row")
+    return row if isinstance(row, dict) and row.get("status") == "ok" else None
+
+
 def main(argv: Sequence[str]) -> int:
     ap = argparse.ArgumentParser(prog="python -m retinexgs.bench scale", description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.ArgumentDefaultsHelpFormatter)
@@ -521,6 +537,9 @@ def main(argv: Sequence[str]) -> int:
     ap.add_argument("--device", default="auto", help="cuda, cpu or auto (scene generation, decomposition, training)")
     ap.add_argument("--out", type=Path, default=Path("runs/scale"), help="scale.md, scale.json and the runs")
     ap.add_argument("--generate-only", action="store_true", help="make (or reuse) the scene, print the estimate, stop")
+    ap.add_argument("--reuse", action="store_true",
+                    help="keep a run that an earlier call with the same --out finished with the same command (its row "
+                         "is read back, not trained again): add seeds or rank counts to one table over several calls")
     args = ap.parse_args(list(argv))
     try:
         gpus = parse_gpus(args.gpus)
@@ -609,7 +628,6 @@ def _run(args: argparse.Namespace, gpus: List[int], device: str, seeds: Sequence
                    "--views-seen.")
     runs: Dict[int, List[Dict]] = {n: [] for n in gpus}
     failed = False
-    several = len(seeds) > 1
 
     def rows_now() -> List[Dict]:
         return [aggregate(runs[n]) if runs[n] else {"gpus": n, "planned_steps": steps_for(args.views_seen, n, vpr),
@@ -628,12 +646,20 @@ def _run(args: argparse.Namespace, gpus: List[int], device: str, seeds: Sequence
             rows.append(row)
             write_report(args.out, header, rows_now(), report, est_text)
             continue
-        name = f"gpus{n}" + (f"-seed{seed}" if several else "")
+        name = f"gpus{n}" + ("" if seed is None else f"-seed{seed}")
         run = args.out / "runs" / name
+        cmd = train_command(scene, run, n, steps, device, args.config, sets + ([] if seed is None else [f"seed={seed}"]))
+        kept = finished_row(run, cmd) if args.reuse else None
+        if kept is not None:
+            print(f"{n} rank(s), seed {'as configured' if seed is None else seed}: reused the finished run {run}",
+                  flush=True)
+            rows.append(kept)
+            write_report(args.out, header, rows_now(), report, est_text)
+            continue
+        _row_file(run).unlink(missing_ok=True)  # a row stands only for the run trained beside it
         if run.exists():
             shutil.rmtree(run)
         run.parent.mkdir(parents=True, exist_ok=True)
-        cmd = train_command(scene, run, n, steps, device, args.config, sets + ([] if seed is None else [f"seed={seed}"]))
         print(f"{n} rank(s), seed {'as configured' if seed is None else seed}, {steps} steps: {' '.join(cmd[1:])}", flush=True)
         rc, wall, rss = run_process(cmd, run.parent / f"{name}.log", env)
         m = _metrics(run)
@@ -647,6 +673,8 @@ def _run(args: argparse.Namespace, gpus: List[int], device: str, seeds: Sequence
             tail = (run.parent / f"{name}.log").read_text(errors="replace").splitlines()[-15:]
             print("\n".join(f"    | {line}" for line in tail), file=sys.stderr, flush=True)
         rows.append(row)
+        if row["status"] == "ok":
+            atomic_write_text(_row_file(run), json.dumps({"command": list(cmd[1:]), "row": row}, indent=1))
         vps = row.get("views_per_second")
         print(f"  {row['status']} in {wall:.0f} s" + (f": {vps:.2f} views/s" if vps else "") +
               (f", PSNR {row['psnr']:.2f}" if row.get("psnr") is not None else ""), flush=True)
