@@ -6,8 +6,8 @@ For each method: seconds per image (wall clock; CUDA synchronised; the first ima
 PSNR/SSIM of the viewable enhancement S' = R∘(L/max L)^{1/2.2} against ``high/``, next to PSNR/SSIM of
 the raw low photo. Prints one table; ``--json FILE`` also writes the numbers.
 
-Memory: on CUDA each image's peak allocated bytes beyond what was held before it; on the CPU the process's peak
-RSS growth since the start (a high-water mark: give one method per process for its own figure). ``--resize HxW``
+Memory: each image's peak during its decomposition beyond what was held before it: allocated bytes on CUDA, the
+process's resident set on the CPU (Linux: the peak reset through /proc/self/clear_refs; elsewhere nan). ``--resize HxW``
 decomposes the photos resized (bilinear) to that size, e.g. 3000x4000 for a 12 MP photo, as a memory probe.
 """
 from __future__ import annotations
@@ -15,13 +15,12 @@ from __future__ import annotations
 import argparse
 import json
 import platform
-import resource
 import statistics
 import sys
 import time
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Dict, List
+from typing import Dict, List, Optional
 
 import torch
 
@@ -65,10 +64,25 @@ def _resize(img: torch.Tensor, size) -> torch.Tensor:
     return x[0].permute(1, 2, 0).clamp(0.0, 1.0).contiguous()
 
 
-def _rss_gib() -> float:
-    """The process's peak resident set so far, GiB (Linux reports KiB, macOS bytes)."""
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return peak / (2 ** 30 if sys.platform == "darwin" else 2 ** 20)
+def _proc_status_gib(key: str) -> Optional[float]:
+    """A ``VmRSS`` / ``VmHWM`` line of /proc/self/status in GiB (Linux), or None."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith(key + ":"):
+                return int(line.split()[1]) / 2 ** 20
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def _start_host_peak() -> Optional[float]:
+    """Reset the process's peak RSS (Linux: ``5`` to /proc/self/clear_refs) and return the RSS now, GiB; None
+    where the peak cannot be reset (then the memory column is left empty on the CPU)."""
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+    except OSError:
+        return None
+    return _proc_status_gib("VmRSS")
 
 
 def main(argv=None) -> int:
@@ -93,7 +107,6 @@ def main(argv=None) -> int:
           + f", torch {torch.__version__}")
     lows = [_resize(read_image(lo), args.resize) for lo, _ in pairs]
     highs = [_resize(read_image(hi), args.resize) for _, hi in pairs]
-    rss0 = _rss_gib()
     raw_p = [float(psnr(lo, hi)) for lo, hi in zip(lows, highs)]
     raw_s = [float(ssim(lo, hi)) for lo, hi in zip(lows, highs)]
     rows: Dict[str, Dict[str, float]] = {
@@ -107,13 +120,18 @@ def main(argv=None) -> int:
             if dev.type == "cuda":
                 held = torch.cuda.memory_allocated(dev)
                 torch.cuda.reset_peak_memory_stats(dev)
+            else:
+                rss = _start_host_peak()
             t0, c0 = time.perf_counter(), time.process_time()
             r, l = dec.decompose(x)
             _sync(dev)
             times.append(time.perf_counter() - t0)
             cpu.append(time.process_time() - c0)
-            mem.append((torch.cuda.max_memory_allocated(dev) - held) / 2 ** 30 if dev.type == "cuda"
-                       else _rss_gib() - rss0)
+            if dev.type == "cuda":
+                mem.append((torch.cuda.max_memory_allocated(dev) - held) / 2 ** 30)
+            else:
+                peak = _proc_status_gib("VmHWM") if rss is not None else None
+                mem.append(float("nan") if peak is None else peak - rss)
             enh = enhance_for_viewing(r, l, 2.2).cpu()
             ps.append(float(psnr(enh, hi)))
             ss.append(float(ssim(enh, hi)))
@@ -124,7 +142,7 @@ def main(argv=None) -> int:
                         "cpu_s_per_image": statistics.mean(cpu), "psnr": statistics.mean(ps),
                         "ssim": statistics.mean(ss), "key": dec.cache_key(), "memory_gib": max(mem),
                         "memory": "peak CUDA allocation beyond the held" if dev.type == "cuda"
-                        else "peak RSS growth since the start (high-water)"}
+                        else "peak RSS growth during the decomposition"}
     print()
     print("| method | s / image (mean) | PSNR vs high (dB) | SSIM vs high | ΔPSNR vs raw low | memory (GiB) |")
     print("|---|---|---|---|---|---|")
