@@ -77,8 +77,14 @@ def cache_key(method: str, params: Any) -> str:
     """Stable short hash of method + parameters + algorithm version (hex, 12 characters).
 
     Floats are written with ``repr`` by ``json``, so the key only changes when a value really changes.
+    Fields a params class lists in ``KEY_OMIT_AT_DEFAULT`` are left out at those values (fields added
+    later: the caches written before them keep their key).
     """
-    blob = json.dumps({"method": method, "params": params_to_dict(params), "version": ALGORITHM_VERSION},
+    values = params_to_dict(params)
+    for name, default in getattr(type(params), "KEY_OMIT_AT_DEFAULT", {}).items():  # added after caches existed
+        if name in values and values[name] == default:
+            del values[name]
+    blob = json.dumps({"method": method, "params": values, "version": ALGORITHM_VERSION},
                       sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(blob.encode("utf-8")).hexdigest()[:12]
 

@@ -33,12 +33,18 @@ Choices made where the public description is silent (also in docs/retinex.md):
 - R is clipped to [0,1] once at the end; L is floored at ``l_floor`` × its 99th percentile.
 - ``delta`` (0.23) is listed by the public demo with no documented role; it is kept in the parameters
   (and in the cache key) for reference but not used.
+- Memory: the R sub-problem's working set is about 1.4 KB per pixel on the CPU (every overlapping patch of R and
+  its groups): 2.7 GiB for a 1080p photo, 15 GiB for a 12 MP one. Above ``tile_pixels`` it runs in tiles of at most
+  that many pixels, each a core plus ``tile_margin`` px of context on every side, keeping each core; the
+  illumination, the exposure scale q and the noise σ_S stay the whole photo's. The result differs from the whole
+  photo's only through the context a core lacks (``tests/test_retinex.py``); photos up to 1920×1080 are not tiled
+  at the default.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Optional, Tuple
+from typing import Any, ClassVar, Dict, Iterator, Optional, Tuple
 
 import torch
 import torch.nn.functional as F
@@ -80,6 +86,12 @@ class LR3MParams:
     median_guide: bool = True  # keep ∇Ŝ only where a 3×3 median of S/L also has a gradient (no speckles)
     rematch_every: int = 0    # 0: block matching once; n: again every n iterations
     solver: str = "gram"      # "gram" (eigh of the n×n Gram matrix) or "svd" (torch.linalg.svd)
+    tile_pixels: int = 1 << 21  # memory bound: larger photos solve R in tiles of at most this many pixels
+    tile_margin: int = 96     # context px on each side of a tile's core (a multiple of ``stride``)
+
+    # Added after caches existed: at these values they are left out of the cache key, so that a cache written
+    # before them stays valid (the photos it holds were decomposed whole; tiles change R only near seams).
+    KEY_OMIT_AT_DEFAULT: ClassVar[Dict[str, Any]] = {"tile_pixels": 1 << 21, "tile_margin": 96}
 
 
 def _neumann_solve(rhs: torch.Tensor, a: float, mu: float) -> torch.Tensor:
@@ -142,30 +154,46 @@ class LR3M(Decomposer):
             raise ValueError(f"LR3M solver must be 'gram' or 'svd', got {p.solver!r}")
         if min(s.shape[-2:]) < p.patch + 1:
             raise ValueError(f"image must be larger than the {p.patch}x{p.patch} patch, got {tuple(s.shape[-2:])}")
+        tile_side(p)  # bad tile parameters are refused whatever the photo's size
         # --- illumination: max-RGB refined by the structure-aware SPD solve
         l = refine_illumination(max_rgb(s), p.beta, p.illum_eps, p.weight_sigma, p.cg_tol, p.cg_max_iter)
         q = percentile_scale(l)
         l = torch.maximum(l, p.l_floor * q)
         lt, st = l / q, s / q  # exposure-normalised (R unchanged)
 
-        # --- reflectance: ADMM with gradient fidelity and the low-rank prior
+        # --- reflectance: ADMM with gradient fidelity and the low-rank prior, on tiles above tile_pixels
         sig_s = estimate_noise_sigma(st).view(-1, 1, 1, 1)
+        h, w = s.shape[-2:]
+        if h * w <= p.tile_pixels:
+            return self._reflectance(st, lt, sig_s).clamp(0.0, 1.0), l
+        r = torch.empty_like(st)
+        for (y0, y1, x0, x1), (cy0, cy1, cx0, cx1) in tiles(h, w, p):
+            part = self._reflectance(st[..., y0:y1, x0:x1], lt[..., y0:y1, x0:x1], sig_s)
+            r[..., cy0:cy1, cx0:cx1] = part[..., cy0 - y0:cy1 - y0, cx0 - x0:cx1 - x0]
+            del part
+        return r.clamp(0.0, 1.0), l
+
+    def _reflectance(self, st: torch.Tensor, lt: torch.Tensor, sig_s: torch.Tensor) -> torch.Tensor:
+        """The R sub-problem on [B,3,h,w] exposure-normalised S and [B,1,h,w] L (σ_S [B,1,1,1] given: the
+        whole photo's), unclipped."""
+        p: LR3MParams = self.params
         r0 = (st / lt).clamp(0.0, 1.0)
         sig_r0 = (sig_s / lt).clamp(max=0.5)
         gx, gy = _gradient_target(r0, sig_r0, p)
         two_w = 2.0 * p.omega
         rhs_g = two_w * (grad_x_t(gx) + grad_y_t(gy))
+        del gx, gy
         two_sl, two_l2 = 2.0 * st * lt, 2.0 * lt * lt
 
         r, z, mu = r0, torch.zeros_like(r0), p.mu0
-        groups: list = [None] * s.shape[0]
+        groups: list = [None] * st.shape[0]
         for k in range(p.iterations):
             r_hat = _neumann_solve(rhs_g + mu * r + z, two_w, mu)
             r_bar = (two_sl + mu * r_hat - z) / (two_l2 + mu)
             sig_map = (p.gamma_s ** k) * sig_r0
             rematch = k == 0 or (p.rematch_every > 0 and k % p.rematch_every == 0)
             r_new = torch.empty_like(r_bar)
-            for b in range(s.shape[0]):
+            for b in range(st.shape[0]):
                 if rematch:
                     # Match on the luma of R̂ (as BM3D matches on Y): 3× less data, no loss in our tests.
                     groups[b] = block_match(r_hat[b].mean(0, keepdim=True), p.patch, p.stride, p.search_radius, p.search_step,
@@ -175,7 +203,40 @@ class LR3M(Decomposer):
             r = r_new
             z = z + mu * (r - r_hat)
             mu *= p.rho
-        return r.clamp(0.0, 1.0), l
+        return r
+
+
+def tile_side(p: LR3MParams) -> int:
+    """The side of a tile's core; a ValueError names bad tile parameters."""
+    m = p.tile_margin
+    side = (math.isqrt(max(p.tile_pixels, 0)) - 2 * m) // p.stride * p.stride
+    if m < 0 or m % p.stride or side < 4 * p.stride:
+        raise ValueError(f"LR3M tiles: tile_margin={m} must be a non-negative multiple of stride={p.stride} and "
+                         f"tile_pixels={p.tile_pixels} at least ({2 * m + 4 * p.stride})² (a core of 4 strides)")
+    return side
+
+
+def tiles(h: int, w: int, p: LR3MParams) -> Iterator[Tuple[Tuple[int, int, int, int], Tuple[int, int, int, int]]]:
+    """The tiles of an h×w photo: ((y0, y1, x0, x1) of the tile, (y0, y1, x0, x1) of its core), cores covering
+    the photo once. A tile is its core and ``tile_margin`` px on each side (clipped at the photo's edge; a thin
+    last core without margin gets context to reach a patch) and has at most ``tile_pixels`` pixels. Cores are
+    square, of a side that is a multiple of ``stride``, so every tile starts on the whole photo's reference grid;
+    the last row and column of cores take what is left."""
+    m, side = p.tile_margin, tile_side(p)
+    for cy0 in range(0, h, side):
+        for cx0 in range(0, w, side):
+            cy1, cx1 = min(cy0 + side, h), min(cx0 + side, w)
+            y1, x1 = min(cy1 + m, h), min(cx1 + m, w)
+            yield (_start(cy0, y1, p), y1, _start(cx0, x1, p), x1), (cy0, cy1, cx0, cx1)
+
+
+def _start(c0: int, end: int, p: LR3MParams) -> int:
+    """A tile's first row (column): ``tile_margin`` before its core, earlier (on the stride grid) where the
+    tile would be narrower than a patch and a pixel (a thin last core without margin)."""
+    start = max(c0 - p.tile_margin, 0)
+    if end - start < p.patch + 1:
+        start = max((end - p.patch - 1) // p.stride * p.stride, 0)
+    return start
 
 
 def lr3m_decompose(image: torch.Tensor, params: Optional[LR3MParams] = None, **overrides) -> Tuple[torch.Tensor, torch.Tensor]:
