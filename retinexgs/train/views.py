@@ -209,7 +209,7 @@ def _read_compact(view) -> Tuple[Tensor, np.ndarray]:
 def read_ahead_workers() -> int:
     """Threads that decode photos ahead of the store's writer: PIL's decoder and numpy release the GIL, so a
     1080p JPEG's ~0.1 s of decoding and compacting runs in parallel; at most 8, so that host memory stays at a
-    few views (each ~31 B/px in flight)."""
+    few photos (up to threads + 2 at once, 15 B/px each once read: float32 and the compact copy)."""
     return max(1, min(8, (os.cpu_count() or 1) - 1))
 
 
@@ -272,5 +272,6 @@ def gib(nbytes: float) -> str:
 
 
 __all__ = ["TrainView", "pad_edges", "unpack_edges", "unpack_targets", "make_train_view", "packed_channels",
-           "preload_bytes_per_pixel", "choose_streaming", "ViewStatistics", "stream_set_up", "read_ahead_workers", "check_prior_size", "gib",
+           "preload_bytes_per_pixel", "choose_streaming", "ViewStatistics", "stream_set_up", "read_ahead_workers",
+           "check_prior_size", "gib",
            "STREAM_MODES"]
