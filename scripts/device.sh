@@ -55,6 +55,8 @@
 #       profile    scripts/profiling.py train on --scene (300 warm-up steps, 30 profiled)
 #       fprofile   scripts/profiling.py frame --fused on the run      rprofile  scripts/profiling.py raster
 #       lr3m       scripts/profiling.py lr3m on --scene's first low-light photo
+#       bigphoto   `bench lr3m` on --scene's first photo resized to 3000x4000 (12 MP), on tiles (the default) and
+#                  whole (tile_pixels=1e9): time and peak GPU memory, no metrics
 #       export     `retinexgs export` and `retinexgs render --maps enhanced,R,L` of the run, timed
 #       ab         A/B training time against another checkout --old DIR (a plain copy, e.g. `git archive REV |
 #                  tar x -C .ab_old`, carried): old, new, old, new... (--repeats 2) on one card, so that a
@@ -307,7 +309,7 @@ mode_speed() {
   local stages=" ${ARGS[*]:-train fps trainspeed raster profile} "
   has() { [[ $stages == *" $1 "* ]]; }
   for s in $stages; do
-    [[ " train fps trainspeed stream raster profile fprofile rprofile lr3m export ab " == *" $s "* ]] \
+    [[ " train fps trainspeed stream raster profile fprofile rprofile lr3m bigphoto export ab " == *" $s "* ]] \
       || die "unknown speed stage $s"
   done
   setup
@@ -331,7 +333,7 @@ print('gsplat ready')" > "$LOGS/gsplat_build.log" 2>&1; echo "gsplat JIT: exit $
     [ -f "$run/metrics.json" ] || train=1
   fi
   has train && train=1
-  if [ $train = 1 ] || has trainspeed || has stream || has profile || has lr3m || has ab; then
+  if [ $train = 1 ] || has trainspeed || has stream || has profile || has lr3m || has bigphoto || has ab; then
     need_train_wheels; stage_data; need_scene "$SCENE"
   fi
   wait  # gsplat's build, before anything is timed
@@ -386,6 +388,12 @@ print('gsplat ready')" > "$LOGS/gsplat_build.log" 2>&1; echo "gsplat JIT: exit $
   if has lr3m; then
     local img; img=$(find "$scene/low" -maxdepth 1 -type f | sort | head -1)
     timeout 200 python3 scripts/profiling.py lr3m "$img" 2>&1 | tee "$OUT/lr3m.txt"
+  fi
+  if has bigphoto; then
+    for tp in 2097152 1000000000; do
+      timeout 300 python3 -m retinexgs.bench lr3m --data "$scene" --device cuda --methods lr3m --limit 1 \
+        --resize 3000x4000 --no-metrics --param "tile_pixels=$tp" 2>&1 | tee -a "$OUT/bigphoto.txt" | grep "lr3m "
+    done
   fi
   if has export; then
     t=$SECONDS

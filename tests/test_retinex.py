@@ -555,6 +555,15 @@ def test_the_decomposer_benchmark_resizes_and_reports_memory(tmp_path, capsys):
     for bad in ("30", "4x40", "ax40"):
         with pytest.raises(SystemExit):
             bench_lr3m.main(["--data", str(tmp_path), "--resize", bad])
+    # --param reaches the decomposer (an unknown one is refused by name); --no-metrics leaves PSNR / SSIM out
+    assert bench_lr3m.main(["--data", str(tmp_path), "--methods", "lime", "--param", "gamma=0.8", "--no-metrics",
+                            "--json", str(out)]) == 0
+    rep = json.loads(out.read_text())
+    assert rep["meta"]["params"] == {"gamma": 0.8} and rep["rows"]["lime"]["psnr"] is None
+    assert rep["rows"]["lime"]["key"] == get_decomposer("lime", gamma=0.8).cache_key() != get_decomposer("lime").cache_key()
+    with pytest.raises(SystemExit):
+        bench_lr3m.main(["--data", str(tmp_path), "--methods", "lime", "--param", "no_such=1"])
+    assert "no_such" in capsys.readouterr().err
 
 
 # ---- LR3M on tiles (the memory bound for big photos) -----------------------------------------------------

@@ -85,6 +85,19 @@ def _start_host_peak() -> Optional[float]:
     return _proc_status_gib("VmRSS")
 
 
+def _param(text: str) -> tuple:
+    """KEY=VALUE with VALUE an int, a float, true/false or else a string."""
+    key, sep, raw = text.partition("=")
+    if not sep or not key.strip():
+        raise argparse.ArgumentTypeError(f"expected KEY=VALUE, e.g. tile_pixels=1000000000, got {text!r}")
+    for cast in (int, float):
+        try:
+            return key.strip(), cast(raw)
+        except ValueError:
+            pass
+    return key.strip(), {"true": True, "false": False}.get(raw.strip().lower(), raw)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", required=True, help="scene folder with low/ and high/")
@@ -95,7 +108,17 @@ def main(argv=None) -> int:
     ap.add_argument("--json", default=None, help="also write the results to this JSON file")
     ap.add_argument("--resize", type=_size, default=None, metavar="HxW",
                     help="decompose the photos resized to HxW (a memory and time probe for big photos)")
+    ap.add_argument("--param", type=_param, action="append", default=[], metavar="KEY=VALUE",
+                    help="a decomposer parameter for every method, e.g. tile_pixels=1000000000 (a 12 MP photo whole)")
+    ap.add_argument("--metrics", action=argparse.BooleanOptionalAction, default=True,
+                    help="PSNR / SSIM against high/ (--no-metrics: time and memory alone; SSIM of a 12 MP photo "
+                         "takes minutes on the CPU)")
     args = ap.parse_args(argv)
+    params = dict(args.param)
+    try:
+        decomposers = [get_decomposer(m.strip(), **params) for m in args.methods.split(",") if m.strip()]
+    except ValueError as exc:
+        ap.error(str(exc))
 
     if args.threads > 0:
         torch.set_num_threads(args.threads)
@@ -107,12 +130,13 @@ def main(argv=None) -> int:
           + f", torch {torch.__version__}")
     lows = [_resize(read_image(lo), args.resize) for lo, _ in pairs]
     highs = [_resize(read_image(hi), args.resize) for _, hi in pairs]
-    raw_p = [float(psnr(lo, hi)) for lo, hi in zip(lows, highs)]
-    raw_s = [float(ssim(lo, hi)) for lo, hi in zip(lows, highs)]
+    nan = float("nan")
+    raw_p = [float(psnr(lo, hi)) if args.metrics else nan for lo, hi in zip(lows, highs)]
+    raw_s = [float(ssim(lo, hi)) if args.metrics else nan for lo, hi in zip(lows, highs)]
     rows: Dict[str, Dict[str, float]] = {
         "raw low": {"s_per_image": float("nan"), "psnr": statistics.mean(raw_p), "ssim": statistics.mean(raw_s)}}
-    for method in [m.strip() for m in args.methods.split(",") if m.strip()]:
-        dec = get_decomposer(method)
+    for dec in decomposers:
+        method = dec.name
         times, ps, ss, cpu, mem = [], [], [], [], []
         for (lo_path, _), lo, hi in zip(pairs, lows, highs):
             x = lo.to(dev)
@@ -132,9 +156,14 @@ def main(argv=None) -> int:
             else:
                 peak = _proc_status_gib("VmHWM") if rss is not None else None
                 mem.append(float("nan") if peak is None else peak - rss)
-            enh = enhance_for_viewing(r, l, 2.2).cpu()
-            ps.append(float(psnr(enh, hi)))
-            ss.append(float(ssim(enh, hi)))
+            if args.metrics:
+                enh = enhance_for_viewing(r, l, 2.2).cpu()
+                ps.append(float(psnr(enh, hi)))
+                ss.append(float(ssim(enh, hi)))
+            else:
+                ps.append(nan)
+                ss.append(nan)
+            del r, l
             print(f"  {method:5s} {lo_path.name} {tuple(x.shape[:2])}: {times[-1]:7.2f} s (cpu {cpu[-1]:6.1f} s)  "
                   f"PSNR {ps[-1]:6.2f} dB  SSIM {ss[-1]:.3f}  memory {mem[-1]:.2f} GiB "
                   f"({mem[-1] * 2 ** 30 / (x.shape[0] * x.shape[1]):.0f} B/px)", flush=True)
@@ -151,13 +180,17 @@ def main(argv=None) -> int:
         secs = "—" if name == "raw low" else f"{row['s_per_image']:.2f}"
         delta = "—" if name == "raw low" else f"{row['psnr'] - base:+.2f}"
         memory = f"{row['memory_gib']:.2f}" if "memory_gib" in row else "—"
-        print(f"| {name} | {secs} | {row['psnr']:.2f} | {row['ssim']:.3f} | {delta} | {memory} |")
+        quality = f"{row['psnr']:.2f} | {row['ssim']:.3f}" if args.metrics else "— | —"
+        delta = delta if args.metrics else "—"
+        print(f"| {name} | {secs} | {quality} | {delta} | {memory} |")
     if args.json:
         meta = {"date": datetime.now(timezone.utc).isoformat(timespec="seconds"), "device": str(dev),
                 "images": [str(lo) for lo, _ in pairs], "threads": torch.get_num_threads(),
-                "resize": list(args.resize) if args.resize else None,
+                "resize": list(args.resize) if args.resize else None, "params": params,
                 "torch": torch.__version__}
-        Path(args.json).write_text(json.dumps({"meta": meta, "rows": rows}, indent=2))
+        finite = {name: {k: (None if isinstance(v, float) and v != v else v) for k, v in row.items()}
+                  for name, row in rows.items()}  # NaN (not measured) as null: standard JSON
+        Path(args.json).write_text(json.dumps({"meta": meta, "rows": finite}, indent=2))
     return 0
 
 
