@@ -589,7 +589,8 @@ def test_tiles_cover_the_photo_once_within_the_pixel_bound():
 
 def test_bad_tile_parameters_are_refused_whatever_the_size():
     s = synthetic_scene(0, 20, 20)[0]
-    for bad in [dict(tile_margin=25), dict(tile_margin=-6), dict(tile_pixels=100)]:
+    for bad in [dict(tile_margin=25), dict(tile_margin=-6), dict(tile_pixels=100), dict(tile_pixels="big"),
+                dict(tile_pixels=2.5e6), dict(tile_margin=True)]:
         with pytest.raises(ValueError, match="LR3M tiles"):
             get_decomposer("lr3m", **bad).decompose(s)
 

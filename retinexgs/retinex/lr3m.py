@@ -208,6 +208,10 @@ class LR3M(Decomposer):
 
 def tile_side(p: LR3MParams) -> int:
     """The side of a tile's core; a ValueError names bad tile parameters."""
+    for name in ("tile_pixels", "tile_margin"):
+        value = getattr(p, name)
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ValueError(f"LR3M tiles: {name} must be an integer, got {value!r}")
     m = p.tile_margin
     side = (math.isqrt(max(p.tile_pixels, 0)) - 2 * m) // p.stride * p.stride
     if m < 0 or m % p.stride or side < 4 * p.stride:
