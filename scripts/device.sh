@@ -17,7 +17,8 @@
 #          carry=[".data", ".whl"], timeout_s=600)
 # On a machine still warm, a second call reuses the build (build/), the wheels, the scene copy (/tmp/data) and
 # finished runs (/tmp/runs). Environment: OUT (default ./gpu_out), DATA (.data), WHL (.whl),
-# TORCH_CUDA_ARCH_LIST (9.0: H100/H200), MAX_JOBS (16). Every option below may also be given as the upper-case
+# TORCH_CUDA_ARCH_LIST (9.0: H100/H200), MAX_JOBS (16), SKIP_SETUP (1: no wheel install or build, for modes run side by
+# side on one machine, one per GPU with CUDA_VISIBLE_DEVICES and each its own OUT, after one `build`: they would race). Every option below may also be given as the upper-case
 # environment variable (--fps-run X = FPS_RUN=X).
 #
 # Modes and what each writes under $OUT (always also logs.tgz: build log and every other log):
@@ -122,7 +123,9 @@ setup_env() {  # the wheels and the environment (enough for code that needs no c
   mkdir -p "$OUT" "$LOGS"
   export PYTHONUNBUFFERED=1 MAX_JOBS=${MAX_JOBS:-16} TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0}
   SITE=
-  if compgen -G "$WHL/*.whl" > /dev/null; then
+  if [ "${SKIP_SETUP:-0}" = 1 ]; then  # a mode beside another on one machine: the wheels are installed already
+    [ -d /tmp/site ] && SITE=/tmp/site
+  elif compgen -G "$WHL/*.whl" > /dev/null; then
     python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site \
       "$WHL"/*.whl > "$LOGS/wheels.log" 2>&1 || { tail -20 "$LOGS/wheels.log"; die "the wheels in $WHL did not install"; }
     SITE=/tmp/site
@@ -135,6 +138,11 @@ setup_env() {  # the wheels and the environment (enough for code that needs no c
 }
 setup_build() {  # the CUDA extension (setup_env first)
   local t=$SECONDS
+  if [ "${SKIP_SETUP:-0}" = 1 ]; then  # a re-run of setup.py would re-copy the .so under a running mode
+    python3 -c "import sys, torch, retinexgs._C as C; sys.exit(0 if C.has_cuda else 1)" \
+      || die "SKIP_SETUP=1 but no CUDA build here: run \`bash scripts/device.sh build\` first"
+    echo "build: skipped (SKIP_SETUP=1)"; return
+  fi
   python3 setup.py build_ext --inplace > "$LOGS/build.log" 2>&1 \
     || { grep -E "error" -A3 "$LOGS/build.log" | head -40; tail -20 "$LOGS/build.log"; cp "$LOGS/build.log" "$OUT/";
          die "build failed (build.log)"; }

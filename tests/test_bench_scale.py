@@ -123,6 +123,7 @@ def test_table_from_todays_keys_and_from_the_distributed_ones():
     line = {r.split("|")[1].strip(): [c.strip() for c in r.split("|")[2:-1]] for r in md.splitlines()
             if r.startswith("| ")}
     assert line["speed-up (views/s over 1 GPU)"] == ["1.00×", "1.90×", "–", "–"]
+    assert line["PSNR aligned to the truth's grey mean (GT-mean)"] == ["–", "–", "–", "–"]  # not in these metrics
     assert line["efficiency (speed-up / N)"] == ["100 %", "95 %", "–", "–"]
     assert line["peak GPU memory per rank (GB)"][1] == "10.50 (min 10.00)"
     assert line["time to first step (s)"][1] == "21.5" and line["time to first step (s)"][0].startswith("– (")
@@ -179,7 +180,8 @@ def test_two_gloo_ranks_at_equal_views_seen(tmp_path):
 
 def test_seeds_aggregate_to_means_and_spread():
     runs = [dict(gpus=2, seed=s, status="ok", steps=8, views_per_step=2, views_seen=16, ranks=2, notes=[],
-                 views_per_second=v, steps_per_second=v / 2, psnr=p, ssim=0.5, peak_gpu_gb_per_rank=[1.0, g], gaussians=1000 * (s + 1),
+                 views_per_second=v, steps_per_second=v / 2, psnr=p, ssim=0.5, psnr_gt_mean=p + 3.0 + s,
+                 peak_gpu_gb_per_rank=[1.0, g], gaussians=1000 * (s + 1),
                  views_per_second_after_first_step=v + 1, density_event_steps=4, density_event_overhead_seconds=0.5)
             for s, v, p, g in ((0, 10.0, 20.0, 2.0), (1, 14.0, 22.0, 3.0))]
     row = scale.aggregate(runs)
@@ -194,6 +196,7 @@ def test_seeds_aggregate_to_means_and_spread():
             if r.startswith("| ")}
     assert line["views/s after step 1 (speed-up, efficiency)"] == ["5.00 (1.00×, 100 %)", "13.00 (2.60×, 130 %)"]
     assert line["PSNR / SSIM (test views)"][1] == "21.00 ± 1.41 / 0.500 ± 0.000"
+    assert line["PSNR aligned to the truth's grey mean (GT-mean)"] == ["23.00", "24.50 ± 2.12"]
     assert line["density events: steps timed; seconds beyond plain steps"][1] == "4; 0.50 s"
 
 
