@@ -56,8 +56,8 @@
 #       profile    scripts/profiling.py train on --scene (300 warm-up steps, 30 profiled)
 #       fprofile   scripts/profiling.py frame --fused on the run      rprofile  scripts/profiling.py raster
 #       lr3m       scripts/profiling.py lr3m on --scene's first low-light photo
-#       bigphoto   `bench lr3m` on --scene's first photo resized to 3000x4000 (12 MP), on tiles (the default) and
-#                  whole (tile_pixels=1e9): time and peak GPU memory, no metrics
+#       bigphoto   `bench lr3m` on --scene's first photo resized to 3000x4000 (12 MP), on tiles (tile_memory_share=0),
+#                  whole (tile_pixels=1e9) and as the default decides: time and peak GPU memory, no metrics
 #       export     `retinexgs export` and `retinexgs render --maps enhanced,R,L` of the run, timed
 #       ab         A/B training time against another checkout --old DIR (a plain copy, e.g. `git archive REV |
 #                  tar x -C .ab_old`, carried): old, new, old, new... (--repeats 2) on one card, so that a
@@ -398,9 +398,11 @@ print('gsplat ready')" > "$LOGS/gsplat_build.log" 2>&1; echo "gsplat JIT: exit $
     timeout 200 python3 scripts/profiling.py lr3m "$img" 2>&1 | tee "$OUT/lr3m.txt"
   fi
   if has bigphoto; then
-    for tp in 2097152 1000000000; do
+    local param
+    for param in tile_memory_share=0 tile_pixels=1000000000 tile_memory_share=0.5; do  # tiles, whole, the default
+      echo "== $param" >> "$OUT/bigphoto.txt"
       timeout 300 python3 -m retinexgs.bench lr3m --data "$scene" --device cuda --methods lr3m --limit 1 \
-        --resize 3000x4000 --no-metrics --param "tile_pixels=$tp" 2>&1 | tee -a "$OUT/bigphoto.txt" | grep "lr3m "
+        --resize 3000x4000 --no-metrics --param "$param" 2>&1 | tee -a "$OUT/bigphoto.txt" | grep "lr3m "
     done
   fi
   if has export; then

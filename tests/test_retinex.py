@@ -590,7 +590,8 @@ def test_tiles_cover_the_photo_once_within_the_pixel_bound():
 def test_bad_tile_parameters_are_refused_whatever_the_size():
     s = synthetic_scene(0, 20, 20)[0]
     for bad in [dict(tile_margin=25), dict(tile_margin=-6), dict(tile_pixels=100), dict(tile_pixels="big"),
-                dict(tile_pixels=2.5e6), dict(tile_margin=True)]:
+                dict(tile_pixels=2.5e6), dict(tile_margin=True), dict(tile_memory_share=1.5),
+                dict(tile_memory_share=-0.1), dict(tile_memory_share="half"), dict(tile_memory_share=True)]:
         with pytest.raises(ValueError, match="LR3M tiles"):
             get_decomposer("lr3m", **bad).decompose(s)
 
@@ -602,16 +603,54 @@ def test_tiled_lr3m_equals_the_whole_photo_but_for_the_context():
     whole = get_decomposer("lr3m")
     assert 130 * 150 <= whole.params.tile_pixels  # the default leaves this photo whole
     R0, L0 = whole.decompose(s)
-    R, L = get_decomposer("lr3m", tile_pixels=108 * 108, tile_margin=30).decompose(s)  # 4 x 3 tiles
+    # tile_memory_share=0: tiles whatever memory is free (this small photo would otherwise be solved whole)
+    R, L = get_decomposer("lr3m", tile_pixels=108 * 108, tile_margin=30, tile_memory_share=0).decompose(s)  # 4 x 3
+    assert not torch.equal(R, R0)  # the tiles did run
     assert torch.equal(L, L0)
     assert psnr(R, R0) > 50.0, psnr(R, R0)
-    no_context = get_decomposer("lr3m", tile_pixels=48 * 48, tile_margin=0).decompose(s)[0]
+    no_context = get_decomposer("lr3m", tile_pixels=48 * 48, tile_margin=0, tile_memory_share=0).decompose(s)[0]
     assert psnr(no_context, R0) < psnr(R, R0) - 5.0  # the margin is what makes it match
 
 
 def test_the_default_key_is_the_one_before_tiles():
     """A cache written before the tile parameters keeps its key: they are left out at their defaults."""
-    before = {k: v for k, v in dataclasses.asdict(LR3MParams()).items() if k not in ("tile_pixels", "tile_margin")}
+    before = {k: v for k, v in dataclasses.asdict(LR3MParams()).items()
+              if k not in ("tile_pixels", "tile_margin", "tile_memory_share")}
     assert cache_key("lr3m", LR3MParams()) == cache_key("lr3m", before)
     assert cache_key("lr3m", LR3MParams(tile_pixels=1 << 20)) != cache_key("lr3m", LR3MParams())
     assert cache_key("lr3m", LR3MParams(tile_margin=48)) != cache_key("lr3m", LR3MParams())
+    assert cache_key("lr3m", LR3MParams(tile_memory_share=0.0)) != cache_key("lr3m", LR3MParams())
+
+
+def test_a_big_photo_is_solved_whole_only_where_its_working_set_fits_the_free_memory(monkeypatch):
+    """Tiles only where they are needed: above tile_pixels a photo is solved whole if 1.4 KB/px of it fits the
+    share of free memory, tiled where it does not or where the free memory is unknown; share 0 always tiles."""
+    from retinexgs.retinex import lr3m as lr3m_mod
+    p = LR3MParams(tile_pixels=1000)
+    cpu = torch.device("cpu")
+    free = {"bytes": 10 * 2000 * lr3m_mod.WHOLE_BYTES_PER_PIXEL}
+    monkeypatch.setattr(lr3m_mod, "free_memory_bytes", lambda device: free["bytes"])
+    assert lr3m_mod.solve_whole(1000, 1, cpu, p)  # not above tile_pixels
+    assert lr3m_mod.solve_whole(2000, 5, cpu, p)  # 5 photos = half of the free memory
+    assert not lr3m_mod.solve_whole(2000, 6, cpu, p)
+    assert not lr3m_mod.solve_whole(2000, 1, cpu, dataclasses.replace(p, tile_memory_share=0.0))
+    free["bytes"] = None
+    assert not lr3m_mod.solve_whole(2000, 1, cpu, p)
+    # and the decomposition follows it: the same photo tiled (no memory) and whole (plenty), vs forced tiles
+    s = synthetic_scene(3, 70, 80, photons=300.0)[0] * 0.3
+    small = dict(tile_pixels=48 * 48, tile_margin=12)
+    tiled = get_decomposer("lr3m", tile_memory_share=0, **small).decompose(s)[0]
+    assert torch.equal(get_decomposer("lr3m", **small).decompose(s)[0], tiled)
+    free["bytes"] = 1 << 40
+    assert not torch.equal(get_decomposer("lr3m", **small).decompose(s)[0], tiled)
+
+
+def test_free_memory_is_read_on_this_host(monkeypatch):
+    from retinexgs.retinex.lr3m import free_memory_bytes
+    one = free_memory_bytes(torch.device("cpu"))
+    if one is None:  # not Linux: the decomposer tiles every big photo, which the test above covers
+        assert not os.path.exists("/proc/meminfo")
+        return
+    assert one > 0
+    monkeypatch.setenv("LOCAL_WORLD_SIZE", "4")
+    assert free_memory_bytes(torch.device("cpu")) <= one // 2  # shared among the host's ranks
