@@ -350,3 +350,63 @@ def test_a_resume_draws_the_probe_noise_where_the_run_stopped(scenes, tmp_path):
     assert not torch.equal(saved, fresh)  # the probe drew noise in those steps
     resumed = _trainer(scenes[0], tmp_path / "run", extra, resume=True)
     assert torch.equal(resumed.noise_probe.generator.get_state(), saved)
+
+
+# ---- model.enhancement.debias_black: the tone takes the clipped noise's mean out of R̂∘L̂ -------------------------
+
+def test_black_table_without_noise_is_the_srgb_decoding():
+    from retinexgs.model.tone import black_table, scene_linear, srgb_to_linear
+    y = torch.rand(4, 9, 3, generator=torch.Generator().manual_seed(0))
+    assert float((scene_linear(y, black_table()) - srgb_to_linear(y)).abs().max()) < 1e-6
+
+
+def test_black_table_inverts_the_cameras_mean_record():
+    """A render that matches the photos' mean (the clipped, encoded noise's mean, camera_mean) is read back as the
+    light that made it; below the record of black, as black. 1000 e- full well, read noise 6 e- (the ladder's
+    noisiest level)."""
+    from retinexgs.model.tone import black_table, camera_mean, linear_to_srgb, scene_linear
+    a, b = torch.tensor([1e-3, 1e-3, 2e-3]), torch.tensor([3.6e-5, 3.6e-5, 7.2e-5])
+    table = black_table(a, b)
+    mu = torch.tensor([0.0, 3e-4, 1e-3, 3e-3, 1e-2, 5e-2, 0.2, 0.6]).reshape(-1, 1).expand(-1, 3)
+    record = camera_mean(linear_to_srgb(mu), a, b)
+    assert float(record[0, 0]) > 0.02  # black is recorded far above black: what the table undoes
+    back = scene_linear(record, table)
+    torch.testing.assert_close(back, mu, atol=2e-5, rtol=2e-3)
+    below = scene_linear(record[:1] * 0.5, table)
+    assert float(below.abs().max()) < 1e-5
+
+
+def test_scene_linear_through_a_table_has_the_interpolations_gradient():
+    from retinexgs.model.tone import black_table, scene_linear
+    table = black_table([1e-3] * 3, [3.6e-5] * 3).double()
+    n = table.shape[-1]
+    idx = torch.tensor([[40, 700, 2000], [90, 1500, 3900]], dtype=torch.float64)
+    y = ((idx + 0.5) / (n - 1)).requires_grad_(True)  # between knots: the interpolation is smooth there
+    assert torch.autograd.gradcheck(lambda v: scene_linear(v, table), (y,), eps=1e-7, atol=1e-6)
+
+
+def test_tone_map_with_the_table_puts_the_noise_floor_at_black():
+    from retinexgs.model.tone import black_table, camera_mean, tone_map
+    a, b = torch.full((3,), 1e-3), torch.full((3,), 3.6e-5)
+    floor = camera_mean(torch.zeros(1, 3), a, b)  # the average record of black
+    R, L = floor / 0.5, torch.full((1, 3), 0.5)
+    ref, g = torch.tensor(0.5), torch.tensor([0.4])
+    lifted = tone_map(R, L, ref, g, "exposure", shoulder=0.5)[0]
+    fixed = tone_map(R, L, ref, g, "exposure", shoulder=0.5, noise=black_table(a, b))[0]
+    assert float(lifted.min()) > 0.2 and float(fixed.max()) < 0.01
+
+
+def test_debias_black_trains_with_the_measured_noise_and_resumes(scenes, tmp_path):
+    from retinexgs.model.tone import black_table
+    tr = _trainer(scenes[0], tmp_path / "run", ["model.enhancement.debias_black=true"])
+    noise = tr.capture_noise
+    assert noise is not None and tr.model.tone_noise() is tr.model.black_table
+    torch.testing.assert_close(tr.model.black_table, black_table(noise.a, noise.b))
+    assert not torch.allclose(tr.model.black_table, black_table())  # a noisy capture: not the identity
+    tr.train(stop_after=2)
+    saved = load_checkpoint(latest_checkpoint(tmp_path / "run"))["model"]["black_table"]
+    torch.testing.assert_close(saved, tr.model.black_table)
+    resumed = _trainer(scenes[0], tmp_path / "run", ["model.enhancement.debias_black=true"], resume=True)
+    resumed.train()
+    off = _trainer(scenes[0], tmp_path / "off")
+    assert off.model.tone_noise() is None and not hasattr(off.model, "black_table")

@@ -147,12 +147,12 @@ class _EnhanceGraph:
         # RetinexGSModel.enhance: gamma replaces g, else exposure adjusts it (exposure 1, when unset: g exactly).
         exposed = apply_exposure(g, self.exposure, self.model.illum_ref, self.model.tone, self.log_ref)
         g = torch.where(self.use_fixed, self.fixed, torch.where(self.exposure == 1.0, g, exposed))
-        if self.model.tone == "exposure":
+        if self.model.tone == "exposure" and self.model.tone_noise() is None:
             # One kernel for srgb(s(k·lin(R̂∘L̂))) (csrc: exposure_tone): in torch the two sRGB curves are ~20
             # elementwise kernels over the frame, and L_enh, which the frame does not show, as many again.
             gain = exposure_gain(self.model.illum_ref, g.reshape(-1), self.log_ref)
             rgb = kernels().exposure_tone(self.image, gain, self.model.shoulder)
-        else:
+        else:  # the gamma tones; tone "exposure" through a black table (debias_black) has no fused kernel yet
             rgb, _ = self.model.tone_map(R, L, g.reshape(-1))
         return torch.cat([rgb.reshape(-1), g.reshape(-1)])
 

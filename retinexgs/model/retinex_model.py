@@ -27,7 +27,7 @@ from torch import Tensor, nn
 from retinexgs.model.enhancement import EnhancementNet
 from retinexgs.model.gaussians import GaussianModel, sh_colors
 from retinexgs.model.illumination import IlluminationField
-from retinexgs.model.tone import apply_exposure, tone_map
+from retinexgs.model.tone import apply_exposure, black_table, tone_map
 from retinexgs.render import Camera, rasterize_gaussians
 
 
@@ -67,6 +67,9 @@ class RetinexGSModel(nn.Module):
             self.illumination = IlluminationField(**model_cfg["illumination"])
             self._set_enhancement(model_cfg["enhancement"])
             self.register_buffer("illum_ref", torch.ones(()))  # L_ref; set by the trainer from the 2D priors
+            if model_cfg["enhancement"].get("debias_black", False):
+                # model/tone.black_table of the capture's noise, set by the trainer; until then lin itself.
+                self.register_buffer("black_table", black_table())
         # model.background "mean": uncovered pixels show [6] channel values (R̂ then L̂) that the trainer sets from
         # the training views' priors, instead of black; a buffer, so checkpoints carry it. RetinexGS's only: the
         # 3DGS baselines stay as published (black).
@@ -82,6 +85,8 @@ class RetinexGSModel(nn.Module):
         enh.pop("ref_quantile", None)  # the trainer's (it sets illum_ref)
         self.tone = str(enh.pop("tone", "illumination"))
         self.shoulder = float(enh.pop("shoulder", 1.0))  # tone "exposure"'s highlight knee (1: the clip)
+        # tone "exposure": take the clipped noise's mean out of R̂∘L̂ before the gain (model/tone.scene_linear)
+        self.debias_black = bool(enh.pop("debias_black", False))
         self.enhancement = EnhancementNet(channels=3, **enh)
 
     def with_enhancement(self, enh_cfg: Dict) -> "RetinexGSModel":
@@ -114,7 +119,15 @@ class RetinexGSModel(nn.Module):
     def tone_map(self, R: Tensor, L: Tensor, gamma: Tensor) -> Tuple[Tensor, Tensor]:
         """(S_enh, L_enh) from R̂ [..., 3], the rendered L̂ [..., 3] and g ([1] or [3], broadcast over the last
         axis), in the model's tone form (``model.enhancement.tone``: :func:`retinexgs.model.tone.tone_map`)."""
-        return tone_map(R, L, self.illum_ref, gamma, self.tone, self.enhancement.eps, self.shoulder)
+        return tone_map(R, L, self.illum_ref, gamma, self.tone, self.enhancement.eps, self.shoulder,
+                        self.tone_noise())
+
+    def tone_noise(self) -> Optional[Tensor]:
+        """The black table (:func:`retinexgs.model.tone.black_table`) through which tone "exposure" reads the light
+        of R̂∘L̂ (``model.enhancement.debias_black``), or None: off, another tone, or a model without the table."""
+        if not self.debias_black or self.tone != "exposure":
+            return None
+        return getattr(self, "black_table", None)
 
     def predict_gamma(self, L_bchw: Tensor) -> Tensor:
         """The EnhancementNet's gamma for a normalised L̂/L_ref [1,3,H,W]: one per image (the paper's single g,

@@ -25,14 +25,23 @@ from __future__ import annotations
 
 from typing import Optional, Tuple
 
+import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["TONES", "srgb_to_linear", "linear_to_srgb", "highlight_shoulder", "highlight_capped_mean", "log_lin_ref",
-           "exposure_gain",
-           "apply_exposure", "tone_map"]
+__all__ = ["TONES", "srgb_to_linear", "linear_to_srgb", "highlight_shoulder", "camera_mean", "camera_mean_inverse",
+           "black_table", "scene_linear", "highlight_capped_mean", "log_lin_ref", "exposure_gain", "apply_exposure", "tone_map"]
 
 TONES = ("illumination", "signal", "exposure")
+
+# A :func:`black_table` [3, N] of a capture's Poisson–Gaussian noise (var = a·y + b per channel in linear light,
+# :class:`retinexgs.train.noise.CaptureNoise`), as tone_map's ``noise``; None: no correction.
+Noise = Optional[Tensor]
+
+# Gauss–Hermite rule (probabilists'): E[f(Z)] ≈ Σ w_i f(z_i) for Z ~ N(0, 1). Eight nodes put the clipped,
+# sRGB-encoded mean within 0.001 of a Monte Carlo mean at every level of fountain-dark's sensor (1500 e⁻, 4 e⁻).
+_GH_Z, _GH_W = np.polynomial.hermite_e.hermegauss(8)
+_GH = tuple(zip(_GH_Z.tolist(), (_GH_W / _GH_W.sum()).tolist()))
 
 
 def srgb_to_linear(x: Tensor, clip: bool = True) -> Tensor:
@@ -60,15 +69,83 @@ def highlight_shoulder(v: Tensor, knee: float) -> Tensor:
     return torch.where(v > knee, rolled, v)
 
 
-def highlight_capped_mean(RL: Tensor, target: float, share: float, shoulder: float = 1.0) -> Tensor:
+def camera_mean(x: Tensor, a: Tensor, b: Tensor) -> Tensor:
+    """What a camera records on average from sRGB-encoded light ``x``: E[srgb(max(0, lin(x) + n))], n ~ N(0,
+    a·lin(x) + b) per channel (``a``, ``b`` broadcastable against ``x``: the capture's noise in linear light), by an
+    8-node Gauss–Hermite rule.
+
+    Why: a sensor's noise is clipped at black, so a dark photo's values average above the light that made them
+    (about 0.4σ at black), and the sRGB curve's bend lowers the mid-tones' average a little. Equals ``x`` where
+    the noise is 0 (to the encoding's precision)."""
+    m = srgb_to_linear(x, clip=False)
+    sigma = (a * m + b).clamp_min(1e-12).sqrt()
+    out = None
+    for z, w in _GH:
+        term = w * linear_to_srgb(m + z * sigma, clip=False)
+        out = term if out is None else out + term
+    return out
+
+
+def camera_mean_inverse(y: Tensor, a: Tensor, b: Tensor, iters: int = 40) -> Tensor:
+    """The linear light μ ≥ 0 whose average record is ``y`` (sRGB, [0, 1]): camera_mean(srgb(μ)) = y, solved per
+    value by bisection on srgb(μ) in [0, 1] (camera_mean rises with its argument); 0 where y lies below the record
+    of black (a value darker than the noise's floor). No gradient: :func:`black_table` tabulates it."""
+    with torch.no_grad():
+        lo, hi = torch.zeros_like(y), torch.ones_like(y)
+        for _ in range(iters):
+            mid = 0.5 * (lo + hi)
+            above = camera_mean(mid, a, b) > y
+            hi = torch.where(above, mid, hi)
+            lo = torch.where(above, lo, mid)
+        return srgb_to_linear(0.5 * (lo + hi))
+
+
+BLACK_TABLE_SIZE = 4096
+
+
+def black_table(a=None, b=None, size: int = BLACK_TABLE_SIZE) -> Tensor:
+    """[3, size] float32: per channel, the linear light whose average record is each of ``size`` sRGB values evenly
+    spaced over [0, 1], under the noise var = a·y + b (``a``, ``b``: three numbers each). Without noise, lin(y)
+    itself: the identity of :func:`scene_linear`. Built in float64 on the CPU, once per scene."""
+    y = torch.linspace(0.0, 1.0, size, dtype=torch.float64).expand(3, size)
+    if a is None or b is None:
+        return srgb_to_linear(y).float()
+    a_ = torch.as_tensor(a, dtype=torch.float64).reshape(3, 1)
+    b_ = torch.as_tensor(b, dtype=torch.float64).reshape(3, 1)
+    return camera_mean_inverse(y.contiguous(), a_, b_).float()
+
+
+def scene_linear(RL: Tensor, table: Noise = None) -> Tensor:
+    """The linear light of R̂∘L̂ [..., 3] that the enhancement exposes: lin(R̂∘L̂), or through a :func:`black_table`
+    [3, N] the light whose average record R̂∘L̂ is: the render matches the photos' mean, which clipped sensor noise
+    lifts above black (``model.enhancement.debias_black``). Linear interpolation in the table: a few elementwise
+    kernels and gathers, differentiable in R̂∘L̂, no host sync."""
+    if table is None:
+        return srgb_to_linear(RL)
+    table = table.to(RL)
+    n = table.shape[-1]
+    pos = RL.clamp(0.0, 1.0) * (n - 1)
+    i0 = pos.detach().floor().clamp(0, n - 2)
+    t = pos - i0
+    i0 = i0.long()
+    flat = RL.shape[:-1].numel()
+    rows = i0.reshape(flat, 3).t()  # [3, P]
+    lo, hi = table.gather(1, rows), table.gather(1, rows + 1)
+    lo, hi = lo.t().reshape(RL.shape), hi.t().reshape(RL.shape)
+    return lo + (hi - lo) * t
+
+
+def highlight_capped_mean(RL: Tensor, target: float, share: float, shoulder: float = 1.0,
+                          noise: Noise = None) -> Tensor:
     """The exposure meter's target for one image [..., 3] of R̂∘L̂ under tone ``exposure``: ``target`` (the mean an
     averaging meter asks for), lowered to the mean of the exposure that takes exactly ``share`` of the pixels past
     white (their brightest channel's linear light at 1 before the ``shoulder``) where that exposure is shorter.
     A camera's highlight-protecting meter: expose for the average unless more than ``share`` of the frame would
     blow out. The scale of R̂∘L̂ drops out (the exposure is found from its own quantile), so the result depends only
-    on the image's light distribution. A 0-d tensor, no gradient; a sort (no host sync: graph-capturable)."""
+    on the image's light distribution. ``noise``: the light as :func:`scene_linear` reads it. A 0-d tensor, no
+    gradient; a sort (no host sync: graph-capturable)."""
     with torch.no_grad():
-        lin = srgb_to_linear(RL.detach().float())
+        lin = scene_linear(RL.detach().float(), noise)
         peak = lin.amax(-1).flatten()
         rank = min(peak.numel() - 1, max(0, int(round((1.0 - share) * (peak.numel() - 1)))))
         white = torch.sort(peak).values[rank].clamp_min(1e-8)
@@ -109,7 +186,7 @@ def apply_exposure(gamma: Tensor, exposure, illum_ref: Tensor, tone: str,
 
 
 def tone_map(R: Tensor, L: Tensor, illum_ref: Tensor, gamma: Tensor, tone: str,
-             eps: float = 1e-3, shoulder: float = 1.0) -> Tuple[Tensor, Tensor]:
+             eps: float = 1e-3, shoulder: float = 1.0, noise: Noise = None) -> Tuple[Tensor, Tensor]:
     """(S_enh, L_enh) of one tone form (module docstring) for rendered R̂ and L̂ of the same layout.
 
     Args:
@@ -120,10 +197,12 @@ def tone_map(R: Tensor, L: Tensor, illum_ref: Tensor, gamma: Tensor, tone: str,
         tone: "illumination", "signal" or "exposure".
         eps: floor under ℓ (and R̂ for "signal") before the power, so its gradient stays finite at 0.
         shoulder: the knee of tone "exposure"'s highlight roll-off (:func:`highlight_shoulder`; 1: the clip).
+        noise: tone "exposure": the :func:`black_table` [3, N] of the capture's noise, whose clipped mean is taken
+            out of R̂∘L̂ before the gain (:func:`scene_linear`); None: lin(R̂∘L̂) as it is.
     """
     if tone == "exposure":
         k = exposure_gain(illum_ref, gamma)
-        return (linear_to_srgb(highlight_shoulder(k * srgb_to_linear(R * L), shoulder)),
+        return (linear_to_srgb(highlight_shoulder(k * scene_linear(R * L, noise), shoulder)),
                 linear_to_srgb(highlight_shoulder(k * srgb_to_linear(L), shoulder)))
     if tone not in TONES:
         raise ValueError(f"tone must be one of {', '.join(TONES)}, got {tone!r}")

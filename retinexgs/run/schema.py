@@ -116,6 +116,7 @@ class Enhancement(Section):
     ref_quantile: Annotated[Optional[Annotated[float, BeforeValidator(_yaml_number), Field(gt=0, le=1)]],
                             Expect("a quantile in (0, 1] (1 = the maximum) or null (no normalisation)")]
     shoulder: Num(gt=0, le=1)  # tone "exposure"'s highlight knee; the gamma tones do not read it
+    debias_black: Bool  # tone "exposure": the clipped sensor noise's mean taken out of R̂∘L̂ before the gain
 
     @model_validator(mode="after")
     def _ordered(self) -> "Enhancement":

@@ -27,12 +27,11 @@ from __future__ import annotations
 
 from typing import Dict, Optional, Tuple
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 
 from retinexgs.evaluate.metrics import cached_constant, check_bchw, gaussian_window, ssim
-from retinexgs.model.tone import highlight_capped_mean, linear_to_srgb, srgb_to_linear
+from retinexgs.model.tone import camera_mean, highlight_capped_mean, linear_to_srgb, srgb_to_linear
 
 __all__ = [
     "to_bchw", "gaussian_window", "ssim", "noise_variance", "robust_abs", "exposed", "camera_expectation", "l1_ssim",
@@ -107,28 +106,11 @@ def exposed(x: torch.Tensor, gain: torch.Tensor) -> torch.Tensor:
     return linear_to_srgb(gain * srgb_to_linear(x, clip=False), clip=False)
 
 
-# Gauss–Hermite rule (probabilists'): E[f(Z)] ≈ Σ w_i f(z_i) for Z ~ N(0, 1). Eight nodes put the clipped,
-# sRGB-encoded mean within 0.001 of a Monte Carlo mean at every level of fountain-dark's sensor (1500 e⁻, 4 e⁻).
-_GH_Z, _GH_W = np.polynomial.hermite_e.hermegauss(8)
-_GH = tuple(zip(_GH_Z.tolist(), (_GH_W / _GH_W.sum()).tolist()))
-
-
 def camera_expectation(x: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """What a camera records on average from sRGB-encoded light ``x`` [B,C,H,W]: E[srgb(max(0, lin(x) + n))],
-    n ~ N(0, a·lin(x) + b) per channel (``a``, ``b`` [1,C,1,1] or broadcastable: the capture's Poisson–Gaussian
-    noise in linear light, :mod:`retinexgs.train.noise`), by an 8-node Gauss–Hermite rule.
-
-    Why: a sensor's noise is clipped at black, so a dark photo's values average above the light that made them
-    (about 0.4σ at black), and the sRGB curve's bend lowers the mid-tones' average a little. A render compared
-    with the photo as it is must lift its blacks to match; compared through this, it can keep the light.
-    Equals ``x`` where the noise is 0 (to the encoding's precision)."""
-    m = srgb_to_linear(x, clip=False)
-    sigma = (a * m + b).clamp_min(1e-12).sqrt()
-    out = None
-    for z, w in _GH:
-        term = w * linear_to_srgb(m + z * sigma, clip=False)
-        out = term if out is None else out + term
-    return out
+    """What a camera records on average from sRGB-encoded light ``x`` [B,C,H,W] under the noise (``a``, ``b``
+    [1,C,1,1] or broadcastable): :func:`retinexgs.model.tone.camera_mean`. A render compared with the photo as it
+    is must lift its blacks to match; compared through this, it can keep the light."""
+    return camera_mean(x, a, b)
 
 
 def l1_ssim(x: torch.Tensor, y: torch.Tensor, lambda_ssim: float = 0.2, huber: float = 0.0,
@@ -358,13 +340,13 @@ def highlight_meter_applies(tone: str, c: Dict) -> bool:
     return tone == "exposure" and c["exp_on"] == "image" and c["exp_patch"] == 0
 
 
-def exposure_target(c: Dict, tone: str, RL: torch.Tensor, shoulder: float = 1.0):
+def exposure_target(c: Dict, tone: str, RL: torch.Tensor, shoulder: float = 1.0, noise=None):
     """L_exp's target E for the image whose R̂∘L̂ is ``RL`` [..., 3]: ``c["exposure_E"]``, capped by the highlight
     meter where :func:`highlight_meter_applies` (a 0-d tensor then, no gradient). Training and the 2D proxy both
-    meter through this."""
+    meter through this. ``noise``: the capture's noise the tone takes out (``model.enhancement.debias_black``)."""
     share = float(c.get("exp_highlight_share", 0.0))
     if share > 0 and highlight_meter_applies(tone, c):
-        return highlight_capped_mean(RL, c["exposure_E"], share, shoulder)
+        return highlight_capped_mean(RL, c["exposure_E"], share, shoulder, noise)
     return c["exposure_E"]
 
 

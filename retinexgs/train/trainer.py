@@ -20,7 +20,7 @@ from retinexgs.fileio import is_out_of_space, out_of_space_error
 from retinexgs.model.density import DensityController
 from retinexgs.model.gaussians import GaussianModel
 from retinexgs.model.retinex_model import RetinexGSModel
-from retinexgs.model.tone import exposure_gain
+from retinexgs.model.tone import black_table, exposure_gain
 from retinexgs.train import losses
 from retinexgs.run.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
 from retinexgs.train.distributed import (Distributed, adam_betas_for_batch, gradient_params, lr_batch_factor,
@@ -65,7 +65,7 @@ def enhancement_objective(model: RetinexGSModel, c: Dict, R_img: Tensor, L_img: 
         R_img, L_img = R_img.detach(), L_img.detach()
     out = model.enhance(R_img, L_img)
     light = to_bchw(out["L_enh"]) if c["exp_on"] == "illumination" else None
-    E = losses.exposure_target(c, model.tone, R_img * L_img, model.shoulder)
+    E = losses.exposure_target(c, model.tone, R_img * L_img, model.shoulder, model.tone_noise())
     total, terms = losses.enhancement_loss(
         to_bchw(out["rgb"]), S_b, c["w_spa"], c["w_exp"], c["w_col"], E,
         illumination=light, exp_patch=c["exp_patch"], exp_form=c["exp_form"], spa_form=c["spa_form"],
@@ -290,8 +290,8 @@ class Trainer:
             self.channel_graphs = ChannelGraphs(self.model, emulate=emulate_graphs)
 
     def _set_up_noise(self, state: Optional[Dict]) -> None:
-        """The capture's noise (:mod:`retinexgs.train.noise`) where ``loss.rec_noise_floor`` or
-        ``loss.rec_camera_noise`` uses it: measured at set-up (or read from the checkpoint, so a resume trains
+        """The capture's noise (:mod:`retinexgs.train.noise`) where ``loss.rec_noise_floor``,
+        ``loss.rec_camera_noise``, ``density.noise_aware`` or ``model.enhancement.debias_black`` uses it: measured at set-up (or read from the checkpoint, so a resume trains
         on the same figures), then the reconstruction's gain cap and the camera's (a, b) as device tensors made
         once (the captured CUDA graphs read them)."""
         c = self.cfg["loss"]
@@ -300,7 +300,8 @@ class Trainer:
         self.camera_noise: Optional[Tuple[Tensor, Tensor]] = None
         self.noise_probe: Optional[NoiseProbe] = None
         noise_aware = bool(self.cfg["density"]["noise_aware"])
-        if not self.decomposed or not (c["rec_noise_floor"] or c["rec_camera_noise"] or noise_aware):
+        debias = self.decomposed and getattr(self.model, "black_table", None) is not None
+        if not self.decomposed or not (c["rec_noise_floor"] or c["rec_camera_noise"] or noise_aware or debias):
             return
         saved = (state or {}).get("capture_noise")
         if saved:
@@ -327,6 +328,9 @@ class Trainer:
             self.rec_gain_cap = torch.tensor(cap, dtype=torch.float32, device=self.device)
         if c["rec_camera_noise"]:
             self.camera_noise = noise.camera(self.device)
+        if debias:  # model.enhancement.debias_black: the tone reads R̂∘L̂'s light through the noise's black table
+            with torch.no_grad():
+                self.model.black_table.copy_(black_table(noise.a, noise.b))
         if noise_aware:  # its own random stream, one per rank (each rank probes its own views)
             rank = dist.rank if dist is not None and dist.enabled else 0
             self.noise_probe = NoiseProbe(noise, self.device, 1_000_003 * (self.cfg["seed"] + 1) + rank)
