@@ -132,3 +132,27 @@ def test_noise_command_places_the_cap_at_the_given_share(tmp_path, capsys):
     for bad in ("0", "1", "-0.2"):
         code, out, err = run_cli(["noise", "--data", src, "--share", bad], capsys)
         assert code == 2 and "--share must lie between 0 and 1" in err
+
+
+def test_noise_estimate_sees_the_read_noise_under_the_clip_at_black():
+    """A dark capture (k = 0.05, 1000 e-, read noise 6 e-: the ladder's noisiest level) puts many pixels at black,
+    where the recorded noise is clipped: its variance smaller, its mean higher. A straight line through the bins read
+    b = (r/W)² 2.4-8x too low; the clipped model's fit reads it within 45 %, lossless."""
+    from retinexgs.data.sensor import clipped_moments, fit_clipped_noise
+    yy, xx = np.mgrid[0:240, 0:320] / 320
+    dark = np.stack([0.8 * xx, 0.05 + 0.6 * yy, 0.1 + 0.4 * np.sin(3 * xx) ** 2], -1).clip(0, 1)
+    m = SensorModel(exposure=0.05, exposure_jitter=0.0, full_well=1000.0, read_noise=6.0, jpeg_quality=0)
+    photo = np.round(linear_to_srgb(m.capture(dark, 0.05, np.random.default_rng(0))) * 255) / 255
+    est = estimate_noise(photo)
+    for c in range(3):
+        assert est.b[c] == pytest.approx(3.6e-5, rel=0.45), est
+    # the moments: no clip far above black; at black the mean is σ/√(2π) and the variance σ²(1/2 − 1/(2π))
+    mean, var = clipped_moments(np.array([0.5, 0.0]), np.array([0.01, 0.01]))
+    assert mean[0] == pytest.approx(0.5) and var[0] == pytest.approx(1e-4, rel=1e-4)
+    assert mean[1] == pytest.approx(0.01 / math.sqrt(2 * math.pi), rel=1e-5)
+    assert var[1] == pytest.approx(1e-4 * (0.5 - 1 / (2 * math.pi)), rel=1e-4)
+    # the fit recovers exact clipped moments of a known (a, b)
+    mu = np.linspace(0.0, 0.05, 12)
+    mean, var = clipped_moments(mu, np.sqrt(2e-3 * mu + 4e-5))
+    a, b = fit_clipped_noise(mean, var, np.ones_like(mu))
+    assert a == pytest.approx(2e-3, rel=0.05) and b == pytest.approx(4e-5, rel=0.1)

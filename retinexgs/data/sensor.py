@@ -16,7 +16,8 @@ night photo. ``full_well=None`` is noise-free (the ladder's clean level).
 Estimation (:func:`estimate_noise`): the same model seen from the photo. In linear light the variance of a raw
 value is ``a · y + b`` with ``a = 1/W`` (shot noise) and ``b = (r/W)²`` (read noise), per channel. The residual of
 a 3×3 second-difference filter (Immerkær 1996; its taps' squares sum to 36) carries the noise and little of a
-smooth image; its robust spread (MAD) in bins of local brightness, fitted by ``a · y + b``, gives both numbers.
+smooth image; its robust spread (MAD) in bins of local brightness, fitted by ``a · y + b`` as seen through the
+clip at black (near black the recorded noise is clipped: smaller, and its mean above the light), gives both numbers.
 JPEG removes part of the noise, so estimates from JPEG photos are lower than the sensor's truth (measured in
 ``docs/experiments/2026-11-26-noise-estimate.md``).
 """
@@ -208,12 +209,76 @@ class NoiseEstimate:
         return tuple(1.0 / a if a > 0 else math.inf for a in self.a)  # type: ignore[return-value]
 
 
+def _phi(u: np.ndarray) -> np.ndarray:
+    return np.exp(-0.5 * u * u) / math.sqrt(2.0 * math.pi)
+
+
+def _Phi(u: np.ndarray) -> np.ndarray:
+    """The standard normal CDF through Abramowitz & Stegun 7.1.26 (|error| < 1.5e-7): vectorised, no scipy."""
+    x = np.abs(u) / math.sqrt(2.0)
+    t = 1.0 / (1.0 + 0.3275911 * x)
+    poly = t * (0.254829592 + t * (-0.284496736 + t * (1.421413741 + t * (-1.453152027 + t * 1.061405429))))
+    erf = 1.0 - poly * np.exp(-x * x)
+    return 0.5 * (1.0 + np.sign(u) * erf)
+
+
+def clipped_moments(mu: np.ndarray, sigma: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """Mean and variance of max(0, μ + σz), z ~ N(0, 1): what a sensor records of light μ with noise σ, clipped at
+    black (Foi et al. 2008, "Practical Poissonian-Gaussian noise modeling and fitting for single-image raw-data")."""
+    sigma = np.maximum(sigma, 1e-12)
+    u = mu / sigma
+    cdf, pdf = _Phi(u), _phi(u)
+    mean = mu * cdf + sigma * pdf
+    var = (mu * mu + sigma * sigma) * cdf + mu * sigma * pdf - mean * mean
+    return mean, np.maximum(var, 0.0)
+
+
+def fit_clipped_noise(means: np.ndarray, variances: np.ndarray, weights: np.ndarray) -> Tuple[float, float]:
+    """(a, b) ≥ 0 of ``var = a·μ + b`` fitted to binned (mean, variance) pairs of a photo whose values are clipped at
+    black: each bin's observed mean and variance are the clipped ones (:func:`clipped_moments`) of the light μ it
+    records, so near black the variance seen is smaller and the mean higher than the model's. A plain line through
+    those bins reads the read noise b several times too low (b = 0 at 1000 e⁻, read noise 6 e⁻) and the shot noise
+    too high. Least squares on log σ, weighted by ``weights``, over a log grid of (a, b), refined once."""
+    y, v, w = (np.asarray(x, dtype=np.float64) for x in (means, variances, weights))
+    keep = v > 0
+    if not keep.any():
+        return 0.0, 0.0
+    y, v, w = y[keep], v[keep], w[keep]
+    log_s = 0.5 * np.log(v)
+
+    def cost(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        # [A, B] candidates x bins: the light μ whose clipped mean is each bin's mean (bisection; it rises with μ)
+        a_, b_ = a[:, None, None], b[None, :, None]
+        lo, hi = np.zeros(a_.shape[:1] + b_.shape[1:2] + y.shape), np.broadcast_to(y, (a.size, b.size, y.size)) + 0.0
+        for _ in range(30):
+            mid = 0.5 * (lo + hi)
+            m, _ = clipped_moments(mid, np.sqrt(a_ * mid + b_))
+            below = m < y
+            lo, hi = np.where(below, mid, lo), np.where(below, hi, mid)
+        mu = 0.5 * (lo + hi)
+        _, var = clipped_moments(mu, np.sqrt(a_ * mu + b_))
+        return np.sum(w * (0.5 * np.log(np.maximum(var, 1e-30)) - log_s) ** 2, axis=-1)
+
+    a_grid = np.concatenate([[0.0], np.logspace(-7, -1, 25)])
+    b_grid = np.concatenate([[0.0], np.logspace(-12, -2, 21)])
+    c = cost(a_grid, b_grid)
+    i, j = np.unravel_index(np.argmin(c), c.shape)
+    a0, b0 = a_grid[i], b_grid[j]
+    for step in (0.25, 0.0625):  # refine twice around the best point, to 1/16 and 1/64 of a decade
+        a_fine = a0 * 10 ** np.linspace(-step, step, 9) if a0 > 0 else a_grid[:2]
+        b_fine = b0 * 10 ** np.linspace(-2 * step, 2 * step, 9) if b0 > 0 else b_grid[:2]
+        c = cost(a_fine, b_fine)
+        i, j = np.unravel_index(np.argmin(c), c.shape)
+        a0, b0 = a_fine[i], b_fine[j]
+    return float(a0), float(b0)
+
+
 def estimate_noise(srgb: np.ndarray, bins: int = 16, min_pixels: int = 400) -> NoiseEstimate:
     """The Poisson-Gaussian noise of one photo [H,W,3] in sRGB [0,1], per channel (module docstring).
 
     Pixels are binned by the local mean (3×3, linear); in each bin the residual's MAD gives a robust σ (edges and
     texture are the outliers it ignores); ``var = a · y + b`` is fitted to the bins by least squares weighted by
-    their pixel counts, with a, b ≥ 0."""
+    their pixel counts, with a, b ≥ 0, as the clipped model predicts them (:func:`fit_clipped_noise`)."""
     if srgb.ndim != 3 or srgb.shape[-1] != 3 or min(srgb.shape[:2]) < 8:
         raise ValueError(f"expected an [H,W,3] photo of at least 8x8 pixels, got shape {tuple(srgb.shape)}")
     lin = srgb_to_linear(srgb.astype(np.float64))
@@ -245,13 +310,7 @@ def estimate_noise(srgb: np.ndarray, bins: int = 16, min_pixels: int = 400) -> N
             a_all.append(0.0)
             b_all.append(float(variances[0]) if variances else 0.0)
             continue
-        y, v, w = np.array(means), np.array(variances), np.sqrt(np.array(counts, dtype=np.float64))
-        A = np.stack([y, np.ones_like(y)], axis=1) * w[:, None]
-        (a, b), *_ = np.linalg.lstsq(A, v * w, rcond=None)
-        if a < 0:  # no shot noise seen: the floor alone
-            a, b = 0.0, float(np.average(v, weights=w))
-        elif b < 0:  # no read noise seen: the slope alone, through the origin
-            a, b = float(np.sum(w * w * y * v) / np.sum(w * w * y * y)), 0.0
+        a, b = fit_clipped_noise(np.array(means), np.array(variances), np.sqrt(np.array(counts, dtype=np.float64)))
         a_all.append(float(a))
         b_all.append(float(b))
         used += len(means)
