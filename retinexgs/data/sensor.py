@@ -238,7 +238,7 @@ def fit_clipped_noise(means: np.ndarray, variances: np.ndarray, weights: np.ndar
     black: each bin's observed mean and variance are the clipped ones (:func:`clipped_moments`) of the light μ it
     records, so near black the variance seen is smaller and the mean higher than the model's. A plain line through
     those bins reads the read noise b several times too low (b = 0 at 1000 e⁻, read noise 6 e⁻) and the shot noise
-    too high. Least squares on log σ, weighted by ``weights``, over a log grid of (a, b), refined once."""
+    too high. Least squares on log σ, weighted by ``weights``, over a log grid of (a, b), refined twice."""
     y, v, w = (np.asarray(x, dtype=np.float64) for x in (means, variances, weights))
     keep = v > 0
     if not keep.any():
