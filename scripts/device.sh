@@ -136,18 +136,17 @@ setup_env() {  # the wheels and the environment (enough for code that needs no c
   nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
   python3 -c "import torch; print('torch', torch.__version__, 'CUDA', torch.version.cuda)"
 }
+has_cuda_build() { python3 -c "import sys, torch, retinexgs._C as C; sys.exit(0 if C.has_cuda else 1)"; }
 setup_build() {  # the CUDA extension (setup_env first)
   local t=$SECONDS
   if [ "${SKIP_SETUP:-0}" = 1 ]; then  # a re-run of setup.py would re-copy the .so under a running mode
-    python3 -c "import sys, torch, retinexgs._C as C; sys.exit(0 if C.has_cuda else 1)" \
-      || die "SKIP_SETUP=1 but no CUDA build here: run \`bash scripts/device.sh build\` first"
+    has_cuda_build || die "SKIP_SETUP=1 but no CUDA build here: run \`bash scripts/device.sh build\` first"
     echo "build: skipped (SKIP_SETUP=1)"; return
   fi
   python3 setup.py build_ext --inplace > "$LOGS/build.log" 2>&1 \
     || { grep -E "error" -A3 "$LOGS/build.log" | head -40; tail -20 "$LOGS/build.log"; cp "$LOGS/build.log" "$OUT/";
          die "build failed (build.log)"; }
-  python3 -c "import sys, torch, retinexgs._C as C; sys.exit(0 if C.has_cuda else 1)" \
-    || die "retinexgs._C was built without its CUDA kernels (see build.log in logs.tgz)"
+  has_cuda_build || die "retinexgs._C was built without its CUDA kernels (see build.log in logs.tgz)"
   echo "build: $(( SECONDS - t )) s (TORCH_CUDA_ARCH_LIST=$TORCH_CUDA_ARCH_LIST)"
 }
 
