@@ -16,7 +16,8 @@
 # e.g. run(command="bash scripts/device.sh quality '0,:default:fox-dark,lom/buu,lom/sofa,lom/bike:4'",
 #          carry=[".data", ".whl"], timeout_s=600)
 # On a machine still warm, a second call reuses the build (build/), the wheels, the scene copy (/tmp/data) and
-# finished runs (/tmp/runs). Environment: OUT (default ./gpu_out), DATA (.data), WHL (.whl),
+# finished runs (RUNS, /tmp/runs). Environment: OUT (default ./gpu_out), DATA (.data), WHL (.whl), RUNS (quality's
+# runs; give each mode run side by side its own, so that their groups' logs and noise ladders do not collide),
 # TORCH_CUDA_ARCH_LIST (9.0: H100/H200), MAX_JOBS (16), SKIP_SETUP (1: no wheel install or build, for modes run side by
 # side on one machine, one per GPU with CUDA_VISIBLE_DEVICES and each its own OUT, after one `build`: they would race). Every option below may also be given as the upper-case
 # environment variable (--fps-run X = FPS_RUN=X).
@@ -226,22 +227,22 @@ run_group() {
   [ "$left" -gt 0 ] || { echo "group $1 ($2): no time left under --limit $LIMIT"; return; }
   # shellcheck disable=SC2086  # configs: comma-separated names
   timeout "$left" python3 -m retinexgs.bench quality --scenes "${dirs[@]}" --configs ${configs//,/ } \
-    --seeds "$seeds" --runs /tmp/runs --jobs "$jobs" --device cuda "${EXTRA[@]}" --out "/tmp/runs/$1.md" \
-    > "/tmp/runs/$1.log" 2>&1
+    --seeds "$seeds" --runs "$RUNS" --jobs "$jobs" --device cuda "${EXTRA[@]}" --out "$RUNS/$1.md" \
+    > "$RUNS/$1.log" 2>&1
 }
 
 mode_quality() {
   LIMIT=${LIMIT:-520} STEPS=${STEPS:-} SEEDS_ALL=${SEEDS_ALL:-} ALONE=${ALONE:-} TESTS=${TESTS:-}
   TEST_LIMIT=${TEST_LIMIT:-200} FPS_RUN=${FPS_RUN:-}
   SEEDS=${SEEDS:-0,} CONFIGS=${CONFIGS:-default} SCENES=${SCENES:-fox-dark,lom/buu,lom/sofa,lom/bike} JOBS=${JOBS:-4}
-  LADDER=${LADDER:-0}
+  LADDER=${LADDER:-0} RUNS=${RUNS:-/tmp/runs}
   parse "seeds configs scenes jobs limit steps seeds-all alone tests test-limit fps-run ladder" "$@"
   local groups=("${ARGS[@]}")
   if [ ${#groups[@]} -eq 0 ]; then  # one group from the options (lists: commas or spaces)
     groups=("$SEEDS:$(commas "$CONFIGS"):$(commas "$SCENES"):$JOBS")
   fi
   setup; need_train_wheels; stage_data
-  mkdir -p /tmp/runs
+  mkdir -p "$RUNS"
   EXTRA=("${SETS[@]}"); [ -n "$STEPS" ] && EXTRA+=(--steps "$STEPS")
   local ladder=(); [ "$LADDER" = 1 ] && ladder=(--noise-ladder) && EXTRA+=(--noise-ladder)
   local group i=0 pids=()
@@ -249,8 +250,8 @@ mode_quality() {
   for group in ${ALONE:+"$ALONE"} "${groups[@]}"; do note_group "$group"; done  # every scene there, first
   if [ -n "$ALONE" ]; then
     run_group alone "$ALONE"
-    cp /tmp/runs/alone.md "$OUT/alone.md" 2> /dev/null
-    echo "== alone ($ALONE):"; grep -E "^(ok|FAIL|reused)" /tmp/runs/alone.log
+    cp "$RUNS/alone.md" "$OUT/alone.md" 2> /dev/null
+    echo "== alone ($ALONE):"; grep -E "^(ok|FAIL|reused)" "$RUNS/alone.log"
   fi
   for group in "${groups[@]}"; do
     run_group "group$i" "$group" &
@@ -268,14 +269,14 @@ mode_quality() {
   # One table and one contact sheet per scene over every group (nothing is trained here).
   # shellcheck disable=SC2046  # one word a scene / config
   python3 -m retinexgs.bench quality --no-train --scenes $(printf '%s\n' "${ALL_SCENES[@]}" | awk '!s[$0]++') \
-    --configs $(printf '%s\n' "${ALL_CONFIGS[@]}" | awk '!s[$0]++') --seeds "$SEEDS_ALL" --runs /tmp/runs \
+    --configs $(printf '%s\n' "${ALL_CONFIGS[@]}" | awk '!s[$0]++') --seeds "$SEEDS_ALL" --runs "$RUNS" \
     "${ladder[@]}" --out "$OUT/quality.md" > "$LOGS/table.log" 2>&1 || tail -5 "$LOGS/table.log"
   # Every group's outcome; a group that trained nothing (a bad seed spec such as "0", a count of zero: "0," is
   # seed 0) shows its error instead.
-  for f in /tmp/runs/group*.log; do echo "== $f"; grep -E "^(ok|FAIL|reused)|runs in" "$f" || tail -3 "$f"; done
-  local run=${FPS_RUN:-/tmp/runs/fox-dark/default/seed0}
+  for f in "$RUNS"/group*.log; do echo "== $f"; grep -E "^(ok|FAIL|reused)|runs in" "$f" || tail -3 "$f"; done
+  local run=${FPS_RUN:-$RUNS/fox-dark/default/seed0}
   [ -f "$run/metrics.json" ] && fps_bench "$run" "$OUT/fps.txt"
-  tar czf "$OUT/runs.tgz" --exclude='*.pt' --exclude='tb' --exclude='renders' --exclude='runs/ladder' -C /tmp runs 2> /dev/null
+  tar czf "$OUT/runs.tgz" --exclude='*.pt' --exclude='tb' --exclude='renders' --exclude="$(basename "$RUNS")/ladder" -C "$(dirname "$RUNS")" "$(basename "$RUNS")" 2> /dev/null
   finish 0
 }
 

@@ -95,7 +95,7 @@ def _noise(args: argparse.Namespace) -> int:
     except ValueError:
         raise UserError(f"--share must lie between 0 and 1 (exclusive), got {share}") from None
     # The measure training uses (train/noise.py): each photo read once, for the noise model and the SSIM's cap.
-    cap = measure_capture_noise(photos, views=args.photos, scale=loss["rec_noise_scale"])
+    cap = measure_capture_noise(photos, views=args.photos, scale=loss["rec_noise_scale"], through_codec=True)
     if cap is None:
         raise UserError(f"no photo in {folder} is 8x8 pixels or larger")
     est = NoiseEstimate(cap.a, cap.b, 0)

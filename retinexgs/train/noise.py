@@ -20,8 +20,11 @@ SSIM's 11×11 window. Per photo, :func:`retinexgs.data.sensor.estimate_noise` (`
 linear light) and the exposed noise σ (Immerkær on 2×2 averages, the largest channel: :func:`exposed_noise_sigma`)
 at each gain of :data:`GAINS`; the capture's
 figures are the medians over the photos, divided by ``data.downscale`` (a d×d average divides white noise's σ by d).
-Through 8-bit JPEG both see about 0.4–0.9 of the true σ (docs/experiments/2026-11-26-noise-estimate.md): the cap
-errs towards the exposed SSIM, the black level towards too little correction.
+Through 8-bit JPEG the pixel-scale (a, b) sees 0.15–0.9 of the true σ, least near black
+(docs/experiments/2026-11-26-noise-estimate.md); the exposed σ on 2×2 averages sees 0.94–1.19 of it. Where (a, b)
+is used (``loss.rec_camera_noise``, ``model.enhancement.debias_black``), the (a, b) of JPEG files is fitted through
+their own JPEG (``through_codec``, :func:`retinexgs.data.sensor.estimate_noise_through_codec`; 512² crops, about
+2 s a photo on a CPU core), since the clipped noise's mean, which lifts the blacks, passes JPEG whole.
 """
 from __future__ import annotations
 
@@ -36,13 +39,14 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from retinexgs.data.images import read_image_float
-from retinexgs.data.sensor import estimate_noise
+from retinexgs.data.sensor import JpegCodec, estimate_noise, estimate_noise_through_codec
 from retinexgs.evaluate.metrics import ssim
 from retinexgs.model.tone import linear_to_srgb, srgb_to_linear
 from retinexgs.train.losses import exposed, noise_variance
 
 MEASURED_VIEWS = 8
 CROP = 1024
+CODEC_CROP = 512  # the JPEG-aware fit re-encodes its crop 8 times: a smaller one (~2 s a photo on a CPU core)
 # Exposure gains at which the exposed noise is measured: 1 to 256 in half stops (a scene's gain 1 / lin(L_ref) is
 # 2–60 on the dev scenes); the cap is interpolated between them, log-linearly.
 GAINS: Tuple[float, ...] = tuple(2.0 ** (k / 2.0) for k in range(17))
@@ -126,29 +130,36 @@ def exposed_noise_sigma(S: Tensor, gains: Tuple[float, ...] = GAINS, scale: int 
     return sigma.tolist()
 
 
-def centre_crop(photo: np.ndarray, size: int = CROP) -> np.ndarray:
-    """The central ``size`` × ``size`` pixels of [H,W,3] (all of a side that is shorter)."""
+def centre_crop(photo: np.ndarray, size: int = CROP, align: int = 1) -> np.ndarray:
+    """The central ``size`` × ``size`` pixels of [H,W,3] (all of a side that is shorter), its corner on a multiple of
+    ``align`` (16: on the JPEG's block grid, so a re-encoding of the crop quantises the same blocks)."""
     h, w = photo.shape[:2]
-    top, left = max(0, (h - size) // 2), max(0, (w - size) // 2)
+    top, left = (max(0, (n - size) // 2) // align * align for n in (h, w))
     return photo[top:top + size, left:left + size]
 
 
 class NoiseMeter:
     """Gathers :class:`CaptureNoise` from the photos given to :meth:`add` (module docstring)."""
 
-    def __init__(self, device: torch.device = torch.device("cpu"), scale: int = NOISE_SCALE) -> None:
+    def __init__(self, device: torch.device = torch.device("cpu"), scale: int = NOISE_SCALE,
+                 through_codec: bool = False) -> None:
         self.device = torch.device(device)
+        self.through_codec = bool(through_codec)  # (a, b) of JPEG photos fitted with the JPEG's loss modelled
         self.scale = int(scale)  # exposed_noise_sigma's averaging (loss.rec_noise_scale)
         self._a: List[Tuple[float, ...]] = []
         self._b: List[Tuple[float, ...]] = []
         self._sigma: List[List[float]] = []
 
-    def add(self, photo: np.ndarray) -> None:
-        """One photo [H,W,3] in sRGB [0,1] as the camera wrote it (cropped here); smaller than 8×8: skipped."""
-        photo = centre_crop(np.asarray(photo, dtype=np.float32))
+    def add(self, photo: np.ndarray, codec: Optional[JpegCodec] = None) -> None:
+        """One photo [H,W,3] in sRGB [0,1] as the camera wrote it (cropped here); smaller than 8×8: skipped.
+        ``codec``: the JPEG it was written with, for the JPEG-aware (a, b) (``through_codec``)."""
+        photo = np.asarray(photo, dtype=np.float32)
         if photo.ndim != 3 or photo.shape[0] < 8 or photo.shape[1] < 8:
             return
-        est = estimate_noise(photo)
+        codec_est = (estimate_noise_through_codec(centre_crop(photo, CODEC_CROP, align=16).astype(np.float64), codec)
+                     if self.through_codec and codec is not None else None)
+        photo = centre_crop(photo)
+        est = codec_est if codec_est is not None else estimate_noise(photo)
         self._a.append(est.a)
         self._b.append(est.b)
         self._sigma.append(exposed_noise_sigma(torch.from_numpy(np.ascontiguousarray(photo)).to(self.device),
@@ -166,12 +177,15 @@ class NoiseMeter:
 
 
 def measure_capture_noise(photos: Sequence[Path], downscale: float = 1.0, device: torch.device = torch.device("cpu"),
-                          views: int = MEASURED_VIEWS, scale: int = NOISE_SCALE) -> Optional[CaptureNoise]:
-    """:class:`CaptureNoise` of up to ``views`` of ``photos`` (the user's files), spread evenly over them."""
+                          views: int = MEASURED_VIEWS, scale: int = NOISE_SCALE,
+                          through_codec: bool = False) -> Optional[CaptureNoise]:
+    """:class:`CaptureNoise` of up to ``views`` of ``photos`` (the user's files), spread evenly over them;
+    ``through_codec``: (a, b) of JPEG files fitted with their JPEG's loss of noise modelled
+    (:func:`retinexgs.data.sensor.estimate_noise_through_codec`)."""
     photos = list(photos)
-    meter = NoiseMeter(device, scale)
+    meter = NoiseMeter(device, scale, through_codec)
     for p in photos[::max(1, len(photos) // views)][:views]:
-        meter.add(read_image_float(p))
+        meter.add(read_image_float(p), JpegCodec.of_file(p) if through_codec else None)
     return meter.result(downscale)
 
 

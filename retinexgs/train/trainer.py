@@ -310,7 +310,8 @@ class Trainer:
             # The user's files where they still exist (undistorted copies hide part of the noise), else the copies.
             noise = measure_capture_noise([v.source_path if v.source_path is not None and Path(v.source_path).is_file()
                                            else v.image_path for v in self.scene.train],
-                                          self.cfg["data"]["downscale"], self.device, scale=c["rec_noise_scale"])
+                                          self.cfg["data"]["downscale"], self.device, scale=c["rec_noise_scale"],
+                                          through_codec=debias or c["rec_camera_noise"])  # the users of (a, b)
         dist = self._setup_dist
         if dist is not None and dist.enabled:  # rank 0's figures everywhere (each rank measured the same views)
             noise = dist.broadcast_object(noise, "the capture's noise")
