@@ -410,3 +410,22 @@ def test_debias_black_trains_with_the_measured_noise_and_resumes(scenes, tmp_pat
     resumed.train()
     off = _trainer(scenes[0], tmp_path / "off")
     assert off.model.tone_noise() is None and not hasattr(off.model, "black_table")
+
+
+def test_the_camera_s_mean_record_uses_the_noise_before_the_downscale():
+    """A d×d average divides the noise's variance by d², not the mean of noise clipped at black: the SSIM cap and
+    the probe read the averaged noise, the camera's mean record (black table, camera expectation) the captured."""
+    meter = N.NoiseMeter()
+    for s in range(2):
+        meter.add(_photo(SensorModel(exposure=0.03, exposure_jitter=0, full_well=1000.0, read_noise=6.0,
+                                     jpeg_quality=0), s))
+    full, half = meter.result(1.0), meter.result(2.0)
+    assert half.downscale == 2.0 and full.downscale == 1.0
+    assert half.b[0] == pytest.approx(full.b[0] / 4) and half.a[1] == pytest.approx(full.a[1] / 4)
+    for got, want in zip(half.at_capture(), full.at_capture()):
+        assert got == pytest.approx(want)
+    a, b = half.camera("cpu")
+    assert a.shape == (1, 3, 1, 1) and float(b[0, 2, 0, 0]) == pytest.approx(full.b[2], rel=1e-6)
+    assert N.CaptureNoise.from_state(half.state_dict()) == half
+    old = {k: v for k, v in half.state_dict().items() if k != "downscale"}  # a checkpoint from before the field
+    assert N.CaptureNoise.from_state(old).downscale == 1.0

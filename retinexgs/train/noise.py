@@ -64,14 +64,16 @@ def sigma_limit(share: float) -> float:
 
 @dataclass(frozen=True)
 class CaptureNoise:
-    """A capture's noise: per channel ``var = a·y + b`` in linear light, and the exposed photos' noise σ at
-    each of ``gains``."""
+    """A capture's noise: per channel ``var = a·y + b`` in linear light at the training images' resolution, and the
+    exposed photos' noise σ at each of ``gains``; ``downscale``: the d by which the training images are smaller than
+    the photos (d × d averages: a and b are the photos' ÷ d²)."""
 
     a: Tuple[float, float, float]
     b: Tuple[float, float, float]
     gains: Tuple[float, ...]
     sigma: Tuple[float, ...]
     views: int
+    downscale: float = 1.0
 
     def gain_cap(self, limit: float = SSIM_K2) -> float:
         """The largest exposure gain at which the exposed photos' noise σ is at most ``limit`` (log-linear
@@ -85,10 +87,19 @@ class CaptureNoise:
                 return math.exp(math.log(self.gains[k - 1]) + t * (math.log(self.gains[k]) - math.log(self.gains[k - 1])))
         return math.inf
 
+    def at_capture(self) -> Tuple[Tuple[float, ...], Tuple[float, ...]]:
+        """(a, b) of the photos as the camera recorded them, before any downscale. The clip at black happens there,
+        pixel by pixel, and averaging keeps the clipped mean: the camera's mean record (the black table, the
+        camera expectation) is a function of this noise, not of the averaged images' smaller one."""
+        d2 = float(self.downscale) ** 2
+        return tuple(v * d2 for v in self.a), tuple(v * d2 for v in self.b)
+
     def camera(self, device: torch.device) -> Tuple[Tensor, Tensor]:
-        """(a, b) as [1,3,1,1] float32 tensors on ``device`` (:func:`retinexgs.train.losses.camera_expectation`)."""
-        return (torch.tensor(self.a, dtype=torch.float32, device=device).reshape(1, 3, 1, 1),
-                torch.tensor(self.b, dtype=torch.float32, device=device).reshape(1, 3, 1, 1))
+        """:meth:`at_capture`'s (a, b) as [1,3,1,1] float32 tensors on ``device``
+        (:func:`retinexgs.train.losses.camera_expectation`)."""
+        a, b = self.at_capture()
+        return (torch.tensor(a, dtype=torch.float32, device=device).reshape(1, 3, 1, 1),
+                torch.tensor(b, dtype=torch.float32, device=device).reshape(1, 3, 1, 1))
 
     def state_dict(self) -> Dict:
         return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
@@ -96,7 +107,7 @@ class CaptureNoise:
     @classmethod
     def from_state(cls, state: Dict) -> "CaptureNoise":
         return cls(tuple(state["a"]), tuple(state["b"]), tuple(state["gains"]), tuple(state["sigma"]),
-                   int(state["views"]))  # type: ignore[arg-type]
+                   int(state["views"]), float(state.get("downscale", 1.0)))  # type: ignore[arg-type]
 
     def describe(self, limit: float = SSIM_K2, gain: Optional[float] = None) -> str:
         """One line for the training log (the cap at noise σ ``limit``; ``gain``: the scene's own exposure gain,
@@ -173,7 +184,7 @@ class NoiseMeter:
         a = tuple(float(v) / (d * d) for v in np.median(np.array(self._a), axis=0))
         b = tuple(float(v) / (d * d) for v in np.median(np.array(self._b), axis=0))
         sigma = tuple(float(v) / d for v in np.median(np.array(self._sigma), axis=0))
-        return CaptureNoise(a, b, GAINS, sigma, len(self._sigma))  # type: ignore[arg-type]
+        return CaptureNoise(a, b, GAINS, sigma, len(self._sigma), d)  # type: ignore[arg-type]
 
 
 def measure_capture_noise(photos: Sequence[Path], downscale: float = 1.0, device: torch.device = torch.device("cpu"),
