@@ -110,6 +110,9 @@ def test_noise_command_prints_the_estimate(tmp_path, capsys):
     code, out, err = run_cli(["noise", "--data", src], capsys)
     assert code == 0, err
     assert "full well" in out and "sigma at the 50th-percentile level" in out
+    assert "measured as they are (not JPEG)" in out  # the demo's photos are PNG
+    lift = [float(v) for v in out.split("black is recorded on average at linear ")[1].split(" (R, G, B")[0].split(", ")]
+    assert all(v > 0 for v in lift)  # the demo's photos are noisy: clipped noise lifts their black
     # the demo's noise reaches SSIM's constant: training caps the exposed SSIM's gain (train/noise.py)
     assert "training (loss.rec_noise_floor): the exposed SSIM's gain is capped at" in out
     assert "loss.rec_noise_share 0.5;" in out  # the default config's share

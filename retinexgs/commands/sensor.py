@@ -76,7 +76,7 @@ def _noise(args: argparse.Namespace) -> int:
     import numpy as np  # lazy: --help stays fast
 
     from retinexgs.data.images import list_images, read_image_float  # lazy: --help stays fast
-    from retinexgs.data.sensor import NoiseEstimate, srgb_to_linear  # lazy: --help stays fast
+    from retinexgs.data.sensor import JpegCodec, NoiseEstimate, srgb_to_linear  # lazy: --help stays fast
     from retinexgs.run.config import load_config  # lazy: --help stays fast
     from retinexgs.train.noise import measure_capture_noise, sigma_limit  # lazy: --help stays fast (and torch)
 
@@ -100,10 +100,17 @@ def _noise(args: argparse.Namespace) -> int:
         raise UserError(f"no photo in {folder} is 8x8 pixels or larger")
     est = NoiseEstimate(cap.a, cap.b, 0)
     lin = srgb_to_linear(read_image_float(photos[len(photos) // 2]).astype(np.float64))
-    print(f"{folder}: {len(photos)} photos, noise from {min(args.photos, len(photos))}")
+    jpeg = JpegCodec.of_file(photos[0]) is not None
+    print(f"{folder}: {len(photos)} photos, noise from {min(args.photos, len(photos))}, "
+          + ("fitted through their own JPEG (its tables simulated; one a, b for the three channels)" if jpeg
+             else "measured as they are (not JPEG)"))
     for name, c in zip("RGB", range(3)):
         fw = est.full_well[c]
         print(f"  {name}: full well {'inf' if math.isinf(fw) else f'{fw:.0f}'} e-, a={est.a[c]:.3g}, b={est.b[c]:.3g}")
+    # black as the camera records it on average: the clipped read noise's mean, σ/√(2π) (sensor.clipped_moments)
+    lift = [math.sqrt(max(b, 0.0)) / math.sqrt(2 * math.pi) for b in est.b]
+    print("  black is recorded on average at linear " + ", ".join(f"{v:.5f}" for v in lift)
+          + " (R, G, B: clipped noise averages above black; the output's exposure gain multiplies it)")
     for q in (0.5, 0.9):
         y = float(np.quantile(lin, q))
         s = est.sigma_at(y)
