@@ -429,3 +429,12 @@ def test_the_camera_s_mean_record_uses_the_noise_before_the_downscale():
     assert N.CaptureNoise.from_state(half.state_dict()) == half
     old = {k: v for k, v in half.state_dict().items() if k != "downscale"}  # a checkpoint from before the field
     assert N.CaptureNoise.from_state(old).downscale == 1.0
+
+
+def test_a_codec_that_cannot_be_written_back_falls_back_to_the_plain_estimate():
+    from retinexgs.data.sensor import JpegCodec, estimate_noise
+    photo = _photo(SensorModel(exposure=0.03, exposure_jitter=0, full_well=1000.0, read_noise=6.0, jpeg_quality=0))
+    meter = N.NoiseMeter(through_codec=True)
+    meter.add(photo, JpegCodec(((1, 2, 3),), 0))  # Pillow refuses this table
+    plain = estimate_noise(photo.astype(np.float32))
+    assert meter.result().a == pytest.approx(plain.a) and meter.result().b == pytest.approx(plain.b)

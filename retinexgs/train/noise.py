@@ -167,8 +167,13 @@ class NoiseMeter:
         photo = np.asarray(photo, dtype=np.float32)
         if photo.ndim != 3 or photo.shape[0] < 8 or photo.shape[1] < 8:
             return
-        codec_est = (estimate_noise_through_codec(centre_crop(photo, CODEC_CROP, align=16).astype(np.float64), codec)
-                     if self.through_codec and codec is not None else None)
+        codec_est = None
+        if self.through_codec and codec is not None:
+            try:
+                codec_est = estimate_noise_through_codec(centre_crop(photo, CODEC_CROP, align=16).astype(np.float64),
+                                                         codec)
+            except (OSError, ValueError):  # a JPEG that Pillow reads but cannot write back as it was: as it is
+                codec_est = None
         photo = centre_crop(photo)
         est = codec_est if codec_est is not None else estimate_noise(photo)
         self._a.append(est.a)
