@@ -18,8 +18,10 @@ value is ``a · y + b`` with ``a = 1/W`` (shot noise) and ``b = (r/W)²`` (read 
 a 3×3 second-difference filter (Immerkær 1996; its taps' squares sum to 36) carries the noise and little of a
 smooth image; its robust spread (MAD) in bins of local brightness, fitted by ``a · y + b`` as seen through the
 clip at black (near black the recorded noise is clipped: smaller, and its mean above the light), gives both numbers.
-JPEG removes part of the noise, so estimates from JPEG photos are lower than the sensor's truth (measured in
-``docs/experiments/2026-11-26-noise-estimate.md``).
+JPEG removes part of the noise, so estimates from JPEG photos are lower than the sensor's truth, most near black
+(``docs/experiments/2026-11-26-noise-estimate.md``). :func:`estimate_noise_through_codec` models that loss with the
+file's own JPEG tables (:class:`JpegCodec`) and reads the floor within about 25 %
+(``docs/experiments/2026-11-27-black-level.md``).
 """
 from __future__ import annotations
 
