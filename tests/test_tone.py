@@ -95,6 +95,10 @@ def test_schema_refuses_the_exposure_tone_without_a_scene_reference():
     with pytest.raises((UserError, ValueError), match="ref_quantile"):
         load_config([], ["model.enhancement.ref_quantile=null"])
     assert load_config(["paper"], [])["model"]["enhancement"]["tone"] == "illumination"
+    # debias_black is read by tone "exposure" alone: with another tone it would be silently ignored
+    with pytest.raises((UserError, ValueError), match="debias_black needs tone 'exposure'"):
+        load_config(["paper"], ["model.enhancement.debias_black=true"])
+    assert load_config(["ablations/debias_black"], [])["model"]["enhancement"]["debias_black"] is True
 
 
 def test_a_run_with_the_exposure_tone_renders_exports_and_follows_the_exposure_control(tmp_path):

@@ -130,6 +130,8 @@ class Enhancement(Section):
             # k = lin(L_ref)^(-1/g) needs a scene reference below 1: with L_ref = 1 the gain would be 1 for every g.
             raise ValueError("model.enhancement.tone 'exposure' needs a ref_quantile (the gain is set relative to "
                              "the scene's full light L_ref); null is only valid with 'illumination' or 'signal'")
+        if self.debias_black and self.tone != "exposure":  # the black table is read by tone "exposure" alone
+            raise ValueError(f"model.enhancement.debias_black needs tone 'exposure', got tone {self.tone!r}")
         return self
 
 

@@ -291,16 +291,17 @@ class Trainer:
 
     def _set_up_noise(self, state: Optional[Dict]) -> None:
         """The capture's noise (:mod:`retinexgs.train.noise`) where ``loss.rec_noise_floor``,
-        ``loss.rec_camera_noise``, ``density.noise_aware`` or ``model.enhancement.debias_black`` uses it: measured at set-up (or read from the checkpoint, so a resume trains
-        on the same figures), then the reconstruction's gain cap and the camera's (a, b) as device tensors made
-        once (the captured CUDA graphs read them)."""
+        ``loss.rec_camera_noise``, ``density.noise_aware`` or ``model.enhancement.debias_black`` uses it: measured
+        at set-up (or read from the checkpoint, so a resume trains on the same figures), then the reconstruction's
+        gain cap, the camera's (a, b) as device tensors made once (the captured CUDA graphs read them) and the
+        black table."""
         c = self.cfg["loss"]
         self.capture_noise: Optional[CaptureNoise] = None
         self.rec_gain_cap: Optional[Tensor] = None
         self.camera_noise: Optional[Tuple[Tensor, Tensor]] = None
         self.noise_probe: Optional[NoiseProbe] = None
         noise_aware = bool(self.cfg["density"]["noise_aware"])
-        debias = self.decomposed and getattr(self.model, "black_table", None) is not None
+        debias = self.decomposed and self.model.tone_noise() is not None
         if not self.decomposed or not (c["rec_noise_floor"] or c["rec_camera_noise"] or noise_aware or debias):
             return
         saved = (state or {}).get("capture_noise")
