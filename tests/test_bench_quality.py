@@ -167,6 +167,23 @@ def test_noise_ladder_darkens_each_level_once_and_names_the_columns(tmp_path, mo
     assert "has no high/ folder" in capsys.readouterr().err
 
 
+def test_black_table_reads_the_black_lift_and_skips_older_runs(tmp_path):
+    scenes = [tmp_path / "s1"]
+    jobs = quality.plan(scenes, ["default", "ablations/debias_black"], [0, 1, 2], tmp_path / "runs")
+    for j in jobs:
+        _fake_run(j, 20.0, 0.5)
+        if j.config == "ablations/debias_black" and j.seed == 2:
+            continue  # evaluated before the key existed: left out of the mean
+        m = json.loads(j.metrics_path.read_text())
+        m["mean"].update(black_lift=0.01 * (j.seed + 1) * (4.0 if j.config == "default" else 1.0), low_black_lift=-0.002)
+        j.metrics_path.write_text(json.dumps(m))
+    md = quality.black_table(jobs, ["default", "ablations/debias_black"])
+    assert "| low input | -0.0020 |" in md
+    assert "| `default` | 0.0800 ± 0.0400 |" in md
+    assert f"| `ablations/debias_black` | 0.0150 ± {0.01 * math.sqrt(0.5):.4f} |" in md
+    assert "Black lift" in md
+
+
 def test_colour_table_reads_the_colour_error_and_skips_older_runs(tmp_path):
     scenes = [tmp_path / "s1", tmp_path / "s2"]
     jobs = quality.plan(scenes, ["default", "ablations/baseline_pre"], [0, 1], tmp_path / "runs")
@@ -180,5 +197,6 @@ def test_colour_table_reads_the_colour_error_and_skips_older_runs(tmp_path):
         j.metrics_path.write_text(json.dumps(m))
     md = quality.colour_table(jobs, ["default", "ablations/baseline_pre"])
     assert "| low input | 9.50 | 9.50 |" in md
+    assert "Colour error" in md
     assert f"| `default` | 5.50 ± {math.sqrt(0.5):.2f} | 5.50 ± {math.sqrt(0.5):.2f} |" in md
     assert f"| `ablations/baseline_pre` | 2.50 ± {math.sqrt(0.5):.2f} | – |" in md

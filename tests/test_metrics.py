@@ -144,6 +144,35 @@ def test_lpips_runs_when_everything_is_local(tmp_path, monkeypatch):
         sys.modules.pop("lpips", None)  # the fake must not leak into other tests
 
 
+def test_black_lift_sees_lifted_and_crushed_blacks_not_the_exposure():
+    """Issue 32's black-level measure: the 1st percentile in linear light after GT-mean alignment, minus the truth's."""
+    from retinexgs.evaluate.metrics import black_lift
+
+    rng = np.random.default_rng(0)
+    truth = rng.uniform(0.0, 0.7, size=(40, 40, 3))
+    assert black_lift(truth, truth) == pytest.approx(0.0, abs=1e-12)
+    # one exposure factor is not a black lift (the alignment takes it out; no value reaches the clip at white)
+    assert black_lift(truth * 0.6, truth) == pytest.approx(0.0, abs=1e-9)
+
+    def lin(x):
+        return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
+
+    def srgb(m):
+        return np.where(m <= 0.0031308, 12.92 * m, 1.055 * np.clip(m, 0, None) ** (1 / 2.4) - 0.055)
+
+    # a floor of 0.05 added in linear light (what clipped noise averages to): the blacks sit about 0.05 higher
+    lifted = srgb(lin(truth) + 0.05)
+    value = black_lift(lifted, truth)
+    lows = np.quantile(lin(truth).reshape(-1, 3), 0.01, axis=0)
+    assert 0.02 < value < 0.05  # the alignment scales the floor down a little with the rest of the image
+    # the same floor taken away (clipped at 0): crushed blacks read negative
+    crushed = srgb(np.clip(lin(truth) - 0.05, 0, None))
+    assert black_lift(crushed, truth) < -0.9 * float(lows.mean())
+    assert black_lift(crushed, truth) < 0
+    with pytest.raises(ValueError, match="quantile"):
+        black_lift(truth, truth, q=1.5)
+
+
 def test_colour_error_sees_a_cast_not_the_exposure():
     """Issue 32's colour measure: ΔE of the average colours after GT-mean alignment."""
     from retinexgs.evaluate.metrics import colour_error, mean_colour_lab

@@ -174,27 +174,44 @@ def table(jobs: Sequence[Job], configs: Sequence[str], aligned: bool = False) ->
         "mean column averages each seed's scene means (seeds with every scene only).\n"
 
 
-def colour_table(jobs: Sequence[Job], configs: Sequence[str]) -> str:
-    """Markdown: per scene and config the colour error ``delta_e_gt_mean`` (CIELAB ΔE of the average colours after
-    the GT-mean alignment, :func:`retinexgs.evaluate.metrics.colour_error`), mean ± sample std over seeds, the
-    dark input's first; runs evaluated before the key existed are left out ("–")."""
+def _seed_table(jobs: Sequence[Job], configs: Sequence[str], key: str, digits: int, caption: str) -> str:
+    """Markdown: per scene and config the metric ``key`` of the runs' test-view means, mean ± sample std over seeds,
+    the dark input's (``low_`` + key) first; runs evaluated before the key existed are left out ("–")."""
     scenes = list(dict.fromkeys(scene_label(j.scene) for j in jobs))
     values: Dict = {}
     low: Dict[str, float] = {}
     for j in jobs:
         m = read_metrics(j)
-        if m is None or "delta_e_gt_mean" not in m["mean"]:
+        if m is None or key not in m["mean"]:
             continue
         s = scene_label(j.scene)
-        values.setdefault((s, j.config), []).append(m["mean"]["delta_e_gt_mean"])
-        low[s] = m["mean"]["low_delta_e_gt_mean"]
+        values.setdefault((s, j.config), []).append(m["mean"][key])
+        if f"low_{key}" in m["mean"]:
+            low[s] = m["mean"][f"low_{key}"]
     lines = ["| config | " + " | ".join(scenes) + " |", "|" + "---|" * (len(scenes) + 1),
-             "| low input | " + " | ".join(f"{low[s]:.2f}" if s in low else "–" for s in scenes) + " |"]
+             "| low input | " + " | ".join(f"{low[s]:.{digits}f}" if s in low else "–" for s in scenes) + " |"]
     for c in configs:
-        lines.append(f"| `{c}` | " + " | ".join(_mean_std(values.get((s, c), []), 2) for s in scenes) + " |")
-    return "\n".join(lines) + "\n\nColour error: CIELAB ΔE (1976) between the average colours of the output, " \
-        "brightness-aligned to its truth (GT-mean), and of the truth; a colour cast raises it, the exposure does " \
-        "not (issue 32). Lower is better.\n"
+        lines.append(f"| `{c}` | " + " | ".join(_mean_std(values.get((s, c), []), digits) for s in scenes) + " |")
+    return "\n".join(lines) + "\n\n" + caption + "\n"
+
+
+def colour_table(jobs: Sequence[Job], configs: Sequence[str]) -> str:
+    """Markdown: per scene and config the colour error ``delta_e_gt_mean`` (CIELAB ΔE of the average colours after
+    the GT-mean alignment, :func:`retinexgs.evaluate.metrics.colour_error`), mean ± sample std over seeds, the
+    dark input's first; runs evaluated before the key existed are left out ("–")."""
+    return _seed_table(jobs, configs, "delta_e_gt_mean", 2,
+                       "Colour error: CIELAB ΔE (1976) between the average colours of the output, brightness-aligned "
+                       "to its truth (GT-mean), and of the truth; a colour cast raises it, the exposure does not "
+                       "(issue 32). Lower is better.")
+
+
+def black_table(jobs: Sequence[Job], configs: Sequence[str]) -> str:
+    """Markdown: per scene and config the black lift ``black_lift`` (:func:`retinexgs.evaluate.metrics.black_lift`),
+    mean ± sample std over seeds, the dark input's first; runs evaluated before the key existed are left out."""
+    return _seed_table(jobs, configs, "black_lift", 4,
+                       "Black lift: the output's 1st percentile in linear light, brightness-aligned to its truth "
+                       "(GT-mean), minus the truth's, averaged over the channels; positive = lifted blacks (clipped "
+                       "sensor noise), negative = crushed, 0 = the truth's (issue 32).")
 
 
 def contact_sheet(jobs: Sequence[Job], configs: Sequence[str], scene: str, out: Path, views: int = 2) -> Optional[Path]:
@@ -323,6 +340,8 @@ def main(argv: Sequence[str]) -> int:
         md += "\n" + table(jobs, args.configs, aligned=True)
     if any(m is not None and "delta_e_gt_mean" in m["mean"] for m in map(read_metrics, jobs)):
         md += "\n" + colour_table(jobs, args.configs)
+    if any(m is not None and "black_lift" in m["mean"] for m in map(read_metrics, jobs)):
+        md += "\n" + black_table(jobs, args.configs)
     sheets = []
     for scene in dict.fromkeys(scene_label(j.scene) for j in jobs):
         path = contact_sheet(jobs, args.configs, scene, args.runs / f"sheet_{scene.replace('/', '-')}.png")

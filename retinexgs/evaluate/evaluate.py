@@ -11,7 +11,7 @@ import torch
 from PIL import Image
 
 from retinexgs.data import Scene
-from retinexgs.evaluate.metrics import colour_error, gt_mean_align, lpips_metric, psnr, ssim_metric
+from retinexgs.evaluate.metrics import black_lift, colour_error, gt_mean_align, lpips_metric, psnr, ssim_metric
 from retinexgs.fileio import atomic_write, atomic_write_text
 from retinexgs.run.folder import load_run
 from retinexgs.run.render import active_sh_degree, render_function
@@ -103,7 +103,8 @@ def evaluate(render_fn: Callable, scene: Scene, out_dir: Path, use_lpips: bool =
         row = {"view": view.name, "psnr": psnr(rgb, gt), "ssim": ssim_metric(rgb, gt),
                "low_psnr": psnr(low, gt), "low_ssim": ssim_metric(low, gt),
                "psnr_gt_mean": psnr(aligned, gt), "ssim_gt_mean": ssim_metric(aligned, gt),
-               "delta_e_gt_mean": colour_error(rgb, gt), "low_delta_e_gt_mean": colour_error(low, gt)}
+               "delta_e_gt_mean": colour_error(rgb, gt), "low_delta_e_gt_mean": colour_error(low, gt),
+               "black_lift": black_lift(rgb, gt), "low_black_lift": black_lift(low, gt)}
         if use_lpips:
             value, lpips_reason = lpips_metric(rgb, gt)
             if value is not None:

@@ -223,6 +223,24 @@ def mean_colour_lab(x: ImageLike) -> Tuple[float, float, float]:
     return float(116 * f[1] - 16), float(500 * (f[0] - f[1])), float(200 * (f[1] - f[2]))
 
 
+def black_lift(x: ImageLike, y: ImageLike, q: float = 0.01) -> float:
+    """Issue 32's black-level measure: how far the blacks of ``x`` sit above the truth's ``y``, in linear light, once
+    the exposure level is taken out. The ``q`` quantile (1st percentile) of each channel's linear values of ``x``
+    after :func:`gt_mean_align` to ``y``, minus that of ``y``, averaged over the channels. Positive: lifted blacks
+    (sensor noise clipped at black averages above the light, and a render that matches the photos' mean keeps
+    that bias); negative: crushed blacks; 0 on a perfect render, whatever the exposure."""
+    if not 0.0 <= q <= 1.0:
+        raise ValueError(f"black_lift's quantile must lie in [0, 1], got {q}")
+    a, b = _as_pair(gt_mean_align(x, y), y)
+
+    def low(img: torch.Tensor) -> torch.Tensor:
+        lin = torch.where(img <= 0.04045, img / 12.92, ((img + 0.055) / 1.055) ** 2.4).reshape(-1, img.shape[-1])
+        k = int(round(q * (lin.shape[0] - 1))) + 1  # the nearest rank: kthvalue has no size limit (quantile has)
+        return lin.kthvalue(k, dim=0).values
+
+    return float((low(a) - low(b)).mean())
+
+
 def colour_error(x: ImageLike, y: ImageLike) -> float:
     """Issue 32's colour measure: the CIELAB ΔE (1976) between the average colours of ``x`` after
     :func:`gt_mean_align` to ``y`` and of ``y``. A colour cast shows in it; the exposure level does not."""
