@@ -76,7 +76,7 @@ def _noise(args: argparse.Namespace) -> int:
     import numpy as np  # lazy: --help stays fast
 
     from retinexgs.data.images import list_images, read_image_float  # lazy: --help stays fast
-    from retinexgs.data.sensor import JpegCodec, NoiseEstimate, srgb_to_linear  # lazy: --help stays fast
+    from retinexgs.data.sensor import JpegCodec, NoiseEstimate, clipped_moments, srgb_to_linear  # lazy: --help stays fast
     from retinexgs.run.config import load_config  # lazy: --help stays fast
     from retinexgs.train.noise import measure_capture_noise, sigma_limit  # lazy: --help stays fast (and torch)
 
@@ -107,8 +107,8 @@ def _noise(args: argparse.Namespace) -> int:
     for name, c in zip("RGB", range(3)):
         fw = est.full_well[c]
         print(f"  {name}: full well {'inf' if math.isinf(fw) else f'{fw:.0f}'} e-, a={est.a[c]:.3g}, b={est.b[c]:.3g}")
-    # black as the camera records it on average: the clipped read noise's mean, σ/√(2π) (sensor.clipped_moments)
-    lift = [math.sqrt(max(b, 0.0)) / math.sqrt(2 * math.pi) for b in est.b]
+    # black as the camera records it on average: the mean of the read noise clipped at 0, from the photos' own noise
+    lift = clipped_moments(np.zeros(3), np.sqrt(np.maximum(cap.at_capture()[1], 0.0)))[0]
     print("  black is recorded on average at linear " + ", ".join(f"{v:.5f}" for v in lift)
           + " (R, G, B: clipped noise averages above black; the output's exposure gain multiplies it)")
     for q in (0.5, 0.9):
