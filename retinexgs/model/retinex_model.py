@@ -70,6 +70,9 @@ class RetinexGSModel(nn.Module):
             if model_cfg["enhancement"].get("debias_black", False):
                 # model/tone.black_table of the capture's noise, set by the trainer; until then lin itself.
                 self.register_buffer("black_table", black_table())
+                if int(model_cfg["enhancement"].get("black_filter", 0)) > 0:
+                    # model/tone.smooth_record's spread: a, b of the render's residual noise, set by the trainer
+                    self.register_buffer("black_spread", torch.zeros(2, 3))
         # model.background "mean": uncovered pixels show [6] channel values (R̂ then L̂) that the trainer sets from
         # the training views' priors, instead of black; a buffer, so checkpoints carry it. RetinexGS's only: the
         # 3DGS baselines stay as published (black).
@@ -87,6 +90,8 @@ class RetinexGSModel(nn.Module):
         self.shoulder = float(enh.pop("shoulder", 1.0))  # tone "exposure"'s highlight knee (1: the clip)
         # tone "exposure": take the clipped noise's mean out of R̂∘L̂ before the gain (model/tone.scene_linear)
         self.debias_black = bool(enh.pop("debias_black", False))
+        # with it, the radius of the filter that takes the render's residual noise out first (model/tone.smooth_record)
+        self.black_filter = int(enh.pop("black_filter", 0))
         self.enhancement = EnhancementNet(channels=3, **enh)
 
     def with_enhancement(self, enh_cfg: Dict) -> "RetinexGSModel":
@@ -119,8 +124,10 @@ class RetinexGSModel(nn.Module):
     def tone_map(self, R: Tensor, L: Tensor, gamma: Tensor) -> Tuple[Tensor, Tensor]:
         """(S_enh, L_enh) from R̂ [..., 3], the rendered L̂ [..., 3] and g ([1] or [3], broadcast over the last
         axis), in the model's tone form (``model.enhancement.tone``: :func:`retinexgs.model.tone.tone_map`)."""
-        return tone_map(R, L, self.illum_ref, gamma, self.tone, self.enhancement.eps, self.shoulder,
-                        self.tone_noise())
+        noise = self.tone_noise()
+        spread = getattr(self, "black_spread", None) if noise is not None else None
+        return tone_map(R, L, self.illum_ref, gamma, self.tone, self.enhancement.eps, self.shoulder, noise,
+                        spread, self.black_filter)
 
     def tone_noise(self) -> Optional[Tensor]:
         """The black table (:func:`retinexgs.model.tone.black_table`) through which tone "exposure" reads the light

@@ -20,6 +20,9 @@ With ℓ = clip(L̂ / L_ref, 0, 1) (L_ref: the scene's full light, a constant of
   ``shoulder`` a < 1 rolls the highlights off instead of clipping them, as a camera's tone curve does: the gained
   light v passes unchanged up to a and above it follows a + (1 − a)(1 − e^(−(v − a)/(1 − a))), which leaves a with
   slope 1 and approaches white without reaching it (:func:`highlight_shoulder`). a = 1 is the clip.
+  ``noise`` (a black table) reads R̂ ∘ L̂ as the photos' average record rather than as light
+  (:func:`scene_linear`); ``spread`` first takes the render's own residual noise out of it with an edge-preserving
+  filter (:func:`smooth_record`), since the table's inverse doubles whatever error lies near black.
 """
 from __future__ import annotations
 
@@ -30,7 +33,7 @@ import torch
 from torch import Tensor
 
 __all__ = ["TONES", "srgb_to_linear", "linear_to_srgb", "highlight_shoulder", "camera_mean", "camera_mean_inverse",
-           "black_table", "scene_linear", "highlight_capped_mean", "log_lin_ref", "exposure_gain", "apply_exposure",
+           "black_table", "box_mean", "guided_filter", "smooth_record", "scene_linear", "highlight_capped_mean", "log_lin_ref", "exposure_gain", "apply_exposure",
            "tone_map"]
 
 TONES = ("illumination", "signal", "exposure")
@@ -116,6 +119,53 @@ def black_table(a=None, b=None, size: int = BLACK_TABLE_SIZE) -> Tensor:
     return camera_mean_inverse(y.contiguous(), a_, b_).float()
 
 
+def box_mean(x: Tensor, radius: int) -> Tensor:
+    """The mean of [B,C,H,W] ``x`` over (2r+1)² windows, the border reflected (H, W > ``radius``)."""
+    r = int(radius)
+    return torch.nn.functional.avg_pool2d(torch.nn.functional.pad(x, (r, r, r, r), mode="reflect"), 2 * r + 1, 1)
+
+
+def guided_filter(p: Tensor, radius: int, eps: Tensor, guide: Optional[Tensor] = None) -> Tensor:
+    """He, Sun & Tang's guided filter (ECCV 2010, Eq. 1-8): in each window, ``p`` ≈ a·guide + b by least squares
+    with a ridge ε on a; the output averages the windows' fits. a = cov / (var + ε): where the guide varies much more
+    than ε (an edge) the output follows it, where it varies less (flat, noisy) the output is the window's mean.
+    Without ``guide`` each channel guides itself: a = var / (var + ε), the local Wiener filter, exactly the identity
+    at ε = 0 (where the window is flat too: its mean is its value).
+
+    Args:
+        p: [B,C,H,W] the image to filter.
+        radius: the window's half size r, in pixels (H, W > r).
+        eps: ε ≥ 0, broadcastable against ``p`` (e.g. a per-pixel noise variance [B,C,H,W]).
+        guide: [B,1,H,W] or [B,C,H,W], or None (``p`` itself).
+    """
+    m_p = box_mean(p, radius)
+    if guide is None:
+        var = (box_mean(p * p, radius) - m_p * m_p).clamp_min(0.0)  # float rounding can take it below 0
+        a = var / (var + eps).clamp_min(1e-20)
+        b = m_p - a * m_p
+        return box_mean(a, radius) * p + box_mean(b, radius)
+    m_i = box_mean(guide, radius)
+    var = (box_mean(guide * guide, radius) - m_i * m_i).clamp_min(0.0)
+    a = (box_mean(guide * p, radius) - m_i * m_p) / (var + eps).clamp_min(1e-20)
+    b = m_p - a * m_i
+    return box_mean(a, radius) * guide + box_mean(b, radius)
+
+
+def smooth_record(RL: Tensor, spread: Tensor, radius: int) -> Tensor:
+    """R̂∘L̂ [H,W,3] (sRGB) with the render's residual noise taken out: a :func:`guided_filter` in linear light, each
+    channel its own guide, ε per pixel the window's mean of ``spread`` [2,3]'s a·x + b per channel (the capture's
+    noise variance at the training images' scale divided by the number of training views: the render averages the
+    views, so that is its residual noise where every view sees the point, the least it has). The identity where
+    ``spread`` is 0 (a clean capture), where the image is smaller than the window or where ``radius`` is 0."""
+    if radius <= 0 or RL.dim() != 3 or min(RL.shape[0], RL.shape[1]) <= radius:
+        return RL
+    x = srgb_to_linear(RL).permute(2, 0, 1).unsqueeze(0)
+    spread = spread.to(x)
+    eps = box_mean(spread[0].reshape(1, 3, 1, 1) * x + spread[1].reshape(1, 3, 1, 1), radius)
+    y = guided_filter(x, radius, eps)
+    return linear_to_srgb(y[0].permute(1, 2, 0))
+
+
 def scene_linear(RL: Tensor, table: Noise = None) -> Tensor:
     """The linear light of R̂∘L̂ [..., 3] that the enhancement exposes: lin(R̂∘L̂), or through a :func:`black_table`
     [3, N] the light whose average record R̂∘L̂ is: the render matches the photos' mean, which clipped sensor noise
@@ -187,7 +237,8 @@ def apply_exposure(gamma: Tensor, exposure, illum_ref: Tensor, tone: str,
 
 
 def tone_map(R: Tensor, L: Tensor, illum_ref: Tensor, gamma: Tensor, tone: str,
-             eps: float = 1e-3, shoulder: float = 1.0, noise: Noise = None) -> Tuple[Tensor, Tensor]:
+             eps: float = 1e-3, shoulder: float = 1.0, noise: Noise = None, spread: Optional[Tensor] = None,
+             radius: int = 0) -> Tuple[Tensor, Tensor]:
     """(S_enh, L_enh) of one tone form (module docstring) for rendered R̂ and L̂ of the same layout.
 
     Args:
@@ -200,10 +251,15 @@ def tone_map(R: Tensor, L: Tensor, illum_ref: Tensor, gamma: Tensor, tone: str,
         shoulder: the knee of tone "exposure"'s highlight roll-off (:func:`highlight_shoulder`; 1: the clip).
         noise: tone "exposure": the :func:`black_table` [3, N] of the capture's noise, whose clipped mean is taken
             out of R̂∘L̂ before the gain (:func:`scene_linear`); None: lin(R̂∘L̂) as it is.
+        spread, radius: with ``noise``, R̂∘L̂ [H,W,3] is first filtered by :func:`smooth_record` (``spread`` [2,3]:
+            the render's residual noise, a and b per channel; ``radius`` in pixels); None or 0: not filtered.
     """
     if tone == "exposure":
         k = exposure_gain(illum_ref, gamma)
-        return (linear_to_srgb(highlight_shoulder(k * scene_linear(R * L, noise), shoulder)),
+        RL = R * L
+        if noise is not None and spread is not None and radius > 0:
+            RL = smooth_record(RL, spread, radius)
+        return (linear_to_srgb(highlight_shoulder(k * scene_linear(RL, noise), shoulder)),
                 linear_to_srgb(highlight_shoulder(k * srgb_to_linear(L), shoulder)))
     if tone not in TONES:
         raise ValueError(f"tone must be one of {', '.join(TONES)}, got {tone!r}")

@@ -117,6 +117,7 @@ class Enhancement(Section):
                             Expect("a quantile in (0, 1] (1 = the maximum) or null (no normalisation)")]
     shoulder: Num(gt=0, le=1)  # tone "exposure"'s highlight knee; the gamma tones do not read it
     debias_black: Bool  # tone "exposure": the clipped sensor noise's mean taken out of R̂∘L̂ before the gain
+    black_filter: Int(0, 64)  # with debias_black: the radius (px) of the filter that takes the render's noise out first
 
     @model_validator(mode="after")
     def _ordered(self) -> "Enhancement":
@@ -132,6 +133,8 @@ class Enhancement(Section):
                              "the scene's full light L_ref); null is only valid with 'illumination' or 'signal'")
         if self.debias_black and self.tone != "exposure":  # the black table is read by tone "exposure" alone
             raise ValueError(f"model.enhancement.debias_black needs tone 'exposure', got tone {self.tone!r}")
+        if self.black_filter and not self.debias_black:  # it filters what the black table reads, nothing else
+            raise ValueError(f"model.enhancement.black_filter={self.black_filter} needs debias_black: true")
         return self
 
 

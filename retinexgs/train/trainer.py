@@ -333,6 +333,9 @@ class Trainer:
         if debias:  # model.enhancement.debias_black: the tone reads R̂∘L̂'s light through the noise's black table
             with torch.no_grad():
                 self.model.black_table.copy_(black_table(*noise.at_capture()))
+                if hasattr(self.model, "black_spread"):  # the render averages the training views' noise
+                    views = max(len(self.scene.train), 1)
+                    self.model.black_spread.copy_(torch.tensor([noise.a, noise.b], dtype=torch.float32) / views)
         if noise_aware:  # its own random stream, one per rank (each rank probes its own views)
             rank = dist.rank if dist is not None and dist.enabled else 0
             self.noise_probe = NoiseProbe(noise, self.device, 1_000_003 * (self.cfg["seed"] + 1) + rank)
