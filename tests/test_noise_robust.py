@@ -412,6 +412,29 @@ def test_debias_black_trains_with_the_measured_noise_and_resumes(scenes, tmp_pat
     assert off.model.tone_noise() is None and not hasattr(off.model, "black_table")
 
 
+def test_black_filter_reads_the_noise_over_the_training_views_and_is_checkpointed(scenes, tmp_path):
+    """model.enhancement.black_filter: ε of the filter before the black table is the capture's noise (a, b at the
+    training images' scale) over the number of training views, set at set-up and carried by the checkpoint."""
+    extra = ["model.enhancement.debias_black=true", "model.enhancement.black_filter=2"]
+    tr = _trainer(scenes[0], tmp_path / "run", extra)
+    noise, views = tr.capture_noise, len(tr.scene.train)
+    expected = torch.tensor([noise.a, noise.b], dtype=torch.float32) / views
+    assert views == 3 and float(expected.min()) > 0
+    torch.testing.assert_close(tr.model.black_spread, expected)
+    tr.train(stop_after=2)
+    saved = load_checkpoint(latest_checkpoint(tmp_path / "run"))["model"]["black_spread"]
+    torch.testing.assert_close(saved, expected)
+    # the enhanced frame is the filtered reading: not the unfiltered one of the same maps
+    from retinexgs.run.render import view_camera
+    with torch.no_grad():
+        res = tr.model.render(view_camera(tr.scene.test[0]), 0)
+        tr.model.black_filter = 0
+        unfiltered = tr.model.tone_map(res["R"], res["L"], res["gamma"])[0]
+    assert float((res["rgb"] - unfiltered).abs().max()) > 1e-4
+    off = _trainer(scenes[0], tmp_path / "off", ["model.enhancement.debias_black=true"])
+    assert not hasattr(off.model, "black_spread")
+
+
 def test_the_camera_s_mean_record_uses_the_noise_before_the_downscale():
     """A d×d average divides the noise's variance by d², not the mean of noise clipped at black: the SSIM cap and
     the probe read the averaged noise, the camera's mean record (black table, camera expectation) the captured."""
