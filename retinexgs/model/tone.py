@@ -33,8 +33,8 @@ import torch
 from torch import Tensor
 
 __all__ = ["TONES", "srgb_to_linear", "linear_to_srgb", "highlight_shoulder", "camera_mean", "camera_mean_inverse",
-           "black_table", "box_mean", "guided_filter", "smooth_record", "scene_linear", "highlight_capped_mean", "log_lin_ref", "exposure_gain", "apply_exposure",
-           "tone_map"]
+           "black_table", "box_mean", "guided_filter", "smooth_record", "scene_linear", "highlight_capped_mean",
+           "log_lin_ref", "exposure_gain", "apply_exposure", "tone_map"]
 
 TONES = ("illumination", "signal", "exposure")
 
