@@ -28,6 +28,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from retinexgs.model.tone import srgb_to_linear
+
 
 __all__ = ["psnr", "ssim_metric", "gt_mean_align", "lpips_metric", "lpips_available"]
 
@@ -212,17 +214,12 @@ _RGB_TO_XYZ = ((0.4124564, 0.3575761, 0.1804375), (0.2126729, 0.7151522, 0.07217
 _D65 = (0.95047, 1.0, 1.08883)
 
 
-def _linear(a: torch.Tensor) -> torch.Tensor:
-    """sRGB values in [0, 1] -> linear light (IEC 61966-2-1), for the colour and black-level measures."""
-    return torch.where(a <= 0.04045, a / 12.92, ((a + 0.055) / 1.055) ** 2.4)
-
-
 def mean_colour_lab(x: ImageLike) -> Tuple[float, float, float]:
     """CIELAB (D65) of the average colour of an sRGB [H,W,3] image in [0,1]: the pixels averaged in linear light."""
     a, _ = _as_pair(x, x)
     if a.shape[-1] != 3:
         raise ValueError(f"mean_colour_lab needs an RGB image, got {a.shape[-1]} channels")
-    lin = _linear(a).reshape(-1, 3).mean(0)
+    lin = srgb_to_linear(a, clip=False).reshape(-1, 3).mean(0)
     xyz = torch.tensor(_RGB_TO_XYZ, dtype=torch.float64) @ lin / torch.tensor(_D65, dtype=torch.float64)
     f = torch.where(xyz > (6 / 29) ** 3, xyz.clamp_min(0) ** (1 / 3), xyz / (3 * (6 / 29) ** 2) + 4 / 29)
     return float(116 * f[1] - 16), float(500 * (f[0] - f[1])), float(200 * (f[1] - f[2]))
@@ -239,7 +236,7 @@ def black_lift(x: ImageLike, y: ImageLike, q: float = 0.01) -> float:
     a, b = _as_pair(gt_mean_align(x, y), y)
 
     def low(img: torch.Tensor) -> torch.Tensor:
-        lin = _linear(img).reshape(-1, img.shape[-1])
+        lin = srgb_to_linear(img, clip=False).reshape(-1, img.shape[-1])
         k = int(round(q * (lin.shape[0] - 1))) + 1  # the nearest rank: kthvalue has no size limit (quantile has)
         return lin.kthvalue(k, dim=0).values
 

@@ -125,35 +125,27 @@ def box_mean(x: Tensor, radius: int) -> Tensor:
     return torch.nn.functional.avg_pool2d(torch.nn.functional.pad(x, (r, r, r, r), mode="reflect"), 2 * r + 1, 1)
 
 
-def guided_filter(p: Tensor, radius: int, eps: Tensor, guide: Optional[Tensor] = None) -> Tensor:
-    """He, Sun & Tang's guided filter (ECCV 2010, Eq. 1-8): in each window, ``p`` ≈ a·guide + b by least squares
-    with a ridge ε on a; the output averages the windows' fits. a = cov / (var + ε): where the guide varies much more
-    than ε (an edge) the output follows it, where it varies less (flat, noisy) the output is the window's mean.
-    Without ``guide`` each channel guides itself: a = var / (var + ε), the local Wiener filter, exactly the identity
-    at ε = 0 (where the window is flat too: its mean is its value).
+def guided_filter(p: Tensor, radius: int, eps: Tensor) -> Tensor:
+    """He, Sun & Tang's guided filter (ECCV 2010, Eq. 1-8) with each channel its own guide: in each window, ``p`` ≈
+    a·p + b by least squares with a ridge ε on a, so a = var / (var + ε) (the local Wiener filter); the output
+    averages the windows' fits. Where the window varies much more than ε (an edge) the output follows it, where it
+    varies less (flat, noisy) it is the window's mean; exactly the identity at ε = 0.
 
     Args:
         p: [B,C,H,W] the image to filter.
         radius: the window's half size r, in pixels (H, W > r).
         eps: ε ≥ 0, broadcastable against ``p`` (e.g. a per-pixel noise variance [B,C,H,W]).
-        guide: [B,1,H,W] or [B,C,H,W], or None (``p`` itself).
     """
     m_p = box_mean(p, radius)
-    if guide is None:
-        var = (box_mean(p * p, radius) - m_p * m_p).clamp_min(0.0)  # float rounding can take it below 0
-        a = var / (var + eps).clamp_min(1e-20)
-        b = m_p - a * m_p
-        return box_mean(a, radius) * p + box_mean(b, radius)
-    m_i = box_mean(guide, radius)
-    var = (box_mean(guide * guide, radius) - m_i * m_i).clamp_min(0.0)
-    a = (box_mean(guide * p, radius) - m_i * m_p) / (var + eps).clamp_min(1e-20)
-    b = m_p - a * m_i
-    return box_mean(a, radius) * guide + box_mean(b, radius)
+    var = (box_mean(p * p, radius) - m_p * m_p).clamp_min(0.0)  # float rounding can take it below 0
+    a = var / (var + eps).clamp_min(1e-20)
+    b = m_p - a * m_p
+    return box_mean(a, radius) * p + box_mean(b, radius)
 
 
 def smooth_record(RL: Tensor, spread: Tensor, radius: int) -> Tensor:
-    """R̂∘L̂ [H,W,3] (sRGB) with the render's residual noise taken out: a :func:`guided_filter` in linear light, each
-    channel its own guide, ε per pixel the window's mean of ``spread`` [2,3]'s a·x + b per channel (the capture's
+    """R̂∘L̂ [H,W,3] (sRGB) with the render's residual noise taken out: a :func:`guided_filter` in linear light, ε per
+    pixel the window's mean of ``spread`` [2,3]'s a·x + b per channel (the capture's
     noise variance at the training images' scale divided by the number of training views: the render averages the
     views, so that is its residual noise where every view sees the point, the least it has). The identity where
     ``spread`` is 0 (a clean capture), where the image is smaller than the window or where ``radius`` is 0."""

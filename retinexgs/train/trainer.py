@@ -334,8 +334,8 @@ class Trainer:
             with torch.no_grad():
                 self.model.black_table.copy_(black_table(*noise.at_capture()))
                 if hasattr(self.model, "black_spread"):  # the render averages the training views' noise
-                    views = max(len(self.scene.train), 1)
-                    self.model.black_spread.copy_(torch.tensor([noise.a, noise.b], dtype=torch.float32) / views)
+                    spread = torch.tensor([noise.a, noise.b], dtype=torch.float32) / len(self.scene.train)
+                    self.model.black_spread.copy_(spread)
         if noise_aware:  # its own random stream, one per rank (each rank probes its own views)
             rank = dist.rank if dist is not None and dist.enabled else 0
             self.noise_probe = NoiseProbe(noise, self.device, 1_000_003 * (self.cfg["seed"] + 1) + rank)
