@@ -6,6 +6,7 @@ reader (or a resumed run after a crash or SIGKILL) sees the old file or the new 
 from __future__ import annotations
 
 import errno
+import hashlib
 import os
 import tempfile
 from pathlib import Path
@@ -110,3 +111,13 @@ def atomic_write(path: Union[str, Path], write: Callable[[BinaryIO], None], else
 def atomic_write_text(path: Union[str, Path], text: str, elsewhere: str = "--out") -> Path:
     """Write ``text`` (UTF-8) atomically to ``path``."""
     return atomic_write(path, lambda f: f.write(text.encode("utf-8")), elsewhere)
+
+
+def content_digest(path: Union[str, Path], length: int = 16) -> str:
+    """The first ``length`` hex digits of the SHA-256 of the file's bytes: what every cache is keyed by (a copy
+    with an old mtime, or another scene's photo of the same name, never matches a stale entry)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()[:length]

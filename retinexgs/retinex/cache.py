@@ -22,7 +22,6 @@ then ``os.replace``d into place. An interrupted run leaves at worst a ``.tmp-`` 
 from __future__ import annotations
 
 import errno
-import hashlib
 import json
 import os
 import re
@@ -34,7 +33,7 @@ import numpy as np
 import torch
 
 from retinexgs.errors import UserError
-from retinexgs.fileio import TMP_PREFIX, atomic_write
+from retinexgs.fileio import TMP_PREFIX, atomic_write, content_digest
 from retinexgs.retinex.base import enhance_for_viewing, get_decomposer, params_to_dict
 from retinexgs.data.images import load_image_tensor
 
@@ -93,11 +92,7 @@ _UNWRITABLE = (errno.EROFS, errno.EACCES, errno.EPERM)
 
 def content_hash(image_path: PathLike) -> str:
     """The first 16 hex digits of the SHA-256 of the file's bytes: what an entry is keyed by."""
-    h = hashlib.sha256()
-    with open(image_path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()[:_HASH_LEN]
+    return content_digest(image_path, _HASH_LEN)
 
 
 def _entry_name(image_path: Path, digest: str) -> str:
