@@ -29,6 +29,32 @@ def _umask() -> int:
     return mask
 
 
+def nearest_existing(path: Path) -> Path:
+    """``path`` itself, or its nearest parent that exists."""
+    p = path
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    return p
+
+
+def check_writable_folder(path: Path, flag: str = "--out") -> None:
+    """Refuse a folder path that is a file, lies under a file, or cannot be written (checked by creating and
+    removing a temporary file in it, or in its nearest existing parent)."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise UserError(f"{flag} {path} is a file; a folder is needed here (choose another {flag})")
+    existing = nearest_existing(path.absolute())
+    if not existing.is_dir():
+        raise UserError(f"{flag} {path} lies under {existing}, which is a file, not a folder (choose another {flag})")
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=TMP_PREFIX, dir=existing)
+        os.close(fd)
+        os.unlink(tmp)
+    except OSError as exc:
+        raise UserError(f"{flag} {path}: cannot write in {existing} ({exc.strerror or exc}); choose another "
+                        f"{flag} or fix the folder's permissions") from None
+
+
 def free_bytes(folder: Union[str, Path]) -> Optional[int]:
     """Bytes available to this user on the file system holding ``folder`` (or its nearest existing parent);
     None when that cannot be asked."""

@@ -184,9 +184,13 @@ def test_a_taken_port_still_moves_on_to_the_next_free_one(run_dir):
         held.bind(("127.0.0.1", 0))
         held.listen()
         port = held.getsockname()[1]
-        viewer = view_run(run_dir, "127.0.0.1", port, "cpu", log=lambda s: None, block=False)
+        lines = []
+        viewer = view_run(run_dir, "127.0.0.1", port, "cpu", log=lines.append, block=False)
         try:
-            assert viewer.server.get_port() != port
+            got = viewer.server.get_port()
+            assert got != port
+            # issue 50: the user is told that the port asked for was taken, and which one serves
+            assert f"port {port} was taken, so {got} is used" in " ".join(lines), lines
         finally:
             viewer.stop()
 

@@ -57,6 +57,7 @@ def register(subparsers) -> None:
     q.add_argument("--photos", type=int, default=8, help="photos to read, spread over the capture (default 8)")
     q.add_argument("--share", type=float, default=None,
                    help="loss.rec_noise_share, where training places the cap (default: configs/default.yaml's)")
+    q.add_argument("--quiet", action="store_true", help="no progress bar")
     q.set_defaults(func=_noise)
 
 
@@ -95,7 +96,8 @@ def _noise(args: argparse.Namespace) -> int:
     except ValueError:
         raise UserError(f"--share must lie between 0 and 1 (exclusive), got {share}") from None
     # The measure training uses (train/noise.py): each photo read once, for the noise model and the SSIM's cap.
-    cap = measure_capture_noise(photos, views=args.photos, scale=loss["rec_noise_scale"], through_codec=True)
+    cap = measure_capture_noise(photos, views=args.photos, scale=loss["rec_noise_scale"], through_codec=True,
+                                progress=not args.quiet)
     if cap is None:
         raise UserError(f"no photo in {folder} is 8x8 pixels or larger")
     est = NoiseEstimate(cap.a, cap.b, 0)

@@ -63,7 +63,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "input's. One to two minutes on two CPU cores; nothing is downloaded.")
     p.add_argument("--out", type=Path, default=Path("retinexgs-demo"), help="folder for the scene and the run")
     p.add_argument("--steps", type=int, default=None, help="training steps (default: configs/demo.yaml)")
-    p.add_argument("--overwrite", action="store_true", help="replace an earlier demo folder at --out")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an earlier demo's scene/ and run/ at --out (anything else there is kept)")
     _add_common(p)
     p.set_defaults(func=_demo)
 
@@ -115,6 +116,24 @@ def _eval(args: argparse.Namespace) -> int:
     return 0
 
 
+# What `retinexgs demo` writes into its --out: only these are replaced by --overwrite. Anything else there (the
+# README's `render --out retinexgs-demo/exposure-X` folders, the user's notes) was made by someone else: kept.
+_DEMO_MADE = ("scene", "run")
+
+
+def _clear_earlier_demo(out: Path) -> None:
+    """Delete what an earlier ``retinexgs demo`` made in ``out`` (its scene and run), and nothing else."""
+    kept = sorted(p.name for p in out.iterdir() if p.name not in _DEMO_MADE and p.name != ".retinexgs-demo")
+    for name in _DEMO_MADE:
+        p = out / name
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p)
+        elif p.exists() or p.is_symlink():
+            p.unlink()
+    print(f"--overwrite: replacing the earlier demo's {' and '.join(n + '/' for n in _DEMO_MADE)} in {out}"
+          + (f"; kept: {', '.join(kept)}" if kept else ""))
+
+
 def _demo(args: argparse.Namespace) -> int:
     from retinexgs.demo.synthetic import make_demo_scene  # lazy: --help stays fast
     from retinexgs.run.config import load_config  # lazy: --help stays fast
@@ -133,7 +152,7 @@ def _demo(args: argparse.Namespace) -> int:
         if not (args.overwrite and marker.exists()):
             raise UserError(f"{out} already exists; choose another --out"
                             + (" or pass --overwrite to replace the earlier demo" if marker.exists() else ""))
-        shutil.rmtree(out)
+        _clear_earlier_demo(out)
     overrides = [f"steps={args.steps}"] if args.steps is not None else []
     load_config(["demo"], overrides)  # a missing or broken config fails here, before anything is written
     out.mkdir(parents=True, exist_ok=True)

@@ -36,7 +36,7 @@ import numpy as np
 
 from retinexgs.data.images import list_images, read_image_float, write_image_atomic
 from retinexgs.errors import UserError
-from retinexgs.fileio import atomic_write_text
+from retinexgs.fileio import atomic_write_text, check_writable_folder, is_out_of_space, out_of_space_error
 
 
 def srgb_to_linear(x: np.ndarray) -> np.ndarray:
@@ -135,8 +135,10 @@ def darken_scene(src: Path, out: Path, model: SensorModel, seed: int = 0, progre
         raise UserError(f"no photos in {folder} (looked for .png/.jpg/.jpeg/.tif files)")
     rng = np.random.default_rng(seed)
     report = DarkenReport(out, len(jobs))
-    out.mkdir(parents=True, exist_ok=True)
+    check_writable_folder(out)  # a read-only or misplaced --out: one line before any work
+    made = not out.exists()
     try:
+        out.mkdir(parents=True, exist_ok=True)
         if folder != src:
             for item in sorted(src.iterdir()):
                 if item.name in ("low", "retinex_cache", "retinexgs_sfm") or item.name.startswith("."):
@@ -157,10 +159,32 @@ def darken_scene(src: Path, out: Path, model: SensorModel, seed: int = 0, progre
         atomic_write_text(out / "sensor.json", json.dumps(
             {"model": asdict(model), "seed": seed, "source": str(src.resolve()),
              "view_exposures": report.exposures}, indent=1))
-    except BaseException:
-        shutil.rmtree(out, ignore_errors=True)  # nothing half-made is left behind
+    except BaseException as exc:
+        _remove_made(out, made)  # nothing half-made is left behind
+        if isinstance(exc, (OSError, shutil.Error)):  # shutil.Error: copytree's list of failed copies
+            if is_out_of_space(exc, out.parent):
+                raise out_of_space_error(out) from None
+            raise UserError(f"--out {out}: cannot write the dark scene there ({_first_reason(exc)}); "
+                            "choose another --out") from None
         raise
     return report
+
+
+def _remove_made(out: Path, made: bool) -> None:
+    """Remove what darken wrote into ``out``: the folder itself when darken made it, else its contents (the
+    user's empty folder stays)."""
+    if made:
+        shutil.rmtree(out, ignore_errors=True)
+    elif out.is_dir():
+        for p in out.iterdir():
+            shutil.rmtree(p, ignore_errors=True) if p.is_dir() and not p.is_symlink() else p.unlink(missing_ok=True)
+
+
+def _first_reason(exc: BaseException) -> str:
+    """A one-line reason from an OSError or from the first entry of a shutil.Error's list."""
+    if isinstance(exc, shutil.Error) and exc.args and isinstance(exc.args[0], list) and exc.args[0]:
+        return str(exc.args[0][0][-1])
+    return getattr(exc, "strerror", None) or str(exc)
 
 
 def jpeg_roundtrip(rgb: np.ndarray, quality: int) -> np.ndarray:

@@ -526,7 +526,12 @@ def relaunch(n: int, device: str, argv: Sequence[str]) -> int:
     ``python -m torch.distributed.run --standalone``: one per GPU, or ``n`` CPU processes (gloo) with
     ``--device cpu``. Returns torchrun's exit code. UserError for more ranks than visible GPUs."""
     if device == "cpu":
-        pass
+        cores = os.cpu_count() or 1
+        # Each CPU rank runs its own kernels' threads: with more ranks than cores they only take turns.
+        print(f"--gpus {n} --device cpu: {n} training processes on the CPU (gloo), for testing data-parallel "
+              f"training; {cores} CPU core{'s' if cores != 1 else ''} here, so each rank gets "
+              + (f"about {cores // n} of them" if cores >= n else "a share of one, slower than one process"),
+              file=sys.stderr)
     elif device in ("auto", "cuda"):
         visible = torch.cuda.device_count()
         if visible == 0:

@@ -194,13 +194,17 @@ class NoiseMeter:
 
 def measure_capture_noise(photos: Sequence[Path], downscale: float = 1.0, device: torch.device = torch.device("cpu"),
                           views: int = MEASURED_VIEWS, scale: int = NOISE_SCALE,
-                          through_codec: bool = False) -> Optional[CaptureNoise]:
+                          through_codec: bool = False, progress: bool = False) -> Optional[CaptureNoise]:
     """:class:`CaptureNoise` of up to ``views`` of ``photos`` (the user's files), spread evenly over them;
     ``through_codec``: (a, b) of JPEG files fitted with their JPEG's loss of noise modelled
-    (:func:`retinexgs.data.sensor.estimate_noise_through_codec`)."""
+    (:func:`retinexgs.data.sensor.estimate_noise_through_codec`); ``progress``: a bar on stderr (a few seconds
+    per photo through the codec)."""
+    from tqdm import tqdm
+
     photos = list(photos)
     meter = NoiseMeter(device, scale, through_codec)
-    for p in photos[::max(1, len(photos) // views)][:views]:
+    chosen = photos[::max(1, len(photos) // views)][:views]
+    for p in tqdm(chosen, desc="noise", unit="photo", disable=not progress, dynamic_ncols=True):
         meter.add(read_image_float(p), JpegCodec.of_file(p) if through_codec else None)
     return meter.result(downscale)
 

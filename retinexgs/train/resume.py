@@ -6,12 +6,11 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import os
-import tempfile
 from pathlib import Path
 from typing import Any, Dict, Iterable, Iterator, Optional, Sequence, Tuple
 
 from retinexgs.errors import UserError
-from retinexgs.fileio import TMP_PREFIX
+from retinexgs.fileio import TMP_PREFIX, check_writable_folder  # noqa: F401 (re-exported for runner)
 from retinexgs.run.config import Config, load_config
 
 # Keys a resumed run may change: they act from the next step on (the run's length, its logging and
@@ -23,31 +22,6 @@ RESUMABLE: Tuple[str, ...] = ("steps", "log", "checkpoint", "lr", "loss", "densi
 
 
 # ---- --out --------------------------------------------------------------------------------------------------
-
-def _nearest_existing(path: Path) -> Path:
-    p = path
-    while not p.exists() and p != p.parent:
-        p = p.parent
-    return p
-
-
-def check_writable_folder(path: Path, flag: str = "--out") -> None:
-    """Refuse a folder path that is a file, lies under a file, or cannot be written (checked by creating and
-    removing a temporary file in it, or in its nearest existing parent)."""
-    path = Path(path)
-    if path.exists() and not path.is_dir():
-        raise UserError(f"{flag} {path} is a file; the run needs a folder (choose another {flag})")
-    existing = _nearest_existing(path.absolute())
-    if not existing.is_dir():
-        raise UserError(f"{flag} {path} lies under {existing}, which is a file, not a folder (choose another {flag})")
-    try:
-        fd, tmp = tempfile.mkstemp(prefix=TMP_PREFIX, dir=existing)
-        os.close(fd)
-        os.unlink(tmp)
-    except OSError as exc:
-        raise UserError(f"{flag} {path}: cannot write in {existing} ({exc.strerror or exc}); choose another "
-                        f"{flag} or fix the folder's permissions") from None
-
 
 def is_empty_run_folder(path: Path) -> bool:
     """No files other than the temporaries of an interrupted atomic write."""

@@ -27,6 +27,7 @@ from retinexgs.train.distributed import (Distributed, adam_betas_for_batch, grad
                                          process_start_time, take_gradients)
 from retinexgs.train.graphs import ChannelGraphs, LossGraphs
 from retinexgs.train.noise import CaptureNoise, NoiseProbe, measure_capture_noise, sigma_limit
+from retinexgs.train.stop import DeferredStop
 from retinexgs.train.streamed_views import StreamedViews
 from retinexgs.train.view_store import (ViewStore, check_store_space, store_fingerprint, store_path,
                                         store_size_estimate)
@@ -747,6 +748,20 @@ class Trainer:
             return None
         return save_checkpoint(self.run, self.step, self.checkpoint_state(), self.cfg["checkpoint"]["keep"])
 
+    def _save_on_stop(self, stop: DeferredStop) -> None:
+        """Write a checkpoint of the last whole step (unless one exists), say where, and raise as the signal
+        would have: ``--resume`` continues from exactly here."""
+        done = latest_checkpoint(self.run)
+        if self.step > 0 and (done is None or not done.name.endswith(f"_{self.step:06d}.pt")):
+            path = self.save()
+            if path is not None:
+                self.log(f"stopped at step {self.step}: checkpoint {path} written; "
+                         f"retinexgs train --out {self.run} --resume continues from it")
+        elif self.step > 0 and self.dist.is_main:
+            self.log(f"stopped at step {self.step}, checkpointed in {done}; "
+                     f"retinexgs train --out {self.run} --resume continues from it")
+        stop.raise_now()
+
     def train(self, stop_after: Optional[int] = None) -> Dict[str, float]:
         """Train up to ``cfg.steps`` (or ``stop_after`` more steps); returns the last step's loss values."""
         from tqdm import tqdm
@@ -767,7 +782,8 @@ class Trainer:
         bar = tqdm(total=end, initial=self.step, disable=not self.progress or not main, desc="train",
                    dynamic_ncols=True)
         # unbuffered: a record is on disk when written
-        with open(log_path, "ab", buffering=0) if main else contextlib.nullcontext() as log_file:
+        with open(log_path, "ab", buffering=0) if main else contextlib.nullcontext() as log_file, \
+                DeferredStop() as stop:
             while self.step < end:
                 indices = self._batch_indices()
                 self.step += 1
@@ -809,6 +825,9 @@ class Trainer:
                 if self.step % self.cfg["checkpoint"]["every"] == 0 or self.step == end:
                     self.save()
                 bar.update(1)
+                if stop.requested:  # Ctrl-C / SIGTERM noted during this step: save it, then stop
+                    bar.close()
+                    self._save_on_stop(stop)
         bar.close()
         if writer:
             writer.close()

@@ -52,8 +52,8 @@ def start_live_viewer(trainer, scene, host: str, port: int, log: Callable[[str],
                              guard=gate.frame)
     on_gpu = trainer.model.gaussians.means.is_cuda
     viewer = RunViewer(renderer, snap_cameras(scene), host, port, default_scale=1.0 if on_gpu else 0.5, log=log)
-    log(f"retinexgs train --view: the live scene at {viewer.url} (stops when training ends; afterwards use "
-        "retinexgs view --run RUN)")
+    log(f"retinexgs train --view: the live scene at {viewer.url}{viewer.port_note()} (stops when training ends; "
+        "afterwards use retinexgs view --run RUN)")
     return viewer
 
 

@@ -155,6 +155,7 @@ class RunViewer:
         self._clients: Dict[int, _Client] = {}
         check_bindable(host, port)  # viser retries a failed bind on the next port forever: it would hang
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        self.requested_port = port
         self.server.scene.set_up_direction(average_up(list(cameras.values())) if cameras else "+z")
         self.server.on_client_connect(self._connect)
         self.server.on_client_disconnect(self._disconnect)
@@ -162,6 +163,13 @@ class RunViewer:
     @property
     def url(self) -> str:
         return f"http://{self.server.get_host()}:{self.server.get_port()}"
+
+    def port_note(self) -> str:
+        """'' when serving on the port asked for (or any, for 0); else a note that it was taken."""
+        got = self.server.get_port()
+        if self.requested_port in (0, got):
+            return ""
+        return f" (port {self.requested_port} was taken, so {got} is used)"
 
     def _connect(self, client) -> None:
         try:
@@ -275,7 +283,7 @@ def gamma_slider_range(model) -> Tuple[float, float]:
 
 
 def _announce(viewer: RunViewer, run_dir, step: int, count: int, host: str, log: Callable[[str], None]) -> None:
-    log(f"retinexgs view: {run_dir} (step {step}, {count} Gaussians) at {viewer.url}")
+    log(f"retinexgs view: {run_dir} (step {step}, {count} Gaussians) at {viewer.url}{viewer.port_note()}")
     if host not in ("127.0.0.1", "localhost", "::1"):
         log(f"retinexgs view: bound to {host}: anyone who can reach this machine on port "
             f"{viewer.server.get_port()} can see the scene")
