@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from retinexgs.errors import UserError
-from retinexgs.model.density import DensityController
+from retinexgs.strategy import DefaultStrategy
 from retinexgs.model.gaussians import GaussianModel
 from retinexgs.run.config import load_config
 from retinexgs.model.schedule import build_schedule
@@ -22,7 +22,7 @@ def gaussians_with_scales(log_scales):
 
 def controller(max_aniso):
     cfg = load_config([], [f"density.max_aniso={max_aniso}"])
-    return DensityController(cfg["density"], 1.0, build_schedule(cfg))
+    return DefaultStrategy(cfg["density"], 1.0, build_schedule(cfg))
 
 
 def test_the_cap_shortens_only_the_long_axes_of_needles():
@@ -33,7 +33,7 @@ def test_the_cap_shortens_only_the_long_axes_of_needles():
           [-2.0, 1.0, 2.0]]                    # two axes over the cap
     g = gaussians_with_scales(ls)
     before = g.log_scales.detach().clone()
-    controller(r).limit_anisotropy(g)
+    controller(r).after_optimizer_step(g)
     after = g.log_scales.detach()
     assert torch.equal(after[:2], before[:2])
     assert torch.equal(after.amin(-1), before.amin(-1))  # the short axis is kept
@@ -46,7 +46,7 @@ def test_the_cap_shortens_only_the_long_axes_of_needles():
 def test_zero_is_no_cap():
     g = gaussians_with_scales([[-5.0, 0.0, 5.0], [1.0, -4.0, 0.0]])
     before = g.log_scales.detach().clone()
-    controller(0).limit_anisotropy(g)
+    controller(0).after_optimizer_step(g)
     assert torch.equal(g.log_scales.detach(), before)
 
 

@@ -182,7 +182,7 @@ def test_the_cap_changes_training_on_a_noisy_capture(scenes, tmp_path):
 
 # ---- density.noise_aware: the noise probe and the densification statistic ---------------------------------------
 def test_noise_share_is_the_noise_part_of_the_gradient_energy():
-    from retinexgs.model.density import noise_share
+    from retinexgs.strategy import noise_share
     t = lambda *v: torch.tensor(v, dtype=torch.float32)  # noqa: E731
     share = noise_share(grad_sq=t(8.0, 8.0, 2.0, 5.0, 0.0), count=t(2, 2, 2, 0, 1),
                         noise_sq=t(1.0, 0.0, 9.0, 1.0, 1.0), noise_count=t(1, 3, 1, 1, 1))
@@ -192,10 +192,10 @@ def test_noise_share_is_the_noise_part_of_the_gradient_energy():
 
 @pytest.mark.parametrize("aware", [False, True])
 def test_densification_statistic_keeps_the_gradient_the_noise_does_not_explain(aware):
-    from retinexgs.model.density import DensityController
+    from retinexgs.strategy import DefaultStrategy
     from retinexgs.model.schedule import build_schedule
     cfg = load_config([], [f"density.noise_aware={str(aware).lower()}"])
-    d = DensityController(cfg["density"], 1.0, build_schedule(cfg))
+    d = DefaultStrategy(cfg["density"], 1.0, build_schedule(cfg))
     d._ensure(3, torch.device("cpu"))
     d.grad_accum += torch.tensor([4.0, 4.0, 4.0])
     d.grad_sq += torch.tensor([16.0, 16.0, 16.0])
@@ -259,10 +259,10 @@ def test_training_probes_the_noise_of_a_noisy_capture_more_than_of_a_clean_one(s
     for k, scene in enumerate(scenes):
         tr = _trainer(scene, tmp_path / f"run{k}", extra)
         tr.train(stop_after=4)
-        d = tr.density
+        d = tr.strategy
         assert float(d.noise_count.sum()) > 0 and float(d.grad_sq.sum()) > 0
         seen = (d.count > 0) & (d.noise_count > 0)
-        from retinexgs.model.density import noise_share
+        from retinexgs.strategy import noise_share
         shares.append(float(noise_share(d.grad_sq, d.count, d.noise_sq, d.noise_count)[seen].median()))
         tr.train()  # densifies on the statistic through the end of the run
         assert all(torch.isfinite(p).all() for p in tr.model.parameters())
@@ -306,10 +306,10 @@ def test_the_exposed_noise_is_measured_as_ssim_sees_it_through_jpeg(full_well, r
 
 def test_a_checkpoint_from_before_the_squared_statistics_resumes():
     """Density state written before grad_sq / noise_sq existed: they restart at zero, the old sums are kept."""
-    from retinexgs.model.density import DensityController
+    from retinexgs.strategy import DefaultStrategy
     from retinexgs.model.schedule import build_schedule
     cfg = load_config([], ["density.noise_aware=true"])
-    d = DensityController(cfg["density"], 1.0, build_schedule(cfg))
+    d = DefaultStrategy(cfg["density"], 1.0, build_schedule(cfg))
     d.load_state_dict({"grad_accum": torch.tensor([1.0, 2.0]), "count": torch.tensor([1.0, 1.0]),
                        "max_radius": torch.tensor([3.0, 4.0])}, torch.device("cpu"))
     assert torch.equal(d.grad_sq, torch.zeros(2)) and torch.equal(d.noise_count, torch.zeros(2))

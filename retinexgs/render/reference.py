@@ -13,6 +13,7 @@ from torch.utils.checkpoint import checkpoint
 from retinexgs.render.camera import Camera
 from retinexgs.render.rasterize import RenderOutput
 from retinexgs.render.validate import check_gaussians
+from retinexgs.render.rotation import quat_to_rotmat
 
 TILE = 16
 ALPHA_MAX, ALPHA_MIN, T_MIN, LOW_PASS, GUARD = 0.99, 1.0 / 255.0, 1e-4, 0.3, 1.3
@@ -22,18 +23,6 @@ SH_C1 = 0.4886025119029199
 SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
 SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154, -0.4570457994644658,
          1.445305721320277, -0.5900435899266435)
-
-
-def quat_to_rotmat(quats: Tensor) -> Tensor:
-    """[N, 4] (w, x, y, z) -> [N, 3, 3]; a zero quaternion gives the identity."""
-    n = quats.norm(dim=-1, keepdim=True)
-    q = torch.where(n > 1e-12, quats / n.clamp_min(1e-12), torch.zeros_like(quats))
-    w, x, y, z = q.unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], dim=-1).reshape(-1, 3, 3)
 
 
 def project_reference(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor,

@@ -45,9 +45,9 @@ import torch.distributed as dist
 from torch import Tensor, nn
 
 from retinexgs.errors import UserError
-from retinexgs.model.density import MAXIMA, SUMMED
 from retinexgs.model.gaussians import PARAM_NAMES
 from retinexgs.retinex.cache import decompose_images, scene_cache_root
+from retinexgs.strategy.ops import resize_gaussians
 
 TIMEOUT_ENV = "RETINEXGS_DIST_TIMEOUT"
 SETUP_TIMEOUT_ENV = "RETINEXGS_DIST_SETUP_TIMEOUT"
@@ -282,26 +282,12 @@ class Distributed:
         self.all_reduce_(vec, f"the loss values' all-reduce of step {step}")
         return dict(zip(keys, (vec / self.world).tolist()))
 
-    def reduce_density_statistics(self, density: Any, n: int, image_size: int, step: int) -> int:
-        """Before a densification: sum the density controller's per-Gaussian statistics (2D-gradient norms, their
-        squares, the noise probe's, visibility counts) over the ranks and take the maximum of the screen radii, so
-        every rank decides the same; returns the largest image side of the batch's views (the screen-size prune's
-        reference)."""
-        dev = self.device
-        has = density.grad_accum is not None
-
-        def stats(keys: Sequence[str]) -> List[Tensor]:
-            return [getattr(density, k).float() if has and getattr(density, k) is not None
-                    else torch.zeros(n, device=dev) for k in keys]
-
-        sums = torch.cat(stats(SUMMED) + [torch.tensor([1.0 if has else 0.0], device=dev)])
-        maxima = torch.cat(stats(MAXIMA) + [torch.tensor([float(image_size)], device=dev)])
-        self.all_reduce_(sums, f"the density statistics' all-reduce of step {step}")
-        self.all_reduce_(maxima, f"the density statistics' all-reduce of step {step}", dist.ReduceOp.MAX)
-        for keys, values in ((SUMMED, sums), (MAXIMA, maxima)):
-            for i, key in enumerate(keys):
-                setattr(density, key, values[i * n:(i + 1) * n] if float(sums[-1]) > 0 else None)
-        return int(maxima[-1])
+    def reduce_strategy(self, strategy: Any, n: int, image_size: int, step: int) -> int:
+        """Before a densification: the strategy's per-Gaussian statistics summed (and its maxima taken) over the
+        ranks, through its own :meth:`reduce` (it knows what it holds); returns the batch's largest image side."""
+        what = f"the density statistics' all-reduce of step {step}"
+        return strategy.reduce(lambda t: self.all_reduce_(t, what),
+                               lambda t: self.all_reduce_(t, what, dist.ReduceOp.MAX), n, image_size, self.device)
 
     def _fingerprint(self, tensors: Sequence[Tensor]) -> Tensor:
         """[2 per tensor + 1] float64 on the device: sum and position-weighted sum of each tensor, and the count
@@ -342,7 +328,8 @@ class Distributed:
         self.broadcast_([n], "the Gaussian count")
         resized = int(n) != mine
         if resized:
-            self._resize(model, optimizer, groups, int(n))
+            resize_gaussians(model, optimizer, int(n))
+            groups = [g for g in optimizer.param_groups if g.get("name") in PARAM_NAMES]
         tensors: List[Tensor] = []
         for g in groups:
             p = g["params"][0]
@@ -367,20 +354,6 @@ class Distributed:
                     t.copy_(chunk.view_as(t))
         rows = torch.stack(every).tolist()  # read after the broadcast is queued: one host sync, at the end
         return not resized and all(r == rows[0] for r in rows)
-
-    @staticmethod
-    def _resize(model: nn.Module, optimizer: torch.optim.Optimizer, groups: List[Dict], n: int) -> None:
-        for g in groups:
-            old = g["params"][0]
-            new = nn.Parameter(old.detach().new_zeros((n,) + tuple(old.shape[1:])))
-            state = optimizer.state.pop(old, None)
-            if state:
-                for key in ("exp_avg", "exp_avg_sq"):
-                    if key in state:
-                        state[key] = state[key].new_zeros(new.shape)
-                optimizer.state[new] = state
-            g["params"][0] = new
-            setattr(model, g["name"], new)
 
     # ---- set-up ------------------------------------------------------------------------------------------
     def decompose_shard(self, scene: Any, cfg: Dict, device: str, progress: bool) -> None:

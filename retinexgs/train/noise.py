@@ -8,7 +8,7 @@ does with it (issue 32; each a config switch with its reason in configs/default.
   every novel view). On a clean capture (LOM: σ < 0.01 at the full gain) nothing changes.
 - ``density.noise_aware``: :class:`NoiseProbe` measures the view-space gradient that the photo's noise alone gives
   each Gaussian through the reconstruction's SSIM, and densification answers only the rest of the gradient
-  (:func:`retinexgs.model.density.noise_share`).
+  (:func:`retinexgs.strategy.noise_share`).
 - ``loss.rec_camera_noise``: the render is compared with the photo through the camera's average response to it
   (:func:`retinexgs.train.losses.camera_expectation`) under the Poisson–Gaussian noise measured here, so the
   blacks of the output are not lifted by the positive mean of clipped noise.

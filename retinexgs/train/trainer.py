@@ -17,7 +17,6 @@ from torch.profiler import record_function
 from retinexgs.data import Scene, View
 from retinexgs.errors import UserError
 from retinexgs.fileio import is_out_of_space, out_of_space_error
-from retinexgs.model.density import DensityController
 from retinexgs.model.gaussians import GaussianModel
 from retinexgs.model.retinex_model import RetinexGSModel
 from retinexgs.model.tone import black_table, exposure_gain
@@ -35,6 +34,7 @@ from retinexgs.train.views import (TrainView, ViewStatistics, check_prior_size, 
                                    make_train_view, preload_bytes_per_pixel, stream_set_up, unpack_edges,
                                    unpack_targets)
 from retinexgs.model.schedule import build_schedule
+from retinexgs.strategy import DefaultStrategy
 from retinexgs.run.render import view_camera
 from retinexgs.retinex.cache import entry_dir, iter_decompositions, scene_cache_root
 
@@ -263,7 +263,7 @@ class Trainer:
         rates = {group["name"]: group["lr"] for group in groups}
         # Fused Adam on the GPU: one kernel per parameter group instead of a dozen (the step is launch-bound).
         self.optimizer = torch.optim.Adam(groups, eps=1e-15, fused=self.device.type == "cuda")
-        self.density = DensityController(self.cfg["density"], self.extent, self.schedule)
+        self.strategy = DefaultStrategy(self.cfg["density"], self.extent, self.schedule)
         if state is not None:
             self.model.load_state_dict(state["model"])
             self.optimizer.load_state_dict(state["optimizer"])
@@ -275,7 +275,7 @@ class Trainer:
             torch.set_rng_state(state["rng"])
             random.setstate(state["py_rng"])
             self.order = list(state.get("order", []))
-            self.density.load_state_dict(state.get("density", {}), self.device)
+            self.strategy.load_state_dict(state.get("density", {}), self.device)
         # Divergence watch (see _watch): per (term names, parameter names), [leading finite steps on the device,
         # first step, steps]; and the last step's (term names, values).
         self._pending: Dict[tuple, list] = {}
@@ -399,7 +399,7 @@ class Trainer:
         with record_function("step/noise_probe"):
             grad = self.noise_probe.means2d_gradient(res["out"], self.rec_gain(), c["lambda_ssim"], c["w_s"])
             if grad is not None:
-                self.density.update_noise(grad, res["out"].visible, view.camera.width, view.camera.height)
+                self.strategy.add_noise_probe(grad, res["out"].visible, view.camera.width, view.camera.height)
 
     def image_loss(self, image: Tensor, S: Tensor, R: Optional[Tensor], L: Optional[Tensor],
                    enhance: bool) -> Tuple[Tensor, Dict[str, Tensor]]:
@@ -588,7 +588,7 @@ class Trainer:
                 with record_function("step/watch"):
                     self._watch(terms, step)
             with record_function("step/density"):
-                self.density.update(res["out"], view.camera.width, view.camera.height)
+                self.strategy.after_backward(res["out"], view.camera.width, view.camera.height)
             del res
         if several:
             for p, g in zip(gradient_params(self.optimizer), acc):
@@ -600,15 +600,15 @@ class Trainer:
                 self.dist.reduce_gradients(gradient_params(self.optimizer), self.batch_size, step, verify=check)
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
-        self.density.limit_anisotropy(self.model.gaussians)
+        self.strategy.after_optimizer_step(self.model.gaussians)
         values: Dict[str, float] = {}
         if check or self.schedule.densify_at(step) or self.schedule.reset_at(step):
             with record_function("step/check"):
                 values = self.dist.mean_values(self.check_finite(step), step)
         size = max(max(v.camera.width, v.camera.height) for v in views)
-        if self.dist.enabled and self.schedule.densify_at(step):
-            size = self.dist.reduce_density_statistics(self.density, len(self.model.gaussians), size, step)
-        event = self.density.step(step, self.model.gaussians, self.optimizer, size)
+        if self.dist.enabled and self.strategy.will_edit(step):
+            size = self.dist.reduce_strategy(self.strategy, len(self.model.gaussians), size, step)
+        event = self.strategy.step(step, self.model.gaussians, self.optimizer, size)
         if event:
             values["event"] = event  # type: ignore[assignment]
             if self.dist.enabled:
@@ -725,7 +725,7 @@ class Trainer:
     def checkpoint_state(self) -> Dict:
         return {"step": self.step, "config": self.cfg, "model": self.model.state_dict(),
                 "optimizer": self.optimizer.state_dict(), "rng": torch.get_rng_state(),
-                "py_rng": random.getstate(), "order": list(self.order), "density": self.density.state_dict(), "normalization": {
+                "py_rng": random.getstate(), "order": list(self.order), "density": self.strategy.state_dict(), "normalization": {
                     "center": self.scene.normalization.center, "scale": self.scene.normalization.scale},
                 "scene_root": str(self.scene.root), "train_views": [v.name for v in self.scene.train],
                 "train_seconds": self.train_seconds(),

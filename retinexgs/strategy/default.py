@@ -1,35 +1,20 @@
-"""Adaptive density control (3DGS §5.2): clone small and split large Gaussians with large view-space gradients,
-prune transparent or oversized ones, and periodically reset opacities. Edits the Adam state in place."""
+"""The default strategy: 3DGS's adaptive density control (Kerbl et al. 2023, §5.2): clone small and split large
+Gaussians with large view-space gradients, prune transparent or oversized ones, periodically reset opacities; with
+``density.noise_aware`` the gradient the capture's noise explains is discounted, and ``density.max_aniso`` caps
+needles after every optimiser step. Parameters and Adam moments change only through :mod:`retinexgs.strategy.ops`."""
 from __future__ import annotations
 
 import math
 from typing import Callable, Dict, Optional
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
-from retinexgs.model.gaussians import PARAM_NAMES, GaussianModel
-from retinexgs.render import RenderOutput
-from retinexgs.render.reference import quat_to_rotmat
+from retinexgs.model.gaussians import GaussianModel
 from retinexgs.model.schedule import Schedule
-
-
-def _edit_params(model: GaussianModel, optimizer: torch.optim.Optimizer,
-                 edit: Callable[[str, Tensor, bool], Tensor]) -> None:
-    """Replace every Gaussian parameter by ``edit(name, tensor, is_state)``, and its Adam moments likewise."""
-    for group in optimizer.param_groups:
-        name = group.get("name")
-        if name not in PARAM_NAMES:
-            continue
-        old = group["params"][0]
-        new = nn.Parameter(edit(name, old.detach(), False).contiguous())
-        state = optimizer.state.pop(old, None)
-        if state:
-            for key in ("exp_avg", "exp_avg_sq"):
-                state[key] = edit(name, state[key], True).contiguous()
-            optimizer.state[new] = state
-        group["params"][0] = new
-        setattr(model, name, new)
+from retinexgs.render import RenderOutput
+from retinexgs.render.rotation import quat_to_rotmat
+from retinexgs.strategy.ops import cap_anisotropy, edit_gaussians, reset_opacity
 
 
 # The per-Gaussian statistics summed over views (and over ranks before a densification), and the one kept as a
@@ -53,8 +38,9 @@ def noise_share(grad_sq: Tensor, count: Tensor, noise_sq: Tensor, noise_count: T
     return share.clamp(0.0, 1.0)
 
 
-class DensityController:
-    """Accumulates per-Gaussian screen-space gradient statistics and densifies/prunes on schedule."""
+class DefaultStrategy:
+    """Accumulates per-Gaussian screen-space gradient statistics and densifies, prunes and resets on schedule.
+    ``cfg``: the config's ``density`` section."""
 
     def __init__(self, cfg: Dict, scene_extent: float, schedule: Schedule) -> None:
         self.cfg = cfg
@@ -93,7 +79,7 @@ class DensityController:
             self._ndc_scale = (key, torch.tensor([width / 2.0, height / 2.0], device=grad.device, dtype=grad.dtype))
         return grad.detach() * self._ndc_scale[1]
 
-    def update(self, out: RenderOutput, width: int, height: int) -> None:
+    def after_backward(self, out: RenderOutput, width: int, height: int) -> None:
         """Add one view's statistics (call after backward, before the optimizer step)."""
         grad = out.means2d.grad
         if grad is None:
@@ -109,7 +95,7 @@ class DensityController:
         # A culled Gaussian has radii (0, 0), so its max radius is 0 and leaves the running maximum as it is.
         torch.maximum(self.max_radius, out.radii.amax(dim=-1), out=self.max_radius)
 
-    def update_noise(self, grad: Tensor, visible: Tensor, width: int, height: int) -> None:
+    def add_noise_probe(self, grad: Tensor, visible: Tensor, width: int, height: int) -> None:
         """Add one view's noise probe: ``grad`` [N,2], the pixel-space gradient of the 2D means that the capture's
         noise alone gives (:class:`retinexgs.train.noise.NoiseProbe`), ``visible`` [N] bool."""
         self._ensure(grad.shape[0], grad.device)
@@ -131,22 +117,42 @@ class DensityController:
         if self.schedule.densify_at(step) and self.grad_accum is not None:
             did = self.densify_and_prune(step, model, optimizer, image_size)
         if self.schedule.reset_at(step):
-            self.reset_opacity(model, optimizer)
+            reset_opacity(model, optimizer)
             did += " opacity reset"
         return did.strip()
 
-    @torch.no_grad()
-    def limit_anisotropy(self, model: GaussianModel) -> None:
-        """Cap every Gaussian's longest axis at ``max_aniso`` times its shortest (0: no cap); call after each
-        optimiser step. Why: a Gaussian far longer than wide is a needle, seen as a streak from any view off its
-        axis, and where one or two training views see a region nothing stops it growing (the floaters of a view
-        past the training views). The long axis is shortened, not the short one widened, so the cap never makes a
-        Gaussian cover more than it did. In place on the parameter: Adam's moments stay as they are."""
-        r = float(self.cfg["max_aniso"])
-        if r <= 0 or len(model) == 0:
-            return
-        ls = model.log_scales
-        torch.minimum(ls, ls.amin(dim=-1, keepdim=True) + math.log(r), out=ls)
+    def after_optimizer_step(self, model: GaussianModel) -> None:
+        """Cap every Gaussian's longest axis at ``max_aniso`` times its shortest (0: no cap). Why: a Gaussian far
+        longer than wide is a needle, seen as a streak from any view off its axis, and where one or two training
+        views see a region nothing stops it growing (the floaters of a view past the training views). The long
+        axis is shortened, not the short one widened, so the cap never makes a Gaussian cover more than it did."""
+        cap_anisotropy(model, float(self.cfg["max_aniso"]))
+
+    def will_edit(self, step: int) -> bool:
+        """Whether :meth:`step` densifies at ``step`` (the ranks must first :meth:`reduce` the statistics)."""
+        return self.schedule.densify_at(step)
+
+    def reduce(self, all_reduce_sum: Callable[[Tensor], Tensor], all_reduce_max: Callable[[Tensor], Tensor],
+               n: int, image_size: int, device: torch.device) -> int:
+        """Several ranks, before a densification: sum the per-Gaussian statistics over the ranks and take the
+        maximum of the screen radii, so every rank decides alike; returns the largest image side of the batch
+        (the screen-size prune's reference). ``all_reduce_*`` reduce one flat tensor in place and return it."""
+        has = self.grad_accum is not None
+        dev = self.grad_accum.device if has else None
+
+        def flat(keys, extra: float) -> Tensor:
+            parts = [getattr(self, k).float() if has and getattr(self, k) is not None else None for k in keys]
+            device = dev if dev is not None else torch.device("cpu")
+            parts = [p if p is not None else torch.zeros(n, device=device) for p in parts]
+            return torch.cat(parts + [torch.tensor([extra], device=device)])
+
+        sums = all_reduce_sum(flat(SUMMED, 1.0 if has else 0.0))
+        maxima = all_reduce_max(flat(MAXIMA, float(image_size)))
+        anyone = float(sums[-1]) > 0
+        for keys, values in ((SUMMED, sums), (MAXIMA, maxima)):
+            for i, key in enumerate(keys):
+                setattr(self, key, values[i * n:(i + 1) * n] if anyone else None)
+        return int(maxima[-1])
 
     @torch.no_grad()
     def densify_and_prune(self, step: int, model: GaussianModel, optimizer: torch.optim.Optimizer,
@@ -182,7 +188,7 @@ class DensityController:
             split_new["log_scales"] = split_new["log_scales"] - math.log(1.6)
             new = {k: torch.cat([new[k], split_new[k]]) for k in new}
         n_new = new["means"].shape[0]
-        _edit_params(model, optimizer, lambda name, t, is_state: torch.cat(
+        edit_gaussians(model, optimizer, lambda name, t, is_state: torch.cat(
             [t, torch.zeros_like(new[name]) if is_state else new[name].to(t)]))
         # Prune: the split originals, transparent Gaussians, and (after the first reset) oversized ones.
         prune = torch.cat([split, torch.zeros(n_new, dtype=torch.bool, device=split.device)])
@@ -194,20 +200,8 @@ class DensityController:
         if bool(prune.all()):  # never prune everything
             prune[model.opacities.argmax()] = False
         keep = ~prune
-        _edit_params(model, optimizer, lambda name, t, is_state: t[keep])
+        edit_gaussians(model, optimizer, lambda name, t, is_state: t[keep])
         for key in SUMMED + MAXIMA:  # the next interval starts afresh (_ensure: at the new Gaussian count)
             setattr(self, key, None)
         return (f"densify +{int(clone.sum())} clone +{int(split.sum())} split -{int(prune.sum())} pruned"
                 + noise_note)
-
-    @torch.no_grad()
-    def reset_opacity(self, model: GaussianModel, optimizer: torch.optim.Optimizer) -> None:
-        """Clamp every opacity to at most 0.01 (3DGS) and clear its Adam moments."""
-        target = torch.logit(torch.clamp(model.opacities, max=0.01))
-
-        def edit(name: str, t: Tensor, is_state: bool) -> Tensor:
-            if name != "opacity_logits":
-                return t
-            return torch.zeros_like(t) if is_state else target.to(t)
-
-        _edit_params(model, optimizer, edit)
