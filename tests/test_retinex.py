@@ -449,7 +449,10 @@ def test_copied_or_renamed_scene_reuses_its_entries(tmp_path, count_calls, capsy
     assert len(count_calls) == 3 and len(out) == 3  # same bytes under another name: the same entry
 
 
-def test_stale_entries_are_swept_and_only_ours(tmp_path, count_calls, capsys):
+def test_stale_entries_are_kept_noted_and_pruned_only_ours(tmp_path, count_calls, capsys):
+    """Issue 50 item 6: decompose never deletes a complete entry on its own (another resolution, setting or scene
+    may want it back); it counts them in one line, and --prune deletes them. Old path-keyed entries (never read)
+    are still swept; files we did not name are never touched."""
     paths = _write_scene(tmp_path, n=3)
     scene = str(tmp_path)
     assert _run_cli(["decompose", "--data", scene, "--method", "lime", "--quiet"]) == 0
@@ -468,19 +471,26 @@ def test_stale_entries_are_swept_and_only_ours(tmp_path, count_calls, capsys):
     img[:4] = 255
     Image.fromarray(img).save(paths[1])  # a photo edited
     capsys.readouterr()
+    before = {p for p in root.rglob("*.npz") if p != old}
     assert _run_cli(["decompose", "--data", scene, "--method", "lime", "--quiet"]) == 0
     out = capsys.readouterr().out
-    # lime: the edited photo's old entry, the removed photo's, the old-format one; alpha=0.3: the first two
-    assert "1 computed, 1 reused from cache, 5 stale entries deleted" in out, out
+    assert "1 computed, 1 reused from cache, 1 old-format entry deleted" in out, out
+    # lime: the edited photo's old entry and the removed photo's; alpha=0.3: all three
+    assert "also holds 5 entries (" in out and f"decompose --data {scene} --prune" in out, out
+    assert before <= set(root.rglob("*.npz")) and not old.exists()  # nothing complete was deleted
+    assert len(list((lime3 / "preview").glob("*.png"))) == 3
+    assert _run_cli(["decompose", "--data", scene, "--method", "lime", "--quiet", "--prune"]) == 0
+    out = capsys.readouterr().out
+    assert "2 reused from cache" in out and "--prune: deleted 5 entries" in out and "also holds" not in out, out
     current = {rcache.content_hash(p) for p in paths[:2]}
-    for folder in (lime, lime3):  # other settings keep the entries of the current photos only
-        hashes = {p.stem.rsplit("-", 1)[1] for p in folder.glob("*.npz") if p not in mine}
-        assert hashes == (current if folder == lime else current - {rcache.content_hash(paths[1])}), folder
-    assert len(list((lime3 / "preview").glob("*.png"))) == 1  # the swept entries' previews went with them
-    assert not old.exists() and all(p.exists() for p in mine)
-    # library callers (a subset of a scene's photos) sweep nothing unless asked
-    rcache.load_or_compute(paths[:1], "lime", cache_dir=root, progress=False)
+    assert {p.stem.rsplit("-", 1)[1] for p in lime.glob("*.npz") if p not in mine} == current
+    assert not lime3.exists()  # its entries, previews and params.json went; the folder with them
+    assert all(p.exists() for p in mine)
+    # library callers (a subset of a scene's photos) delete nothing
+    rcache.load_or_compute(paths[:1], "lime", cache_dir=root, progress=False, sweep=True)
     assert len(list(lime.glob("*-" + "?" * 16 + ".npz"))) == 2
+    with pytest.raises(UserError, match="do not go together"):
+        _run_cli(["decompose", "--data", scene, "--prune", "--clean"])
 
 
 def test_decompose_info_and_clean_delete_the_cache_and_only_it(tmp_path, capsys):

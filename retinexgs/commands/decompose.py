@@ -79,10 +79,15 @@ def run(args: argparse.Namespace) -> int:
     """Entry point of ``retinexgs decompose``."""
     from retinexgs.data.images import read_image  # lazy: --help stays fast
     from retinexgs.retinex.base import available_methods  # lazy: --help stays fast
-    from retinexgs.retinex.cache import decompose_images, scene_cache_root  # lazy: --help stays fast
+    from retinexgs.retinex.cache import (decompose_images, prune_unused, scene_cache_root,  # lazy: --help stays fast
+                                         unused_note)
     from retinexgs.run.config import load_config  # lazy: --help stays fast
 
     scene = Path(args.data).expanduser()
+    if args.prune and (args.clean or args.info):
+        raise UserError(f"--prune and --{'clean' if args.clean else 'info'} do not go together: --prune decomposes "
+                        "and then deletes the entries this scene does not use, --clean deletes the whole cache, "
+                        "--info lists it")
     if args.clean or args.info:
         return _clean_or_info(scene, args)
     paths = list_scene_images(scene, args.images_subdir)
@@ -117,13 +122,20 @@ def run(args: argparse.Namespace) -> int:
     cache_root = scene_cache_root(scene, cfg["data"]["cache_dir"])
     _, report = decompose_images(paths, dcfg["method"], dict(dcfg["params"]) or None, cache_root,
                                  args.device, keep=False, preview=args.preview, progress=not args.quiet,
-                                 cache_hint=hint, sweep=True)
+                                 cache_hint=hint, sweep=True, announce=False)
     n = report["swept"]
-    swept = f", {n} stale entr{'y' if n == 1 else 'ies'} deleted" if n else ""
+    swept = f", {n} old-format entr{'y' if n == 1 else 'ies'} deleted" if n else ""
     print(f"{len(paths)} view(s) decomposed with {dcfg['method']}: {report['computed']} computed, "
           f"{report['reused']} reused from cache{swept} -> {report['folder']}")
     if args.preview:
         print(f"previews: {Path(report['folder']) / 'preview'}")
+    if args.prune:
+        hashes = {Path(f).stem.rsplit("-", 1)[1] for f in report["files"]}
+        count, freed = prune_unused(cache_root, report["folder"], hashes)
+        print(f"--prune: deleted {count} entr{'y' if count == 1 else 'ies'} ({_mib(freed)}) not used by this "
+              "scene at these settings")
+    elif report["unused"]:
+        print(unused_note(cache_root, report["unused"], report["unused_bytes"], str(args.data)))
     print(_cache_size_line(cache_root))
     return 0
 
@@ -187,7 +199,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "folder of photos without poses has every .jpg/.jpeg/.png in SCENE/<images-subdir>/ "
                     "(or SCENE) decomposed. Entries are keyed by the photo's content and the settings, so "
                     "they are reused unless the photo or the parameters changed (also in a copy of the "
-                    "scene); entries of photos the scene no longer has are deleted. The last line gives "
+                    "scene). Nothing is deleted on its own: entries of other resolutions (data.downscale), "
+                    "parameters, edited or removed photos, or other scenes sharing --cache DIR are kept for "
+                    "switching back, and a note counts them; --prune deletes them. The last line gives "
                     "the cache's size; --info lists it, --clean deletes it.")
     p.add_argument("--data", required=True, metavar="SCENE", help="scene folder")
     p.add_argument("--method", default=None, choices=available_methods(),
@@ -213,5 +227,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="delete the scene's decomposition cache (SCENE/retinex_cache, or DIR/retinex with "
                         "--cache DIR) and exit: the cached entries, previews and params.json of every method "
                         "and parameter set; other files there are kept. train recomputes what it needs")
+    p.add_argument("--prune", action="store_true",
+                   help="decompose as usual, then delete every cached decomposition this scene does not use at "
+                        "the current settings: other parameters and methods, other resolutions, photos edited or "
+                        "removed since, and (in a --cache DIR shared by several scenes) the other scenes' "
+                        "entries. Without it nothing is deleted")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)

@@ -6,7 +6,7 @@ import math
 from pathlib import Path
 
 from retinexgs.errors import UserError
-from retinexgs.export import DEFAULT_DIRECTIONS, PATH_KINDS
+from retinexgs.export import DEFAULT_DIRECTIONS
 
 MAX_FRAMES = 100_000  # 55 minutes at 30 fps; a path of more frames is a typo (it would build silently for minutes)
 
@@ -32,10 +32,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     # No argparse choices for --views/--path/--format: a bad value then exits through UserError (code 2,
     # one paragraph) like every other input problem, and nothing is loaded first.
     p.add_argument("--views", default=None, help="test (default), train, val (when the scene has a val split), or path (a camera path; see --path)")
-    p.add_argument("--out", type=Path, help="output folder (views, PNG frames) or .mp4 file (path); default "
-                                             "RUN/renders/<views> or RUN/renders/path_<kind>.mp4")
-    p.add_argument("--maps", default="enhanced", help="comma-separated: enhanced,R,L,depth,low (default enhanced)")
-    p.add_argument("--path", default=None, help=f"camera path: {' or '.join(PATH_KINDS)} (implies --views path)")
+    p.add_argument("--out", type=Path,
+                   help="views and --format png: a folder (a name ending in .mp4 is refused); a path video: a .mp4 "
+                        "file, or a folder to write path_<kind>.mp4 into. Default RUN/renders/<views> or "
+                        "RUN/renders/path_<kind>.mp4")
+    p.add_argument("--maps", default="enhanced",
+                   help="comma-separated: enhanced,R,L,L_raw,depth,low (default enhanced). L is the illumination "
+                        "normalised for viewing, L̂/L_ref clipped to [0,1] with one scene-wide L_ref (as eval's "
+                        "side-by-side and the viewer show it); L_raw is L̂ as rendered (dark)")
+    p.add_argument("--path", default=None,
+                   help="camera path (implies --views path): orbit (a full circle around the scene; for a "
+                        "front-facing capture an ellipse within the training cameras' spread), orbit-360 (always "
+                        "the full circle) or interpolate (through the training cameras)")
     p.add_argument("--frames", type=int, default=120,
                    help=f"frames of the path (default 120, at most {MAX_FRAMES})")
     p.add_argument("--fps", type=float, default=30.0, help="frames per second of the video (default 30)")

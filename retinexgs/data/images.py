@@ -2,13 +2,22 @@
 
 Images are read with Pillow and scaled to [0,1] by their bit depth: 8- and 16-bit grey, grey+alpha, RGB
 and RGBA (alpha is dropped, grey is repeated over the three channels; 16-bit RGB(A), which Pillow
-reduces to 8 bits, is decoded by OpenCV at full depth when it is installed). EXIF orientation is
-ignored, as COLMAP ignores it, so poses and pixels stay consistent.
+reduces to 8 bits, is decoded by OpenCV at full depth when it is installed).
+
+Readable types: :data:`IMAGE_EXTENSIONS` (any case), the one list every reader and "no photos" message uses.
+HEIC/HEIF (a phone's default) is read through pillow-heif, registered with Pillow on the first image opened.
+
+Orientation: the EXIF orientation tag is ignored for every format, as COLMAP ignores it, so poses and pixels
+stay consistent: a photo is read as its pixels are stored. For JPEG that is Pillow's default. For HEIC the
+decoder (libheif) always turns the image upright by the container's rotation and reports the orientation it
+applied (``info["original_orientation"]``); that turn is undone here, so a HEIC reads like the JPEG of the
+same shot, and :func:`image_size` gives the size of the pixels :func:`read_image_float` returns.
 """
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
-from typing import List, Tuple
+from typing import Iterator, List, Tuple
 
 import numpy as np
 import torch
@@ -16,7 +25,27 @@ import torch
 from retinexgs.errors import UserError
 from retinexgs.fileio import atomic_write
 
-IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp")
+# Compared in lower case: .HEIC, .JPG and .jpg alike. HEIC/HEIF need pillow-heif (an install requirement).
+IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".heic", ".heif")
+HEIF_EXTENSIONS = (".heic", ".heif")
+
+
+def readable_formats() -> str:
+    """The readable file types for messages: ".jpg, .jpeg, ... .heif (any case)"."""
+    return ", ".join(IMAGE_EXTENSIONS) + " (any case)"
+
+
+def no_images_reason(folder: Path) -> str:
+    """Why ``folder`` has no readable photos, for a "no photos" message: the readable types, and the types of
+    the files it does hold (e.g. a folder of camera RAW files) or that it is empty / missing."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return f"{folder} is not a folder"
+    kinds = sorted({p.suffix.lower() or "(no extension)" for p in folder.iterdir()
+                    if p.is_file() and not p.name.startswith(".")})
+    held = (f"it holds only {', '.join(kinds[:8])}{' ...' if len(kinds) > 8 else ''} files" if kinds
+            else "it holds no files")
+    return f"photos are read from {readable_formats()}; {held}"
 
 
 def is_image_file(path: Path) -> bool:
@@ -32,24 +61,75 @@ def list_images(folder: Path) -> List[Path]:
     return sorted((p for p in folder.iterdir() if is_image_file(p)), key=lambda p: p.name)
 
 
+_HEIF_REGISTERED = False
+
+
 def _pil():
+    """Pillow's Image module, with the HEIC/HEIF opener registered (once; lazily, so importing this module and
+    commands that never open a photo stay fast)."""
+    global _HEIF_REGISTERED
     try:
         from PIL import Image
     except ImportError as exc:  # pragma: no cover - pillow is a core dependency
         raise UserError("reading images needs Pillow: pip install pillow") from exc
+    if not _HEIF_REGISTERED:
+        try:
+            from pillow_heif import register_heif_opener
+        except ImportError:  # reading a HEIC then fails with the install line (_open)
+            pass
+        else:
+            register_heif_opener()
+        _HEIF_REGISTERED = True
     return Image
 
 
-def image_size(path: Path) -> Tuple[int, int]:
-    """(width, height) of an image, reading only its header; UserError if it cannot be read."""
+# Pillow's transpose that undoes what libheif did for each EXIF orientation value (the inverse of turning the
+# stored pixels upright): 90° turns swap in the other direction, flips and transposes are their own inverse.
+_UNDO_ORIENTATION = {2: "FLIP_LEFT_RIGHT", 3: "ROTATE_180", 4: "FLIP_TOP_BOTTOM", 5: "TRANSPOSE",
+                     6: "ROTATE_90", 7: "TRANSVERSE", 8: "ROTATE_270"}
+
+
+def _heif_turn(im) -> int:
+    """The EXIF orientation (2-8) that the HEIF decoder applied to ``im``, or 1 (none; every other format)."""
+    if im.format != "HEIF":
+        return 1
+    value = im.info.get("original_orientation")
+    return int(value) if value in _UNDO_ORIENTATION else 1
+
+
+@contextlib.contextmanager
+def _open(path: Path) -> Iterator:
+    """``Image.open(path)`` with the read errors of one file as UserError naming it."""
     Image = _pil()
+    path = Path(path)
     try:
         with Image.open(path) as im:
-            return int(im.size[0]), int(im.size[1])
+            yield im
     except FileNotFoundError:
         raise UserError(f"image {path} does not exist") from None
+    except UserError:
+        raise
     except Exception as exc:  # Pillow raises several types for corrupt files
+        if path.suffix.lower() in HEIF_EXTENSIONS and not _heif_available():
+            raise UserError(f"cannot read {path}: reading HEIC/HEIF photos needs pillow-heif: "
+                            "pip install pillow-heif") from None
         raise UserError(f"cannot read image {path}: {exc}") from None
+
+
+def _heif_available() -> bool:
+    try:
+        import pillow_heif  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def image_size(path: Path) -> Tuple[int, int]:
+    """(width, height) of an image as :func:`read_image_float` returns it (stored orientation, see the module
+    docstring), reading only its header; UserError if it cannot be read."""
+    with _open(path) as im:
+        w, h = int(im.size[0]), int(im.size[1])
+        return (h, w) if _heif_turn(im) >= 5 else (w, h)  # orientations 5-8 turn by 90°: undoing swaps sides
 
 
 # Pillow modes holding one channel of 16-bit samples (``I`` is how some Pillow versions open them).
@@ -86,8 +166,12 @@ def read_image_float(path: Path) -> np.ndarray:
     Image = _pil()
     path = Path(path)
     try:
-        with Image.open(path) as im:
-            im.load()
+        with _open(path) as opened:
+            opened.load()
+            im = opened
+            turn = _heif_turn(im)
+            if turn != 1:  # the decoder turned it upright: back to the stored pixels, as for JPEG
+                im = im.transpose(getattr(Image.Transpose, _UNDO_ORIENTATION[turn]))
             mode = im.mode
             if mode in _SIXTEEN_BIT_GREY:
                 grey = np.asarray(im)
@@ -103,8 +187,6 @@ def read_image_float(path: Path) -> np.ndarray:
                 if deep.shape[:2] == (im.size[1], im.size[0]):
                     return deep
             rgb = np.asarray(im.convert("RGB"), dtype=np.uint8)
-    except FileNotFoundError:
-        raise UserError(f"image {path} does not exist") from None
     except UserError:
         raise
     except Exception as exc:

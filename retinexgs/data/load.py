@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from retinexgs.data.camera import Camera
-from retinexgs.data.images import image_size, list_images
+from retinexgs.data.images import image_size, list_images, no_images_reason
 from retinexgs.data.raw import RawScene, RawView
 from retinexgs.data.scene import Normalization, Scene, View, warn
 from retinexgs.data.undistort import output_camera, plan_paths, process_all
@@ -50,7 +50,11 @@ def detect_reader(root: Path, images: Optional[PathLike] = None) -> str:
         return "colmap"
     if _sfm_image_dir(root, images) is not None:
         return "sfm"
-    raise UserError(f"{root} holds no photos, transforms_*.json or COLMAP model; nothing to load")
+    if images is not None:
+        d = Path(images) if Path(images).is_absolute() else root / images
+        raise UserError(f"no photos in {d}: {no_images_reason(d)}")
+    raise UserError(f"{root} holds no photos (in it, images/ or low/), transforms_*.json or COLMAP model; nothing "
+                    f"to load: {no_images_reason(root)}")
 
 
 def _sfm_image_dir(root: Path, images: Optional[PathLike]) -> Optional[Path]:
@@ -254,7 +258,7 @@ def build_scene(raw: RawScene, downscale: float = 1, cache_dir: Optional[PathLik
             raise UserError(f"cannot write the image cache folder {cache}: {exc.strerror or exc}; "
                             f"put the caches elsewhere with {cache_hint}") from None
         try:
-            process_all(jobs, cache)
+            process_all(jobs, cache, elsewhere=cache_hint)
         except BaseException:
             if created:  # nothing of a failed first load stays in the user's scene folder
                 shutil.rmtree(cache, ignore_errors=True)
@@ -301,8 +305,11 @@ def load_scene(path: PathLike, reader: str = "auto", downscale: float = 1, *, im
     else:
         image_dir = _sfm_image_dir(root, images)
         if image_dir is None:
-            where = images if images is not None else f"{root} or {root / 'images'}"
-            raise UserError(f"no photos found in {where}")
+            if images is not None:
+                d = Path(images) if Path(images).is_absolute() else root / images
+                raise UserError(f"no photos in {d}: {no_images_reason(d)}")
+            raise UserError(f"no photos found in {root}, {root / 'images'} or {root / 'low'}: "
+                            f"{no_images_reason(root)}")
         if downscale >= 1:  # refuse a useless downscale before SfM writes its model
             photos = [RawView(p.name, p, Camera(*image_size(p), 1.0, 1.0, 0.0, 0.0), np.eye(4))
                       for p in list_images(image_dir)]

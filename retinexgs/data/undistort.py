@@ -8,8 +8,12 @@ intrinsics are scaled by new_size / old_size in the pixel-centre convention.
 
 Results are cached as PNG under ``<cache>/undistorted/<camera-key>_x<downscale>/`` (or
 ``<cache>/downscaled/...`` when only resizing), mirroring the source's path relative to the scene
-folder, written atomically (all of a load's files together, see :func:`process_all`) and reused while
-newer than their source.
+folder with the first 16 hex digits of the SHA-256 of the source's bytes added to the name
+(``low/0001.jpg`` -> ``low/0001-<16 hex>.png``), written atomically (all of a load's files together, see
+:func:`process_all`). A cached copy is reused only when it exists under that name: the key is the source's
+content plus the camera and downscale settings (the folder), never a path or a modification time, so two
+scenes that share a ``data.cache_dir`` and a file name, or a photo replaced by another with an older mtime
+(``cp -p``, ``rsync -a``, unzip), each get their own pixels. Copies of older contents are not deleted here.
 """
 from __future__ import annotations
 
@@ -17,6 +21,7 @@ import hashlib
 import os
 import shutil
 import tempfile
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from functools import lru_cache
@@ -26,9 +31,38 @@ from typing import Dict, List, Optional, Tuple
 import numpy as np
 
 from retinexgs.data.camera import Camera
-from retinexgs.data.images import is_fresh, read_image, resize_image, write_image_atomic
+from retinexgs.data.images import read_image, resize_image
 from retinexgs.errors import UserError
-from retinexgs.fileio import TMP_PREFIX
+from retinexgs.fileio import TMP_PREFIX, atomic_write, content_digest
+
+# How a full or read-only disk names the option that moves the image cache (train's spelling by default).
+DEFAULT_ELSEWHERE = "--set data.cache_dir=DIR"
+_DIGEST_LEN = 16
+# Source digests of this process, keyed by what a replacement of the file always changes (inode, size, mtime and
+# ctime: ``cp -p`` or ``os.utime`` can set an old mtime but not the ctime), so a photo is read once per process.
+_digests: Dict[Tuple[str, int, int, int, int, int], str] = {}
+_digests_lock = threading.Lock()
+
+
+def source_digest(path: Path) -> str:
+    """The first 16 hex digits of the SHA-256 of ``path``'s bytes (:func:`retinexgs.fileio.content_digest`),
+    memoised within the process while the file is unchanged; UserError naming the file if it cannot be read."""
+    try:
+        st = os.stat(path)
+    except OSError as exc:
+        raise UserError(f"cannot read image {path}: {exc.strerror or exc}") from None
+    key = (str(Path(path).resolve()), st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
+    with _digests_lock:
+        hit = _digests.get(key)
+    if hit is not None:
+        return hit
+    try:
+        digest = content_digest(path, _DIGEST_LEN)
+    except OSError as exc:
+        raise UserError(f"cannot read image {path}: {exc.strerror or exc}") from None
+    with _digests_lock:
+        _digests[key] = digest
+    return digest
 
 
 def _cv2():
@@ -83,8 +117,12 @@ def needs_processing(cam: Camera, downscale: float) -> bool:
     return cam.is_distorted or downscale != 1
 
 
-def cache_path_for(src: Path, root: Path, cache_dir: Path, cam: Camera, downscale: float) -> Path:
-    """Where the processed copy of ``src`` lives in the cache (PNG, mirrors the path under ``root``)."""
+def cache_path_for(src: Path, root: Path, cache_dir: Path, cam: Camera, downscale: float,
+                   digest: Optional[str] = None) -> Path:
+    """Where the processed copy of ``src`` lives in the cache: a PNG that mirrors the path under ``root``, named
+    with the source's content digest (``digest``, computed when not given; :func:`source_digest`) in a folder
+    named by the camera and the downscale."""
+    digest = digest or source_digest(src)
     kind = "undistorted" if cam.is_distorted else "downscaled"
     tag = f"{cam.key()}_x{downscale:g}"
     src = Path(src).resolve()
@@ -92,12 +130,22 @@ def cache_path_for(src: Path, root: Path, cache_dir: Path, cam: Camera, downscal
         rel = src.relative_to(Path(root).resolve())
     except ValueError:  # image outside the scene folder: keep names apart by their folder's hash
         rel = Path("external") / hashlib.sha1(str(src.parent).encode()).hexdigest()[:10] / src.name
-    return Path(cache_dir) / kind / tag / rel.with_suffix(".png")
+    return Path(cache_dir) / kind / tag / rel.with_name(f"{rel.stem}-{digest}.png")
 
 
-def process_image(src: Path, dst: Path, cam: Camera, out_cam: Camera) -> None:
-    """Undistort/resize ``src`` (taken by ``cam``) into ``dst`` for ``out_cam``, unless a fresh copy exists."""
-    if is_fresh(dst, src):
+def _write_png(path: Path, rgb: np.ndarray, elsewhere: str) -> None:
+    from PIL import Image
+
+    # fast PNG compression: a cache is written once and read often, its size matters little
+    atomic_write(path, lambda f: Image.fromarray(np.ascontiguousarray(rgb, dtype=np.uint8), "RGB").save(
+        f, format="PNG", compress_level=1), elsewhere=elsewhere)
+
+
+def process_image(src: Path, dst: Path, cam: Camera, out_cam: Camera, elsewhere: str = DEFAULT_ELSEWHERE) -> None:
+    """Undistort/resize ``src`` (taken by ``cam``) into ``dst`` for ``out_cam``, unless ``dst`` exists (its
+    name holds the source's content digest and its folder the settings: an existing file is this content's).
+    ``elsewhere``: the caller's option for moving the cache, named when the disk is full."""
+    if dst.is_file():
         return
     rgb = read_image(src)
     if rgb.shape[:2] != (cam.height, cam.width):
@@ -106,18 +154,20 @@ def process_image(src: Path, dst: Path, cam: Camera, out_cam: Camera) -> None:
     if cam.is_distorted:
         rgb = undistort_rgb(rgb, cam, undistorted_camera(cam))
     rgb = resize_image(rgb, out_cam.width, out_cam.height)
-    write_image_atomic(dst, rgb)
+    _write_png(dst, rgb, elsewhere)
 
 
-def process_all(jobs: List[Tuple[Path, Path, Camera, Camera]], cache_dir: Path, workers: Optional[int] = None) -> None:
+def process_all(jobs: List[Tuple[Path, Path, Camera, Camera]], cache_dir: Path, workers: Optional[int] = None,
+                elsewhere: str = DEFAULT_ELSEWHERE) -> None:
     """Run :func:`process_image` on (src, dst, cam, out_cam) jobs, a few threads at a time.
 
     All outputs (every ``dst`` lies under ``cache_dir``) are written into a temporary folder inside
     ``cache_dir`` and moved into place only when every job succeeded: a failure (an unreadable photo, a
-    size mismatch, an interrupt) leaves no partial cache behind.
+    size mismatch, an interrupt) leaves no partial cache behind. A ``dst`` that exists is kept (its name is
+    its source's content digest). ``elsewhere``: the caller's option for moving the cache (full disk message).
     """
     unique = {j[1]: j for j in jobs}  # the same file may be listed by two splits
-    jobs = [j for j in unique.values() if not is_fresh(j[1], j[0])]
+    jobs = [j for j in unique.values() if not Path(j[1]).is_file()]
     if not jobs:
         return
     cache_dir = Path(cache_dir)
@@ -126,7 +176,7 @@ def process_all(jobs: List[Tuple[Path, Path, Camera, Camera]], cache_dir: Path, 
         staged = [(src, staging / Path(dst).relative_to(cache_dir), cam, out) for src, dst, cam, out in jobs]
         workers = workers or min(8, os.cpu_count() or 1)
         with ThreadPoolExecutor(max_workers=workers) as pool:
-            for f in [pool.submit(process_image, *j) for j in staged]:
+            for f in [pool.submit(process_image, *j, elsewhere) for j in staged]:
                 f.result()
         for (_, dst, _, _), (_, tmp, _, _) in zip(jobs, staged):
             dst.parent.mkdir(parents=True, exist_ok=True)
@@ -137,13 +187,16 @@ def process_all(jobs: List[Tuple[Path, Path, Camera, Camera]], cache_dir: Path, 
 
 def plan_paths(paths: List[Path], root: Path, cache_dir: Path, cam: Camera, downscale: float,
                jobs: List[Tuple[Path, Path, Camera, Camera]]) -> Dict[Path, Path]:
-    """Map each source path to the path to read (itself, or its cache copy, queued on ``jobs``)."""
+    """Map each source path to the path to read (itself, or its cache copy, queued on ``jobs``). Each source
+    is hashed here (once per process while unchanged, :func:`source_digest`): its copy's name holds the digest."""
     if not needs_processing(cam, downscale):
         return {p: p for p in paths}
     out_cam = output_camera(cam, downscale)
     mapping = {}
     for p in paths:
-        dst = cache_path_for(p, root, cache_dir, cam, downscale)
+        if not Path(p).is_file():
+            raise UserError(f"image {p} does not exist")
+        dst = cache_path_for(p, root, cache_dir, cam, downscale, source_digest(p))
         jobs.append((p, dst, cam, out_cam))
         mapping[p] = dst
     return mapping

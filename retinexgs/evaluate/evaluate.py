@@ -114,8 +114,8 @@ def evaluate(render_fn: Callable, scene: Scene, out_dir: Path, use_lpips: bool =
         labels = PANEL_LABELS[:2]
         has_maps = "R" in res
         if "R" in res:
-            L = res["L"].float().cpu()
-            panels += [res["R"].float().cpu(), L / L.amax().clamp_min(1e-6)]
+            # L̂ / L_ref (run.render.render_function): the same rule as `render --maps L` and the viewer
+            panels += [res["R"].float().cpu(), res["L_view"].float().cpu()]
             labels = PANEL_LABELS[:4]
         panels.append(gt)
         labels = labels + PANEL_LABELS[4:]
@@ -133,7 +133,7 @@ def evaluate(render_fn: Callable, scene: Scene, out_dir: Path, use_lpips: bool =
             has_maps, lpips_reason = has_maps or maps, lpips_reason or reason
         rows = order
     mean = {k: float(np.mean([r[k] for r in rows])) for k in rows[0] if k != "view"}
-    metrics = {"mean": mean, "views": rows, "panels": "low input | output | R̂ | L̂ (normalised) | ground truth"
+    metrics = {"mean": mean, "views": rows, "panels": "low input | output | R̂ | L̂ / L_ref | ground truth"
                if has_maps else "low input | output | ground truth",
                "label_rows": LABEL_ROWS}  # the PNGs' strip naming the panels, above them
     if test_in_train:

@@ -6,5 +6,5 @@
 """
 
 # Here rather than in the modules that use them, so the CLI can build its --help without importing torch.
-PATH_KINDS = ("orbit", "interpolate")
+PATH_KINDS = ("orbit", "orbit-360", "interpolate")
 DEFAULT_DIRECTIONS = 64  # Fibonacci directions of the SH fit: 4x the 16 coefficients of degree 3

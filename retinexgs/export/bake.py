@@ -1,11 +1,13 @@
 """Bake a trained RetinexGS scene into plain 3DGS Gaussians (SH colours only) for standard viewers.
 
-The enhanced image of RetinexGS is S_enh = clip(R̂ ∘ E(L̂), 0, 1): R̂ comes from the Gaussians' SH (albedo),
-L̂ from an MLP evaluated per Gaussian and view direction, and E(L) = max(min(L / L_ref, 1), eps)^g is the
-model's enhancement (L_ref a scene-wide illumination reference, g from the EnhancementNet). A standard
-viewer can only evaluate SH, so for every Gaussian the enhanced colour
+The enhanced image of RetinexGS is a tone map of R̂ and L̂ (:mod:`retinexgs.model.tone`; e.g. clip(R̂ ∘ E(L̂), 0, 1)
+with E(L) = max(min(L / L_ref, 1), eps)^g for tone ``illumination``, srgb(k · lin(R̂ ∘ L̂)) for the default
+``exposure``): R̂ comes from the Gaussians' SH (albedo), L̂ from an MLP evaluated per Gaussian and view
+direction, L_ref is a scene-wide illumination reference and g comes from the EnhancementNet. The PLY's comment
+states the run's formula and numbers (:func:`baked_colour_text`). A standard viewer can only evaluate SH, so
+for every Gaussian the enhanced colour
 
-    c(d) = clip(R(d) · E(L(x, d)), 0, 1)
+    c(d) = tone(R(d), L(x, d)), clipped to [0, 1]
 
 is evaluated from ``directions`` unit directions d (a Fibonacci sphere; d points from the camera to the
 Gaussian, the convention of both the SH and the illumination field) and SH coefficients of the model's
@@ -41,6 +43,7 @@ from retinexgs.data.scene import Normalization
 from retinexgs.model.gaussians import PARAM_NAMES
 from retinexgs.model.inference import InferenceRenderer
 from retinexgs.model.retinex_model import RetinexGSModel
+from retinexgs.model.tone import exposure_gain
 from retinexgs.render import Camera, spherical_harmonics
 
 
@@ -109,6 +112,29 @@ def bake_enhanced_sh(model: RetinexGSModel, active_degree: int, gamma: Tensor, d
             if progress is not None:
                 progress(n)
     return {"sh_dc": out[:, :1].contiguous(), "sh_rest": out[:, 1:].contiguous()}
+
+
+def baked_colour_text(model: RetinexGSModel, gamma: Tensor, directions: int) -> str:
+    """The PLY comment saying what :func:`bake_enhanced_sh` baked: the formula of the model's tone form
+    (``model.enhancement.tone``, :mod:`retinexgs.model.tone`) with its numbers (g; for tone ``exposure`` the gain k
+    and the highlight knee, and whether R̂∘L̂ is read through the capture's black table)."""
+    g = torch.as_tensor(gamma, dtype=torch.float64).reshape(-1).cpu()
+    gtext = ", ".join(f"{x:.4f}" for x in g.tolist())
+    ref = float(model.illum_ref)
+    if model.tone == "exposure":
+        k = exposure_gain(model.illum_ref.detach().double().cpu(), g)
+        ktext = ", ".join(f"{x:.4g}" for x in k.tolist())
+        light = "lin(R*L)" if model.tone_noise() is None else "black_table(R*L)"
+        curve = (f"shoulder(k*{light}, {model.shoulder:g})" if model.shoulder < 1.0 else f"k*{light}")
+        text = (f"colour: enhanced as a longer exposure, srgb({curve}) with k = lin(L_ref)^(-1/g) = ({ktext}), "
+                f"L_ref = {ref:.4f}, g = ({gtext})")
+        if model.tone_noise() is not None:
+            text += " (black_table: the capture's clipped noise taken out of R*L)"
+    elif model.tone == "signal":
+        text = f"colour: enhanced R^g*clip(L/L_ref,0,1)^g, L_ref = {ref:.4f}, g = ({gtext})"
+    else:
+        text = f"colour: enhanced R*clip(L/L_ref,0,1)^g, L_ref = {ref:.4f}, g = ({gtext})"
+    return text + f", clipped to [0,1] and baked into SH by least squares over {directions} directions"
 
 
 def reflectance_sh(model: RetinexGSModel, active_degree: int) -> Dict[str, Tensor]:

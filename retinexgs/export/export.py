@@ -14,7 +14,7 @@ import torch
 
 from retinexgs.errors import UserError
 from retinexgs.export import DEFAULT_DIRECTIONS
-from retinexgs.export.bake import bake_enhanced_sh, export_params, mean_gamma, reflectance_sh
+from retinexgs.export.bake import baked_colour_text, bake_enhanced_sh, export_params, mean_gamma, reflectance_sh
 from retinexgs.export.common import check_enhancement_flags, check_writable_folder, read_run_config, refuse_existing
 from retinexgs.export.ply import write_ply
 from retinexgs.model.tone import apply_exposure
@@ -65,9 +65,7 @@ def export_run(run_dir: Path, out: Path, reflectance_only: bool = False, directi
         with tqdm(total=len(model.gaussians), desc="bake", unit="gaussian", disable=not progress,
                   dynamic_ncols=True) as bar:
             sh = bake_enhanced_sh(model, degree, g, directions, progress=bar.update)
-        gtext = ", ".join(f"{x:.4f}" for x in g.tolist())
-        comments.append(f"colour: enhanced R*(L/L_ref)^g baked into SH by least squares over {directions} directions, "
-                        f"g = ({gtext})")
+        comments.append(baked_colour_text(model, g, directions))  # the run's own tone, not one fixed formula
     else:
         sh = reflectance_sh(model, degree)
         comments.append("colour: reflectance R (SH as trained)" if cfg["method"] == "retinexgs" else

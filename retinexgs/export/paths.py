@@ -1,6 +1,15 @@
 """Smooth camera paths through a scene's training poses, for videos (all in the scene's normalised frame).
 
-- ``orbit``: a full circle around the scene centre (the point nearest to all training optical axes, or the
+- ``orbit``: for a capture that surrounds the scene, the full circle of ``orbit-360``. For a front-facing
+  capture (every training camera looks within :data:`FRONT_FACING_DEG` of the cameras' mean viewing direction,
+  as in LLFF-style captures and photos taken from one side), an ellipse that stays within the cameras' spread
+  instead, so that the frames show what the cameras saw: centred on the mean camera position, in the plane
+  perpendicular to the mean viewing direction, its semi-axes along the cameras' mean right and up vectors the
+  90th percentile of the camera positions' distance from the centre along them, every frame looking at the
+  focus point (the scene centre below, projected onto the mean viewing axis). Starts at the ellipse's right.
+  A ring of cameras all looking steeply down at an object also counts as front-facing; its ellipse is then
+  about that ring, looking at the object.
+- ``orbit-360``: a full circle around the scene centre (the point nearest to all training optical axes, or the
   median of the Gaussians when the axes are nearly parallel), in the plane perpendicular to the mean camera
   up vector, at the mean camera height above the centre and the mean horizontal distance from it, starting
   at the first training camera's side and always looking at the centre. The end frame is not repeated, so
@@ -10,7 +19,7 @@
   centres linearly between consecutive cameras, frames spaced by travelled distance (centre distance plus
   rotation angle times the mean distance to the scene centre), both end cameras included.
 
-Both use the mean training intrinsics (at the most common image size). Frames are image-less
+All use the mean training intrinsics (at the most common image size). Frames are image-less
 :class:`~retinexgs.data.scene.View` objects named ``00000``, ``00001``, ...
 """
 from __future__ import annotations
@@ -26,6 +35,12 @@ import torch
 from retinexgs.data.camera import qvec_to_rotmat, rotmat_to_qvec
 from retinexgs.data.scene import View
 from retinexgs.export import PATH_KINDS
+
+# Half-angle of the cone around the mean viewing direction within which every camera of a front-facing capture
+# looks. Cameras around an object look from opposite sides (up to 180° apart); LLFF-style captures stay within
+# ~30°; 60° keeps a one-sided arc of up to ~120° on the ellipse as well, where a full circle would go behind.
+FRONT_FACING_DEG = 60.0
+
 
 def mean_intrinsics(views: Sequence[View]) -> Tuple[float, float, float, float, int, int]:
     """(fx, fy, cx, cy, width, height): the most common image size, intrinsics averaged after rescaling each
@@ -88,7 +103,60 @@ def _frame(i: int, c2w: np.ndarray, intrinsics: Tuple[float, float, float, float
     return View(f"{i:05d}", Path(), fx, fy, cx, cy, w, h, torch.from_numpy(np.array(c2w, dtype=np.float64)))
 
 
+def _viewing_directions(views: Sequence[View]) -> np.ndarray:
+    d = np.stack([v.camera_to_world[:3, 2].numpy() for v in views])  # OpenCV z: where the camera looks
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def is_front_facing(views: Sequence[View], max_deg: float = FRONT_FACING_DEG) -> bool:
+    """True when every view looks within ``max_deg`` of the views' mean viewing direction (one-sided capture)."""
+    d = _viewing_directions(views)
+    mean = d.mean(0)
+    n = float(np.linalg.norm(mean))
+    if n < 1e-6:  # opposite directions cancel: cameras all around the scene
+        return False
+    return bool(np.all(d @ (mean / n) >= math.cos(math.radians(max_deg)) - 1e-12))
+
+
+def ellipse_path(views: Sequence[View], frames: int, points: Optional[torch.Tensor] = None) -> List[View]:
+    """``frames`` views on an ellipse within the cameras' spread, looking at the focus point (module docstring:
+    ``orbit`` of a front-facing capture)."""
+    d = _viewing_directions(views)
+    forward = d.mean(0) / max(float(np.linalg.norm(d.mean(0))), 1e-12)
+    centers = np.stack([v.camera_center.numpy() for v in views])
+    middle = centers.mean(0)
+    # right and up: the cameras' mean axes made perpendicular to the mean viewing direction
+    right = np.mean([v.camera_to_world[:3, 0].numpy() for v in views], axis=0)
+    right = right - forward * float(right @ forward)
+    if np.linalg.norm(right) < 1e-9:
+        right = _cross(forward, [0.0, 1.0, 0.0] if abs(forward[1]) < 0.9 else [1.0, 0.0, 0.0])
+    right = right / np.linalg.norm(right)
+    down = _cross(forward, right)  # OpenCV y: down, so that right, down, forward is right-handed
+    offsets = centers - middle
+    a = float(np.percentile(np.abs(offsets @ right), 90))
+    b = float(np.percentile(np.abs(offsets @ down), 90))
+    depth = float((scene_center(views, points) - middle) @ forward)
+    if not depth > 1e-6:  # the centre estimate lies behind the cameras: look as far ahead as the spread is wide
+        depth = max(a, b, 1.0)
+    focus = middle + depth * forward
+    intr = mean_intrinsics(views)
+    cams = []
+    for i in range(frames):
+        theta = 2.0 * math.pi * i / frames
+        eye = middle + a * math.cos(theta) * right + b * math.sin(theta) * down
+        cams.append(_frame(i, look_at(eye, focus, -down), intr))
+    return cams
+
+
 def orbit_path(views: Sequence[View], frames: int, points: Optional[torch.Tensor] = None) -> List[View]:
+    """``frames`` views of ``orbit`` (module docstring): the ellipse of a front-facing capture, else the full
+    circle of :func:`orbit_360_path`."""
+    if is_front_facing(views):
+        return ellipse_path(views, frames, points)
+    return orbit_360_path(views, frames, points)
+
+
+def orbit_360_path(views: Sequence[View], frames: int, points: Optional[torch.Tensor] = None) -> List[View]:
     """``frames`` views on a circle around the scene centre (see the module docstring)."""
     center, up = scene_center(views, points), _up(views)
     offsets = np.stack([v.camera_center.numpy() for v in views]) - center
@@ -166,9 +234,11 @@ def interpolate_path(views: Sequence[View], frames: int, points: Optional[torch.
 
 def camera_path(kind: str, views: Sequence[View], frames: int,
                 points: Optional[torch.Tensor] = None) -> List[View]:
-    """``frames`` views of path ``kind`` (``orbit`` or ``interpolate``) through ``views``."""
+    """``frames`` views of path ``kind`` (``orbit``, ``orbit-360`` or ``interpolate``) through ``views``."""
     if kind == "orbit":
         return orbit_path(views, frames, points)
+    if kind == "orbit-360":
+        return orbit_360_path(views, frames, points)
     if kind == "interpolate":
         return interpolate_path(views, frames, points)
     raise ValueError(f"unknown path kind {kind!r}; choose from {', '.join(PATH_KINDS)}")

@@ -1,14 +1,19 @@
 """``retinexgs render``: a trained run's maps for its test/train views (PNG) or along a camera path (MP4/PNG).
 
-Maps (``--maps``, comma-separated): ``enhanced`` (the model's output, S_enh; the default), ``R`` (R̂),
-``L`` (L̂, as rendered: dark), ``low`` (the low-light reconstruction R̂·L̂, the model's ``S_rec``) and
-``depth`` (inverse depth, white = near, black = far or empty, on one range for all frames of a call so
-videos do not flicker). ``R``, ``L`` and ``low`` exist only for RetinexGS runs.
+Maps (``--maps``, comma-separated): ``enhanced`` (the model's output, S_enh; the default), ``R`` (R̂), ``L``
+(the illumination normalised for viewing: L̂ / L_ref clipped to [0, 1], L_ref the scene's full light, one
+constant for every view and frame; the same rule as ``eval``'s side-by-side panel and the viewer, and the light
+the enhancement acts on), ``L_raw`` (L̂ as rendered, unscaled: nearly black for a dark capture), ``low`` (the
+low-light reconstruction R̂·L̂, the model's ``S_rec``) and ``depth`` (inverse depth, white = near, black = far or
+empty, on one range for all frames of a call so videos do not flicker). ``R``, ``L``, ``L_raw`` and ``low`` exist
+only for RetinexGS runs.
 
-Files: views go to ``OUT/<map>/<view name>.png`` (default OUT = ``RUN/renders/<test|train|val>``). A path goes
-to ``OUT`` (default ``RUN/renders/path_<kind>.mp4``) for the first map and ``OUT`` with ``_<map>`` before
-the suffix for the others; with ``--format png`` to ``OUT/<map>/<frame>.png`` (default OUT =
-``RUN/renders/path_<kind>``). Existing files are kept unless ``force``; every file is written atomically.
+Files: views go to ``OUT/<map>/<view name>.png`` (default OUT = ``RUN/renders/<test|train|val>``); OUT is a
+folder, and one ending in ``.mp4`` is refused (views are PNG files; a video is a ``--path``). A path video goes
+to OUT when OUT ends in ``.mp4``, else into the folder OUT (made when missing) as ``OUT/path_<kind>.mp4``
+(default ``RUN/renders/path_<kind>.mp4``), for the first map, and with ``_<map>`` before the suffix for the
+others; with ``--format png`` to ``OUT/<map>/<frame>.png`` (default OUT = ``RUN/renders/path_<kind>``). Existing
+files are kept unless ``force``; every file is written atomically.
 """
 from __future__ import annotations
 
@@ -34,9 +39,12 @@ from retinexgs.run.folder import load_run
 from retinexgs.run.render import render_function
 from retinexgs.run.render import active_sh_degree, view_camera
 
-MAPS = ("enhanced", "R", "L", "depth", "low")
-DECOMPOSED_MAPS = ("R", "L", "low")
-_KEYS = {"enhanced": "rgb", "R": "R", "L": "L", "low": "S_rec"}  # map name -> key of RetinexGSModel.render
+MAPS = ("enhanced", "R", "L", "L_raw", "depth", "low")
+DECOMPOSED_MAPS = ("R", "L", "L_raw", "low")
+# map name -> key of run.render.render_function's maps ("L_view": L̂ / L_ref, see the module docstring)
+_KEYS = {"enhanced": "rgb", "R": "R", "L": "L_view", "L_raw": "L", "low": "S_rec"}
+# What players and editors take for a video file: a path video must be .mp4; any of these is refused, not a folder.
+_VIDEO_SUFFIXES = (".mp4", ".m4v", ".mov", ".mkv", ".avi", ".webm", ".gif")
 VIEW_SETS = ("test", "train", "val", "path")
 FORMATS = ("mp4", "png")
 
@@ -104,6 +112,26 @@ def _suffixed(path: Path, name: str, first: bool) -> Path:
     return path if first else path.with_name(f"{path.stem}_{name}{path.suffix}")
 
 
+def _video_target(out: Optional[Path], default_dir: Path, path: str) -> Path:
+    """The MP4 file of a path video: ``out`` itself when it ends in .mp4, else ``out/path_<kind>.mp4`` (a folder,
+    existing or new); UserError for another video suffix or a file that is not a folder."""
+    name = f"path_{path}.mp4"
+    if out is None:
+        return default_dir / name
+    suffix = out.suffix.lower()
+    if suffix == ".mp4":
+        if out.is_dir():
+            raise UserError(f"--out {out} is a folder; name the video file, e.g. --out {out / name}, "
+                            f"or pass the folder without .mp4")
+        return out
+    if suffix in _VIDEO_SUFFIXES:
+        raise UserError(f"--out {out}: path videos are written as MP4; name a .mp4 file (e.g. "
+                        f"--out {out.with_suffix('.mp4')}) or a folder to write {name} into")
+    if out.exists() and not out.is_dir():
+        raise UserError(f"--out {out} is a file; name a .mp4 file or a folder to write {name} into")
+    return out / name
+
+
 def _even(frame: np.ndarray) -> np.ndarray:
     # yuv420p (what players expect from H.264) needs even sides: repeat the last row/column when odd.
     h, w = frame.shape[:2]
@@ -116,7 +144,8 @@ def render_run(run_dir: Path, views: Optional[str] = None, out: Optional[Path] =
                device: Optional[str] = None, force: bool = False, progress: bool = True,
                log: Callable[[str], None] = print) -> List[Path]:
     """Render ``maps`` of a run for its ``views`` (``test``, ``train``, ``val``) or a camera ``path`` (``orbit``,
-    ``interpolate``; ``views="path"`` alone means an orbit); see the module docstring for the files.
+    ``orbit-360``, ``interpolate``; ``views="path"`` alone means an orbit); see the module docstring for the maps
+    and the files.
 
     ``exposure`` adjusts the predicted gamma (< 1 brighter), ``gamma`` replaces it (RetinexGS runs only).
     Everything is checked before anything is written. Returns the files written.
@@ -144,6 +173,13 @@ def render_run(run_dir: Path, views: Optional[str] = None, out: Optional[Path] =
         raise UserError(f"--maps {bad}: {run_dir} is a method={cfg.get('method')} baseline with no R̂/L̂ "
                         "decomposition; it has only enhanced and depth")
     video = path is not None and fmt == "mp4"
+    if not video and out is not None and Path(out).suffix.lower() in _VIDEO_SUFFIXES and not Path(out).is_dir():
+        what = (f"the {views} views render to PNG files in a folder" if path is None
+                else "--format png writes the path's frames as PNG files in a folder")
+        hint = ("; for a video along a camera path use --path orbit (or interpolate) --out " + str(out)
+                if path is None else "; drop --format png for an MP4")
+        raise UserError(f"--out {out} names a video file, but {what}: pass a folder (e.g. --out "
+                        f"{Path(out).with_suffix('')}){hint}")
     if video:
         _need_ffmpeg()
 
@@ -160,8 +196,8 @@ def render_run(run_dir: Path, views: Optional[str] = None, out: Optional[Path] =
         if not scene.train:
             raise UserError(f"the scene of {run_dir} has no train views to build a camera path from")
         frames_views = camera_path(path, scene.train, frames, model.gaussians.means.detach())
-        default = run_dir / "renders" / (f"path_{path}.mp4" if video else f"path_{path}")
-        out = Path(out) if out is not None else default
+        out = _video_target(out, run_dir / "renders", path) if video else (
+            Path(out) if out is not None else run_dir / "renders" / f"path_{path}")
     if video:
         targets = [_suffixed(out, name, i == 0) for i, name in enumerate(maps)]
     else:

@@ -6,11 +6,13 @@ algorithm version) and ``contenthash`` = the first 16 hex digits of the SHA-256 
 ``.npz`` holds ``R`` [H,W,3] and ``L`` [H,W,1] as float16 plus a JSON ``meta`` string with the content hash,
 byte size, method and key (and the photo's name, for humans). An entry is found by its content hash (under
 any stem) and trusted only if its meta matches, so an edited photo or a changed parameter is recomputed,
-while a copied, moved or renamed scene reuses its entries. With ``sweep=True`` (``train``, ``decompose``)
-entries of photos the scene no longer has are deleted, in every ``<method>-<key>`` folder of the root
-(entries of other settings for the current photos are kept: switching back is free); entries of the older
-path-keyed format (``<stem>-<10 hex>.npz``) are never read and are swept as stale. :func:`clean_cache`
-removes all of it, :func:`cache_summary` describes it (``retinexgs decompose --clean`` / ``--info``).
+while a copied, moved or renamed scene reuses its entries. Complete entries are never deleted on their own:
+another resolution (``data.downscale``), other settings or another scene sharing the root (``data.cache_dir``)
+may want them back. With ``sweep=True`` (``train``, ``decompose``) only entries of the older path-keyed format
+(``<stem>-<10 hex>.npz``, never read by anyone) are deleted, and the entries these photos do not use at these
+settings are counted (:func:`unused_entries`): ``train`` prints one line about them, ``decompose`` too, and
+``retinexgs decompose --prune`` deletes them (:func:`prune_unused`). :func:`clean_cache` removes all of it,
+:func:`cache_summary` describes it (``retinexgs decompose --clean`` / ``--info``).
 The root also holds the trainer's view stores, ``views-<settings>-<8 hex>.bin`` (the photos and priors of a
 scene's training views in one memory-mapped file, :mod:`retinexgs.train.view_store`); :func:`clean_cache` removes
 them too.
@@ -25,6 +27,7 @@ import errno
 import json
 import os
 import re
+import sys
 import time
 from pathlib import Path
 from typing import Any, Dict, Iterable, Iterator, List, Optional, Sequence, Tuple, Union
@@ -33,11 +36,12 @@ import numpy as np
 import torch
 
 from retinexgs.errors import UserError
-from retinexgs.fileio import TMP_PREFIX, atomic_write, content_digest
+from retinexgs.fileio import TMP_PREFIX, atomic_write
 from retinexgs.retinex.base import enhance_for_viewing, get_decomposer, params_to_dict
 from retinexgs.data.images import load_image_tensor
+from retinexgs.data.undistort import source_digest
 
-IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png")
+from retinexgs.data.images import IMAGE_EXTENSIONS  # the one list of readable types (data/images.py)
 CACHE_DIRNAME = "retinex_cache"
 _TMP_PREFIX = TMP_PREFIX
 _STALE_TMP_SECONDS = 3600.0
@@ -91,8 +95,9 @@ _UNWRITABLE = (errno.EROFS, errno.EACCES, errno.EPERM)
 
 
 def content_hash(image_path: PathLike) -> str:
-    """The first 16 hex digits of the SHA-256 of the file's bytes: what an entry is keyed by."""
-    return content_digest(image_path, _HASH_LEN)
+    """The first 16 hex digits of the SHA-256 of the file's bytes: what an entry is keyed by (memoised within
+    the process while the file is unchanged, so the view store's key does not read the photos again)."""
+    return source_digest(Path(image_path))
 
 
 def _entry_name(image_path: Path, digest: str) -> str:
@@ -199,22 +204,69 @@ def _remove(path: Path) -> int:
         return 0
 
 
-def sweep_stale(root: PathLike, keep_hashes: Iterable[str]) -> int:
-    """Delete the entries (and their previews) under ``root`` whose content hash is not in ``keep_hashes``,
-    old path-keyed entries included, in every ``<method>-<key>`` folder; a folder left with nothing but its
-    ``params.json`` goes too. Only files named as this module names them are touched; files that cannot be
-    deleted (read-only cache) are left. Returns the number of entries deleted."""
-    keep = set(keep_hashes)
-    removed = 0
-    for folder in _settings_folders(Path(root)):
-        for entry in _entry_files(folder):
-            if _ENTRY.match(entry.name).group("hash") in keep:
-                continue
-            if _remove(entry):
-                removed += 1
-                _remove(folder / "preview" / f"{entry.stem}.png")
+def _is_old_format(entry: Path) -> bool:
+    return len(_ENTRY.match(entry.name).group("hash")) != _HASH_LEN
+
+
+def _remove_entries(entries: Iterable[Path]) -> Tuple[int, int]:
+    """Delete entries and their previews (files that cannot be deleted are left); (entries deleted, bytes)."""
+    count = freed = 0
+    folders = set()
+    for entry in entries:
+        size = _remove(entry)
+        if size:
+            count += 1
+            freed += size + _remove(entry.parent / "preview" / f"{entry.stem}.png")
+        folders.add(entry.parent)
+    for folder in sorted(folders):
         _drop_if_empty(folder)
-    return removed
+    return count, freed
+
+
+def sweep_old_format(root: PathLike) -> int:
+    """Delete the entries of the older path-keyed format (``<stem>-<10 hex>.npz``, never read) and their
+    previews under ``root``; a folder left with nothing but its ``params.json`` goes too. Returns the count."""
+    old = [e for folder in _settings_folders(Path(root)) for e in _entry_files(folder) if _is_old_format(e)]
+    return _remove_entries(old)[0]
+
+
+def unused_entries(root: PathLike, folder: PathLike, keep_hashes: Iterable[str]) -> List[Path]:
+    """The entries under ``root`` that photos with ``keep_hashes`` at the settings of ``folder`` (their
+    ``<method>-<key>`` folder) do not use: those of other settings folders, those of other photos in ``folder``
+    (another resolution, another scene sharing the root, an edited photo's older content), and old-format ones."""
+    keep, folder = set(keep_hashes), Path(folder)
+    out = []
+    for f in _settings_folders(Path(root)):
+        for entry in _entry_files(f):
+            if f != folder or _is_old_format(entry) or _ENTRY.match(entry.name).group("hash") not in keep:
+                out.append(entry)
+    return out
+
+
+def entries_size(entries: Iterable[Path]) -> int:
+    """Bytes of the entries and of their previews."""
+    total = 0
+    for e in entries:
+        for p in (e, e.parent / "preview" / f"{e.stem}.png"):
+            try:
+                total += p.stat().st_size
+            except OSError:
+                pass
+    return total
+
+
+def prune_unused(root: PathLike, folder: PathLike, keep_hashes: Iterable[str]) -> Tuple[int, int]:
+    """Delete :func:`unused_entries` (with their previews; settings folders left empty go too): only files named
+    as this module names them, and what cannot be deleted (read-only cache) is left. (entries deleted, bytes)."""
+    return _remove_entries(unused_entries(root, folder, keep_hashes))
+
+
+def unused_note(root: PathLike, count: int, nbytes: int, scene: str = "SCENE") -> str:
+    """The one line that says a cache holds entries the current photos and settings do not use."""
+    return (f"note: the decomposition cache {root} also holds {count} entr{'y' if count == 1 else 'ies'} "
+            f"({nbytes / 2**20:.1f} MiB) not used by these photos at these settings (other resolutions, parameters "
+            f"or scenes; kept for switching back): `retinexgs decompose --data {scene} --prune` with the same "
+            "--config/--set deletes them, --clean deletes the whole cache")
 
 
 def _drop_if_empty(folder: Path) -> None:
@@ -314,14 +366,16 @@ def resolve_device(device: Union[str, torch.device, None]) -> torch.device:
 def iter_decompositions(image_paths: Sequence[PathLike], method: str = "lr3m", params: Any = None,
                         cache_dir: Optional[PathLike] = None, device: Union[str, torch.device] = "cpu", *,
                         preview: bool = False, progress: bool = True, cache_hint: str = "", sweep: bool = False,
-                        report: Optional[Dict[str, Any]] = None
+                        report: Optional[Dict[str, Any]] = None, announce: bool = True
                         ) -> Iterator[Tuple[torch.Tensor, torch.Tensor]]:
     """(R [H,W,3], L [H,W,1]) float32 CPU tensors for each image in turn, from the cache or computed and
     written to it before they are yielded: the caller holds one image's priors at a time, and an interrupted
     run keeps every entry written so far. The values are the cache's float16 ones (a freshly computed entry is
     rounded as it is stored). ``report`` (a dict, filled as it goes): ``folder``, ``computed``, ``reused``,
-    ``swept`` and ``files``, as :func:`decompose_images` returns it; the sweep (``sweep=True``) runs once the
-    last image has been yielded and the caller asks for the next. Other arguments: :func:`decompose_images`.
+    ``swept``, ``unused``, ``unused_bytes`` and ``files``, as :func:`decompose_images` returns it; the sweep
+    (``sweep=True``) runs once the last image has been yielded and the caller asks for the next, and with
+    ``announce`` prints :func:`unused_note` on stderr when there are unused entries. Other arguments:
+    :func:`decompose_images`.
     """
     paths = [Path(p) for p in image_paths]
     if not paths:
@@ -342,7 +396,7 @@ def iter_decompositions(image_paths: Sequence[PathLike], method: str = "lr3m", p
         _atomic_write(settings, lambda f: f.write(text.encode("utf-8")), cache_hint)
 
     report = report if report is not None else {}
-    report.update(folder=str(folder), computed=0, reused=0, swept=0, files=[])
+    report.update(folder=str(folder), computed=0, reused=0, swept=0, unused=0, unused_bytes=0, files=[])
     by_hash = _entries_by_hash(folder)
     hashes = []
     iterator: Iterable[Path] = paths
@@ -387,27 +441,37 @@ def iter_decompositions(image_paths: Sequence[PathLike], method: str = "lr3m", p
     finally:
         if bar is not None:
             bar.close()
-    report["swept"] = sweep_stale(root, hashes) if sweep else 0
+    if sweep:
+        # Only what nobody can read goes on its own; entries of other resolutions, settings or scenes stay.
+        report["swept"] = sweep_old_format(root)
+        unused = unused_entries(root, folder, hashes)
+        report["unused"], report["unused_bytes"] = len(unused), entries_size(unused)
+        if unused and announce:
+            print(unused_note(root, len(unused), report["unused_bytes"]), file=sys.stderr)
 
 
 def decompose_images(image_paths: Sequence[PathLike], method: str = "lr3m", params: Any = None,
                      cache_dir: Optional[PathLike] = None, device: Union[str, torch.device] = "cpu", *,
                      keep: bool = True, preview: bool = False, progress: bool = True, cache_hint: str = "",
-                     sweep: bool = False) -> Tuple[List[Optional[Tuple[torch.Tensor, torch.Tensor]]], Dict[str, Any]]:
+                     sweep: bool = False, announce: bool = True
+                     ) -> Tuple[List[Optional[Tuple[torch.Tensor, torch.Tensor]]], Dict[str, Any]]:
     """Make sure every image has a valid cache entry; return (results, report).
 
     ``results[i]`` is (R, L) on the CPU when ``keep`` else None. ``report`` has ``folder`` (the entry
-    folder), ``computed``, ``reused`` and ``swept`` counts and ``files`` (entry paths, in input order).
+    folder), ``computed``, ``reused`` and ``swept`` counts, ``unused`` / ``unused_bytes`` (entries these photos
+    do not use at these settings, with ``sweep``) and ``files`` (entry paths, in input order).
     ``cache_hint``: the caller's spelling of the cache option, named when the cache cannot be created or
     written (a read-only scene) or its disk is full. Entries present and valid are read from a read-only
-    cache; only a needed write fails. ``sweep``: ``image_paths`` are all the photos the cache root serves
-    (a scene's train views): once all are in place, entries of other photos are deleted (:func:`sweep_stale`).
+    cache; only a needed write fails. ``sweep``: ``image_paths`` are a scene's train views: once all are in
+    place, old-format entries are deleted (:func:`sweep_old_format`) and the entries they do not use are counted
+    (:func:`unused_entries`; nothing of them is deleted), and with ``announce`` one line says so on stderr.
     One image's priors at a time: :func:`iter_decompositions`.
     """
     report: Dict[str, Any] = {}
     results: List[Optional[Tuple[torch.Tensor, torch.Tensor]]] = []
     for hit in iter_decompositions(image_paths, method, params, cache_dir, device, preview=preview,
-                                   progress=progress, cache_hint=cache_hint, sweep=sweep, report=report):
+                                   progress=progress, cache_hint=cache_hint, sweep=sweep, report=report,
+                                   announce=announce):
         results.append(hit if keep else None)
     return results, report
 
@@ -420,8 +484,8 @@ def load_or_compute(image_paths: Sequence[PathLike], method: str = "lr3m", param
 
     ``params``: a params dataclass or a dict of overrides (None = defaults). ``cache_dir``: the cache root
     (default ``<scene>/retinex_cache``, see :func:`default_cache_root`); entries go in
-    ``<cache_dir>/<method>-<key>/``. ``device``: where missing entries are computed. ``sweep``: delete the
-    entries of photos not in ``image_paths`` (see :func:`decompose_images`).
+    ``<cache_dir>/<method>-<key>/``. ``device``: where missing entries are computed. ``sweep``: delete
+    old-format entries and note unused ones (see :func:`decompose_images`).
     """
     results, _ = decompose_images(image_paths, method, params, cache_dir, device, keep=True, progress=progress,
                                   cache_hint=cache_hint, sweep=sweep)

@@ -27,8 +27,9 @@ def view_camera(view: View) -> Camera:
 def render_function(model: RetinexGSModel, cfg: Dict, degree: int, exposure: Optional[float] = None,
                     gamma: Optional[float] = None, fast: bool = True,
                     renderer: Optional[InferenceRenderer] = None) -> Callable[[Union[View, Camera]], Dict]:
-    """view (or a renderer camera) -> the model's output maps (``rgb``, and ``R``, ``L``, ``S_rec`` for RetinexGS);
-    for the post-enhancement baseline, LR3M enhances the render.
+    """view (or a renderer camera) -> the model's output maps (``rgb``, and ``R``, ``L``, ``S_rec`` for RetinexGS,
+    with ``L_view``: L̂ / L_ref clipped to [0, 1], the one way L̂ is shown, by ``render --maps L``, ``eval``'s
+    side-by-side and the viewer); for the post-enhancement baseline, LR3M enhances the render.
 
     ``fast`` renders through an :class:`~retinexgs.model.inference.InferenceRenderer` (the fused colour kernel,
     CUDA graphs; same images as ``model.render``), built here once or passed as ``renderer`` (the viewer keeps
@@ -48,6 +49,8 @@ def render_function(model: RetinexGSModel, cfg: Dict, degree: int, exposure: Opt
                 method = cfg["decomposer"]["method"] if cfg["decomposer"]["method"] != "none" else "lr3m"
                 R, L = decompose(res["rgb"].clamp(0, 1), method, **cfg["decomposer"]["params"])
                 res = dict(res, rgb=enhance_for_viewing(R, L))
+            if "L" in res:  # scene-wide, not per image: one view's L is comparable with another's, videos keep still
+                res["L_view"] = model.normalized_illumination(res["L"])
         return res
 
     return fn

@@ -14,7 +14,8 @@ from __future__ import annotations
 import re
 from typing import Annotated, Any, Dict, List, Literal, Optional, Tuple, Union
 
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, StrictInt, model_validator
+from pydantic import (BaseModel, BeforeValidator, ConfigDict, Field, StrictInt, ValidationError, ValidationInfo,
+                      field_validator, model_validator)
 
 
 class Expect:
@@ -89,11 +90,119 @@ class Data(Section):
     cache_dir: OptStr
 
 
+# ---- the decomposers' parameters (decomposer.params), one class per method: every field of the method's params
+# dataclass (retinexgs.retinex.lr3m.LR3MParams, retinexgs.retinex.lime.LIMEParams; tests/test_newcomer_caches.py
+# checks that the names match). Each field defaults to None = "not given": only the keys a config sets are checked
+# and passed on, the dataclass supplies the rest.
+
+class LR3MParamsSchema(Section):
+    beta: Num(ge=0) = None
+    omega: Num(ge=0) = None
+    lam: Num(ge=0) = None
+    sigma: Num(gt=0) = None
+    eps: Num(ge=0) = None
+    gamma: Num(gt=0) = None
+    delta: Num() = None  # published, unused
+    gamma_s: Num(gt=0, le=1) = None
+    mu0: Num(gt=0) = None
+    rho: Num(ge=1) = None
+    iterations: Int(1) = None
+    patch: Int(2) = None
+    stride: Int(1) = None
+    search_radius: Int(0) = None
+    search_step: Int(1) = None
+    group_size: Int(1) = None
+    c1: Num(ge=0) = None
+    illum_eps: Num(gt=0) = None
+    weight_sigma: Num(ge=0) = None
+    cg_tol: Num(gt=0) = None
+    cg_max_iter: Int(1) = None
+    grad_noise_k: Num(ge=0) = None
+    l_floor: Num(gt=0, le=1) = None
+    median_guide: Bool = None
+    rematch_every: Int(0) = None
+    solver: Choice("gram", "svd") = None
+    tile_pixels: Int(1) = None
+    tile_margin: Int(0) = None
+    tile_memory_share: Num(ge=0) = None
+
+
+class LIMEParamsSchema(Section):
+    alpha: Num(ge=0) = None
+    eps: Num(gt=0) = None
+    weight_sigma: Num(ge=0) = None
+    gamma: Num(gt=0) = None
+    l_floor: Num(gt=0, le=1) = None
+    cg_tol: Num(gt=0) = None
+    cg_max_iter: Int(1) = None
+
+
+# method -> its parameters' schema; "none" (no decomposition) reads no parameters and checks none.
+DECOMPOSER_PARAMS: Dict[str, type] = {"lr3m": LR3MParamsSchema, "lime": LIMEParamsSchema}
+
+
+def _lr3m_tiles(given: Dict[str, Any]) -> Optional[str]:
+    """LR3M's tiles need a margin that is a multiple of the stride and room for a core of 4 strides."""
+    if not {"tile_margin", "stride", "tile_pixels"} & set(given):
+        return None
+    from retinexgs.retinex.lr3m import LR3MParams  # lazy: the defaults live with the algorithm
+
+    d = LR3MParams()
+    m, st, px = (given.get(k, getattr(d, k)) for k in ("tile_margin", "stride", "tile_pixels"))
+    if m % st:
+        return f"tile_margin ({m}) must be a multiple of stride ({st})"
+    need = 2 * m + 4 * st
+    if px < need * need:
+        return f"tile_pixels ({px}) must be at least (2*tile_margin + 4*stride)^2 = {need * need}"
+    return None
+
+
+def check_decomposer_params(method: str, params: Dict[str, Any], where: str = "decomposer.params") -> Dict[str, Any]:
+    """``params`` (a mapping of some of ``method``'s parameters) checked against the method's schema: known
+    names, types and ranges. Returns them with their values as typed (a number spelled as a string, or an
+    integer for a float parameter, becomes a float); raises ValueError naming ``where.<key>``, what it expects
+    and the value given. A method without a schema (``none``) reads no parameters: returned as they are."""
+    schema = DECOMPOSER_PARAMS.get(method)
+    if schema is None:
+        return dict(params)
+    try:
+        model = schema.model_validate(dict(params))
+    except ValidationError as exc:
+        names = ", ".join(schema.model_fields)
+        lines = []
+        for err in exc.errors():
+            key = str(err["loc"][0]) if err["loc"] else "?"
+            if err["type"] == "extra_forbidden":
+                lines.append(f"unknown config key {where}.{key}: {method} has no parameter {key!r} "
+                             f"(its parameters: {names})")
+                continue
+            info = schema.model_fields.get(key)
+            expect = next((m.text for m in info.metadata if isinstance(m, Expect)), None) if info else None
+            line = f"{where}.{key} must be {expect or err['msg'].lower()}, got {err['input']!r}"
+            if line not in lines:  # a union reports once per member
+                lines.append(line)
+        raise ValueError("; ".join(lines)) from None
+    out = {k: getattr(model, k) for k in params}
+    if method == "lr3m":
+        bad = _lr3m_tiles(out)
+        if bad:
+            raise ValueError(f"{where}: lr3m's {bad}")
+    return out
+
+
 class Decomposer(Section):
     method: Choice("lr3m", "lime", "none")
-    # Decomposer-specific: checked by the decomposer itself (retinexgs.retinex).
+    # The method's parameters, checked by its schema above (names, types, ranges) before anything loads.
     params: Annotated[Dict[str, Any], Expect("a mapping of the decomposer's parameters")]
     device: OptStr
+
+    @field_validator("params", mode="after")
+    @classmethod
+    def _known_params(cls, params: Dict[str, Any], info: ValidationInfo) -> Dict[str, Any]:
+        method = info.data.get("method")
+        if method is None:  # the method itself is wrong: that error is the one to read
+            return params
+        return check_decomposer_params(method, params)
 
 
 class Illumination(Section):

@@ -231,13 +231,15 @@ class ViewStore:
 
 def store_fingerprint(image_paths: Sequence[Path], sizes: Sequence[Tuple[int, int]], priors_tag: str) -> str:
     """What a store must match to be reused: the format, the priors' settings (``<method>-<key>`` of the
-    decomposition cache, or ``none``) and per view its photo file (resolved path, byte size, modification
-    time) and size. An edited, regenerated or resized photo, or other settings, make a new store."""
-    items = []
-    for p, (h, w) in zip(image_paths, sizes):
-        st = Path(p).stat()
-        items.append([str(Path(p).resolve()), int(st.st_size), int(st.st_mtime_ns), int(h), int(w)])
-    blob = json.dumps({"format": _FORMAT, "priors": priors_tag, "views": items}, sort_keys=True)
+    decomposition cache, or ``none``) and per view its photo's content (SHA-256 of the file's bytes, hashed once
+    per process while the file is unchanged, :func:`retinexgs.data.undistort.source_digest`) and size. An
+    edited, regenerated or resized photo, or other settings, make a new store; a photo replaced by another with
+    an older modification time (``cp -p``, ``rsync -a``, unzip) too."""
+    from retinexgs.data.undistort import source_digest  # the shared, memoised content key
+
+    items = [[source_digest(Path(p)), int(Path(p).stat().st_size), int(h), int(w)]
+             for p, (h, w) in zip(image_paths, sizes)]
+    blob = json.dumps({"format": _FORMAT, "key": "content", "priors": priors_tag, "views": items}, sort_keys=True)
     return hashlib.sha256(blob.encode("utf-8")).hexdigest()
 
 
