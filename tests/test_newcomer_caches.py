@@ -220,3 +220,16 @@ def test_decompose_on_a_full_disk_names_the_cache_option(demo, tmp_path, capsys,
     assert code == 2, err
     assert "no space left on device writing" in err and "write elsewhere with --cache DIR" in err, err
     assert "--out" not in err and "Traceback" not in err, err
+
+
+def test_decomposer_params_from_several_sources_add_up_and_a_new_method_resets_them():
+    """Two `--set decomposer.params.X` keep both (they replaced each other); switching the method drops the old
+    method's params; `params={}` resets them."""
+    from retinexgs.run.config import load_config
+
+    cfg = load_config([], ["decomposer.params.beta=0.3", "decomposer.params.cg_max_iter=50"])
+    assert cfg["decomposer"]["params"]["beta"] == 0.3 and cfg["decomposer"]["params"]["cg_max_iter"] == 50
+    cfg = load_config([], ["decomposer.params.beta=0.3", "decomposer.method=lime"])
+    assert cfg["decomposer"]["method"] == "lime" and cfg["decomposer"]["params"] == {}
+    cfg = load_config([], ["decomposer.params.beta=0.3", "decomposer.params={}"])
+    assert cfg["decomposer"]["params"] == {}

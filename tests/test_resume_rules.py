@@ -105,7 +105,7 @@ def test_resume_applies_new_learning_rates_to_the_optimizer(run, originals):
     (["--set", "model.sh_degree=2"], "model.sh_degree"),
     (["--set", "model.illumination.hidden=8"], "model.illumination.hidden"),
     (["--set", "decomposer.method=lr3m"], "decomposer.method"),
-    (["--set", "decomposer.params={iters: 2}"], "decomposer.params"),
+    (["--set", "decomposer.params={cg_max_iter: 50}"], "decomposer.params"),
     (["--set", "data.downscale=2"], "data.downscale"),
     (["--set", "seed=5"], "seed"),
 ])

@@ -76,7 +76,7 @@ def _darken(args: argparse.Namespace) -> int:
 def _noise(args: argparse.Namespace) -> int:
     import numpy as np  # lazy: --help stays fast
 
-    from retinexgs.data.images import list_images, read_image_float  # lazy: --help stays fast
+    from retinexgs.data.images import list_images, no_images_reason, read_image_float  # lazy: --help stays fast
     from retinexgs.data.sensor import JpegCodec, NoiseEstimate, clipped_moments, srgb_to_linear  # lazy: --help stays fast
     from retinexgs.run.config import load_config  # lazy: --help stays fast
     from retinexgs.train.noise import measure_capture_noise, sigma_limit  # lazy: --help stays fast (and torch)
@@ -86,7 +86,7 @@ def _noise(args: argparse.Namespace) -> int:
         raise UserError(f"{args.data} is not a folder")
     photos = list_images(folder)
     if not photos:
-        raise UserError(f"no photos in {folder}")
+        raise UserError(f"no photos in {folder}: {no_images_reason(folder)}")
     if args.photos < 1:
         raise UserError(f"--photos must be at least 1, got {args.photos}")
     loss = load_config(["default"])["loss"]

@@ -34,7 +34,7 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
-from retinexgs.data.images import list_images, read_image_float, write_image_atomic
+from retinexgs.data.images import list_images, no_images_reason, read_image_float, write_image_atomic
 from retinexgs.errors import UserError
 from retinexgs.fileio import atomic_write_text, check_writable_folder, is_out_of_space, out_of_space_error
 
@@ -132,7 +132,7 @@ def darken_scene(src: Path, out: Path, model: SensorModel, seed: int = 0, progre
         raise UserError(f"{out} already exists and is not empty; choose another --out")
     folder, jobs = _scene_photos(src)
     if not jobs:
-        raise UserError(f"no photos in {folder} (looked for .png/.jpg/.jpeg/.tif files)")
+        raise UserError(f"no photos in {folder}: {no_images_reason(folder)}")
     rng = np.random.default_rng(seed)
     report = DarkenReport(out, len(jobs))
     check_writable_folder(out)  # a read-only or misplaced --out: one line before any work

@@ -366,7 +366,7 @@ def resolve_device(device: Union[str, torch.device, None]) -> torch.device:
 def iter_decompositions(image_paths: Sequence[PathLike], method: str = "lr3m", params: Any = None,
                         cache_dir: Optional[PathLike] = None, device: Union[str, torch.device] = "cpu", *,
                         preview: bool = False, progress: bool = True, cache_hint: str = "", sweep: bool = False,
-                        report: Optional[Dict[str, Any]] = None, announce: bool = True
+                        report: Optional[Dict[str, Any]] = None, announce: bool = True, scene: str = "SCENE"
                         ) -> Iterator[Tuple[torch.Tensor, torch.Tensor]]:
     """(R [H,W,3], L [H,W,1]) float32 CPU tensors for each image in turn, from the cache or computed and
     written to it before they are yielded: the caller holds one image's priors at a time, and an interrupted
@@ -374,7 +374,8 @@ def iter_decompositions(image_paths: Sequence[PathLike], method: str = "lr3m", p
     rounded as it is stored). ``report`` (a dict, filled as it goes): ``folder``, ``computed``, ``reused``,
     ``swept``, ``unused``, ``unused_bytes`` and ``files``, as :func:`decompose_images` returns it; the sweep
     (``sweep=True``) runs once the last image has been yielded and the caller asks for the next, and with
-    ``announce`` prints :func:`unused_note` on stderr when there are unused entries. Other arguments:
+    ``announce`` prints :func:`unused_note` (naming ``scene`` in its command) on stderr when there are unused
+    entries. Other arguments:
     :func:`decompose_images`.
     """
     paths = [Path(p) for p in image_paths]
@@ -447,7 +448,7 @@ def iter_decompositions(image_paths: Sequence[PathLike], method: str = "lr3m", p
         unused = unused_entries(root, folder, hashes)
         report["unused"], report["unused_bytes"] = len(unused), entries_size(unused)
         if unused and announce:
-            print(unused_note(root, len(unused), report["unused_bytes"]), file=sys.stderr)
+            print(unused_note(root, len(unused), report["unused_bytes"], scene), file=sys.stderr)
 
 
 def decompose_images(image_paths: Sequence[PathLike], method: str = "lr3m", params: Any = None,

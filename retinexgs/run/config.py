@@ -55,10 +55,17 @@ def read_yaml(path: Path) -> Config:
 def merge(base: Config, override: Config, where: str, strict: bool = True) -> Config:
     """Deep-merge ``override`` into a copy of ``base``; with ``strict``, keys must exist in ``base``."""
     out = copy.deepcopy(base)
+    if "method" in override and override["method"] != out.get("method") and "params" not in override \
+            and isinstance(out.get("params"), dict):
+        out["params"] = {}  # another method: the earlier params were the old method's
     for key, value in override.items():
         if strict and key not in out:
             raise UserError(f"unknown config key {where}{key} (known: {', '.join(sorted(out))})")
-        if isinstance(out.get(key), dict) and isinstance(value, dict) and key != "params":
+        if key == "params" and isinstance(out.get(key), dict) and isinstance(value, dict) and value:
+            # A method's free-form parameters (checked per method by the schema) add up key by key, so two
+            # `--set decomposer.params.X` keep both; `params: {}` resets them.
+            out[key] = {**out[key], **copy.deepcopy(value)}
+        elif isinstance(out.get(key), dict) and isinstance(value, dict) and key != "params":
             out[key] = merge(out[key], value, f"{where}{key}.", strict)
         else:
             out[key] = copy.deepcopy(value)
