@@ -68,7 +68,7 @@ setup(
     # pycolmap reads COLMAP models and runs SfM; plyfile reads and writes the exported PLY;
     # pydantic checks the config (retinexgs/train/schema.py); pillow-heif reads phone photos (HEIC/HEIF).
     install_requires=["torch>=2.1", "numpy", "pyyaml", "tqdm", "pillow", "opencv-contrib-python-headless>=4.8",
-                      "pycolmap>=4.0", "plyfile", "pydantic>=2", "pillow-heif>=0.10"],
+                      "pycolmap>=4.0", "plyfile", "pydantic>=2", "pillow-heif>=0.10", "rawpy>=0.28", "exifread>=3.0"],
     extras_require={
         # import-linter: the layer contracts (.importlinter). viser and selenium: the viewer's server and browser
         # tests (the browser test also needs Debian's chromium and chromium-driver, installed by .ci/run; without
