@@ -66,7 +66,8 @@ setup(
     packages=find_packages(include=["retinexgs", "retinexgs.*"]),
     python_requires=">=3.9",
     # pycolmap reads COLMAP models and runs SfM; plyfile reads and writes the exported PLY;
-    # pydantic checks the config (retinexgs/train/schema.py); pillow-heif reads phone photos (HEIC/HEIF).
+    # pydantic checks the config (retinexgs/run/schema.py); pillow-heif reads phone photos (HEIC/HEIF); rawpy (LibRaw)
+    # and exifread read camera raw files and their exposure (retinexgs/data/camera_raw.py).
     install_requires=["torch>=2.1", "numpy", "pyyaml", "tqdm", "pillow", "opencv-contrib-python-headless>=4.8",
                       "pycolmap>=4.0", "plyfile", "pydantic>=2", "pillow-heif>=0.10", "rawpy>=0.28", "exifread>=3.0"],
     extras_require={
