@@ -26,7 +26,7 @@ import torch
 
 from retinexgs.retinex import enhance_for_viewing, get_decomposer
 from retinexgs.retinex.cache import IMAGE_EXTENSIONS, read_image, resolve_device
-from retinexgs.retinex.metrics import psnr, ssim
+from retinexgs.evaluate.metrics import psnr, ssim_metric as ssim
 
 
 def _pairs(scene: Path, limit: int) -> List[tuple]:

@@ -92,8 +92,8 @@ def run(args: argparse.Namespace) -> int:
         return _clean_or_info(scene, args)
     paths = list_scene_images(scene, args.images_subdir)
     overrides = list(args.set or [])
-    if args.method is not None:
-        overrides.append(f"decomposer.method={args.method}")
+    if args.method is not None:  # first: the --set decomposer.params that follow are this method's
+        overrides.insert(0, f"decomposer.method={args.method}")
     if args.cache:
         overrides.append(f"data.cache_dir={Path(args.cache).expanduser()}")
     cfg = load_config(args.config or [], overrides)  # the settings train would use, checked before any work

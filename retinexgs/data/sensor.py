@@ -34,21 +34,10 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
+from retinexgs.data.srgb import linear_to_srgb, srgb_to_linear  # noqa: F401 (re-exported for the demo)
 from retinexgs.data.images import list_images, no_images_reason, read_image_float, write_image_atomic
 from retinexgs.errors import UserError
 from retinexgs.fileio import atomic_write_text, check_writable_folder, is_out_of_space, out_of_space_error
-
-
-def srgb_to_linear(x: np.ndarray) -> np.ndarray:
-    """sRGB [0,1] -> linear light (IEC 61966-2-1)."""
-    x = np.clip(x, 0.0, 1.0)
-    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
-
-
-def linear_to_srgb(y: np.ndarray) -> np.ndarray:
-    """linear light [0,1] -> sRGB [0,1]."""
-    y = np.clip(y, 0.0, 1.0)
-    return np.where(y <= 0.0031308, 12.92 * y, 1.055 * np.power(y, 1 / 2.4) - 0.055)
 
 
 @dataclass(frozen=True)

@@ -32,6 +32,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from retinexgs.data.srgb import linear_to_srgb, srgb_to_linear  # noqa: F401 (the tone's curves; re-exported)
+
 __all__ = ["TONES", "srgb_to_linear", "linear_to_srgb", "highlight_shoulder", "camera_mean", "camera_mean_inverse",
            "black_table", "box_mean", "guided_filter", "smooth_record", "scene_linear", "highlight_capped_mean",
            "log_lin_ref", "exposure_gain", "apply_exposure", "tone_map"]
@@ -46,20 +48,6 @@ Noise = Optional[Tensor]
 # sRGB-encoded mean within 0.001 of a Monte Carlo mean at every level of fountain-dark's sensor (1500 e⁻, 4 e⁻).
 _GH_Z, _GH_W = np.polynomial.hermite_e.hermegauss(8)
 _GH = tuple(zip(_GH_Z.tolist(), (_GH_W / _GH_W.sum()).tolist()))
-
-
-def srgb_to_linear(x: Tensor, clip: bool = True) -> Tensor:
-    """The sRGB decoding (IEC 61966-2-1) of values in [0, 1]: linear light. ``clip=False``: values above 1 follow
-    the same curve (only negatives are clamped)."""
-    x = x.clamp(0.0, 1.0) if clip else x.clamp_min(0.0)
-    return torch.where(x <= 0.04045, x / 12.92, ((x.clamp_min(0.04045) + 0.055) / 1.055) ** 2.4)
-
-
-def linear_to_srgb(x: Tensor, clip: bool = True) -> Tensor:
-    """The sRGB encoding of linear light, clipped to [0, 1] first (what a camera does to light past white).
-    ``clip=False``: light past white keeps rising along the curve (a loss that must keep a gradient there)."""
-    x = x.clamp(0.0, 1.0) if clip else x.clamp_min(0.0)
-    return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp_min(0.0031308) ** (1.0 / 2.4) - 0.055)
 
 
 def highlight_shoulder(v: Tensor, knee: float) -> Tensor:
