@@ -13,16 +13,7 @@ __global__ void sh_forward_kernel(int64_t N, int degree, int K, int D,
                                   T* __restrict__ colors) {      // [N, D]
     const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
     if (i >= N) return;
-    T x, y, z, B[kMaxShCoeffs];
-    normalize3(dirs + 3 * i, x, y, z);
-    sh_basis(degree, x, y, z, B);
-    const int nb = sh_num_bases(degree);
-    const T* c = coeffs + i * K * D;
-    for (int d = 0; d < D; ++d) {
-        T acc = T(0);
-        for (int k = 0; k < nb; ++k) acc += B[k] * c[k * D + d];
-        colors[i * D + d] = acc;
-    }
+    sh_colors_one(degree, D, dirs + 3 * i, coeffs + i * K * D, colors + i * D);
 }
 
 template <typename T>
@@ -32,24 +23,8 @@ __global__ void sh_backward_kernel(int64_t N, int degree, int K, int D, const T*
                                    T* __restrict__ v_coeffs) {                                     // [N, K, D]
     const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
     if (i >= N) return;
-    T x, y, z, B[kMaxShCoeffs], vB[kMaxShCoeffs];
-    const T n = normalize3(dirs + 3 * i, x, y, z);
-    sh_basis(degree, x, y, z, B);
-    const int nb = sh_num_bases(degree);
-    const T* c = coeffs + i * K * D;
-    const T* vc = v_colors + i * D;
-    T* vco = v_coeffs + i * K * D;
-    for (int k = 0; k < K; ++k) {
-        T acc = T(0);
-        for (int d = 0; d < D; ++d) {
-            vco[k * D + d] = k < nb ? B[k] * vc[d] : T(0);
-            if (k < nb) acc += c[k * D + d] * vc[d];
-        }
-        if (k < nb) vB[k] = acc;
-    }
-    T vx, vy, vz;
-    sh_basis_vjp(degree, x, y, z, vB, vx, vy, vz);
-    normalize3_vjp(n, x, y, z, vx, vy, vz, v_dirs + 3 * i);
+    sh_colors_one_vjp(degree, K, D, dirs + 3 * i, coeffs + i * K * D, v_colors + i * D, v_dirs + 3 * i,
+                      v_coeffs + i * K * D);
 }
 
 // Tiled variants. One thread per Gaussian reading its own K*D coefficients strides the warp over 32 rows
@@ -98,18 +73,7 @@ __global__ void sh_forward_tiled_kernel(int64_t N, int degree, int K, int D,
     const int t = threadIdx.x;
     if (t >= count) return;  // no barrier follows
     const int64_t i = g0 + t;
-    T x, y, z, B[kMaxShCoeffs];
-    normalize3(dirs + 3 * i, x, y, z);
-    sh_basis(degree, x, y, z, B);
-    const int nb = sh_num_bases(degree);
-    const T* row = tile + t * S;
-    for (int d = 0; d < D; ++d) {
-        T acc = T(0);
-#pragma unroll
-        for (int k = 0; k < kMaxShCoeffs; ++k)
-            if (k < nb) acc += B[k] * row[k * D + d];
-        colors[i * D + d] = acc;
-    }
+    sh_colors_one(degree, D, dirs + 3 * i, tile + t * S, colors + i * D);
 }
 
 template <typename T>
@@ -127,28 +91,10 @@ __global__ void sh_backward_tiled_kernel(int64_t N, int degree, int K, int D,
     sh_tile_load(coeffs + g0 * KD, count, KD, tile);
     __syncthreads();
     const int t = threadIdx.x;
-    if (t < count) {
+    if (t < count) {  // this thread's row only: no other thread reads it before the barrier
         const int64_t i = g0 + t;
-        T x, y, z, B[kMaxShCoeffs], vB[kMaxShCoeffs];
-        const T n = normalize3(dirs + 3 * i, x, y, z);
-        sh_basis(degree, x, y, z, B);
-        const int nb = sh_num_bases(degree);
-        const T* vc = v_colors + i * D;
-        T* row = tile + t * S;  // this thread's row only: no other thread reads it before the barrier
-#pragma unroll
-        for (int k = 0; k < kMaxShCoeffs; ++k) {
-            vB[k] = T(0);
-            if (k < K) {
-                for (int d = 0; d < D; ++d) {
-                    const T v = vc[d];
-                    if (k < nb) vB[k] += row[k * D + d] * v;
-                    row[k * D + d] = k < nb ? B[k] * v : T(0);
-                }
-            }
-        }
-        T vx, vy, vz;
-        sh_basis_vjp(degree, x, y, z, vB, vx, vy, vz);
-        normalize3_vjp(n, x, y, z, vx, vy, vz, v_dirs + 3 * i);
+        T* row = tile + t * S;
+        sh_colors_one_vjp(degree, K, D, dirs + 3 * i, row, v_colors + i * D, v_dirs + 3 * i, row);
     }
     __syncthreads();
     T* dst = v_coeffs + g0 * KD;

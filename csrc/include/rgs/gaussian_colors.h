@@ -18,16 +18,14 @@
 
 namespace rgs {
 
-// RGS_UNROLL: unroll on the GPU (activations stay in registers). RGS_SIMD, on the innermost loops over a layer's
-// outputs only: unrolled on the GPU, vectorised on the CPU (gcc would otherwise keep them scalar: acc may alias w).
+// RGS_UNROLL (rgs/types.h) keeps the activations in registers on the GPU. RGS_SIMD, on the innermost loops over a
+// layer's outputs only: unrolled on the GPU, vectorised on the CPU (gcc would otherwise keep them scalar: acc may
+// alias w).
 #if defined(__CUDA_ARCH__)
-#define RGS_UNROLL _Pragma("unroll")
 #define RGS_SIMD _Pragma("unroll")
 #elif defined(_OPENMP)
-#define RGS_UNROLL
 #define RGS_SIMD _Pragma("omp simd")
 #else
-#define RGS_UNROLL
 #define RGS_SIMD
 #endif
 

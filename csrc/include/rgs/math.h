@@ -752,4 +752,51 @@ RGS_HD void normalize3_vjp(T n, T x, T y, T z, T vx, T vy, T vz, T* v_d) {
     v_d[2] = (vz - z * dot) / n;
 }
 
+// One Gaussian's colours from its SH coefficients (3DGS Eq. (1)'s view-dependent colour, per channel):
+// colors[d] = sum_k B_k(dir / |dir|) c[k*D + d] over the degree's bases. Shared by the CPU loop and both CUDA
+// kernels (the tiled one passes its shared-memory row as c). Unrolled over kMaxShCoeffs so that B stays in
+// registers on the GPU.
+template <typename T>
+RGS_HD void sh_colors_one(int degree, int D, const T* dir, const T* c, T* colors) {
+    T x, y, z, B[kMaxShCoeffs] = {};  // zeros past the degree's bases (read by no one; quiets gcc)
+    normalize3(dir, x, y, z);
+    sh_basis(degree, x, y, z, B);
+    const int nb = sh_num_bases(degree);
+    for (int d = 0; d < D; ++d) {
+        T acc = T(0);
+RGS_UNROLL
+        for (int k = 0; k < kMaxShCoeffs; ++k)
+            if (k < nb) acc += B[k] * c[k * D + d];
+        colors[d] = acc;
+    }
+}
+
+// Its vector-Jacobian product: v_c[k*D + d] = B_k v_colors[d] (0 past the degree's bases, k < K) and v_dir.
+// v_c may be c itself (the tiled CUDA kernel writes the gradient over the staged coefficients): each element is
+// read before it is written.
+template <typename T>
+RGS_HD void sh_colors_one_vjp(int degree, int K, int D, const T* dir, const T* c, const T* v_colors, T* v_dir,
+                              T* v_c) {
+    T x, y, z, B[kMaxShCoeffs] = {}, vB[kMaxShCoeffs];
+    const T n = normalize3(dir, x, y, z);
+    sh_basis(degree, x, y, z, B);
+    const int nb = sh_num_bases(degree);
+RGS_UNROLL
+    for (int k = 0; k < kMaxShCoeffs; ++k) {
+        vB[k] = T(0);
+        if (k < K) {
+            for (int d = 0; d < D; ++d) {
+                const T v = v_colors[d];
+                if (k < nb) vB[k] += c[k * D + d] * v;
+                v_c[k * D + d] = k < nb ? B[k] * v : T(0);
+            }
+        }
+    }
+    for (int k = kMaxShCoeffs; k < K; ++k)  // rows past any basis (K > 16): no gradient
+        for (int d = 0; d < D; ++d) v_c[k * D + d] = T(0);
+    T vx, vy, vz;
+    sh_basis_vjp(degree, x, y, z, vB, vx, vy, vz);
+    normalize3_vjp(n, x, y, z, vx, vy, vz, v_dir);
+}
+
 }  // namespace rgs

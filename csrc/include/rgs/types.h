@@ -8,6 +8,13 @@
 #define RGS_HD inline
 #endif
 
+// RGS_UNROLL: unroll on the GPU (small arrays indexed by the loop stay in registers); nothing on the host.
+#if defined(__CUDA_ARCH__)
+#define RGS_UNROLL _Pragma("unroll")
+#else
+#define RGS_UNROLL
+#endif
+
 namespace rgs {
 
 constexpr int kTileSize = 16;               // tiles are kTileSize x kTileSize pixels
