@@ -14,7 +14,8 @@ def register(subparsers) -> None:
     p.add_argument("--images", required=True, help="folder of photos (not searched recursively)")
     p.add_argument("--out", default=None,
                    help="output folder (default: <scene>/retinexgs_sfm, the scene being the photo folder, "
-                        "or its parent when the folder is named images/)")
+                        "or its parent when the folder is named images/); COLMAP files already there that "
+                        "retinexgs sfm did not make are kept unless --force")
     p.add_argument("--matching", choices=["auto", "exhaustive", "sequential"], default="auto",
                    help="pair selection: exhaustive up to 100 photos, else sequential (default: auto)")
     p.add_argument("--enhance", choices=["auto", "on", "off"], default="auto",
@@ -24,7 +25,9 @@ def register(subparsers) -> None:
                         "or FULL_OPENCV")
     p.add_argument("--max-features", type=int, default=8192, help="SIFT features per photo (default 8192)")
     p.add_argument("--threads", type=int, default=-1, help="CPU threads (default: all)")
-    p.add_argument("--force", action="store_true", help="recompute even when a cached model matches")
+    p.add_argument("--force", action="store_true",
+                   help="recompute even when a cached model matches, and replace COLMAP files (database.db, "
+                        "sparse/0) in --out that retinexgs sfm did not make (without it they are refused)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.set_defaults(func=run)
 

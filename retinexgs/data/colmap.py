@@ -10,6 +10,10 @@ else every ``test_every``-th view (sorted by name) is a test view, else all view
 from __future__ import annotations
 
 import json
+import math
+import mmap
+import os
+import struct
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Tuple
@@ -63,6 +67,228 @@ def find_model_dir(path: Path) -> Optional[Path]:
     return None
 
 
+# ---- structure checks of the model files, before pycolmap reads them ----------------------------------------
+# pycolmap trusts the counts in a binary model: a 2-byte points3D.bin made it reserve gigabytes and die with
+# std::bad_alloc, a half cameras.bin gave junk distortion. A pure-Python walk of COLMAP's layout (little endian)
+# costs well under a second for a million points and names the broken file instead.
+
+# Parameters per COLMAP camera model id (COLMAP's src/colmap/sensor/models.h).
+COLMAP_MODEL_NUM_PARAMS = {0: 3, 1: 4, 2: 4, 3: 5, 4: 8, 5: 8, 6: 12, 7: 5, 8: 4, 9: 5, 10: 12, 11: 16, 12: 4,
+                           13: 5, 14: 3, 15: 4, 16: 6, 17: 2}
+# Parameters per model name, for the text format (names as COLMAP writes them).
+COLMAP_MODEL_PARAMS_BY_NAME = {
+    "SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 4, "RADIAL": 5, "OPENCV": 8, "OPENCV_FISHEYE": 8,
+    "FULL_OPENCV": 12, "FOV": 5, "SIMPLE_RADIAL_FISHEYE": 4, "RADIAL_FISHEYE": 5, "THIN_PRISM_FISHEYE": 12,
+    "RAD_TAN_THIN_PRISM_FISHEYE": 16, "SIMPLE_DIVISION": 4, "DIVISION": 5, "SIMPLE_FISHEYE": 3, "FISHEYE": 4,
+    "EUCM": 6, "EQUIRECTANGULAR": 2}
+
+
+class _Corrupt(Exception):
+    """A model file that does not follow COLMAP's layout; the message says where it breaks."""
+
+
+class _Walker:
+    """Reads little-endian fields from a buffer, raising :class:`_Corrupt` past its end."""
+
+    def __init__(self, buf, what: str):
+        self.buf, self.pos, self.size, self.what = buf, 0, len(buf), what
+
+    def take(self, fmt: str, where: str):
+        n = struct.calcsize(fmt)
+        if self.pos + n > self.size:
+            raise _Corrupt(f"ends in the middle of {where}")
+        out = struct.unpack_from(fmt, self.buf, self.pos)
+        self.pos += n
+        return out
+
+    def skip(self, n: int, where: str) -> None:
+        if n < 0 or self.pos + n > self.size:
+            raise _Corrupt(f"ends in the middle of {where}")
+        self.pos += n
+
+    def count(self, noun: str, min_record: int) -> int:
+        if self.size < 8:
+            raise _Corrupt(f"{self.size} bytes, too short to hold the number of {noun}")
+        (n,) = self.take("<Q", "the count")
+        if n * min_record > self.size - 8:  # a count the file cannot hold: refuse before walking it
+            raise _Corrupt(f"says {n} {noun} but its {self.size} bytes hold at most "
+                           f"{(self.size - 8) // min_record}")
+        return n
+
+    def done(self, n: int, noun: str) -> None:
+        if self.pos != self.size:
+            raise _Corrupt(f"{self.size - self.pos} unexpected bytes after the last of {n} {noun}")
+
+
+def _walk_cameras(w: _Walker) -> None:
+    n = w.count("cameras", 24)
+    for i in range(n):
+        where = f"camera {i + 1} of {n}"
+        _cid, model, width, height = w.take("<iiQQ", where)
+        if model not in COLMAP_MODEL_NUM_PARAMS:
+            raise _Corrupt(f"{where} has unknown camera model id {model}")
+        if not (0 < width < 1 << 20 and 0 < height < 1 << 20):
+            raise _Corrupt(f"{where} is {width}x{height} pixels")
+        params = w.take(f"<{COLMAP_MODEL_NUM_PARAMS[model]}d", where)
+        if not all(math.isfinite(p) for p in params):
+            raise _Corrupt(f"{where} has parameters that are not finite numbers")
+    w.done(n, "cameras")
+
+
+def _walk_images(w: _Walker) -> None:
+    n = w.count("images", 4 + 56 + 4 + 1 + 8)
+    for i in range(n):
+        where = f"image {i + 1} of {n}"
+        w.skip(64, where)  # id, quaternion, translation, camera id
+        end = w.buf.find(b"\0", w.pos)
+        if end < 0:
+            raise _Corrupt(f"ends in the middle of {where}'s file name")
+        w.pos = end + 1
+        (n2d,) = w.take("<Q", where)
+        if n2d > (w.size - w.pos) // 24:
+            raise _Corrupt(f"{where} lists {n2d} 2D points but the file ends before them")
+        w.skip(24 * n2d, where)
+    w.done(n, "images")
+
+
+def _walk_points(w: _Walker) -> None:
+    n = w.count("points", 8 + 24 + 3 + 8 + 8)
+    for i in range(n):
+        where = f"point {i + 1} of {n}"
+        w.skip(43, where)  # id, xyz, rgb, error
+        (track,) = w.take("<Q", where)
+        if track > (w.size - w.pos) // 8:
+            raise _Corrupt(f"{where} has a track of {track} observations but the file ends before them")
+        w.skip(8 * track, where)
+    w.done(n, "points")
+
+
+def _walk_rigs(w: _Walker) -> None:
+    n = w.count("rigs", 8)
+    for i in range(n):
+        where = f"rig {i + 1} of {n}"
+        _rid, sensors = w.take("<II", where)
+        if sensors > 0:
+            w.skip(8, where)  # reference sensor: type, id
+        for _ in range(max(0, sensors - 1)):
+            _type, _sid, has_pose = w.take("<iIB", where)
+            if has_pose:
+                w.skip(56, where)
+    w.done(n, "rigs")
+
+
+def _walk_frames(w: _Walker) -> None:
+    n = w.count("frames", 4 + 4 + 56 + 4)
+    for i in range(n):
+        where = f"frame {i + 1} of {n}"
+        w.skip(64, where)  # id, rig id, rig-from-world pose
+        (ndata,) = w.take("<I", where)
+        w.skip(16 * ndata, where)
+    w.done(n, "frames")
+
+
+_BINARY_WALKS = (("cameras.bin", _walk_cameras), ("images.bin", _walk_images), ("points3D.bin", _walk_points),
+                 ("rigs.bin", _walk_rigs), ("frames.bin", _walk_frames))
+
+
+def _text_lines(path: Path):
+    """(line number, stripped line) of a COLMAP text file, comments included (images.txt needs the blanks)."""
+    with open(path, encoding="utf-8", errors="strict") as f:
+        for i, line in enumerate(f, 1):
+            yield i, line.strip()
+
+
+def _numbers(fields, where: str, kinds: str) -> None:
+    """Each field parses as its kind ('i' integer, 'f' finite-or-not float)."""
+    for f, k in zip(fields, kinds):
+        try:
+            int(f) if k == "i" else float(f)
+        except ValueError:
+            raise _Corrupt(f"{where}: {f!r} is not a number") from None
+
+
+def _check_text(path: Path) -> None:
+    name = path.name
+    lines = list(_text_lines(path))
+    if name == "cameras.txt":
+        if not any(line and not line.startswith("#") for _, line in lines):
+            raise _Corrupt("no camera lines")
+        for no, line in lines:
+            if not line or line.startswith("#"):
+                continue
+            f = line.split()
+            need = COLMAP_MODEL_PARAMS_BY_NAME.get(f[1].upper() if len(f) > 1 else "")
+            if need is None or len(f) != 4 + need:
+                raise _Corrupt(f"line {no} is not 'CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]'")
+            _numbers(f[:1] + f[2:4], f"line {no}", "iii")
+            _numbers(f[4:], f"line {no}", "f" * need)
+    elif name == "images.txt":
+        # two lines per image; the second (its 2D points) may be empty, so only lines before the first image
+        # may be skipped as blank or comments
+        it = iter(lines)
+        for no, line in it:
+            if not line or line.startswith("#"):
+                continue
+            f = line.split()
+            if len(f) < 10:
+                raise _Corrupt(f"line {no} is not 'IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME'")
+            _numbers(f[:9], f"line {no}", "ifffffffi")
+            pts = next(it, None)
+            if pts is not None and len(pts[1].split()) % 3:
+                raise _Corrupt(f"line {pts[0]} is not a list of 'X Y POINT3D_ID' triples")
+            if pts is not None:
+                _numbers(pts[1].split(), f"line {pts[0]}", "ffi" * (len(pts[1].split()) // 3))
+    elif name == "points3D.txt":
+        for no, line in lines:
+            if not line or line.startswith("#"):
+                continue
+            f = line.split()
+            if len(f) < 8 or (len(f) - 8) % 2:
+                raise _Corrupt(f"line {no} is not 'POINT3D_ID X Y Z R G B ERROR TRACK[]'")
+            _numbers(f, f"line {no}", "ifffiiif" + "ii" * ((len(f) - 8) // 2))
+
+
+def check_model_files(model_dir: Path) -> None:
+    """UserError naming the file when a COLMAP model file is truncated or corrupt (see the comment above):
+    binary files are walked record by record (a count the file cannot hold, a file ending mid-record or with
+    bytes after the last record); text files must parse."""
+    model_dir = Path(model_dir)
+    fmt = model_format(model_dir)
+    for name, walk in _BINARY_WALKS if fmt == "bin" else ():
+        path = model_dir / name
+        if not path.is_file():
+            continue
+        try:
+            with open(path, "rb") as f:
+                size = os.fstat(f.fileno()).st_size
+                buf = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) if size else b""
+                try:
+                    walk(_Walker(buf, name))
+                finally:
+                    if size:
+                        buf.close()
+        except _Corrupt as exc:
+            raise UserError(f"{path} is truncated or corrupt ({exc}): copy it again or re-run retinexgs sfm") \
+                from None
+        except OSError as exc:
+            raise UserError(f"cannot read {path}: {exc.strerror or exc}") from None
+    if fmt == "txt":
+        for name in ("cameras.txt", "images.txt", "points3D.txt"):
+            path = model_dir / name
+            if not path.is_file():
+                continue
+            try:
+                _check_text(path)
+            except _Corrupt as exc:
+                raise UserError(f"{path} is truncated or corrupt ({exc}): copy it again or re-run retinexgs sfm") \
+                    from None
+            except UnicodeDecodeError:
+                raise UserError(f"{path} is not a COLMAP text file (not UTF-8 text): copy it again or re-run "
+                                "retinexgs sfm") from None
+            except OSError as exc:
+                raise UserError(f"cannot read {path}: {exc.strerror or exc}") from None
+
+
 def _pycolmap():
     try:
         import pycolmap
@@ -95,6 +321,7 @@ def read_model(model_dir: Path) -> ColmapModel:
     missing = [n for n in (f"images.{fmt}", f"points3D.{fmt}") if not (model_dir / n).is_file()]
     if missing:
         raise UserError(f"COLMAP model {model_dir} is incomplete: missing {', '.join(missing)}")
+    check_model_files(model_dir)  # a truncated file would make pycolmap allocate gigabytes or read junk
     pycolmap = _pycolmap()
     try:
         rec = pycolmap.Reconstruction(str(model_dir))

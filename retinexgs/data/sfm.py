@@ -7,16 +7,22 @@ mapping; the largest model is kept. Dark folders (median luma < 0.25) are first 
 from those copies; the mapper reads point colours from the originals.
 
 Output folder (default ``<scene>/retinexgs_sfm``): ``sparse/0`` (binary model), ``database.db``,
-``enhanced/`` and ``retinexgs_sfm.json`` (the inputs and options of the run). A later call with the same
-photos (names, sizes, modification times) and options reuses the model. The model and database are
-built in a temporary folder and moved into place with ``os.replace``. A call that fails (or is interrupted)
-removes what it made: the output folder when it made it, else the ``enhanced/`` folder when it made that.
+``enhanced/`` and ``retinexgs_sfm.json`` (the inputs and options of the run; also the mark that the folder's
+COLMAP files are this command's). A later call with the same photos (names and contents, by SHA-256) and
+options reuses the model. COLMAP files (``database.db``, ``sparse/``) in the output folder without that mark are
+the user's: they are replaced only with ``force``. The model and database are built in a temporary folder
+(``.tmp-sfm-<pid>-<host>-*``) and moved into place with ``os.replace``. A call that fails (or is interrupted)
+removes what it made: the output folder when it made it, else the ``enhanced/`` folder when it made that; the
+temporary folders of killed runs (their process gone) are removed by the next call. Enhanced copies are reused
+when their source's content digest and the enhancement method match ``.retinexgs_enhanced.json``.
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import shutil
+import socket
 import sys
 import tempfile
 import time
@@ -26,14 +32,21 @@ from pathlib import Path
 from typing import Callable, List, Optional, Union
 
 from retinexgs.data.camera import COLMAP_MODELS
-from retinexgs.data.images import image_size, is_fresh, list_images, read_image, write_image_atomic
+from retinexgs.data.images import image_size, list_images, read_image, write_image_atomic
 from retinexgs.errors import UserError
+from retinexgs.fileio import atomic_write_text, content_digest, is_out_of_space, out_of_space_error
 from retinexgs.data.colmap import keep_python_sigterm
 from retinexgs.data.enhance import METHOD as enhance_method
 from retinexgs.data.enhance import enhance_for_features, folder_is_dark
 
 EXHAUSTIVE_MAX = 100
+SEQUENTIAL_OVERLAP = 15
 Progress = Callable[[str], None]
+META_NAME = "retinexgs_sfm.json"
+ENHANCED_MANIFEST = ".retinexgs_enhanced.json"
+TMP_PREFIX = ".tmp-sfm-"
+# A temporary folder of another host, or of the old unnamed kind, is taken as abandoned after this long.
+STALE_TMP_SECONDS = 24 * 3600
 
 
 @dataclass
@@ -110,6 +123,84 @@ def check_camera_model(name: str) -> str:
     return model
 
 
+def _made_by_sfm(meta_path: Path) -> bool:
+    """True when ``meta_path`` is this command's record (a JSON object with a ``signature``): the COLMAP files
+    next to it are then this command's own output, replaced freely."""
+    try:
+        meta = json.loads(meta_path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return isinstance(meta, dict) and "signature" in meta
+
+
+def foreign_colmap_files(out_dir: Path) -> List[str]:
+    """COLMAP files in ``out_dir`` that ``retinexgs sfm`` did not make (database.db, sparse/): the user's, kept
+    unless ``force``."""
+    out_dir = Path(out_dir)
+    found = [n for n in ("database.db", "sparse") if (out_dir / n).exists() or (out_dir / n).is_symlink()]
+    if found and _made_by_sfm(out_dir / META_NAME):
+        return []
+    return found
+
+
+def _host_tag() -> str:
+    return hashlib.sha1(socket.gethostname().encode("utf-8", "replace")).hexdigest()[:8]
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OSError):  # another user's process, or cannot ask: take it as running
+        return True
+    return True
+
+
+def clear_leftovers(out_dir: Path, say: Progress = lambda _m: None) -> List[Path]:
+    """Remove the ``.tmp-sfm-*`` folders in ``out_dir`` left by killed runs (their process, on this host, is
+    gone; another host's or an unnamed one only when untouched for a day); returns those removed. Nothing else
+    is touched, and a running call's folder is kept."""
+    removed: List[Path] = []
+    try:
+        entries = list(Path(out_dir).iterdir())
+    except OSError:
+        return removed
+    host, now = _host_tag(), time.time()
+    for d in entries:
+        if not d.name.startswith(TMP_PREFIX) or d.is_symlink() or not d.is_dir():
+            continue
+        parts = d.name[len(TMP_PREFIX):].split("-")
+        try:
+            age = now - d.stat().st_mtime
+        except OSError:
+            continue
+        if len(parts) >= 3 and parts[0].isdigit() and parts[1] == host:
+            pid = int(parts[0])
+            stale = pid != os.getpid() and not _pid_alive(pid)
+        else:
+            stale = age > STALE_TMP_SECONDS
+        if stale:
+            shutil.rmtree(d, ignore_errors=True)
+            removed.append(d)
+    if removed:
+        say(f"removed {len(removed)} temporary folder{'s' if len(removed) > 1 else ''} of an interrupted run")
+    return removed
+
+
+def sequential_pair_count(n: int, overlap: int, quadratic: bool) -> int:
+    """Photo pairs sequential matching compares (each photo with the next ``overlap``, and with those
+    2^k ahead for k < overlap when ``quadratic``), as COLMAP's sequential pairing does."""
+    pairs = set()
+    for i in range(n):
+        for k in range(overlap):
+            if i + k + 1 < n:
+                pairs.add((i, i + k + 1))
+            if quadratic and i + (1 << k) < n:
+                pairs.add((i, i + (1 << k)))
+    return len(pairs)
+
+
 def default_sfm_dir(image_dir: Path) -> Path:
     """``<scene>/retinexgs_sfm`` where the scene is the photo folder, or its parent if it is named images/."""
     image_dir = Path(image_dir)
@@ -125,11 +216,15 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
 
     ``matching`` is "auto", "exhaustive" or "sequential"; ``enhance`` is "auto" (dark folders only), True
     or False. Returns a :class:`SfmResult`; reuses a cached model unless ``force``. Raises UserError for
-    an empty folder, unreadable photos, or when no model can be built.
+    an empty folder, unreadable photos, or when no model can be built, and when ``out`` holds COLMAP files
+    (database.db, sparse/) this function did not make, unless ``force`` (which also recomputes a cached
+    model).
     """
     say = progress or (lambda _msg: None)
     check_sfm_numbers(max_num_features, max_image_size, num_threads)
     image_dir = Path(images)
+    if image_dir.exists() and not image_dir.is_dir():
+        raise UserError(f"image folder {image_dir} is a file, not a folder: pass the folder that holds the photos")
     if not image_dir.is_dir():
         raise UserError(f"image folder {image_dir} does not exist")
     paths = list_images(image_dir)
@@ -144,12 +239,22 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
         matching = "exhaustive" if len(paths) <= EXHAUSTIVE_MAX else "sequential"
     out_dir = Path(out) if out is not None else default_sfm_dir(image_dir)
     sizes = {p.name: image_size(p) for p in paths}  # also rejects unreadable files early
+    if out_dir.exists() and not out_dir.is_dir():
+        raise UserError(f"SfM output folder {out_dir} is a file, not a folder: choose another --out")
+    foreign = foreign_colmap_files(out_dir)
+    if foreign and not force:
+        raise UserError(f"SfM output folder {out_dir} already holds COLMAP files that retinexgs sfm did not make "
+                        f"({', '.join(foreign)}); they would be replaced: choose another --out, or pass --force "
+                        f"to replace them")
+    # keyed by content: a photo replaced by one with an older mtime (cp -p) is noticed
+    digests = {p.name: content_digest(p) for p in paths}
+    if out_dir.is_dir():
+        clear_leftovers(out_dir, say)  # a killed run's temporary folder (a cached call clears it too)
     options = dict(matching=matching, enhance=str(enhance), enhance_method=enhance_method, camera_model=camera_model,
                    single_camera=single_camera, max_num_features=max_num_features,
                    max_image_size=max_image_size, seed=seed)
-    signature = dict(options=options, images=[[p.name, list(sizes[p.name]), p.stat().st_mtime_ns]
-                                              for p in paths])
-    meta_path = out_dir / "retinexgs_sfm.json"
+    signature = dict(options=options, images=[[p.name, list(sizes[p.name]), digests[p.name]] for p in paths])
+    meta_path = out_dir / META_NAME
     model_dir = out_dir / "sparse" / "0"
     if not force and model_dir.is_dir() and meta_path.is_file():
         try:
@@ -169,6 +274,8 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
+        if is_out_of_space(exc, out_dir):
+            raise out_of_space_error(out_dir / "database.db") from None
         raise UserError(f"cannot create SfM output folder {out_dir}: {exc}") from None
     made_enhanced = None
 
@@ -176,6 +283,18 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
         for made in (made_out, made_enhanced):
             if made is not None:
                 shutil.rmtree(made, ignore_errors=True)
+        if made_enhanced is not None:  # the record of copies that are gone
+            try:
+                (out_dir / ENHANCED_MANIFEST).unlink()
+            except OSError:
+                pass
+
+    def full_disk(exc: BaseException) -> Optional[UserError]:
+        """The one-line error when ``exc`` means the output disk is full (COLMAP says only "No registered
+        database factory succeeded" when it cannot create the database)."""
+        if isinstance(exc, Exception) and not isinstance(exc, UserError) and is_out_of_space(exc, out_dir):
+            return out_of_space_error(out_dir / "database.db")
+        return None
 
     try:
         # 1. brightened + denoised copies for feature extraction
@@ -185,21 +304,34 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
             feature_dir = out_dir / "enhanced"
             made_enhanced = None if feature_dir.exists() else feature_dir
             say(f"brightening and denoising {len(paths)} dark photos into {feature_dir}")
+            manifest_path = out_dir / ENHANCED_MANIFEST  # beside, not among, the copies
+            try:  # which source content each copy was made from: the copies' cache key
+                manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
+                made_from = manifest["sources"] if manifest.get("method") == enhance_method else {}
+                made_from = made_from if isinstance(made_from, dict) else {}
+            except (OSError, ValueError, KeyError, TypeError, AttributeError):
+                made_from = {}
 
             def work(p: Path) -> None:
                 dst = feature_dir / p.name
-                if not is_fresh(dst, p):
+                if made_from.get(p.name) != digests[p.name] or not dst.is_file():
                     write_image_atomic(dst, enhance_for_features(read_image(p)), quality=97)
 
             with ThreadPoolExecutor(max_workers=min(8, os.cpu_count() or 1)) as pool:
                 list(pool.map(work, paths))
+            made_from.update(digests)
+            atomic_write_text(manifest_path, json.dumps(dict(method=enhance_method, sources=made_from), indent=1))
             stages["enhance"] = time.perf_counter() - t0
 
         same_size = len(set(sizes.values())) == 1
         names = [p.name for p in paths]
-        tmp = Path(tempfile.mkdtemp(prefix=".tmp-sfm-", dir=out_dir))
-    except BaseException:
+        # pid and host in the name: a later call knows when the run that made it is gone (clear_leftovers)
+        tmp = Path(tempfile.mkdtemp(prefix=f"{TMP_PREFIX}{os.getpid()}-{_host_tag()}-", dir=out_dir))
+    except BaseException as exc:
         discard()
+        full = full_disk(exc)
+        if full is not None:
+            raise full from None
         raise
     old_level = pycolmap.logging.minloglevel
     # COLMAP's INFO/WARNING lines would drown the progress display, and its ERROR lines (a glog "E2026..."
@@ -219,33 +351,43 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
         pycolmap.extract_features(db, feature_dir, image_names=names, camera_mode=mode, reader_options=reader,
                                   extraction_options=ext, device=pycolmap.Device.cpu)
         stages["extract"] = time.perf_counter() - t
+        say(f"extracted features in {stages['extract']:.1f} s")
 
         t = time.perf_counter()
-        say(f"{matching} matching")
         mopt = pycolmap.FeatureMatchingOptions()
         mopt.num_threads = num_threads
+        # pycolmap reports nothing while it matches (tens of seconds at 50 photos): say how much work it is
         if matching == "exhaustive":
+            say(f"matching {len(paths) * (len(paths) - 1) // 2} photo pairs (exhaustive)...")
             pycolmap.match_exhaustive(db, matching_options=mopt, device=pycolmap.Device.cpu)
         else:
             pair = pycolmap.SequentialPairingOptions()
-            pair.overlap = 15
+            pair.overlap = SEQUENTIAL_OVERLAP
+            n_pairs = sequential_pair_count(len(paths), pair.overlap, bool(pair.quadratic_overlap))
+            say(f"matching {n_pairs} photo pairs (sequential)...")
             pycolmap.match_sequential(db, matching_options=mopt, pairing_options=pair, device=pycolmap.Device.cpu)
         stages["match"] = time.perf_counter() - t
+        say(f"matched in {stages['match']:.1f} s")
 
         t = time.perf_counter()
         popt = pycolmap.IncrementalPipelineOptions()
         popt.num_threads = num_threads
         popt.random_seed = seed
         popt.min_model_size = min(popt.min_model_size, max(2, len(paths) // 2))
-        count = [0]
+        count, model_no = [0], [0]
 
+        # COLMAP calls these for every model it builds: a second model starts a new count (counting across
+        # models showed "13/10 photos")
         def initial_pair() -> None:
-            count[0] += 2
-            say(f"mapping: initial pair, {count[0]}/{len(paths)} photos")
+            model_no[0] += 1
+            count[0] = 2
+            label = f" model {model_no[0]}," if model_no[0] > 1 else ""
+            say(f"mapping:{label} initial pair, {min(count[0], len(paths))}/{len(paths)} photos")
 
         def next_image() -> None:
             count[0] += 1
-            say(f"mapping: {count[0]}/{len(paths)} photos")
+            label = f" model {model_no[0]}," if model_no[0] > 1 else ""
+            say(f"mapping:{label} {min(count[0], len(paths))}/{len(paths)} photos")
 
         say("incremental mapping")
         models = pycolmap.incremental_mapping(db, image_dir, tmp / "models", options=popt,
@@ -262,6 +404,9 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
         num_points = best.num_points3D()
         seconds = time.perf_counter() - t0
 
+        # mark the folder as this command's before its COLMAP files change (no signature match: no cache hit
+        # until the final record), so a run killed between the moves is not taken for the user's files
+        atomic_write_text(meta_path, json.dumps(dict(signature=None, result=None)))
         # move into place: old model aside, new one in, then drop the old one
         (out_dir / "sparse").mkdir(exist_ok=True)
         if model_dir.exists():
@@ -274,8 +419,11 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
         meta_tmp = tmp / "meta.json"
         meta_tmp.write_text(json.dumps(dict(signature=signature, result=result), indent=1))
         os.replace(meta_tmp, meta_path)
-    except BaseException:
+    except BaseException as exc:
         discard()
+        full = full_disk(exc)
+        if full is not None:
+            raise full from None
         raise
     finally:
         pycolmap.logging.minloglevel = old_level
