@@ -42,6 +42,14 @@ def register(subparsers) -> None:
                    help="channel gains of a colour cast, e.g. 0.8,1,1.25 for blue (default 1,1,1)")
     p.add_argument("--jpeg-quality", type=int, default=90, help="JPEG quality, 0 = PNG (default 90)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--raw", action="store_true",
+                   help="write what a camera writes at night: OUT/raw/ with low/NAME.dng (14- or 12-bit Bayer "
+                        "mosaic, black level, white balance, colour matrix, NoiseProfile, EXIF exposure) and "
+                        "OUT/jpeg/, the camera's own JPEGs of the same photons (retinexgs/data/raw_sim.py)")
+    p.add_argument("--bits", type=int, default=None, help="with --raw: the raw's bit depth, 12 or 14 (default 14)")
+    p.add_argument("--cfa", default=None, type=str.upper,
+                   help="with --raw: the Bayer pattern from the top-left pixel, RGGB, BGGR, GRBG or GBRG "
+                        "(default RGGB)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_darken)
 
@@ -67,7 +75,19 @@ def _darken(args: argparse.Namespace) -> int:
     model = SensorModel(exposure=args.exposure, exposure_jitter=args.exposure_jitter,
                         full_well=args.full_well or None, read_noise=args.read_noise, cast=args.cast,
                         jpeg_quality=args.jpeg_quality)
-    report = darken_scene(args.data, args.out, model, seed=args.seed, progress=not args.quiet)
+    camera = None
+    if args.raw:
+        from retinexgs.data.raw_sim import RawCamera  # lazy: --help stays fast
+
+        camera = RawCamera(bits=14 if args.bits is None else args.bits, cfa=args.cfa or "RGGB")
+    elif args.bits is not None or args.cfa is not None:
+        raise UserError(f"{'--bits' if args.bits is not None else '--cfa'} applies only to raw files: "
+                        f"add --raw, or leave it out")
+    report = darken_scene(args.data, args.out, model, seed=args.seed, progress=not args.quiet, raw=camera)
+    if camera is not None:
+        print(f"{report.photos} dark raw photos (DNG) written to {report.out / 'raw'} and the camera's JPEGs of "
+              f"the same captures to {report.out / 'jpeg'} (model and exposures in {report.out / 'sensor.json'})")
+        return 0
     print(f"{report.photos} dark photos written to {report.out} (model and exposures in "
           f"{report.out / 'sensor.json'})")
     return 0

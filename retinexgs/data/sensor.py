@@ -30,7 +30,7 @@ import math
 import shutil
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Dict, List, Optional, Tuple
+from typing import TYPE_CHECKING, Dict, List, Optional, Tuple
 
 import numpy as np
 
@@ -38,6 +38,9 @@ from retinexgs.data.srgb import linear_to_srgb, srgb_to_linear  # noqa: F401 (re
 from retinexgs.data.images import list_images, no_images_reason, read_image_float, write_image_atomic
 from retinexgs.errors import UserError
 from retinexgs.fileio import atomic_write_text, check_writable_folder, is_out_of_space, out_of_space_error
+
+if TYPE_CHECKING:  # a type hint only: raw_sim is imported lazily where --raw uses it
+    from retinexgs.data.raw_sim import RawCamera
 
 
 @dataclass(frozen=True)
@@ -106,14 +109,20 @@ def _scene_photos(src: Path) -> Tuple[Path, List[Tuple[Path, str]]]:
     return src, [(p, p.name) for p in list_images(src)]
 
 
-def darken_scene(src: Path, out: Path, model: SensorModel, seed: int = 0, progress: bool = True) -> DarkenReport:
+def darken_scene(src: Path, out: Path, model: SensorModel, seed: int = 0, progress: bool = True,
+                 raw: Optional["RawCamera"] = None) -> DarkenReport:
     """Darken the normal-light photos of ``src`` into the new folder ``out``.
 
     ``src`` is a scene in LOM's layout (``high/`` photos with ``transforms_*.json``, ``split.json``,
     ``colmap_sparse/``; the poses are copied, ``high/`` too, and ``low/`` is written from ``high/``, so the result
     trains and scores like LOM's own scenes) or a plain folder of photos (darkened beside nothing else).
-    ``out/sensor.json`` records the model, the seed and every view's exposure."""
+    ``out/sensor.json`` records the model, the seed and every view's exposure.
+
+    ``raw`` (a :class:`retinexgs.data.raw_sim.RawCamera`): simulate the camera's raw files instead, see
+    :func:`_darken_raw`: ``out/raw/`` (DNGs) and ``out/jpeg/`` (the camera's JPEGs of the same photons)."""
     model.check()
+    if raw is not None:
+        return _darken_raw(Path(src), Path(out), model, raw, seed, progress)
     src, out = Path(src), Path(out)
     if not src.is_dir():
         raise UserError(f"{src} is not a folder of photos or a scene folder")
@@ -129,21 +138,12 @@ def darken_scene(src: Path, out: Path, model: SensorModel, seed: int = 0, progre
     try:
         out.mkdir(parents=True, exist_ok=True)
         if folder != src:
-            for item in sorted(src.iterdir()):
-                if item.name in ("low", "retinex_cache", "retinexgs_sfm") or item.name.startswith("."):
-                    continue
-                if item.is_dir():
-                    shutil.copytree(item, out / item.name)
-                else:
-                    shutil.copy2(item, out / item.name)
+            _copy_scene(src, out)
         from tqdm import tqdm
         for photo, rel in tqdm(jobs, desc="darken", disable=not progress, dynamic_ncols=True):
             k = model.view_exposure(rng)
             dark = model.darken(read_image_float(photo), k, rng)
-            target = out / rel  # the source's name and format: a .png keeps the JPEG's loss, losslessly
-            if model.jpeg_quality and target.suffix.lower() not in (".jpg", ".jpeg"):
-                dark = jpeg_roundtrip(dark, model.jpeg_quality)
-            write_image_atomic(target, dark, quality=model.jpeg_quality or 95)
+            _write_dark_photo(out / rel, dark, model.jpeg_quality)
             report.exposures[rel] = round(k, 6)
         atomic_write_text(out / "sensor.json", json.dumps(
             {"model": asdict(model), "seed": seed, "source": str(src.resolve()),
@@ -151,6 +151,131 @@ def darken_scene(src: Path, out: Path, model: SensorModel, seed: int = 0, progre
     except BaseException as exc:
         _remove_made(out, made)  # nothing half-made is left behind
         if isinstance(exc, (OSError, shutil.Error)):  # shutil.Error: copytree's list of failed copies
+            if is_out_of_space(exc, out.parent):
+                raise out_of_space_error(out) from None
+            raise UserError(f"--out {out}: cannot write the dark scene there ({_first_reason(exc)}); "
+                            "choose another --out") from None
+        raise
+    return report
+
+
+def _copy_scene(src: Path, dst: Path) -> None:
+    """Copy a LOM-layout scene's poses, splits and ``high/`` into ``dst`` (not ``low/`` nor caches)."""
+    for item in sorted(src.iterdir()):
+        if item.name in ("low", "retinex_cache", "retinexgs_cache", "retinexgs_sfm") or item.name.startswith("."):
+            continue
+        if item.is_dir():
+            shutil.copytree(item, dst / item.name)
+        else:
+            shutil.copy2(item, dst / item.name)
+
+
+def _write_dark_photo(target: Path, dark: np.ndarray, quality: int) -> None:
+    """Write a dark uint8 photo under the source's name and format: a .png keeps the JPEG's loss, losslessly."""
+    if quality and target.suffix.lower() not in (".jpg", ".jpeg"):
+        dark = jpeg_roundtrip(dark, quality)
+    write_image_atomic(target, dark, quality=quality or 95)
+
+
+def _dng_name(name: str) -> str:
+    """``0001.png`` -> ``0001.dng``; a name without an image extension (allowed in transforms) gets ``.dng``."""
+    from retinexgs.data.images import IMAGE_EXTENSIONS
+
+    p = Path(name)
+    return (p.stem if p.suffix.lower() in IMAGE_EXTENSIONS else p.name) + ".dng"
+
+
+def _rename_to_dng(scene: Path) -> None:
+    """Make a copied LOM scene name its raw files: every transforms frame in ``low/`` or ``high/`` becomes
+    ``low/NAME.dng`` (the input of a view is its low/ file; the DNG is it), and split.json's names NAME.dng."""
+    for js in sorted(scene.glob("transforms*.json")):
+        try:
+            data = json.loads(js.read_text())
+        except (OSError, ValueError) as exc:
+            raise UserError(f"{js}: not a readable transforms JSON ({exc}); fix or remove it") from None
+        for frame in data.get("frames", []) if isinstance(data, dict) else []:
+            fp = frame.get("file_path") if isinstance(frame, dict) else None
+            if isinstance(fp, str) and Path(fp.replace("\\", "/")).parent.name in ("low", "high"):
+                frame["file_path"] = "low/" + _dng_name(Path(fp.replace("\\", "/")).name)
+        atomic_write_text(js, json.dumps(data, indent=2))
+    split = scene / "split.json"
+    if split.is_file():
+        try:
+            data = json.loads(split.read_text())
+        except (OSError, ValueError) as exc:
+            raise UserError(f"{split}: not readable JSON ({exc}); fix or remove it") from None
+        if isinstance(data, dict):
+            data = {k: [_dng_name(v) if isinstance(v, str) else v for v in vals] if isinstance(vals, list) else vals
+                    for k, vals in data.items()}
+            atomic_write_text(split, json.dumps(data, indent=2))
+
+
+def _darken_raw(src: Path, out: Path, model: SensorModel, camera: "RawCamera", seed: int,
+                progress: bool) -> DarkenReport:
+    """``darken --raw``: each normal-light photo becomes the raw file a camera writes at night and that
+    camera's own JPEG of the same noisy mosaic (retinexgs/data/raw_sim.py has the pipeline):
+
+    - ``out/raw/``: the scene with ``low/NAME.dng`` (its transforms JSON and split.json renamed to the DNGs;
+      ``high/`` and ``colmap_sparse/`` copied as they are);
+    - ``out/jpeg/``: the same scene with ``low/NAME`` the camera JPEG (the source's name and format, as the
+      JPEG ``darken`` writes), a complete scene that trains today;
+    - ``sensor.json`` in ``out/`` and in each: the model, the camera (matrix, white balance, CFA, bits, black,
+      white, NoiseProfile) and every view's exposure.
+
+    A plain folder of photos gives ``out/raw/NAME.dng`` and ``out/jpeg/NAME``."""
+    from retinexgs.data import raw_sim
+
+    camera.check()
+    camera.black_level(model.full_well, model.read_noise)  # a read noise no raw range holds: one line, now
+    if not src.is_dir():
+        raise UserError(f"{src} is not a folder of photos or a scene folder")
+    if out.exists() and any(out.iterdir()):
+        raise UserError(f"{out} already exists and is not empty; choose another --out")
+    folder, jobs = _scene_photos(src)
+    if not jobs:
+        raise UserError(f"no photos in {folder}: {no_images_reason(folder)}")
+    names: Dict[str, Path] = {}
+    for photo, _ in jobs:
+        other = names.setdefault(_dng_name(photo.name), photo)
+        if other != photo:
+            raise UserError(f"{other.name} and {photo.name} in {folder} would both become {_dng_name(photo.name)}; "
+                            f"rename one of them")
+    rng = np.random.default_rng(seed)
+    report = DarkenReport(out, len(jobs))
+    check_writable_folder(out)
+    made = not out.exists()
+    raw_dir, jpeg_dir = out / "raw", out / "jpeg"
+    black = camera.black_level(model.full_well, model.read_noise)
+    times: Dict[str, float] = {}
+    try:
+        for d in (raw_dir, jpeg_dir):
+            d.mkdir(parents=True, exist_ok=True)
+            if folder != src:
+                _copy_scene(src, d)
+        if folder != src:
+            _rename_to_dng(raw_dir)
+        from tqdm import tqdm
+        for photo, rel in tqdm(jobs, desc="darken --raw", disable=not progress, dynamic_ncols=True):
+            k = model.view_exposure(rng)
+            dn = raw_sim.capture_mosaic(read_image_float(photo), model, camera, k, rng)
+            rel_dng = Path(rel).with_name(_dng_name(photo.name)).as_posix()
+            (raw_dir / rel_dng).parent.mkdir(parents=True, exist_ok=True)
+            raw_sim.write_raw_view(raw_dir / rel_dng, dn, camera, model, k)
+            (jpeg_dir / rel).parent.mkdir(parents=True, exist_ok=True)
+            _write_dark_photo(jpeg_dir / rel, raw_sim.to_uint8(raw_sim.process(dn, camera, black)),
+                              model.jpeg_quality)
+            report.exposures[rel] = round(k, 6)
+            times[rel_dng] = camera.normal_time * k  # what the DNG's EXIF says (at camera.iso, f_number)
+        record = {"model": asdict(model), "camera": camera.record(model.full_well, model.read_noise),
+                  "seed": seed, "source": str(src.resolve()), "layout": {"raw": "raw/", "jpeg": "jpeg/"},
+                  "view_exposures": report.exposures, "raw_exposure_times": times}
+        text = json.dumps(record, indent=1)
+        atomic_write_text(raw_dir / "sensor.json", text)
+        atomic_write_text(jpeg_dir / "sensor.json", text)
+        atomic_write_text(out / "sensor.json", text)  # last: its presence says the whole capture is written
+    except BaseException as exc:
+        _remove_made(out, made)
+        if isinstance(exc, (OSError, shutil.Error)):
             if is_out_of_space(exc, out.parent):
                 raise out_of_space_error(out) from None
             raise UserError(f"--out {out}: cannot write the dark scene there ({_first_reason(exc)}); "
