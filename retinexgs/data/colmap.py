@@ -21,7 +21,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from retinexgs.data.camera import Camera, c2w_from_w2c, camera_from_colmap, check_rotation
-from retinexgs.data.raw import RawScene, RawView
+from retinexgs.data.declared import DeclaredScene, DeclaredView
 from retinexgs.errors import UserError
 from retinexgs.data.pairing import check_same_files
 
@@ -364,7 +364,7 @@ def similarity_from_centres(src: np.ndarray, dst: np.ndarray) -> Tuple[float, np
     return s, R, mu_d - s * R @ mu_s
 
 
-def points_in_frame_of(model: ColmapModel, views: Sequence[RawView]) -> np.ndarray:
+def points_in_frame_of(model: ColmapModel, views: Sequence[DeclaredView]) -> np.ndarray:
     """The model's points expressed in the world frame of ``views`` (matched to model images by file name).
 
     LOM and instant-ngp JSON poses may be a re-centred/rotated/scaled copy of the COLMAP frame; the
@@ -401,7 +401,7 @@ def read_split(root: Path) -> Optional[Dict[str, List[str]]]:
     return {k: [Path(str(n)).name for n in v] for k, v in data.items()}
 
 
-def split_views(views: List[RawView], root: Path, test_every: int) -> Tuple[List[RawView], List[RawView]]:
+def split_views(views: List[DeclaredView], root: Path, test_every: int) -> Tuple[List[DeclaredView], List[DeclaredView]]:
     """Split views into (train, test) by split.json, or every ``test_every``-th view, or all train."""
     views = sorted(views, key=lambda v: v.name)
     split = read_split(root)
@@ -441,8 +441,8 @@ def choose_image_dir(root: Path, names: Sequence[str], given: Optional[Path], wh
 
 
 def read_colmap_scene(root: Path, model_dir: Optional[Path] = None, images: Optional[Path] = None,
-                      test_every: int = 0, reader: str = "colmap") -> RawScene:
-    """Read a scene folder with a COLMAP model into a :class:`RawScene`."""
+                      test_every: int = 0, reader: str = "colmap") -> DeclaredScene:
+    """Read a scene folder with a COLMAP model into a :class:`DeclaredScene`."""
 
     root = Path(root)
     model_dir = Path(model_dir) if model_dir is not None else find_model_dir(root)
@@ -459,7 +459,7 @@ def read_colmap_scene(root: Path, model_dir: Optional[Path] = None, images: Opti
         check_same_files(image_dir, high)
     views = []
     for im in model.images.values():
-        views.append(RawView(im.name, image_dir / im.name, model.cameras[im.camera_id], im.c2w,
+        views.append(DeclaredView(im.name, image_dir / im.name, model.cameras[im.camera_id], im.c2w,
                              high / im.name if paired else None))
     train, test = split_views(views, root, test_every)
-    return RawScene(root, reader, train, test, [], model.points, model.colors, "colmap")
+    return DeclaredScene(root, reader, train, test, [], model.points, model.colors, "colmap")

@@ -1,5 +1,7 @@
-"""What readers hand to :func:`retinexgs.data.load_scene` before images are processed and the world is
-normalised: views with their original (possibly distorted) cameras and world-frame poses."""
+"""A scene as its files declare it: what readers (transforms JSON, COLMAP, SfM) hand to
+:func:`retinexgs.data.load_scene` before images are processed and the world is normalised: views with their
+original (possibly distorted) cameras and world-frame poses. (Not "raw": that word is camera RAW's,
+:mod:`retinexgs.data.camera_raw`.)"""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -12,8 +14,8 @@ from retinexgs.data.camera import Camera
 
 
 @dataclass
-class RawView:
-    """A view as read from disk: source image, camera as declared, camera-to-world (OpenCV axes, world frame)."""
+class DeclaredView:
+    """A view as its files declare it: source image, camera as declared, camera-to-world (OpenCV axes, world frame)."""
 
     name: str
     image: Path
@@ -23,14 +25,14 @@ class RawView:
 
 
 @dataclass
-class RawScene:
+class DeclaredScene:
     """A reader's output: views per split, and world-frame points (None when the input has none)."""
 
     root: Path
     reader: str
-    train: List[RawView]
-    test: List[RawView] = field(default_factory=list)
-    val: List[RawView] = field(default_factory=list)
+    train: List[DeclaredView]
+    test: List[DeclaredView] = field(default_factory=list)
+    val: List[DeclaredView] = field(default_factory=list)
     points: Optional[np.ndarray] = None  # [P,3] float64
     colors: Optional[np.ndarray] = None  # [P,3] uint8
     points_source: str = "colmap"

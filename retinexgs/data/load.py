@@ -27,7 +27,7 @@ import torch
 
 from retinexgs.data.camera import Camera
 from retinexgs.data.images import image_size, list_images, no_images_reason
-from retinexgs.data.raw import RawScene, RawView
+from retinexgs.data.declared import DeclaredScene, DeclaredView
 from retinexgs.data.scene import Normalization, Scene, View, warn
 from retinexgs.data.undistort import output_camera, plan_paths, process_all
 from retinexgs.errors import UserError
@@ -67,7 +67,7 @@ def _sfm_image_dir(root: Path, images: Optional[PathLike]) -> Optional[Path]:
     return None
 
 
-def _fit_camera(view: RawView) -> Camera:
+def _fit_camera(view: DeclaredView) -> Camera:
     """The view's camera adjusted to the actual image size (same aspect ratio), else UserError."""
     w, h = image_size(view.image)
     cam = view.camera
@@ -89,7 +89,7 @@ def _shown(root: Path, path: Path) -> str:
         return str(path)
 
 
-def _split_label(raw: RawScene, split: str) -> str:
+def _split_label(raw: DeclaredScene, split: str) -> str:
     """Where a split's views are listed: the transforms JSON file, else 'the <split> split'."""
     if raw.reader == "transforms":
         return (f"transforms_{split}.json" if (Path(raw.root) / "transforms_train.json").is_file()
@@ -97,7 +97,7 @@ def _split_label(raw: RawScene, split: str) -> str:
     return f"the {split} split"
 
 
-def _check_views(raw: RawScene) -> None:
+def _check_views(raw: DeclaredScene) -> None:
     """Refuse what cannot train, warn about what is doubtful:
 
     * fewer than 2 training views: UserError (one photo has no parallax, so no 3D to reconstruct);
@@ -139,9 +139,9 @@ def _check_views(raw: RawScene) -> None:
              "are not held-out (recorded as test_in_train in metrics.json); list them in one split only")
 
 
-def _warn_rescaled(raw: RawScene, cams: Dict[int, Camera]) -> None:
+def _warn_rescaled(raw: DeclaredScene, cams: Dict[int, Camera]) -> None:
     """One warning per camera size that disagrees with its images' size (the intrinsics are rescaled)."""
-    seen: Dict[Tuple[int, int, int, int], List[RawView]] = {}
+    seen: Dict[Tuple[int, int, int, int], List[DeclaredView]] = {}
     for v in raw.train + raw.test + raw.val:
         declared, fitted = v.camera, cams[id(v)]
         if (declared.width, declared.height) != (fitted.width, fitted.height):
@@ -155,7 +155,7 @@ def _warn_rescaled(raw: RawScene, cams: Dict[int, Camera]) -> None:
              f"the intrinsics (focal length, principal point) are rescaled by {factor} to fit the images")
 
 
-def _normalization(train: List[RawView]) -> Normalization:
+def _normalization(train: List[DeclaredView]) -> Normalization:
     centres = np.stack([v.c2w[:3, 3] for v in train])
     centre = centres.mean(0)
     radius = float(np.linalg.norm(centres - centre, axis=1).max())
@@ -204,7 +204,7 @@ MIN_IMAGE_SIDE = 11
 CACHE_HINT = "cache_dir=DIR"
 
 
-def _check_downscale(downscale: float, cams: Dict[int, Camera], views: List[RawView]) -> None:
+def _check_downscale(downscale: float, cams: Dict[int, Camera], views: List[DeclaredView]) -> None:
     """UserError, before anything is written, when ``downscale`` leaves a view too small to use."""
     for v in views:
         cam = cams[id(v)]
@@ -216,10 +216,10 @@ def _check_downscale(downscale: float, cams: Dict[int, Camera], views: List[RawV
                             f"most {max(1.0, float(int(largest * 10) / 10)):g})")
 
 
-def build_scene(raw: RawScene, downscale: float = 1, cache_dir: Optional[PathLike] = None,
+def build_scene(raw: DeclaredScene, downscale: float = 1, cache_dir: Optional[PathLike] = None,
                 normalize: bool = True, num_random_points: int = 50_000, seed: int = 0,
                 cache_hint: str = CACHE_HINT) -> Scene:
-    """Turn a reader's :class:`RawScene` into a :class:`Scene` (images processed into the cache).
+    """Turn a reader's :class:`DeclaredScene` into a :class:`Scene` (images processed into the cache).
 
     Every image's size is checked before the cache is touched; the cache's files of one call appear
     together or not at all. ``cache_hint`` is how the caller's interface spells moving the caches
@@ -311,7 +311,7 @@ def load_scene(path: PathLike, reader: str = "auto", downscale: float = 1, *, im
             raise UserError(f"no photos found in {root}, {root / 'images'} or {root / 'low'}: "
                             f"{no_images_reason(root)}")
         if downscale >= 1:  # refuse a useless downscale before SfM writes its model
-            photos = [RawView(p.name, p, Camera(*image_size(p), 1.0, 1.0, 0.0, 0.0), np.eye(4))
+            photos = [DeclaredView(p.name, p, Camera(*image_size(p), 1.0, 1.0, 0.0, 0.0), np.eye(4))
                       for p in list_images(image_dir)]
             _check_downscale(downscale, {id(v): v.camera for v in photos}, photos)
         out = Path(cache_dir) / "sfm" if cache_dir is not None else root / "retinexgs_sfm"

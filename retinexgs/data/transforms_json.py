@@ -24,7 +24,7 @@ import numpy as np
 from retinexgs.data.camera import Camera, check_camera, check_rotation, opengl_to_opencv
 from retinexgs.data.images import IMAGE_EXTENSIONS, image_size
 from retinexgs.data.pairing import check_same_files
-from retinexgs.data.raw import RawScene, RawView
+from retinexgs.data.declared import DeclaredScene, DeclaredView
 from retinexgs.errors import UserError
 from retinexgs.data.colmap import find_model_dir, points_in_frame_of, read_model
 
@@ -150,7 +150,7 @@ def _pair(path: Path, root: Path) -> Tuple[Path, Optional[Path]]:
     return path, None
 
 
-def read_split_json(root: Path, json_path: Path) -> List[RawView]:
+def read_split_json(root: Path, json_path: Path) -> List[DeclaredView]:
     """Views of one transforms JSON file."""
     data = _load_json(json_path)
     top = {k: data[k] for k in _INTRINSIC_KEYS if k in data}
@@ -164,17 +164,17 @@ def read_split_json(root: Path, json_path: Path) -> List[RawView]:
         image, paired = _pair(listed, root)
         settings = dict(top)
         settings.update({k: frame[k] for k in _INTRINSIC_KEYS if k in frame})
-        views.append(RawView(image.name, image, _camera(settings, image, where), _pose(frame, where), paired))
+        views.append(DeclaredView(image.name, image, _camera(settings, image, where), _pose(frame, where), paired))
     return views
 
 
-def read_transforms_scene(root: Path) -> RawScene:
+def read_transforms_scene(root: Path) -> DeclaredScene:
     """Read a transforms-JSON scene folder (see the module docstring)."""
 
     root = Path(root)
     if (root / "low").is_dir() and (root / "high").is_dir():
         check_same_files(root / "low", root / "high")
-    splits: Dict[str, List[RawView]] = {s: [] for s in SPLITS}
+    splits: Dict[str, List[DeclaredView]] = {s: [] for s in SPLITS}
     if (root / "transforms_train.json").is_file():
         for s in SPLITS:
             p = root / f"transforms_{s}.json"
@@ -184,7 +184,7 @@ def read_transforms_scene(root: Path) -> RawScene:
         splits["train"] = read_split_json(root, root / "transforms.json")
     if not splits["train"]:
         raise UserError(f"{root}: transforms JSON lists no train frames")
-    scene = RawScene(root, "transforms", splits["train"], splits["test"], splits["val"], None, None, "random")
+    scene = DeclaredScene(root, "transforms", splits["train"], splits["test"], splits["val"], None, None, "random")
     model_dir = find_model_dir(root)
     if model_dir is not None:
         model = read_model(model_dir)
