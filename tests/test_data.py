@@ -18,7 +18,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from retinexgs.data import Camera, Normalization, load_scene, run_sfm
+from retinexgs.data import Intrinsics, Normalization, load_scene, run_sfm
 from retinexgs.data.camera import opengl_to_opencv, qvec_to_rotmat, rotmat_to_qvec
 from retinexgs.data.colmap import read_model, similarity_from_centres
 from retinexgs.errors import UserError
@@ -66,7 +66,7 @@ BOXES = [((-1.2, -0.8, 0.0), (-0.2, 0.4, 1.0)), ((0.3, -0.2, 0.0), (1.1, 0.9, 0.
          ((-0.5, 0.8, 0.0), (0.4, 1.4, 1.4))]
 
 
-def raycast(c2w: np.ndarray, cam: Camera) -> np.ndarray:
+def raycast(c2w: np.ndarray, cam: Intrinsics) -> np.ndarray:
     """Render the synthetic scene (pinhole camera, OpenCV axes) to uint8 RGB."""
     js, is_ = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
     d_cam = np.stack([(js - cam.cx) / cam.fx, (is_ - cam.cy) / cam.fy, np.ones_like(js)], -1).reshape(-1, 3)
@@ -96,7 +96,7 @@ def raycast(c2w: np.ndarray, cam: Camera) -> np.ndarray:
 
 
 def look_at(eye, target=(0.0, 0.2, 0.5), up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """Camera-to-world (OpenCV axes) looking from ``eye`` at ``target``."""
+    """Intrinsics-to-world (OpenCV axes) looking from ``eye`` at ``target``."""
     eye, target, up = (np.asarray(v, np.float64) for v in (eye, target, up))
     z = target - eye
     z /= np.linalg.norm(z)
@@ -130,12 +130,12 @@ def save(path: Path, rgb: np.ndarray) -> None:
 # ----------------------------------------------------------------------------------------------------
 # writers for each format
 
-SMALL = Camera(80, 60, 70.0, 71.5, 40.3, 29.8, (-0.08, 0.02, 0.001, -0.0005))
+SMALL = Intrinsics(80, 60, 70.0, 71.5, 40.3, 29.8, (-0.08, 0.02, 0.001, -0.0005))
 NAMES = [f"im{i:02d}.png" for i in range(6)]
 TEST_NAMES = {"im02.png", "im05.png"}
 
 
-def write_transforms(root: Path, cam: Camera, poses, names, test_names, images, high=None, ext=True):
+def write_transforms(root: Path, cam: Intrinsics, poses, names, test_names, images, high=None, ext=True):
     """LOM layout: low/ + high/, transforms_train.json lists low/, transforms_test.json lists high/."""
     for n, img in zip(names, images):
         save(root / "low" / n, img)
@@ -154,7 +154,7 @@ def write_transforms(root: Path, cam: Camera, poses, names, test_names, images, 
         (root / f"transforms_{split}.json").write_text(json.dumps(dict(top, frames=frames), indent=1))
 
 
-def colmap_reconstruction(cam: Camera, poses, names, points, colors, frame=(1.0, np.eye(3), np.zeros(3))):
+def colmap_reconstruction(cam: Intrinsics, poses, names, points, colors, frame=(1.0, np.eye(3), np.zeros(3))):
     """A pycolmap Reconstruction of the views; ``frame`` = (s, R, t) maps the test world into the model's."""
     import pycolmap
 
@@ -186,7 +186,7 @@ def small_scene(tmp_path_factory):
     """Small renders of six views, written as LOM transforms, COLMAP text and COLMAP binary scenes."""
     base = tmp_path_factory.mktemp("formats")
     poses = arc_poses(len(NAMES))
-    pinhole = Camera(80, 60, 70.0, 71.5, 40.3, 29.8)
+    pinhole = Intrinsics(80, 60, 70.0, 71.5, 40.3, 29.8)
     images = [raycast(p, pinhole) for p in poses]
     rng = np.random.default_rng(1)
     points = rng.uniform(-1, 1, (50, 3))
@@ -315,7 +315,7 @@ def test_text_and_binary_models_read_alike(small_scene):
 
 
 def test_transforms_fallbacks_and_overrides(tmp_path):
-    cam = Camera(40, 30, 35.0, 35.0, 20.0, 15.0)
+    cam = Intrinsics(40, 30, 35.0, 35.0, 20.0, 15.0)
     root = tmp_path / "scene"
     poses = arc_poses(3)
     for i, p in enumerate(poses):
@@ -348,7 +348,7 @@ def test_transforms_fallbacks_and_overrides(tmp_path):
 BLOB_POINTS = np.array([[0.0, 0.0, 4.0], [-1.1, -0.8, 4.0], [1.2, 0.85, 4.2], [1.3, -0.9, 4.5], [-1.0, 0.9, 3.8]])
 
 
-def _blob_image(cam: Camera, pts_cam: np.ndarray, sigma: float = 2.0) -> np.ndarray:
+def _blob_image(cam: Intrinsics, pts_cam: np.ndarray, sigma: float = 2.0) -> np.ndarray:
     uv = cam.project(pts_cam)  # distorted positions, pixel-centre convention
     xs, ys = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
     img = np.zeros((cam.height, cam.width))
@@ -371,7 +371,7 @@ def _centroid(img: np.ndarray, u: float, v: float, r: int) -> np.ndarray:
 @pytest.mark.parametrize("distorted", [True, False])
 def test_projections_consistent_after_undistort_and_downscale(tmp_path, downscale, distorted):
     dist = (-0.25, 0.06, 0.002, -0.0015) if distorted else ()
-    cam = Camera(320, 240, 260.0, 262.0, 161.3, 118.6, dist)
+    cam = Intrinsics(320, 240, 260.0, 262.0, 161.3, 118.6, dist)
     c2w = np.eye(4)
     root = tmp_path / "blobs"
     save(root / "low" / "a.png", _blob_image(cam, BLOB_POINTS))
@@ -389,7 +389,7 @@ def test_projections_consistent_after_undistort_and_downscale(tmp_path, downscal
         c = _centroid(img, u, vv, r=max(3, 8 // downscale))
         assert np.linalg.norm(c - [u, vv]) < 0.12, (c, u, vv)
     if distorted:  # the test can fail: ignoring distortion misplaces the corner blobs by pixels
-        off = [np.linalg.norm(naive.project(BLOB_POINTS[i:i + 1])[0] - Camera(
+        off = [np.linalg.norm(naive.project(BLOB_POINTS[i:i + 1])[0] - Intrinsics(
             v.width, v.height, naive.fx, naive.fy, naive.cx, naive.cy).project(BLOB_POINTS[i:i + 1])[0])
             for i in range(1, 5)]
         assert max(off) > 1.0  # >> the 0.12 px tolerance
@@ -417,7 +417,7 @@ def test_downscale_intrinsics_pixel_centre(small_scene, tmp_path):
 # ----------------------------------------------------------------------------------------------------
 # structure from motion
 
-SFM_CAM = Camera(320, 240, 280.0, 280.0, 160.0, 120.0)
+SFM_CAM = Intrinsics(320, 240, 280.0, 280.0, 160.0, 120.0)
 
 
 @pytest.fixture(scope="module")

@@ -29,8 +29,9 @@ COLMAP_MODELS = {
 
 
 @dataclass(frozen=True)
-class Camera:
-    """Intrinsics of one image: size, pinhole parameters and OpenCV distortion coefficients.
+class Intrinsics:
+    """Intrinsics of one image as the scene's files declare them: size, pinhole parameters and OpenCV distortion
+    coefficients (width and height first). The renderer's camera, with its pose, is :class:`retinexgs.render.Camera`.
 
     ``dist`` holds OpenCV's coefficients (k1, k2, p1, p2[, k3[, k4, k5, k6]]); empty or all zero means
     an undistorted pinhole camera.
@@ -60,7 +61,7 @@ class Camera:
         K[1, 2] -= 0.5
         return K
 
-    def scaled(self, width: int, height: int) -> "Camera":
+    def scaled(self, width: int, height: int) -> "Intrinsics":
         """The same camera for an image resized to ``width`` x ``height`` (distortion is scale-free)."""
         sx, sy = width / self.width, height / self.height
         return replace(self, width=int(width), height=int(height), fx=self.fx * sx, fy=self.fy * sy,
@@ -103,7 +104,7 @@ def check_rotation(R: np.ndarray, where: str, field: str = "rotation") -> None:
                         "a camera pose needs an orthonormal matrix with determinant 1, without scale")
 
 
-def check_camera(cam: "Camera", where: str) -> None:
+def check_camera(cam: "Intrinsics", where: str) -> None:
     """UserError naming ``where`` and the field unless the intrinsics are usable (positive size and focal
     lengths, finite principal point and distortion)."""
     for name in ("width", "height"):
@@ -132,8 +133,8 @@ def distort_normalized(x: np.ndarray, y: np.ndarray, dist: Sequence[float]) -> T
     return xd, yd
 
 
-def camera_from_colmap(model: str, width: int, height: int, params: Sequence[float], where: str = "") -> Camera:
-    """Build a :class:`Camera` from a COLMAP camera model name and its parameter list."""
+def camera_from_colmap(model: str, width: int, height: int, params: Sequence[float], where: str = "") -> Intrinsics:
+    """Build the :class:`Intrinsics` from a COLMAP camera model name and its parameter list."""
     model = str(model).upper()
     if model not in COLMAP_MODELS:
         raise UserError(f"{where or 'COLMAP model'}: camera model {model} is not supported; "
@@ -155,7 +156,7 @@ def camera_from_colmap(model: str, width: int, height: int, params: Sequence[flo
         dist = (p["k1"], p["k2"], p["p1"], p["p2"])
     else:  # FULL_OPENCV: OpenCV orders k3 after the tangential terms, as COLMAP does
         dist = tuple(p[n] for n in ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"))
-    cam = Camera(int(width), int(height), float(fx), float(fy), p["cx"], p["cy"], dist)
+    cam = Intrinsics(int(width), int(height), float(fx), float(fy), p["cx"], p["cy"], dist)
     check_camera(cam, where or "COLMAP model")
     return cam
 

@@ -20,7 +20,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from retinexgs.data.camera import Camera, c2w_from_w2c, camera_from_colmap, check_rotation
+from retinexgs.data.camera import Intrinsics, c2w_from_w2c, camera_from_colmap, check_rotation
 from retinexgs.data.declared import DeclaredScene, DeclaredView
 from retinexgs.errors import UserError
 from retinexgs.data.pairing import check_same_files
@@ -43,7 +43,7 @@ class ColmapModel:
     """The parts of a COLMAP reconstruction RetinexGS uses."""
 
     path: Path
-    cameras: Dict[int, Camera]
+    cameras: Dict[int, Intrinsics]
     images: Dict[int, ColmapImage]  # registered images only
     points: np.ndarray  # [P,3] float64
     colors: np.ndarray  # [P,3] uint8
@@ -328,7 +328,7 @@ def read_model(model_dir: Path) -> ColmapModel:
     except Exception as exc:  # pycolmap raises ValueError/RuntimeError for malformed or truncated files
         raise UserError(f"cannot read COLMAP model {model_dir}: {exc}") from None
     where = str(model_dir)
-    cameras: Dict[int, Camera] = {}
+    cameras: Dict[int, Intrinsics] = {}
     images: Dict[int, ColmapImage] = {}
     for cid, c in rec.cameras.items():
         cameras[int(cid)] = camera_from_colmap(c.model.name, c.width, c.height, list(c.params),

@@ -10,7 +10,7 @@ from typing import List, Optional
 
 import numpy as np
 
-from retinexgs.data.camera import Camera
+from retinexgs.data.camera import Intrinsics
 
 
 @dataclass
@@ -19,7 +19,7 @@ class DeclaredView:
 
     name: str
     image: Path
-    camera: Camera
+    camera: Intrinsics
     c2w: np.ndarray
     paired: Optional[Path] = None
 

@@ -25,7 +25,7 @@ from typing import Callable, Dict, List, Optional, Tuple, Union
 import numpy as np
 import torch
 
-from retinexgs.data.camera import Camera
+from retinexgs.data.camera import Intrinsics
 from retinexgs.data.images import image_size, list_images, no_images_reason
 from retinexgs.data.declared import DeclaredScene, DeclaredView
 from retinexgs.data.scene import Normalization, Scene, View, warn
@@ -67,7 +67,7 @@ def _sfm_image_dir(root: Path, images: Optional[PathLike]) -> Optional[Path]:
     return None
 
 
-def _fit_camera(view: DeclaredView) -> Camera:
+def _fit_camera(view: DeclaredView) -> Intrinsics:
     """The view's camera adjusted to the actual image size (same aspect ratio), else UserError."""
     w, h = image_size(view.image)
     cam = view.camera
@@ -139,7 +139,7 @@ def _check_views(raw: DeclaredScene) -> None:
              "are not held-out (recorded as test_in_train in metrics.json); list them in one split only")
 
 
-def _warn_rescaled(raw: DeclaredScene, cams: Dict[int, Camera]) -> None:
+def _warn_rescaled(raw: DeclaredScene, cams: Dict[int, Intrinsics]) -> None:
     """One warning per camera size that disagrees with its images' size (the intrinsics are rescaled)."""
     seen: Dict[Tuple[int, int, int, int], List[DeclaredView]] = {}
     for v in raw.train + raw.test + raw.val:
@@ -204,7 +204,7 @@ MIN_IMAGE_SIDE = 11
 CACHE_HINT = "cache_dir=DIR"
 
 
-def _check_downscale(downscale: float, cams: Dict[int, Camera], views: List[DeclaredView]) -> None:
+def _check_downscale(downscale: float, cams: Dict[int, Intrinsics], views: List[DeclaredView]) -> None:
     """UserError, before anything is written, when ``downscale`` leaves a view too small to use."""
     for v in views:
         cam = cams[id(v)]
@@ -229,7 +229,7 @@ def build_scene(raw: DeclaredScene, downscale: float = 1, cache_dir: Optional[Pa
         raise UserError(f"downscale must be >= 1, got {downscale}")
     root = Path(raw.root)
     cache = Path(cache_dir) if cache_dir is not None else root / "retinexgs_cache"
-    jobs: List[Tuple[Path, Path, Camera, Camera]] = []
+    jobs: List[Tuple[Path, Path, Intrinsics, Intrinsics]] = []
     split_views: Dict[str, List[View]] = {}
     _check_views(raw)
     all_raw = raw.train + raw.test + raw.val
@@ -311,7 +311,7 @@ def load_scene(path: PathLike, reader: str = "auto", downscale: float = 1, *, im
             raise UserError(f"no photos found in {root}, {root / 'images'} or {root / 'low'}: "
                             f"{no_images_reason(root)}")
         if downscale >= 1:  # refuse a useless downscale before SfM writes its model
-            photos = [DeclaredView(p.name, p, Camera(*image_size(p), 1.0, 1.0, 0.0, 0.0), np.eye(4))
+            photos = [DeclaredView(p.name, p, Intrinsics(*image_size(p), 1.0, 1.0, 0.0, 0.0), np.eye(4))
                       for p in list_images(image_dir)]
             _check_downscale(downscale, {id(v): v.camera for v in photos}, photos)
         out = Path(cache_dir) / "sfm" if cache_dir is not None else root / "retinexgs_sfm"

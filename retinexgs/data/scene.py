@@ -17,7 +17,7 @@ from typing import List, Optional, Union
 import numpy as np
 import torch
 
-from retinexgs.data.camera import Camera
+from retinexgs.data.camera import Intrinsics
 from retinexgs.data.images import load_image_tensor
 
 ArrayLike = Union[np.ndarray, torch.Tensor]
@@ -121,9 +121,9 @@ class View:
         self._paired = None
 
     @property
-    def camera(self) -> Camera:
+    def camera(self) -> Intrinsics:
         """The view's pinhole camera."""
-        return Camera(self.width, self.height, self.fx, self.fy, self.cx, self.cy)
+        return Intrinsics(self.width, self.height, self.fx, self.fy, self.cx, self.cy)
 
     def K(self) -> torch.Tensor:
         """3x3 float64 intrinsics matrix (pixel-centre convention)."""

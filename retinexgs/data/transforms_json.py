@@ -21,7 +21,7 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
-from retinexgs.data.camera import Camera, check_camera, check_rotation, opengl_to_opencv
+from retinexgs.data.camera import Intrinsics, check_camera, check_rotation, opengl_to_opencv
 from retinexgs.data.images import IMAGE_EXTENSIONS, image_size
 from retinexgs.data.pairing import check_same_files
 from retinexgs.data.declared import DeclaredScene, DeclaredView
@@ -83,7 +83,7 @@ def _size(settings: Dict, key: str, where: str) -> int:
     return int(value)
 
 
-def _camera(settings: Dict, image: Path, where: str) -> Camera:
+def _camera(settings: Dict, image: Path, where: str) -> Intrinsics:
     if settings.get("is_fisheye"):
         raise UserError(f"{where}: fisheye cameras are not supported")
     if "w" in settings and "h" in settings:
@@ -117,7 +117,7 @@ def _camera(settings: Dict, image: Path, where: str) -> Camera:
     dist = tuple(num.get(k, 0.0) for k in ("k1", "k2", "p1", "p2", "k3"))
     if dist[4] == 0.0:
         dist = dist[:4]
-    cam = Camera(w, h, fx, fy, cx, cy, dist if any(dist) else ())
+    cam = Intrinsics(w, h, fx, fy, cx, cy, dist if any(dist) else ())
     check_camera(cam, where)
     return cam
 

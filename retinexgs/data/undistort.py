@@ -30,7 +30,7 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
-from retinexgs.data.camera import Camera
+from retinexgs.data.camera import Intrinsics
 from retinexgs.data.images import read_image, resize_image
 from retinexgs.errors import UserError
 from retinexgs.fileio import TMP_PREFIX, atomic_write, content_digest
@@ -74,7 +74,7 @@ def _cv2():
     return cv2
 
 
-def undistorted_camera(cam: Camera) -> Camera:
+def undistorted_camera(cam: Intrinsics) -> Intrinsics:
     """The pinhole camera (same size) that :func:`undistort_rgb` produces for ``cam``."""
     if not cam.is_distorted:
         return replace(cam, dist=())
@@ -82,18 +82,18 @@ def undistorted_camera(cam: Camera) -> Camera:
     size = (cam.width, cam.height)
     newK, _ = cv2.getOptimalNewCameraMatrix(cam.K_opencv(), np.asarray(cam.dist, np.float64), size, 0.0, size)
     # back from OpenCV's integer-centre convention to pixel-centre convention
-    return Camera(cam.width, cam.height, float(newK[0, 0]), float(newK[1, 1]),
+    return Intrinsics(cam.width, cam.height, float(newK[0, 0]), float(newK[1, 1]),
                   float(newK[0, 2]) + 0.5, float(newK[1, 2]) + 0.5, ())
 
 
 @lru_cache(maxsize=8)
-def _maps(cam: Camera, new_cam: Camera) -> Tuple[np.ndarray, np.ndarray]:
+def _maps(cam: Intrinsics, new_cam: Intrinsics) -> Tuple[np.ndarray, np.ndarray]:
     cv2 = _cv2()
     return cv2.initUndistortRectifyMap(cam.K_opencv(), np.asarray(cam.dist, np.float64), None,
                                        new_cam.K_opencv(), (new_cam.width, new_cam.height), cv2.CV_32FC1)
 
 
-def undistort_rgb(rgb: np.ndarray, cam: Camera, new_cam: Camera) -> np.ndarray:
+def undistort_rgb(rgb: np.ndarray, cam: Intrinsics, new_cam: Intrinsics) -> np.ndarray:
     """Remap a distorted uint8 RGB image taken by ``cam`` to the pinhole camera ``new_cam``."""
     cv2 = _cv2()
     if rgb.shape[:2] != (cam.height, cam.width):
@@ -102,7 +102,7 @@ def undistort_rgb(rgb: np.ndarray, cam: Camera, new_cam: Camera) -> np.ndarray:
     return cv2.remap(rgb, map1, map2, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
-def output_camera(cam: Camera, downscale: float) -> Camera:
+def output_camera(cam: Intrinsics, downscale: float) -> Intrinsics:
     """Pinhole camera of the cached images: undistorted, then resized by ``1/downscale``."""
     out = undistorted_camera(cam)
     if downscale != 1:
@@ -112,12 +112,12 @@ def output_camera(cam: Camera, downscale: float) -> Camera:
     return out
 
 
-def needs_processing(cam: Camera, downscale: float) -> bool:
+def needs_processing(cam: Intrinsics, downscale: float) -> bool:
     """True when images of ``cam`` must be rewritten (distorted, or resized)."""
     return cam.is_distorted or downscale != 1
 
 
-def cache_path_for(src: Path, root: Path, cache_dir: Path, cam: Camera, downscale: float,
+def cache_path_for(src: Path, root: Path, cache_dir: Path, cam: Intrinsics, downscale: float,
                    digest: Optional[str] = None) -> Path:
     """Where the processed copy of ``src`` lives in the cache: a PNG that mirrors the path under ``root``, named
     with the source's content digest (``digest``, computed when not given; :func:`source_digest`) in a folder
@@ -141,7 +141,7 @@ def _write_png(path: Path, rgb: np.ndarray, elsewhere: str) -> None:
         f, format="PNG", compress_level=1), elsewhere=elsewhere)
 
 
-def process_image(src: Path, dst: Path, cam: Camera, out_cam: Camera, elsewhere: str = DEFAULT_ELSEWHERE) -> None:
+def process_image(src: Path, dst: Path, cam: Intrinsics, out_cam: Intrinsics, elsewhere: str = DEFAULT_ELSEWHERE) -> None:
     """Undistort/resize ``src`` (taken by ``cam``) into ``dst`` for ``out_cam``, unless ``dst`` exists (its
     name holds the source's content digest and its folder the settings: an existing file is this content's).
     ``elsewhere``: the caller's option for moving the cache, named when the disk is full."""
@@ -157,7 +157,7 @@ def process_image(src: Path, dst: Path, cam: Camera, out_cam: Camera, elsewhere:
     _write_png(dst, rgb, elsewhere)
 
 
-def process_all(jobs: List[Tuple[Path, Path, Camera, Camera]], cache_dir: Path, workers: Optional[int] = None,
+def process_all(jobs: List[Tuple[Path, Path, Intrinsics, Intrinsics]], cache_dir: Path, workers: Optional[int] = None,
                 elsewhere: str = DEFAULT_ELSEWHERE) -> None:
     """Run :func:`process_image` on (src, dst, cam, out_cam) jobs, a few threads at a time.
 
@@ -185,8 +185,8 @@ def process_all(jobs: List[Tuple[Path, Path, Camera, Camera]], cache_dir: Path, 
         shutil.rmtree(staging, ignore_errors=True)
 
 
-def plan_paths(paths: List[Path], root: Path, cache_dir: Path, cam: Camera, downscale: float,
-               jobs: List[Tuple[Path, Path, Camera, Camera]]) -> Dict[Path, Path]:
+def plan_paths(paths: List[Path], root: Path, cache_dir: Path, cam: Intrinsics, downscale: float,
+               jobs: List[Tuple[Path, Path, Intrinsics, Intrinsics]]) -> Dict[Path, Path]:
     """Map each source path to the path to read (itself, or its cache copy, queued on ``jobs``). Each source
     is hashed here (once per process while unchanged, :func:`source_digest`): its copy's name holds the digest."""
     if not needs_processing(cam, downscale):
