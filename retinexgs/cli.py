@@ -26,6 +26,7 @@ _COMMAND_MODULES = [
     "retinexgs.commands.decompose",
     "retinexgs.commands.sfm",
     "retinexgs.commands.sensor",
+    "retinexgs.commands.render",
     "retinexgs.commands.export",
     "retinexgs.commands.view",
 ]

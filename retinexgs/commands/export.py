@@ -1,85 +1,25 @@
-"""The ``render`` and ``export`` sub-commands."""
+"""The ``export`` sub-command: a trained run as a standard 3DGS PLY."""
 from __future__ import annotations
 
 import argparse
-import math
 from pathlib import Path
 
-from retinexgs.errors import UserError
+from retinexgs.commands.common import add_run_options
 from retinexgs.export import DEFAULT_DIRECTIONS
-
-MAX_FRAMES = 100_000  # 55 minutes at 30 fps; a path of more frames is a typo (it would build silently for minutes)
-
-
-def _add_common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--run", required=True, type=Path, help="a trained run folder")
-    p.add_argument("--device", default="auto", help="cpu, cuda or auto (default: cuda when available)")
-    p.add_argument("--force", action="store_true", help="overwrite existing output files")
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
-    g = p.add_mutually_exclusive_group()
-    g.add_argument("--exposure", type=float, metavar="X",
-                   help="brighten (< 1) or darken (> 1) the predicted exposure: the light / X with the default "
-                        "tone (0.5 = one stop brighter), the gamma × X with the gamma tones")
-    g.add_argument("--gamma", type=float, help="use this gamma instead of the predicted one")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("render", help="render a trained run's views or a camera path to PNG/MP4",
-                       description="Render the enhanced image (and on request R̂, L̂, depth and the low-light "
-                                   "reconstruction) of RUN's test, train or val views to OUT/<map>/<view>.png, or "
-                                   "along a smooth camera path to an MP4. Existing files are kept unless --force.")
-    _add_common(p)
-    # No argparse choices for --views/--path/--format: a bad value then exits through UserError (code 2,
-    # one paragraph) like every other input problem, and nothing is loaded first.
-    p.add_argument("--views", default=None, help="test (default), train, val (when the scene has a val split), or path (a camera path; see --path)")
-    p.add_argument("--out", type=Path,
-                   help="views and --format png: a folder (a name ending in .mp4 is refused); a path video: a .mp4 "
-                        "file, or a folder to write path_<kind>.mp4 into. Default RUN/renders/<views> or "
-                        "RUN/renders/path_<kind>.mp4")
-    p.add_argument("--maps", default="enhanced",
-                   help="comma-separated: enhanced,R,L,L_raw,depth,low (default enhanced). L is the illumination "
-                        "normalised for viewing, L̂/L_ref clipped to [0,1] with one scene-wide L_ref (as eval's "
-                        "side-by-side and the viewer show it); L_raw is L̂ as rendered (dark)")
-    p.add_argument("--path", default=None,
-                   help="camera path (implies --views path): orbit (a full circle around the scene; for a "
-                        "front-facing capture an ellipse within the training cameras' spread), orbit-360 (always "
-                        "the full circle) or interpolate (through the training cameras)")
-    p.add_argument("--frames", type=int, default=120,
-                   help=f"frames of the path (default 120, at most {MAX_FRAMES})")
-    p.add_argument("--fps", type=float, default=30.0, help="frames per second of the video (default 30)")
-    p.add_argument("--format", default="mp4", help="mp4 (default) or png: how a path is written")
-    p.set_defaults(func=_render)
-
+    """Add the ``export`` sub-command to the CLI's sub-parsers."""
     p = sub.add_parser("export", help="export a trained run as a standard 3DGS PLY (enhancement baked in)",
                        description="Write RUN's Gaussians to an INRIA 3DGS PLY in the input's world frame, with "
                                    "the illumination and enhancement baked into the SH colours by a least-squares "
                                    "fit over view directions (or R̂ alone with --reflectance-only).")
-    _add_common(p)
+    add_run_options(p)
     p.add_argument("--out", required=True, type=Path, help="the .ply file to write")
     p.add_argument("--reflectance-only", action="store_true", help="export R̂'s SH without illumination")
     p.add_argument("--directions", type=int, default=DEFAULT_DIRECTIONS,
                    help=f"view directions of the SH fit (default {DEFAULT_DIRECTIONS})")
     p.set_defaults(func=_export)
-
-
-def check_frames_and_fps(frames: int, fps: float) -> None:
-    """UserError for --frames outside 1..MAX_FRAMES or an --fps that is not a positive finite number."""
-    if frames < 1:
-        raise UserError(f"--frames must be at least 1, got {frames}")
-    if frames > MAX_FRAMES:
-        raise UserError(f"--frames {frames} is too many: at most {MAX_FRAMES} (55 minutes of video at 30 fps, "
-                        "already hours to render); render a long video in parts")
-    if not (math.isfinite(fps) and fps > 0):
-        raise UserError(f"--fps must be a positive finite number of frames per second, got {fps:g}")
-
-
-def _render(args: argparse.Namespace) -> int:
-    from retinexgs.export.renders import parse_maps, render_run  # lazy: --help stays fast
-
-    check_frames_and_fps(args.frames, args.fps)  # before the run loads: 10^8 frames used to build for minutes
-    render_run(args.run, args.views, args.out, parse_maps(args.maps), args.exposure, args.gamma, args.path,
-               args.frames, args.fps, args.format, args.device, args.force, progress=not args.quiet)
-    return 0
 
 
 def _export(args: argparse.Namespace) -> int:
