@@ -6,8 +6,8 @@ Methods: ``lr3m`` (default; low-rank regularised, denoises R) and ``lime`` (fast
     >>> r, l = decompose(image)                  # image [H,W,3] float in [0,1]
     >>> d = get_decomposer("lime", gamma=0.8); r, l = d(image)
 
-Per-scene results are cached on disk by :func:`retinexgs.retinex.cache.load_or_compute`.
-Importing this package is cheap: the algorithms load on first use.
+Per-scene results are cached on disk by :func:`retinexgs.retinex.cache.load_or_compute`, re-exported here.
+Importing this package imports torch and the cache module; the decomposers' solvers are built on first use.
 """
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from typing import Any, Tuple
 
 from retinexgs.retinex.base import (Decomposer, available_methods, cache_key, enhance_for_viewing,
                                     get_decomposer, validate_image)
-from retinexgs.retinex.cache import load_or_compute as _impl
+from retinexgs.retinex.cache import load_or_compute
 
 __all__ = ["decompose", "get_decomposer", "available_methods", "cache_key", "enhance_for_viewing",
            "validate_image", "Decomposer", "load_or_compute"]
@@ -27,8 +27,3 @@ def decompose(image: Any, method: str = "lr3m", **params: Any) -> Tuple[Any, Any
     R has 3 channels in [0,1]; L has 1 channel in the scale of the image. Runs on the image's device.
     """
     return get_decomposer(method, **params).decompose(image)
-
-
-def load_or_compute(*args: Any, **kwargs: Any):
-    """See :func:`retinexgs.retinex.cache.load_or_compute` (imported lazily)."""
-    return _impl(*args, **kwargs)
