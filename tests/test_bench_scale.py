@@ -26,10 +26,12 @@ ROOT = Path(__file__).resolve().parents[1]
 QUICK = ["--views", "8", "--width", "64", "--height", "48", "--views-seen", "16", "--device", "cpu"]
 
 
-def test_torch_caster_is_the_numpy_caster():
+def test_the_large_scene_renders_the_demo_scene_in_float32():
+    """One caster (demo/raycast.py) serves both scenes: the large scene's float32 render of a demo camera is the
+    demo's float64 image within float32 precision, and every pixel is lit or sky (finite, positive)."""
     cam = demo_cameras(5, 2, 40, 30, seed=3)[1]
     ref = render_linear(cam, 2)
-    assert np.abs(render_linear_torch(cam, 2, "cpu", torch.float64).numpy() - ref).max() < 1e-10
+    assert np.isfinite(ref).all() and (ref > 0).all()
     assert np.abs(render_linear_torch(cam, 2, "cpu", torch.float32).numpy() - ref).max() < 1e-4
     # the large scene's cameras see the scene from a band of heights and distances, not one circle
     cams = large_cameras(40, 4, 32, 24)

@@ -10,7 +10,7 @@ import torch
 Image = TypeVar("Image", np.ndarray, torch.Tensor)
 
 # The curve's breakpoints: sRGB 0.04045 is linear 0.04045 / 12.92 = 0.0031308.
-_S_KNEE, _L_KNEE, _SLOPE, _A, _GAMMA = 0.04045, 0.0031308, 12.92, 0.055, 2.4
+_S_KNEE, _L_KNEE, _SLOPE, _A, _A1, _GAMMA = 0.04045, 0.0031308, 12.92, 0.055, 1.055, 2.4
 
 
 def _limit(x: Image, clip: bool) -> Image:
@@ -32,11 +32,11 @@ def srgb_to_linear(x: Image, clip: bool = True) -> Image:
     still clamped). The floor inside the power keeps the branch that ``where`` drops finite, so a gradient through
     it is never inf · 0."""
     x = _limit(x, clip)
-    return _where(x <= _S_KNEE, x / _SLOPE, ((_floor(x, _S_KNEE) + _A) / (1.0 + _A)) ** _GAMMA)
+    return _where(x <= _S_KNEE, x / _SLOPE, ((_floor(x, _S_KNEE) + _A) / _A1) ** _GAMMA)
 
 
 def linear_to_srgb(x: Image, clip: bool = True) -> Image:
     """Linear light -> sRGB, clipped to [0, 1] first (what a camera does to light past white). ``clip=False``:
     light past white keeps rising along the curve (a loss that must keep a gradient there)."""
     x = _limit(x, clip)
-    return _where(x <= _L_KNEE, _SLOPE * x, (1.0 + _A) * _floor(x, _L_KNEE) ** (1.0 / _GAMMA) - _A)
+    return _where(x <= _L_KNEE, _SLOPE * x, _A1 * _floor(x, _L_KNEE) ** (1.0 / _GAMMA) - _A)

@@ -38,29 +38,16 @@ from pathlib import Path
 from typing import Dict, List, Sequence, Tuple, Union
 
 import numpy as np
+import torch
 from PIL import Image
 
-from retinexgs.data.sensor import linear_to_srgb, srgb_to_linear
+from retinexgs.data.srgb import linear_to_srgb, srgb_to_linear
+from retinexgs.demo import raycast
+from retinexgs.demo.raycast import (AMBIENT_RGB, BOX, BOX_ID, GROUND, GROUND_HALF, LIGHT_DIR, LIGHT_RGB,  # noqa: F401
+                                    MISS, SCENE_CENTER, SPHERES)
 
 __all__ = ["DemoCamera", "demo_cameras", "cast_rays", "render_linear", "make_demo_scene",
            "srgb_to_linear", "linear_to_srgb", "SCENE_CENTER"]
-
-# ----------------------------------------------------------------------------------------------------
-# Scene description (fixed geometry; the seed only moves cameras and draws noise).
-GROUND_HALF = 3.0
-SPHERES = (  # centre, radius, texture id
-    ((-0.65, 0.45, 0.15), 0.45, "stripes"),
-    ((0.75, 0.35, -0.35), 0.35, "gradient"),
-    ((0.15, 0.25, -1.05), 0.25, "checker"),
-)
-BOX = ((0.05, 0.0, 0.75), (0.55, 0.6, 1.25))  # min corner, max corner (axis aligned)
-LIGHT_DIR = np.array([0.45, 1.0, 0.35]) / np.linalg.norm([0.45, 1.0, 0.35])
-LIGHT_RGB = np.array([1.0, 0.93, 0.82]) * 0.95
-AMBIENT_RGB = np.array([0.55, 0.62, 0.75]) * 0.35
-SCENE_CENTER = np.array([0.0, 0.35, 0.0])
-# Object ids returned by cast_rays.
-MISS, GROUND, BOX_ID = -1, 0, 100  # spheres are 1, 2, 3
-
 
 # ----------------------------------------------------------------------------------------------------
 # Cameras
@@ -84,21 +71,12 @@ class DemoCamera:
         return self.c2w_gl[:3, 3].copy()
 
     def pixel_rays(self, offsets: Sequence[Tuple[float, float]] = ((0.5, 0.5),)) -> Tuple[np.ndarray, np.ndarray]:
-        """Ray origins and unit directions [S,H,W,3] through pixel (row i, col j) at (j + ox, i + oy).
-
-        The default offset (0.5, 0.5) is the pixel centre. Image rows go down (−up), columns go right.
-        """
-        right, up, back = self.c2w_gl[:3, 0], self.c2w_gl[:3, 1], self.c2w_gl[:3, 2]
-        j = np.arange(self.width, dtype=np.float64)
-        i = np.arange(self.height, dtype=np.float64)
-        dirs = []
-        for ox, oy in offsets:
-            xn = (j[None, :] + ox - self.cx) / self.fx
-            yn = (i[:, None] + oy - self.cy) / self.fy
-            d = (-back)[None, None] + xn[..., None] * right + (-yn[..., None]) * up
-            dirs.append(d / np.linalg.norm(d, axis=-1, keepdims=True))
-        d = np.stack(dirs)
-        return np.broadcast_to(self.center, d.shape).copy(), d
+        """Ray origins and unit directions [S,H,W,3] through pixel (row i, col j) at (j + ox, i + oy)
+        (:func:`retinexgs.demo.raycast.rays`). The default offset (0.5, 0.5) is the pixel centre."""
+        pairs = [raycast.rays(self, ox, oy, torch.float64, torch.device("cpu")) for ox, oy in offsets]
+        o = torch.stack([p[0] for p in pairs]).reshape(len(pairs), self.height, self.width, 3)
+        d = torch.stack([p[1] for p in pairs]).reshape(len(pairs), self.height, self.width, 3)
+        return o.numpy().copy(), d.numpy()
 
     def project(self, points: np.ndarray) -> np.ndarray:
         """World points [N,3] -> [N,3] (u, v, depth), pixel-centre convention (pixel (0,0) centre = (0.5,0.5))."""
@@ -152,48 +130,7 @@ def demo_cameras(n_train: int = 12, n_test: int = 4, width: int = 96, height: in
 
 
 # ----------------------------------------------------------------------------------------------------
-# Ray casting
-
-def _hit_spheres(o: np.ndarray, d: np.ndarray, tmin: float = 1e-6):
-    """Nearest sphere hit: t [N] (inf on miss), sphere index [N] (-1 on miss)."""
-    t_best = np.full(o.shape[0], np.inf)
-    idx = np.full(o.shape[0], -1)
-    for s, (c, r, _) in enumerate(SPHERES):
-        oc = o - np.asarray(c)
-        b = np.einsum("ij,ij->i", oc, d)
-        disc = b * b - (np.einsum("ij,ij->i", oc, oc) - r * r)
-        sq = np.sqrt(np.maximum(disc, 0.0))
-        t0, t1 = -b - sq, -b + sq
-        t = np.where(t0 > tmin, t0, np.where(t1 > tmin, t1, np.inf))
-        t = np.where(disc >= 0, t, np.inf)
-        better = t < t_best
-        t_best = np.where(better, t, t_best)
-        idx = np.where(better, s, idx)
-    return t_best, idx
-
-
-def _hit_box(o: np.ndarray, d: np.ndarray, tmin: float = 1e-6):
-    """Box hit (slab method): t [N] (inf on miss) and the axis of the entry face [N]."""
-    lo, hi = np.asarray(BOX[0]), np.asarray(BOX[1])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / np.where(d == 0, 1e-30, d)
-        ta, tb = (lo - o) * inv, (hi - o) * inv
-    tnear = np.minimum(ta, tb)
-    tfar = np.maximum(ta, tb)
-    t0 = tnear.max(1)
-    axis = tnear.argmax(1)
-    t1 = tfar.min(1)
-    hit = (t0 <= t1) & (t0 > tmin)
-    return np.where(hit, t0, np.inf), axis
-
-
-def _hit_ground(o: np.ndarray, d: np.ndarray, tmin: float = 1e-6) -> np.ndarray:
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = -o[:, 1] / d[:, 1]
-    p = o + t[:, None] * d
-    ok = (d[:, 1] < 0) & (t > tmin) & (np.abs(p[:, 0]) <= GROUND_HALF) & (np.abs(p[:, 2]) <= GROUND_HALF)
-    return np.where(ok, t, np.inf)
-
+# Ray casting (retinexgs.demo.raycast, in float64 on the CPU here)
 
 def cast_rays(origins: np.ndarray, dirs: np.ndarray) -> Dict[str, np.ndarray]:
     """Intersect rays [...,3] (unit ``dirs``) with the scene.
@@ -202,98 +139,17 @@ def cast_rays(origins: np.ndarray, dirs: np.ndarray) -> Dict[str, np.ndarray]:
     ``normal`` [...,3], ``obj`` (:data:`MISS` = -1, ground 0, spheres 1..3, box 100) and ``albedo``
     [...,3] (sRGB-encoded texture colour, 0 on miss).
     """
-    shape = origins.shape[:-1]
-    o = np.asarray(origins, np.float64).reshape(-1, 3)
-    d = np.asarray(dirs, np.float64).reshape(-1, 3)
-    ts, si = _hit_spheres(o, d)
-    tb, axis = _hit_box(o, d)
-    tg = _hit_ground(o, d)
-    t = np.minimum(np.minimum(ts, tb), tg)
-    obj = np.full(o.shape[0], MISS)
-    obj = np.where(np.isfinite(tg) & (tg == t), GROUND, obj)
-    obj = np.where(np.isfinite(tb) & (tb == t), BOX_ID, obj)
-    obj = np.where(np.isfinite(ts) & (ts == t), si + 1, obj)
-    p = o + np.where(np.isfinite(t), t, 0.0)[:, None] * d
-    n = np.zeros_like(p)
-    n[obj == GROUND] = (0.0, 1.0, 0.0)
-    for s, (c, r, _) in enumerate(SPHERES):
-        m = obj == s + 1
-        n[m] = (p[m] - np.asarray(c)) / r
-    m = obj == BOX_ID
-    if m.any():
-        nb = np.zeros((int(m.sum()), 3))
-        ax = axis[m]
-        nb[np.arange(len(ax)), ax] = -np.sign(d[m][np.arange(len(ax)), ax])
-        n[m] = nb
-    albedo = _albedo(p, n, obj)
-    out = {"t": t, "point": p, "normal": n, "obj": obj, "albedo": albedo}
-    return {k: v.reshape(shape + v.shape[1:]) for k, v in out.items()}
-
-
-def _albedo(p: np.ndarray, n: np.ndarray, obj: np.ndarray) -> np.ndarray:
-    """Procedural sRGB albedo at surface points."""
-    a = np.zeros_like(p)
-    m = obj == GROUND
-    if m.any():
-        q = p[m]
-        chk = (np.floor(q[:, 0] / 0.5) + np.floor(q[:, 2] / 0.5)) % 2
-        u = (q[:, 0] / GROUND_HALF + 1) / 2
-        base = np.stack([0.55 + 0.25 * u, 0.5 - 0.1 * u, 0.35 + 0.2 * (1 - u)], -1)
-        a[m] = base * (0.6 + 0.4 * chk)[:, None]
-    for s, (c, r, tex) in enumerate(SPHERES):
-        m = obj == s + 1
-        if not m.any():
-            continue
-        q = (p[m] - np.asarray(c)) / r
-        lon = np.arctan2(q[:, 2], q[:, 0])
-        lat = np.arcsin(np.clip(q[:, 1], -1, 1))
-        if tex == "stripes":
-            st = (np.floor(lon / (np.pi / 6)) % 2)[:, None]
-            a[m] = st * np.array([0.85, 0.2, 0.15]) + (1 - st) * np.array([0.95, 0.85, 0.6])
-        elif tex == "gradient":
-            a[m] = np.clip(0.25 + 0.6 * (q * 0.5 + 0.5)[:, [1, 2, 0]], 0, 1)
-        else:
-            chk = ((np.floor(lon / (np.pi / 4)) + np.floor(lat / (np.pi / 6))) % 2)[:, None]
-            a[m] = chk * np.array([0.15, 0.45, 0.8]) + (1 - chk) * np.array([0.9, 0.9, 0.85])
-    m = obj == BOX_ID
-    if m.any():
-        q = p[m]
-        grid = ((np.abs(((q / 0.1) % 1.0) - 0.5) > 0.4) & (np.abs(n[m]) < 0.5)).any(1)
-        base = np.array([0.3, 0.7, 0.35])
-        a[m] = np.where(grid[:, None], np.array([0.1, 0.15, 0.1]), base)
-    return a
-
-
-def _shadowed(p: np.ndarray, n: np.ndarray) -> np.ndarray:
-    o = p + 1e-4 * n
-    d = np.broadcast_to(LIGHT_DIR, o.shape)
-    ts, _ = _hit_spheres(o, d)
-    tb, _ = _hit_box(o, d)
-    return np.isfinite(ts) | np.isfinite(tb)
+    shape = np.shape(origins)[:-1]
+    o = torch.as_tensor(np.asarray(origins, np.float64).reshape(-1, 3))
+    d = torch.as_tensor(np.asarray(dirs, np.float64).reshape(-1, 3))
+    t, obj, p, n = raycast.cast(o, d)
+    out = {"t": t, "point": p, "normal": n, "obj": obj, "albedo": raycast.albedo(p, n, obj)}
+    return {k: v.numpy().reshape(shape + tuple(v.shape[1:])) for k, v in out.items()}
 
 
 def render_linear(cam: DemoCamera, supersample: int = 2) -> np.ndarray:
-    """Normal-light linear radiance [H,W,3] of ``cam`` (``supersample``² rays per pixel, box-filtered)."""
-    ss = max(1, int(supersample))
-    offs = [((a + 0.5) / ss, (b + 0.5) / ss) for b in range(ss) for a in range(ss)]
-    o, d = cam.pixel_rays(offs)
-    hit = cast_rays(o, d)
-    obj = hit["obj"].reshape(-1)
-    p, n = hit["point"].reshape(-1, 3), hit["normal"].reshape(-1, 3)
-    albedo = srgb_to_linear(hit["albedo"].reshape(-1, 3))
-    lit = obj != MISS
-    ndl = np.clip(n @ LIGHT_DIR, 0.0, None)
-    vis = np.ones_like(ndl)
-    if lit.any():
-        vis[lit] = ~_shadowed(p[lit], n[lit])
-    r2 = p[:, 0] ** 2 + p[:, 2] ** 2
-    falloff = 0.55 + 0.45 * np.exp(-r2 / 4.0)  # smooth, spatially varying illumination
-    irr = (AMBIENT_RGB[None] + LIGHT_RGB[None] * (ndl * vis)[:, None]) * falloff[:, None]
-    rad = albedo * irr
-    dd = d.reshape(-1, 3)
-    sky = (0.06 + 0.10 * np.clip(dd[:, 1], 0, 1))[:, None] * np.array([0.8, 0.9, 1.2])
-    rad = np.where(lit[:, None], rad, sky)
-    return rad.reshape(ss * ss, cam.height, cam.width, 3).mean(0)
+    """Normal-light linear radiance [H,W,3] of ``cam`` (``supersample``² rays per pixel, box-filtered), float64."""
+    return raycast.render_linear(cam, supersample, "cpu", torch.float64).numpy()
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -327,7 +183,8 @@ def _sample_points(n: int, rng: np.random.Generator) -> np.ndarray:
     nrm[np.arange(nb), ax] = np.where(side == 1, 1.0, -1.0)
     pts.append(q), normals.append(nrm), objs.append(np.full(nb, BOX_ID))
     p, nn, o = np.concatenate(pts), np.concatenate(normals), np.concatenate(objs)
-    return np.concatenate([p, _albedo(p, nn, o)], 1)
+    colour = raycast.albedo(torch.as_tensor(p), torch.as_tensor(nn), torch.as_tensor(o)).numpy()
+    return np.concatenate([p, colour], 1)
 
 
 def _rotmat_to_qvec(R: np.ndarray) -> np.ndarray:
