@@ -25,12 +25,13 @@ file's own JPEG tables (:class:`JpegCodec`) and reads the floor within about 25 
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import shutil
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Dict, List, Optional, Tuple
+from typing import TYPE_CHECKING, Dict, Iterator, List, Optional, Tuple
 
 import numpy as np
 
@@ -135,7 +136,7 @@ def darken_scene(src: Path, out: Path, model: SensorModel, seed: int = 0, progre
     report = DarkenReport(out, len(jobs))
     check_writable_folder(out)  # a read-only or misplaced --out: one line before any work
     made = not out.exists()
-    try:
+    with _dark_scene_writes(out, made):  # nothing half-made is left behind
         out.mkdir(parents=True, exist_ok=True)
         if folder != src:
             _copy_scene(src, out)
@@ -148,14 +149,6 @@ def darken_scene(src: Path, out: Path, model: SensorModel, seed: int = 0, progre
         atomic_write_text(out / "sensor.json", json.dumps(
             {"model": asdict(model), "seed": seed, "source": str(src.resolve()),
              "view_exposures": report.exposures}, indent=1))
-    except BaseException as exc:
-        _remove_made(out, made)  # nothing half-made is left behind
-        if isinstance(exc, (OSError, shutil.Error)):  # shutil.Error: copytree's list of failed copies
-            if is_out_of_space(exc, out.parent):
-                raise out_of_space_error(out) from None
-            raise UserError(f"--out {out}: cannot write the dark scene there ({_first_reason(exc)}); "
-                            "choose another --out") from None
-        raise
     return report
 
 
@@ -247,7 +240,7 @@ def _darken_raw(src: Path, out: Path, model: SensorModel, camera: "RawCamera", s
     raw_dir, jpeg_dir = out / "raw", out / "jpeg"
     black = camera.black_level(model.full_well, model.read_noise)
     times: Dict[str, float] = {}
-    try:
+    with _dark_scene_writes(out, made):  # nothing half-made is left behind
         for d in (raw_dir, jpeg_dir):
             d.mkdir(parents=True, exist_ok=True)
             if folder != src:
@@ -273,15 +266,23 @@ def _darken_raw(src: Path, out: Path, model: SensorModel, camera: "RawCamera", s
         atomic_write_text(raw_dir / "sensor.json", text)
         atomic_write_text(jpeg_dir / "sensor.json", text)
         atomic_write_text(out / "sensor.json", text)  # last: its presence says the whole capture is written
+    return report
+
+
+@contextlib.contextmanager
+def _dark_scene_writes(out: Path, made: bool) -> Iterator[None]:
+    """Around darken's writes into ``out``: on any failure, what was written is removed (:func:`_remove_made`), and
+    a write error becomes one line (a full disk named as such)."""
+    try:
+        yield
     except BaseException as exc:
         _remove_made(out, made)
-        if isinstance(exc, (OSError, shutil.Error)):
+        if isinstance(exc, (OSError, shutil.Error)):  # shutil.Error: copytree's list of failed copies
             if is_out_of_space(exc, out.parent):
                 raise out_of_space_error(out) from None
             raise UserError(f"--out {out}: cannot write the dark scene there ({_first_reason(exc)}); "
                             "choose another --out") from None
         raise
-    return report
 
 
 def _remove_made(out: Path, made: bool) -> None:
