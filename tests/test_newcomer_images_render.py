@@ -79,14 +79,15 @@ def test_heic_and_heif_are_listed_in_any_case(tmp_path):
 
 
 def test_a_folder_without_readable_photos_names_the_readable_formats(tmp_path, capsys):
+    # Sigma .X3F (Foveon): a raw type that is not read (camera raws LibRaw reads as Bayer are: tests/test_raw_scenes.py)
     scene = tmp_path / "raw_photos"
     scene.mkdir()
     for i in range(3):
-        (scene / f"IMG_{i}.CR2").write_bytes(b"raw sensor data")
+        (scene / f"IMG_{i}.X3F").write_bytes(b"raw sensor data")
     code, _, err = run_cli(["train", "--data", scene, "--out", tmp_path / "run", "--device", "cpu", "--quiet"],
                            capsys)
     assert code == 2 and "Traceback" not in err
-    assert ".heic" in err and ".jpg" in err and ".cr2" in err
+    assert ".heic" in err and ".jpg" in err and ".dng" in err and ".x3f" in err
     assert not (tmp_path / "run").exists()
 
 

@@ -20,17 +20,25 @@ from __future__ import annotations
 import contextlib
 import logging
 import struct
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, Iterator, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
+from retinexgs.data.srgb import linear_to_srgb
 from retinexgs.errors import UserError
 
 # Raw types LibRaw reads that later stages will accept; compared in lower case.
 RAW_EXTENSIONS = (".dng", ".crw", ".cr2", ".cr3", ".nef", ".nrw", ".arw", ".srf", ".sr2", ".raf", ".orf",
                   ".rw2", ".pef", ".srw", ".3fr", ".iiq", ".erf", ".mrw", ".kdc", ".dcr", ".mos", ".x3f")
+# Raw types that scene loading accepts as photos (listing, reading, SfM): those whose cameras LibRaw reads as a
+# 2x2 Bayer mosaic. .raf is kept although most Fujifilm X bodies are X-Trans (read_raw refuses those with one
+# line naming the sensor); Sigma .x3f (Foveon, never Bayer) and the rarer medium-format/legacy types of
+# RAW_EXTENSIONS are left out. Compared in lower case.
+BAYER_RAW_EXTENSIONS = (".dng", ".cr2", ".cr3", ".crw", ".nef", ".nrw", ".arw", ".srf", ".sr2", ".raf", ".orf",
+                        ".rw2", ".pef", ".srw")
 # Raw types that are plain TIFF files (header II*\0 or MM\0*): their structure is checked before LibRaw.
 TIFF_RAW_EXTENSIONS = (".dng", ".cr2", ".nef", ".nrw", ".arw", ".srf", ".sr2", ".pef", ".3fr", ".erf", ".kdc",
                        ".dcr", ".mos", ".iiq")
@@ -267,6 +275,22 @@ def _exif_number(tags: dict, names: Sequence[str]) -> Tuple[bool, Optional[float
     return False, None
 
 
+def _exposure_from(tags: dict, other, notes: List[str]) -> Tuple[Optional[float], Optional[float], Optional[float]]:
+    """(exposure time, ISO, f-number) from exifread's ``tags`` (TIFF-based raws); from LibRaw's ``other``
+    (rawpy's ImageOther, or None) where exifread finds no EXIF (e.g. Canon CRW), with a note saying so."""
+    found_t, t = _exif_number(tags, ("EXIF ExposureTime", "Image ExposureTime"))
+    found_f, fn = _exif_number(tags, ("EXIF FNumber", "Image FNumber"))
+    found_i, iso = _exif_number(tags, ("EXIF ISOSpeedRatings", "EXIF PhotographicSensitivity",
+                                       "Image ISOSpeedRatings"))
+    if not (found_t or found_f or found_i) and other is not None:
+        t = float(other.shutter_speed) if other.shutter_speed > 0 else None
+        fn = float(other.aperture) if other.aperture > 0 else None
+        iso = float(other.iso_speed) if other.iso_speed > 0 else None
+        if any(v is not None for v in (t, fn, iso)):
+            notes.append("exposure read by LibRaw (no EXIF block that exifread reads in this format)")
+    return t, iso, fn
+
+
 def _read_exif(path: Path) -> dict:
     import exifread
     try:
@@ -436,18 +460,8 @@ def read_raw(path: Union[str, Path]) -> RawPhoto:
         except np.linalg.LinAlgError:
             notes.append("the colour matrix is singular: camera RGB is taken as linear sRGB")
 
-    # Exposure: exifread for TIFF-based raws; LibRaw's values where exifread finds no EXIF (e.g. Canon CRW).
     tags = _read_exif(path)
-    found_t, t = _exif_number(tags, ("EXIF ExposureTime", "Image ExposureTime"))
-    found_f, fn = _exif_number(tags, ("EXIF FNumber", "Image FNumber"))
-    found_i, iso = _exif_number(tags, ("EXIF ISOSpeedRatings", "EXIF PhotographicSensitivity",
-                                       "Image ISOSpeedRatings"))
-    if not (found_t or found_f or found_i):
-        t = float(other.shutter_speed) if other.shutter_speed > 0 else None
-        fn = float(other.aperture) if other.aperture > 0 else None
-        iso = float(other.iso_speed) if other.iso_speed > 0 else None
-        if any(v is not None for v in (t, fn, iso)):
-            notes.append("exposure read by LibRaw (no EXIF block that exifread reads in this format)")
+    t, iso, fn = _exposure_from(tags, other, notes)
     missing = [n for n, v in (("exposure time", t), ("ISO", iso), ("f-number", fn)) if v is None]
     if missing:
         notes.append(f"no {', '.join(missing)} in the metadata: the view's exposure is assumed equal to the "
@@ -521,28 +535,209 @@ def exposure_scale(photos: Sequence[RawPhoto], notes: Optional[List[str]] = None
 
 
 def srgb_encode(x: np.ndarray) -> np.ndarray:
-    """The sRGB transfer curve for linear values in [0, 1]."""
-    x = np.clip(x, 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055).astype(np.float32)
+    """The sRGB transfer curve (:func:`retinexgs.data.srgb.linear_to_srgb`, clipped to [0, 1]) as float32."""
+    return np.asarray(linear_to_srgb(x), dtype=np.float32)
 
 
-def preview_srgb(photo: RawPhoto, percentile: float = 99.0, target: float = 0.9) -> np.ndarray:
-    """uint8 [H/2, W/2, 3]: a viewable preview for pose estimation (structure from motion).
+def preview_srgb(photo: RawPhoto, percentile: float = 99.0, target: float = 0.9,
+                 full_size: bool = False) -> np.ndarray:
+    """uint8 [H/2, W/2, 3] (``full_size``: [H, W, 3]): a viewable preview for pose estimation (structure from
+    motion).
 
-    linear_rgb with the camera white balance, camera -> linear sRGB, scaled so that the ``percentile`` of the
-    luminance maps to ``target`` (a night photo comes out bright), sRGB curve, then a light bilateral filter
-    (edges kept, night noise smoothed). The filter runs after the curve because its colour threshold is then
+    linear_rgb with the camera white balance (``full_size``: the bilinear demosaic of :func:`linear_srgb`
+    instead of the 2x2 binning, so that the preview has the size the scene's views and cameras have), camera ->
+    linear sRGB, scaled so that the ``percentile`` of the luminance maps to ``target`` (a night photo comes out
+    bright), sRGB curve, then a light bilateral filter (edges kept, night noise smoothed; twice the reach at full
+    size, where a pixel is half as wide). The filter runs after the curve because its colour threshold is then
     about equally visible in shadows and highlights.
     """
     import cv2
 
-    rgb = linear_rgb(photo, white_balance=True) @ photo.cam_to_srgb.T.astype(np.float32)
+    if full_size:
+        rgb = _demosaiced_srgb_linear(photo)
+    else:
+        rgb = linear_rgb(photo, white_balance=True) @ photo.cam_to_srgb.T.astype(np.float32)
     lum = rgb @ np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
     level = float(np.percentile(lum, percentile))
     scale = target / level if level > 1e-6 else 1.0
     srgb = srgb_encode(rgb * np.float32(scale))
-    srgb = cv2.bilateralFilter(np.ascontiguousarray(srgb), d=5, sigmaColor=0.08, sigmaSpace=1.5)
+    d, space = (9, 3.0) if full_size else (5, 1.5)
+    srgb = cv2.bilateralFilter(np.ascontiguousarray(srgb), d=d, sigmaColor=0.08, sigmaSpace=space)
     return np.clip(np.round(srgb * 255.0), 0, 255).astype(np.uint8)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# full-size views for scenes (stage 3a): demosaic, the view's sRGB image, size and exposure without the mosaic
+
+_CHANNEL = {"R": 0, "G": 1, "B": 2}
+_K_RB = np.array([[1, 2, 1], [2, 4, 2], [1, 2, 1]], dtype=np.float64) / 4.0
+_K_G = np.array([[0, 1, 0], [1, 4, 1], [0, 1, 0]], dtype=np.float64) / 4.0
+
+
+def _correlate3(x: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """3x3 correlation of [H, W] with zeros outside (the normalisation by the mask's own response handles edges)."""
+    p = np.pad(x, 1)
+    h, w = x.shape
+    out = np.zeros_like(x)
+    for i in range(3):
+        for j in range(3):
+            if k[i, j]:
+                out += x.dtype.type(k[i, j]) * p[i:i + h, j:j + w]
+    return out
+
+
+def demosaic_bilinear(x: np.ndarray, cfa: Union[str, np.ndarray]) -> np.ndarray:
+    """[H, W, 3] from a mosaic [H, W] (float32 stays float32, anything else becomes float64): each missing
+    sample is the mean of its nearest samples of that colour (bilinear; exact for a linear ramp away from the
+    border). At the border, only samples inside count. ``cfa``: "RGGB"-style letters read from the top-left
+    pixel, or the [2, 2] channel indices of :attr:`RawPhoto.cfa`."""
+    x = np.asarray(x)
+    x = x if x.dtype == np.float32 else x.astype(np.float64)
+    quad = (np.array([_CHANNEL[c] for c in cfa.upper()]).reshape(2, 2) if isinstance(cfa, str)
+            else np.asarray(cfa).reshape(2, 2))
+    h, w = x.shape
+    idx = np.tile(quad, ((h + 1) // 2, (w + 1) // 2))[:h, :w]
+    out = np.empty((h, w, 3), dtype=x.dtype)
+    for c, k in ((0, _K_RB), (1, _K_G), (2, _K_RB)):
+        m = (idx == c).astype(x.dtype)
+        out[..., c] = _correlate3(x * m, k) / _correlate3(m, k)
+    return out
+
+
+def _demosaiced_srgb_linear(photo: RawPhoto) -> np.ndarray:
+    """float32 [H, W, 3] linear sRGB at full size: normalised (not clipped), bilinear demosaic, camera white
+    balance, camera -> sRGB matrix."""
+    rgb = demosaic_bilinear(normalised_mosaic(photo), photo.cfa)
+    rgb *= photo.white_balance.astype(np.float32)
+    return (rgb @ photo.cam_to_srgb.T.astype(np.float32)).astype(np.float32, copy=False)
+
+
+def view_srgb(photo: RawPhoto, exposure_factor: float = 1.0) -> np.ndarray:
+    """float32 [H, W, 3] in [0, 1]: the photo as a scene view reads it (stage 3a): linear sRGB at full size
+    (:func:`_demosaiced_srgb_linear`), divided by ``exposure_factor`` (the view's exposure relative to the
+    scene's reference, :func:`folder_exposure`), clipped to [0, 1], sRGB-encoded; full float precision."""
+    from retinexgs.data.srgb import linear_to_srgb
+
+    if not (np.isfinite(exposure_factor) and exposure_factor > 0):
+        raise ValueError(f"exposure factor must be positive, got {exposure_factor}")
+    rgb = _demosaiced_srgb_linear(photo)
+    if exposure_factor != 1.0:
+        rgb /= np.float32(exposure_factor)
+    return linear_to_srgb(rgb).astype(np.float32, copy=False)
+
+
+@dataclass
+class RawHeader:
+    """What a scene needs of a raw file without its mosaic: the size :func:`read_raw` gives (visible area,
+    whole 2x2 quads), camera make/model (EXIF; "" when not stated) and the exposure metadata (None when
+    missing)."""
+    path: Path
+    width: int
+    height: int
+    make: str = ""
+    model: str = ""
+    exposure_time: Optional[float] = None
+    iso: Optional[float] = None
+    f_number: Optional[float] = None
+
+    @property
+    def camera(self) -> str:
+        """"make model" as stated, or "" when the file names no camera."""
+        return " ".join(v for v in (self.make, self.model) if v).strip()
+
+
+def read_header(path: Union[str, Path]) -> RawHeader:
+    """The :class:`RawHeader` of a raw file: the same checks as :func:`read_raw` before LibRaw (missing, tiny,
+    truncated TIFF structure), then LibRaw's sizes and metadata without decoding the mosaic. UserError (one line
+    naming the file) for anything LibRaw refuses."""
+    import rawpy
+
+    path = Path(path)
+    size = _check_path(path)
+    _open_tiff(path, size)
+    raw = rawpy.RawPy()
+    try:
+        raw.open_file(str(path))
+        w, h = int(raw.sizes.width), int(raw.sizes.height)
+        other = raw.other
+        t_other = (float(other.shutter_speed), float(other.aperture), float(other.iso_speed))
+    except rawpy.LibRawError as exc:
+        raise UserError(f"{path}: cannot read this raw file: {_libraw_reason(exc)}") from None
+    except (OSError, MemoryError, ValueError) as exc:
+        raise UserError(f"{path}: cannot read this raw file: {exc}") from None
+    finally:
+        raw.close()
+    if h < 2 or w < 2:
+        raise UserError(f"{path}: the image is {w}x{h} pixels, smaller than one 2x2 colour quad")
+
+    class _Other:  # LibRaw's values, read while the file was open
+        shutter_speed, aperture, iso_speed = t_other
+
+    tags = _read_exif(path)
+    t, iso, fn = _exposure_from(tags, _Other, [])
+    return RawHeader(path, (w // 2) * 2, (h // 2) * 2, str(tags.get("Image Make", "")).strip(),
+                     str(tags.get("Image Model", "")).strip(), t, iso, fn)
+
+
+def is_raw_path(path: Union[str, Path]) -> bool:
+    """True when the name ends in one of :data:`BAYER_RAW_EXTENSIONS` (any case)."""
+    return Path(path).suffix.lower() in BAYER_RAW_EXTENSIONS
+
+
+@dataclass
+class FolderExposure:
+    """The exposures of a folder's raw files: ``factors[name]`` = the file's exposure (time x ISO / f-number^2)
+    relative to the folder's reference, the median over its raw files (:func:`exposure_scale`); 1.0 for a file
+    without the metadata, listed in ``missing``. ``headers[name]``: each file's :class:`RawHeader`."""
+    folder: Path
+    factors: Dict[str, float]
+    missing: List[str]
+    headers: Dict[str, RawHeader]
+
+
+_FOLDER_EXPOSURES: Dict[tuple, FolderExposure] = {}
+_FOLDER_LOCK = threading.Lock()
+
+
+def _folder_key(folder: Path) -> tuple:
+    """What changes when a raw file of ``folder`` is added, removed or replaced (name, size, mtime, ctime)."""
+    entries = []
+    for p in sorted(folder.iterdir(), key=lambda q: q.name):
+        if is_raw_path(p) and not p.name.startswith(".") and p.is_file():
+            st = p.stat()
+            entries.append((p.name, st.st_size, st.st_mtime_ns, st.st_ctime_ns))
+    return (str(folder.resolve()), tuple(entries))
+
+
+def folder_exposure(folder: Union[str, Path]) -> FolderExposure:
+    """:class:`FolderExposure` of the raw files directly inside ``folder``, from their headers only (EXIF /
+    LibRaw metadata, no mosaic), computed once per process while the folder's raw files are unchanged (a
+    thread-safe cache: the loader reads views from several threads)."""
+    folder = Path(folder)
+    key = _folder_key(folder)
+    with _FOLDER_LOCK:
+        hit = _FOLDER_EXPOSURES.get(key)
+        if hit is not None:
+            return hit
+        headers = [read_header(folder / name) for name, *_ in key[1]]
+        factors = exposure_scale(headers)  # type: ignore[arg-type]  # RawHeader has the exposure fields
+        fields = ("exposure_time", "iso", "f_number")
+        used = [f for f in fields if any(getattr(h, f) is not None for h in headers)]  # as exposure_scale
+        missing = [h.path.name for h in headers if not used or any(getattr(h, f) is None for f in used)]
+        result = FolderExposure(folder, {h.path.name: f for h, f in zip(headers, factors)}, missing,
+                                {h.path.name: h for h in headers})
+        _FOLDER_EXPOSURES[key] = result
+        return result
+
+
+def read_view_srgb(path: Union[str, Path]) -> np.ndarray:
+    """float32 [H, W, 3] in [0, 1]: a raw file as a scene view (:func:`view_srgb`), divided by its exposure
+    relative to the median of its folder's raw files (:func:`folder_exposure`). UserError naming the file for
+    anything that cannot be read."""
+    path = Path(path)
+    photo = read_raw(path)  # first: a missing or broken file gets read_raw's line naming it
+    factor = folder_exposure(path.parent).factors.get(path.name, 1.0)
+    return view_srgb(photo, factor)
 
 
 # ----------------------------------------------------------------------------------------------------------

@@ -3,7 +3,10 @@ rigs/frames files of newer COLMAP versions), and turning one into views.
 
 The COLMAP reader looks for images next to the model: the folder given, else ``<scene>/images``, else
 ``<scene>/low`` (LOM layout), else the scene folder itself; the first folder holding every registered
-image's file wins. When that folder is ``low/`` and a sibling ``high/`` exists, views are paired with it.
+image's file wins. When that folder is ``low/`` and a sibling ``high/`` exists, views are paired with it (a
+camera raw file by stem: ``low/X.dng`` with ``high/X.png``). Images named ``X.dng`` are read as raw views; a
+model naming the camera's ``X.jpg`` reads the JPEGs, even with ``X.dng`` beside them (only a bare folder of
+RAW + JPEG pairs, through SfM, trains on the raw files: docs/raw.md).
 Views are split into train/test by ``<scene>/split.json`` ({"train": [...], "test": [...]}) when present,
 else every ``test_every``-th view (sorted by name) is a test view, else all views are train views.
 """
@@ -21,9 +24,10 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from retinexgs.data.camera import Intrinsics, c2w_from_w2c, camera_from_colmap, check_rotation
+from retinexgs.data.camera_raw import BAYER_RAW_EXTENSIONS
 from retinexgs.data.declared import DeclaredScene, DeclaredView
 from retinexgs.errors import UserError
-from retinexgs.data.pairing import check_same_files
+from retinexgs.data.pairing import check_same_files, high_partner
 
 # Where load_scene looks for a model inside a scene folder, in order.
 MODEL_SUBDIRS = (".", "sparse/0", "sparse", "colmap_sparse/0", "colmap_sparse", "colmap/sparse/0")
@@ -372,9 +376,13 @@ def points_in_frame_of(model: ColmapModel, views: Sequence[DeclaredView]) -> np.
     frames are assumed equal.
     """
     by_name = {Path(im.name).name: im for im in model.images.values()}
+    by_stem = {Path(im.name).stem: im for im in model.images.values()}
     src, dst = [], []
     for v in views:
+        # by stem as well: a raw scene's low/X.dng has the poses of the model's X.png (darken --raw copies both)
         im = by_name.get(v.image.name) or by_name.get(Path(v.name).name)
+        if im is None and v.image.suffix.lower() in BAYER_RAW_EXTENSIONS:
+            im = by_stem.get(v.image.stem)
         if im is not None:
             src.append(im.c2w[:3, 3])
             dst.append(v.c2w[:3, 3])
@@ -460,6 +468,6 @@ def read_colmap_scene(root: Path, model_dir: Optional[Path] = None, images: Opti
     views = []
     for im in model.images.values():
         views.append(DeclaredView(im.name, image_dir / im.name, model.cameras[im.camera_id], im.c2w,
-                             high / im.name if paired else None))
+                             high_partner(image_dir / im.name, high) if paired else None))
     train, test = split_views(views, root, test_every)
     return DeclaredScene(root, reader, train, test, [], model.points, model.colors, "colmap")

@@ -7,6 +7,14 @@ reduces to 8 bits, is decoded by OpenCV at full depth when it is installed).
 Readable types: :data:`IMAGE_EXTENSIONS` (any case), the one list every reader and "no photos" message uses.
 HEIC/HEIF (a phone's default) is read through pillow-heif, registered with Pillow on the first image opened.
 
+Camera raw files (:data:`RAW_EXTENSIONS`, those whose cameras LibRaw reads as a 2x2 Bayer mosaic; issue #52
+stage 3a, docs/raw.md "Raw scenes") are photos too: :func:`read_image_float` reads one through
+:func:`retinexgs.data.camera_raw.read_view_srgb`: black-subtracted, bilinear-demosaiced at full size (the sensor's
+visible area, so poses and intrinsics declared for it fit), the camera's as-shot white balance and camera -> sRGB
+matrix, divided by its exposure relative to the median of its folder's raw files, clipped to [0, 1] and
+sRGB-encoded, as float32 (no 8-bit rounding; :func:`read_image` rounds to 8 bits as for a 16-bit PNG).
+:func:`image_size` of a raw file reads LibRaw's sizes, not the mosaic.
+
 Orientation: the EXIF orientation tag is ignored for every format, as COLMAP ignores it, so poses and pixels
 stay consistent: a photo is read as its pixels are stored. For JPEG that is Pillow's default. For HEIC the
 decoder (libheif) always turns the image upright by the container's rotation and reports the orientation it
@@ -22,12 +30,20 @@ from typing import Iterator, List, Tuple
 import numpy as np
 import torch
 
+from retinexgs.data.camera_raw import BAYER_RAW_EXTENSIONS, is_raw_path
 from retinexgs.errors import UserError
 from retinexgs.fileio import atomic_write
 
 # Compared in lower case: .HEIC, .JPG and .jpg alike. HEIC/HEIF need pillow-heif (an install requirement).
-IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".heic", ".heif")
+# Camera raw types: camera_raw.BAYER_RAW_EXTENSIONS (read with rawpy, an install requirement).
+RAW_EXTENSIONS = BAYER_RAW_EXTENSIONS
+IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".heic", ".heif") + RAW_EXTENSIONS
 HEIF_EXTENSIONS = (".heic", ".heif")
+
+
+def is_raw_file(path: Path) -> bool:
+    """True when ``path``'s extension is a camera raw type (:data:`RAW_EXTENSIONS`, any case)."""
+    return is_raw_path(path)
 
 
 def readable_formats() -> str:
@@ -126,7 +142,13 @@ def _heif_available() -> bool:
 
 def image_size(path: Path) -> Tuple[int, int]:
     """(width, height) of an image as :func:`read_image_float` returns it (stored orientation, see the module
-    docstring), reading only its header; UserError if it cannot be read."""
+    docstring), reading only its header; UserError if it cannot be read. A raw file: LibRaw's size of the
+    visible area in whole 2x2 quads, without decoding the mosaic."""
+    if is_raw_path(path):
+        from retinexgs.data.camera_raw import read_header
+
+        head = read_header(path)
+        return head.width, head.height
     with _open(path) as im:
         w, h = int(im.size[0]), int(im.size[1])
         return (h, w) if _heif_turn(im) >= 5 else (w, h)  # orientations 5-8 turn by 90°: undoing swaps sides
@@ -162,9 +184,14 @@ def _decode_16bit_colour(path: Path) -> np.ndarray:
 
 def read_image_float(path: Path) -> np.ndarray:
     """Read an image as float32 [H,W,3] in [0,1] scaled by its bit depth (see the module docstring);
-    UserError naming the file if it is missing, unreadable or of an unsupported pixel format."""
-    Image = _pil()
+    UserError naming the file if it is missing, unreadable or of an unsupported pixel format. A camera raw
+    file is read as a scene view (see the module docstring)."""
     path = Path(path)
+    if is_raw_path(path):
+        from retinexgs.data.camera_raw import read_view_srgb
+
+        return read_view_srgb(path)
+    Image = _pil()
     try:
         with _open(path) as opened:
             opened.load()

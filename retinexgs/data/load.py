@@ -10,6 +10,13 @@ Caches (the only files written into the scene folder; ``cache_dir=`` moves them 
 ``<scene>/retinexgs_cache/{undistorted,downscaled}/...`` for processed images and
 ``<scene>/retinexgs_sfm/`` (or ``<cache_dir>/sfm``) for the SfM model.
 
+Camera raw photos (docs/raw.md, "Raw scenes"): a view whose image is a raw file is read as a float sRGB photo
+(:func:`retinexgs.data.images.read_image_float`), divided by its exposure relative to the median of its folder's
+raw files. Refused, one line each: raw and other photos in one split; raw photos of different cameras
+(EXIF make/model) or sizes in one split. Printed: one line with the exposure factors' range, one warning naming
+the raw files without exposure metadata (taken at the median). A bare folder of RAW + JPEG pairs gets its poses
+from the JPEGs (SfM) and trains on the raw files.
+
 Without input points (a transforms JSON with no COLMAP model), initial points are random: points along
 random train-camera rays at depths uniform in [0.05, 2.5] (normalised units, i.e. up to 2.5 times the
 largest camera distance from the rig centre), kept only when inside the frustum of at least two train
@@ -18,6 +25,7 @@ views (of all, if fewer); colour mid-grey.
 from __future__ import annotations
 
 import shutil
+import sys
 import tempfile
 from pathlib import Path
 from typing import Callable, Dict, List, Optional, Tuple, Union
@@ -26,7 +34,7 @@ import numpy as np
 import torch
 
 from retinexgs.data.camera import Intrinsics
-from retinexgs.data.images import image_size, list_images, no_images_reason
+from retinexgs.data.images import image_size, is_raw_file, list_images, no_images_reason
 from retinexgs.data.declared import DeclaredScene, DeclaredView
 from retinexgs.data.scene import Normalization, Scene, View, warn
 from retinexgs.data.undistort import output_camera, plan_paths, process_all
@@ -35,7 +43,7 @@ from retinexgs.data.colmap import find_model_dir
 from retinexgs.data.transforms_json import has_transforms
 from retinexgs.data.transforms_json import read_transforms_scene
 from retinexgs.data.colmap import read_colmap_scene
-from retinexgs.data.sfm import run_sfm
+from retinexgs.data.sfm import raw_jpeg_pairs, run_sfm
 
 READERS = ("auto", "transforms", "colmap", "sfm")
 PathLike = Union[str, Path]
@@ -139,6 +147,69 @@ def _check_views(raw: DeclaredScene) -> None:
              "are not held-out (recorded as test_in_train in metrics.json); list them in one split only")
 
 
+def _check_raw_views(raw: DeclaredScene) -> None:
+    """Camera raw views (see the module docstring): one split is all raw or all not, of one camera and one
+    size; one line gives the exposure factors' range and one warning names the files without exposure
+    metadata. Reads only the raw files' headers (:func:`retinexgs.data.camera_raw.folder_exposure`)."""
+    from retinexgs.data.camera_raw import folder_exposure
+
+    root = Path(raw.root)
+    factors: Dict[Path, float] = {}
+    missing: List[str] = []
+    for split in ("train", "test", "val"):
+        views = getattr(raw, split)
+        raws = [v for v in views if is_raw_file(Path(v.image))]
+        if not raws:
+            continue
+        label = _split_label(raw, split)
+        others = [v for v in views if not is_raw_file(Path(v.image))]
+        if others:
+            raise UserError(f"{label} mixes camera raw files and other photos ({_shown(root, raws[0].image)}, "
+                            f"{_shown(root, others[0].image)}): one split's photos must all be raw or all not "
+                            f"(they are read differently); list one kind")
+        cameras: Dict[str, Path] = {}
+        sizes: Dict[Tuple[int, int], Path] = {}
+        for v in raws:
+            img = Path(v.image)
+            fe = folder_exposure(img.parent)
+            head = fe.headers[img.name]
+            factors[img.resolve()] = fe.factors[img.name]
+            if img.name in fe.missing:
+                missing.append(_shown(root, img))
+            if head.camera:
+                cameras.setdefault(head.camera, img)
+            sizes.setdefault((head.width, head.height), img)
+        if len(cameras) > 1:
+            (a, pa), (b, pb) = list(cameras.items())[:2]
+            raise UserError(f"{label} holds raw photos of different cameras: {_shown(root, pa)} is a {a}, "
+                            f"{_shown(root, pb)} a {b}; one scene is one camera's (its colour and noise): "
+                            f"train them as separate scenes")
+        if len(sizes) > 1:
+            (a, pa), (b, pb) = list(sizes.items())[:2]
+            raise UserError(f"{label} holds raw photos of different sizes: {_shown(root, pa)} is {a[0]}x{a[1]}, "
+                            f"{_shown(root, pb)} {b[0]}x{b[1]}; shoot one format (no crop modes) or train them "
+                            f"as separate scenes")
+    if not factors:
+        return
+    lo, hi = min(factors.values()), max(factors.values())
+    print(f"raw photos: {len(factors)} camera raw views read as float sRGB (demosaiced, as-shot white balance), "
+          f"each divided by its exposure relative to its folder's median: factors {lo:.3g} .. {hi:.3g}",
+          file=sys.stderr, flush=True)
+    if missing:
+        shown = ", ".join(sorted(set(missing))[:5]) + (" ..." if len(set(missing)) > 5 else "")
+        warn(f"{len(set(missing))} raw photo{'s have' if len(set(missing)) > 1 else ' has'} no exposure time, ISO "
+             f"or f-number in the metadata ({shown}): their exposure is assumed equal to the median (factor 1)")
+
+
+def _raw_for_jpeg(raw: DeclaredScene, pairs: Dict[Path, Path]) -> None:
+    """A RAW + JPEG folder's scene (poses from the JPEGs): each view reads the raw file beside its JPEG."""
+    by_jpeg = {jpeg.name: raw_file for raw_file, jpeg in pairs.items()}
+    for v in raw.train + raw.test + raw.val:
+        partner = by_jpeg.get(Path(v.image).name)
+        if partner is not None:
+            v.image = partner
+
+
 def _warn_rescaled(raw: DeclaredScene, cams: Dict[int, Intrinsics]) -> None:
     """One warning per camera size that disagrees with its images' size (the intrinsics are rescaled)."""
     seen: Dict[Tuple[int, int, int, int], List[DeclaredView]] = {}
@@ -232,6 +303,7 @@ def build_scene(raw: DeclaredScene, downscale: float = 1, cache_dir: Optional[Pa
     jobs: List[Tuple[Path, Path, Intrinsics, Intrinsics]] = []
     split_views: Dict[str, List[View]] = {}
     _check_views(raw)
+    _check_raw_views(raw)
     all_raw = raw.train + raw.test + raw.val
     cams = {id(v): _fit_camera(v) for v in all_raw}
     _warn_rescaled(raw, cams)
@@ -311,8 +383,10 @@ def load_scene(path: PathLike, reader: str = "auto", downscale: float = 1, *, im
             raise UserError(f"no photos found in {root}, {root / 'images'} or {root / 'low'}: "
                             f"{no_images_reason(root)}")
         if downscale >= 1:  # refuse a useless downscale before SfM writes its model
+            listed = list_images(image_dir)
+            pairs = raw_jpeg_pairs(listed)  # also refuses raw and other photos that do not pair up
             photos = [DeclaredView(p.name, p, Intrinsics(*image_size(p), 1.0, 1.0, 0.0, 0.0), np.eye(4))
-                      for p in list_images(image_dir)]
+                      for p in (sorted(pairs) if pairs else listed)]
             _check_downscale(downscale, {id(v): v.camera for v in photos}, photos)
         out = Path(cache_dir) / "sfm" if cache_dir is not None else root / "retinexgs_sfm"
         kwargs = dict(sfm_options or {})
@@ -322,4 +396,9 @@ def load_scene(path: PathLike, reader: str = "auto", downscale: float = 1, *, im
         raw = read_colmap_scene(root, result.model_dir, images=image_dir.resolve(), test_every=test_every,
                                 reader="sfm")
         raw.points_source = "sfm"
+        pairs = raw_jpeg_pairs(list_images(image_dir))
+        if pairs:  # RAW + JPEG: SfM posed the JPEGs (run_sfm said so); the views read the raw files
+            _raw_for_jpeg(raw, pairs)
+            print(f"raw photos: {len(pairs)} RAW + JPEG pairs in {image_dir}: poses from the JPEGs, training on "
+                  f"the raw files", file=sys.stderr, flush=True)
     return build_scene(raw, downscale, cache_dir, normalize, num_random_points, seed, cache_hint)

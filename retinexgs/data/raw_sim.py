@@ -37,7 +37,8 @@ from typing import Dict, Optional, Tuple
 
 import numpy as np
 
-from retinexgs.data.camera_raw import XYZ_FROM_SRGB, srgb_encode
+from retinexgs.data.camera_raw import XYZ_FROM_SRGB, demosaic_bilinear, srgb_encode
+from retinexgs.data.srgb import srgb_to_linear
 from retinexgs.data.dng import MIN_SIDE, write_dng
 from retinexgs.errors import UserError
 
@@ -138,16 +139,10 @@ def noise_profile(camera: RawCamera, full_well: Optional[float], read_noise: flo
 
 # ---- the inverse pipeline (sRGB -> raw) ----------------------------------------------------------------------
 
-def srgb_to_linear(x: np.ndarray) -> np.ndarray:
-    """sRGB [0, 1] -> linear light (IEC 61966-2-1)."""
-    x = np.clip(np.asarray(x, dtype=np.float64), 0.0, 1.0)
-    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
-
-
 def unprocess(srgb: np.ndarray, camera: RawCamera, cast: Tuple[float, float, float] = (1.0, 1.0, 1.0)) -> np.ndarray:
     """float64 [H, W, 3]: the camera RGB (before white balance, exposure 1) of an sRGB photo [H, W, 3] in [0, 1]:
     sRGB -> linear, times the colour cast, -> white-balanced camera RGB, / as-shot white balance."""
-    lin = srgb_to_linear(srgb) * np.asarray(cast, dtype=np.float64)
+    lin = srgb_to_linear(np.asarray(srgb, dtype=np.float64)) * np.asarray(cast, dtype=np.float64)
     cam = lin @ camera.cam_from_srgb().T
     return cam / np.asarray(camera.white_balance, dtype=np.float64)
 
@@ -179,34 +174,6 @@ def capture_mosaic(srgb: np.ndarray, model, camera: RawCamera, k_view: float,
 
 
 # ---- the forward camera ISP (raw -> the camera's JPEG) -------------------------------------------------------
-
-_K_RB = np.array([[1, 2, 1], [2, 4, 2], [1, 2, 1]], dtype=np.float64) / 4.0
-_K_G = np.array([[0, 1, 0], [1, 4, 1], [0, 1, 0]], dtype=np.float64) / 4.0
-
-
-def _correlate3(x: np.ndarray, k: np.ndarray) -> np.ndarray:
-    """3x3 correlation of [H, W] with zeros outside (the normalisation by the mask's own response handles edges)."""
-    p = np.pad(x, 1)
-    h, w = x.shape
-    out = np.zeros_like(x)
-    for i in range(3):
-        for j in range(3):
-            if k[i, j]:
-                out += k[i, j] * p[i:i + h, j:j + w]
-    return out
-
-
-def demosaic_bilinear(x: np.ndarray, cfa: str) -> np.ndarray:
-    """float64 [H, W, 3] from a mosaic [H, W]: each missing sample is the mean of its nearest samples of that
-    colour (bilinear; exact for a linear ramp away from the border). At the border, only samples inside count."""
-    h, w = x.shape
-    idx = np.tile(np.array([_CHANNEL[c] for c in cfa]).reshape(2, 2), ((h + 1) // 2, (w + 1) // 2))[:h, :w]
-    out = np.empty((h, w, 3))
-    for c, k in ((0, _K_RB), (1, _K_G), (2, _K_RB)):
-        m = (idx == c).astype(np.float64)
-        out[..., c] = _correlate3(x * m, k) / _correlate3(m, k)
-    return out
-
 
 def process(dn: np.ndarray, camera: RawCamera, black: float) -> np.ndarray:
     """float32 [H, W, 3] sRGB in [0, 1]: the camera's ISP of a raw DN mosaic: normalise (not clipped), bilinear

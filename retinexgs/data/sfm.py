@@ -15,6 +15,14 @@ the user's: they are replaced only with ``force``. The model and database are bu
 removes what it made: the output folder when it made it, else the ``enhanced/`` folder when it made that; the
 temporary folders of killed runs (their process gone) are removed by the next call. Enhanced copies are reused
 when their source's content digest and the enhancement method match ``.retinexgs_enhanced.json``.
+
+Camera raw photos (issue #52 stage 3a, docs/raw.md): COLMAP cannot read them, so a folder of raw files ALWAYS
+goes through copies: each raw file's full-size preview (:func:`retinexgs.data.camera_raw.preview_srgb`, bright
+and denoised), written into ``enhanced/`` under the raw file's own name as PNG bytes (COLMAP reads the bytes, not
+the name), and the mapper takes its point colours from those copies. A folder of RAW + JPEG pairs (every raw
+file with a photo of the same stem beside it, as a camera writes them) uses the JPEGs for SfM, as they are (one
+log line says so); the loader then trains on the raw files (:func:`raw_jpeg_pairs`). Raw and other photos that
+do not pair up are refused (one line).
 """
 from __future__ import annotations
 
@@ -29,10 +37,13 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, List, Optional, Union
+from typing import TYPE_CHECKING, Callable, List, Optional, Union
+
+if TYPE_CHECKING:
+    import numpy as np
 
 from retinexgs.data.camera import COLMAP_MODELS
-from retinexgs.data.images import image_size, list_images, read_image, write_image_atomic
+from retinexgs.data.images import image_size, is_raw_file, list_images, read_image, write_image_atomic
 from retinexgs.errors import UserError
 from retinexgs.fileio import atomic_write_text, content_digest, is_out_of_space, out_of_space_error
 from retinexgs.data.colmap import keep_python_sigterm
@@ -68,6 +79,42 @@ class SfmResult:
     def num_registered(self) -> int:
         """Number of registered photos."""
         return len(self.registered)
+
+
+# Recorded with cached SfM runs (as the enhancement method is) so a change of the raw preview invalidates them.
+RAW_PREVIEW_METHOD = "raw-preview-full-p99-to-0.9+bilateral"
+
+
+def raw_jpeg_pairs(paths: List[Path]) -> Optional[dict]:
+    """For a folder's photos: None when none is a raw file; {raw file: its JPEG (or other photo) of the same
+    stem} when every raw file has exactly one such photo and every other photo is such a partner (a camera's
+    RAW + JPEG capture); UserError when raw and other photos are mixed without pairing up."""
+    raws = [p for p in paths if is_raw_file(p)]
+    if not raws:
+        return None
+    others = [p for p in paths if not is_raw_file(p)]
+    if not others:
+        return {}
+    by_stem: dict = {}
+    for p in others:
+        by_stem.setdefault(p.stem, []).append(p)
+    raw_stems = {p.stem for p in raws}
+    unpaired = [p.name for p in raws if len(by_stem.get(p.stem, [])) != 1]
+    unpaired += [p.name for p in others if p.stem not in raw_stems]
+    if unpaired or len(raw_stems) != len(raws):
+        shown = ", ".join(sorted(unpaired)[:4]) + (" ..." if len(unpaired) > 4 else "")
+        raise UserError(f"{raws[0].parent} mixes camera raw files ({len(raws)}) and other photos ({len(others)}) "
+                        f"that do not pair up by name (e.g. {shown or raws[0].name}); one scene's photos are all raw "
+                        f"or all not (a RAW + JPEG capture, NAME.dng beside NAME.jpg, is also accepted): move "
+                        f"the others to another folder")
+    return {p: by_stem[p.stem][0] for p in raws}
+
+
+def _raw_preview(src: Path) -> "np.ndarray":
+    """uint8 [H, W, 3]: the full-size bright, denoised preview of a raw file that COLMAP reads instead of it."""
+    from retinexgs.data.camera_raw import preview_srgb, read_raw
+
+    return preview_srgb(read_raw(src), full_size=True)
 
 
 def _pycolmap():
@@ -230,6 +277,11 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
     paths = list_images(image_dir)
     if not paths:
         raise UserError(f"image folder {image_dir} is empty (no .jpg/.png/... files)")
+    pairs = raw_jpeg_pairs(paths)
+    if pairs:  # RAW + JPEG: the camera's JPEGs give the poses (the loader trains on the raw files)
+        paths = sorted(pairs.values(), key=lambda p: p.name)
+        say(f"{len(pairs)} RAW + JPEG pairs in {image_dir}: SfM runs on the JPEGs, training reads the raw files")
+    raw_input = pairs == {}  # raw files only: COLMAP reads their previews
     if len(paths) < 2:
         raise UserError(f"image folder {image_dir} holds only one photo; SfM needs at least two")
     if matching not in ("auto", "exhaustive", "sequential"):
@@ -250,7 +302,8 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
     digests = {p.name: content_digest(p) for p in paths}
     if out_dir.is_dir():
         clear_leftovers(out_dir, say)  # a killed run's temporary folder (a cached call clears it too)
-    options = dict(matching=matching, enhance=str(enhance), enhance_method=enhance_method, camera_model=camera_model,
+    options = dict(matching=matching, enhance=str(enhance),
+                   enhance_method=RAW_PREVIEW_METHOD if raw_input else enhance_method, camera_model=camera_model,
                    single_camera=single_camera, max_num_features=max_num_features,
                    max_image_size=max_image_size, seed=seed)
     signature = dict(options=options, images=[[p.name, list(sizes[p.name]), digests[p.name]] for p in paths])
@@ -298,16 +351,20 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
 
     try:
         # 1. brightened + denoised copies for feature extraction
-        do_enhance = folder_is_dark(paths) if enhance == "auto" else bool(enhance)
+        # raw files always: COLMAP cannot read them (their previews are bright and denoised already)
+        do_enhance = True if raw_input else folder_is_dark(paths) if enhance == "auto" else bool(enhance)
+        method = RAW_PREVIEW_METHOD if raw_input else enhance_method
         feature_dir = image_dir
         if do_enhance:
             feature_dir = out_dir / "enhanced"
             made_enhanced = None if feature_dir.exists() else feature_dir
-            say(f"brightening and denoising {len(paths)} dark photos into {feature_dir}")
+            say(f"writing bright, denoised previews of {len(paths)} raw photos into {feature_dir} (COLMAP cannot "
+                f"read raw files)" if raw_input else
+                f"brightening and denoising {len(paths)} dark photos into {feature_dir}")
             manifest_path = out_dir / ENHANCED_MANIFEST  # beside, not among, the copies
             try:  # which source content each copy was made from: the copies' cache key
                 manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
-                made_from = manifest["sources"] if manifest.get("method") == enhance_method else {}
+                made_from = manifest["sources"] if manifest.get("method") == method else {}
                 made_from = made_from if isinstance(made_from, dict) else {}
             except (OSError, ValueError, KeyError, TypeError, AttributeError):
                 made_from = {}
@@ -315,12 +372,14 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
             def work(p: Path) -> None:
                 dst = feature_dir / p.name
                 if made_from.get(p.name) != digests[p.name] or not dst.is_file():
-                    write_image_atomic(dst, enhance_for_features(read_image(p)), quality=97)
+                    # PNG bytes under the photo's own name (write_image_atomic writes PNG for a raw suffix)
+                    copy = _raw_preview(p) if raw_input else enhance_for_features(read_image(p))
+                    write_image_atomic(dst, copy, quality=97)
 
             with ThreadPoolExecutor(max_workers=min(8, os.cpu_count() or 1)) as pool:
                 list(pool.map(work, paths))
             made_from.update(digests)
-            atomic_write_text(manifest_path, json.dumps(dict(method=enhance_method, sources=made_from), indent=1))
+            atomic_write_text(manifest_path, json.dumps(dict(method=method, sources=made_from), indent=1))
             stages["enhance"] = time.perf_counter() - t0
 
         same_size = len(set(sizes.values())) == 1
@@ -390,7 +449,9 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
             say(f"mapping:{label} {min(count[0], len(paths))}/{len(paths)} photos")
 
         say("incremental mapping")
-        models = pycolmap.incremental_mapping(db, image_dir, tmp / "models", options=popt,
+        # point colours from the originals, or from the previews where COLMAP cannot read the originals (raw)
+        models = pycolmap.incremental_mapping(db, feature_dir if raw_input else image_dir, tmp / "models",
+                                              options=popt,
                                               initial_image_pair_callback=initial_pair,
                                               next_image_callback=next_image)
         stages["map"] = time.perf_counter() - t

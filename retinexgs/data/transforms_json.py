@@ -8,7 +8,8 @@ pixel-centre convention (as COLMAP and instant-ngp write them).
 
 LOM layout: train frames list ``low/X``; test frames list ``high/X``. Each view's input is always the
 ``low/`` file and its paired normal-light image the ``high/`` file of the same name, whenever both
-folders exist (they must then hold the same file names). ``file_path`` may omit the extension.
+folders exist (they must then hold the same file names). Camera raw inputs pair by stem: ``low/X.dng`` with
+``high/X.png`` (or ``.jpg``), and a frame listing ``high/X.png`` takes ``low/X.dng`` as its input. ``file_path`` may omit the extension.
 Initial points come from ``colmap_sparse/0`` (or any COLMAP model found in the folder) when present,
 mapped into the JSON's frame by matching camera centres by file name.
 """
@@ -22,8 +23,8 @@ from typing import Dict, List, Optional, Tuple
 import numpy as np
 
 from retinexgs.data.camera import Intrinsics, check_camera, check_rotation, opengl_to_opencv
-from retinexgs.data.images import IMAGE_EXTENSIONS, image_size
-from retinexgs.data.pairing import check_same_files
+from retinexgs.data.images import IMAGE_EXTENSIONS, image_size, is_raw_file, list_images
+from retinexgs.data.pairing import check_same_files, high_partner
 from retinexgs.data.declared import DeclaredScene, DeclaredView
 from retinexgs.errors import UserError
 from retinexgs.data.colmap import find_model_dir, points_in_frame_of, read_model
@@ -141,7 +142,11 @@ def _pair(path: Path, root: Path) -> Tuple[Path, Optional[Path]]:
     """(input image, paired normal-light image) for a listed file, following the LOM layout."""
     parent = path.parent
     if parent.name in ("low", "high") and (parent.parent / "low").is_dir() and (parent.parent / "high").is_dir():
-        low, high = parent.parent / "low" / path.name, parent.parent / "high" / path.name
+        low = parent.parent / "low" / path.name
+        if not low.is_file():  # a raw input listed by its truth's name (high/X.png): low/X.dng, by stem
+            low = next((q for q in list_images(parent.parent / "low") if q.stem == path.stem and is_raw_file(q)),
+                       low)
+        high = high_partner(low, parent.parent / "high")
         if not low.is_file():
             raise UserError(f"low-light input {low} for {path} does not exist")
         if not high.is_file():

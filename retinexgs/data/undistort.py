@@ -31,6 +31,7 @@ from typing import Dict, List, Optional, Tuple
 import numpy as np
 
 from retinexgs.data.camera import Intrinsics
+from retinexgs.data.camera_raw import folder_exposure, is_raw_path
 from retinexgs.data.images import read_image, resize_image
 from retinexgs.errors import UserError
 from retinexgs.fileio import TMP_PREFIX, atomic_write, content_digest
@@ -63,6 +64,17 @@ def source_digest(path: Path) -> str:
     with _digests_lock:
         _digests[key] = digest
     return digest
+
+
+def image_key(path: Path) -> str:
+    """What every cache of a photo is keyed by: :func:`source_digest`, and for a camera raw file also the exposure
+    factor it is read with (its folder's reference exposure, retinexgs.data.camera_raw.folder_exposure), which a
+    new raw file of another exposure in the folder changes: the same bytes then read as other pixels."""
+    digest = source_digest(path)
+    if not is_raw_path(path):
+        return digest
+    factor = folder_exposure(Path(path).parent).factors.get(Path(path).name, 1.0)
+    return hashlib.sha256(f"{digest}:{factor:.9g}".encode()).hexdigest()[:_DIGEST_LEN]
 
 
 def _cv2():
@@ -122,7 +134,7 @@ def cache_path_for(src: Path, root: Path, cache_dir: Path, cam: Intrinsics, down
     """Where the processed copy of ``src`` lives in the cache: a PNG that mirrors the path under ``root``, named
     with the source's content digest (``digest``, computed when not given; :func:`source_digest`) in a folder
     named by the camera and the downscale."""
-    digest = digest or source_digest(src)
+    digest = digest or image_key(src)
     kind = "undistorted" if cam.is_distorted else "downscaled"
     tag = f"{cam.key()}_x{downscale:g}"
     src = Path(src).resolve()
@@ -196,7 +208,7 @@ def plan_paths(paths: List[Path], root: Path, cache_dir: Path, cam: Intrinsics, 
     for p in paths:
         if not Path(p).is_file():
             raise UserError(f"image {p} does not exist")
-        dst = cache_path_for(p, root, cache_dir, cam, downscale, source_digest(p))
+        dst = cache_path_for(p, root, cache_dir, cam, downscale, image_key(p))
         jobs.append((p, dst, cam, out_cam))
         mapping[p] = dst
     return mapping

@@ -39,7 +39,7 @@ from retinexgs.errors import UserError
 from retinexgs.fileio import TMP_PREFIX, atomic_write
 from retinexgs.retinex.base import enhance_for_viewing, get_decomposer, params_to_dict
 from retinexgs.data.images import load_image_tensor
-from retinexgs.data.undistort import source_digest
+from retinexgs.data.undistort import image_key
 
 from retinexgs.data.images import IMAGE_EXTENSIONS  # the one list of readable types (data/images.py)
 CACHE_DIRNAME = "retinex_cache"
@@ -97,7 +97,7 @@ _UNWRITABLE = (errno.EROFS, errno.EACCES, errno.EPERM)
 def content_hash(image_path: PathLike) -> str:
     """The first 16 hex digits of the SHA-256 of the file's bytes: what an entry is keyed by (memoised within
     the process while the file is unchanged, so the view store's key does not read the photos again)."""
-    return source_digest(Path(image_path))
+    return image_key(Path(image_path))
 
 
 def _entry_name(image_path: Path, digest: str) -> str:

@@ -235,9 +235,9 @@ def store_fingerprint(image_paths: Sequence[Path], sizes: Sequence[Tuple[int, in
     per process while the file is unchanged, :func:`retinexgs.data.undistort.source_digest`) and size. An
     edited, regenerated or resized photo, or other settings, make a new store; a photo replaced by another with
     an older modification time (``cp -p``, ``rsync -a``, unzip) too."""
-    from retinexgs.data.undistort import source_digest  # the shared, memoised content key
+    from retinexgs.data.undistort import image_key  # the shared, memoised content key
 
-    items = [[source_digest(Path(p)), int(Path(p).stat().st_size), int(h), int(w)]
+    items = [[image_key(Path(p)), int(Path(p).stat().st_size), int(h), int(w)]
              for p, (h, w) in zip(image_paths, sizes)]
     blob = json.dumps({"format": _FORMAT, "key": "content", "priors": priors_tag, "views": items}, sort_keys=True)
     return hashlib.sha256(blob.encode("utf-8")).hexdigest()
