@@ -201,7 +201,12 @@ def test_render_val_without_a_val_split_names_the_splits_there_are(tmp_path, mon
 
     run = tmp_path / "run"
     run.mkdir()
-    (run / "config.yaml").write_text("method: retinexgs\n")
+    import yaml
+
+    from retinexgs.run.config import load_config, plain
+
+    # a whole recorded config: render validates it before loading the run
+    (run / "config.yaml").write_text(yaml.safe_dump(dict(plain(load_config()), scene=str(tmp_path))))
     monkeypatch.setattr(renders, "load_run", lambda run_dir, device: ({}, _Scene, None, 0))
     with pytest.raises(UserError, match=r"no val views; try --views test or --views train or --views path"):
         renders.render_run(run, "val", tmp_path / "out")

@@ -6,7 +6,7 @@ import yaml
 
 from retinexgs.cli import main
 from retinexgs.errors import UserError
-from retinexgs.run.config import configs_dir, load_config, read_yaml, validate
+from retinexgs.run.config import configs_dir, load_config, plain, read_yaml, validate
 from retinexgs.run.schema import ConfigSchema
 
 SHIPPED = sorted(p for p in configs_dir().rglob("*.yaml"))
@@ -22,7 +22,7 @@ def test_every_shipped_config_validates(path):
     schema field missing from default.yaml) fails here at once."""
     files = [] if path.name == "default.yaml" and path.parent == configs_dir() else [str(path)]
     cfg = load_config(files)
-    assert set(cfg) == set(ConfigSchema.model_fields)
+    assert set(plain(cfg)) == set(ConfigSchema.model_fields)
 
 
 def test_every_default_key_is_in_the_schema_and_back():
@@ -36,16 +36,18 @@ def test_every_default_key_is_in_the_schema_and_back():
         return out
 
     default = read_yaml(configs_dir() / "default.yaml")
-    assert keys(default) == keys(load_config())
+    assert keys(default) == keys(plain(load_config()))
 
 
-def test_load_config_returns_plain_validated_data():
+def test_load_config_returns_typed_validated_data():
     cfg = load_config(overrides=["loss.w_tv=0", "lr.means=1e-4", "decomposer.params={iterations: 3, beta: 1}"])
-    assert type(cfg) is dict and type(cfg["loss"]) is dict and type(cfg["model"]["illumination"]) is dict
+    assert type(cfg) is ConfigSchema and cfg.loss.w_tv == 0.0
+    data = plain(cfg)  # what a run records in config.yaml and a checkpoint
+    assert type(data) is dict and type(data["loss"]) is dict and type(data["model"]["illumination"]) is dict
+    assert yaml.safe_load(yaml.safe_dump(data)) == data
     assert cfg["loss"]["w_tv"] == 0.0 and isinstance(cfg["loss"]["w_tv"], float)
     assert cfg["lr"]["means"] == 1e-4  # PyYAML reads 1e-4 as a string: a string spelling a number is that number
     assert cfg["decomposer"]["params"] == {"iterations": 3, "beta": 1.0}  # checked per method, typed as its schema says
-    assert yaml.safe_load(yaml.safe_dump(cfg)) == cfg  # what a run records in config.yaml
 
 
 @pytest.mark.parametrize("setting, expect", [
@@ -107,14 +109,14 @@ def test_unknown_keys_are_refused_everywhere(tmp_path):
     with pytest.raises(UserError, match="unknown config key"):
         load_config([str(f)])
     # a base config (a run's config.yaml, or default.yaml with a key the schema lacks)
-    base = load_config()
+    base = plain(load_config())
     base["loss"]["w_new"] = 1.0
     with pytest.raises(UserError, match=r"base.yaml: unknown config key loss.w_new \(not in the config schema"):
         validate(base, base_label="base.yaml")
 
 
 def test_a_missing_key_is_named():
-    base = load_config()
+    base = plain(load_config())
     del base["density"]["every"]
     with pytest.raises(UserError, match="config key density.every is missing"):
         validate(base)

@@ -10,6 +10,7 @@ from retinexgs.model.illumination import IlluminationField
 from retinexgs.model.inference import (InferenceRenderer, camera_center, fused_colors_unsupported,
                                        fused_gaussian_colors, illumination_shape, pack_illumination)
 from retinexgs.model.retinex_model import RetinexGSModel
+from retinexgs.run.schema import Model
 from retinexgs.render._backend import kernels
 from scenes import make_camera
 
@@ -179,10 +180,11 @@ def test_wide_fields_are_reported_unsupported():
 
 
 # ---- the inference renderer ------------------------------------------------------------------------------------
-MODEL_CFG = {"illumination": {"pos_freqs": 10, "dir_freqs": 4, "hidden": 64, "depth": 3, "dir_hidden": 32,
-                              "init_value": 0.1},
+MODEL_CFG = {"sh_degree": 3, "sh_degree_every": 0.1, "init_opacity": 0.1, "max_init_points": 100000,
+             "illumination": {"pos_freqs": 10, "dir_freqs": 4, "hidden": 64, "depth": 3, "dir_hidden": 32,
+                              "init_value": 0.1, "view_dependent": True},
              "enhancement": {"gamma_range": [0.1, 1.0], "init_gamma": 0.45, "per_channel": False,
-                             "ref_quantile": 1.0}}
+                             "per_view": True, "ref_quantile": 1.0, "debias_black": False, "black_filter": 0}}
 
 
 def make_model(decomposed=True, per_channel=False, illumination=None, n=400, dtype=torch.float32,
@@ -190,8 +192,8 @@ def make_model(decomposed=True, per_channel=False, illumination=None, n=400, dty
     enh = dict(MODEL_CFG["enhancement"], per_channel=per_channel, tone=tone, shoulder=shoulder)
     if tone == "exposure":  # the default's range and start
         enh.update(gamma_range=[0.25, 2.0], init_gamma=1.0)
-    cfg = {"illumination": dict(MODEL_CFG["illumination"], **(illumination or {})), "enhancement": enh,
-           "background": background}
+    cfg = Model.model_validate(dict(MODEL_CFG, illumination=dict(MODEL_CFG["illumination"], **(illumination or {})),
+                                    enhancement=enh, background=background))  # the typed section the model takes
     g = make_gaussians(n=n, dtype=torch.float64)
     with torch.no_grad():
         g.means.mul_(0.6)

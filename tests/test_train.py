@@ -90,7 +90,7 @@ def test_the_loss_log_carries_the_exposure_meters_target(scene_dir, tmp_path):
     assert float(terms["exp_E"]) == pytest.approx(float(want)) and float(terms["exp_E"]) < c["exposure_E"] - 0.05
     parts = c["w_spa"] * terms["spa"] + c["w_exp"] * terms["exp"] + c["w_col"] * terms["col"]
     assert float(total.detach()) == pytest.approx(float(parts.detach()))  # exp_E is not part of the sum
-    _, plain = enhancement_objective(tr.model, dict(c, exp_highlight_share=0.0), R, L, S_b)
+    _, plain = enhancement_objective(tr.model, c.model_copy(update={"exp_highlight_share": 0.0}), R, L, S_b)
     assert float(plain["exp_E"]) == c["exposure_E"]
     res = tr.model.render(tr.views[0].camera, 0, depth=tr.depth_prior)
     assert "exp_E" in tr.loss(res, tr.views[0], step=4) and "exp_E" not in tr.loss(res, tr.views[0], step=3)

@@ -97,35 +97,35 @@ def run(args: argparse.Namespace) -> int:
     if args.cache:
         overrides.append(f"data.cache_dir={Path(args.cache).expanduser()}")
     cfg = load_config(args.config or [], overrides)  # the settings train would use, checked before any work
-    dcfg = cfg["decomposer"]
-    if dcfg["method"] not in available_methods():
-        raise UserError(f"decomposer.method is {dcfg['method']}: there is nothing to decompose "
+    dcfg = cfg.decomposer
+    if dcfg.method not in available_methods():
+        raise UserError(f"decomposer.method is {dcfg.method}: there is nothing to decompose "
                         f"(choose {' or '.join(available_methods())})")
     # An unreadable or truncated photo is refused before the cache folder is created (one extra decode per
     # photo; the decomposition itself costs far more).
     for p in paths:
         read_image(p)
     hint = "--cache DIR (or --set data.cache_dir=DIR)"
-    if _has_poses(scene, cfg["data"]["cache_dir"]):
+    if _has_poses(scene, cfg.data.cache_dir):
         # Decompose exactly the images train will read: undistorted and downscaled copies where the scene
         # needs them, so that train finds every entry in the cache.
         from retinexgs.run.folder import open_scene  # lazy: --help stays fast
 
         paths = [v.image_path for v in open_scene(scene, cfg, cache_hint=hint).train]
     else:
-        if cfg["data"]["downscale"] != 1:
+        if cfg.data.downscale != 1:
             raise UserError(f"{scene} has no camera poses yet (no transforms JSON, COLMAP model or cached SfM), so "
                             "there are no downscaled views to decompose: train once (it runs SfM), or decompose "
                             "without data.downscale")
         print(f"note: {scene} has no camera poses yet; train will run SfM and decompose the undistorted copies it "
               "makes, which these entries do not cover", file=sys.stderr)
-    cache_root = scene_cache_root(scene, cfg["data"]["cache_dir"])
-    _, report = decompose_images(paths, dcfg["method"], dict(dcfg["params"]) or None, cache_root,
+    cache_root = scene_cache_root(scene, cfg.data.cache_dir)
+    _, report = decompose_images(paths, dcfg.method, dict(dcfg.params) or None, cache_root,
                                  args.device, keep=False, preview=args.preview, progress=not args.quiet,
                                  cache_hint=hint, sweep=True, announce=False)
     n = report["swept"]
     swept = f", {n} old-format entr{'y' if n == 1 else 'ies'} deleted" if n else ""
-    print(f"{len(paths)} view(s) decomposed with {dcfg['method']}: {report['computed']} computed, "
+    print(f"{len(paths)} view(s) decomposed with {dcfg.method}: {report['computed']} computed, "
           f"{report['reused']} reused from cache{swept} -> {report['folder']}")
     if args.preview:
         print(f"previews: {Path(report['folder']) / 'preview'}")
@@ -166,7 +166,7 @@ def _clean_or_info(scene: Path, args: argparse.Namespace) -> int:
     overrides = list(args.set or [])
     if args.cache:
         overrides.append(f"data.cache_dir={Path(args.cache).expanduser()}")
-    root = scene_cache_root(scene, load_config(args.config or [], overrides)["data"]["cache_dir"])
+    root = scene_cache_root(scene, load_config(args.config or [], overrides).data.cache_dir)
     if args.info:
         rows = cache_summary(root)
         if not rows:

@@ -109,14 +109,14 @@ def _noise(args: argparse.Namespace) -> int:
         raise UserError(f"no photos in {folder}: {no_images_reason(folder)}")
     if args.photos < 1:
         raise UserError(f"--photos must be at least 1, got {args.photos}")
-    loss = load_config(["default"])["loss"]
-    share = loss["rec_noise_share"] if args.share is None else args.share
+    loss = load_config(["default"]).loss
+    share = loss.rec_noise_share if args.share is None else args.share
     try:
         limit = sigma_limit(share)
     except ValueError:
         raise UserError(f"--share must lie between 0 and 1 (exclusive), got {share}") from None
     # The measure training uses (train/noise.py): each photo read once, for the noise model and the SSIM's cap.
-    cap = measure_capture_noise(photos, views=args.photos, scale=loss["rec_noise_scale"], through_codec=True,
+    cap = measure_capture_noise(photos, views=args.photos, scale=loss.rec_noise_scale, through_codec=True,
                                 progress=not args.quiet)
     if cap is None:
         raise UserError(f"no photo in {folder} is 8x8 pixels or larger")

@@ -157,4 +157,4 @@ def eval_run(run_dir: Path, device: Optional[str] = None, log: Callable[[str], N
     """Re-evaluate a saved run (rewrites metrics.json and renders/test)."""
     cfg, scene, model, step = load_run(run_dir, device)
     return evaluate(render_function(model, cfg, active_sh_degree(cfg, step)), scene, Path(run_dir),
-                    cfg["eval"]["lpips"], log)
+                    cfg.eval.lpips, log)

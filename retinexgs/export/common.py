@@ -4,30 +4,29 @@ from __future__ import annotations
 import math
 import tempfile
 from pathlib import Path
-from typing import Dict, Iterable, Optional
+from typing import Iterable, Optional
 
 from retinexgs.errors import UserError
-from retinexgs.run.config import read_yaml
+from retinexgs.run import folder
+from retinexgs.run.schema import Config
 
 
-def read_run_config(run_dir: Path) -> Dict:
-    """The run's saved config, read before the (slower) model and scene load so flags fail fast."""
-    path = Path(run_dir) / "config.yaml"
-    if not path.is_file():
-        raise UserError(f"{run_dir} is not a run folder (no config.yaml)")
-    return read_yaml(path)
+def read_run_config(run_dir: Path) -> Config:
+    """The run's saved config (validated, as :func:`retinexgs.run.folder.load_run` reads it), read before the
+    (slower) model and scene load so flags fail fast."""
+    return folder.read_run_config(Path(run_dir))[0]
 
 
-def check_enhancement_flags(cfg: Dict, run_dir: Path, exposure: Optional[float], gamma: Optional[float]) -> None:
+def check_enhancement_flags(cfg: Config, run_dir: Path, exposure: Optional[float], gamma: Optional[float]) -> None:
     """``--exposure`` / ``--gamma`` need a RetinexGS run (the baselines have no illumination to re-expose)."""
     if exposure is None and gamma is None:
         return
     flag = "--exposure" if exposure is not None else "--gamma"
     if exposure is not None and gamma is not None:
         raise UserError("--exposure adjusts the predicted gamma and --gamma replaces it: give one of them")
-    if cfg.get("method") != "retinexgs":
+    if cfg.method != "retinexgs":
         raise UserError(f"{flag} needs a RetinexGS run, but {run_dir} was trained with method="
-                        f"{cfg.get('method')} (a plain-3DGS baseline has no illumination or gamma to change)")
+                        f"{cfg.method} (a plain-3DGS baseline has no illumination or gamma to change)")
     value = exposure if exposure is not None else gamma
     if not (value > 0 and math.isfinite(value)):
         raise UserError(f"{flag} must be a positive finite number, got {value}")

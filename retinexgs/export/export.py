@@ -33,12 +33,12 @@ def export_run(run_dir: Path, out: Path, reflectance_only: bool = False, directi
     run_dir, out = Path(run_dir), Path(out)
     cfg = read_run_config(run_dir)
     check_enhancement_flags(cfg, run_dir, exposure, gamma)
-    bake = cfg.get("method") == "retinexgs" and not reflectance_only
+    bake = cfg.method == "retinexgs" and not reflectance_only
     if reflectance_only and (exposure is not None or gamma is not None):
         raise UserError("--reflectance-only exports R̂ without illumination; --exposure/--gamma do not apply")
-    k = (int(cfg["model"]["sh_degree"]) + 1) ** 2
+    k = (int(cfg.model.sh_degree) + 1) ** 2
     if bake and directions < k:
-        raise UserError(f"--directions must be at least {k} to fit the run's degree-{cfg['model']['sh_degree']} "
+        raise UserError(f"--directions must be at least {k} to fit the run's degree-{cfg.model.sh_degree} "
                         f"SH ({k} coefficients), got {directions}")
     if out.is_dir():  # --force replaces a file, never a folder: do not suggest it
         raise UserError(f"--out {out} is a folder; --out is the .ply file to write, e.g. "
@@ -48,7 +48,7 @@ def export_run(run_dir: Path, out: Path, reflectance_only: bool = False, directi
 
     cfg, scene, model, step = load_run(run_dir, device)
     degree = active_sh_degree(cfg, step)
-    comments = [f"retinexgs export of {run_dir.name} (step {step}, method {cfg['method']})",
+    comments = [f"retinexgs export of {run_dir.name} (step {step}, method {cfg.method})",
                 f"world frame: normalisation undone (center {scene.normalization.center.tolist()}, "
                 f"scale {scene.normalization.scale})"]
     if bake:
@@ -68,9 +68,9 @@ def export_run(run_dir: Path, out: Path, reflectance_only: bool = False, directi
         comments.append(baked_colour_text(model, g, directions))  # the run's own tone, not one fixed formula
     else:
         sh = reflectance_sh(model, degree)
-        comments.append("colour: reflectance R (SH as trained)" if cfg["method"] == "retinexgs" else
-                        f"colour: the {cfg['method']} baseline's SH as trained")
-        if cfg["method"] == "post":
+        comments.append("colour: reflectance R (SH as trained)" if cfg.method == "retinexgs" else
+                        f"colour: the {cfg.method} baseline's SH as trained")
+        if cfg.method == "post":
             log("note: the post baseline's 2D LR3M enhancement is applied to images and is not in the PLY")
     if model.has_background:  # model.background "mean": what the model shows where nothing is
         bg = model.background.detach().float()

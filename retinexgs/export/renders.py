@@ -168,9 +168,9 @@ def render_run(run_dir: Path, views: Optional[str] = None, out: Optional[Path] =
         raise UserError("--maps is empty; choose from " + ", ".join(MAPS))
     cfg = read_run_config(run_dir)
     check_enhancement_flags(cfg, run_dir, exposure, gamma)
-    if cfg.get("method") != "retinexgs" and set(maps) & set(DECOMPOSED_MAPS):
+    if cfg.method != "retinexgs" and set(maps) & set(DECOMPOSED_MAPS):
         bad = ", ".join(m for m in maps if m in DECOMPOSED_MAPS)
-        raise UserError(f"--maps {bad}: {run_dir} is a method={cfg.get('method')} baseline with no R̂/L̂ "
+        raise UserError(f"--maps {bad}: {run_dir} is a method={cfg.method} baseline with no R̂/L̂ "
                         "decomposition; it has only enhanced and depth")
     video = path is not None and fmt == "mp4"
     if not video and out is not None and Path(out).suffix.lower() in _VIDEO_SUFFIXES and not Path(out).is_dir():

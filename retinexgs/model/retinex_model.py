@@ -19,7 +19,7 @@ The plain-3DGS baselines use the same Gaussians with 3 colour channels and no il
 from __future__ import annotations
 
 import copy
-from typing import Dict, Optional, Tuple
+from typing import TYPE_CHECKING, Dict, Optional, Tuple
 
 import torch
 from torch import Tensor, nn
@@ -29,6 +29,9 @@ from retinexgs.model.gaussians import GaussianModel, sh_colors
 from retinexgs.model.illumination import IlluminationField
 from retinexgs.model.tone import apply_exposure, black_table, tone_map
 from retinexgs.render import Camera, rasterize_gaussians
+
+if TYPE_CHECKING:  # types only: the schema lives in the run layer above (.importlinter ignores hint imports)
+    from retinexgs.run.schema import Enhancement, Model
 
 
 def gaussian_channels(means: Tensor, sh_dc: Tensor, sh_rest: Tensor, center: Tensor, degree: int,
@@ -59,42 +62,44 @@ class GaussianChannels(nn.Module):
 class RetinexGSModel(nn.Module):
     """Gaussians (+ illumination field and EnhancementNet when ``decomposed``)."""
 
-    def __init__(self, gaussians: GaussianModel, model_cfg: Dict, decomposed: bool = True) -> None:
+    def __init__(self, gaussians: GaussianModel, model_cfg: Model, decomposed: bool = True) -> None:
         super().__init__()
         self.gaussians = gaussians
         self.decomposed = decomposed
         if decomposed:
-            self.illumination = IlluminationField(**model_cfg["illumination"])
-            self._set_enhancement(model_cfg["enhancement"])
+            il = model_cfg.illumination
+            self.illumination = IlluminationField(pos_freqs=il.pos_freqs, dir_freqs=il.dir_freqs, hidden=il.hidden,
+                                                  depth=il.depth, dir_hidden=il.dir_hidden,
+                                                  init_value=il.init_value, view_dependent=il.view_dependent)
+            self._set_enhancement(model_cfg.enhancement)
             self.register_buffer("illum_ref", torch.ones(()))  # L_ref; set by the trainer from the 2D priors
-            if model_cfg["enhancement"].get("debias_black", False):
+            if model_cfg.enhancement.debias_black:
                 # model/tone.black_table of the capture's noise, set by the trainer; until then lin itself.
                 self.register_buffer("black_table", black_table())
-                if int(model_cfg["enhancement"].get("black_filter", 0)) > 0:
+                if model_cfg.enhancement.black_filter > 0:
                     # model/tone.smooth_record's spread: a, b of the render's residual noise, set by the trainer
                     self.register_buffer("black_spread", torch.zeros(2, 3))
         # model.background "mean": uncovered pixels show [6] channel values (R̂ then L̂) that the trainer sets from
         # the training views' priors, instead of black; a buffer, so checkpoints carry it. RetinexGS's only: the
         # 3DGS baselines stay as published (black).
-        self.has_background = decomposed and model_cfg.get("background", "black") == "mean"
+        self.has_background = decomposed and model_cfg.background == "mean"
         if self.has_background:
             self.register_buffer("background", torch.zeros(6))
 
-    def _set_enhancement(self, enh_cfg: Dict) -> None:
-        """A fresh EnhancementNet, the gamma's layout and the tone form from a ``model.enhancement`` section."""
-        enh = dict(enh_cfg)
-        enh["gamma_range"] = tuple(enh["gamma_range"])
-        self.per_channel_gamma = bool(enh.pop("per_channel", False))
-        enh.pop("ref_quantile", None)  # the trainer's (it sets illum_ref)
-        self.tone = str(enh.pop("tone", "illumination"))
-        self.shoulder = float(enh.pop("shoulder", 1.0))  # tone "exposure"'s highlight knee (1: the clip)
+    def _set_enhancement(self, enh: Enhancement) -> None:
+        """A fresh EnhancementNet, the gamma's layout and the tone form from a ``model.enhancement`` section
+        (its ``ref_quantile`` is the trainer's: it sets illum_ref)."""
+        self.per_channel_gamma = bool(enh.per_channel)
+        self.tone = str(enh.tone)
+        self.shoulder = float(enh.shoulder)  # tone "exposure"'s highlight knee (1: the clip)
         # tone "exposure": take the clipped noise's mean out of R̂∘L̂ before the gain (model/tone.scene_linear)
-        self.debias_black = bool(enh.pop("debias_black", False))
+        self.debias_black = bool(enh.debias_black)
         # with it, the radius of the filter that takes the render's residual noise out first (model/tone.smooth_record)
-        self.black_filter = int(enh.pop("black_filter", 0))
-        self.enhancement = EnhancementNet(channels=3, **enh)
+        self.black_filter = int(enh.black_filter)
+        self.enhancement = EnhancementNet(channels=3, gamma_range=tuple(enh.gamma_range), init_gamma=enh.init_gamma,
+                                          per_view=enh.per_view)
 
-    def with_enhancement(self, enh_cfg: Dict) -> "RetinexGSModel":
+    def with_enhancement(self, enh_cfg: Enhancement) -> "RetinexGSModel":
         """A model that shares this one's Gaussians, illumination field and L_ref (not copied, not trained here)
         with a fresh, untrained enhancement from ``enh_cfg`` (a ``model.enhancement`` section) on their device."""
         other = copy.copy(self)

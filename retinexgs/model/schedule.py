@@ -13,9 +13,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Dict, List, Union
+from typing import TYPE_CHECKING, List, Union
 
 from retinexgs.errors import UserError
+
+if TYPE_CHECKING:  # a type only: the schema lives in the run layer above (.importlinter ignores hint imports)
+    from retinexgs.run.schema import Config
 
 Point = Union[int, float]
 
@@ -93,27 +96,26 @@ class Schedule:
                 f"SH degree +1 every {self.sh_degree_every} steps")
 
 
-def build_schedule(cfg: Dict) -> Schedule:
+def build_schedule(cfg: Config) -> Schedule:
     """The schedule of ``cfg`` (validated by the schema) for its ``steps``."""
-    steps = int(cfg["steps"])
-    d = cfg["density"]
-    start = at_step(d["start"], steps)
-    # Configs recorded before last_event existed: no cap (their behaviour then).
-    stop = min(at_step(d["stop"], steps), at_step(d.get("last_event", 1.0), steps))
-    return Schedule(steps=steps, densify_start=start, densify_stop=stop, densify_every=interval(d["every"], steps),
-                    reset_every=interval(d["reset_opacity_every"], steps),
-                    enhance_from=at_step(cfg["loss"]["enhance_from"], steps),
-                    sh_degree=int(cfg["model"]["sh_degree"]),
-                    sh_degree_every=max(1, interval(cfg["model"]["sh_degree_every"], steps)))
+    steps = int(cfg.steps)
+    d = cfg.density
+    start = at_step(d.start, steps)
+    stop = min(at_step(d.stop, steps), at_step(d.last_event, steps))
+    return Schedule(steps=steps, densify_start=start, densify_stop=stop, densify_every=interval(d.every, steps),
+                    reset_every=interval(d.reset_opacity_every, steps),
+                    enhance_from=at_step(cfg.loss.enhance_from, steps),
+                    sh_degree=int(cfg.model.sh_degree),
+                    sh_degree_every=max(1, interval(cfg.model.sh_degree_every, steps)))
 
 
-def check_schedule(cfg: Dict) -> Schedule:
+def check_schedule(cfg: Config) -> Schedule:
     """Refuse a schedule that cannot fit the run: a densification window that ends before it starts."""
-    steps = int(cfg["steps"])
-    d = cfg["density"]
-    start, stop = at_step(d["start"], steps), at_step(d["stop"], steps)
+    steps = int(cfg.steps)
+    d = cfg.density
+    start, stop = at_step(d.start, steps), at_step(d.stop, steps)
     if start < steps and stop <= start:
-        raise UserError(f"density.stop={d['stop']!r} (step {stop}) must come after density.start={d['start']!r} "
+        raise UserError(f"density.stop={d.stop!r} (step {stop}) must come after density.start={d.start!r} "
                         f"(step {start}) in a run of {steps} steps; decimals are fractions of steps, integers "
                         "are steps")
     return build_schedule(cfg)

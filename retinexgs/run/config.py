@@ -5,16 +5,23 @@ from __future__ import annotations
 
 import copy
 from pathlib import Path
-from typing import Any, Dict, Iterable, Optional, Tuple
+from typing import Any, Dict, Iterable, Optional, Tuple, Union
 
 import yaml
-from pydantic import ValidationError
+from pydantic import BaseModel, ValidationError
 
 from retinexgs.errors import UserError
 from retinexgs.model.schedule import check_schedule
-from retinexgs.run.schema import ConfigSchema, field_expectation
+from retinexgs.run.schema import Config, ConfigSchema, field_expectation  # noqa: F401 (Config re-exported)
 
-Config = Dict[str, Any]
+# A config as plain data: what YAML files hold and what the merge, the predating fill and the resume rules
+# work on, before it is validated into a typed :data:`Config`.
+RawConfig = Dict[str, Any]
+
+
+def plain(cfg: Union[Config, RawConfig]) -> RawConfig:
+    """``cfg`` as plain data (nested dicts, lists, numbers, strings): what YAML and checkpoints store."""
+    return cfg.model_dump() if isinstance(cfg, BaseModel) else copy.deepcopy(cfg)
 
 
 def configs_dir() -> Path:
@@ -37,7 +44,7 @@ def resolve_config_path(name: str) -> Path:
     raise UserError(f"config {name!r} not found (neither a file nor a name in {configs_dir()})")
 
 
-def read_yaml(path: Path) -> Config:
+def read_yaml(path: Path) -> RawConfig:
     """Read one YAML mapping with an error that names the file."""
     try:
         data = yaml.safe_load(Path(path).read_text())
@@ -52,7 +59,7 @@ def read_yaml(path: Path) -> Config:
     return data
 
 
-def merge(base: Config, override: Config, where: str, strict: bool = True) -> Config:
+def merge(base: RawConfig, override: RawConfig, where: str, strict: bool = True) -> RawConfig:
     """Deep-merge ``override`` into a copy of ``base``; with ``strict``, keys must exist in ``base``."""
     out = copy.deepcopy(base)
     if "method" in override and override["method"] != out.get("method") and "params" not in override \
@@ -72,13 +79,13 @@ def merge(base: Config, override: Config, where: str, strict: bool = True) -> Co
     return out
 
 
-def parse_override(text: str) -> Config:
+def parse_override(text: str) -> RawConfig:
     """``a.b=3`` -> {"a": {"b": 3}} (the value is parsed as YAML)."""
     if "=" not in text:
         raise UserError(f"override {text!r} must look like key.sub=value")
     key, value = text.split("=", 1)
     try:
-        out: Config = yaml.safe_load(value) if value.strip() else None
+        out: RawConfig = yaml.safe_load(value) if value.strip() else None
     except yaml.YAMLError as exc:
         raise UserError(f"--set {text}: the value is not valid YAML ({' '.join(str(exc).split())}); quote "
                         "strings that contain YAML syntax") from None
@@ -87,7 +94,7 @@ def parse_override(text: str) -> Config:
     return out
 
 
-def _note_sources(data: Config, prefix: Tuple[str, ...], label: str, sources: Dict[Tuple[str, ...], str]) -> None:
+def _note_sources(data: RawConfig, prefix: Tuple[str, ...], label: str, sources: Dict[Tuple[str, ...], str]) -> None:
     """Remember which file or ``--set`` gave each key (for error messages)."""
     for key, value in data.items():
         path = prefix + (str(key),)
@@ -97,14 +104,14 @@ def _note_sources(data: Config, prefix: Tuple[str, ...], label: str, sources: Di
             sources[path] = label
 
 
-def load_config(files: Iterable[str] = (), overrides: Iterable[str] = (), base: Optional[Config] = None,
-                base_label: Optional[str] = None) -> Config:
-    """default.yaml (or ``base``), then each file, then each ``key=value`` override, validated by the schema
-    (:mod:`retinexgs.run.schema`) and the schedule checks; returns the validated config as a plain dict."""
+def load_config(files: Iterable[str] = (), overrides: Iterable[str] = (),
+                base: Optional[Union[Config, RawConfig]] = None, base_label: Optional[str] = None) -> Config:
+    """default.yaml (or ``base``, typed or plain), then each file, then each ``key=value`` override, validated by
+    the schema (:mod:`retinexgs.run.schema`) and the schedule checks; returns the typed :data:`Config`."""
     if base is None:
         cfg, base_label = read_yaml(configs_dir() / "default.yaml"), str(configs_dir() / "default.yaml")
     else:
-        cfg = base
+        cfg = plain(base)
     sources: Dict[Tuple[str, ...], str] = {}
     for f in files:
         path = resolve_config_path(f)
@@ -137,12 +144,13 @@ def _describe_error(err: Dict[str, Any], sources: Dict[Tuple[str, ...], str], ba
     return f"{label}: {name} must be {expect or err['msg'].lower()}, got {err['input']!r}"
 
 
-def validate(cfg: Config, sources: Optional[Dict[Tuple[str, ...], str]] = None, base_label: str = "config") -> Config:
-    """Check ``cfg`` against the schema and the schedule rules; returns it as validated plain data (numbers
-    typed as the schema says). The error names the key path, the value given, what was expected and where the
+def validate(cfg: Union[Config, RawConfig], sources: Optional[Dict[Tuple[str, ...], str]] = None,
+             base_label: str = "config") -> Config:
+    """Check ``cfg`` against the schema and the schedule rules; returns the typed :data:`Config` (numbers typed
+    as the schema says; :func:`plain` turns it back into data). The error names the key path, the value given, what was expected and where the
     value came from (``--set model.sh_degree=abc: model.sh_degree must be an integer 0..3, got 'abc'``)."""
     try:
-        model = ConfigSchema.model_validate(cfg)
+        model = ConfigSchema.model_validate(plain(cfg))
     except ValidationError as exc:
         seen, lines = set(), []
         for err in exc.errors():
@@ -152,6 +160,5 @@ def validate(cfg: Config, sources: Optional[Dict[Tuple[str, ...], str]] = None, 
                 lines.append(line)
         more = f" (and {len(lines) - 3} more)" if len(lines) > 3 else ""
         raise UserError("; ".join(lines[:3]) + more) from None
-    out = model.model_dump()
-    check_schedule(out)
-    return out
+    check_schedule(model)
+    return model

@@ -15,7 +15,7 @@ from retinexgs.fileio import atomic_write_text
 from retinexgs.model.gaussians import GaussianModel
 from retinexgs.model.retinex_model import RetinexGSModel
 from retinexgs.run.checkpoint import latest_checkpoint, load_checkpoint
-from retinexgs.run.config import Config, configs_dir, load_config, read_yaml
+from retinexgs.run.config import Config, RawConfig, configs_dir, load_config, plain, read_yaml
 
 
 def pick_device(device: Optional[str]) -> str:
@@ -29,16 +29,16 @@ def pick_device(device: Optional[str]) -> str:
     return device
 
 
-def open_scene(path: Path, cfg: Dict, cache_hint: str = "--set data.cache_dir=DIR") -> Scene:
+def open_scene(path: Path, cfg: Config, cache_hint: str = "--set data.cache_dir=DIR") -> Scene:
     """Load the scene as a run's config says (reader, downscale, caches); train and decompose share it so
     that they read the same (undistorted, downscaled) images. ``cache_hint``: the caller's spelling of
     ``data.cache_dir`` for the message when the scene folder is read-only."""
-    d = cfg["data"]
-    return load_scene(path, reader=d["reader"], downscale=d["downscale"],
-                      cache_dir=d["cache_dir"] and Path(d["cache_dir"]) / "scene", cache_hint=cache_hint)
+    d = cfg.data
+    return load_scene(path, reader=d.reader, downscale=d.downscale,
+                      cache_dir=d.cache_dir and Path(d.cache_dir) / "scene", cache_hint=cache_hint)
 
 
-def load_run(run_dir: Path, device: Optional[str] = None) -> Tuple[Dict, Scene, RetinexGSModel, int]:
+def load_run(run_dir: Path, device: Optional[str] = None) -> Tuple[Config, Scene, RetinexGSModel, int]:
     """(config, scene, model on device, step) of a saved run, from its newest checkpoint."""
     run_dir = Path(run_dir)
     if not (run_dir / "config.yaml").is_file():
@@ -53,8 +53,8 @@ def load_run(run_dir: Path, device: Optional[str] = None) -> Tuple[Dict, Scene, 
                         "--data NEW_SCENE --relocate-scene`")
     state = load_checkpoint(ckpt)
     gstate = {k[len("gaussians."):]: v for k, v in state["model"].items() if k.startswith("gaussians.")}
-    model = RetinexGSModel(GaussianModel.empty_like_state(gstate, cfg["model"]["sh_degree"]), cfg["model"],
-                           cfg["method"] == "retinexgs")
+    model = RetinexGSModel(GaussianModel.empty_like_state(gstate, cfg.model.sh_degree), cfg.model,
+                           cfg.method == "retinexgs")
     model.load_state_dict(state["model"])
     model.to(pick_device(device))
     scene = open_scene(scene_path, cfg)
@@ -69,15 +69,18 @@ def load_run(run_dir: Path, device: Optional[str] = None) -> Tuple[Dict, Scene, 
 # black until the mean background became the default (2026-11-26), and blind to the capture's noise until
 # issue 32 (the noise floor of the exposed SSIM, the camera's clipped noise). The exposure meter averaged until
 # the highlight cap (2026-11-27), and a batch of views stepped with torch's Adam betas until β^B (the same day).
+# Density events ran to density.stop until density.last_event capped them. This table is the one place for these
+# values: the code reads every key from the validated config, with no fallback of its own.
 PREDATING_VALUES: Dict[str, Any] = {"model.enhancement.tone": "illumination", "loss.w_depth": 0.0,
                                     "loss.rec_domain": "photo", "model.background": "black",
                                     "model.enhancement.shoulder": 1.0, "loss.rec_noise_floor": False,
                                     "loss.rec_camera_noise": False, "loss.rec_noise_share": 0.5,
                                     "density.noise_aware": False, "loss.rec_noise_scale": 1,
-                                    "loss.exp_highlight_share": 0.0, "train.momentum_batch_scaling": "none"}
+                                    "loss.exp_highlight_share": 0.0, "train.momentum_batch_scaling": "none",
+                                    "density.last_event": 1.0}
 
 
-def _fill_missing(cfg: Config, default: Config, prefix: str, filled: List[str]) -> Config:
+def _fill_missing(cfg: RawConfig, default: RawConfig, prefix: str, filled: List[str]) -> RawConfig:
     """Keys added to default.yaml after the run was made get the behaviour the run had: the value in
     :data:`PREDATING_VALUES` where the default changed since, else their default (a run folder outlives versions)."""
     out = dict(cfg)
@@ -106,8 +109,8 @@ def read_run_config(run_dir: Path, log: Optional[Callable[[str], None]] = None) 
     return load_config(base=raw, base_label=str(path)), Path(scene)
 
 
-def write_run_config(run: Path, cfg: Dict, scene_path: Path) -> None:
-    """The resolved config of a run (what resume, eval, render and export read back)."""
-    data = dict(cfg)
+def write_run_config(run: Path, cfg: Config, scene_path: Path) -> None:
+    """The resolved config of a run (what resume, eval, render and export read back), written as plain data."""
+    data = plain(cfg)
     data["scene"] = str(Path(scene_path).resolve())
     atomic_write_text(run / "config.yaml", yaml.safe_dump(data, sort_keys=False))

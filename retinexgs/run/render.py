@@ -12,9 +12,10 @@ from retinexgs.model.retinex_model import RetinexGSModel
 from retinexgs.model.schedule import build_schedule
 from retinexgs.render import Camera
 from retinexgs.retinex import decompose, enhance_for_viewing
+from retinexgs.run.schema import Config
 
 
-def active_sh_degree(cfg: Dict, step: int) -> int:
+def active_sh_degree(cfg: Config, step: int) -> int:
     """The SH degree the model renders with after ``step`` steps (it grows by one every sh_degree_every)."""
     return build_schedule(cfg).sh_degree_at(step)
 
@@ -24,7 +25,7 @@ def view_camera(view: View) -> Camera:
     return Camera(view.world_to_camera(), view.fx, view.fy, view.cx, view.cy, view.width, view.height)
 
 
-def render_function(model: RetinexGSModel, cfg: Dict, degree: int, exposure: Optional[float] = None,
+def render_function(model: RetinexGSModel, cfg: Config, degree: int, exposure: Optional[float] = None,
                     gamma: Optional[float] = None, fast: bool = True,
                     renderer: Optional[InferenceRenderer] = None) -> Callable[[Union[View, Camera]], Dict]:
     """view (or a renderer camera) -> the model's output maps (``rgb``, and ``R``, ``L``, ``S_rec`` for RetinexGS,
@@ -45,9 +46,9 @@ def render_function(model: RetinexGSModel, cfg: Dict, degree: int, exposure: Opt
                 res = renderer.render(camera, exposure=exposure, gamma=gamma, degree=degree)
             else:
                 res = model.render(camera, degree, exposure=exposure, gamma=gamma)
-            if cfg["method"] == "post":
-                method = cfg["decomposer"]["method"] if cfg["decomposer"]["method"] != "none" else "lr3m"
-                R, L = decompose(res["rgb"].clamp(0, 1), method, **cfg["decomposer"]["params"])
+            if cfg.method == "post":
+                method = cfg.decomposer.method if cfg.decomposer.method != "none" else "lr3m"
+                R, L = decompose(res["rgb"].clamp(0, 1), method, **cfg.decomposer.params)
                 res = dict(res, rgb=enhance_for_viewing(R, L))
             if "L" in res:  # scene-wide, not per image: one view's L is comparable with another's, videos keep still
                 res["L_view"] = model.normalized_illumination(res["L"])

@@ -79,9 +79,35 @@ EveryOrOff = Annotated[Union[Annotated[StrictInt, Field(ge=0)], Annotated[float,
 
 
 class Section(BaseModel):
-    """A config section: strict types, unknown keys refused."""
+    """A config section: strict types, unknown keys refused. Package code reads it by attribute
+    (``cfg.loss.w_tv``), so that an editor finds every user of a key; the mapping methods below
+    (``cfg["loss"]["w_tv"]``, ``"loss" in cfg``, ``cfg.get("loss")``) exist only for scripts and tests
+    written against the plain-dict config of earlier versions (tests/test_typed_config.py keeps the package
+    off them). Assignment is not validated (``validate_assignment`` off): code that edits a config sets
+    values the schema already accepted."""
 
     model_config = ConfigDict(extra="forbid", strict=True)
+
+    def __getitem__(self, key: str) -> Any:
+        if key not in type(self).model_fields:
+            raise KeyError(key)
+        return getattr(self, key)
+
+    def __setitem__(self, key: str, value: Any) -> None:
+        if key not in type(self).model_fields:
+            raise KeyError(key)
+        setattr(self, key, value)
+
+    def __contains__(self, key: object) -> bool:
+        return isinstance(key, str) and key in type(self).model_fields
+
+    def get(self, key: str, default: Any = None) -> Any:
+        """The value of ``key``, or ``default`` when the section has no such key."""
+        return getattr(self, key) if key in self else default
+
+    def keys(self) -> List[str]:
+        """The section's key names, in schema order."""
+        return list(type(self).model_fields)
 
 
 class Data(Section):
@@ -347,7 +373,9 @@ class Train(Section):
 
 
 class ConfigSchema(Section):
-    """The whole config (``configs/default.yaml`` after every override)."""
+    """The whole config (``configs/default.yaml`` after every override): what :func:`retinexgs.run.config.load_config`
+    returns and every module receives (as :data:`Config`). It is written to ``RUN/config.yaml`` and checkpoints as
+    plain data (``model_dump()``)."""
 
     method: Choice("retinexgs", "3dgs", "pre", "post")
     steps: Annotated[int, Field(ge=1), Expect("a positive integer")]
@@ -390,3 +418,7 @@ def field_expectation(path: Tuple[Any, ...]) -> Tuple[Tuple[str, ...], Optional[
         section = ann if isinstance(ann, type) and issubclass(ann, BaseModel) else None
         cls = section
     return tuple(keys), expect, section
+
+
+# The name modules use for the whole validated config.
+Config = ConfigSchema

@@ -5,7 +5,7 @@ needles after every optimiser step. Parameters and Adam moments change only thro
 from __future__ import annotations
 
 import math
-from typing import Callable, Dict, Optional
+from typing import TYPE_CHECKING, Callable, Dict, Optional
 
 import torch
 from torch import Tensor
@@ -15,6 +15,9 @@ from retinexgs.model.schedule import Schedule
 from retinexgs.render import RenderOutput
 from retinexgs.render.rotation import quat_to_rotmat
 from retinexgs.strategy.ops import cap_anisotropy, edit_gaussians, reset_opacity
+
+if TYPE_CHECKING:  # a type only: the schema lives in the run layer above (.importlinter ignores hint imports)
+    from retinexgs.run.schema import Density
 
 
 # The per-Gaussian statistics summed over views (and over ranks before a densification), and the one kept as a
@@ -42,7 +45,7 @@ class DefaultStrategy:
     """Accumulates per-Gaussian screen-space gradient statistics and densifies, prunes and resets on schedule.
     ``cfg``: the config's ``density`` section."""
 
-    def __init__(self, cfg: Dict, scene_extent: float, schedule: Schedule) -> None:
+    def __init__(self, cfg: Density, scene_extent: float, schedule: Schedule) -> None:
         self.cfg = cfg
         self.schedule = schedule  # when to densify and reset, in steps (retinexgs.model.schedule)
         self.extent = float(scene_extent)
@@ -89,7 +92,7 @@ class DefaultStrategy:
         norm = self._ndc(grad, width, height).norm(dim=-1).float()
         # Masked arithmetic, not boolean indexing: indexing would sync with the GPU every step.
         self.grad_accum += torch.where(visible, norm, 0.0)
-        if self.cfg.get("noise_aware"):  # only its rule reads the squares (the default step keeps its launches)
+        if self.cfg.noise_aware:  # only its rule reads the squares (the default step keeps its launches)
             self.grad_sq += torch.where(visible, norm * norm, 0.0)
         self.count += visible
         # A culled Gaussian has radii (0, 0), so its max radius is 0 and leaves the running maximum as it is.
@@ -107,7 +110,7 @@ class DefaultStrategy:
         """[N] what the threshold is compared with: the mean NDC gradient norm over the views that saw each
         Gaussian (3DGS), times √(1 − the noise's share of its energy) with ``noise_aware`` (:func:`noise_share`)."""
         avg = self.grad_accum / self.count.clamp_min(1)
-        if self.cfg.get("noise_aware") and self.noise_sq is not None:
+        if self.cfg.noise_aware and self.noise_sq is not None:
             avg = avg * (1.0 - noise_share(self.grad_sq, self.count, self.noise_sq, self.noise_count)).sqrt()
         return avg
 
@@ -126,7 +129,7 @@ class DefaultStrategy:
         longer than wide is a needle, seen as a streak from any view off its axis, and where one or two training
         views see a region nothing stops it growing (the floaters of a view past the training views). The long
         axis is shortened, not the short one widened, so the cap never makes a Gaussian cover more than it did."""
-        cap_anisotropy(model, float(self.cfg["max_aniso"]))
+        cap_anisotropy(model, float(self.cfg.max_aniso))
 
     def will_edit(self, step: int) -> bool:
         """Whether :meth:`step` densifies at ``step`` (the ranks must first :meth:`reduce` the statistics)."""
@@ -160,21 +163,21 @@ class DefaultStrategy:
         c = self.cfg
         n = len(model)
         avg = self.densification_statistic()
-        selected = avg >= c["grad_threshold"]
+        selected = avg >= c.grad_threshold
         noise_note = ""
-        if c.get("noise_aware") and self.noise_sq is not None and bool((self.noise_count > 0).any()):
+        if c.noise_aware and self.noise_sq is not None and bool((self.noise_count > 0).any()):
             seen = (self.count > 0) & (self.noise_count > 0)
             share = noise_share(self.grad_sq, self.count, self.noise_sq, self.noise_count)[seen]
-            raw = self.grad_accum / self.count.clamp_min(1) >= c["grad_threshold"]
+            raw = self.grad_accum / self.count.clamp_min(1) >= c.grad_threshold
             noise_note = (f" (noise: median share {float(share.median()):.2f}, "
                           f"{int((raw & ~selected).sum())} held back)")
-        room = max(0, int(c["max_gaussians"]) - n)
+        room = max(0, int(c.max_gaussians) - n)
         if int(selected.sum()) > room:  # keep the largest gradients within the budget
             keep = avg.topk(room).indices if room > 0 else avg.new_zeros(0, dtype=torch.long)
             selected = torch.zeros_like(selected)
             selected[keep] = True
         scales = model.scales
-        big = scales.max(-1).values > c["percent_dense"] * self.extent
+        big = scales.max(-1).values > c.percent_dense * self.extent
         clone, split = selected & ~big, selected & big
         params = model.tensors()
         new: Dict[str, Tensor] = {k: v.detach()[clone] for k, v in params.items()}
@@ -192,10 +195,10 @@ class DefaultStrategy:
             [t, torch.zeros_like(new[name]) if is_state else new[name].to(t)]))
         # Prune: the split originals, transparent Gaussians, and (after the first reset) oversized ones.
         prune = torch.cat([split, torch.zeros(n_new, dtype=torch.bool, device=split.device)])
-        prune |= model.opacities < c["prune_opacity"]
+        prune |= model.opacities < c.prune_opacity
         if self.schedule.prune_large_at(step):
             radius = torch.cat([self.max_radius, torch.zeros(n_new, device=split.device)])
-            prune |= radius > c["max_screen_fraction"] * image_size
+            prune |= radius > c.max_screen_fraction * image_size
             prune |= model.scales.max(-1).values > 0.1 * self.extent
         if bool(prune.all()):  # never prune everything
             prune[model.opacities.argmax()] = False

@@ -47,6 +47,7 @@ from torch import Tensor, nn
 from retinexgs.errors import UserError
 from retinexgs.model.gaussians import PARAM_NAMES
 from retinexgs.retinex.cache import decompose_images, scene_cache_root
+from retinexgs.run.schema import Config
 from retinexgs.strategy.ops import resize_gaussians
 
 TIMEOUT_ENV = "RETINEXGS_DIST_TIMEOUT"
@@ -356,19 +357,19 @@ class Distributed:
         return not resized and all(r == rows[0] for r in rows)
 
     # ---- set-up ------------------------------------------------------------------------------------------
-    def decompose_shard(self, scene: Any, cfg: Dict, device: str, progress: bool) -> None:
+    def decompose_shard(self, scene: Any, cfg: Config, device: str, progress: bool) -> None:
         """Fill the scene's decomposition cache in shards: this rank computes the missing entries of the
         training views ``i % N == rank`` (each entry is written atomically), then every rank waits for the
         others; the trainer then reads every view's entry from the cache."""
         if not self.enabled:
             return
-        dcfg = cfg["decomposer"]
-        needed = cfg["method"] in ("retinexgs", "pre") and dcfg["method"] != "none"
+        dcfg = cfg.decomposer
+        needed = cfg.method in ("retinexgs", "pre") and dcfg.method != "none"
         mine = scene.train[self.rank::self.world] if needed else []
         if mine:
-            decompose_images([v.image_path for v in mine], dcfg["method"], dict(dcfg["params"]) or None,
-                             cache_dir=scene_cache_root(scene.root, cfg["data"]["cache_dir"]),
-                             device=dcfg["device"] or device, keep=False, progress=progress and self.is_main,
+            decompose_images([v.image_path for v in mine], dcfg.method, dict(dcfg.params) or None,
+                             cache_dir=scene_cache_root(scene.root, cfg.data.cache_dir),
+                             device=dcfg.device or device, keep=False, progress=progress and self.is_main,
                              cache_hint="--set data.cache_dir=DIR", sweep=False)
         self.barrier("every rank's share of the decomposition")
 

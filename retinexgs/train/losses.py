@@ -32,6 +32,7 @@ import torch.nn.functional as F
 
 from retinexgs.evaluate.metrics import cached_constant, check_bchw, gaussian_window, ssim
 from retinexgs.model.tone import camera_mean, highlight_capped_mean, linear_to_srgb, srgb_to_linear
+from retinexgs.run.schema import Loss
 
 __all__ = [
     "to_bchw", "gaussian_window", "ssim", "noise_variance", "robust_abs", "exposed", "camera_expectation", "l1_ssim",
@@ -333,21 +334,21 @@ def exposure_loss(enh: torch.Tensor, E: float = 0.6, patch: int = 16, form: str 
     raise ValueError("form must be 'l2' or 'l1'")
 
 
-def highlight_meter_applies(tone: str, c: Dict) -> bool:
+def highlight_meter_applies(tone: str, c: Loss) -> bool:
     """Whether ``loss.exp_highlight_share`` (config loss section ``c``) acts: it caps the target of the whole-image
     meter of tone ``exposure`` (``exp_on: image``, ``exp_patch: 0``; :func:`retinexgs.model.tone.highlight_capped_mean`);
     the other tones and meters (the paper's, the ablations') ignore it."""
-    return tone == "exposure" and c["exp_on"] == "image" and c["exp_patch"] == 0
+    return tone == "exposure" and c.exp_on == "image" and c.exp_patch == 0
 
 
-def exposure_target(c: Dict, tone: str, RL: torch.Tensor, shoulder: float = 1.0, noise=None):
-    """L_exp's target E for the image whose R̂∘L̂ is ``RL`` [..., 3]: ``c["exposure_E"]``, capped by the highlight
+def exposure_target(c: Loss, tone: str, RL: torch.Tensor, shoulder: float, noise=None):
+    """L_exp's target E for the image whose R̂∘L̂ is ``RL`` [..., 3]: ``c.exposure_E``, capped by the highlight
     meter where :func:`highlight_meter_applies` (a 0-d tensor then, no gradient). Training and the 2D proxy both
     meter through this. ``noise``: the capture's noise the tone takes out (``model.enhancement.debias_black``)."""
-    share = float(c.get("exp_highlight_share", 0.0))
+    share = float(c.exp_highlight_share)
     if share > 0 and highlight_meter_applies(tone, c):
-        return highlight_capped_mean(RL, c["exposure_E"], share, shoulder, noise)
-    return c["exposure_E"]
+        return highlight_capped_mean(RL, c.exposure_E, share, shoulder, noise)
+    return c.exposure_E
 
 
 def color_constancy_loss(enh: torch.Tensor, mode: str = "paper", eps: float = 1e-12,

@@ -28,6 +28,8 @@ from retinexgs.train import losses
 from retinexgs.run.folder import open_scene
 from retinexgs.retinex import decompose
 from retinexgs.run.config import load_config
+from retinexgs.run.schema import Config
+from retinexgs.retinex.lr3m import LR3MParams
 from retinexgs.data.scene import scene_label
 
 GAMMAS = torch.linspace(0.1, 1.0, 91)  # the gamma tones' range (the oracles of the gamma on L)
@@ -47,32 +49,32 @@ def _bchw(x: torch.Tensor) -> torch.Tensor:
     return x.permute(2, 0, 1).unsqueeze(0)
 
 
-def enhanced_maps(R: torch.Tensor, L: torch.Tensor, ref: float, g: float, cfg: Dict):
+def enhanced_maps(R: torch.Tensor, L: torch.Tensor, ref: float, g: float, cfg: Config):
     """The model's (S_enh, L_enh) from 2D maps, in the config's tone form (:func:`retinexgs.model.tone.tone_map`)."""
     gamma = torch.tensor(float(g), dtype=R.dtype)
-    enh = cfg["model"]["enhancement"]
-    return tone_map(R, L.expand_as(R), torch.tensor(float(ref)), gamma, enh["tone"], shoulder=enh.get("shoulder", 1.0))
+    enh = cfg.model.enhancement
+    return tone_map(R, L.expand_as(R), torch.tensor(float(ref)), gamma, enh.tone, shoulder=enh.shoulder)
 
 
-def enhanced(R: torch.Tensor, L: torch.Tensor, ref: float, g: float, cfg: Dict) -> torch.Tensor:
+def enhanced(R: torch.Tensor, L: torch.Tensor, ref: float, g: float, cfg: Config) -> torch.Tensor:
     """The model's S_enh from 2D maps (:func:`enhanced_maps`)."""
     return enhanced_maps(R, L, ref, g, cfg)[0]
 
 
-def proxy_gamma(R: torch.Tensor, L: torch.Tensor, S: torch.Tensor, ref: float, cfg: Dict) -> float:
+def proxy_gamma(R: torch.Tensor, L: torch.Tensor, S: torch.Tensor, ref: float, cfg: Config) -> float:
     """The grid gamma minimising ``cfg``'s L_enhance on :func:`enhanced` ([H,W,3] R, S; [H,W,1] L)."""
-    c = cfg["loss"]
-    lo, hi = cfg["model"]["enhancement"]["gamma_range"]
+    c = cfg.loss
+    lo, hi = cfg.model.enhancement.gamma_range
     grid = torch.linspace(float(lo), float(hi), 1 + round(100 * (float(hi) - float(lo))))  # steps of 0.01
     best, best_g = float("inf"), float(grid[0])
-    enh_cfg = cfg["model"]["enhancement"]
-    E = float(losses.exposure_target(c, enh_cfg["tone"], R * L, enh_cfg.get("shoulder", 1.0)))  # as training meters
+    enh_cfg = cfg.model.enhancement
+    E = float(losses.exposure_target(c, enh_cfg.tone, R * L, enh_cfg.shoulder))  # as training meters
     for g in grid.tolist():
         enh, light = enhanced_maps(R, L, ref, g, cfg)
         total, _ = losses.enhancement_loss(
-            _bchw(enh), _bchw(S), c["w_spa"], c["w_exp"], c["w_col"], E,
-            illumination=_bchw(light) if c["exp_on"] == "illumination" else None, exp_patch=c["exp_patch"],
-            exp_form=c["exp_form"], spa_form=c["spa_form"], scale_invariant=c["enhance_scale_invariant"])
+            _bchw(enh), _bchw(S), c.w_spa, c.w_exp, c.w_col, E,
+            illumination=_bchw(light) if c.exp_on == "illumination" else None, exp_patch=c.exp_patch,
+            exp_form=c.exp_form, spa_form=c.spa_form, scale_invariant=c.enhance_scale_invariant)
         if float(total) < best:
             best, best_g = float(total), g
     return best_g
@@ -99,7 +101,7 @@ def texture_split(R: torch.Tensor, L: torch.Tensor) -> float:
     return e_l / max(e_l + e_r, 1e-12)
 
 
-def _views(scene_dir: Path, n: int, cfg: Dict) -> List[Tuple[torch.Tensor, torch.Tensor]]:
+def _views(scene_dir: Path, n: int, cfg: Config) -> List[Tuple[torch.Tensor, torch.Tensor]]:
     """(dark image, normal-light image) of ``n`` evenly spaced paired training views."""
 
     scene = open_scene(scene_dir, cfg)
@@ -126,11 +128,11 @@ def run(scenes: Sequence[Path], configs: Sequence[str], n_views: int, device: st
     for scene in scenes:
         labels.append(scene_label(scene))
         views = _views(Path(scene), n_views, base)
-        params = dict(base["decomposer"]["params"])
+        params = dict(base.decomposer.params)
         maps = [(S, H) + tuple(decompose(S.to(device), "lr3m", **params)) for S, H in views]
         maps = [(S, H, R.cpu(), L.cpu()) for S, H, R, L in maps]
         for name, cfg in cfgs.items():
-            q = cfg["model"]["enhancement"]["ref_quantile"]
+            q = cfg.model.enhancement.ref_quantile
             ref = 1.0 if q is None else float(torch.stack([quantile(L, q) for *_, L in maps]).median())
             scores, ssims, gs = [], [], []
             for S, H, R, L in maps:
@@ -159,7 +161,7 @@ def run(scenes: Sequence[Path], configs: Sequence[str], n_views: int, device: st
         extra["LR3M's display rule R·(L/max L)^(1/2.2) (`baseline_pre`'s target)"].append(f"{sum(disp) / len(disp):.2f}")
         extra["best g per view (oracle, L_ref = max)"].append(
             f"{sum(best) / len(best):.2f} (light {sum(light) / len(light):.2f})")
-        beta0 = float(params.get("beta", 0.015))
+        beta0 = float(params.get("beta", LR3MParams().beta))  # free-form per method: LR3M's own default
         for beta in [beta0, *betas]:
             if beta == beta0:
                 pairs = [(R, L) for *_, R, L in maps]

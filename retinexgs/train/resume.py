@@ -7,11 +7,11 @@ import contextlib
 import fcntl
 import os
 from pathlib import Path
-from typing import Any, Dict, Iterable, Iterator, Optional, Sequence, Tuple
+from typing import Any, Dict, Iterable, Iterator, Optional, Sequence, Tuple, Union
 
 from retinexgs.errors import UserError
 from retinexgs.fileio import TMP_PREFIX, check_writable_folder  # noqa: F401 (re-exported for runner)
-from retinexgs.run.config import Config, load_config
+from retinexgs.run.config import Config, RawConfig, load_config, plain
 
 # Keys a resumed run may change: they act from the next step on (the run's length, its logging and
 # checkpointing, learning rates, loss weights, the density and SH schedules, evaluation, the cache folder).
@@ -48,7 +48,7 @@ def run_lock(run_dir: Path) -> Iterator[None]:
 
 # ---- the config of a resumed run ----------------------------------------------------------------------------
 
-def _leaves(cfg: Config, prefix: str = "") -> Dict[str, Any]:
+def _leaves(cfg: RawConfig, prefix: str = "") -> Dict[str, Any]:
     out: Dict[str, Any] = {}
     for key, value in cfg.items():
         if isinstance(value, dict) and key != "params":
@@ -58,9 +58,10 @@ def _leaves(cfg: Config, prefix: str = "") -> Dict[str, Any]:
     return out
 
 
-def changed_keys(old: Config, new: Config) -> Dict[str, Tuple[Any, Any]]:
-    """key path -> (old value, new value) for every key whose value differs."""
-    a, b = _leaves(old), _leaves(new)
+def changed_keys(old: Union[Config, RawConfig], new: Union[Config, RawConfig]) -> Dict[str, Tuple[Any, Any]]:
+    """key path -> (old value, new value) for every key whose value differs (typed or plain configs, compared
+    as data)."""
+    a, b = _leaves(plain(old)), _leaves(plain(new))
     return {k: (a.get(k), b.get(k)) for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)}
 
 
@@ -78,8 +79,8 @@ def resume_config(recorded: Config, files: Sequence[str], overrides: Sequence[st
                         f"{changes[k][0]!r}, asked {changes[k][1]!r}; it fixes the model's structure or what the "
                         f"run trains, so start a new run (another --out). A resume may change: "
                         f"{', '.join(RESUMABLE)}")
-    if "steps" in changes and cfg["steps"] < checkpoint_step:
-        raise UserError(f"--resume: steps={cfg['steps']} is below the step the run {run_dir} has already "
+    if "steps" in changes and cfg.steps < checkpoint_step:
+        raise UserError(f"--resume: steps={cfg.steps} is below the step the run {run_dir} has already "
                         f"trained ({checkpoint_step}); give steps >= {checkpoint_step}")
     return cfg, changes
 

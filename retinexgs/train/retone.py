@@ -20,7 +20,6 @@ training and is refused by name.
 from __future__ import annotations
 
 import argparse
-import copy
 import json
 import random
 import sys
@@ -31,7 +30,8 @@ import torch
 
 from retinexgs.errors import UserError
 from retinexgs.evaluate.metrics import psnr, ssim_metric
-from retinexgs.run.config import load_config
+from retinexgs.run.config import load_config, plain
+from retinexgs.run.schema import Config
 from retinexgs.train.trainer import enhancement_objective, to_bchw
 from retinexgs.run.folder import load_run
 from retinexgs.run.render import active_sh_degree, view_camera
@@ -55,36 +55,36 @@ def _allowed(key: Tuple[str, ...]) -> bool:
     return (key[:1] == ("loss",) and key[1:] and key[1] in ENHANCEMENT_LOSS_KEYS) or key == ("lr", "enhancement")
 
 
-def variant_config(run_cfg: Dict, name: str, overrides: Sequence[str] = ()) -> Dict:
+def variant_config(run_cfg: Config, name: str, overrides: Sequence[str] = ()) -> Config:
     """The run's config with config file ``name`` ("default": none) and then ``overrides`` (KEY=VALUE) applied,
     checked to change only the enhancement (UserError naming the first other key it changes)."""
 
     if name == "default" and not overrides:
-        return copy.deepcopy(run_cfg)
-    cfg = load_config([] if name == "default" else [name], list(overrides), base=copy.deepcopy(run_cfg),
+        return run_cfg.model_copy(deep=True)
+    cfg = load_config([] if name == "default" else [name], list(overrides), base=run_cfg,
                       base_label="the run's config")
-    before = dict(_leaves(run_cfg))
-    for key, value in _leaves(cfg):
+    before = dict(_leaves(plain(run_cfg)))  # compared as data, key path by key path
+    for key, value in _leaves(plain(cfg)):
         if before.get(key, object()) != value and not _allowed(key):
             raise UserError(f"config {name} changes {'.'.join(key)} ({before.get(key)!r} -> {value!r}): only the "
                             f"enhancement can be re-trained on a trained scene; train it with --config {name}")
     return cfg
 
 
-def retone(model, cfg: Dict, train_maps: List[Tuple[torch.Tensor, torch.Tensor, torch.Tensor]], steps: int,
+def retone(model, cfg: Config, train_maps: List[Tuple[torch.Tensor, torch.Tensor, torch.Tensor]], steps: int,
            seed: int = 0):
     """A copy of ``model`` whose EnhancementNet (and tone form) follow ``cfg`` and is trained ``steps`` steps on
     ``train_maps`` [(R̂, L̂, S)] with ``cfg``'s L_enhance; the scene's parameters are shared, not trained."""
 
-    if cfg["loss"]["enhance_trains_scene"]:
+    if cfg.loss.enhance_trains_scene:
         raise UserError("loss.enhance_trains_scene is true: the enhancement then changes the scene, re-train it")
     torch.manual_seed(seed)
     rng = random.Random(seed)
-    m = model.with_enhancement(cfg["model"]["enhancement"])
-    opt = torch.optim.Adam(m.enhancement.parameters(), lr=cfg["lr"]["enhancement"])
+    m = model.with_enhancement(cfg.model.enhancement)
+    opt = torch.optim.Adam(m.enhancement.parameters(), lr=cfg.lr.enhancement)
     for _ in range(steps):
         R, L, S = train_maps[rng.randrange(len(train_maps))]
-        total, _ = enhancement_objective(m, cfg["loss"], R, L, to_bchw(S))
+        total, _ = enhancement_objective(m, cfg.loss, R, L, to_bchw(S))
         opt.zero_grad(set_to_none=True)
         total.backward()
         opt.step()
@@ -99,8 +99,8 @@ def run(runs: Sequence[Path], configs: Sequence[str], steps: int, device: str, s
     lines = ["| run | config | PSNR / SSIM (± over enhancement seeds) | mean g |", "|---|---|---|---|"]
     for run_dir in runs:
         cfg, scene, model, step = load_run(run_dir, device)
-        if cfg["method"] != "retinexgs":
-            raise UserError(f"{run_dir} is a {cfg['method']} baseline: it has no enhancement to re-train")
+        if cfg.method != "retinexgs":
+            raise UserError(f"{run_dir} is a {cfg.method} baseline: it has no enhancement to re-train")
         degree = active_sh_degree(cfg, step)
         model.eval()
 

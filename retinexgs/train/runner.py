@@ -12,6 +12,7 @@ from retinexgs.errors import UserError
 from retinexgs.evaluate.evaluate import evaluate
 from retinexgs.run.checkpoint import latest_checkpoint, load_checkpoint
 from retinexgs.run.config import load_config
+from retinexgs.run.schema import Config
 from retinexgs.train.resume import check_same_views, check_writable_folder, is_empty_run_folder, resume_config, resume_scene, run_lock
 from retinexgs.run.folder import read_run_config
 from retinexgs.model.schedule import build_schedule
@@ -106,7 +107,7 @@ def _train_run(dist: Distributed, scene_path: Optional[Path], run_dir: Path, con
         if device.startswith("cuda"):
             torch.cuda.reset_peak_memory_stats()
         if dist.enabled:
-            log(f"{dist.world} ranks ({dist.backend}), {dist.world * cfg['train']['views_per_rank']} views a step")
+            log(f"{dist.world} ranks ({dist.backend}), {dist.world * cfg.train.views_per_rank} views a step")
         dist.decompose_shard(scene, cfg, device, progress)
         # The trainer reads every image and decomposition first: bad input fails before the run folder is made.
         trainer = Trainer(cfg, scene, run_dir, device, resume=resume, progress=progress, log=log, dist=dist)
@@ -127,16 +128,16 @@ def _train_run(dist: Distributed, scene_path: Optional[Path], run_dir: Path, con
         return _train_and_evaluate(trainer, cfg, scene, run_dir, device, log, dist)
 
 
-def _train_and_evaluate(trainer: Trainer, cfg: Dict, scene: Scene, run_dir: Path, device: str,
+def _train_and_evaluate(trainer: Trainer, cfg: Config, scene: Scene, run_dir: Path, device: str,
                         log: Callable[[str], None], dist: Optional[Distributed] = None) -> Optional[Dict]:
     dist = dist if dist is not None else Distributed()
     stats: Dict = {"device": torch.cuda.get_device_name() if device.startswith("cuda") else "cpu"}
-    if trainer.step >= cfg["steps"]:
-        log(f"{run_dir} has already finished its {cfg['steps']} steps")
+    if trainer.step >= cfg.steps:
+        log(f"{run_dir} has already finished its {cfg.steps} steps")
     else:
         values = trainer.train()
         values.setdefault("total_seconds", values["seconds"])
-        stats.update(train_seconds=round(values["total_seconds"], 1), steps=cfg["steps"])
+        stats.update(train_seconds=round(values["total_seconds"], 1), steps=cfg.steps)
         if device.startswith("cuda"):
             stats["peak_gpu_memory_gb"] = round(torch.cuda.max_memory_allocated() / 2**30, 3)
         # The large-scene benchmark's figures (ranks 1 for a plain run), gathered from every rank.
@@ -148,11 +149,11 @@ def _train_and_evaluate(trainer: Trainer, cfg: Dict, scene: Scene, run_dir: Path
         resumed = values["total_seconds"] - values["seconds"] > 0.5
         took = (f"{values['total_seconds']:.0f} s in all ({values['seconds']:.0f} s this session)" if resumed
                 else f"{values['seconds']:.0f} s")
-        log(f"trained {cfg['steps']} steps in {took}, {len(trainer.model.gaussians)} Gaussians"
+        log(f"trained {cfg.steps} steps in {took}, {len(trainer.model.gaussians)} Gaussians"
             + (f", peak GPU memory {stats['peak_gpu_memory_gb']:.2f} GB" if "peak_gpu_memory_gb" in stats else ""))
     stats["gaussians"] = len(trainer.model.gaussians)
-    return evaluate(render_function(trainer.model, cfg, trainer.active_degree(cfg["steps"])), scene, run_dir,
-                    cfg["eval"]["lpips"], log, extra={"train": stats}, shard=(dist.rank, dist.world),
+    return evaluate(render_function(trainer.model, cfg, trainer.active_degree(cfg.steps)), scene, run_dir,
+                    cfg.eval.lpips, log, extra={"train": stats}, shard=(dist.rank, dist.world),
                     gather=(lambda rows: dist.gather_objects(rows, "the evaluation's rows")) if dist.enabled else None)
 
 

@@ -167,14 +167,14 @@ def synthetic_step(n: int, width: int, height: int, device: torch.device, raster
     params = {"means": sc["means"], "quats": sc["quats"], "log_scales": sc["scales"].log(),
               "opacity_logits": torch.logit(sc["opacities"]), "sh_dc": sc["sh"][:, :1].contiguous(),
               "sh_rest": sc["sh"][:, 1:k].contiguous()}
-    model = RetinexGSModel(GaussianModel(params, 3), cfg["model"], decomposed=True).to(device)
+    model = RetinexGSModel(GaussianModel(params, 3), cfg.model, decomposed=True).to(device)
     cam = orbit_camera(width, height)
     g = torch.Generator().manual_seed(seed + 1)
     R_t, L_t = (torch.rand(1, 3, height, width, generator=g).to(device) for _ in range(2))
     L_t = L_t[:, :1]
     S_t = R_t * L_t
     opt = torch.optim.Adam(model.parameters(), lr=1e-3, eps=1e-15, fused=device.type == "cuda")
-    c = cfg["loss"]
+    c = cfg.loss
     gm = model.gaussians
     center = cam.center.to(device)
 
@@ -186,9 +186,9 @@ def synthetic_step(n: int, width: int, height: int, device: torch.device, raster
             image = rasterize_gaussians(gm.means, gm.quats, gm.scales, gm.opacities, colors, cam,
                                         validate=False).image
         R_hat, L_hat = losses.to_bchw(image[..., :3]), losses.to_bchw(image[..., 3:6])
-        sup, _ = losses.supervision_loss(R_hat, L_hat, R_t, L_t, S_t, c["w_r"], c["w_l"], c["w_s"],
-                                         c["lambda_ssim"])
-        loss = sup + c["w_tv"] * losses.tv_loss(R_hat) + c["w_sh"] * losses.sh_sparsity_loss(gm.sh_rest)
+        sup, _ = losses.supervision_loss(R_hat, L_hat, R_t, L_t, S_t, c.w_r, c.w_l, c.w_s,
+                                         c.lambda_ssim)
+        loss = sup + c.w_tv * losses.tv_loss(R_hat) + c.w_sh * losses.sh_sparsity_loss(gm.sh_rest)
         loss.backward()
         opt.step()
         opt.zero_grad(set_to_none=True)
@@ -231,7 +231,7 @@ def profile_events(step: Callable[[], None], events: int, device: torch.device, 
     totals: Dict[str, List[float]] = {"event": [], "plain": []}
     selfs: Dict[str, Dict[str, float]] = {"event": {}, "plain": {}}
     done = 0
-    while done < events and tr.step < tr.cfg["steps"] - 4:
+    while done < events and tr.step < tr.cfg.steps - 4:
         if not is_event(tr.step + 1) or is_event(tr.step + 2):
             step()
             continue

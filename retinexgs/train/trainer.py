@@ -36,6 +36,7 @@ from retinexgs.train.views import (TrainView, ViewStatistics, check_prior_size, 
 from retinexgs.model.schedule import build_schedule
 from retinexgs.strategy import DefaultStrategy
 from retinexgs.run.render import view_camera
+from retinexgs.run.schema import Config, Loss
 from retinexgs.retinex.cache import entry_dir, iter_decompositions, scene_cache_root
 
 
@@ -53,24 +54,24 @@ def to_bchw(x: Tensor) -> Tensor:
     return x.permute(2, 0, 1).unsqueeze(0)
 
 
-def enhancement_objective(model: RetinexGSModel, c: Dict, R_img: Tensor, L_img: Tensor, S_b: Tensor
+def enhancement_objective(model: RetinexGSModel, c: Loss, R_img: Tensor, L_img: Tensor, S_b: Tensor
                           ) -> Tuple[Tensor, Dict[str, Tensor]]:
     """L_enhance (weighted sum, unweighted terms) of the enhanced render of [H,W,3] maps R̂, L̂ against the
     low-light view ``S_b`` [1,3,H,W], with the loss section ``c`` of a config (L_exp's target from
     :func:`retinexgs.train.losses.exposure_target`). Unless
-    ``c["enhance_trains_scene"]``, R̂ and L̂ are detached: only the EnhancementNet learns from it. The terms
+    ``c.enhance_trains_scene``, R̂ and L̂ are detached: only the EnhancementNet learns from it. The terms
     include ``exp_E``, L_exp's target (for the log; not part of the sum)."""
-    if not c["enhance_trains_scene"]:
+    if not c.enhance_trains_scene:
         # The paper trains the EnhancementNet alone with L_enhance: without this the exposure term would
         # flatten R̂ and L̂ towards E instead of adjusting the gamma.
         R_img, L_img = R_img.detach(), L_img.detach()
     out = model.enhance(R_img, L_img)
-    light = to_bchw(out["L_enh"]) if c["exp_on"] == "illumination" else None
+    light = to_bchw(out["L_enh"]) if c.exp_on == "illumination" else None
     E = losses.exposure_target(c, model.tone, R_img * L_img, model.shoulder, model.tone_noise())
     total, terms = losses.enhancement_loss(
-        to_bchw(out["rgb"]), S_b, c["w_spa"], c["w_exp"], c["w_col"], E,
-        illumination=light, exp_patch=c["exp_patch"], exp_form=c["exp_form"], spa_form=c["spa_form"],
-        scale_invariant=c["enhance_scale_invariant"])
+        to_bchw(out["rgb"]), S_b, c.w_spa, c.w_exp, c.w_col, E,
+        illumination=light, exp_patch=c.exp_patch, exp_form=c.exp_form, spa_form=c.spa_form,
+        scale_invariant=c.enhance_scale_invariant)
     # Logged, not a loss: L_exp's target, below exposure_E where the highlight meter caps it (issue 32).
     terms["exp_E"] = E.detach().float() if torch.is_tensor(E) else torch.full((), float(E), device=R_img.device)
     return total, terms
@@ -89,22 +90,22 @@ def _append_record(f, record: Dict) -> None:
         raise
 
 
-def decompose_views(views: List[View], cfg: Dict, device: str, progress: bool, scene_root: Path) -> Iterator:
+def decompose_views(views: List[View], cfg: Config, device: str, progress: bool, scene_root: Path) -> Iterator:
     """(R, L) per view, one view at a time, from the per-scene cache (computed and written where missing;
     ``retinexgs decompose`` fills the same cache, see :func:`retinexgs.retinex.cache.scene_cache_root`). Run it
     to its end: the cache's sweep of other photos' entries follows the last view."""
 
-    dcfg = cfg["decomposer"]
-    return iter_decompositions([v.image_path for v in views], dcfg["method"], dict(dcfg["params"]) or None,
-                               cache_dir=scene_cache_root(scene_root, cfg["data"]["cache_dir"]),
-                               device=dcfg["device"] or device, progress=progress,
+    dcfg = cfg.decomposer
+    return iter_decompositions([v.image_path for v in views], dcfg.method, dict(dcfg.params) or None,
+                               cache_dir=scene_cache_root(scene_root, cfg.data.cache_dir),
+                               device=dcfg.device or device, progress=progress,
                                cache_hint="--set data.cache_dir=DIR", sweep=True, scene=str(scene_root))
 
 
 class Trainer:
     """Trains one run folder. ``resume`` continues from its newest checkpoint."""
 
-    def __init__(self, cfg: Dict, scene: Scene, run_dir: Path, device: str = "cpu", resume: bool = False,
+    def __init__(self, cfg: Config, scene: Scene, run_dir: Path, device: str = "cpu", resume: bool = False,
                  progress: bool = True, log: Callable[[str], None] = print, emulate_graphs: bool = False,
                  dist: Optional[Distributed] = None) -> None:
         """``emulate_graphs``: on the CPU, run the CUDA-graph path of the step (the image losses' forward and
@@ -116,13 +117,13 @@ class Trainer:
         self._session_start: Optional[float] = None  # set while train() runs
         if not scene.train:
             raise UserError(f"scene {scene.root} has no training views")
-        self.method = cfg["method"]
+        self.method = cfg.method
         self.schedule = build_schedule(cfg)
         self.decomposed = self.method == "retinexgs"
         # The depth prior is RetinexGS's (the 3DGS baselines stay as published).
-        self.depth_prior = self.decomposed and cfg["loss"]["w_depth"] > 0
-        torch.manual_seed(cfg["seed"])
-        random.seed(cfg["seed"])
+        self.depth_prior = self.decomposed and cfg.loss.w_depth > 0
+        torch.manual_seed(cfg.seed)
+        random.seed(cfg.seed)
         self._setup_dist = dist  # _prepare_views: rank 0 alone writes a shared view store
         self.views = self._prepare_views()
         self.extent = scene_extent(scene)
@@ -146,8 +147,8 @@ class Trainer:
         decide (:mod:`retinexgs.train.views`). Either way the photos and priors are read one view at a time,
         and the set-up statistics are gathered as they pass (:meth:`view_statistics`)."""
         cfg, dev = self.cfg, self.device
-        needs_priors = self.method in ("retinexgs", "pre") and cfg["decomposer"]["method"] != "none"
-        if self.method == "pre" and cfg["decomposer"]["method"] == "none":
+        needs_priors = self.method in ("retinexgs", "pre") and cfg.decomposer.method != "none"
+        if self.method == "pre" and cfg.decomposer.method == "none":
             raise UserError("the pre-enhancement baseline needs a decomposer (decomposer.method lr3m or lime)")
         train = self.scene.train
         cameras = [view_camera(v) for v in train]
@@ -155,24 +156,24 @@ class Trainer:
         centers = [cam.center.to(dev, torch.float32) for cam in cameras]
         pixels = sum(v.width * v.height for v in train)
         preload = pixels * preload_bytes_per_pixel(self.method, needs_priors, self.depth_prior)
-        tcfg = cfg["train"]
-        self.streamed = choose_streaming(tcfg["stream_views"], preload, tcfg["views_on_device_gb"])
-        if self.streamed and int(tcfg.get("views_per_rank", 1)) > 1:
+        tcfg = cfg.train
+        self.streamed = choose_streaming(tcfg.stream_views, preload, tcfg.views_on_device_gb)
+        if self.streamed and tcfg.views_per_rank > 1:
             # A streamed view stays valid on the device for one step; a batch of several views on one rank would
             # need them all at once. Several ranks with one view each stream as they are.
-            raise UserError(f"train.views_per_rank={tcfg['views_per_rank']} needs the training views on the device, "
+            raise UserError(f"train.views_per_rank={tcfg.views_per_rank} needs the training views on the device, "
                             f"but they are streamed ({gib(preload)} preloaded would exceed train.views_on_device_gb="
-                            f"{tcfg['views_on_device_gb']:g}, or train.stream_views=always): use several ranks with "
+                            f"{tcfg.views_on_device_gb:g}, or train.stream_views=always): use several ranks with "
                             "one view each (--gpus N), or train.stream_views=never if they fit")
         # What set-up needs from every view (the illumination reference, the mean background): RetinexGS's.
         self._stats: Optional[ViewStatistics] = None
-        stats = ViewStatistics(cfg["model"]["enhancement"]["ref_quantile"]) if self.decomposed else None
+        stats = ViewStatistics(cfg.model.enhancement.ref_quantile) if self.decomposed else None
         priors: Optional[Iterator] = None
         if needs_priors:
-            self.log(f"2D priors: {cfg['decomposer']['method']} on {len(train)} views (cached per scene)")
+            self.log(f"2D priors: {cfg.decomposer.method} on {len(train)} views (cached per scene)")
         if not self.streamed:
             self.log(f"views: preloaded on the device ({gib(preload)} for {len(train)} views; streamed above "
-                     f"train.views_on_device_gb={tcfg['views_on_device_gb']:g})")
+                     f"train.views_on_device_gb={tcfg.views_on_device_gb:g})")
             if needs_priors:
                 priors = decompose_views(train, cfg, str(dev), self.progress, self.scene.root)
             views: List[TrainView] = []
@@ -192,9 +193,9 @@ class Trainer:
                 pass
             self._stats = stats
             return views
-        root = scene_cache_root(self.scene.root, cfg["data"]["cache_dir"])
-        dcfg = cfg["decomposer"]
-        tag = entry_dir(root, dcfg["method"], dict(dcfg["params"]) or None).name if needs_priors else "none"
+        root = scene_cache_root(self.scene.root, cfg.data.cache_dir)
+        dcfg = cfg.decomposer
+        tag = entry_dir(root, dcfg.method, dict(dcfg.params) or None).name if needs_priors else "none"
         paths = [v.image_path for v in train]
         sizes = [(v.height, v.width) for v in train]
         path = store_path(root, paths, tag)
@@ -208,7 +209,7 @@ class Trainer:
         if store is None:
             check_store_space(path, store_size_estimate(sizes, needs_priors), hint)
             self.log(f"views: streamed ({gib(preload)} preloaded would exceed train.views_on_device_gb="
-                     f"{tcfg['views_on_device_gb']:g}); writing the view store {path}")
+                     f"{tcfg.views_on_device_gb:g}); writing the view store {path}")
             if needs_priors:
                 priors = decompose_views(train, cfg, str(dev), self.progress, self.scene.root)
             items = stream_set_up(train, priors, dev, stats)
@@ -219,51 +220,51 @@ class Trainer:
         if shared and dist.rank == 0:
             dist.barrier("the view store, which rank 0 writes")
         views = StreamedViews(store, cameras, centers, dev, self.method,
-                              cfg["loss"]["depth_edge"] if self.depth_prior else None,
-                              upcoming=self._upcoming_views, graphs=bool(tcfg["cuda_graphs"]), log=self.log,
-                              resident_bytes=int(tcfg["views_pinned_gb"] * 1e9))
+                              cfg.loss.depth_edge if self.depth_prior else None,
+                              upcoming=self._upcoming_views, graphs=bool(tcfg.cuda_graphs), log=self.log,
+                              resident_bytes=int(tcfg.views_pinned_gb * 1e9))
         self.log(f"views: {gib(views.slot_bytes)} of reused buffers on the device" +
                  (f"; the store held in {'pinned ' if dev.type == 'cuda' else ''}host memory ({gib(views.resident_bytes)}"
-                  f" <= train.views_pinned_gb={tcfg['views_pinned_gb']:g})" if views.resident_bytes else ""))
+                  f" <= train.views_pinned_gb={tcfg.views_pinned_gb:g})" if views.resident_bytes else ""))
         return views
 
     def _build(self, state: Optional[Dict], emulate_graphs: bool = False) -> None:
-        mcfg = self.cfg["model"]
+        mcfg = self.cfg.model
         if state is None:
             pts, cols = self.scene.points, self.scene.colors
-            if pts.shape[0] > mcfg["max_init_points"]:
-                idx = torch.randperm(pts.shape[0], generator=torch.Generator().manual_seed(self.cfg["seed"]))
-                pts, cols = pts[idx[: mcfg["max_init_points"]]], cols[idx[: mcfg["max_init_points"]]]
-            gaussians = GaussianModel.from_points(pts, cols, mcfg["sh_degree"], mcfg["init_opacity"],
+            if pts.shape[0] > mcfg.max_init_points:
+                idx = torch.randperm(pts.shape[0], generator=torch.Generator().manual_seed(self.cfg.seed))
+                pts, cols = pts[idx[: mcfg.max_init_points]], cols[idx[: mcfg.max_init_points]]
+            gaussians = GaussianModel.from_points(pts, cols, mcfg.sh_degree, mcfg.init_opacity,
                                                   brighten=self.decomposed)
         else:
             gstate = {k[len("gaussians."):]: v for k, v in state["model"].items() if k.startswith("gaussians.")}
-            gaussians = GaussianModel.empty_like_state(gstate, mcfg["sh_degree"])
+            gaussians = GaussianModel.empty_like_state(gstate, mcfg.sh_degree)
         self.model = RetinexGSModel(gaussians, mcfg, self.decomposed).to(self.device)
         if self.decomposed and state is None:
             self.model.illum_ref.fill_(self.illumination_reference())
         if self.model.has_background and state is None:
             self.model.background.copy_(self.mean_background())
         self._set_up_noise(state)
-        lr = self.cfg["lr"]
+        lr = self.cfg.lr
         g = self.model.gaussians
         groups = [
-            {"params": [g.means], "lr": lr["means"] * self.extent, "name": "means"},
-            {"params": [g.quats], "lr": lr["quats"], "name": "quats"},
-            {"params": [g.log_scales], "lr": lr["scales"], "name": "log_scales"},
-            {"params": [g.opacity_logits], "lr": lr["opacities"], "name": "opacity_logits"},
-            {"params": [g.sh_dc], "lr": lr["sh_dc"], "name": "sh_dc"},
-            {"params": [g.sh_rest], "lr": lr["sh_rest"], "name": "sh_rest"},
+            {"params": [g.means], "lr": lr.means * self.extent, "name": "means"},
+            {"params": [g.quats], "lr": lr.quats, "name": "quats"},
+            {"params": [g.log_scales], "lr": lr.scales, "name": "log_scales"},
+            {"params": [g.opacity_logits], "lr": lr.opacities, "name": "opacity_logits"},
+            {"params": [g.sh_dc], "lr": lr.sh_dc, "name": "sh_dc"},
+            {"params": [g.sh_rest], "lr": lr.sh_rest, "name": "sh_rest"},
         ]
         if self.decomposed:
-            groups += [{"params": list(self.model.illumination.parameters()), "lr": lr["illumination"],
+            groups += [{"params": list(self.model.illumination.parameters()), "lr": lr.illumination,
                         "name": "illumination"},
-                       {"params": list(self.model.enhancement.parameters()), "lr": lr["enhancement"],
+                       {"params": list(self.model.enhancement.parameters()), "lr": lr.enhancement,
                         "name": "enhancement"}]
         rates = {group["name"]: group["lr"] for group in groups}
         # Fused Adam on the GPU: one kernel per parameter group instead of a dozen (the step is launch-bound).
         self.optimizer = torch.optim.Adam(groups, eps=1e-15, fused=self.device.type == "cuda")
-        self.strategy = DefaultStrategy(self.cfg["density"], self.extent, self.schedule)
+        self.strategy = DefaultStrategy(self.cfg.density, self.extent, self.schedule)
         if state is not None:
             self.model.load_state_dict(state["model"])
             self.optimizer.load_state_dict(state["optimizer"])
@@ -285,7 +286,7 @@ class Trainer:
         self.graphs: Optional[LossGraphs] = None
         self.channel_graphs: Optional[ChannelGraphs] = None
         self._graph_failures_logged: set = set()
-        if self.cfg["train"]["cuda_graphs"] and (self.device.type == "cuda" or emulate_graphs):
+        if self.cfg.train.cuda_graphs and (self.device.type == "cuda" or emulate_graphs):
             params = self.model.enhancement.used_parameters() if self.decomposed else []
             self.graphs = LossGraphs(self._graphed_loss, params, emulate=emulate_graphs)
             self.channel_graphs = ChannelGraphs(self.model, emulate=emulate_graphs)
@@ -296,14 +297,14 @@ class Trainer:
         at set-up (or read from the checkpoint, so a resume trains on the same figures), then the reconstruction's
         gain cap, the camera's (a, b) as device tensors made once (the captured CUDA graphs read them) and the
         black table."""
-        c = self.cfg["loss"]
+        c = self.cfg.loss
         self.capture_noise: Optional[CaptureNoise] = None
         self.rec_gain_cap: Optional[Tensor] = None
         self.camera_noise: Optional[Tuple[Tensor, Tensor]] = None
         self.noise_probe: Optional[NoiseProbe] = None
-        noise_aware = bool(self.cfg["density"]["noise_aware"])
+        noise_aware = bool(self.cfg.density.noise_aware)
         debias = self.decomposed and self.model.tone_noise() is not None
-        if not self.decomposed or not (c["rec_noise_floor"] or c["rec_camera_noise"] or noise_aware or debias):
+        if not self.decomposed or not (c.rec_noise_floor or c.rec_camera_noise or noise_aware or debias):
             return
         saved = (state or {}).get("capture_noise")
         if saved:
@@ -312,24 +313,24 @@ class Trainer:
             # The user's files where they still exist (undistorted copies hide part of the noise), else the copies.
             noise = measure_capture_noise([v.source_path if v.source_path is not None and Path(v.source_path).is_file()
                                            else v.image_path for v in self.scene.train],
-                                          self.cfg["data"]["downscale"], self.device, scale=c["rec_noise_scale"],
-                                          through_codec=debias or c["rec_camera_noise"])  # the users of (a, b)
+                                          self.cfg.data.downscale, self.device, scale=c.rec_noise_scale,
+                                          through_codec=debias or c.rec_camera_noise)  # the users of (a, b)
         dist = self._setup_dist
         if dist is not None and dist.enabled:  # rank 0's figures everywhere (each rank measured the same views)
             noise = dist.broadcast_object(noise, "the capture's noise")
         if noise is None:
             return
         self.capture_noise = noise
-        limit = sigma_limit(c["rec_noise_share"])
+        limit = sigma_limit(c.rec_noise_share)
         gain = None
-        if c["rec_domain"] != "photo":  # L_ref: the checkpoint's on a resume (the model's is filled later)
+        if c.rec_domain != "photo":  # L_ref: the checkpoint's on a resume (the model's is filled later)
             ref = (state or {}).get("model", {}).get("illum_ref", self.model.illum_ref)
             gain = float(exposure_gain(ref, ref.new_ones(())))
         self.log(noise.describe(limit, gain))
         cap = noise.gain_cap(limit)
-        if c["rec_noise_floor"] and c["rec_domain"] != "photo" and math.isfinite(cap):
+        if c.rec_noise_floor and c.rec_domain != "photo" and math.isfinite(cap):
             self.rec_gain_cap = torch.tensor(cap, dtype=torch.float32, device=self.device)
-        if c["rec_camera_noise"]:
+        if c.rec_camera_noise:
             self.camera_noise = noise.camera(self.device)
         if debias:  # model.enhancement.debias_black: the tone reads R̂∘L̂'s light through the noise's black table
             with torch.no_grad():
@@ -339,7 +340,7 @@ class Trainer:
                     self.model.black_spread.copy_(spread)
         if noise_aware:  # its own random stream, one per rank (each rank probes its own views)
             rank = dist.rank if dist is not None and dist.enabled else 0
-            self.noise_probe = NoiseProbe(noise, self.device, 1_000_003 * (self.cfg["seed"] + 1) + rank)
+            self.noise_probe = NoiseProbe(noise, self.device, 1_000_003 * (self.cfg.seed + 1) + rank)
             probe_rng = (state or {}).get("noise_probe_rng")
             if probe_rng is not None and not (dist is not None and dist.enabled):  # a resume draws on where it was
                 self.noise_probe.generator.set_state(probe_rng)
@@ -362,7 +363,7 @@ class Trainer:
         """Every training view's contribution to :meth:`illumination_reference` and :meth:`mean_background`,
         gathered at set-up as the views were read, or (a reused view store) now, one view at a time."""
         if self._stats is None:
-            stats = ViewStatistics(self.cfg["model"]["enhancement"]["ref_quantile"])
+            stats = ViewStatistics(self.cfg.model.enhancement.ref_quantile)
             for i in range(len(self.views)):
                 tv = self.views.get(i, prefetch=False) if isinstance(self.views, StreamedViews) else self.views[i]
                 stats.add(tv.S, tv.R, tv.L)
@@ -371,9 +372,9 @@ class Trainer:
 
     # ---- one step ----------------------------------------------------------------------------------------
     def _means_lr(self, step: int) -> float:
-        lr = self.cfg["lr"]
-        t = min(step / max(self.cfg["steps"], 1), 1.0)
-        return self.extent * math.exp((1 - t) * math.log(lr["means"]) + t * math.log(lr["means_final"]))
+        lr = self.cfg.lr
+        t = min(step / max(self.cfg.steps, 1), 1.0)
+        return self.extent * math.exp((1 - t) * math.log(lr.means) + t * math.log(lr.means_final))
 
     def active_degree(self, step: int) -> int:
         return self.schedule.sh_degree_at(step)
@@ -381,7 +382,7 @@ class Trainer:
     def rec_gain(self) -> Optional[Tensor]:
         """The reconstruction's exposure gain (a scalar tensor; None for ``rec_domain: photo``): the tone's gain at
         g = 1, 1 / lin(L_ref), a constant of the scene, capped where the photos' noise asks (train/noise.py)."""
-        if self.cfg["loss"]["rec_domain"] == "photo":
+        if self.cfg.loss.rec_domain == "photo":
             return None
         ref = self.model.illum_ref
         gain = exposure_gain(ref, ref.new_ones(()))
@@ -395,9 +396,9 @@ class Trainer:
         if self.noise_probe is None or not (sched.densify_start < step <= sched.densify_stop) \
                 or not self.noise_probe.due(step):
             return
-        c = self.cfg["loss"]
+        c = self.cfg.loss
         with record_function("step/noise_probe"):
-            grad = self.noise_probe.means2d_gradient(res["out"], self.rec_gain(), c["lambda_ssim"], c["w_s"])
+            grad = self.noise_probe.means2d_gradient(res["out"], self.rec_gain(), c.lambda_ssim, c.w_s)
             if grad is not None:
                 self.strategy.add_noise_probe(grad, res["out"].visible, view.camera.width, view.camera.height)
 
@@ -407,26 +408,26 @@ class Trainer:
         weighted sum. ``S`` is the low-light view (the baselines' target), ``R``/``L`` its 2D priors or None;
         ``enhance``: the enhancement losses are on. The same function runs eagerly and inside the captured
         CUDA graphs (:mod:`retinexgs.train.graphs`): it never syncs with the host."""
-        c = self.cfg["loss"]
+        c = self.cfg.loss
         if not self.decomposed:
-            rgb = losses.l1_ssim(to_bchw(image), to_bchw(S), c["lambda_ssim"])
+            rgb = losses.l1_ssim(to_bchw(image), to_bchw(S), c.lambda_ssim)
             return rgb, {"rgb": rgb}
         R_img, L_img = image[..., :3], image[..., 3:6]
         R_hat, L_hat, S_b = to_bchw(R_img), to_bchw(L_img), to_bchw(S)
         terms: Dict[str, Tensor] = {}
         gain = self.rec_gain()
-        l1_exposed = c["rec_domain"] == "exposed"
+        l1_exposed = c.rec_domain == "exposed"
         if R is not None:
-            sup, sup_terms = losses.supervision_loss(R_hat, L_hat, to_bchw(R), to_bchw(L), S_b, c["w_r"],
-                                                     c["w_l"], c["w_s"], c["lambda_ssim"], c["rec_huber"], gain,
-                                                     l1_exposed, c["rec_ssim_noise"], self.camera_noise)
+            sup, sup_terms = losses.supervision_loss(R_hat, L_hat, to_bchw(R), to_bchw(L), S_b, c.w_r,
+                                                     c.w_l, c.w_s, c.lambda_ssim, c.rec_huber, gain,
+                                                     l1_exposed, c.rec_ssim_noise, self.camera_noise)
             terms.update(sup_terms)
         else:  # no 2D priors: only the reconstruction is supervised
-            terms["sup_rec"] = losses.reconstruction_loss(R_hat * L_hat, S_b, c["lambda_ssim"], c["rec_huber"],
-                                                          gain, l1_exposed, c["rec_ssim_noise"], self.camera_noise)
-            sup = c["w_s"] * terms["sup_rec"]
+            terms["sup_rec"] = losses.reconstruction_loss(R_hat * L_hat, S_b, c.lambda_ssim, c.rec_huber,
+                                                          gain, l1_exposed, c.rec_ssim_noise, self.camera_noise)
+            sup = c.w_s * terms["sup_rec"]
         terms["tv"] = losses.tv_loss(R_hat)
-        total = sup + c["w_tv"] * terms["tv"]
+        total = sup + c.w_tv * terms["tv"]
         if enhance:
             enh, enh_terms = enhancement_objective(self.model, c, R_img, L_img, S_b)
             terms.update(enh_terms)
@@ -436,7 +437,7 @@ class Trainer:
     def sh_loss(self) -> Tensor:
         """L_SH on the Gaussians' higher-order SH (unweighted; its shape follows the Gaussian count, so it is
         not part of the graphed image losses)."""
-        return losses.sh_sparsity_loss(self.model.gaussians.sh_rest, self.cfg["loss"]["sh_reduction"])
+        return losses.sh_sparsity_loss(self.model.gaussians.sh_rest, self.cfg.loss.sh_reduction)
 
     def depth_loss(self, res: Dict[str, Tensor], tv: TrainView) -> Optional[Tensor]:
         """The depth prior (unweighted) of a render made with ``depth=True``; None while ``loss.w_depth`` is 0.
@@ -444,7 +445,7 @@ class Trainer:
         if not self.depth_prior:
             return None
         depth, alpha = self._depth_maps(res)
-        wx, wy = tv.edge_weights(self.cfg["loss"]["depth_edge"])
+        wx, wy = tv.edge_weights(self.cfg.loss.depth_edge)
         return losses.depth_smoothness_loss(to_bchw(depth), to_bchw(alpha), wx, wy)
 
     @staticmethod
@@ -468,9 +469,9 @@ class Trainer:
                 terms["sh"] = sh
                 if depth is not None:
                     terms["depth"] = depth
-        total = torch.add(image_total, sh, alpha=self.cfg["loss"]["w_sh"])
+        total = torch.add(image_total, sh, alpha=self.cfg.loss.w_sh)
         if depth is not None and not depth_in_total:
-            total = torch.add(total, depth, alpha=self.cfg["loss"]["w_depth"])
+            total = torch.add(total, depth, alpha=self.cfg.loss.w_depth)
         terms["total"] = total
         return terms
 
@@ -492,7 +493,7 @@ class Trainer:
         total, terms = self.image_loss(image[..., :C], S, R, L, enhance)
         terms["depth"] = losses.depth_smoothness_loss(to_bchw(image[..., C:C + 1]), to_bchw(image[..., C + 1:]),
                                                       *unpack_edges(packed))
-        return torch.add(total, terms["depth"], alpha=self.cfg["loss"]["w_depth"]), terms
+        return torch.add(total, terms["depth"], alpha=self.cfg.loss.w_depth), terms
 
     def graph_input(self, res: Dict[str, Tensor]) -> Tensor:
         """The captured loss's input [H,W,C(+2)]: the rendered channels, then the depth prior's depth and alpha
@@ -506,7 +507,7 @@ class Trainer:
         enhance = self.decomposed and self.schedule.enhance_at(step)
         out = res["out"]
         with record_function("step/loss_graph"):
-            edge = self.cfg["loss"]["depth_edge"] if self.depth_prior else None
+            edge = self.cfg.loss.depth_edge if self.depth_prior else None
             result = self.graphs.run(self.graph_input(res), tv.pack(self.decomposed, edge), enhance)
         if result is None:
             for key, why in self.graphs.failures.items():
@@ -528,8 +529,8 @@ class Trainer:
             sh = None
             if self.decomposed:
                 sh = self.sh_loss()
-                if sh.requires_grad and self.cfg["loss"]["w_sh"]:
-                    roots.append(self.cfg["loss"]["w_sh"] * sh)
+                if sh.requires_grad and self.cfg.loss.w_sh:
+                    roots.append(self.cfg.loss.w_sh * sh)
                     grads.append(None)
             torch.autograd.backward(roots, grads)
             # The EnhancementNet's gradients are the graph's static buffers: read by this step's optimiser
@@ -687,11 +688,11 @@ class Trainer:
         ``train.momentum_batch_scaling``. With several ranks, rank 0's model
         state (parameters and buffers: ``illum_ref``, the mean background) is broadcast to the others."""
         self.dist = dist if dist is not None else Distributed(device=self.device)
-        tcfg = self.cfg["train"]
-        self.batch_size = self.dist.world * int(tcfg.get("views_per_rank", 1))
-        self.lr_scale = lr_batch_factor(tcfg.get("lr_batch_scaling", "sqrt"), self.batch_size)
+        tcfg = self.cfg.train
+        self.batch_size = self.dist.world * tcfg.views_per_rank
+        self.lr_scale = lr_batch_factor(tcfg.lr_batch_scaling, self.batch_size)
         # Set on every start, a resume included: a checkpoint holds the betas of the batch it was written with.
-        betas = adam_betas_for_batch(tcfg.get("momentum_batch_scaling", "power"), self.batch_size)
+        betas = adam_betas_for_batch(tcfg.momentum_batch_scaling, self.batch_size)
         for group in self.optimizer.param_groups:
             group["lr"] *= self.lr_scale
             group["betas"] = betas
@@ -723,7 +724,8 @@ class Trainer:
         return batch[self.dist.rank::self.dist.world]
 
     def checkpoint_state(self) -> Dict:
-        return {"step": self.step, "config": self.cfg, "model": self.model.state_dict(),
+        # The config as plain data (not the typed object): old and new code load the checkpoint alike.
+        return {"step": self.step, "config": self.cfg.model_dump(), "model": self.model.state_dict(),
                 "optimizer": self.optimizer.state_dict(), "rng": torch.get_rng_state(),
                 "py_rng": random.getstate(), "order": list(self.order), "density": self.strategy.state_dict(), "normalization": {
                     "center": self.scene.normalization.center, "scale": self.scene.normalization.scale},
@@ -746,7 +748,7 @@ class Trainer:
             self.check_finite(self.step)
         if not self.dist.is_main:
             return None
-        return save_checkpoint(self.run, self.step, self.checkpoint_state(), self.cfg["checkpoint"]["keep"])
+        return save_checkpoint(self.run, self.step, self.checkpoint_state(), self.cfg.checkpoint.keep)
 
     def _save_on_stop(self, stop: DeferredStop) -> None:
         """Write a checkpoint of the last whole step (unless one exists), say where, and raise as the signal
@@ -766,7 +768,7 @@ class Trainer:
         """Train up to ``cfg.steps`` (or ``stop_after`` more steps); returns the last step's loss values."""
         from tqdm import tqdm
 
-        total_steps = self.cfg["steps"]
+        total_steps = self.cfg.steps
         end = total_steps if stop_after is None else min(total_steps, self.step + stop_after)
         main = self.dist.is_main  # only rank 0 logs, shows progress and writes
         writer = self._tensorboard() if main else None
@@ -788,8 +790,8 @@ class Trainer:
                 indices = self._batch_indices()
                 self.step += 1
                 self.dist.test_fault(self.step)
-                check = (self.step % self.cfg["log"]["every"] == 0 or self.step == end
-                         or self.step % self.cfg["checkpoint"]["every"] == 0)
+                check = (self.step % self.cfg.log.every == 0 or self.step == end
+                         or self.step % self.cfg.checkpoint.every == 0)
                 views = [self.views[i] for i in indices]
                 if self.step > first and (self.schedule.densify_at(self.step) or self.schedule.reset_at(self.step)):
                     if timed_from is None:
@@ -812,7 +814,7 @@ class Trainer:
                     _append_record(log_file, {"step": self.step, "event": event,
                                               "gaussians": len(self.model.gaussians)}
                                    | ({} if agree is None else {"ranks_agree": agree}))
-                if log_file is not None and (self.step % self.cfg["log"]["every"] == 0 or self.step == end):
+                if log_file is not None and (self.step % self.cfg.log.every == 0 or self.step == end):
                     n = len(self.model.gaussians)
                     bar.set_postfix({k: f"{v:.4f}" for k, v in values.items() if k in
                                      ("total", "sup_rec", "sup_r", "sup_l", "exp", "rgb")} | {"N": n})
@@ -822,7 +824,7 @@ class Trainer:
                         for k, v in values.items():
                             writer.add_scalar(f"loss/{k}", v, self.step)
                         writer.add_scalar("gaussians", n, self.step)
-                if self.step % self.cfg["checkpoint"]["every"] == 0 or self.step == end:
+                if self.step % self.cfg.checkpoint.every == 0 or self.step == end:
                     self.save()
                 bar.update(1)
                 if stop.requested:  # Ctrl-C / SIGTERM noted during this step: save it, then stop
@@ -842,7 +844,7 @@ class Trainer:
             torch.cuda.synchronize(self.device)
 
     def _tensorboard(self):
-        if not self.cfg["log"]["tensorboard"]:
+        if not self.cfg.log.tensorboard:
             return None
         try:
             from torch.utils.tensorboard import SummaryWriter

@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 import threading
 from dataclasses import dataclass
-from typing import Callable, ContextManager, Dict, Optional, Sequence, Union
+from typing import Callable, ContextManager, Optional, Sequence, Union
 
 import numpy as np
 import torch
@@ -21,6 +21,7 @@ from retinexgs.evaluate.evaluate import to_uint8
 from retinexgs.export.renders import depth_range, render_depth
 from retinexgs.model.inference import InferenceRenderer
 from retinexgs.run.render import render_function
+from retinexgs.run.schema import Config
 from retinexgs.view.camera import ViewerCamera, viewer_to_camera
 
 VIEW_MAPS = ("enhanced", "R", "L", "low", "depth")
@@ -64,10 +65,10 @@ class FrameRenderer:
     in training). ``guard``: a context manager factory held while a frame renders (a trainer's step gate, so
     no frame sees a half-updated model); by default a lock, so frames render one at a time."""
 
-    def __init__(self, model, cfg: Dict, degree: Union[int, Callable[[], int]], views: Sequence[View] = (),
+    def __init__(self, model, cfg: Config, degree: Union[int, Callable[[], int]], views: Sequence[View] = (),
                  guard: Optional[Callable[[], ContextManager]] = None) -> None:
         self.model, self.cfg, self.degree = model, cfg, degree
-        self.decomposed = cfg.get("method") == "retinexgs"
+        self.decomposed = cfg.method == "retinexgs"
         self.maps = VIEW_MAPS if self.decomposed else BASELINE_MAPS
         self.zrange = depth_range(model, views) if views else (0.1, 10.0)
         self._guard = guard
