@@ -30,7 +30,7 @@ def _wait(cond, seconds=30.0):
 def page(tmp_path_factory):
     from selenium import webdriver  # required wherever chromium is: the test extra installs it
 
-    from retinexgs.view.server import view_run
+    from retinexgs.viewer.server import view_run
 
     root = tmp_path_factory.mktemp("browser")
     scene = make_demo_scene(root / "scene", n_train=2, n_test=1, width=48, height=36, n_points=800)

@@ -11,9 +11,9 @@ from retinexgs.run.folder import load_run
 from retinexgs.run.render import render_function
 from retinexgs.run.render import active_sh_degree, view_camera
 from retinexgs.evaluate.evaluate import to_uint8
-from retinexgs.view.camera import (ViewerCamera, average_up, camera_to_viewer, matrix_to_quat, quat_to_matrix,
+from retinexgs.viewer.camera import (ViewerCamera, average_up, camera_to_viewer, matrix_to_quat, quat_to_matrix,
                                    viewer_to_camera)
-from retinexgs.view.frame import FrameRenderer, FrameSettings
+from retinexgs.viewer.frame import FrameRenderer, FrameSettings
 from scenes import tiny_trained_run
 
 TINY = ["steps=4", "checkpoint.every=4", "log.tensorboard=false", "model.sh_degree=1", "model.sh_degree_every=2",

@@ -12,7 +12,7 @@ import pytest
 from retinexgs.cli import main
 from retinexgs.demo.synthetic import make_demo_scene
 from retinexgs.train.runner import train_run
-from retinexgs.view.live import StepGate
+from retinexgs.viewer.live import StepGate
 from polling import wait_until
 
 TINY = ["checkpoint.every=1000", "log.tensorboard=false", "model.sh_degree=0", "model.max_init_points=400",
@@ -50,7 +50,7 @@ def test_train_view_renders_while_training_and_stops_after(scene, tmp_path, monk
     import viser
     from websockets.sync.client import connect
 
-    import retinexgs.view.live as live
+    import retinexgs.viewer.live as live
 
     viewers = []
     real = live.start_live_viewer

@@ -60,7 +60,7 @@ def test_server_renders_and_survives_junk_and_disconnects(run_dir):
     msgpack = pytest.importorskip("msgspec.msgpack")
     from websockets.sync.client import connect
 
-    from retinexgs.view.server import view_run
+    from retinexgs.viewer.server import view_run
 
     logs = []
     viewer = view_run(run_dir, port=0, device="cpu", log=logs.append, block=False)
@@ -128,7 +128,7 @@ def test_cli_prints_the_url_serves_and_stops_on_ctrl_c(run_dir):
 def test_the_absolute_gamma_slider_spans_the_runs_gamma_range():
     from types import SimpleNamespace
 
-    from retinexgs.view.server import gamma_slider_range
+    from retinexgs.viewer.server import gamma_slider_range
     model = lambda lo, hi: SimpleNamespace(enhancement=SimpleNamespace(g_min=lo, g_max=hi))  # noqa: E731
     assert gamma_slider_range(model(0.25, 2.0)) == (0.12, 2.5)  # the exposure tone (the default)
     assert gamma_slider_range(model(0.1, 1.0)) == (0.05, 1.25)  # the gamma tones
@@ -178,7 +178,7 @@ def test_a_taken_port_still_moves_on_to_the_next_free_one(run_dir):
     pytest.importorskip("viser")
     import socket
 
-    from retinexgs.view.server import view_run
+    from retinexgs.viewer.server import view_run
 
     with socket.socket() as held:
         held.bind(("127.0.0.1", 0))

@@ -80,8 +80,8 @@ def _train(args: argparse.Namespace) -> int:
             return code
     on_trainer = None
     if args.view:  # checked before any work: a missing viser or a bad port must not cost a training run
-        from retinexgs.view.live import live_viewer  # lazy: the viewer (viser) loads only with --view
-        from retinexgs.view.server import check_address, import_viser  # lazy: the viewer (viser) loads only with --view
+        from retinexgs.viewer.live import live_viewer  # lazy: the viewer (viser) loads only with --view
+        from retinexgs.viewer.server import check_address, import_viser  # lazy: the viewer (viser) loads only with --view
         check_address(args.view_host, args.view_port)
         import_viser()
         on_trainer = live_viewer(args.view_host, args.view_port)

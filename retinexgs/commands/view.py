@@ -19,7 +19,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _view(args: argparse.Namespace) -> int:
-    from retinexgs.view.server import view_run  # lazy: the viewer (viser) loads only with --view
+    from retinexgs.viewer.server import view_run  # lazy: the viewer (viser) loads only with --view
 
     view_run(args.run, args.host, args.port, args.device)
     return 0

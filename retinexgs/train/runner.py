@@ -40,7 +40,7 @@ def train_run(scene_path: Optional[Path], run_dir: Path, config_files: Iterable[
     (a writable folder, empty for a new run), and on resume the run's lock, the keys a resume may change and
     ``--data`` against the run's scene. Overrides given on resume are recorded in the run's config.yaml.
     ``on_trainer(trainer, scene, log)``: called once the run is set up, before the first step; it returns a
-    function called when training ends (``train --view`` serves the live model this way: ``retinexgs.view.live``).
+    function called when training ends (``train --view`` serves the live model this way: ``retinexgs.viewer.live``).
 
     Launched by torchrun with several ranks (:mod:`retinexgs.train.distributed`), every rank runs this: the
     checks everywhere, then rank 0 reads the scene first (its caches) and the others after it, the

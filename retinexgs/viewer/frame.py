@@ -22,7 +22,7 @@ from retinexgs.export.renders import depth_range, render_depth
 from retinexgs.model.inference import InferenceRenderer
 from retinexgs.run.render import render_function
 from retinexgs.run.schema import Config
-from retinexgs.view.camera import ViewerCamera, viewer_to_camera
+from retinexgs.viewer.camera import ViewerCamera, viewer_to_camera
 
 VIEW_MAPS = ("enhanced", "R", "L", "low", "depth")
 BASELINE_MAPS = ("enhanced", "depth")

@@ -14,8 +14,8 @@ from typing import Callable, Dict, Optional, Tuple
 
 from retinexgs.errors import Terminated, UserError
 from retinexgs.render import Camera
-from retinexgs.view.camera import ViewerCamera, average_up, camera_to_viewer
-from retinexgs.view.frame import FrameRenderer, FrameSettings
+from retinexgs.viewer.camera import ViewerCamera, average_up, camera_to_viewer
+from retinexgs.viewer.frame import FrameRenderer, FrameSettings
 from retinexgs.run.render import view_camera
 from retinexgs.run.folder import load_run
 from retinexgs.run.render import active_sh_degree

@@ -10,8 +10,8 @@ import threading
 import time
 from typing import Callable, Iterator
 
-from retinexgs.view.frame import FrameRenderer
-from retinexgs.view.server import RunViewer, snap_cameras
+from retinexgs.viewer.frame import FrameRenderer
+from retinexgs.viewer.server import RunViewer, snap_cameras
 
 
 class StepGate:
