@@ -9,7 +9,7 @@ import torch
 from PIL import Image
 
 from retinexgs.bench import quality
-from retinexgs.train import proxy
+from retinexgs.train.benchmarks import proxy
 from retinexgs.run.config import load_config
 
 

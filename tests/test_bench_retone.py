@@ -2,7 +2,7 @@
 import pytest
 import torch
 
-from retinexgs.train import retone
+from retinexgs.train.benchmarks import retone
 from retinexgs.errors import UserError
 from retinexgs.run.folder import load_run
 from retinexgs.run.render import active_sh_degree, view_camera

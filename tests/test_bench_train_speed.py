@@ -4,7 +4,7 @@ import argparse
 import pytest
 import torch
 
-from retinexgs.train.speed import main, measure, parse_size, synthetic_step
+from retinexgs.train.benchmarks.speed import main, measure, parse_size, synthetic_step
 from retinexgs.demo.synthetic import make_demo_scene
 
 
@@ -42,7 +42,7 @@ def test_cli_rejects_bad_arguments(args, capsys):
 
 
 def test_busy_time_is_the_union_of_spans():
-    from retinexgs.train.speed import busy_ms
+    from retinexgs.train.benchmarks.speed import busy_ms
     assert busy_ms([]) == 0.0
     assert busy_ms([(0, 1000), (500, 1500), (1500, 2000), (3000, 3500)]) == pytest.approx(2.5)  # overlap once
     assert busy_ms([(0, 1000), (0, 1000), (100, 200)]) == pytest.approx(1.0)  # duplicates and nested spans
@@ -54,7 +54,7 @@ class _Event:
 
 
 def test_gpu_time_counts_kernels_and_copies_not_annotations():
-    from retinexgs.train.speed import _is_gpu_work
+    from retinexgs.train.benchmarks.speed import _is_gpu_work
     cuda = torch.autograd.DeviceType.CUDA
     assert _is_gpu_work(_Event("kernel", cuda)) and _is_gpu_work(_Event("gpu_memcpy", cuda))
     assert _is_gpu_work(_Event("gpu_memset", cuda))
@@ -67,7 +67,7 @@ def test_gpu_time_counts_kernels_and_copies_not_annotations():
 
 
 def test_split_is_flagged_when_gpu_time_exceeds_the_free_running_step(monkeypatch):
-    import retinexgs.train.speed as ts
+    import retinexgs.train.benchmarks.speed as ts
     monkeypatch.setattr(ts, "profile_steps", lambda step, n, dev: {"gpu_ms": 1e6, "launches": 3.0})
     m = ts.measure(lambda: None, 2, 0, torch.device("cpu"))
     assert m["split_ok"] is False and m["overhead_ms"] != m["overhead_ms"]  # NaN, not a negative overhead

@@ -178,7 +178,7 @@ def test_the_default_model_follows_default_yaml_not_old_fallbacks():
 
 def test_the_proxy_tone_maps_with_the_configs_shoulder():
     from retinexgs.model.tone import tone_map
-    from retinexgs.train import proxy
+    from retinexgs.train.benchmarks import proxy
 
     torch.manual_seed(0)
     R, L = torch.rand(8, 8, 3), torch.rand(8, 8, 1) * 0.3 + 0.05

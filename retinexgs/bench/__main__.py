@@ -1,6 +1,5 @@
 """``python -m retinexgs.bench NAME [options]``: run one benchmark script (raster, lr3m, fps, quality, scale, ...)."""
 import ast
-import importlib
 import importlib.util
 import sys
 import textwrap
@@ -10,8 +9,31 @@ from retinexgs.openmp import bound_openmp_spinning
 
 BENCHES = {"raster": "retinexgs.bench.raster", "lr3m": "retinexgs.bench.lr3m", "fps": "retinexgs.bench.fps",
            "quality": "retinexgs.bench.quality", "scale": "retinexgs.bench.scale",
-           "proxy": "retinexgs.train.proxy", "retone": "retinexgs.train.retone",
-           "train-speed": "retinexgs.train.speed"}
+           "proxy": "retinexgs.train.benchmarks.proxy", "retone": "retinexgs.train.benchmarks.retone",
+           "train-speed": "retinexgs.train.benchmarks.speed"}
+
+
+def _load(name: str):
+    """The benchmark's module, imported by name in the source (not from a string), so that the import contracts
+    see every edge: the three training benchmarks are this dispatcher's one declared exception to "bench imports
+    nothing from train" (.importlinter). Imported here, not at the top: torch is slow to load for --help."""
+    if name == "raster":
+        from retinexgs.bench import raster as module
+    elif name == "lr3m":
+        from retinexgs.bench import lr3m as module
+    elif name == "fps":
+        from retinexgs.bench import fps as module
+    elif name == "quality":
+        from retinexgs.bench import quality as module
+    elif name == "scale":
+        from retinexgs.bench import scale as module
+    elif name == "proxy":
+        from retinexgs.train.benchmarks import proxy as module
+    elif name == "retone":
+        from retinexgs.train.benchmarks import retone as module
+    else:
+        from retinexgs.train.benchmarks import speed as module
+    return module
 
 
 USAGE = f"usage: python -m retinexgs.bench {{{','.join(BENCHES)}}} [options]"
@@ -49,7 +71,7 @@ def main() -> int:
     if name in ("quality", "proxy", "retone", "scale"):  # trainings in child processes (scale: the scene's writer)
         bound_openmp_spinning()  # before torch loads; these often share the CPU with trainings (docs/benchmarks.md)
     try:
-        module = importlib.import_module(BENCHES[name])
+        module = _load(name)
     except ModuleNotFoundError as exc:
         if exc.name != BENCHES[name]:  # a missing dependency (torch, gsplat...) is not a missing benchmark
             raise

@@ -21,6 +21,7 @@ from retinexgs.model.gaussians import GaussianModel
 from retinexgs.model.retinex_model import RetinexGSModel
 from retinexgs.model.tone import black_table, exposure_gain
 from retinexgs.train import losses
+from retinexgs.train.losses import to_bchw
 from retinexgs.run.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
 from retinexgs.train.distributed import (Distributed, adam_betas_for_batch, gradient_params, lr_batch_factor,
                                          process_start_time, take_gradients)
@@ -48,10 +49,6 @@ def scene_extent(scene: Scene) -> float:
     """1.1 x the largest distance of a train camera from the centroid of the train cameras (3DGS)."""
     centers = torch.stack([v.camera_center for v in scene.train]).float()
     return float(1.1 * (centers - centers.mean(0)).norm(dim=-1).max().clamp_min(1e-3))
-
-
-def to_bchw(x: Tensor) -> Tensor:
-    return x.permute(2, 0, 1).unsqueeze(0)
 
 
 def enhancement_objective(model: RetinexGSModel, c: Loss, R_img: Tensor, L_img: Tensor, S_b: Tensor

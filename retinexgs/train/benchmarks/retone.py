@@ -32,7 +32,8 @@ from retinexgs.errors import UserError
 from retinexgs.evaluate.metrics import psnr, ssim_metric
 from retinexgs.run.config import load_config, plain
 from retinexgs.run.schema import Config
-from retinexgs.train.trainer import enhancement_objective, to_bchw
+from retinexgs.train.losses import to_bchw
+from retinexgs.train.trainer import enhancement_objective
 from retinexgs.run.folder import load_run
 from retinexgs.run.render import active_sh_degree, view_camera
 

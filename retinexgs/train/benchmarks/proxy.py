@@ -22,7 +22,7 @@ from typing import Dict, List, Sequence, Tuple
 import torch
 import torch.nn.functional as F
 
-from retinexgs.evaluate.metrics import ssim_metric
+from retinexgs.evaluate.metrics import psnr, ssim_metric
 from retinexgs.model.tone import tone_map
 from retinexgs.train import losses
 from retinexgs.run.folder import open_scene
@@ -34,10 +34,6 @@ from retinexgs.data.scene import scene_label
 
 GAMMAS = torch.linspace(0.1, 1.0, 91)  # the gamma tones' range (the oracles of the gamma on L)
 RAW_GAMMAS = torch.linspace(0.05, 1.0, 96)
-
-
-def psnr(x: torch.Tensor, y: torch.Tensor) -> float:
-    return float(-10.0 * torch.log10(((x - y) ** 2).mean().clamp_min(1e-12)))
 
 
 def quantile(x: torch.Tensor, q: float) -> torch.Tensor:
