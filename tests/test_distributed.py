@@ -385,3 +385,45 @@ def test_four_ranks_train_as_one_rank_with_four_views_a_step(scene, tmp_path):
     mb = json.loads((one / "metrics.json").read_text())
     assert [r["view"] for r in ma["views"]] == [r["view"] for r in mb["views"]]
     assert ma["mean"]["psnr"] == pytest.approx(mb["mean"]["psnr"], abs=0.01)
+
+
+# ---- several machines (issue 51): torchrun --nnodes, simulated on one host -----------------------------------------
+
+def test_a_folder_a_rank_cannot_see_is_named_with_the_ranks_and_hosts(tmp_path):
+    from retinexgs.train.distributed import shared_folder_problem
+
+    assert shared_folder_problem(tmp_path, "the run folder", [(True, "a"), (True, "b")]) == ""
+    msg = shared_folder_problem(tmp_path, "the run folder", [(True, "node-a"), (True, "node-a"), (False, "node-b"),
+                                                             (False, "node-b")])
+    assert msg.startswith(f"the run folder {tmp_path} is not shared by every rank: ranks 2, 3 (on node-b)")
+    assert "(on node-a)" in msg and "--set data.cache_dir=DIR" in msg and "--out" in msg
+
+
+def test_two_machines_of_one_rank_each_train_as_two_ranks_of_one_machine(scene, two_ranks, tmp_path):
+    """Two torchrun launchers, --nnodes 2 --node_rank 0/1, one process each, meeting at a c10d rendezvous on
+    this host: RANK differs from LOCAL_RANK (0 on both "machines"), which a one-machine run never shows. The run
+    must be the two-rank run of one machine (both machines see one file system here, so the shared-folder check
+    passes)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    run = tmp_path / "run"
+    procs = []
+    for node in (0, 1):
+        cmd = [sys.executable, "-m", "torch.distributed.run", "--nnodes", "2", "--node_rank", str(node),
+               "--nproc_per_node", "1", "--rdzv_backend", "c10d", "--rdzv_endpoint", f"127.0.0.1:{port}",
+               "--rdzv_id", "retinexgs-test", "-m", "retinexgs", *map(str, train_args(scene, run))]
+        procs.append(subprocess.Popen(cmd, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                      text=True, cwd=ROOT))
+    outs = []
+    try:
+        for p in procs:
+            outs.append(p.communicate(timeout=240)[0])
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+    assert all(p.returncode == 0 for p in procs), "\n".join(outs)
+    assert "2 ranks (gloo), 2 views a step" in "\n".join(outs)
+    assert_same_training(final_state(run), final_state(two_ranks))
+    assert not list(run.glob(".rank0-*")), "rank 0's probe file is removed"

@@ -201,6 +201,39 @@ class Distributed:
             dist.broadcast_object_list(box, src=0, group=self._host)
         return box[0]
 
+    def check_shared_folder(self, folder: Path, what: str) -> None:
+        """UserError on every rank unless every rank sees the file rank 0 writes into ``folder``. Ranks on several
+        machines (torchrun --nnodes) hand each other data through the file system: the decomposition's shards and
+        the view store in the cache folder, checkpoints in the run folder; on a disk of one machine only, the
+        others would wait or read another copy. A folder rank 0 cannot write (a read-only scene whose caches are
+        complete) is not checked: nobody writes there."""
+        if not self.enabled:
+            return
+        import socket
+        import uuid
+
+        host = socket.gethostname()
+        token = None
+        if self.is_main:
+            name = f".rank0-{uuid.uuid4().hex[:12]}"
+            try:
+                folder.mkdir(parents=True, exist_ok=True)
+                (folder / name).write_text(host)
+                token = name
+            except OSError:
+                token = None
+        token = self.broadcast_object(token, f"the name of rank 0's probe file in {what}")
+        if token is None:
+            return
+        seen = (folder / token).is_file()
+        rows = self.gather_objects((seen, host), f"whether every rank sees {what}")
+        self.barrier(f"every rank's look at {what}")
+        if self.is_main:
+            (folder / token).unlink(missing_ok=True)
+        message = shared_folder_problem(folder, what, rows)
+        if message:
+            raise UserError(message)
+
     def _flat_groups(self, tensors: Sequence[Tensor]) -> Dict[torch.dtype, List[int]]:
         groups: Dict[torch.dtype, List[int]] = {}
         for i, t in enumerate(tensors):
@@ -416,6 +449,20 @@ class Distributed:
         if ok:
             self.barrier("the end of the run")
             dist.destroy_process_group()
+
+
+def shared_folder_problem(folder: Path, what: str, rows: Sequence[Tuple[bool, str]]) -> str:
+    """The error for the ranks of ``rows`` ((saw rank 0's probe file, host name) per rank) that do not see
+    ``folder`` as rank 0 does; '' when all do."""
+    blind = [(r, host) for r, (seen, host) in enumerate(rows) if not seen]
+    if not blind:
+        return ""
+    ranks = ", ".join(str(r) for r, _ in blind)
+    hosts = ", ".join(sorted({host for _, host in blind}))
+    return (f"{what} {folder} is not shared by every rank: rank{'s' if len(blind) > 1 else ''} {ranks} (on {hosts}) "
+            f"cannot see the file rank 0 wrote there (on {rows[0][1]}). Training on several machines needs the "
+            "scene's cache folder and the run folder on a file system every machine mounts at the same path (NFS, "
+            "Lustre, ...); put the caches there with --set data.cache_dir=DIR and the run with --out")
 
 
 def steady_timing(batch: int, views: int, seconds: float, timing: Optional[Dict[str, float]]) -> Dict[str, Any]:

@@ -16,6 +16,7 @@ from retinexgs.run.schema import Config
 from retinexgs.train.resume import check_same_views, check_writable_folder, is_empty_run_folder, resume_config, resume_scene, run_lock
 from retinexgs.run.folder import read_run_config
 from retinexgs.model.schedule import build_schedule
+from retinexgs.retinex.cache import scene_cache_root
 from retinexgs.train.trainer import Trainer
 from retinexgs.run.folder import write_run_config
 from retinexgs.run.folder import open_scene, pick_device
@@ -94,6 +95,10 @@ def _train_run(dist: Distributed, scene_path: Optional[Path], run_dir: Path, con
         if dist.is_main:
             scene = open_scene(Path(scene_path), cfg)
         dist.barrier("rank 0's reading of the scene")
+        if dist.enabled:  # ranks hand each other the decomposition's shards and the view store through the caches
+            cache = dist.broadcast_object(str(scene_cache_root(scene.root, cfg.data.cache_dir)) if dist.is_main
+                                          else None, "the scene's cache folder")
+            dist.check_shared_folder(Path(cache), "the scene's cache folder")
         if not dist.is_main:
             scene = open_scene(Path(scene_path), cfg)
         log(scene.summary())
@@ -117,6 +122,7 @@ def _train_run(dist: Distributed, scene_path: Optional[Path], run_dir: Path, con
             if not is_empty_run_folder(run_dir):  # another trainer made it while this one was loading
                 raise UserError(f"run folder {run_dir} was filled by another trainer meanwhile; choose another --out")
         dist.barrier("rank 0's creation of the run folder")
+        dist.check_shared_folder(run_dir, "the run folder")  # every rank resumes from its checkpoints
         if (not resume or changes or relocating) and dist.is_main:
             write_run_config(run_dir, cfg, scene_path)  # atomic: a later --resume continues with these settings
             for key, (old, new) in changes.items():
