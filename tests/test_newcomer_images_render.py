@@ -258,3 +258,41 @@ def test_exported_ply_comment_states_the_runs_tone(run_dir, tmp_path):
     assert "R*clip(L/L_ref,0,1)^g" in baked_colour_text(model, g, 64)
     model.tone = "signal"
     assert "R^g*clip(L/L_ref,0,1)^g" in baked_colour_text(model, g, 64)
+
+
+def test_sfm_on_a_bright_heic_folder_extracts_features_from_decoded_copies(tmp_path, monkeypatch):
+    """A folder of HEIC photos that is not dark: COLMAP cannot decode HEIC, so sfm writes plain decoded copies (PNG
+    bytes under the photos' own names, not brightened), extracts features from them and maps from them. Full SfM
+    on synthetic views may not register, so the mapper is replaced by one that records what it was given."""
+    import pycolmap
+
+    from retinexgs.data import sfm
+    from retinexgs.errors import UserError
+
+    folder = tmp_path / "phone"
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    base = (rng.random((96, 128, 3)) * 255).astype(np.uint8)  # texture: features to find
+    for i in range(3):
+        save_heic(np.roll(base, 4 * i, axis=1), folder / f"IMG_{i:04d}.HEIC")
+    seen = {}
+
+    def mapper(db, image_path, out, **kwargs):
+        seen["image_path"] = Path(image_path)
+        database = pycolmap.Database.open(str(db))
+        seen["keypoints"] = {im.name: database.num_keypoints_for_image(im.image_id)
+                             for im in database.read_all_images()}
+        database.close()
+        copy = Path(image_path) / "IMG_0000.HEIC"  # read now: a failed sfm removes what it made
+        seen["magic"], seen["copy"] = copy.read_bytes()[:8], np.asarray(Image.open(copy).convert("RGB"))
+        return {}
+
+    monkeypatch.setattr(pycolmap, "incremental_mapping", mapper)
+    with pytest.raises(UserError, match="could not build a model"):
+        sfm.run_sfm(folder, tmp_path / "sfm", progress=None)
+    assert seen["image_path"] == tmp_path / "sfm" / "enhanced"
+    assert sorted(seen["keypoints"]) == [f"IMG_{i:04d}.HEIC" for i in range(3)]
+    assert min(seen["keypoints"].values()) > 0, seen["keypoints"]
+    assert seen["magic"] == b"\x89PNG\r\n\x1a\n"
+    # decoded, not brightened: the copy is the photo
+    assert np.abs(seen["copy"].astype(int) - images.read_image(folder / "IMG_0000.HEIC").astype(int)).max() == 0

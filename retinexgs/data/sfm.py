@@ -43,7 +43,8 @@ if TYPE_CHECKING:
     import numpy as np
 
 from retinexgs.data.camera import COLMAP_MODELS
-from retinexgs.data.images import image_size, is_raw_file, list_images, read_image, write_image_atomic
+from retinexgs.data.images import (HEIF_EXTENSIONS, image_size, is_raw_file, list_images, read_image,
+                                   write_image_atomic)
 from retinexgs.errors import UserError
 from retinexgs.fileio import atomic_write_text, content_digest, is_out_of_space, out_of_space_error
 from retinexgs.data.colmap import keep_python_sigterm
@@ -353,14 +354,17 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
         # 1. brightened + denoised copies for feature extraction
         # raw files always: COLMAP cannot read them (their previews are bright and denoised already)
         do_enhance = True if raw_input else folder_is_dark(paths) if enhance == "auto" else bool(enhance)
-        method = RAW_PREVIEW_METHOD if raw_input else enhance_method
+        # COLMAP cannot decode raw files nor HEIC/HEIF: it reads copies of them (PNG bytes under the same names)
+        unreadable = raw_input or any(p.suffix.lower() in HEIF_EXTENSIONS for p in paths)
+        method = RAW_PREVIEW_METHOD if raw_input else enhance_method if do_enhance else "decoded"
         feature_dir = image_dir
-        if do_enhance:
+        if do_enhance or unreadable:
             feature_dir = out_dir / "enhanced"
             made_enhanced = None if feature_dir.exists() else feature_dir
             say(f"writing bright, denoised previews of {len(paths)} raw photos into {feature_dir} (COLMAP cannot "
                 f"read raw files)" if raw_input else
-                f"brightening and denoising {len(paths)} dark photos into {feature_dir}")
+                f"brightening and denoising {len(paths)} dark photos into {feature_dir}" if do_enhance else
+                f"decoding {len(paths)} photos into {feature_dir} (COLMAP cannot read HEIC/HEIF)")
             manifest_path = out_dir / ENHANCED_MANIFEST  # beside, not among, the copies
             try:  # which source content each copy was made from: the copies' cache key
                 manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
@@ -373,7 +377,8 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
                 dst = feature_dir / p.name
                 if made_from.get(p.name) != digests[p.name] or not dst.is_file():
                     # PNG bytes under the photo's own name (write_image_atomic writes PNG for a raw suffix)
-                    copy = _raw_preview(p) if raw_input else enhance_for_features(read_image(p))
+                    copy = (_raw_preview(p) if raw_input else enhance_for_features(read_image(p)) if do_enhance
+                            else read_image(p))
                     write_image_atomic(dst, copy, quality=97)
 
             with ThreadPoolExecutor(max_workers=min(8, os.cpu_count() or 1)) as pool:
@@ -449,8 +454,8 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
             say(f"mapping:{label} {min(count[0], len(paths))}/{len(paths)} photos")
 
         say("incremental mapping")
-        # point colours from the originals, or from the previews where COLMAP cannot read the originals (raw)
-        models = pycolmap.incremental_mapping(db, feature_dir if raw_input else image_dir, tmp / "models",
+        # point colours from the originals, or from the copies where COLMAP cannot read the originals (raw, HEIC)
+        models = pycolmap.incremental_mapping(db, feature_dir if unreadable else image_dir, tmp / "models",
                                               options=popt,
                                               initial_image_pair_callback=initial_pair,
                                               next_image_callback=next_image)
