@@ -74,11 +74,14 @@ setup(
         # import-linter: the layer contracts (.importlinter). viser and selenium: the viewer's server and browser
         # tests (the browser test also needs Debian's chromium and chromium-driver, installed by .ci/run; without
         # them it is skipped).
-        "test": ["pytest", "hypothesis", "scipy", "imageio[ffmpeg]", "viser>=1.1", "selenium", "import-linter>=2.1"],
+        "test": ["pytest", "hypothesis", "scipy", "imageio[ffmpeg]", "viser>=1.1", "selenium", "import-linter>=2.1",
+                 "openexr>=3.3"],
         # Video paths (render --path) and TensorBoard logging (log.tensorboard, off by default).
         "io": ["imageio[ffmpeg]", "tensorboard"],
         # The web viewer (retinexgs view).
         "view": ["viser>=1.1"],
+        # Scene-linear OpenEXR renders (render --format exr); 3.3 brought the OpenEXR.File API used there.
+        "hdr": ["openexr>=3.3"],
     },
     entry_points={"console_scripts": ["retinexgs=retinexgs.cli:main"]},
     ext_modules=[_extension()],

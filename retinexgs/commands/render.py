@@ -13,7 +13,7 @@ MAX_FRAMES = 100_000  # 55 minutes at 30 fps; a path of more frames is a typo (i
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``render`` sub-command to the CLI's sub-parsers."""
-    p = sub.add_parser("render", help="render a trained run's views or a camera path to PNG/MP4",
+    p = sub.add_parser("render", help="render a trained run's views or a camera path to PNG/MP4/EXR",
                        description="Render the enhanced image (and on request R̂, L̂, depth and the low-light "
                                    "reconstruction) of RUN's test, train or val views to OUT/<map>/<view>.png, or "
                                    "along a smooth camera path to an MP4. Existing files are kept unless --force.")
@@ -36,7 +36,22 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--frames", type=int, default=120,
                    help=f"frames of the path (default 120, at most {MAX_FRAMES})")
     p.add_argument("--fps", type=float, default=30.0, help="frames per second of the video (default 30)")
-    p.add_argument("--format", default="mp4", help="mp4 (default) or png: how a path is written")
+    p.add_argument("--format", default="mp4",
+                   help="mp4 (default; for views: PNG), png, exr or png,exr. exr writes scene-linear float32 "
+                        "OpenEXR (Rec.709 primaries; needs pip install \"retinexgs[hdr]\") to "
+                        "OUT/<map>/<name>.exr: enhanced is the linear light before the highlight shoulder and "
+                        "the sRGB curve, on a scale where 1.0 is the PNG's white at the chosen exposure (the "
+                        "default exposure's white; brighter light is kept above 1); R is lin(R̂), L is "
+                        "lin(L̂)/lin(L_ref) (1.0 = the scene's full light), L_raw lin(L̂), low lin(R̂·L̂); lin "
+                        "decodes sRGB. depth has no EXR form")
+    p.add_argument("--white-balance", default="as-trained", metavar="WB",
+                   help="a white-balance edit of the enhanced image, in linear light before the highlight shoulder "
+                        "and the sRGB curve (PNG, EXR and MP4); a neutral's green is kept. as-trained (default), "
+                        "auto (grey-edge over the training views' renders), gains:R,G,B (divided by G), "
+                        "temp:KELVIN[,TINT] (KELVIN 1000..40000 is the light the scene is taken to be lit by, "
+                        "adapted to 6504 K, the trained scene's neutral: higher is warmer; TINT -100..100, + "
+                        "magenta), or pick:VIEW,X,Y (pixel column X, row Y of view VIEW, e.g. 0001, is made grey). "
+                        "The numbers used are recorded in the PNG text and EXR header")
     p.set_defaults(func=_render)
 
 
@@ -56,5 +71,6 @@ def _render(args: argparse.Namespace) -> int:
 
     check_frames_and_fps(args.frames, args.fps)  # before the run loads: 10^8 frames used to build for minutes
     render_run(args.run, args.views, args.out, parse_maps(args.maps), args.exposure, args.gamma, args.path,
-               args.frames, args.fps, args.format, args.device, args.force, progress=not args.quiet)
+               args.frames, args.fps, args.format, args.device, args.force, progress=not args.quiet,
+               white_balance=args.white_balance)
     return 0

@@ -14,6 +14,18 @@ to OUT when OUT ends in ``.mp4``, else into the folder OUT (made when missing) a
 (default ``RUN/renders/path_<kind>.mp4``), for the first map, and with ``_<map>`` before the suffix for the
 others; with ``--format png`` to ``OUT/<map>/<frame>.png`` (default OUT = ``RUN/renders/path_<kind>``). Existing
 files are kept unless ``force``; every file is written atomically.
+
+``--format exr`` (views and paths; ``png,exr`` for both side by side) writes scene-linear float32 OpenEXR
+(Rec.709 primaries, :mod:`retinexgs.export.exr`) to ``OUT/<map>/<name>.exr`` instead of the PNG: ``enhanced`` is
+the linear light the PNG encodes before the highlight shoulder and the sRGB curve (tone ``exposure``:
+k·lin(R̂∘L̂) after the white balance; 1.0 = the PNG's white with the shoulder off, brighter light above 1 kept);
+``R`` is lin(R̂), ``L`` lin(L̂)/lin(L_ref) (1.0 = the scene's full light, not clipped), ``L_raw`` lin(L̂),
+``low`` lin(R̂·L̂); lin is the sRGB decoding. ``depth`` has no EXR form.
+
+``--white-balance`` (:mod:`retinexgs.model.white_balance`) edits the enhanced image's linear light before the
+shoulder and the curve (PNG, EXR and MP4 alike); the other maps are the decomposition and keep as trained. The
+edits used (exposure or gamma, and the white balance's numbers) are recorded in each PNG's text chunk
+``retinexgs`` and each EXR's header attribute ``retinexgs``, and printed.
 """
 from __future__ import annotations
 
@@ -29,14 +41,17 @@ from torch import Tensor
 
 from retinexgs.data.scene import View
 from retinexgs.errors import UserError
-from retinexgs.evaluate.evaluate import save_png, to_uint8
+from retinexgs.evaluate.evaluate import to_uint8
 from retinexgs.export.common import check_enhancement_flags, check_writable_folder, read_run_config, refuse_existing
 from retinexgs.export import PATH_KINDS
+from retinexgs.export.exr import need_openexr, write_exr
 from retinexgs.export.paths import camera_path
 from retinexgs.fileio import TMP_PREFIX, atomic_write, is_out_of_space, out_of_space_error
 from retinexgs.render import Camera, rasterize_gaussians
 from retinexgs.run.folder import load_run
-from retinexgs.run.render import render_function
+from retinexgs.model.tone import srgb_to_linear
+from retinexgs.model.white_balance import describe_balance, parse_white_balance
+from retinexgs.run.render import render_function, white_balance_of
 from retinexgs.run.render import active_sh_degree, view_camera
 
 MAPS = ("enhanced", "R", "L", "L_raw", "depth", "low")
@@ -46,7 +61,59 @@ _KEYS = {"enhanced": "rgb", "R": "R", "L": "L_view", "L_raw": "L", "low": "S_rec
 # What players and editors take for a video file: a path video must be .mp4; any of these is refused, not a folder.
 _VIDEO_SUFFIXES = (".mp4", ".m4v", ".mov", ".mkv", ".avi", ".webm", ".gif")
 VIEW_SETS = ("test", "train", "val", "path")
-FORMATS = ("mp4", "png")
+FORMATS = ("mp4", "png", "exr")
+# What --format exr writes per map: a note for the file's header (the scale is in the module docstring).
+_EXR_MEANING = {
+    "enhanced": "scene-linear Rec.709 light of the enhanced image before the highlight shoulder and the sRGB "
+                "curve; 1.0 = the PNG's white (shoulder off)",
+    "R": "lin(R): the reflectance decoded from sRGB to linear",
+    "L": "lin(L)/lin(L_ref): the illumination in linear light, 1.0 = the scene's full light L_ref, not clipped",
+    "L_raw": "lin(L): the illumination as rendered, decoded to linear",
+    "low": "lin(R*L): the low-light reconstruction decoded to linear",
+}
+
+
+def parse_formats(text: str) -> List[str]:
+    """``--format`` -> the formats: ``mp4``, ``png``, ``exr`` or ``png,exr`` (PNG and EXR side by side); a
+    UserError for anything else."""
+    names: List[str] = []
+    for name in (t.strip().lower() for t in str(text).split(",")):
+        if name not in FORMATS:
+            raise UserError(f"unknown --format {name!r}; choose from {', '.join(FORMATS)} (or png,exr for both)")
+        if name not in names:
+            names.append(name)
+    if "mp4" in names and len(names) > 1:
+        raise UserError(f"--format {text}: mp4 is a video of the path and cannot be combined; give mp4, png, exr "
+                        "or png,exr")
+    return names
+
+
+def _save_png(img: Tensor, path: Path, note: Optional[str]) -> None:
+    """An [H,W,C] image in [0,1] as PNG, atomically, with ``note`` in its text chunk ``retinexgs``."""
+    from PIL import Image, PngImagePlugin
+
+    info = None
+    if note:
+        info = PngImagePlugin.PngInfo()
+        info.add_itxt("retinexgs", note)
+    arr = to_uint8(img)
+    atomic_write(path, lambda f: Image.fromarray(arr).save(f, format="PNG", pnginfo=info))
+
+
+def _exr_map(name: str, res: Dict, model) -> Tensor:
+    """The linear light of map ``name`` for --format exr (module docstring)."""
+    if name == "enhanced":
+        return res["rgb_linear"].float().cpu()
+    if name == "R":
+        return srgb_to_linear(res["R"]).float().cpu()
+    if name == "L":
+        ref = srgb_to_linear(model.illum_ref.to(res["L"])).clamp_min(1e-12)
+        return (srgb_to_linear(res["L"]) / ref).float().cpu()
+    if name == "L_raw":
+        return srgb_to_linear(res["L"]).float().cpu()
+    if name == "low":
+        return srgb_to_linear(res["R"] * res["L"]).float().cpu()
+    raise ValueError(f"map {name!r} has no EXR form")
 
 
 def parse_maps(text: str) -> List[str]:
@@ -100,12 +167,15 @@ def render_depth(model, view: Union[View, Camera], near: float, far: float) -> T
     return torch.where(alpha > 1e-3, disp.clamp(0, 1), torch.zeros_like(disp))
 
 
-def _frame_maps(fn: Callable, model, view: View, maps: Sequence[str], zrange: Tuple[float, float]) -> Dict:
+def _frame_maps(fn: Callable, model, view: View, maps: Sequence[str], zrange: Tuple[float, float],
+                exr: bool = False) -> Tuple[Dict, Dict]:
+    """(the maps for PNG/MP4, the maps' linear light for EXR when ``exr``) of one view."""
     res = fn(view)
     out = {}
     for name in maps:
         out[name] = render_depth(model, view, *zrange) if name == "depth" else res[_KEYS[name]].float().cpu()
-    return out
+    linear = {name: _exr_map(name, res, model) for name in maps} if exr else {}
+    return out, linear
 
 
 def _suffixed(path: Path, name: str, first: bool) -> Path:
@@ -142,13 +212,14 @@ def render_run(run_dir: Path, views: Optional[str] = None, out: Optional[Path] =
                maps: Sequence[str] = ("enhanced",), exposure: Optional[float] = None, gamma: Optional[float] = None,
                path: Optional[str] = None, frames: int = 120, fps: float = 30.0, fmt: str = "mp4",
                device: Optional[str] = None, force: bool = False, progress: bool = True,
-               log: Callable[[str], None] = print) -> List[Path]:
+               log: Callable[[str], None] = print, white_balance: Optional[str] = None) -> List[Path]:
     """Render ``maps`` of a run for its ``views`` (``test``, ``train``, ``val``) or a camera ``path`` (``orbit``,
     ``orbit-360``, ``interpolate``; ``views="path"`` alone means an orbit); see the module docstring for the maps
     and the files.
 
     ``exposure`` adjusts the predicted gamma (< 1 brighter), ``gamma`` replaces it (RetinexGS runs only).
-    Everything is checked before anything is written. Returns the files written.
+    ``fmt``: mp4, png, exr or png,exr (:func:`parse_formats`); ``white_balance``: the ``--white-balance`` text
+    (default as-trained). Everything is checked before anything is written. Returns the files written.
     """
     run_dir = Path(run_dir)
     views = views if views is not None else ("path" if path else "test")
@@ -159,8 +230,10 @@ def render_run(run_dir: Path, views: Optional[str] = None, out: Optional[Path] =
     path = path or ("orbit" if views == "path" else None)
     if path is not None and path not in PATH_KINDS:
         raise UserError(f"unknown --path {path!r}; choose from {', '.join(PATH_KINDS)}")
-    if fmt not in FORMATS:
-        raise UserError(f"unknown --format {fmt!r}; choose from {', '.join(FORMATS)}")
+    formats = parse_formats(fmt)
+    if "exr" in formats:
+        need_openexr()  # before anything is read: one line with the install command
+    wb = parse_white_balance(white_balance)
     if path is not None and (frames < 1 or not fps > 0):
         raise UserError(f"--frames must be at least 1 and --fps positive, got {frames} and {fps}")
     maps = list(maps)
@@ -172,7 +245,11 @@ def render_run(run_dir: Path, views: Optional[str] = None, out: Optional[Path] =
         bad = ", ".join(m for m in maps if m in DECOMPOSED_MAPS)
         raise UserError(f"--maps {bad}: {run_dir} is a method={cfg.method} baseline with no R̂/L̂ "
                         "decomposition; it has only enhanced and depth")
-    video = path is not None and fmt == "mp4"
+    exr = "exr" in formats
+    if exr and "depth" in maps:
+        raise UserError("--maps depth has no EXR form (EXR holds linear light); render depth with --format png, "
+                        "or drop it from --maps")
+    video = path is not None and formats == ["mp4"]
     if not video and out is not None and Path(out).suffix.lower() in _VIDEO_SUFFIXES and not Path(out).is_dir():
         what = (f"the {views} views render to PNG files in a folder" if path is None
                 else "--format png writes the path's frames as PNG files in a folder")
@@ -203,19 +280,36 @@ def render_run(run_dir: Path, views: Optional[str] = None, out: Optional[Path] =
     else:
         if out.exists() and not out.is_dir():
             raise UserError(f"--out {out} is a file; PNG renders need a folder")
-        targets = [out / name / f"{Path(v.name).stem}.png" for name in maps for v in frames_views]
+        suffixes = [f".{f}" for f in formats if f != "mp4"] or [".png"]  # views with the default mp4: PNG
+        targets = [out / name / f"{Path(v.name).stem}{suffix}" for suffix in suffixes for name in maps
+                   for v in frames_views]
     refuse_existing(targets, force)
     check_writable_folder(targets[0])
 
-    fn = render_function(model, cfg, active_sh_degree(cfg, step), exposure=exposure, gamma=gamma)
+    degree = active_sh_degree(cfg, step)
+    balance = white_balance_of(wb, model, cfg, scene, degree, exposure, gamma)
+    edit = ("exposure " + (f"{exposure:g}" if exposure is not None else "as predicted") if gamma is None
+            else f"gamma {gamma:g} (fixed)")
+    note = f"retinexgs render of {run_dir.name}: {edit}; {describe_balance(wb, balance)}"
+    if balance is not None:
+        log(describe_balance(wb, balance))
+    fn = render_function(model, cfg, degree, exposure=exposure, gamma=gamma, balance=balance, linear=exr)
     zrange = depth_range(model, frames_views) if "depth" in maps else (0.1, 10.0)
     from tqdm import tqdm
     bar = tqdm(frames_views, desc=f"render {path or views}", unit="frame", disable=not progress, dynamic_ncols=True)
     if not video:
+        png = ".png" in suffixes
         for view in bar:
-            for name, img in _frame_maps(fn, model, view, maps, zrange).items():
-                save_png(img, out / name / f"{Path(view.name).stem}.png")
-        log(f"wrote {len(targets)} PNG files to {out}/<{'|'.join(maps)}>/")
+            images, linear = _frame_maps(fn, model, view, maps, zrange, exr)
+            stem = Path(view.name).stem
+            if png:
+                for name, img in images.items():
+                    _save_png(img, out / name / f"{stem}.png", note if name == "enhanced" else None)
+            for name, img in linear.items():
+                write_exr(out / name / f"{stem}.exr", img,
+                          {"retinexgs": note, "retinexgs_values": _EXR_MEANING[name]})
+        kinds = " and ".join(s[1:].upper() for s in suffixes)
+        log(f"wrote {len(targets)} {kinds} files to {out}/<{'|'.join(maps)}>/")
         return targets
 
     import imageio
@@ -229,7 +323,7 @@ def render_run(run_dir: Path, views: Optional[str] = None, out: Optional[Path] =
         try:
             try:
                 for view in bar:
-                    for writer, img in zip(writers, _frame_maps(fn, model, view, maps, zrange).values()):
+                    for writer, img in zip(writers, _frame_maps(fn, model, view, maps, zrange)[0].values()):
                         writer.append_data(_even(to_uint8(img)))
             finally:
                 for writer in writers:

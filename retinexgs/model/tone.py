@@ -36,7 +36,7 @@ from retinexgs.data.srgb import linear_to_srgb, srgb_to_linear  # noqa: F401 (th
 
 __all__ = ["TONES", "srgb_to_linear", "linear_to_srgb", "highlight_shoulder", "camera_mean", "camera_mean_inverse",
            "black_table", "box_mean", "guided_filter", "smooth_record", "scene_linear", "highlight_capped_mean",
-           "log_lin_ref", "exposure_gain", "apply_exposure", "tone_map"]
+           "log_lin_ref", "exposure_gain", "apply_exposure", "exposure_linear", "white_balance", "tone_map"]
 
 TONES = ("illumination", "signal", "exposure")
 
@@ -216,6 +216,34 @@ def apply_exposure(gamma: Tensor, exposure, illum_ref: Tensor, tone: str,
     return 1.0 / (1.0 / gamma + torch.log(x) / log_ref).clamp_min(1e-3)
 
 
+def exposure_linear(R: Tensor, L: Tensor, illum_ref: Tensor, gamma: Tensor, noise: Noise = None,
+                    spread: Optional[Tensor] = None, radius: int = 0, k: Optional[Tensor] = None) -> Tensor:
+    """k · scene_linear(R̂∘L̂): the linear light of tone ``exposure`` before the highlight shoulder and the sRGB
+    curve (arguments as in :func:`tone_map`; ``k``: the gain already computed). On this scale 1.0 is what the
+    PNG shows as white when the shoulder is off (the clip); ``render --format exr`` writes it, and the white
+    balance (:func:`white_balance`) acts on it."""
+    k = exposure_gain(illum_ref, gamma) if k is None else k
+    RL = R * L
+    if noise is not None and spread is not None and radius > 0:
+        RL = smooth_record(RL, spread, radius)
+    return k * scene_linear(RL, noise)
+
+
+def white_balance(light: Tensor, balance: Optional[Tensor]) -> Tensor:
+    """Linear light [..., 3] (Rec.709 primaries) under a white-balance edit: ``balance`` is per-channel gains [3]
+    or a 3×3 matrix acting on the RGB column (a temperature's chromatic adaptation); both leave a neutral's green
+    unchanged (:mod:`retinexgs.model.white_balance`). None, gains exactly (1, 1, 1) or exactly the identity:
+    ``light`` itself, the same tensor (as trained, bit for bit)."""
+    if balance is None:
+        return light
+    balance = torch.as_tensor(balance).to(light)
+    if balance.dim() == 1:
+        return light if bool((balance == 1.0).all()) else light * balance
+    if torch.equal(balance, torch.eye(3, dtype=balance.dtype, device=balance.device)):
+        return light
+    return light @ balance.t()
+
+
 def tone_map(R: Tensor, L: Tensor, illum_ref: Tensor, gamma: Tensor, tone: str,
              eps: float = 1e-3, shoulder: float = 1.0, noise: Noise = None, spread: Optional[Tensor] = None,
              radius: int = 0) -> Tuple[Tensor, Tensor]:
@@ -236,10 +264,8 @@ def tone_map(R: Tensor, L: Tensor, illum_ref: Tensor, gamma: Tensor, tone: str,
     """
     if tone == "exposure":
         k = exposure_gain(illum_ref, gamma)
-        RL = R * L
-        if noise is not None and spread is not None and radius > 0:
-            RL = smooth_record(RL, spread, radius)
-        return (linear_to_srgb(highlight_shoulder(k * scene_linear(RL, noise), shoulder)),
+        return (linear_to_srgb(highlight_shoulder(exposure_linear(R, L, illum_ref, gamma, noise, spread, radius, k),
+                                                  shoulder)),
                 linear_to_srgb(highlight_shoulder(k * srgb_to_linear(L), shoulder)))
     if tone not in TONES:
         raise ValueError(f"tone must be one of {', '.join(TONES)}, got {tone!r}")
