@@ -46,13 +46,32 @@ def check_writable_folder(path: Path, flag: str = "--out") -> None:
     existing = nearest_existing(path.absolute())
     if not existing.is_dir():
         raise UserError(f"{flag} {path} lies under {existing}, which is a file, not a folder (choose another {flag})")
+    reason = write_probe(existing)
+    if reason:
+        raise UserError(f"{flag} {path}: cannot write in {existing} ({reason}); choose another "
+                        f"{flag} or fix the folder's permissions")
+
+
+def check_writable_file(path: Path, flag: str = "--out") -> None:
+    """Refuse a file path whose folder (or nearest existing folder above it) is a file or cannot be written."""
+    folder = nearest_existing(Path(path).absolute().parent)
+    if not folder.is_dir():
+        raise UserError(f"{flag} {path}: {folder} is a file, not a folder; choose another {flag}")
+    reason = write_probe(folder)
+    if reason:
+        raise UserError(f"{flag} {path}: cannot write in {folder} ({reason}); choose another {flag}")
+
+
+def write_probe(folder: Path) -> str:
+    """'' when a file can be created (and is at once removed) in ``folder``, else the reason. A real write:
+    os.access says yes to root on a read-only mount or for a chmod 555 folder."""
     try:
-        fd, tmp = tempfile.mkstemp(prefix=TMP_PREFIX, dir=existing)
+        fd, tmp = tempfile.mkstemp(prefix=TMP_PREFIX, dir=folder)
         os.close(fd)
         os.unlink(tmp)
     except OSError as exc:
-        raise UserError(f"{flag} {path}: cannot write in {existing} ({exc.strerror or exc}); choose another "
-                        f"{flag} or fix the folder's permissions") from None
+        return str(exc.strerror or exc)
+    return ""
 
 
 def free_bytes(folder: Union[str, Path]) -> Optional[int]:

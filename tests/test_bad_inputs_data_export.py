@@ -256,9 +256,9 @@ def test_export_into_an_unwritable_folder_fails_before_loading(run_with_val, tmp
             raise PermissionError(13, "Permission denied")
         return real(*a, dir=dir, **k)
 
-    real = tempfile.TemporaryFile
-    # tests run as root here, where chmod cannot make a folder unwritable: the write is refused instead
-    monkeypatch.setattr(tempfile, "TemporaryFile", denied)
+    real = tempfile.mkstemp
+    # tests run as root here, where chmod cannot make a folder unwritable: the write probe is refused instead
+    monkeypatch.setattr(tempfile, "mkstemp", denied)
     code, _, err = _cli(["export", "--run", run_with_val, "--out", locked / "o.ply", "--device", "cpu"], capsys)
     assert code == 2 and "Traceback" not in err, err
     assert f"cannot write in {locked} (Permission denied)" in err, err

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import math
-import tempfile
 from pathlib import Path
 from typing import Iterable, Optional
 
@@ -41,21 +40,3 @@ def refuse_existing(paths: Iterable[Path], force: bool) -> None:
     if existing and not force:
         more = f" (and {len(existing) - 1} more output files)" if len(existing) > 1 else ""
         raise UserError(f"{existing[0]} already exists{more}; pass --force to overwrite, or choose another --out")
-
-
-
-def check_writable_folder(out: Path, flag: str = "--out") -> None:
-    """UserError unless ``out`` (a file to write) can be created: its folder, or the nearest existing folder
-    above it, must be a writable folder. Checked before the slow work; nothing is created here (the probe
-    file is removed at once)."""
-    folder = Path(out).absolute().parent
-    while not folder.exists() and folder != folder.parent:
-        folder = folder.parent
-    if not folder.is_dir():
-        raise UserError(f"{flag} {out}: {folder} is a file, not a folder; choose another {flag}")
-    try:  # a real write: os.access says yes to root on a read-only mount or for a chmod 555 folder
-        with tempfile.TemporaryFile(dir=folder):
-            pass
-    except OSError as exc:
-        raise UserError(f"{flag} {out}: cannot write in {folder} ({exc.strerror or exc}); "
-                        f"choose another {flag}") from None

@@ -15,7 +15,8 @@ import torch
 from retinexgs.errors import UserError
 from retinexgs.export import DEFAULT_DIRECTIONS
 from retinexgs.export.bake import baked_colour_text, bake_enhanced_sh, export_params, mean_gamma, reflectance_sh
-from retinexgs.export.common import check_enhancement_flags, check_writable_folder, read_run_config, refuse_existing
+from retinexgs.export.common import check_enhancement_flags, read_run_config, refuse_existing
+from retinexgs.fileio import check_writable_file
 from retinexgs.export.ply import write_ply
 from retinexgs.model.tone import apply_exposure
 from retinexgs.run.folder import load_run
@@ -44,7 +45,7 @@ def export_run(run_dir: Path, out: Path, reflectance_only: bool = False, directi
         raise UserError(f"--out {out} is a folder; --out is the .ply file to write, e.g. "
                         f"--out {out / 'point_cloud.ply'}")
     refuse_existing([out], force)
-    check_writable_folder(out)  # before the model load and the bake, which take the time
+    check_writable_file(out)  # before the model load and the bake, which take the time
 
     cfg, scene, model, step = load_run(run_dir, device)
     degree = active_sh_degree(cfg, step)

@@ -42,7 +42,8 @@ from torch import Tensor
 from retinexgs.data.scene import View
 from retinexgs.errors import UserError
 from retinexgs.evaluate.evaluate import to_uint8
-from retinexgs.export.common import check_enhancement_flags, check_writable_folder, read_run_config, refuse_existing
+from retinexgs.export.common import check_enhancement_flags, read_run_config, refuse_existing
+from retinexgs.fileio import check_writable_file
 from retinexgs.export import PATH_KINDS
 from retinexgs.export.exr import need_openexr, write_exr
 from retinexgs.export.paths import camera_path
@@ -284,7 +285,7 @@ def render_run(run_dir: Path, views: Optional[str] = None, out: Optional[Path] =
         targets = [out / name / f"{Path(v.name).stem}{suffix}" for suffix in suffixes for name in maps
                    for v in frames_views]
     refuse_existing(targets, force)
-    check_writable_folder(targets[0])
+    check_writable_file(targets[0])
 
     degree = active_sh_degree(cfg, step)
     balance = white_balance_of(wb, model, cfg, scene, degree, exposure, gamma)
