@@ -125,13 +125,7 @@ def darken_scene(src: Path, out: Path, model: SensorModel, seed: int = 0, progre
     if raw is not None:
         return _darken_raw(Path(src), Path(out), model, raw, seed, progress)
     src, out = Path(src), Path(out)
-    if not src.is_dir():
-        raise UserError(f"{src} is not a folder of photos or a scene folder")
-    if out.exists() and any(out.iterdir()):
-        raise UserError(f"{out} already exists and is not empty; choose another --out")
-    folder, jobs = _scene_photos(src)
-    if not jobs:
-        raise UserError(f"no photos in {folder}: {no_images_reason(folder)}")
+    folder, jobs = _darken_inputs(src, out)
     rng = np.random.default_rng(seed)
     report = DarkenReport(out, len(jobs))
     check_writable_folder(out)  # a read-only or misplaced --out: one line before any work
@@ -150,6 +144,19 @@ def darken_scene(src: Path, out: Path, model: SensorModel, seed: int = 0, progre
             {"model": asdict(model), "seed": seed, "source": str(src.resolve()),
              "view_exposures": report.exposures}, indent=1))
     return report
+
+
+def _darken_inputs(src: Path, out: Path) -> Tuple[Path, List[Tuple[Path, str]]]:
+    """The photo folder and the (photo, relative name) jobs of ``src``; UserError for a missing source, an ``out``
+    that holds files, or a source without photos (checked before anything is written)."""
+    if not src.is_dir():
+        raise UserError(f"{src} is not a folder of photos or a scene folder")
+    if out.exists() and any(out.iterdir()):
+        raise UserError(f"{out} already exists and is not empty; choose another --out")
+    folder, jobs = _scene_photos(src)
+    if not jobs:
+        raise UserError(f"no photos in {folder}: {no_images_reason(folder)}")
+    return folder, jobs
 
 
 def _copy_scene(src: Path, dst: Path) -> None:
@@ -220,13 +227,7 @@ def _darken_raw(src: Path, out: Path, model: SensorModel, camera: "RawCamera", s
 
     camera.check()
     camera.black_level(model.full_well, model.read_noise)  # a read noise no raw range holds: one line, now
-    if not src.is_dir():
-        raise UserError(f"{src} is not a folder of photos or a scene folder")
-    if out.exists() and any(out.iterdir()):
-        raise UserError(f"{out} already exists and is not empty; choose another --out")
-    folder, jobs = _scene_photos(src)
-    if not jobs:
-        raise UserError(f"no photos in {folder}: {no_images_reason(folder)}")
+    folder, jobs = _darken_inputs(src, out)
     names: Dict[str, Path] = {}
     for photo, _ in jobs:
         other = names.setdefault(_dng_name(photo.name), photo)
