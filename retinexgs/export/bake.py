@@ -17,6 +17,12 @@ mean of the gammas the EnhancementNet predicts over the training views (per chan
 per channel), optionally adjusted by an exposure factor (:func:`retinexgs.model.tone.apply_exposure`) or
 replaced by a fixed gamma.
 
+A white balance (``export --white-balance``, :mod:`retinexgs.model.white_balance`) is baked the way the render
+applies it: in the enhanced colour's linear light before the highlight shoulder and the sRGB curve (tone
+``exposure``: W·k·lin(R̂∘L̂); the gamma tones: W·lin(S_enh)), through the same functions
+(:func:`retinexgs.model.tone.white_balance`); the fit then sees the balanced colour. As trained (no balance, or
+exactly gains 1, 1, 1) the baked SH are bit for bit those of a bake without it.
+
 What the bake cannot reproduce exactly (also said in the README): the model composites R̂ and L̂
 *before* raising L̂ to g and multiplying, the bake multiplies per Gaussian and lets the viewer composite.
 The two agree where one opaque Gaussian dominates a pixel; where several semi-transparent Gaussians mix, or
@@ -43,7 +49,9 @@ from retinexgs.data.scene import Normalization
 from retinexgs.model.gaussians import PARAM_NAMES
 from retinexgs.model.inference import InferenceRenderer
 from retinexgs.model.retinex_model import RetinexGSModel
-from retinexgs.model.tone import exposure_gain
+from retinexgs.model.tone import (exposure_gain, exposure_linear, highlight_shoulder, linear_to_srgb,
+                                  srgb_to_linear, tone_map, white_balance)
+from retinexgs.model.white_balance import WhiteBalance, describe_balance
 from retinexgs.render import Camera, spherical_harmonics
 
 
@@ -76,14 +84,35 @@ def mean_gamma(model: RetinexGSModel, cameras: Iterable[Camera], degree: int) ->
     return torch.stack(gammas).mean(0)
 
 
+def enhanced_colour(model: RetinexGSModel, R: Tensor, L: Tensor, gamma: Tensor,
+                    balance: Optional[Tensor] = None) -> Tensor:
+    """The enhanced colour (sRGB, [0, 1]) of R̂ [..., 3] and L̂ [..., 3] per Gaussian and direction under gamma g,
+    with the white balance ``balance`` (gains [3] or a 3×3 matrix; None: as trained) applied in linear light
+    before the highlight shoulder and the sRGB curve, as ``render --white-balance`` applies it.
+
+    The model's tone map, except that the capture-noise filter (``black_filter``) is not applied: it filters an
+    image, and a chunk of Gaussians × directions is none (before, it would have smoothed neighbouring Gaussians'
+    colours into each other). Without that filter and without a balance: ``model.tone_map``'s colour, bit for bit."""
+    noise = model.tone_noise()
+    if model.tone == "exposure":
+        light = white_balance(exposure_linear(R, L, model.illum_ref, gamma, noise), balance)
+        return linear_to_srgb(highlight_shoulder(light, model.shoulder))
+    colour = tone_map(R, L, model.illum_ref, gamma, model.tone, model.enhancement.eps, model.shoulder)[0]
+    if balance is None:
+        return colour
+    return linear_to_srgb(white_balance(srgb_to_linear(colour), balance))  # the gamma tones clip before: [0, 1]
+
+
 def bake_enhanced_sh(model: RetinexGSModel, active_degree: int, gamma: Tensor, directions: int = 64,
-                     chunk: int = 4096, progress: Optional[Callable[[int], None]] = None) -> Dict[str, Tensor]:
+                     chunk: int = 4096, progress: Optional[Callable[[int], None]] = None,
+                     balance: Optional[Tensor] = None) -> Dict[str, Tensor]:
     """SH coefficients (``sh_dc`` [N,1,3], ``sh_rest`` [N,K-1,3], K = (model degree + 1)²) that least-squares fit
     each Gaussian's enhanced colour clip(R(d)·E(L(x,d)), 0, 1) (module docstring) over ``directions`` Fibonacci
     directions.
 
     R is evaluated at ``active_degree`` (what the model renders with); the fit uses the model's full degree,
     which the PLY stores. ``gamma`` is a scalar or [3]. ``progress(n)`` is called after each chunk of n.
+    ``balance``: a white balance (gains [3] or a 3×3 matrix; :func:`enhanced_colour`), None: as trained.
     """
     g = model.gaussians
     degree = g.sh_degree
@@ -97,7 +126,8 @@ def bake_enhanced_sh(model: RetinexGSModel, active_degree: int, gamma: Tensor, d
     basis_act = sh_basis(act, dirs).float()                              # [n_dirs, K_act]
     dirs32 = dirs.float()
     gamma = torch.as_tensor(gamma, dtype=torch.float32, device=device).reshape(-1)
-    # The model's own tone map (RetinexGSModel.tone_map), so the bake follows the enhanced render.
+    if balance is not None:
+        balance = torch.as_tensor(balance, dtype=torch.float32, device=device)
     coeffs = torch.cat([g.sh_dc, g.sh_rest], dim=1).detach()[:, :(act + 1) ** 2]
     out = torch.empty(len(g), k, 3, dtype=torch.float32, device=device)
     with torch.no_grad():
@@ -107,17 +137,20 @@ def bake_enhanced_sh(model: RetinexGSModel, active_degree: int, gamma: Tensor, d
             R = (torch.einsum("dk,nkc->ndc", basis_act, coeffs[s:s + chunk]) + 0.5).clamp_min(0.0)
             # The same field and direction convention as RetinexGSModel.render: d from the camera to the Gaussian.
             L = model.illumination(means.repeat_interleave(directions, 0), dirs32.repeat(n, 1)).reshape(n, -1, 3)
-            target, _ = model.tone_map(R, L.float(), gamma)
+            # The model's own tone functions, so the bake follows the enhanced render.
+            target = enhanced_colour(model, R, L.float(), gamma, balance)
             out[s:s + n] = torch.einsum("kd,ndc->nkc", fit, (target - 0.5).double()).float()
             if progress is not None:
                 progress(n)
     return {"sh_dc": out[:, :1].contiguous(), "sh_rest": out[:, 1:].contiguous()}
 
 
-def baked_colour_text(model: RetinexGSModel, gamma: Tensor, directions: int) -> str:
+def baked_colour_text(model: RetinexGSModel, gamma: Tensor, directions: int, wb: Optional[WhiteBalance] = None,
+                      balance=None) -> str:
     """The PLY comment saying what :func:`bake_enhanced_sh` baked: the formula of the model's tone form
     (``model.enhancement.tone``, :mod:`retinexgs.model.tone`) with its numbers (g; for tone ``exposure`` the gain k
-    and the highlight knee, and whether R̂∘L̂ is read through the capture's black table)."""
+    and the highlight knee, and whether R̂∘L̂ is read through the capture's black table), and with ``wb`` the
+    white balance W in the formula and its numbers (:func:`retinexgs.model.white_balance.describe_balance`)."""
     g = torch.as_tensor(gamma, dtype=torch.float64).reshape(-1).cpu()
     gtext = ", ".join(f"{x:.4f}" for x in g.tolist())
     ref = float(model.illum_ref)
@@ -125,15 +158,18 @@ def baked_colour_text(model: RetinexGSModel, gamma: Tensor, directions: int) -> 
         k = exposure_gain(model.illum_ref.detach().double().cpu(), g)
         ktext = ", ".join(f"{x:.4g}" for x in k.tolist())
         light = "lin(R*L)" if model.tone_noise() is None else "black_table(R*L)"
-        curve = (f"shoulder(k*{light}, {model.shoulder:g})" if model.shoulder < 1.0 else f"k*{light}")
+        light = f"W*k*{light}" if balance is not None else f"k*{light}"
+        curve = (f"shoulder({light}, {model.shoulder:g})" if model.shoulder < 1.0 else light)
         text = (f"colour: enhanced as a longer exposure, srgb({curve}) with k = lin(L_ref)^(-1/g) = ({ktext}), "
                 f"L_ref = {ref:.4f}, g = ({gtext})")
         if model.tone_noise() is not None:
             text += " (black_table: the capture's clipped noise taken out of R*L)"
-    elif model.tone == "signal":
-        text = f"colour: enhanced R^g*clip(L/L_ref,0,1)^g, L_ref = {ref:.4f}, g = ({gtext})"
     else:
-        text = f"colour: enhanced R*clip(L/L_ref,0,1)^g, L_ref = {ref:.4f}, g = ({gtext})"
+        form = "R^g*clip(L/L_ref,0,1)^g" if model.tone == "signal" else "R*clip(L/L_ref,0,1)^g"
+        form = f"srgb(W*lin({form}))" if balance is not None else form
+        text = f"colour: enhanced {form}, L_ref = {ref:.4f}, g = ({gtext})"
+    if wb is not None:  # beside the exposure's numbers: the form given and W's numbers (or none: as trained)
+        text += f"; W = {describe_balance(wb, balance)}" if balance is not None else f"; {describe_balance(wb, None)}"
     return text + f", clipped to [0,1] and baked into SH by least squares over {directions} directions"
 
 

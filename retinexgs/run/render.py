@@ -148,3 +148,16 @@ def white_balance_of(wb: WhiteBalance, model: RetinexGSModel, cfg: Config, scene
                             "blown out")
         return np.asarray(neutral_gains(res["rgb_linear"][wb.y, wb.x].double().cpu().tolist(), wb.text))
     raise ValueError(f"unknown white balance kind {wb.kind!r}")
+
+
+def neutral_at(res: Dict, x: int, y: int, where: str):
+    """Gains (G/R, 1, G/B, float64 [3]) that make pixel column ``x``, row ``y`` of a render neutral; ``res`` is
+    ``render_function(..., linear=True)``'s maps of that view as trained. The checks of ``--white-balance pick``
+    (:func:`white_balance_of`), for the viewer's eyedropper: UserError (naming ``where``) when the pixel is
+    clipped in the reconstructed photo (its hue is lost) or black."""
+    record = res["R"] * res["L"] if "R" in res and "L" in res else res["rgb"]
+    if float(record[y, x].max()) >= 0.999:
+        raise UserError(f"--white-balance {where}: the picked pixel is clipped (a channel at white in the "
+                        "reconstructed photo), so its colour is not the light's; pick a neutral that is not "
+                        "blown out")
+    return np.asarray(neutral_gains(res["rgb_linear"][y, x].double().cpu().tolist(), where))

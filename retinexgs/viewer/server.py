@@ -24,6 +24,10 @@ MOVING_SCALE = 0.5   # frames rendered while the camera moves are this much smal
 SETTLE_SECONDS = 0.3  # no camera update for this long: render the full-resolution frame
 _LABELS = {"enhanced": "enhanced", "R": "R̂ (reflectance)", "L": "L̂ (illumination, normalised)",
            "low": "low (R̂∘L̂)", "depth": "depth"}
+# The white-balance dropdown: its labels and the render --white-balance form each stands for (frame.py).
+WB_MODES = {"as trained": "as-trained", "auto (grey-edge)": "auto", "temperature / tint": "temp",
+            "gains (or a picked neutral)": "gains"}
+TEMP_SLIDER = (1500.0, 15000.0)  # K: the useful part of 1000..40000; "temp:K" at render reaches the rest
 
 
 def import_viser():
@@ -55,14 +59,33 @@ class _Client:
         self.use_gamma = gui.add_checkbox("Absolute gamma", False, disabled=not decomposed)
         lo, hi = gamma_slider_range(viewer.renderer.model if decomposed else None)
         self.gamma = gui.add_slider("Gamma", lo, hi, 0.01, round(0.5 * (lo + hi), 2), disabled=not decomposed)
+        modes = list(WB_MODES)
+        self.wb_mode = gui.add_dropdown("White balance", modes, initial_value=modes[0],
+                                        hint="an edit of the enhanced light before the highlight shoulder, as "
+                                             "render/export --white-balance")
+        self.kelvin = gui.add_slider("Temperature (K)", TEMP_SLIDER[0], TEMP_SLIDER[1], 50.0, 6504.0,
+                                     hint="the light the scene is taken to be lit by: 6504 = as trained, higher = "
+                                          "warmer image")
+        self.tint = gui.add_slider("Tint", -100.0, 100.0, 1.0, 0.0, hint="+ magenta, - green")
+        self.gains = gui.add_vector3("Gains R,G,B", (1.0, 1.0, 1.0), min=(0.05, 0.05, 0.05), max=(20.0, 20.0, 20.0),
+                                     step=0.01, hint="divided by G: brightness stays the exposure's")
+        self.pick = gui.add_button("Pick a neutral (then click the view)",
+                                   hint="the next click on the view makes that pixel grey (sets the gains)")
+        self.wb_note = gui.add_text("White balance used", "as trained", disabled=True)
+        self.shoulder = gui.add_checkbox("Highlight shoulder", True, disabled=not viewer.renderer.has_shoulder,
+                                         hint="on: highlights roll off at the run's knee; off: clip at white")
         self.scale = gui.add_slider("Resolution scale", 0.1, 2.0, 0.05, viewer.default_scale)
         self.lowres = gui.add_checkbox("Lower resolution while moving", True)
         names = list(viewer.cameras)
         self.camera_pick = gui.add_dropdown("Camera", names or ["(none)"], disabled=not names)
         self.snap = gui.add_button("Snap to camera", disabled=not names)
         self.frame_time = gui.add_text("Frame time", "-", disabled=True)
-        for handle in (self.map, self.exposure, self.use_gamma, self.gamma, self.scale):
+        for handle in (self.map, self.exposure, self.use_gamma, self.gamma, self.scale, self.kelvin, self.tint,
+                       self.gains, self.shoulder):
             handle.on_update(lambda _: self.request(moving=False))
+        self.wb_mode.on_update(lambda _: self._mode_changed())
+        self.pick.on_click(lambda _: self._arm_pick())
+        self._picking = False
         self.snap.on_click(lambda _: self.snap_to(self.camera_pick.value))
         client.camera.on_update(lambda _: self.request(moving=True))
         self.thread = threading.Thread(target=self._loop, name=f"retinexgs-view-{client.client_id}", daemon=True)
@@ -84,7 +107,58 @@ class _Client:
             return max(min(float(handle.value), handle.max), handle.min)
 
         gamma = clamped(self.gamma) if self.use_gamma.value else None
-        return FrameSettings(map=key, exposure=clamped(self.exposure), gamma=gamma, scale=clamped(self.scale))
+        return FrameSettings(map=key, exposure=clamped(self.exposure), gamma=gamma, scale=clamped(self.scale),
+                             white_balance=self.white_balance_form(), shoulder=bool(self.shoulder.value))
+
+    def white_balance_form(self) -> str:
+        """The white-balance controls as a ``render --white-balance`` form; typed numbers are clamped to the
+        controls' ranges as the sliders' are (NaN stays NaN: the renderer refuses it)."""
+        mode = WB_MODES.get(self.wb_mode.value, "as-trained")
+
+        def clamp(value: float, lo: float, hi: float) -> float:
+            return max(min(float(value), hi), lo)
+
+        if mode == "temp":
+            return (f"temp:{clamp(self.kelvin.value, self.kelvin.min, self.kelvin.max)!r},"
+                    f"{clamp(self.tint.value, self.tint.min, self.tint.max)!r}")
+        if mode == "gains":
+            lo, hi = self.gains.min or (0.05,) * 3, self.gains.max or (20.0,) * 3
+            return "gains:" + ",".join(repr(clamp(v, a, b)) for v, a, b in zip(self.gains.value, lo, hi))
+        return mode
+
+    def _mode_changed(self) -> None:
+        if WB_MODES.get(self.wb_mode.value) == "auto":
+            self.viewer.renderer.forget_auto()  # measured anew each time it is chosen (a live scene moves on)
+        self.request(moving=False)
+
+    def _arm_pick(self) -> None:
+        """The eyedropper: the next click on the canvas picks (viser's scene click gives its screen position)."""
+        if self._picking:
+            return
+        self._picking = True
+        self.wb_note.value = "click a neutral (grey or white) surface in the view"
+        self.client.scene.on_click()(self._picked)
+
+    def _picked(self, event) -> None:
+        self.client.scene.remove_click_callback(self._picked)  # one click only: the camera drags again after it
+        self._picking = False
+        try:
+            u, v = (float(t) for t in event.screen_pos)
+            cam = self.client.camera
+            vc = ViewerCamera(tuple(cam.wxyz), tuple(cam.position), float(cam.fov), int(cam.image_width),
+                              int(cam.image_height))
+            settings = replace(self.settings(), white_balance="as-trained")
+            gains = self.viewer.renderer.pick_neutral(vc, settings, u, v)
+        except UserError as exc:  # black or clipped: said in the panel, the balance stays as it was
+            self.wb_note.value = str(exc)
+            return
+        except Exception as exc:  # junk from a client must not reach viser's threads
+            self.wb_note.value = f"the pick failed: {type(exc).__name__}: {exc}"
+            return
+        with self.client.atomic():
+            self.gains.value = tuple(float(g) for g in gains)
+            self.wb_mode.value = next(k for k, m in WB_MODES.items() if m == "gains")
+        self.request(moving=False)
 
     def request(self, moving: bool) -> None:
         self.moving = self.moving or moving
@@ -131,6 +205,9 @@ class _Client:
             ms = 1000 * (time.perf_counter() - start)
             self.client.scene.set_background_image(frame, format="jpeg", jpeg_quality=90)
             self.frame_time.value = f"{ms:.0f} ms ({frame.shape[1]}x{frame.shape[0]}{', moving' if low else ''})"
+            note = self.viewer.renderer.balance_text
+            if not self._picking and settings.map == "enhanced" and self.wb_note.value != note:
+                self.wb_note.value = note  # the numbers used, as render prints them
             self.viewer.frames += 1
             self.viewer.last_frame = frame
         except Exception as exc:  # a viewer must survive junk from a client and renderer errors
