@@ -140,23 +140,17 @@ def white_balance_of(wb: WhiteBalance, model: RetinexGSModel, cfg: Config, scene
             raise UserError(f"--white-balance {wb.text}: pixel ({wb.x}, {wb.y}) lies outside view {wb.view}, "
                             f"which is {view.width}x{view.height} (X in 0..{view.width - 1}, "
                             f"Y in 0..{view.height - 1})")
-        res = fn(view)
-        record = res["R"] * res["L"] if "R" in res and "L" in res else res["rgb"]
-        if float(record[wb.y, wb.x].max()) >= 0.999:  # the photos were clipped there: their hue is lost
-            raise UserError(f"--white-balance {wb.text}: the picked pixel is clipped (a channel at white in the "
-                            "reconstructed photo), so its colour is not the light's; pick a neutral that is not "
-                            "blown out")
-        return np.asarray(neutral_gains(res["rgb_linear"][wb.y, wb.x].double().cpu().tolist(), wb.text))
+        return neutral_at(fn(view), wb.x, wb.y, wb.text)
     raise ValueError(f"unknown white balance kind {wb.kind!r}")
 
 
 def neutral_at(res: Dict, x: int, y: int, where: str):
     """Gains (G/R, 1, G/B, float64 [3]) that make pixel column ``x``, row ``y`` of a render neutral; ``res`` is
-    ``render_function(..., linear=True)``'s maps of that view as trained. The checks of ``--white-balance pick``
-    (:func:`white_balance_of`), for the viewer's eyedropper: UserError (naming ``where``) when the pixel is
+    ``render_function(..., linear=True)``'s maps of that view as trained; ``--white-balance pick``
+    (:func:`white_balance_of`) and the viewer's eyedropper alike. UserError (naming ``where``) when the pixel is
     clipped in the reconstructed photo (its hue is lost) or black."""
     record = res["R"] * res["L"] if "R" in res and "L" in res else res["rgb"]
-    if float(record[y, x].max()) >= 0.999:
+    if float(record[y, x].max()) >= 0.999:  # the photos were clipped there: their hue is lost
         raise UserError(f"--white-balance {where}: the picked pixel is clipped (a channel at white in the "
                         "reconstructed photo), so its colour is not the light's; pick a neutral that is not "
                         "blown out")
