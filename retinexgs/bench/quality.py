@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import queue
 import shutil
 import subprocess
 import sys
@@ -79,11 +81,12 @@ def train_command(job: Job, device: str, steps: Optional[int], extra: Sequence[s
 RESUMED = "bench_resumed"  # marker in a run folder: the benchmark resumed it, so its train time is partial
 
 
-def run_job(job: Job, device: str, steps: Optional[int], extra: Sequence[str]) -> str:
+def run_job(job: Job, device: str, steps: Optional[int], extra: Sequence[str], gpu: Optional[int] = None) -> str:
     """Train one job (its log goes to RUN.log); returns a one-line status. A run cut off earlier (e.g. by a
     device call's time limit) continues from its newest checkpoint, so the steps it trained are not paid for
     twice; it is marked (:data:`RESUMED`) and its train time, which then covers only the last segment, is left
-    out of the table. Without a checkpoint it starts again."""
+    out of the table. Without a checkpoint it starts again. ``gpu``: the one GPU it may see
+    (CUDA_VISIBLE_DEVICES), for ``--gpus``."""
 
     if job.metrics_path.is_file():
         return f"reused  {job.run}"
@@ -97,8 +100,9 @@ def run_job(job: Job, device: str, steps: Optional[int], extra: Sequence[str]) -
         shutil.rmtree(job.run)
     job.run.parent.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
+    env = None if gpu is None else {**os.environ, "CUDA_VISIBLE_DEVICES": str(gpu)}
     with open(f"{job.run}.log", "a" if resumed else "w") as log:
-        rc = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT).returncode
+        rc = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, env=env).returncode
     status = "ok" if rc == 0 and job.metrics_path.is_file() else f"FAILED (exit {rc}, see {job.run}.log)"
     return f"{status:7s} {job.run} in {time.time() - t0:.0f} s" + (" (resumed)" if resumed else "")
 
@@ -292,6 +296,45 @@ def ladder_scenes(scenes: Sequence[Path], root: Path, exposure: float) -> List[P
     return out
 
 
+def raw_ladder_scenes(scenes: Sequence[Path], root: Path, exposure: float, levels: Sequence[str]) -> List[Path]:
+    """Every scene captured by the raw simulator (``darken --raw``, the default camera) at each of ``levels`` of
+    the noise ladder: ``root/SCENE@LEVEL-raw`` (the DNGs) beside ``root/SCENE@LEVEL-jpeg`` (the camera's JPEGs of
+    the same noisy mosaics), so that the two paths train on the same photons (issue 52). Made once: a level whose
+    sensor.json records the same model is reused."""
+    from retinexgs.data.raw_sim import RawCamera
+
+    known = {label: (fw, rn) for label, fw, rn in NOISE_LADDER}
+    bad = [lv for lv in levels if lv not in known]
+    if bad:
+        raise UserError(f"unknown ladder level {bad[0]!r} (levels: {', '.join(known)})")
+    out: List[Path] = []
+    for scene in scenes:
+        if not (Path(scene) / "high").is_dir():
+            raise UserError(f"{scene} has no high/ folder of normal-light photos to darken")
+        for label in levels:
+            full_well, read_noise = known[label]
+            model = SensorModel(exposure=exposure, full_well=full_well, read_noise=read_noise)
+            base = root / f"{scene_label(Path(scene)).replace('/', '-')}@{label}"
+            pair = [base.with_name(base.name + "-raw"), base.with_name(base.name + "-jpeg")]
+            done = [p / "sensor.json" for p in pair]
+            want = json.loads(json.dumps(asdict(model)))
+            if all(d.is_file() and json.loads(d.read_text())["model"] == want for d in done):
+                out.extend(pair)
+                continue
+            tmp = base.with_name(f".tmp-{base.name}")
+            for p in (*pair, tmp):
+                if p.exists():
+                    shutil.rmtree(p)  # a level made with another model (or cut off): made again
+            darken_scene(Path(scene), tmp, model, seed=0, progress=False, raw=RawCamera())
+            for p, sub in zip(pair, ("raw", "jpeg")):
+                shutil.copy2(tmp / "sensor.json", tmp / sub / "sensor.json")
+                (tmp / sub).rename(p)
+            shutil.rmtree(tmp)
+            print(f"raw ladder: {pair[0]} and {pair[1].name} ({label})", flush=True)
+            out.extend(pair)
+    return out
+
+
 def main(argv: Sequence[str]) -> int:
     ap = argparse.ArgumentParser(prog="python -m retinexgs.bench quality", description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenes", nargs="+", type=Path, required=True, help="scene folders")
@@ -299,7 +342,9 @@ def main(argv: Sequence[str]) -> int:
                     help="config names in configs/ (default, paper, ablations/baseline_pre, ...)")
     ap.add_argument("--seeds", default="3", help="a count N (seeds 0..N-1) or a list with a comma: 1,2 or 0, (default 3)")
     ap.add_argument("--runs", type=Path, default=Path("runs/quality"), help="where the runs go (reused when done)")
-    ap.add_argument("--jobs", type=int, default=4, help="trainings side by side (default 4)")
+    ap.add_argument("--jobs", type=int, default=4, help="trainings side by side (default 4; per GPU with --gpus)")
+    ap.add_argument("--gpus", type=int, default=0,
+                    help="spread the trainings over this many GPUs, --jobs on each (0: all on --device)")
     ap.add_argument("--device", default="auto", help="cuda, cpu or auto")
     ap.add_argument("--steps", type=int, default=None, help="override every config's steps")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="extra override for every run")
@@ -310,6 +355,10 @@ def main(argv: Sequence[str]) -> int:
                          "ladder instead (retinexgs.data.sensor.NOISE_LADDER: clean to 1000 e- full well, read "
                          "noise 6 e-), each level a column SCENE@LEVEL; the dark scenes go to RUNS/ladder/")
     ap.add_argument("--ladder-exposure", type=float, default=0.05, help="the ladder's exposure k (default 0.05)")
+    ap.add_argument("--raw-ladder", default=None, metavar="LEVELS",
+                    help="train each scene captured by the raw simulator at these ladder levels (comma list, e.g. "
+                         "clean,1500e,1000e): columns SCENE@LEVEL-raw (DNGs) and SCENE@LEVEL-jpeg (the camera's "
+                         "JPEGs of the same captures); the dark scenes go to RUNS/ladder/")
     args = ap.parse_args(list(argv))
     for s in args.scenes:
         if not s.is_dir():
@@ -321,6 +370,13 @@ def main(argv: Sequence[str]) -> int:
         except UserError as exc:
             print(f"--noise-ladder: {exc}", file=sys.stderr)
             return 2
+    if args.raw_ladder:
+        try:
+            args.scenes = raw_ladder_scenes(args.scenes, args.runs / "ladder", args.ladder_exposure,
+                                            [v for v in args.raw_ladder.split(",") if v])
+        except UserError as exc:
+            print(f"--raw-ladder: {exc}", file=sys.stderr)
+            return 2
     try:
         seeds = parse_seeds(args.seeds)
     except ValueError as exc:
@@ -331,8 +387,20 @@ def main(argv: Sequence[str]) -> int:
         t0 = time.time()
         # Longest scenes first would balance better; the plan order (scene-major) keeps similar jobs apart.
         order = sorted(jobs, key=lambda j: (j.seed, j.config, str(j.scene)))
-        with ThreadPoolExecutor(max(1, args.jobs)) as pool:
-            for line in pool.map(lambda j: run_job(j, args.device, args.steps, args.set), order):
+        slots: "queue.Queue[Optional[int]]" = queue.Queue()
+        for _ in range(max(1, args.jobs)):
+            for g in (range(args.gpus) if args.gpus > 0 else [None]):
+                slots.put(g)
+
+        def on_a_slot(j: Job) -> str:
+            g = slots.get()
+            try:
+                return run_job(j, "cuda" if g is not None else args.device, args.steps, args.set, g)
+            finally:
+                slots.put(g)
+
+        with ThreadPoolExecutor(slots.qsize()) as pool:
+            for line in pool.map(on_a_slot, order):
                 print(line, flush=True)
         print(f"{len(jobs)} runs in {time.time() - t0:.0f} s", flush=True)
     md = table(jobs, args.configs)

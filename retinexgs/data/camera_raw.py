@@ -612,18 +612,21 @@ def _demosaiced_srgb_linear(photo: RawPhoto) -> np.ndarray:
     return (rgb @ photo.cam_to_srgb.T.astype(np.float32)).astype(np.float32, copy=False)
 
 
-def view_srgb(photo: RawPhoto, exposure_factor: float = 1.0) -> np.ndarray:
+def view_srgb(photo: RawPhoto, exposure_factor: float = 1.0, clip: bool = True) -> np.ndarray:
     """float32 [H, W, 3] in [0, 1]: the photo as a scene view reads it (stage 3a): linear sRGB at full size
     (:func:`_demosaiced_srgb_linear`), divided by ``exposure_factor`` (the view's exposure relative to the
-    scene's reference, :func:`folder_exposure`), clipped to [0, 1], sRGB-encoded; full float precision."""
-    from retinexgs.data.srgb import linear_to_srgb
+    scene's reference, :func:`folder_exposure`), clipped to [0, 1], sRGB-encoded; full float precision.
+    ``clip=False`` (training's target in linear light, stage 3b): not clipped, encoded by
+    :func:`retinexgs.data.srgb.linear_to_srgb_extended` (negative noise around black and light past white kept)."""
+    from retinexgs.data.srgb import linear_to_srgb, linear_to_srgb_extended
 
     if not (np.isfinite(exposure_factor) and exposure_factor > 0):
         raise ValueError(f"exposure factor must be positive, got {exposure_factor}")
     rgb = _demosaiced_srgb_linear(photo)
     if exposure_factor != 1.0:
         rgb /= np.float32(exposure_factor)
-    return linear_to_srgb(rgb).astype(np.float32, copy=False)
+    encoded = linear_to_srgb(rgb) if clip else linear_to_srgb_extended(rgb)
+    return encoded.astype(np.float32, copy=False)
 
 
 @dataclass
@@ -730,14 +733,14 @@ def folder_exposure(folder: Union[str, Path]) -> FolderExposure:
         return result
 
 
-def read_view_srgb(path: Union[str, Path]) -> np.ndarray:
-    """float32 [H, W, 3] in [0, 1]: a raw file as a scene view (:func:`view_srgb`), divided by its exposure
-    relative to the median of its folder's raw files (:func:`folder_exposure`). UserError naming the file for
-    anything that cannot be read."""
+def read_view_srgb(path: Union[str, Path], clip: bool = True) -> np.ndarray:
+    """float32 [H, W, 3] in [0, 1]: a raw file as a scene view (:func:`view_srgb`, ``clip`` as there), divided by
+    its exposure relative to the median of its folder's raw files (:func:`folder_exposure`). UserError naming the
+    file for anything that cannot be read."""
     path = Path(path)
     photo = read_raw(path)  # first: a missing or broken file gets read_raw's line naming it
     factor = folder_exposure(path.parent).factors.get(path.name, 1.0)
-    return view_srgb(photo, factor)
+    return view_srgb(photo, factor, clip)
 
 
 # ----------------------------------------------------------------------------------------------------------

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from retinexgs.data.camera import Intrinsics
-from retinexgs.data.images import load_image_tensor
+from retinexgs.data.images import is_raw_file, load_image_tensor
 
 ArrayLike = Union[np.ndarray, torch.Tensor]
 
@@ -115,6 +115,17 @@ class View:
         """Read the input image from disk (not cached) as float32 [H,W,3] in [0,1]."""
         return load_image_tensor(self.image_path)
 
+    def load_target(self) -> torch.Tensor:
+        """What training compares renders with: :meth:`load_image`, except for a camera raw view, whose values are
+        not clipped (its unclipped encoding, :func:`retinexgs.data.srgb.linear_to_srgb_extended`: the noise around
+        black stays zero-mean; issue 52 stage 3b)."""
+        return load_image_tensor(self.image_path, unclipped=True)
+
+    @property
+    def is_raw(self) -> bool:
+        """True when the user's file is a camera raw file."""
+        return is_raw_file(Path(self.source_path if self.source_path is not None else self.image_path))
+
     def release_images(self) -> None:
         """Drop the cached image tensors (they are read again on next use)."""
         self._image = None
@@ -177,6 +188,12 @@ class Scene:
     def views(self) -> List[View]:
         """Train views followed by test views."""
         return list(self.train) + list(self.test)
+
+    @property
+    def raw(self) -> bool:
+        """True when the training views are camera raw files (a split is all raw or none: the loader refuses a
+        mix)."""
+        return bool(self.train) and all(v.is_raw for v in self.train)
 
     def summary(self) -> str:
         """One line describing the scene (counts and resolution)."""

@@ -40,3 +40,15 @@ def linear_to_srgb(x: Image, clip: bool = True) -> Image:
     light past white keeps rising along the curve (a loss that must keep a gradient there)."""
     x = _limit(x, clip)
     return _where(x <= _L_KNEE, _SLOPE * x, _A1 * _floor(x, _L_KNEE) ** (1.0 / _GAMMA) - _A)
+
+
+def linear_to_srgb_extended(x: Image) -> Image:
+    """Linear light -> sRGB without any clip, for values a raw file holds beyond [0, 1]: below 0 (noise around
+    black, kept zero-mean) along the curve's linear segment (12.92·x), above 1 along its power segment. Monotone
+    and exactly inverted by :func:`srgb_to_linear_extended`; equal to :func:`linear_to_srgb` on [0, 1]."""
+    return _where(x <= _L_KNEE, _SLOPE * x, _A1 * _floor(x, _L_KNEE) ** (1.0 / _GAMMA) - _A)
+
+
+def srgb_to_linear_extended(x: Image) -> Image:
+    """The inverse of :func:`linear_to_srgb_extended` (no clip: negative values map to negative light)."""
+    return _where(x <= _S_KNEE, x / _SLOPE, ((_floor(x, _S_KNEE) + _A) / _A1) ** _GAMMA)

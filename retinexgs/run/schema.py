@@ -310,6 +310,7 @@ class Loss(Section):
     rec_noise_share: Num(gt=0, le=0.9)
     rec_noise_scale: Int(1)
     rec_camera_noise: Bool
+    rec_raw: Choice("noise", "relative", "photo")
     w_depth: Num(ge=0)
     depth_edge: Num(ge=0)
 

@@ -25,18 +25,19 @@ picks the paper's, configs/default.yaml the product's, with the reasons in the f
 """
 from __future__ import annotations
 
-from typing import Dict, Optional, Tuple
+from typing import Dict, NamedTuple, Optional, Tuple
 
 import torch
 import torch.nn.functional as F
 
 from retinexgs.evaluate.metrics import cached_constant, check_bchw, gaussian_window, ssim
+from retinexgs.data.srgb import linear_to_srgb_extended, srgb_to_linear_extended
 from retinexgs.model.tone import camera_mean, highlight_capped_mean, linear_to_srgb, srgb_to_linear
 from retinexgs.run.schema import Loss
 
 __all__ = [
     "to_bchw", "gaussian_window", "ssim", "noise_variance", "robust_abs", "exposed", "camera_expectation", "l1_ssim",
-    "reconstruction_loss",
+    "LinearTarget", "RELATIVE_EPS", "linear_weights", "linear_reconstruction", "reconstruction_loss",
     "supervision_loss", "tv_loss", "edge_weights", "depth_smoothness_loss", "sh_sparsity_loss",
     "spatial_consistency_loss", "exposure_loss", "color_constancy_loss", "enhancement_loss",
 ]
@@ -97,13 +98,17 @@ def noise_variance(y: torch.Tensor) -> torch.Tensor:
     return (sigma * sigma).reshape(b, c, 1, 1)
 
 
-def exposed(x: torch.Tensor, gain: torch.Tensor) -> torch.Tensor:
+def exposed(x: torch.Tensor, gain: torch.Tensor, extended: bool = False) -> torch.Tensor:
     """srgb(gain · lin(x)) for sRGB-encoded ``x``: the photo as a longer exposure shows it (the default's tone at
     g = 1, :mod:`retinexgs.model.tone`), without the clip at white, so an over-bright render keeps its gradient.
 
     ``gain``: a scalar tensor (1 / lin(L_ref)). Used to compare the reconstruction with the photo where the
     enhanced output is judged: the sRGB curve and the gain stretch the darkest levels far more than the mid-tones.
+    ``extended``: ``x`` is a raw view's unclipped encoding (:func:`retinexgs.data.srgb.linear_to_srgb_extended`),
+    negative values kept along the curve's linear segment.
     """
+    if extended:
+        return linear_to_srgb_extended(gain * srgb_to_linear_extended(x))
     return linear_to_srgb(gain * srgb_to_linear(x, clip=False), clip=False)
 
 
@@ -112,6 +117,58 @@ def camera_expectation(x: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> tor
     [1,C,1,1] or broadcastable): :func:`retinexgs.model.tone.camera_mean`. A render compared with the photo as it
     is must lift its blacks to match; compared through this, it can keep the light."""
     return camera_mean(x, a, b)
+
+
+class LinearTarget(NamedTuple):
+    """A raw scene's reconstruction in linear light (``loss.rec_raw``, issue 52 stage 3b): ``mode`` "noise" or
+    "relative" (:func:`linear_weights`); ``a``, ``b``: the views' noise var = a·y + b per channel, [1,3,1,1]
+    tensors (:mod:`retinexgs.data.raw_noise`)."""
+    mode: str
+    a: torch.Tensor
+    b: torch.Tensor
+
+
+# RawNeRF's ε (Mildenhall et al., CVPR 2022, Sec. 3.2), in exposed units (the scene's full light at 1).
+RELATIVE_EPS = 1e-3
+
+
+def linear_weights(x: torch.Tensor, target: LinearTarget, gain: torch.Tensor) -> torch.Tensor:
+    """Per-pixel weights (no gradient) of :func:`linear_reconstruction`, normalised to mean 1 per image, from the
+    render's own linear light ``x`` [B,C,H,W]:
+
+    - ``noise``: 1 / (a·x + b), the inverse of the noise variance at the render's value: the weighted least
+      squares that is the Gaussian likelihood of the views under their Poisson-Gaussian noise;
+    - ``relative``: 1 / (gain·x + ε)², RawNeRF's weights (the variance taken as proportional to the signal²,
+      a tone-mapped L2 in effect).
+
+    Taken at the render rather than at the noisy target, so that a pixel's weight does not follow its noise."""
+    with torch.no_grad():
+        xs = x.clamp_min(0.0)
+        if target.mode == "noise":
+            w = 1.0 / (target.a * xs + target.b)
+        elif target.mode == "relative":
+            w = 1.0 / (gain * xs + RELATIVE_EPS) ** 2
+        else:
+            raise ValueError(f"unknown linear reconstruction mode {target.mode!r} (noise | relative)")
+        return w / w.mean(dim=(1, 2, 3), keepdim=True)
+
+
+def linear_reconstruction(rec: torch.Tensor, S: torch.Tensor, target: LinearTarget,
+                          gain: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """mean(w · (gain·(lin(R̂∘L̂) − lin(S)))²): R̂∘L̂ [B,3,H,W] against a raw view ``S`` (its unclipped encoding,
+    :func:`retinexgs.data.srgb.linear_to_srgb_extended`) in linear light, with :func:`linear_weights`.
+
+    Why linear and squared: a raw view's noise is zero-mean around the light in linear values, negative values
+    included, so the least-squares fit of many views converges to the light itself; an absolute or squared error
+    on encoded (sRGB) or clipped values converges to a median or a mean biased by the curve or the clip (the lifted
+    blacks of a JPEG capture). ``gain`` (1 / lin(L_ref), the reconstruction's exposure; None: 1) puts the error in
+    the units the enhanced image is judged in, so the term's size is comparable to the other terms'."""
+    check_bchw(rec, S)
+    x = srgb_to_linear(rec, clip=False)
+    y = srgb_to_linear_extended(S)
+    g = rec.new_ones(()) if gain is None else gain
+    w = linear_weights(x, target, g)
+    return (w * (g * (x - y)) ** 2).mean()
 
 
 def l1_ssim(x: torch.Tensor, y: torch.Tensor, lambda_ssim: float = 0.2, huber: float = 0.0,
@@ -133,20 +190,29 @@ def l1_ssim(x: torch.Tensor, y: torch.Tensor, lambda_ssim: float = 0.2, huber: f
     return (1.0 - lambda_ssim) * l1 + lambda_ssim * (1.0 - ssim(xs, ys, c2_extra=noise))
 
 
-def _reconstruction_pairs(rec: torch.Tensor, S: torch.Tensor, gain: Optional[torch.Tensor], l1_exposed: bool):
-    """((x, y) for the L1, (x, y) for the SSIM) of the reconstruction term: R̂∘L̂ and S as they are, or exposed."""
+def _reconstruction_pairs(rec: torch.Tensor, S: torch.Tensor, gain: Optional[torch.Tensor], l1_exposed: bool,
+                          extended: bool = False):
+    """((x, y) for the L1, (x, y) for the SSIM) of the reconstruction term: R̂∘L̂ and S as they are, or exposed
+    (``extended``: S is a raw view's unclipped encoding)."""
     if gain is None:
         return (rec, S), (rec, S)
-    rec_e, S_e = torch.broadcast_tensors(exposed(rec, gain), exposed(S, gain))
+    rec_e, S_e = torch.broadcast_tensors(exposed(rec, gain), exposed(S, gain, extended))
     return ((rec_e, S_e) if l1_exposed else (rec, S)), (rec_e, S_e)
 
 
 def reconstruction_loss(rec: torch.Tensor, S: torch.Tensor, lambda_ssim: float = 0.2, huber: float = 0.0,
                         gain: Optional[torch.Tensor] = None, l1_exposed: bool = True,
-                        ssim_noise: bool = False, camera: Optional[Tuple[torch.Tensor, torch.Tensor]] = None
-                        ) -> torch.Tensor:
+                        ssim_noise: bool = False, camera: Optional[Tuple[torch.Tensor, torch.Tensor]] = None,
+                        linear: Optional[LinearTarget] = None) -> torch.Tensor:
     """Ls(R̂∘L̂, S) alone (no 2D priors), with the options of :func:`supervision_loss`'s reconstruction term."""
     check_bchw(rec, S)
+    if linear is not None:
+        (x, y), (xs, ys) = _reconstruction_pairs(rec, S, gain, False, True)
+        lin = linear_reconstruction(rec, S, linear, gain)
+        if lambda_ssim == 0:
+            return lin
+        noise = noise_variance(ys) if ssim_noise else None
+        return (1.0 - lambda_ssim) * lin + lambda_ssim * (1.0 - ssim(xs, ys, c2_extra=noise))
     if camera is not None:
         rec = camera_expectation(rec, *camera)
     (x, y), (xs, ys) = _reconstruction_pairs(rec, S, gain, l1_exposed)
@@ -157,7 +223,8 @@ def supervision_loss(R_hat: torch.Tensor, L_hat: torch.Tensor, R: torch.Tensor, 
                      S: torch.Tensor, w_r: float = 0.5, w_l: float = 0.5, w_s: float = 1.0,
                      lambda_ssim: float = 0.2, rec_huber: float = 0.0, rec_gain: Optional[torch.Tensor] = None,
                      rec_l1_exposed: bool = True, rec_ssim_noise: bool = False,
-                     camera: Optional[Tuple[torch.Tensor, torch.Tensor]] = None) -> Tuple[torch.Tensor, Terms]:
+                     camera: Optional[Tuple[torch.Tensor, torch.Tensor]] = None,
+                     linear: Optional[LinearTarget] = None) -> Tuple[torch.Tensor, Terms]:
     """L_sup of Eq. 4: w_r·Ls(R̂, R) + w_l·Ls(L̂, L) + w_s·Ls(R̂∘L̂, S).
 
     Args:
@@ -171,6 +238,9 @@ def supervision_loss(R_hat: torch.Tensor, L_hat: torch.Tensor, R: torch.Tensor, 
             (:func:`noise_variance`, ``ssim``'s ``c2_extra``); the priors' SSIM is unchanged.
         camera: (a, b), the capture's noise: R̂∘L̂ is compared with S through :func:`camera_expectation` (the
             priors' terms are not: R and L are the decomposer's estimates, not photos).
+        linear: a raw scene's :class:`LinearTarget`: the reconstruction term's L1 is replaced by
+            :func:`linear_reconstruction` (S is the view's unclipped encoding; ``camera`` and ``rec_huber`` do not
+            apply) and its SSIM compares exposed values with S exposed unclipped.
 
     Returns:
         (total, {"sup_r", "sup_l", "sup_rec"}) — the unweighted terms, for logging.
@@ -179,15 +249,18 @@ def supervision_loss(R_hat: torch.Tensor, L_hat: torch.Tensor, R: torch.Tensor, 
     # The three Ls terms as one channel-stacked L1 + SSIM (SSIM is per channel, so stacking changes no value;
     # it is one set of kernels instead of three). Each pair is broadcast to a common channel count first.
     rec = R_hat * L_hat
-    if camera is not None:
+    lin_rec = None if linear is None else linear_reconstruction(rec, S, linear, rec_gain)
+    if camera is not None and linear is None:
         rec = camera_expectation(rec, *camera)
-    (rec, target), (rec_s, target_s) = _reconstruction_pairs(rec, S, rec_gain, rec_l1_exposed)
+    (rec, target), (rec_s, target_s) = _reconstruction_pairs(rec, S, rec_gain, rec_l1_exposed and linear is None,
+                                                             linear is not None)
     pairs = [torch.broadcast_tensors(a, b) for a, b in ((R_hat, R), (L_hat, L), (rec, target))]
     sizes = [a.shape[1] for a, _ in pairs]
     x = torch.cat([a for a, _ in pairs], dim=1)
     y = torch.cat([b for _, b in pairs], dim=1)
     err = (x - y).split(sizes, dim=1)
-    l1 = torch.stack([err[0].abs().mean(), err[1].abs().mean(), robust_abs(err[2], rec_huber).mean()])
+    l1 = torch.stack([err[0].abs().mean(), err[1].abs().mean(),
+                      robust_abs(err[2], rec_huber).mean() if lin_rec is None else lin_rec])
     if lambda_ssim:
         if rec_s is not rec:
             x, y = torch.cat([x[:, :-sizes[2]], rec_s], dim=1), torch.cat([y[:, :-sizes[2]], target_s], dim=1)

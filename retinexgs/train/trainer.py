@@ -7,6 +7,7 @@ import json
 import math
 import random
 import time
+from dataclasses import asdict
 from pathlib import Path
 from typing import Callable, Dict, Iterator, List, Optional, Sequence, Tuple
 
@@ -15,6 +16,7 @@ from torch import Tensor
 from torch.profiler import record_function
 
 from retinexgs.data import Scene, View
+from retinexgs.data.raw_noise import RawNoise, scene_noise
 from retinexgs.errors import UserError
 from retinexgs.fileio import is_out_of_space, out_of_space_error
 from retinexgs.model.gaussians import GaussianModel
@@ -172,7 +174,7 @@ class Trainer:
                 priors = decompose_views(train, cfg, str(dev), self.progress, self.scene.root)
             views: List[TrainView] = []
             for i, v in enumerate(train):
-                S = v.image.to(dev)
+                S = v.load_target().to(dev)
                 v.release_images()  # the device copy is the one kept (on the CPU: the same tensor)
                 R = L = None
                 if priors is not None:
@@ -240,6 +242,7 @@ class Trainer:
         if self.model.has_background and state is None:
             self.model.background.copy_(self.mean_background())
         self._set_up_noise(state)
+        self._set_up_raw(state)
         lr = self.cfg.lr
         g = self.model.gaussians
         groups = [
@@ -335,6 +338,44 @@ class Trainer:
             if probe_rng is not None and not (dist is not None and dist.enabled):  # a resume draws on where it was
                 self.noise_probe.generator.set_state(probe_rng)
 
+    def _set_up_raw(self, state: Optional[Dict]) -> None:
+        """A camera raw scene (issue 52 stage 3b): unless ``loss.rec_raw`` is ``photo``, the reconstruction compares
+        R̂∘L̂ with the views' unclipped values in linear light, weighted by the views' noise (``self.linear_target``,
+        :class:`retinexgs.train.losses.LinearTarget`; the noise from the DNG NoiseProfile or the mosaic,
+        :mod:`retinexgs.data.raw_noise`, read from the checkpoint on a resume). The camera's clipped-noise response
+        (``loss.rec_camera_noise``) describes a JPEG's clip at black, which raw values do not have: not used."""
+        self.raw_noise: Optional[RawNoise] = None
+        self.linear_target: Optional[losses.LinearTarget] = None
+        self.raw_scene = self.scene.raw
+        mode = self.cfg.loss.rec_raw
+        if not (self.decomposed and self.raw_scene) or mode == "photo":
+            return
+        saved = (state or {}).get("raw_noise")
+        if saved:
+            noise: Optional[RawNoise] = RawNoise(**saved)
+        else:
+            noise = scene_noise([v.source_path if v.source_path is not None else v.image_path
+                                 for v in self.scene.train])
+            if noise is not None:
+                for note in noise.notes:
+                    self.log(f"warning: {note}")
+        dist = self._setup_dist
+        if dist is not None and dist.enabled:
+            noise = dist.broadcast_object(noise, "the raw views' noise")
+        if noise is None:  # no flat area anywhere: equal weights (plain least squares in linear light)
+            self.log("warning: the raw views' noise could not be measured: the linear reconstruction weighs pixels "
+                     "equally")
+            noise = RawNoise((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), "none")
+        self.raw_noise = noise
+        d2 = float(self.cfg.data.downscale) ** 2  # a downscaled view averages d × d pixels
+        a = torch.tensor(noise.a, dtype=torch.float32, device=self.device).reshape(1, 3, 1, 1) / d2
+        b = torch.tensor(noise.b, dtype=torch.float32, device=self.device).reshape(1, 3, 1, 1) / d2
+        self.linear_target = losses.LinearTarget(mode, a, b)
+        self.log(f"raw scene: reconstruction in linear light ({mode}); {noise.describe()}")
+        if self.camera_noise is not None:
+            self.log("loss.rec_camera_noise is not used on a raw scene (its values are not clipped at black)")
+            self.camera_noise = None
+
     def illumination_reference(self) -> float:
         """L_ref, the scene's "full light" level that the enhancement normalises L̂ by: the median over the
         training views of the ``model.enhancement.ref_quantile`` quantile of the 2D prior L (of max-RGB of S
@@ -404,17 +445,21 @@ class Trainer:
             return rgb, {"rgb": rgb}
         R_img, L_img = image[..., :3], image[..., 3:6]
         R_hat, L_hat, S_b = to_bchw(R_img), to_bchw(L_img), to_bchw(S)
+        if self.linear_target is None and self.raw_scene:  # loss.rec_raw photo: the raw view as a clipped photo
+            S_b = S_b.clamp(0.0, 1.0)
         terms: Dict[str, Tensor] = {}
         gain = self.rec_gain()
         l1_exposed = c.rec_domain == "exposed"
         if R is not None:
             sup, sup_terms = losses.supervision_loss(R_hat, L_hat, to_bchw(R), to_bchw(L), S_b, c.w_r,
                                                      c.w_l, c.w_s, c.lambda_ssim, c.rec_huber, gain,
-                                                     l1_exposed, c.rec_ssim_noise, self.camera_noise)
+                                                     l1_exposed, c.rec_ssim_noise, self.camera_noise,
+                                                     self.linear_target)
             terms.update(sup_terms)
         else:  # no 2D priors: only the reconstruction is supervised
             terms["sup_rec"] = losses.reconstruction_loss(R_hat * L_hat, S_b, c.lambda_ssim, c.rec_huber,
-                                                          gain, l1_exposed, c.rec_ssim_noise, self.camera_noise)
+                                                          gain, l1_exposed, c.rec_ssim_noise, self.camera_noise,
+                                                          self.linear_target)
             sup = c.w_s * terms["sup_rec"]
         terms["tv"] = losses.tv_loss(R_hat)
         total = sup + c.w_tv * terms["tv"]
@@ -667,6 +712,7 @@ class Trainer:
                 "scene_root": str(self.scene.root), "train_views": [v.name for v in self.scene.train],
                 "train_seconds": self.train_seconds(),
                 "capture_noise": self.capture_noise.state_dict() if self.capture_noise is not None else None,
+                "raw_noise": asdict(self.raw_noise) if self.raw_noise is not None else None,
                 "noise_probe_rng": self.noise_probe.generator.get_state() if self.noise_probe is not None else None,
                 # For information (a checkpoint resumes with any number of ranks): how it was trained.
                 "ranks": self.dist.world, "views_per_step": self.batch_size}

@@ -49,6 +49,9 @@ def compact_photo(image: Tensor) -> np.ndarray:
 
 _MAGIC = b"RGSVIEWS"
 _FORMAT = 1
+# What a stored photo holds, part of the fingerprint: 2 since camera raw views are stored unclipped (issue 52
+# stage 3b); a store made before is rebuilt rather than read as the new values.
+_PHOTOS = 2
 _PREFIX = struct.Struct("<8sIQQ")  # magic, format, header offset, header length
 _PAGE = 4096  # each view starts on a page
 _ALIGN = 256  # each array within a view
@@ -239,7 +242,8 @@ def store_fingerprint(image_paths: Sequence[Path], sizes: Sequence[Tuple[int, in
 
     items = [[image_key(Path(p)), int(Path(p).stat().st_size), int(h), int(w)]
              for p, (h, w) in zip(image_paths, sizes)]
-    blob = json.dumps({"format": _FORMAT, "key": "content", "priors": priors_tag, "views": items}, sort_keys=True)
+    blob = json.dumps({"format": _FORMAT, "photos": _PHOTOS, "key": "content", "priors": priors_tag, "views": items},
+                      sort_keys=True)
     return hashlib.sha256(blob.encode("utf-8")).hexdigest()
 
 

@@ -202,7 +202,7 @@ class ViewStatistics:
 
 def _read_compact(view) -> Tuple[Tensor, np.ndarray]:
     """A view's photo as the trainer reads it (float32 [H,W,3]) and in its compact stored form."""
-    image = view.load_image()
+    image = view.load_target()
     return image, compact_photo(image)
 
 

@@ -1,0 +1,126 @@
+"""The noise of a raw scene's views, in the units training compares them in (issue 52 stage 3b).
+
+A raw view (:func:`retinexgs.data.camera_raw.view_srgb` with ``clip=False``) is linear light: the mosaic
+normalised by its black and white levels, bilinear-demosaiced, times the white balance g, through the camera ->
+sRGB matrix M, divided by its exposure factor f. A mosaic sample of colour j has variance a_j·x + b_j (the DNG
+NoiseProfile, or :func:`retinexgs.data.camera_raw.estimate_noise` where the file has none). Carried through:
+
+- white balance: v_j = g_j·x_j, so var(v_j) = g_j·a_j·v_j + g_j²·b_j;
+- demosaic: a bilinear interpolation averages 2 or 4 samples at the pixels a colour is not sampled; over the 2×2
+  pattern the mean variance is d_j = 0.5625 of a sample's for R and B, 0.625 for G;
+- matrix: y_i = Σ_j M_ij·v_j, so var(y_i) = Σ_j M_ij²·var(v_j) (the channels' noise taken as independent). For a
+  neutral pixel (all v_j equal to y, as M's rows sum to 1) this is exactly a_i'·y + b_i' with
+  a_i' = Σ_j M_ij²·d_j·g_j·a_j and b_i' = Σ_j M_ij²·d_j·g_j²·b_j; a coloured pixel is approximated by it;
+- exposure: y / f has variance (a'/f)·y + b'/f².
+
+Only the shape of var(y) matters to the loss that uses it (its weights are normalised per image), so the
+approximations above (independent channels, the mean demosaic factor) move weights, not what the fit converges to.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from retinexgs.data.camera_raw import (RawPhoto, estimate_noise, folder_exposure, noise_from_profile,
+                                      normalised_mosaic, read_raw)
+
+__all__ = ["BILINEAR_VARIANCE", "RawNoise", "view_noise", "scene_noise", "DISAGREEMENT"]
+
+# The mean variance of a bilinear-demosaiced channel over the 2×2 pattern, per sample's (R, G, B): R/B are sampled at
+# 1 of 4 pixels, averaged over 2 at 2 of 4 and over 4 at 1 of 4 (1/4 + 2/4·1/2 + 1/4·1/4); G at 2 of 4 and over 4
+# elsewhere (1/2 + 1/2·1/4).
+BILINEAR_VARIANCE = np.array([0.5625, 0.625, 0.5625])
+
+# A NoiseProfile whose variance at the photo's median signal is off its pixels' by more than this factor (either
+# way) is not used. The estimator reads the real samples' profile-free noise within 30 % (docs/raw.md).
+DISAGREEMENT = 2.0
+
+# Views whose noise is read: spread evenly over the scene, as the capture-noise meter does.
+NOISE_VIEWS = 5
+
+
+@dataclass
+class RawNoise:
+    """A raw scene's view noise: var(y) ≈ a·y + b per channel (R, G, B) of the views' linear light; ``source``:
+    "profile" (the DNG NoiseProfile), "estimate" (measured on the mosaic) or "mixed"; ``notes``: one line each
+    for what the user should know (a profile not used, a view without a usable estimate)."""
+    a: Tuple[float, float, float]
+    b: Tuple[float, float, float]
+    source: str
+    notes: List[str] = field(default_factory=list)
+
+    def describe(self) -> str:
+        """One line for the log."""
+        a = ", ".join(f"{v:.3g}" for v in self.a)
+        b = ", ".join(f"{v:.3g}" for v in self.b)
+        return f"raw views' noise ({self.source}): var = a·y + b, a = ({a}), b = ({b})"
+
+
+def _to_view(a: np.ndarray, b: np.ndarray, photo: RawPhoto, factor: float) -> Tuple[np.ndarray, np.ndarray]:
+    """Per-sample (a, b) of the mosaic -> the view's linear light (module docstring)."""
+    g = photo.white_balance.astype(np.float64)
+    m2 = photo.cam_to_srgb.astype(np.float64) ** 2
+    a_v = m2 @ (BILINEAR_VARIANCE * g * a)
+    b_v = m2 @ (BILINEAR_VARIANCE * g * g * b)
+    return a_v / factor, b_v / factor ** 2
+
+
+def _variance_at(a: np.ndarray, b: np.ndarray, x: float) -> np.ndarray:
+    return a * x + b
+
+
+def view_noise(photo: RawPhoto, factor: float = 1.0) -> Tuple[Optional[np.ndarray], Optional[np.ndarray], str,
+                                                                 Optional[str]]:
+    """(a, b, source, note) of one raw photo in its view's linear light at exposure ``factor``: from its
+    NoiseProfile unless that disagrees with the pixels' own estimate by over :data:`DISAGREEMENT` at the photo's
+    median signal (then the estimate, and a note naming the file); (None, None, "none", note) when neither gives
+    a finite model."""
+    est_a, est_b = estimate_noise(photo)
+    est_a, est_b = np.maximum(est_a, 0.0), np.maximum(est_b, 0.0)  # a variance model never falls below zero
+    est_ok = bool(np.all(np.isfinite(est_a)) and np.all(np.isfinite(est_b)))
+    prof = noise_from_profile(photo)
+    note = None
+    if prof is not None:
+        pa, pb = prof
+        if est_ok:
+            x = max(float(np.median(normalised_mosaic(photo))), 0.0)
+            ratio = _variance_at(pa, pb, x) / np.maximum(_variance_at(est_a, est_b, x), 1e-30)
+            if np.any(ratio > DISAGREEMENT) or np.any(ratio < 1.0 / DISAGREEMENT):
+                note = (f"{photo.path}: its NoiseProfile disagrees with its pixels (variance "
+                        f"{np.round(ratio, 2).tolist()} times the measured one at signal {x:.3g}): the measured "
+                        "noise is used")
+                a, b = _to_view(est_a, est_b, photo, factor)
+                return a, b, "estimate", note
+        a, b = _to_view(np.asarray(pa, np.float64), np.asarray(pb, np.float64), photo, factor)
+        return a, b, "profile", None
+    if est_ok:
+        a, b = _to_view(est_a, est_b, photo, factor)
+        return a, b, "estimate", None
+    return None, None, "none", f"{photo.path}: too little flat area to measure its noise; not used for the model"
+
+
+def scene_noise(paths: Sequence[Path], views: int = NOISE_VIEWS) -> Optional[RawNoise]:
+    """:class:`RawNoise` of a raw scene from up to ``views`` of its files (spread evenly): per channel the median
+    of the views' (a, b), each at its view's exposure factor. None when no view gives a model."""
+    paths = [Path(p) for p in paths]
+    chosen = paths[::max(1, len(paths) // views)][:views]
+    got_a, got_b, sources, notes = [], [], set(), []
+    for p in chosen:
+        factor = folder_exposure(p.parent).factors.get(p.name, 1.0)
+        a, b, source, note = view_noise(read_raw(p), factor)
+        if note:
+            notes.append(note)
+        if a is None:
+            continue
+        got_a.append(a)
+        got_b.append(b)
+        sources.add(source)
+    if not got_a:
+        return None
+    a = np.maximum(np.median(np.stack(got_a), axis=0), 0.0)
+    b = np.maximum(np.median(np.stack(got_b), axis=0), 1e-12)  # a variance floor: never a zero weight's inverse
+    source = sources.pop() if len(sources) == 1 else "mixed"
+    return RawNoise(tuple(float(v) for v in a), tuple(float(v) for v in b), source, notes)

@@ -1,0 +1,190 @@
+"""Issue 52, stage 3b: raw scenes train in linear light on their unclipped values, weighted by their noise.
+
+Fixtures: synthetic DNGs written by the simulator's pieces (retinexgs.data.raw_sim) and tiny demo scenes turned
+into raw scenes by ``darken --raw``; never the shared data.
+"""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from retinexgs.data.camera_raw import read_raw, read_view_srgb
+from retinexgs.data.dng import write_dng
+from retinexgs.data.raw_noise import DISAGREEMENT, scene_noise, view_noise
+from retinexgs.data.raw_sim import RawCamera, capture_mosaic, write_raw_view
+from retinexgs.data.sensor import SensorModel
+from retinexgs.data.srgb import (linear_to_srgb, linear_to_srgb_extended,
+                                 srgb_to_linear_extended)
+from retinexgs.demo.synthetic import make_demo_scene
+from retinexgs.train import losses
+from scenes import TINY_RUN, run_cli
+
+
+# ---- the unclipped encoding -----------------------------------------------------------------------------------
+
+def test_the_extended_encoding_is_the_srgb_curve_on_0_1_and_inverts_exactly_beyond_it():
+    x = np.linspace(-0.3, 4.0, 4001)
+    y = linear_to_srgb_extended(x)
+    assert np.all(np.diff(y) > 0)  # monotone: a median commutes with it
+    assert np.allclose(srgb_to_linear_extended(y), x, atol=1e-12, rtol=0)
+    inside = (x >= 0) & (x <= 1)
+    assert np.array_equal(y[inside], linear_to_srgb(x[inside]))
+    assert np.allclose(y[x < 0], 12.92 * x[x < 0])  # the linear segment, continued
+    t = torch.tensor([-0.01, 0.5, 2.0], dtype=torch.float64)
+    assert torch.allclose(srgb_to_linear_extended(linear_to_srgb_extended(t)), t)
+
+
+# ---- the linear reconstruction --------------------------------------------------------------------------------
+
+def _target(mode: str, a=(0.004, 0.002, 0.002), b=(3e-4, 1e-4, 1e-4)) -> losses.LinearTarget:
+    return losses.LinearTarget(mode, torch.tensor(a, dtype=torch.float64).reshape(1, 3, 1, 1),
+                               torch.tensor(b, dtype=torch.float64).reshape(1, 3, 1, 1))
+
+
+def test_linear_weights_follow_the_noise_model_or_rawnerf_and_average_one():
+    x = torch.rand(2, 3, 5, 7, dtype=torch.float64) * 0.1
+    t = _target("noise")
+    w = losses.linear_weights(x, t, torch.tensor(10.0, dtype=torch.float64))
+    want = 1.0 / (t.a * x + t.b)
+    assert torch.allclose(w, want / want.mean(dim=(1, 2, 3), keepdim=True))
+    assert torch.allclose(w.mean(dim=(1, 2, 3)), torch.ones(2, dtype=torch.float64))
+    w = losses.linear_weights(x, _target("relative"), torch.tensor(10.0, dtype=torch.float64))
+    want = 1.0 / (10.0 * x + losses.RELATIVE_EPS) ** 2
+    assert torch.allclose(w, want / want.mean(dim=(1, 2, 3), keepdim=True))
+    with pytest.raises(ValueError, match="unknown linear"):
+        losses.linear_weights(x, _target("median"), torch.tensor(1.0))
+
+
+def test_the_linear_fit_of_noisy_views_is_their_mean_light_where_the_clipped_photo_lifts_black():
+    """Many views of one dark grey point (light μ, noise σ ≫ μ, so a quarter of the values are negative): the
+    render that zeroes the linear term's gradient is the views' mean light, to float64 precision, in both weight
+    modes. The same views as clipped photos average well above μ (the lift that stage 3a kept)."""
+    rng = np.random.default_rng(0)
+    mu, sigma, n = 0.004, 0.01, 4096
+    views = mu + sigma * rng.standard_normal((1, 3, 1, n))
+    S = torch.tensor(linear_to_srgb_extended(views), dtype=torch.float64)
+    gain = torch.tensor(20.0, dtype=torch.float64)
+    mean = torch.tensor(views.mean(axis=-1, keepdims=True))
+    for mode in ("noise", "relative"):
+        rec = linear_to_srgb(mean).expand(1, 3, 1, n).clone().requires_grad_(True)
+        losses.linear_reconstruction(rec, S, _target(mode), gain).backward()
+        assert rec.grad.sum(dim=-1).abs().max() < 1e-12, mode
+    # off the mean, the gradient points back to it
+    rec = linear_to_srgb(mean * 2).expand(1, 3, 1, n).clone().requires_grad_(True)
+    losses.linear_reconstruction(rec, S, _target("noise"), gain).backward()
+    assert torch.all(rec.grad.sum(dim=-1) > 0)
+    clipped = np.clip(views, 0, None).mean()
+    assert clipped > mu + 0.2 * sigma  # E[max(0, X)]: 0.23σ above μ here; what fitting clipped photos gives
+
+
+def test_supervision_loss_uses_the_linear_term_for_the_reconstruction_only():
+    torch.manual_seed(0)
+    R_hat, L_hat = torch.rand(1, 3, 16, 16), torch.rand(1, 1, 16, 16)
+    R, L = torch.rand(1, 3, 16, 16), torch.rand(1, 1, 16, 16)
+    S = torch.randn(1, 3, 16, 16) * 0.05 + 0.1  # negative values present
+    gain = torch.tensor(4.0)
+    t = losses.LinearTarget("noise", torch.full((1, 3, 1, 1), 0.01), torch.full((1, 3, 1, 1), 1e-3))
+    _, plain = losses.supervision_loss(R_hat, L_hat, R, L, S.clamp(0, 1), rec_gain=gain, rec_l1_exposed=False)
+    _, lin = losses.supervision_loss(R_hat, L_hat, R, L, S, rec_gain=gain, rec_l1_exposed=False, linear=t)
+    assert torch.allclose(plain["sup_r"], lin["sup_r"]) and torch.allclose(plain["sup_l"], lin["sup_l"])
+    rec = R_hat * L_hat
+    ssim = losses.ssim(losses.exposed(rec, gain), losses.exposed(S, gain, extended=True))
+    want = 0.8 * losses.linear_reconstruction(rec, S, t, gain) + 0.2 * (1 - ssim)
+    assert torch.allclose(lin["sup_rec"], want, atol=1e-6)
+    alone = losses.reconstruction_loss(rec, S, 0.2, 0.0, gain, False, linear=t)
+    assert torch.allclose(alone, want, atol=1e-6)
+
+
+# ---- the views' noise model -----------------------------------------------------------------------------------
+
+def _grey_dng(tmp_path, name="grey.dng", value=0.3, profile_scale=1.0, size=192):
+    model = SensorModel(exposure=0.1, exposure_jitter=0.0, full_well=1000.0, read_noise=6.0)
+    cam = RawCamera(bits=14, cfa="RGGB")
+    grey = np.full((size, size, 3), value)
+    dn = capture_mosaic(grey, model, cam, 0.1, np.random.default_rng(1))
+    path = write_raw_view(tmp_path / name, dn, cam, model, 0.1)
+    if profile_scale != 1.0:  # the same pixels with a NoiseProfile that misstates them
+        p = read_raw(path)
+        s, o = p.noise_profile[0]
+        write_dng(path, p.mosaic, cfa=p.cfa_pattern, black_level=float(p.black_level[0, 0]),
+                  white_level=int(p.white_level), as_shot_neutral=tuple(1 / p.white_balance),
+                  color_matrix1=p.xyz_to_cam, exposure_time=p.exposure_time, iso=p.iso, f_number=p.f_number,
+                  noise_profile=[s * profile_scale, o * profile_scale])
+    return path
+
+
+def test_the_view_noise_model_predicts_the_views_own_variance(tmp_path):
+    """A flat grey DNG: the variance of its view's unclipped linear values, per channel, is the model's a·y + b
+    within 15 % (white balance, demosaic and matrix carried through; 36864 pixels, neighbours correlated by the
+    demosaic)."""
+    path = _grey_dng(tmp_path)
+    a, b, source, note = view_noise(read_raw(path))
+    assert source == "profile" and note is None
+    y = srgb_to_linear_extended(read_view_srgb(path, clip=False).astype(np.float64))[8:-8, 8:-8]
+    for c in range(3):
+        m = y[..., c].mean()
+        assert y[..., c].var() == pytest.approx(a[c] * m + b[c], rel=0.15), c
+
+
+def test_a_noise_profile_that_disagrees_with_its_pixels_is_named_and_not_used(tmp_path):
+    path = _grey_dng(tmp_path, profile_scale=4 * DISAGREEMENT)
+    a, b, source, note = view_noise(read_raw(path))
+    assert source == "estimate" and note is not None
+    assert str(path) in note and "NoiseProfile disagrees" in note and "\n" not in note
+    good = view_noise(read_raw(_grey_dng(tmp_path, "good.dng")))
+    m = srgb_to_linear_extended(read_view_srgb(path, clip=False).astype(np.float64)).mean(axis=(0, 1))
+    assert np.allclose(a * m + b, good[0] * m + good[1], rtol=0.3)  # one grey level: the variance there
+    noise = scene_noise([path])
+    assert noise.source == "estimate" and len(noise.notes) == 1
+
+
+# ---- training ---------------------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def night(tmp_path_factory):
+    base = tmp_path_factory.mktemp("raw_linear")
+    src = make_demo_scene(base / "src", n_train=3, n_test=1, width=48, height=36, n_points=200)
+    from retinexgs.cli import main
+    assert main(["darken", "--data", str(src), "--out", str(base / "night"), "--raw", "--quiet"]) == 0
+    return base / "night"
+
+
+def _train(scene, out, capsys, *extra):
+    sets = [a for s in (*TINY_RUN, *extra) for a in ("--set", s)]
+    return run_cli(["train", "--data", scene, "--out", out, "--config", "demo", *sets, "--device", "cpu"], capsys)
+
+
+@pytest.mark.parametrize("mode", ["noise", "relative", "photo"])
+def test_a_raw_scene_trains_in_the_chosen_domain_and_says_so(night, tmp_path, capsys, mode):
+    code, out, err = _train(night / "raw", tmp_path / "run", capsys, f"loss.rec_raw={mode}")
+    assert code == 0, err
+    said = "reconstruction in linear light" in out + err
+    assert said == (mode != "photo"), (mode, out + err)
+    metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert all(np.isfinite(v["psnr"]) for v in metrics["views"])
+    if mode == "noise":  # the noise model travels with the checkpoint (a resume weighs pixels alike)
+        ckpt = sorted((tmp_path / "run" / "checkpoints").iterdir())[-1]
+        state = torch.load(next(ckpt.glob("*.pt")) if ckpt.is_dir() else ckpt, map_location="cpu",
+                           weights_only=False)
+        assert state["raw_noise"]["source"] == "profile" and len(state["raw_noise"]["a"]) == 3
+
+
+def test_a_jpeg_scene_is_not_touched_by_rec_raw(night, tmp_path, capsys):
+    code, out, err = _train(night / "jpeg", tmp_path / "run", capsys, "loss.rec_raw=noise")
+    assert code == 0, err
+    assert "linear light" not in out + err
+
+
+def test_the_training_target_of_a_raw_view_keeps_its_negative_noise(night):
+    from retinexgs.data.load import load_scene
+    scene = load_scene(night / "raw")
+    assert scene.raw
+    v = scene.train[0]
+    target, shown = v.load_target(), v.load_image()
+    assert target.min() < 0 and shown.min() >= 0  # the noise around black, unclipped for training only
+    assert torch.equal(shown, target.clamp(0, 1))
+    jpeg = load_scene(night / "jpeg")
+    assert not jpeg.raw and torch.equal(jpeg.train[0].load_target(), jpeg.train[0].load_image())
