@@ -280,6 +280,40 @@ mode_quality() {
   finish 0
 }
 
+# ------------------------------------------------------------------------------------------------------ bench
+# bench "ARGS" ["ARGS" ...]: each quoted argument one `python -m retinexgs.bench quality ARGS --runs $RUNS
+# --device cuda`, all side by side (give each its own --gpus/--jobs share), scenes named as /tmp/data/SCENE or as
+# ladder folders under $RUNS/ladder; a first ARGS with --no-train (e.g. making a --raw-ladder) runs alone first.
+# Options: --limit S (540: every bench stops S s after the call began; the same call on the warm machine reuses
+# finished runs and resumes cut-off ones). -> quality-N.md per bench, runs.tgz (metrics, logs, sheets)
+mode_bench() {
+  LIMIT=${LIMIT:-540} RUNS=${RUNS:-/tmp/runs}
+  parse "limit" "$@"
+  setup; need_train_wheels; stage_data
+  python3 -c "import rawpy, exifread" 2> /dev/null || die "rawpy or exifread is missing here: carry their wheels"
+  mkdir -p "$RUNS"
+  local i=0 pids=() a
+  for a in "${ARGS[@]}"; do
+    local left=$(( LIMIT - $(elapsed) ))
+    # shellcheck disable=SC2086  # ARGS: one bench's arguments, split on spaces
+    if [[ $a == *--no-train* ]]; then
+      timeout "$left" python3 -m retinexgs.bench quality $a --runs "$RUNS" --device cuda > "$RUNS/bench$i.log" 2>&1
+      echo "bench$i (no training): exit $? at $(elapsed) s"; tail -3 "$RUNS/bench$i.log"
+    else
+      timeout "$left" python3 -m retinexgs.bench quality $a --runs "$RUNS" --device cuda --out "$RUNS/quality-$i.md" \
+        > "$RUNS/bench$i.log" 2>&1 &
+      pids+=($!)
+    fi
+    i=$((i + 1))
+  done
+  wait "${pids[@]}"
+  for f in "$RUNS"/bench*.log; do echo "== $f"; grep -E "^(ok|FAIL|reused)|runs in" "$f" | sed 's/^/  /' | tail -80; done
+  cp "$RUNS"/quality-*.md "$OUT/" 2> /dev/null
+  tar czf "$OUT/runs.tgz" --exclude='*.pt' --exclude='tb' --exclude='renders' --exclude="$(basename "$RUNS")/ladder" \
+    -C "$(dirname "$RUNS")" "$(basename "$RUNS")" 2> /dev/null
+  finish 0
+}
+
 # ------------------------------------------------------------------------------------------------------ train
 mode_train() {
   JOBS=${JOBS:-1} STEPS=${STEPS:-} SCENE=${SCENE:-fox-dark} SEED=${SEED:-0}
@@ -528,7 +562,7 @@ mode_compile() {
 
 MODE=${1:-help}; shift || true
 case $MODE in
-  quality | train | speed | tests | scale | compile) "mode_$MODE" "$@" ;;
+  quality | train | speed | tests | scale | compile | bench) "mode_$MODE" "$@" ;;
   build) parse "" "$@"; setup; finish 0 ;;
   help | -h | --help) usage ;;
   *) usage >&2; echo >&2; die "unknown mode $MODE" ;;

@@ -533,7 +533,7 @@ def test_fingerprint_follows_the_photos(scene_dir):
 def test_a_store_that_cannot_fit_is_refused_before_decoding(scene_dir, tmp_path, monkeypatch):
     monkeypatch.setattr(store_mod, "free_bytes", lambda folder: 1000)
     reads = []
-    monkeypatch.setattr(View, "load_image", lambda self: reads.append(self) or torch.zeros(1))
+    monkeypatch.setattr(View, "load_target", lambda self: reads.append(self) or torch.zeros(1))
     with pytest.raises(UserError, match="no space left on device for the view store"):
         make(scene_dir, tmp_path / "run", "always", ["data.cache_dir=" + str(tmp_path / "elsewhere")])
     assert not reads
@@ -544,7 +544,7 @@ def test_building_the_store_holds_a_bounded_number_of_views(tmp_path, monkeypatc
     monkeypatch.setattr(views_mod, "read_ahead_workers", lambda: 2)
     scene = make_demo_scene(tmp_path / "scene", n_train=10, n_test=1, width=24, height=18, n_points=200)
     photos, priors, alive = [], [], []
-    load = View.load_image
+    load = View.load_target  # what training reads (the photo, unclipped for a camera raw view)
 
     def counted(self):
         gc.collect()
@@ -560,7 +560,7 @@ def test_building_the_store_holds_a_bounded_number_of_views(tmp_path, monkeypatc
             priors.append(weakref.ref(R))
             yield R, L
 
-    monkeypatch.setattr(View, "load_image", counted)
+    monkeypatch.setattr(View, "load_target", counted)
     monkeypatch.setattr(trainer_mod, "decompose_views", counted_priors)
     tr = make(scene, tmp_path / "run", "always")
     assert len(photos) == 10 and len(priors) == 10

@@ -13,7 +13,13 @@ stage 3a, docs/raw.md "Raw scenes") are photos too: :func:`read_image_float` rea
 visible area, so poses and intrinsics declared for it fit), the camera's as-shot white balance and camera -> sRGB
 matrix, divided by its exposure relative to the median of its folder's raw files, clipped to [0, 1] and
 sRGB-encoded, as float32 (no 8-bit rounding; :func:`read_image` rounds to 8 bits as for a 16-bit PNG).
-:func:`image_size` of a raw file reads LibRaw's sizes, not the mosaic.
+:func:`image_size` of a raw file reads LibRaw's sizes, not the mosaic. ``unclipped=True`` (training in linear light,
+stage 3b) keeps the view's values beyond [0, 1] (negative noise around black, light past white) in the extended
+encoding (:func:`retinexgs.data.srgb.linear_to_srgb_extended`); other photos ignore it (their values are in [0, 1]).
+
+The undistort/downscale cache keeps a raw view's processed copy as a ``.npy`` file (:data:`FLOAT_CACHE_EXTENSION`,
+float32 [H,W,3], extended-encoded; :mod:`retinexgs.data.undistort`): :func:`read_image_float` reads it, clipped to
+[0, 1] unless ``unclipped``. It is a cache format, not a photo type (not in :data:`IMAGE_EXTENSIONS`).
 
 Orientation: the EXIF orientation tag is ignored for every format, as COLMAP ignores it, so poses and pixels
 stay consistent: a photo is read as its pixels are stored. For JPEG that is Pillow's default. For HEIC the
@@ -39,6 +45,8 @@ from retinexgs.fileio import atomic_write
 RAW_EXTENSIONS = BAYER_RAW_EXTENSIONS
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".heic", ".heif") + RAW_EXTENSIONS
 HEIF_EXTENSIONS = (".heic", ".heif")
+# The image cache's copy of a raw view (float32 [H,W,3], extended sRGB encoding): readable, never listed as a photo.
+FLOAT_CACHE_EXTENSION = ".npy"
 
 
 def is_raw_file(path: Path) -> bool:
@@ -149,6 +157,9 @@ def image_size(path: Path) -> Tuple[int, int]:
 
         head = read_header(path)
         return head.width, head.height
+    if _is_float_cache(path):
+        h, w = _read_float_cache(path, header_only=True).shape[:2]
+        return w, h
     with _open(path) as im:
         w, h = int(im.size[0]), int(im.size[1])
         return (h, w) if _heif_turn(im) >= 5 else (w, h)  # orientations 5-8 turn by 90°: undoing swaps sides
@@ -182,15 +193,47 @@ def _decode_16bit_colour(path: Path) -> np.ndarray:
     return data[:, :, 2::-1].astype(np.float32) / 65535.0  # BGR(A) -> RGB, alpha dropped
 
 
-def read_image_float(path: Path) -> np.ndarray:
+def _is_float_cache(path: Path) -> bool:
+    return Path(path).suffix.lower() == FLOAT_CACHE_EXTENSION
+
+
+def _read_float_cache(path: Path, header_only: bool = False) -> np.ndarray:
+    """The float32 [H,W,3] array of a cache ``.npy`` (memory-mapped and unchecked for finiteness when
+    ``header_only``: only its shape is wanted); UserError (one line naming the file) for a missing, truncated or
+    malformed file."""
+    path = Path(path)
+    try:
+        a = np.load(path, mmap_mode="r" if header_only else None, allow_pickle=False)
+    except FileNotFoundError:
+        raise UserError(f"image {path} does not exist") from None
+    except Exception as exc:  # numpy raises ValueError, EOFError, OSError... for a broken file
+        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise UserError(f"cannot read cached image {path}: {reason} (delete it to have it rebuilt)") from None
+    if not isinstance(a, np.ndarray) or a.dtype != np.float32 or a.ndim != 3 or a.shape[2] != 3 or 0 in a.shape:
+        what = (f"{a.dtype} {'x'.join(map(str, a.shape))}" if isinstance(a, np.ndarray) else type(a).__name__)
+        raise UserError(f"cannot read cached image {path}: it holds {what}, not float32 HxWx3 "
+                        "(delete it to have it rebuilt)")
+    if header_only:
+        return a
+    if not np.isfinite(a).all():
+        raise UserError(f"cannot read cached image {path}: it holds non-finite values (delete it to have it rebuilt)")
+    return np.ascontiguousarray(a)
+
+
+def read_image_float(path: Path, unclipped: bool = False) -> np.ndarray:
     """Read an image as float32 [H,W,3] in [0,1] scaled by its bit depth (see the module docstring);
     UserError naming the file if it is missing, unreadable or of an unsupported pixel format. A camera raw
-    file is read as a scene view (see the module docstring)."""
+    file is read as a scene view, a cache ``.npy`` as stored (see the module docstring); for those two
+    ``unclipped=True`` keeps values outside [0, 1] (extended sRGB encoding), other images ignore it."""
     path = Path(path)
     if is_raw_path(path):
         from retinexgs.data.camera_raw import read_view_srgb
 
-        return read_view_srgb(path)
+        return read_view_srgb(path, clip=not unclipped)
+    if _is_float_cache(path):
+        values = _read_float_cache(path)
+        # clipping the extended encoding equals encoding clipped light: the curve is monotone, 0 -> 0, 1 -> 1
+        return values if unclipped else np.clip(values, 0.0, 1.0)
     Image = _pil()
     try:
         with _open(path) as opened:
@@ -227,9 +270,10 @@ def read_image(path: Path) -> np.ndarray:
     return np.clip(np.rint(read_image_float(path) * 255.0), 0, 255).astype(np.uint8)
 
 
-def load_image_tensor(path: Path) -> torch.Tensor:
-    """Read an image as a float32 [H,W,3] tensor in [0,1] (full bit depth)."""
-    return torch.from_numpy(read_image_float(path))
+def load_image_tensor(path: Path, unclipped: bool = False) -> torch.Tensor:
+    """Read an image as a float32 [H,W,3] tensor in [0,1] (full bit depth); ``unclipped`` as for
+    :func:`read_image_float`."""
+    return torch.from_numpy(read_image_float(path, unclipped))
 
 
 def write_image_atomic(path: Path, rgb: np.ndarray, quality: int = 95) -> None:

@@ -9,11 +9,15 @@ intrinsics are scaled by new_size / old_size in the pixel-centre convention.
 Results are cached as PNG under ``<cache>/undistorted/<camera-key>_x<downscale>/`` (or
 ``<cache>/downscaled/...`` when only resizing), mirroring the source's path relative to the scene
 folder with the first 16 hex digits of the SHA-256 of the source's bytes added to the name
-(``low/0001.jpg`` -> ``low/0001-<16 hex>.png``), written atomically (all of a load's files together, see
-:func:`process_all`). A cached copy is reused only when it exists under that name: the key is the source's
-content plus the camera and downscale settings (the folder), never a path or a modification time, so two
-scenes that share a ``data.cache_dir`` and a file name, or a photo replaced by another with an older mtime
-(``cp -p``, ``rsync -a``, unzip), each get their own pixels. Copies of older contents are not deleted here.
+(``low/0001.jpg`` -> ``low/0001-<16 hex>.png``). A camera raw view is cached as ``.npy`` instead
+(``low/0001.dng`` -> ``low/0001-<16 hex>.npy``, float32, its unclipped values in the extended sRGB encoding, see
+:mod:`retinexgs.data.images`), remapped and box-filtered in LINEAR light: an average of encoded values would bias
+the mean of the noise around black, which training in linear light needs zero-mean. Copies are written
+atomically (all of a load's files together, see :func:`process_all`). A cached copy is reused only when it
+exists under that name: the key is the source's content plus the camera and downscale settings (the folder),
+never a path or a modification time, so two scenes that share a ``data.cache_dir`` and a file name, or a photo
+replaced by another with an older mtime (``cp -p``, ``rsync -a``, unzip), each get their own pixels. Copies of
+older contents are not deleted here.
 """
 from __future__ import annotations
 
@@ -32,7 +36,8 @@ import numpy as np
 
 from retinexgs.data.camera import Intrinsics
 from retinexgs.data.camera_raw import folder_exposure, is_raw_path
-from retinexgs.data.images import read_image, resize_image
+from retinexgs.data.images import FLOAT_CACHE_EXTENSION, read_image, read_image_float, resize_image
+from retinexgs.data.srgb import linear_to_srgb_extended, srgb_to_linear_extended
 from retinexgs.errors import UserError
 from retinexgs.fileio import TMP_PREFIX, atomic_write, content_digest
 
@@ -106,7 +111,8 @@ def _maps(cam: Intrinsics, new_cam: Intrinsics) -> Tuple[np.ndarray, np.ndarray]
 
 
 def undistort_rgb(rgb: np.ndarray, cam: Intrinsics, new_cam: Intrinsics) -> np.ndarray:
-    """Remap a distorted uint8 RGB image taken by ``cam`` to the pinhole camera ``new_cam``."""
+    """Remap a distorted uint8 or float32 RGB image taken by ``cam`` to the pinhole camera ``new_cam``
+    (bilinear, border pixels replicated; float values outside [0, 1] are kept)."""
     cv2 = _cv2()
     if rgb.shape[:2] != (cam.height, cam.width):
         raise ValueError(f"image is {rgb.shape[1]}x{rgb.shape[0]}, camera is {cam.width}x{cam.height}")
@@ -131,9 +137,9 @@ def needs_processing(cam: Intrinsics, downscale: float) -> bool:
 
 def cache_path_for(src: Path, root: Path, cache_dir: Path, cam: Intrinsics, downscale: float,
                    digest: Optional[str] = None) -> Path:
-    """Where the processed copy of ``src`` lives in the cache: a PNG that mirrors the path under ``root``, named
-    with the source's content digest (``digest``, computed when not given; :func:`source_digest`) in a folder
-    named by the camera and the downscale."""
+    """Where the processed copy of ``src`` lives in the cache: a PNG (a ``.npy`` for a camera raw source, see the
+    module docstring) that mirrors the path under ``root``, named with the source's key (``digest``, computed when
+    not given; :func:`image_key`) in a folder named by the camera and the downscale."""
     digest = digest or image_key(src)
     kind = "undistorted" if cam.is_distorted else "downscaled"
     tag = f"{cam.key()}_x{downscale:g}"
@@ -142,7 +148,8 @@ def cache_path_for(src: Path, root: Path, cache_dir: Path, cam: Intrinsics, down
         rel = src.relative_to(Path(root).resolve())
     except ValueError:  # image outside the scene folder: keep names apart by their folder's hash
         rel = Path("external") / hashlib.sha1(str(src.parent).encode()).hexdigest()[:10] / src.name
-    return Path(cache_dir) / kind / tag / rel.with_name(f"{rel.stem}-{digest}.png")
+    suffix = FLOAT_CACHE_EXTENSION if is_raw_path(src) else ".png"
+    return Path(cache_dir) / kind / tag / rel.with_name(f"{rel.stem}-{digest}{suffix}")
 
 
 def _write_png(path: Path, rgb: np.ndarray, elsewhere: str) -> None:
@@ -153,16 +160,54 @@ def _write_png(path: Path, rgb: np.ndarray, elsewhere: str) -> None:
         f, format="PNG", compress_level=1), elsewhere=elsewhere)
 
 
+def _write_npy(path: Path, values: np.ndarray, elsewhere: str) -> None:
+    array = np.ascontiguousarray(values, dtype=np.float32)
+    atomic_write(path, lambda f: np.save(f, array, allow_pickle=False), elsewhere=elsewhere)
+
+
+def resize_linear(rgb: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Area-average resize of float32 [H,W,3] (linear light, any values) to ``width`` x ``height``: for whole
+    factors per side exactly the mean of each block (in float64, then float32), else OpenCV's INTER_AREA."""
+    h, w = rgb.shape[:2]
+    if (w, h) == (width, height):
+        return rgb
+    if h % height == 0 and w % width == 0:
+        blocks = rgb.astype(np.float64).reshape(height, h // height, width, w // width, rgb.shape[2])
+        return blocks.mean(axis=(1, 3)).astype(np.float32)
+    cv2 = _cv2()
+    return cv2.resize(np.ascontiguousarray(rgb, dtype=np.float32), (int(width), int(height)),
+                      interpolation=cv2.INTER_AREA)
+
+
+def _check_size(src: Path, shape: Tuple[int, ...], cam: Intrinsics) -> None:
+    if shape[:2] != (cam.height, cam.width):
+        raise UserError(f"image {src} is {shape[1]}x{shape[0]} pixels but its camera says "
+                        f"{cam.width}x{cam.height}")
+
+
+def _process_raw(src: Path, dst: Path, cam: Intrinsics, out_cam: Intrinsics, elsewhere: str) -> None:
+    """A raw view's copy: its unclipped values, remapped and resized in linear light, stored extended-encoded."""
+    encoded = read_image_float(src, unclipped=True)
+    _check_size(src, encoded.shape, cam)
+    light = srgb_to_linear_extended(encoded).astype(np.float32)
+    if cam.is_distorted:
+        light = undistort_rgb(light, cam, undistorted_camera(cam))
+    light = resize_linear(light, out_cam.width, out_cam.height)
+    _write_npy(dst, linear_to_srgb_extended(light), elsewhere)
+
+
 def process_image(src: Path, dst: Path, cam: Intrinsics, out_cam: Intrinsics, elsewhere: str = DEFAULT_ELSEWHERE) -> None:
     """Undistort/resize ``src`` (taken by ``cam``) into ``dst`` for ``out_cam``, unless ``dst`` exists (its
     name holds the source's content digest and its folder the settings: an existing file is this content's).
+    A camera raw source gives a float ``.npy`` (see the module docstring), any other photo an 8-bit PNG.
     ``elsewhere``: the caller's option for moving the cache, named when the disk is full."""
     if dst.is_file():
         return
+    if is_raw_path(src):
+        _process_raw(src, dst, cam, out_cam, elsewhere)
+        return
     rgb = read_image(src)
-    if rgb.shape[:2] != (cam.height, cam.width):
-        raise UserError(f"image {src} is {rgb.shape[1]}x{rgb.shape[0]} pixels but its camera says "
-                        f"{cam.width}x{cam.height}")
+    _check_size(src, rgb.shape, cam)
     if cam.is_distorted:
         rgb = undistort_rgb(rgb, cam, undistorted_camera(cam))
     rgb = resize_image(rgb, out_cam.width, out_cam.height)
