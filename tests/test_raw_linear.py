@@ -188,3 +188,15 @@ def test_the_training_target_of_a_raw_view_keeps_its_negative_noise(night):
     assert torch.equal(shown, target.clamp(0, 1))
     jpeg = load_scene(night / "jpeg")
     assert not jpeg.raw and torch.equal(jpeg.train[0].load_target(), jpeg.train[0].load_image())
+
+
+def test_the_linear_term_is_measured_at_its_own_gain_not_the_noise_floors_cap():
+    """The noise floor caps the reconstruction's gain for its SSIM; the linear term keeps the scene's exposure
+    (its target's gain), so a cap does not shrink it by the cap² beside the priors."""
+    torch.manual_seed(1)
+    rec, S = torch.rand(1, 3, 8, 8) * 0.2, torch.randn(1, 3, 8, 8) * 0.05 + 0.1
+    t = losses.LinearTarget("noise", torch.full((1, 3, 1, 1), 0.01), torch.full((1, 3, 1, 1), 1e-3))
+    own = losses.linear_reconstruction(rec, S, t._replace(gain=torch.tensor(12.0)), torch.tensor(1.0))
+    assert torch.allclose(own, losses.linear_reconstruction(rec, S, t, torch.tensor(12.0)))
+    capped = losses.linear_reconstruction(rec, S, t, torch.tensor(1.0))
+    assert torch.allclose(own, capped * 144.0)

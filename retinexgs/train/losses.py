@@ -122,10 +122,16 @@ def camera_expectation(x: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> tor
 class LinearTarget(NamedTuple):
     """A raw scene's reconstruction in linear light (``loss.rec_raw``, issue 52 stage 3b): ``mode`` "noise" or
     "relative" (:func:`linear_weights`); ``a``, ``b``: the views' noise var = a·y + b per channel, [1,3,1,1]
-    tensors (:mod:`retinexgs.data.raw_noise`)."""
+    tensors (:mod:`retinexgs.data.raw_noise`); ``gain``: the exposure the error is measured at (a scalar tensor;
+    None: the reconstruction's gain, which the noise floor may cap for its SSIM).
+
+    Why its own gain: the term's weights are normalised, so the gain sets its size beside the other terms; the
+    noise floor's cap (``loss.rec_noise_floor``) is about SSIM copying exposed noise and would shrink the term
+    by the cap² (on a noisy capture 100× or more), leaving the 2D priors to decide the light."""
     mode: str
     a: torch.Tensor
     b: torch.Tensor
+    gain: Optional[torch.Tensor] = None
 
 
 # RawNeRF's ε (Mildenhall et al., CVPR 2022, Sec. 3.2), in exposed units (the scene's full light at 1).
@@ -162,10 +168,12 @@ def linear_reconstruction(rec: torch.Tensor, S: torch.Tensor, target: LinearTarg
     included, so the least-squares fit of many views converges to the light itself; an absolute or squared error
     on encoded (sRGB) or clipped values converges to a median or a mean biased by the curve or the clip (the lifted
     blacks of a JPEG capture). ``gain`` (1 / lin(L_ref), the reconstruction's exposure; None: 1) puts the error in
-    the units the enhanced image is judged in, so the term's size is comparable to the other terms'."""
+    the units the enhanced image is judged in, so the term's size is comparable to the other terms' (the target's
+    own ``gain`` where it has one)."""
     check_bchw(rec, S)
     x = srgb_to_linear(rec, clip=False)
     y = srgb_to_linear_extended(S)
+    gain = target.gain if target.gain is not None else gain
     g = rec.new_ones(()) if gain is None else gain
     w = linear_weights(x, target, g)
     return (w * (g * (x - y)) ** 2).mean()
