@@ -293,7 +293,7 @@ mode_bench() {
   python3 -c "import rawpy, exifread" 2> /dev/null || die "rawpy or exifread is missing here: carry their wheels"
   mkdir -p "$RUNS"
   local i=0 pids=() a
-  for a in "${ARGS[@]}"; do
+  for a in "${ARGS[@]}" "${PASS[@]}"; do
     local left=$(( LIMIT - $(elapsed) ))
     # shellcheck disable=SC2086  # ARGS: one bench's arguments, split on spaces
     if [[ $a == *--no-train* ]]; then

@@ -200,3 +200,20 @@ def test_the_linear_term_is_measured_at_its_own_gain_not_the_noise_floors_cap():
     assert torch.allclose(own, losses.linear_reconstruction(rec, S, t, torch.tensor(12.0)))
     capped = losses.linear_reconstruction(rec, S, t, torch.tensor(1.0))
     assert torch.allclose(own, capped * 144.0)
+
+
+def test_a_photo_of_odd_size_becomes_a_raw_scene_whose_truth_is_cropped_alike(tmp_path, capsys):
+    """The DNG of a 48x35 photo is read as 48x34 (whole 2x2 quads): the view keeps its focal length and centre
+    (a crop, not a rescale), and its truth is cropped to the same rows; no "rescaled" warning."""
+    from retinexgs.cli import main
+    from retinexgs.data.load import load_scene
+    src = make_demo_scene(tmp_path / "src", n_train=3, n_test=1, width=48, height=35, n_points=200)
+    assert main(["darken", "--data", str(src), "--out", str(tmp_path / "night"), "--raw", "--quiet"]) == 0
+    capsys.readouterr()
+    raw = load_scene(tmp_path / "night" / "raw")
+    assert "rescaled" not in capsys.readouterr().err
+    jpeg = load_scene(tmp_path / "night" / "jpeg")
+    for r, j in zip(raw.test, jpeg.test):
+        assert (r.width, r.height) == (48, 34) and (j.width, j.height) == (48, 35)
+        assert (r.fx, r.fy, r.cx, r.cy) == (j.fx, j.fy, j.cx, j.cy)
+        assert torch.equal(r.paired_image, j.paired_image[:34])

@@ -79,7 +79,14 @@ def _fit_camera(view: DeclaredView) -> Intrinsics:
     """The view's camera adjusted to the actual image size (same aspect ratio), else UserError."""
     w, h = image_size(view.image)
     cam = view.camera
-    if view.paired is not None and image_size(view.paired) != (w, h):
+    pw, ph = image_size(view.paired) if view.paired is not None else (w, h)
+    if is_raw_file(Path(view.image)) and (pw - w, ph - h) in ((1, 0), (0, 1), (1, 1)) \
+            and (cam.width, cam.height) in ((pw, ph), (w, h)):
+        # A raw file's odd last row/column is dropped (whole 2x2 colour quads): its view is the top-left w x h of
+        # the sensor, so the camera keeps its focal length and centre and the truth is cropped alike
+        # (View.paired_image).
+        return Intrinsics(w, h, cam.fx, cam.fy, cam.cx, cam.cy, cam.dist)
+    if view.paired is not None and (pw, ph) != (w, h):
         raise UserError(f"paired images differ in size: {view.image} is {w}x{h}, "
                         f"{view.paired} is {image_size(view.paired)[0]}x{image_size(view.paired)[1]}")
     if (w, h) == (cam.width, cam.height):
@@ -215,7 +222,8 @@ def _warn_rescaled(raw: DeclaredScene, cams: Dict[int, Intrinsics]) -> None:
     seen: Dict[Tuple[int, int, int, int], List[DeclaredView]] = {}
     for v in raw.train + raw.test + raw.val:
         declared, fitted = v.camera, cams[id(v)]
-        if (declared.width, declared.height) != (fitted.width, fitted.height):
+        cropped = (declared.fx, declared.fy, declared.cx, declared.cy) == (fitted.fx, fitted.fy, fitted.cx, fitted.cy)
+        if (declared.width, declared.height) != (fitted.width, fitted.height) and not cropped:
             seen.setdefault((declared.width, declared.height, fitted.width, fitted.height), []).append(v)
     source = "the transforms JSON gives w x h =" if raw.reader == "transforms" else "the COLMAP camera is"
     for (cw, ch, w, h), views in seen.items():

@@ -108,7 +108,11 @@ class View:
         if self.paired_path is None:
             return None
         if self._paired is None:
-            self._paired = load_image_tensor(self.paired_path)
+            paired = load_image_tensor(self.paired_path)
+            if tuple(paired.shape[:2]) != (self.height, self.width) and self.is_raw:
+                # the truth of a raw view whose odd last row/column was dropped (data.load._fit_camera): the same crop
+                paired = paired[:self.height, :self.width].contiguous()
+            self._paired = paired
         return self._paired
 
     def load_image(self) -> torch.Tensor:
