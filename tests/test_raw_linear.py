@@ -217,3 +217,39 @@ def test_a_photo_of_odd_size_becomes_a_raw_scene_whose_truth_is_cropped_alike(tm
         assert (r.width, r.height) == (48, 34) and (j.width, j.height) == (48, 35)
         assert (r.fx, r.fy, r.cx, r.cy) == (j.fx, j.fy, j.cx, j.cy)
         assert torch.equal(r.paired_image, j.paired_image[:34])
+
+
+# ---- the priors' photo ----------------------------------------------------------------------------------------------
+
+def test_the_denoised_preview_keeps_a_dark_flat_area_s_light_and_an_edge():
+    """A dark flat area (light 0.002, noise σ 0.01: a third of the values negative) beside a bright one: through the
+    preview the dark area's mean light stays within 0.001 of the truth, where clipping first lifts it by about 0.3σ,
+    and the step between the two areas keeps over 90 % of its height."""
+    from retinexgs.data.raw_noise import denoised_preview
+    rng = np.random.default_rng(3)
+    light = np.full((64, 64, 3), 0.002)
+    light[:, 32:] = 0.2
+    views = light + 0.01 * rng.standard_normal(light.shape)
+    image = torch.tensor(linear_to_srgb_extended(views), dtype=torch.float32)
+    out = srgb_to_linear_extended(denoised_preview(image).double()).numpy()
+    dark = out[8:-8, 4:24]
+    assert abs(dark.mean() - 0.002) < 0.001, dark.mean()
+    assert np.clip(views[8:-8, 4:24], 0, None).mean() > 0.002 + 0.003  # the clipped photo's lift
+    assert out[8:-8, 40:60].mean() - dark.mean() > 0.9 * 0.198
+    assert out[8:-8, 40:60].std() < 0.5 * 0.01  # the flat bright area smoothed too
+    assert out.min() >= 0 and out.max() <= 1
+
+
+def test_a_raw_view_s_priors_are_keyed_by_the_preview_they_come_from(night, tmp_path):
+    from retinexgs.data.load import load_scene
+    from retinexgs.retinex.cache import content_hash, iter_decompositions, prior_key
+    raw, jpeg = load_scene(night / "raw"), load_scene(night / "jpeg")
+    p, q = raw.train[0].image_path, jpeg.train[0].image_path
+    assert prior_key(p, True) != prior_key(p, False) == content_hash(p)
+    assert prior_key(q, True) == prior_key(q, False) == content_hash(q)  # a JPEG: no preview, one entry
+    paths = [v.image_path for v in raw.train]
+    on = list(iter_decompositions(paths, "lr3m", None, tmp_path / "c", progress=False, raw_denoise=True))
+    off = list(iter_decompositions(paths, "lr3m", None, tmp_path / "c", progress=False))
+    entries = sorted((tmp_path / "c").rglob("*.npz"))
+    assert len(entries) == 2 * len(paths)  # both kept, neither read as the other
+    assert not torch.equal(on[0][0], off[0][0])

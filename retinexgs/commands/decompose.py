@@ -122,7 +122,7 @@ def run(args: argparse.Namespace) -> int:
     cache_root = scene_cache_root(scene, cfg.data.cache_dir)
     _, report = decompose_images(paths, dcfg.method, dict(dcfg.params) or None, cache_root,
                                  args.device, keep=False, preview=args.preview, progress=not args.quiet,
-                                 cache_hint=hint, sweep=True, announce=False)
+                                 cache_hint=hint, sweep=True, announce=False, raw_denoise=dcfg.raw_denoise)
     n = report["swept"]
     swept = f", {n} old-format entr{'y' if n == 1 else 'ies'} deleted" if n else ""
     print(f"{len(paths)} view(s) decomposed with {dcfg.method}: {report['computed']} computed, "

@@ -193,6 +193,12 @@ def _decode_16bit_colour(path: Path) -> np.ndarray:
     return data[:, :, 2::-1].astype(np.float32) / 65535.0  # BGR(A) -> RGB, alpha dropped
 
 
+def holds_unclipped(path: Path) -> bool:
+    """True for a file whose values go beyond [0, 1] when read unclipped: a camera raw file or the float copy the
+    undistort/downscale cache makes of one."""
+    return is_raw_path(path) or _is_float_cache(Path(path))
+
+
 def _is_float_cache(path: Path) -> bool:
     return Path(path).suffix.lower() == FLOAT_CACHE_EXTENSION
 

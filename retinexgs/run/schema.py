@@ -221,6 +221,7 @@ class Decomposer(Section):
     # The method's parameters, checked by its schema above (names, types, ranges) before anything loads.
     params: Annotated[Dict[str, Any], Expect("a mapping of the decomposer's parameters")]
     device: OptStr
+    raw_denoise: Bool
 
     @field_validator("params", mode="after")
     @classmethod

@@ -95,7 +95,8 @@ def decompose_views(views: List[View], cfg: Config, device: str, progress: bool,
     return iter_decompositions([v.image_path for v in views], dcfg.method, dict(dcfg.params) or None,
                                cache_dir=scene_cache_root(scene_root, cfg.data.cache_dir),
                                device=dcfg.device or device, progress=progress,
-                               cache_hint="--set data.cache_dir=DIR", sweep=True, scene=str(scene_root))
+                               cache_hint="--set data.cache_dir=DIR", sweep=True, scene=str(scene_root),
+                               raw_denoise=dcfg.raw_denoise)
 
 
 class Trainer:
