@@ -309,8 +309,8 @@ mode_bench() {
   wait "${pids[@]}"
   for f in "$RUNS"/bench*.log; do echo "== $f"; grep -E "^(ok|FAIL|reused)|runs in" "$f" | sed 's/^/  /' | tail -80; done
   cp "$RUNS"/quality-*.md "$OUT/" 2> /dev/null
-  tar czf "$OUT/runs.tgz" --exclude='*.pt' --exclude='tb' --exclude='renders' --exclude="$(basename "$RUNS")/ladder" \
-    -C "$(dirname "$RUNS")" "$(basename "$RUNS")" 2> /dev/null
+  tar czf "$OUT/runs.tgz" --exclude='*.pt' --exclude='*.ply' --exclude='*.bin' --exclude='tb' --exclude='renders' \
+    --exclude="$(basename "$RUNS")/ladder" -C "$(dirname "$RUNS")" "$(basename "$RUNS")" 2> /dev/null
   finish 0
 }
 

@@ -100,9 +100,9 @@ def run_job(job: Job, device: str, steps: Optional[int], extra: Sequence[str], g
         shutil.rmtree(job.run)
     job.run.parent.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
-    env = None if gpu is None else {**os.environ, "CUDA_VISIBLE_DEVICES": str(gpu)}
+    on_gpu = {} if gpu is None else {"env": {**os.environ, "CUDA_VISIBLE_DEVICES": str(gpu)}}
     with open(f"{job.run}.log", "a" if resumed else "w") as log:
-        rc = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, env=env).returncode
+        rc = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, **on_gpu).returncode
     status = "ok" if rc == 0 and job.metrics_path.is_file() else f"FAILED (exit {rc}, see {job.run}.log)"
     return f"{status:7s} {job.run} in {time.time() - t0:.0f} s" + (" (resumed)" if resumed else "")
 
@@ -296,6 +296,16 @@ def ladder_scenes(scenes: Sequence[Path], root: Path, exposure: float) -> List[P
     return out
 
 
+def parse_gpus(text: str) -> List[int]:
+    """``--gpus``: "" none, "4" GPUs 0-3, "2,3" those two."""
+    text = text.strip()
+    if not text:
+        return []
+    if "," in text:
+        return [int(v) for v in text.split(",") if v.strip()]
+    return list(range(int(text)))
+
+
 def raw_ladder_scenes(scenes: Sequence[Path], root: Path, exposure: float, levels: Sequence[str]) -> List[Path]:
     """Every scene captured by the raw simulator (``darken --raw``, the default camera) at each of ``levels`` of
     the noise ladder: ``root/SCENE@LEVEL-raw`` (the DNGs) beside ``root/SCENE@LEVEL-jpeg`` (the camera's JPEGs of
@@ -343,8 +353,9 @@ def main(argv: Sequence[str]) -> int:
     ap.add_argument("--seeds", default="3", help="a count N (seeds 0..N-1) or a list with a comma: 1,2 or 0, (default 3)")
     ap.add_argument("--runs", type=Path, default=Path("runs/quality"), help="where the runs go (reused when done)")
     ap.add_argument("--jobs", type=int, default=4, help="trainings side by side (default 4; per GPU with --gpus)")
-    ap.add_argument("--gpus", type=int, default=0,
-                    help="spread the trainings over this many GPUs, --jobs on each (0: all on --device)")
+    ap.add_argument("--gpus", default="",
+                    help="spread the trainings over GPUs, --jobs on each: a count (4: GPUs 0-3) or a list with a "
+                         "comma (2,3); empty: all on --device")
     ap.add_argument("--device", default="auto", help="cuda, cpu or auto")
     ap.add_argument("--steps", type=int, default=None, help="override every config's steps")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="extra override for every run")
@@ -388,8 +399,13 @@ def main(argv: Sequence[str]) -> int:
         # Longest scenes first would balance better; the plan order (scene-major) keeps similar jobs apart.
         order = sorted(jobs, key=lambda j: (j.seed, j.config, str(j.scene)))
         slots: "queue.Queue[Optional[int]]" = queue.Queue()
+        try:
+            gpus = parse_gpus(args.gpus)
+        except ValueError:
+            print(f"--gpus {args.gpus!r}: a count or a comma list of GPU indices", file=sys.stderr)
+            return 2
         for _ in range(max(1, args.jobs)):
-            for g in (range(args.gpus) if args.gpus > 0 else [None]):
+            for g in gpus or [None]:
                 slots.put(g)
 
         def on_a_slot(j: Job) -> str:
