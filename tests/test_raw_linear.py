@@ -253,3 +253,21 @@ def test_a_raw_view_s_priors_are_keyed_by_the_preview_they_come_from(night, tmp_
     entries = sorted((tmp_path / "c").rglob("*.npz"))
     assert len(entries) == 2 * len(paths)  # both kept, neither read as the other
     assert not torch.equal(on[0][0], off[0][0])
+
+
+def test_an_odd_sized_distorted_raw_scene_undistorts_its_truth_with_the_cropped_camera(tmp_path):
+    """Lens distortion declared (the undistort cache runs): the truth, one row taller than the raw view, is cropped
+    to the view before the remap, so truth and view share one pinhole camera."""
+    from retinexgs.cli import main
+    from retinexgs.data.load import load_scene
+    src = make_demo_scene(tmp_path / "src", n_train=3, n_test=1, width=48, height=35, n_points=200)
+    for f in src.glob("transforms_*.json"):
+        d = json.loads(f.read_text())
+        d.update(k1=0.02, k2=-0.01)
+        f.write_text(json.dumps(d))
+    assert main(["darken", "--data", str(src), "--out", str(tmp_path / "night"), "--raw", "--quiet"]) == 0
+    raw = load_scene(tmp_path / "night" / "raw")
+    v = raw.test[0]
+    assert v.paired_path.suffix == ".png" and "undistorted" in str(v.paired_path)
+    assert v.image_path.suffix == ".npy"
+    assert tuple(v.paired_image.shape[:2]) == tuple(v.load_target().shape[:2]) == (34, 48)

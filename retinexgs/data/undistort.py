@@ -207,6 +207,12 @@ def process_image(src: Path, dst: Path, cam: Intrinsics, out_cam: Intrinsics, el
         _process_raw(src, dst, cam, out_cam, elsewhere)
         return
     rgb = read_image(src)
+    if tuple(rgb.shape[:2]) in ((cam.height + 1, cam.width), (cam.height, cam.width + 1),
+                                (cam.height + 1, cam.width + 1)):
+        # The truth of a raw view whose odd last row/column was dropped (data.load._fit_camera: its camera is the
+        # top-left crop of the sensor; every other size mismatch was rescaled there): cropped alike, before the
+        # undistortion, so both remap with one camera.
+        rgb = rgb[:cam.height, :cam.width]
     _check_size(src, rgb.shape, cam)
     if cam.is_distorted:
         rgb = undistort_rgb(rgb, cam, undistorted_camera(cam))
