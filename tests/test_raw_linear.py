@@ -185,7 +185,7 @@ def test_the_training_target_of_a_raw_view_keeps_its_negative_noise(night):
     v = scene.train[0]
     target, shown = v.load_target(), v.load_image()
     assert target.min() < 0 and shown.min() >= 0  # the noise around black, unclipped for training only
-    assert torch.equal(shown, target.clamp(0, 1))
+    assert torch.equal(shown.half().float(), target.clamp(0, 1))  # the target is rounded to float16
     jpeg = load_scene(night / "jpeg")
     assert not jpeg.raw and torch.equal(jpeg.train[0].load_target(), jpeg.train[0].load_image())
 
@@ -271,3 +271,23 @@ def test_an_odd_sized_distorted_raw_scene_undistorts_its_truth_with_the_cropped_
     assert v.paired_path.suffix == ".png" and "undistorted" in str(v.paired_path)
     assert v.image_path.suffix == ".npy"
     assert tuple(v.paired_image.shape[:2]) == tuple(v.load_target().shape[:2]) == (34, 48)
+
+
+def test_a_raw_scene_s_views_are_stored_as_float16_and_stream_as_they_preload(night, tmp_path):
+    """The raw target is rounded to float16 when read (an exact float16 array, 6 B per pixel in the store), so the
+    streamed views equal the preloaded ones bit for bit, negative noise included."""
+    from retinexgs.data.load import load_scene
+    from retinexgs.run.config import load_config
+    from retinexgs.train.trainer import Trainer
+
+    def make(run, mode):
+        cfg = load_config(["demo"], [*TINY_RUN, f"train.stream_views={mode}"])
+        run.mkdir(parents=True)
+        return Trainer(cfg, load_scene(night / "raw"), run, "cpu", progress=False, log=lambda s: None)
+
+    pre, st = make(tmp_path / "pre", "never"), make(tmp_path / "st", "always")
+    for i in range(len(pre.views)):
+        assert st.views.store.photo(i).dtype == np.float16
+        a, b = pre.views[i], st.views[i]
+        assert torch.equal(a.S, b.S) and a.S.min() < 0
+        assert torch.equal(a.S.half().float(), a.S)

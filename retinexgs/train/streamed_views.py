@@ -368,6 +368,8 @@ class StreamedViews(Sequence):
             S = self._tables[dtype][raw.view(H, W, 3).to(torch.int32)]
         elif dtype == "uint16":
             S = self._tables[dtype][raw.view(torch.int16).view(H, W, 3).to(torch.int32) & 0xFFFF]
+        elif dtype == "float16":  # a camera raw view's target (View.load_target rounds it so: exact)
+            S = raw.view(torch.float16).view(H, W, 3).float()
         else:
             S = raw.view(torch.float32).view(H, W, 3).clone()
         R = L = None

@@ -1,5 +1,6 @@
 """The view store: a scene's training views on the host as one memory-mapped file (:class:`ViewStore`) of
-compact photos (uint8, or uint16 for 16-bit sources; float32 for a reader that scales otherwise) and 2D priors
+compact photos (uint8, or uint16 for 16-bit sources; float16 for camera raw views; float32 for a reader that scales
+otherwise) and 2D priors
 (R and L as the decomposition cache's float16), 11 B per view-pixel; its fingerprint, path, size estimate and
 the free-space check before it is written. Lossless: see :mod:`retinexgs.train.views`.
 """
@@ -35,13 +36,18 @@ def photo_table(dtype: str) -> np.ndarray:
 
 def compact_photo(image: Tensor) -> np.ndarray:
     """A photo read as float32 [H,W,3] in its smallest exact form: uint8 when every value is k / 255, uint16
-    when k / 65535, else float32 (a reader that scales otherwise)."""
+    when k / 65535, float16 when every value is one (a camera raw view's target, ``View.load_target``), else
+    float32 (a reader that scales otherwise)."""
     a = np.ascontiguousarray(image.detach().cpu().numpy(), dtype=np.float32)
     for name in ("uint8", "uint16"):
         n = PHOTO_LEVELS[name]
         k = np.clip(np.rint(a * n), 0, n).astype(name)
         if np.array_equal(photo_table(name)[k], a):
             return k
+    with np.errstate(over="ignore"):
+        half = a.astype(np.float16)
+    if np.array_equal(half.astype(np.float32), a):
+        return half
     return a
 
 
@@ -51,7 +57,7 @@ _MAGIC = b"RGSVIEWS"
 _FORMAT = 1
 # What a stored photo holds, part of the fingerprint: 2 since camera raw views are stored unclipped (issue 52
 # stage 3b); a store made before is rebuilt rather than read as the new values.
-_PHOTOS = 2
+_PHOTOS = 3  # 3: raw views' targets rounded to float16
 _PREFIX = struct.Struct("<8sIQQ")  # magic, format, header offset, header length
 _PAGE = 4096  # each view starts on a page
 _ALIGN = 256  # each array within a view
