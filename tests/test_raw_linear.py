@@ -291,3 +291,19 @@ def test_a_raw_scene_s_views_are_stored_as_float16_and_stream_as_they_preload(ni
         a, b = pre.views[i], st.views[i]
         assert torch.equal(a.S, b.S) and a.S.min() < 0
         assert torch.equal(a.S.half().float(), a.S)
+
+
+def test_the_model_error_turns_the_weights_into_the_display_s_without_noise_and_leaves_them_with_it():
+    from retinexgs.data.srgb import linear_to_srgb as enc
+    x = torch.rand(1, 3, 6, 6, dtype=torch.float64) * 0.05 + 1e-3
+    gain = torch.tensor(15.0, dtype=torch.float64)
+    quiet = _target("noise", a=(0.0, 0.0, 0.0), b=(1e-12, 1e-12, 1e-12))._replace(model_error=0.02)
+    w = losses.linear_weights(x, quiet, gain)
+    xs = (gain * x).clone().requires_grad_(True)
+    enc(xs, clip=False).sum().backward()
+    display = xs.grad ** 2  # the sRGB slope², as autograd gives it
+    assert torch.allclose(w, display / display.mean(), rtol=1e-4)  # (b = 1e-12 moves them by 1e-5)
+    loud = _target("noise", a=(0.01, 0.01, 0.01), b=(1e-3, 1e-3, 1e-3))
+    plain = losses.linear_weights(x, loud, gain)
+    mixed = losses.linear_weights(x, loud._replace(model_error=1e-4), gain)
+    assert torch.allclose(plain, mixed, rtol=1e-3)

@@ -312,6 +312,7 @@ class Loss(Section):
     rec_noise_scale: Int(1)
     rec_camera_noise: Bool
     rec_raw: Choice("noise", "relative", "photo")
+    rec_raw_model_error: Num(ge=0, le=1)
     w_depth: Num(ge=0)
     depth_edge: Num(ge=0)
 

@@ -132,10 +132,18 @@ class LinearTarget(NamedTuple):
     a: torch.Tensor
     b: torch.Tensor
     gain: Optional[torch.Tensor] = None
+    model_error: float = 0.0
 
 
 # RawNeRF's ε (Mildenhall et al., CVPR 2022, Sec. 3.2), in exposed units (the scene's full light at 1).
 RELATIVE_EPS = 1e-3
+
+
+def srgb_slope(v: torch.Tensor) -> torch.Tensor:
+    """d srgb(v) / dv for linear light v ≥ 0: 12.92 on the curve's linear segment, (1.055 / 2.4)·v^(1/2.4 − 1)
+    above it."""
+    knee = 0.0031308
+    return torch.where(v <= knee, torch.full_like(v, 12.92), (1.055 / 2.4) * v.clamp_min(knee) ** (1.0 / 2.4 - 1.0))
 
 
 def linear_weights(x: torch.Tensor, target: LinearTarget, gain: torch.Tensor) -> torch.Tensor:
@@ -147,11 +155,19 @@ def linear_weights(x: torch.Tensor, target: LinearTarget, gain: torch.Tensor) ->
     - ``relative``: 1 / (gain·x + ε)², RawNeRF's weights (the variance taken as proportional to the signal²,
       a tone-mapped L2 in effect).
 
+    ``target.model_error`` τ > 0 (``noise`` only) adds the model's own error to the noise, taken as uniform where
+    the output is judged, on the display (sRGB) values of the exposed light: τ² / (s'(gain·x)·gain)² in linear
+    units, s' the sRGB curve's slope. Without noise the weights become the display's (a least squares on sRGB
+    values to first order); where the noise dominates they stay 1 / (a·x + b).
+
     Taken at the render rather than at the noisy target, so that a pixel's weight does not follow its noise."""
     with torch.no_grad():
         xs = x.clamp_min(0.0)
         if target.mode == "noise":
-            w = 1.0 / (target.a * xs + target.b)
+            var = target.a * xs + target.b
+            if target.model_error > 0:
+                var = var + (target.model_error / (srgb_slope(gain * xs) * gain)) ** 2
+            w = 1.0 / var
         elif target.mode == "relative":
             w = 1.0 / (gain * xs + RELATIVE_EPS) ** 2
         else:
