@@ -167,6 +167,34 @@ def test_noise_ladder_darkens_each_level_once_and_names_the_columns(tmp_path, mo
     assert "has no high/ folder" in capsys.readouterr().err
 
 
+def test_raw_ladder_makes_a_raw_and_a_jpeg_column_per_level_once_and_spreads_runs_over_gpus(tmp_path, monkeypatch,
+                                                                                              capsys):
+    """--raw-ladder: per level SCENE@LEVEL-raw (DNGs) and SCENE@LEVEL-jpeg (the camera's JPEGs of the same mosaics),
+    reused on a second call; --gpus hands each run one GPU; an unknown level is one line."""
+    from retinexgs.demo.synthetic import make_demo_scene
+
+    src = make_demo_scene(tmp_path / "fox", n_train=2, n_test=1, width=32, height=24, n_points=100)
+    trained = []
+    monkeypatch.setattr(quality, "run_job", lambda job, device, steps, extra, gpu=None:
+                        trained.append((job, device, gpu)) or f"{job.run}: skipped")
+    args = ["--scenes", str(src), "--raw-ladder", "1500e,1000e", "--runs", str(tmp_path / "runs"), "--seeds", "0,1",
+            "--jobs", "1", "--gpus", "2,3"]
+    assert quality.main(args) in (0, 1)
+    names = sorted({j.scene.name for j, _, _ in trained})
+    assert names == ["fox@1000e-jpeg", "fox@1000e-raw", "fox@1500e-jpeg", "fox@1500e-raw"]
+    assert {g for _, _, g in trained} <= {2, 3} and {d for _, d, _ in trained} == {"cuda"}
+    ladder = tmp_path / "runs" / "ladder"
+    assert sorted(p.name for p in ladder.iterdir()) == names  # no half-made temporary folder left
+    assert all(p.suffix == ".dng" for p in (ladder / "fox@1000e-raw" / "low").iterdir())
+    made = {p.name: (p / "sensor.json").stat().st_mtime_ns for p in ladder.iterdir()}
+    quality.main([*args[:6], "--no-train"])
+    assert {p.name: (p / "sensor.json").stat().st_mtime_ns for p in ladder.iterdir()} == made
+    capsys.readouterr()
+    assert quality.main(["--scenes", str(src), "--raw-ladder", "900e", "--runs", str(tmp_path / "r2")]) == 2
+    assert "unknown ladder level '900e'" in capsys.readouterr().err
+    assert quality.parse_gpus("") == [] and quality.parse_gpus("3") == [0, 1, 2] and quality.parse_gpus("1,3") == [1, 3]
+
+
 def test_black_table_reads_the_black_lift_and_skips_older_runs(tmp_path):
     scenes = [tmp_path / "s1"]
     jobs = quality.plan(scenes, ["default", "ablations/debias_black"], [0, 1, 2], tmp_path / "runs")
