@@ -336,8 +336,7 @@ def raw_ladder_scenes(scenes: Sequence[Path], root: Path, exposure: float, level
                 if p.exists():
                     shutil.rmtree(p)  # a level made with another model (or cut off): made again
             darken_scene(Path(scene), tmp, model, seed=0, progress=False, raw=RawCamera())
-            for p, sub in zip(pair, ("raw", "jpeg")):
-                shutil.copy2(tmp / "sensor.json", tmp / sub / "sensor.json")
+            for p, sub in zip(pair, ("raw", "jpeg")):  # each holds its own sensor.json (darken writes it there)
                 (tmp / sub).rename(p)
             shutil.rmtree(tmp)
             print(f"raw ladder: {pair[0]} and {pair[1].name} ({label})", flush=True)

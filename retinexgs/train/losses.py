@@ -31,7 +31,7 @@ import torch
 import torch.nn.functional as F
 
 from retinexgs.evaluate.metrics import cached_constant, check_bchw, gaussian_window, ssim
-from retinexgs.data.srgb import linear_to_srgb_extended, srgb_to_linear_extended
+from retinexgs.data.srgb import linear_to_srgb_extended, linear_to_srgb_slope, srgb_to_linear_extended
 from retinexgs.model.tone import camera_mean, highlight_capped_mean, linear_to_srgb, srgb_to_linear
 from retinexgs.run.schema import Loss
 
@@ -139,13 +139,6 @@ class LinearTarget(NamedTuple):
 RELATIVE_EPS = 1e-3
 
 
-def srgb_slope(v: torch.Tensor) -> torch.Tensor:
-    """d srgb(v) / dv for linear light v ≥ 0: 12.92 on the curve's linear segment, (1.055 / 2.4)·v^(1/2.4 − 1)
-    above it."""
-    knee = 0.0031308
-    return torch.where(v <= knee, torch.full_like(v, 12.92), (1.055 / 2.4) * v.clamp_min(knee) ** (1.0 / 2.4 - 1.0))
-
-
 def linear_weights(x: torch.Tensor, target: LinearTarget, gain: torch.Tensor) -> torch.Tensor:
     """Per-pixel weights (no gradient) of :func:`linear_reconstruction`, normalised to mean 1 per image, from the
     render's own linear light ``x`` [B,C,H,W]:
@@ -166,7 +159,7 @@ def linear_weights(x: torch.Tensor, target: LinearTarget, gain: torch.Tensor) ->
         if target.mode == "noise":
             var = target.a * xs + target.b
             if target.model_error > 0:
-                var = var + (target.model_error / (srgb_slope(gain * xs) * gain)) ** 2
+                var = var + (target.model_error / (linear_to_srgb_slope(gain * xs) * gain)) ** 2
             w = 1.0 / var
         elif target.mode == "relative":
             w = 1.0 / (gain * xs + RELATIVE_EPS) ** 2

@@ -55,9 +55,9 @@ def compact_photo(image: Tensor) -> np.ndarray:
 
 _MAGIC = b"RGSVIEWS"
 _FORMAT = 1
-# What a stored photo holds, part of the fingerprint: 2 since camera raw views are stored unclipped (issue 52
-# stage 3b); a store made before is rebuilt rather than read as the new values.
-_PHOTOS = 3  # 3: raw views' targets rounded to float16
+# What a stored photo holds, part of the fingerprint, so that a store made before is rebuilt rather than read as
+# the new values: 2, camera raw views stored unclipped (issue 52 stage 3b); 3, their targets rounded to float16.
+_PHOTOS = 3
 _PREFIX = struct.Struct("<8sIQQ")  # magic, format, header offset, header length
 _PAGE = 4096  # each view starts on a page
 _ALIGN = 256  # each array within a view
