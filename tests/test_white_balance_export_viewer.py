@@ -295,8 +295,11 @@ def test_view_server_white_balance_controls_and_eyedropper(run_dir, loaded):
                                   int(cam.image_height))
                 return viewer.renderer.render(vc, settings)
 
+            # The first frame may come from the camera before the client's own reached the server: wait for the
+            # frame of the client's camera, as the checks below do.
+            assert wait_until(lambda: viewer.last_frame is not None and np.array_equal(
+                viewer.last_frame, frame_of(FrameSettings(scale=state.settings().scale))), 10), logs
             plain = viewer.last_frame.copy()
-            assert np.array_equal(plain, frame_of(FrameSettings(scale=state.settings().scale)))
             update(state.gains, (1.6, 1.0, 0.6))
             update(state.wb_mode, "gains (or a picked neutral)")
             assert wait_until(lambda: state.settings().white_balance == "gains:1.6,1.0,0.6", 10)
