@@ -588,7 +588,8 @@ Tensor exposure_tone(Tensor image, Tensor gain, double shoulder) {
     RGS_CHECK_VALUE(image.dim() == 3 && image.size(2) >= 6, "image must be [H, W, C >= 6] (R̂, L̂), got shape ",
                     image.sizes());
     check_tensor(gain, "gain", {-1}, image);
-    RGS_CHECK_VALUE(gain.size(0) == 1 || gain.size(0) == 3, "gain must have 1 or 3 entries, got ", gain.size(0));
+    RGS_CHECK_VALUE(gain.size(0) == 1 || gain.size(0) == 3 || gain.size(0) == 9,
+                    "gain must have 1 or 3 entries (or 9: a 3x3 matrix, row-major), got ", gain.size(0));
     RGS_CHECK_VALUE(shoulder > 0, "shoulder (the highlight knee) must be > 0, got ", shoulder);
     image = image.contiguous(), gain = gain.contiguous();
     const int64_t P = image.size(0) * image.size(1);

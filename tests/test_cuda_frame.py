@@ -141,7 +141,7 @@ def test_fused_frame_launches_fewer_kernels():
 
 
 @pytest.mark.parametrize("dtype, atol", [(torch.float64, 1e-13), (torch.float32, 2e-6)])
-@pytest.mark.parametrize("gains", [1, 3])
+@pytest.mark.parametrize("gains", [1, 3, 9])
 @pytest.mark.parametrize("shoulder", [1.0, 0.5])
 def test_exposure_tone_kernel_cuda_equals_cpu(dtype, atol, gains, shoulder):
     """The frame graph's exposure-tone kernel: CUDA launcher against the CPU one (float32 within a few ulps:
@@ -150,7 +150,8 @@ def test_exposure_tone_kernel_cuda_equals_cpu(dtype, atol, gains, shoulder):
     from retinexgs.render._backend import kernels
     img = make_image(h=37, w=53, c=7, dtype=dtype, seed=11)
     img[5, 6, 2] = float("nan")
-    gain = torch.tensor([3.0, 11.0, 0.7][:gains], dtype=dtype)
+    gain = torch.tensor([3.0, 11.0, 0.7][:gains] if gains < 9 else  # 9: a white balance matrix times the gain
+                        [2.6, -0.6, -0.1, 0.1, 11.0, -0.2, 0.1, 0.2, 5.2], dtype=dtype)
     cpu = kernels().exposure_tone(img, gain, shoulder)
     gpu = kernels().exposure_tone(img.cuda().transpose(0, 1).contiguous().transpose(0, 1), gain.cuda(),
                                   shoulder).cpu()
@@ -170,3 +171,31 @@ def test_renderer_on_cuda_same_frame_without_tile_culling_or_side_stream():
     for f in frames[1:]:
         for a, b in zip(frames[0], f):
             assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize("per_channel", [False, True])
+def test_renderer_on_cuda_balances_in_its_graph_as_the_torch_path(per_channel):
+    """A white balance (issue 53) inside the frame graph's tone kernel: eager, captured and replayed frames equal
+    the torch path (model.render's light, balanced, then the shoulder and the sRGB curve); a changed balance is
+    followed by the same graph; the unbalanced graph's frame is untouched. (Ran on an H200 2026-11-27 before the
+    plain frame was taken from the replayed graph: the balanced frames passed; the eager and graphed plain frames
+    differ by rounding, as before.)"""
+    from retinexgs.model.tone import highlight_shoulder, linear_to_srgb, srgb_to_linear, white_balance
+    from retinexgs.model.tone import exposure_gain
+    from retinexgs.model.white_balance import temperature_matrix
+    model = make_model(per_channel=per_channel, n=3000, tone="exposure", shoulder=0.5).cuda()
+    r = InferenceRenderer(model, 3)
+    assert r.can_balance()
+    for _ in range(3):  # eager, captured, replayed: later unbalanced frames replay the same graph
+        plain = r.render(CAM)["rgb"].clone()
+    for W in (torch.diag(torch.tensor([1.4, 1.0, 0.6])), torch.from_numpy(temperature_matrix(4000, 10)).float(),
+              torch.diag(torch.tensor([0.7, 1.0, 1.5]))):
+        with torch.no_grad():
+            ref = model.render(CAM, 3, exposure=0.8)
+            k = exposure_gain(model.illum_ref, ref["gamma"].reshape(-1))
+            light = white_balance(k * srgb_to_linear(ref["R"] * ref["L"]), W.cuda())
+            expect = linear_to_srgb(highlight_shoulder(light, model.shoulder))
+        for _ in range(3):  # eager, captured, replayed
+            got = r.render(CAM, 0.8, balance=W.cuda())["rgb"]
+            assert torch.allclose(got, expect, rtol=0, atol=2e-5), (got - expect).abs().max()
+    assert torch.equal(r.render(CAM)["rgb"], plain)

@@ -55,6 +55,37 @@ def test_kernel_takes_a_non_contiguous_image_and_keeps_nan():
     torch.testing.assert_close(out, expect, rtol=0, atol=0, equal_nan=True)
 
 
+@pytest.mark.parametrize("shoulder", [1.0, 0.5])
+@pytest.mark.parametrize("balance", [[1.6, 1.0, 0.6],  # gains
+                                     [[0.87, -0.19, -0.04], [0.01, 1.01, -0.01], [0.02, 0.07, 1.75]]])  # temp:4000
+@pytest.mark.parametrize("gamma", [[0.4], [0.3, 0.9, 1.7]])
+def test_kernel_with_a_white_balance_matrix_equals_the_render_path_float64(balance, gamma, shoulder):
+    """gain of 9 entries, W·diag(k) row-major (issue 53: the balanced frame in the frame graph's one kernel):
+    the torch path render --white-balance takes, shoulder(W·(k·lin(R̂∘L̂))) then the sRGB curve, to rounding;
+    negative light a matrix makes is black, as the torch path clips it."""
+    from retinexgs.data.srgb import linear_to_srgb, srgb_to_linear
+    from retinexgs.model.tone import highlight_shoulder, white_balance
+    img = make_image(seed=5)
+    g = torch.tensor(gamma, dtype=torch.float64)
+    ref = torch.tensor(0.35, dtype=torch.float64)
+    k = exposure_gain(ref, g)
+    W = torch.tensor(balance, dtype=torch.float64)
+    W = torch.diag(W) if W.dim() == 1 else W
+    out = kernels().exposure_tone(img, (W * k.expand(3)[None, :]).reshape(9), shoulder)
+    light = white_balance(k * srgb_to_linear(img[..., :3] * img[..., 3:6]), W)
+    expect = linear_to_srgb(highlight_shoulder(light, shoulder))
+    torch.testing.assert_close(out, expect, rtol=0, atol=1e-14)
+    if W.dim() == 2 and bool((W < 0).any()):
+        assert bool((light < 0).any()) and float(out.min()) == 0.0
+
+
+def test_kernel_with_a_diagonal_matrix_equals_per_channel_gains():
+    img = make_image(seed=2, dtype=torch.float32)
+    k = torch.tensor([2.0, 3.0, 0.5])
+    torch.testing.assert_close(kernels().exposure_tone(img, torch.diag(k).reshape(9), 0.5),
+                               kernels().exposure_tone(img, k, 0.5), rtol=0, atol=1e-6)
+
+
 def test_gain_one_gives_back_the_product():
     img = make_image().clamp(0, 1)
     out = kernels().exposure_tone(img, torch.ones(1, dtype=torch.float64))
@@ -66,6 +97,7 @@ def test_gain_one_gives_back_the_product():
     (torch.zeros(4, 4, 5), torch.ones(1), "image must be"),
     (torch.zeros(16, 6), torch.ones(1), "image must be"),
     (torch.zeros(4, 4, 6), torch.ones(2), "gain must have 1 or 3"),
+    (torch.zeros(4, 4, 6), torch.ones(4), "or 9: a 3x3 matrix"),
     (torch.zeros(4, 4, 6), torch.ones(1, 1), "gain must have 1 dims"),
     (torch.zeros(4, 4, 6), torch.ones(1, dtype=torch.float64), "gain must have dtype"),
     (torch.zeros(4, 4, 6, dtype=torch.int32), torch.ones(1), "image must be float32 or float64"),

@@ -307,3 +307,42 @@ def test_the_model_error_turns_the_weights_into_the_display_s_without_noise_and_
     plain = losses.linear_weights(x, loud, gain)
     mixed = losses.linear_weights(x, loud._replace(model_error=1e-4), gain)
     assert torch.allclose(plain, mixed, rtol=1e-3)
+
+
+def test_the_sigma_unit_pulls_a_pixel_at_one_sigma_with_force_one_and_keeps_the_weights_ratios():
+    """loss.rec_raw_unit sigma: Σ w·e² / (2·sqrt(mean w)) per image, w = 1 / var of the exposed error: on an image
+    of one noise level σ the force on the exposed error at e = σ is 1 (an L1's), where plain's is 2σ; between
+    pixels the weights keep the noise model's ratios (each pixel's minimiser is plain's)."""
+    a = torch.zeros(1, 3, 1, 1)
+    b = torch.full((1, 3, 1, 1), 1e-4)  # σ = 0.01 in linear light
+    gain = torch.tensor(4.0, dtype=torch.float64)  # σ = 0.04 exposed
+    y = torch.full((1, 3, 5, 5), 0.2, dtype=torch.float64)  # the views' light
+    S = linear_to_srgb_extended(y)
+    n = y.numel()
+    force = {}
+    for unit in ("plain", "sigma"):
+        x = (y + 0.01).requires_grad_(True)  # the render's light, one σ above
+        target = losses.LinearTarget("noise", a.double(), b.double(), unit=unit)
+        (losses.linear_reconstruction(linear_to_srgb_extended(x), S, target, gain) * n).backward()
+        force[unit] = float((x.grad / gain).mean())  # d(per-pixel term)/d(exposed error)
+    assert force["sigma"] == pytest.approx(1.0, rel=1e-4)
+    assert force["plain"] == pytest.approx(2 * 0.04, rel=1e-4)
+    # two noise levels in one image: the weights' ratio is the noise model's in both units
+    b2 = torch.tensor([1e-4, 4e-4, 1e-4]).reshape(1, 3, 1, 1)
+    xs = torch.full((1, 3, 4, 4), 0.2)
+    wp = losses.linear_weights(xs, losses.LinearTarget("noise", a, b2), torch.tensor(4.0))
+    ws = losses.linear_weights(xs, losses.LinearTarget("noise", a, b2, unit="sigma"), torch.tensor(4.0),
+                               normalise=False)
+    assert torch.allclose(wp[:, 1] / wp[:, 0], ws[:, 1] / ws[:, 0])
+    assert float((ws[:, 1] / ws[:, 0]).mean()) == pytest.approx(0.25)
+    with pytest.raises(ValueError, match="unit"):
+        losses.linear_reconstruction(linear_to_srgb_extended(y), S, losses.LinearTarget("noise", a, b, unit="stops"),
+                                     gain)
+
+
+def test_rec_raw_unit_is_a_config_key_whose_runs_from_before_it_keep_plain():
+    from retinexgs.run.config import load_config
+    from retinexgs.run.folder import PREDATING_VALUES
+    assert load_config().loss.rec_raw_unit == "plain"
+    assert load_config(["ablations/raw_sigma"]).loss.rec_raw_unit == "sigma"
+    assert PREDATING_VALUES["loss.rec_raw_unit"] == "plain"

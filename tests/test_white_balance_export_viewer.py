@@ -221,7 +221,7 @@ def test_view_shoulder_switch_clips_at_white_when_off(loaded, frames):
     # with a balance: the balanced light clipped
     form_off = frames.render(vcam, FrameSettings(exposure=bright, shoulder=False, white_balance=GAINS))
     balance = white_balance_of(parse_white_balance(GAINS), model, cfg, scene, degree, bright)
-    res = render_function(model, cfg, degree, exposure=bright, balance=balance)(viewer_to_camera(vcam))
+    res = render_function(model, cfg, degree, exposure=bright, balance=balance, linear=True)(viewer_to_camera(vcam))
     assert np.array_equal(form_off, to_uint8(linear_to_srgb(res["rgb_linear"])))
 
 
@@ -237,7 +237,7 @@ def test_view_eyedropper_makes_the_picked_pixel_grey(loaded, frames):
     x, y = int(0.5 * cam.width), int(0.5 * cam.height)
     form = "gains:" + ",".join(repr(float(g)) for g in gains)
     balance = white_balance_of(parse_white_balance(form), model, cfg, scene, degree, 0.8)
-    light = render_function(model, cfg, degree, exposure=0.8, balance=balance)(cam)["rgb_linear"][y, x]
+    light = render_function(model, cfg, degree, exposure=0.8, balance=balance, linear=True)(cam)["rgb_linear"][y, x]
     assert torch.allclose(light, light[1].expand(3), rtol=1e-4), light  # grey
     with pytest.raises(ValueError, match="finite"):
         frames.pick_neutral(vcam, settings, float("nan"), 0.5)

@@ -90,7 +90,7 @@ def test_gains_multiply_the_linear_light_before_the_curve_and_are_recorded(run_d
     cfg, scene, model, degree, view = loaded
     light = render_function(model, cfg, degree, linear=True)(view)["rgb_linear"]
     gains = torch.tensor([1.3, 1.0, 0.7])
-    res = render_function(model, cfg, degree, balance=gains)(view)
+    res = render_function(model, cfg, degree, balance=gains, linear=True)(view)
     assert torch.allclose(res["rgb_linear"], light * gains, rtol=1e-6, atol=0)
     assert torch.allclose(res["rgb"], encode_enhanced(model, cfg, light * gains), atol=1e-6)
     assert float(res["rgb"][..., 0].mean()) > float(render_function(model, cfg, degree)(view)["rgb"][..., 0].mean())
@@ -101,6 +101,20 @@ def test_gains_multiply_the_linear_light_before_the_curve_and_are_recorded(run_d
     assert np.abs(png(out) / 255 - res["rgb"].numpy()).max() <= 1 / 255 + 1e-6
     note = Image.open(out).text["retinexgs"]
     assert "gains:2.6,2,1.4" in note and "gains R,G,B = 1.3, 1, 0.7" in note
+
+
+@pytest.mark.parametrize("balance", [torch.tensor([1.3, 1.0, 0.7]), torch.from_numpy(temperature_matrix(4000, 10))])
+def test_the_renderer_balances_in_its_tone_kernel_as_the_torch_path_does(loaded, balance):
+    """The fast path puts the balance into the exposure tone's one kernel (W·diag(k), no re-encoding in torch):
+    the same frame as the torch path (model.render, then the balanced light encoded again), to float rounding."""
+    cfg, scene, model, degree, view = loaded
+    fast = render_function(model, cfg, degree, balance=balance)
+    assert fast(view)["rgb"].shape[-1] == 3 and "rgb_linear" not in fast(view)  # no torch re-encoding was made
+    slow = render_function(model, cfg, degree, balance=balance, fast=False)(view)["rgb"]
+    got = fast(view)["rgb"]
+    assert float((got - slow).abs().max()) < 2e-6
+    plain = render_function(model, cfg, degree)(view)["rgb"]
+    assert float((got - plain).abs().max()) > 1e-2  # the balance did something
 
 
 def test_a_picked_neutral_turns_grey(run_dir, loaded, tmp_path, capsys):

@@ -1,6 +1,7 @@
 """Frame rate of a trained run: the full enhanced render against the rasterization alone, side by side.
 
     python -m retinexgs.bench fps --run RUN [--width W --height H] [--frames 100] [--device cuda] [--vs gsplat]
+                                  [--white-balance FORM]
 
 "full" is what ``model.render`` (the training path, torch ops) pays per frame: SH colours + the illumination MLP on
 every Gaussian, one 6-channel rasterization, the EnhancementNet and R̂·L̂^g. "full (fused)" is the same frame
@@ -11,7 +12,10 @@ its colour kernel launched after the binning instead of on a side stream beside 
 tile cull" with tile culling in the binning (the same pixels, another split of the work; the renderer's default
 on CUDA is without). On CUDA the kernel launches per frame of each full stage are counted with torch.profiler
 (cudaLaunchKernel and friends; a CUDA graph counts once). Cameras are the run's test views (train views when it
-has none), cycled; ``--width/--height`` resize them (intrinsics scaled per axis).
+has none), cycled; ``--width/--height`` resize them (intrinsics scaled per axis). ``--white-balance FORM`` adds
+"fused + balance": the fused frame with that render-time white balance (``render --white-balance``; issue 53's
+target: at most 5 % slower than "full (fused)"): the same renderer call with the balance, which tone ``exposure``
+applies inside its one kernel (other tones: the light balanced and encoded again in torch, as ``render`` does).
 """
 from __future__ import annotations
 
@@ -27,7 +31,8 @@ from retinexgs.render import Camera, rasterize_gaussians
 from retinexgs.model.inference import InferenceRenderer
 from retinexgs.errors import UserError
 from retinexgs.run.folder import load_run
-from retinexgs.run.render import active_sh_degree, view_camera
+from retinexgs.model.white_balance import describe_balance, parse_white_balance
+from retinexgs.run.render import active_sh_degree, render_function, view_camera, white_balance_of
 
 STAGES = ("full", "full (fused)", "raster")
 # Runtime/driver calls that start GPU work: kernels, graphs, copies and fills.
@@ -86,9 +91,10 @@ def _gsplat_raster(means, quats, scales, opacities, colors, cam: Camera):
 
 def benchmark(run: Path, device: Optional[str] = None, width: Optional[int] = None, height: Optional[int] = None,
               frames: int = 100, warmup: int = 10, vs_gsplat: bool = False,
-              launch_frames: int = 5) -> Dict[str, object]:
+              launch_frames: int = 5, white_balance: Optional[str] = None) -> Dict[str, object]:
     """Median ms / FPS of the full enhanced render (torch path and fused path) and of the rasterization alone
-    for ``run``; on CUDA also the launches per frame of the two full stages (over ``launch_frames`` frames)."""
+    for ``run``; on CUDA also the launches per frame of the two full stages (over ``launch_frames`` frames).
+    ``white_balance``: a ``--white-balance`` form, timed as the stage "fused + balance"."""
 
     cfg, scene, model, step = load_run(run, device)
     model.eval()
@@ -124,6 +130,21 @@ def benchmark(run: Path, device: Optional[str] = None, width: Optional[int] = No
         culled = InferenceRenderer(model, degree)
         culled.cull_tiles = True
         stages["fused, tile cull"] = lambda i: culled.render(cams[i % len(cams)])
+    balance_text = None
+    if white_balance is not None:
+        wb = parse_white_balance(white_balance)
+        balance = white_balance_of(wb, model, cfg, scene, degree)
+        balance_text = describe_balance(wb, balance)
+        if cfg.method == "retinexgs" and renderer.can_balance():
+            # the same call as "full (fused)" with the balance (render and the viewer pass it so, through
+            # render_function): the frame's own cost of the edit
+            matrix = torch.as_tensor(balance, dtype=torch.float32)
+            matrix = torch.diag(matrix) if matrix.dim() == 1 else matrix
+            stages["fused + balance"] = lambda i: renderer.render(cams[i % len(cams)], balance=matrix)
+        else:  # no fused balance for this tone: the light balanced and encoded again in torch
+            balanced = render_function(model, cfg, degree, renderer=InferenceRenderer(model, degree),
+                                       balance=balance)
+            stages["fused + balance"] = lambda i: balanced(cams[i % len(cams)])
     if vs_gsplat:
         def gs(i: int) -> None:
             _gsplat_raster(means, quats, scales, opac, channels[i % len(cams)], cams[i % len(cams)])
@@ -131,7 +152,8 @@ def benchmark(run: Path, device: Optional[str] = None, width: Optional[int] = No
     out: Dict[str, object] = {"gaussians": len(g), "width": cams[0].width, "height": cams[0].height,
                               "channels": int(channels[0].shape[1]), "frames": frames,
                               "device": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu",
-                              "fused_colors": renderer.fused, "colors_note": renderer.fallback_reason}
+                              "fused_colors": renderer.fused, "colors_note": renderer.fallback_reason,
+                              "white_balance": balance_text}
     with torch.no_grad():  # the fused path must give the torch path's image
         ref, got = model.render(cams[0], degree)["rgb"], renderer.render(cams[0])["rgb"]
         out["fused_max_abs_diff"] = float((ref.double() - got.double()).abs().max()) if ref.numel() else 0.0
@@ -162,6 +184,10 @@ def format_result(r: Dict[str, object]) -> str:
     lines.append(f"  fused / torch full render: {fused / full:.2f}x time, {full / fused:.1f}x FPS"
                  + ("" if r.get("fused_colors", True) else f" (torch colours: {r.get('colors_note')})")
                  + f"; max |fused - torch| of the enhanced image: {r.get('fused_max_abs_diff', float('nan')):.2e}")
+    if "fused + balance" in r:
+        ratio = r["fused + balance"]["ms"] / fused  # type: ignore[index]
+        lines.append(f"  white balance ({r['white_balance']}): {ratio:.3f}x the fused frame's time "
+                     f"({100 * (ratio - 1):+.1f} %)")
     return "\n".join(lines)
 
 
@@ -176,6 +202,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--vs", choices=["gsplat"], default=None, help="also time gsplat's rasterization")
     parser.add_argument("--launch-frames", type=int, default=5,
                         help="frames profiled to count launches per frame on CUDA (0: skip; default 5)")
+    parser.add_argument("--white-balance", default=None, metavar="FORM",
+                        help="also time the fused frame with this render-time white balance (render's forms)")
     args = parser.parse_args(argv)
     if args.frames < 1 or args.warmup < 0 or args.launch_frames < 0 or any(
             size is not None and size < 1 for size in (args.width, args.height)):
@@ -183,7 +211,7 @@ def main(argv: Optional[List[str]] = None) -> int:
 
     try:
         print(format_result(benchmark(args.run, args.device, args.width, args.height, args.frames, args.warmup,
-                                      args.vs == "gsplat", args.launch_frames)))
+                                      args.vs == "gsplat", args.launch_frames, args.white_balance)))
     except UserError as exc:
         print(f"bench fps: error: {exc}")
         return 2

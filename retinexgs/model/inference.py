@@ -11,7 +11,10 @@ per-frame overhead of the training path:
   validation); scales and opacities are activated once, the MLP weights packed once;
 - on CUDA the enhancement (EnhancementNet + R̂·(L̂/L_ref)^g) is one CUDA graph per resolution (captured on
   the second frame of that size, the last few kept), with exposure and gamma in device tensors so one graph
-  serves every setting.
+  serves every setting;
+- a white balance (``render --white-balance``, the viewer; issue 53) enters tone ``exposure``'s one kernel as a
+  3×3 matrix on the linear light (:meth:`InferenceRenderer.render`'s ``balance``), in the same graph, rather than
+  as a re-encoding of the frame in torch afterwards.
 
 The renderer snapshots what it derives from the model (activated scales/opacities, packed weights). A model that
 changes while frames render (a live trainer's viewer) needs ``live=True``: each frame then checks the parameters'
@@ -35,7 +38,7 @@ from retinexgs.render._backend import kernels
 from retinexgs.render.camera import Camera
 
 __all__ = ["InferenceRenderer", "FrameMaps", "illumination_shape", "fused_colors_unsupported", "pack_illumination",
-           "fused_gaussian_colors", "camera_center"]
+           "fused_gaussian_colors", "camera_center", "balanced_gain"]
 
 MAX_GRAPHS = 4  # enhancement graphs kept (one per resolution; the viewer's scale slider makes new ones)
 
@@ -115,12 +118,21 @@ class FrameMaps(dict):
         raise KeyError(key)
 
 
+def balanced_gain(balance: Tensor, gain: Tensor) -> Tensor:
+    """The exposure tone kernel's 9-entry gain of a white balance W [3,3] and the exposure gain k ([1] or [3]):
+    W·diag(k), row-major, so that the kernel's one pass gives shoulder(W·(k·lin(R̂∘L̂))) then the sRGB curve."""
+    return (balance * gain.reshape(-1).expand(3)[None, :]).reshape(9)
+
+
 class _EnhanceGraph:
     """The enhancement of one resolution captured as a CUDA graph: static input [H,W,6], exposure / fixed gamma
     in device tensors, output rgb [H,W,3] and gamma [C] in one buffer (copied out per frame)."""
 
-    def __init__(self, model, height: int, width: int, like: Tensor) -> None:
+    def __init__(self, model, height: int, width: int, like: Tensor, balanced: bool = False) -> None:
         self.model = model
+        self.balanced = balanced  # a graph of its own: the unbalanced frame stays the one kernel call it was
+        self.balance = torch.eye(3, dtype=like.dtype, device=like.device)
+        self.balance_values: Optional[Tuple[float, ...]] = None
         self.image = torch.zeros(height, width, 6, dtype=like.dtype, device=like.device)
         self.exposure = torch.ones((), dtype=like.dtype, device=like.device)
         self.fixed = torch.ones((), dtype=like.dtype, device=like.device)
@@ -151,18 +163,27 @@ class _EnhanceGraph:
             # One kernel for srgb(s(k·lin(R̂∘L̂))) (csrc: exposure_tone): in torch the two sRGB curves are ~20
             # elementwise kernels over the frame, and L_enh, which the frame does not show, as many again.
             gain = exposure_gain(self.model.illum_ref, g.reshape(-1), self.log_ref)
+            if self.balanced:
+                gain = balanced_gain(self.balance, gain)
             rgb = kernels().exposure_tone(self.image, gain, self.model.shoulder)
         else:  # the gamma tones; tone "exposure" through a black table (debias_black) has no fused kernel yet
             rgb, _ = self.model.tone_map(R, L, g.reshape(-1))
         return torch.cat([rgb.reshape(-1), g.reshape(-1)])
 
-    def run(self, image: Tensor, exposure: Optional[float], gamma: Optional[float]) -> Tuple[Tensor, Tensor]:
-        """(rgb [H,W,3], gamma [C]) of a rasterized [H,W,6] image; both are fresh tensors."""
+    def run(self, image: Tensor, exposure: Optional[float], gamma: Optional[float],
+            balance: Optional[Tensor] = None) -> Tuple[Tensor, Tensor]:
+        """(rgb [H,W,3], gamma [C]) of a rasterized [H,W,6] image; both are fresh tensors. ``balance``: the 3×3
+        white balance of a balanced graph."""
         if self.settings != (exposure, gamma):  # fill_ is a launch each: only when the GUI changes them
             self.use_fixed.fill_(gamma is not None)
             self.fixed.fill_(1.0 if gamma is None else float(gamma))
             self.exposure.fill_(1.0 if exposure is None else float(exposure))
             self.settings = (exposure, gamma)
+        if self.balanced:
+            values = tuple(balance.reshape(-1).tolist())  # the caller's copy (CPU in render and the viewer)
+            if values != self.balance_values:  # a copy only when the balance changes
+                self.balance.copy_(balance.reshape(3, 3))
+                self.balance_values = values
         self.image.copy_(image)
         self.graph.replay()
         out = self.out.clone()
@@ -299,12 +320,22 @@ class InferenceRenderer:
             stream = self._side = torch.cuda.Stream(device=device)
         return stream
 
+    def can_balance(self) -> bool:
+        """Whether :meth:`render` applies a white balance itself: RetinexGS with tone ``exposure`` read without a
+        black table (the one kernel; the default). Elsewhere the caller balances the frame's light in torch."""
+        return self.decomposed and self.model.tone == "exposure" and self.model.tone_noise() is None
+
     def render(self, camera: Camera, exposure: Optional[float] = None, gamma: Optional[float] = None,
-               degree: Optional[int] = None) -> FrameMaps:
+               degree: Optional[int] = None, balance: Optional[Tensor] = None) -> FrameMaps:
         """The frame of ``camera``: ``rgb`` [H,W,3] equal to ``model.render(camera, degree, exposure, gamma)["rgb"]``
         and, for RetinexGS, ``R``, ``L``, ``S_rec`` [H,W,3] and ``gamma`` [C]. ``exposure`` adjusts the predicted
         gamma, ``gamma`` replaces it (RetinexGS only; baselines ignore both). ``degree`` overrides the SH degree
-        of this and later frames (a live trainer raises it)."""
+        of this and later frames (a live trainer raises it). ``balance``: a white balance, a 3×3 matrix on the
+        linear light (gains as its diagonal; :mod:`retinexgs.model.white_balance`), applied before the highlight
+        shoulder and the sRGB curve, as ``render --white-balance`` defines it; only where :meth:`can_balance`
+        (else refused: the caller balances). None: as trained."""
+        if balance is not None and not self.can_balance():
+            raise ValueError("this model's tone has no fused white balance (can_balance() is False)")
         if degree is not None:
             self.degree = int(degree)
         self.refresh_if_changed()
@@ -313,18 +344,26 @@ class InferenceRenderer:
             if not self.decomposed:
                 return FrameMaps(rgb=image)
             R, L = image[..., :3], image[..., 3:6]
-            graph = self._graph(camera.height, camera.width, image) if self.use_graphs and image.is_cuda else None
+            balanced = balance is not None
+            if balanced:  # kept where the caller has it (the CPU, from numpy): no device-to-host read per frame
+                balance = torch.as_tensor(balance).reshape(3, 3)
+            graph = (self._graph(camera.height, camera.width, image, balanced)
+                     if self.use_graphs and image.is_cuda else None)
             if graph is not None:
-                rgb, g = graph.run(image, exposure, gamma)
+                rgb, g = graph.run(image, exposure, gamma, balance)
+            elif balanced:
+                g = self.model.enhance_gamma(L, exposure, gamma)
+                gain = balanced_gain(balance.to(image), exposure_gain(self.model.illum_ref, g))
+                rgb = kernels().exposure_tone(image, gain, self.model.shoulder)
             else:
                 enh = self.model.enhance(R, L, exposure, gamma)
                 rgb, g = enh["rgb"], enh["gamma"]
             return FrameMaps(rgb=rgb, R=R, L=L, gamma=g)
 
-    def _graph(self, height: int, width: int, like: Tensor) -> Optional[_EnhanceGraph]:
-        """The enhancement graph of this resolution; None (render eagerly) the first time a resolution is seen, so
-        frames of ever-changing sizes do not pay a capture each."""
-        key = (height, width, like.dtype, like.device)
+    def _graph(self, height: int, width: int, like: Tensor, balanced: bool = False) -> Optional[_EnhanceGraph]:
+        """The enhancement graph of this resolution (and balanced or not); None (render eagerly) the first time a
+        resolution is seen, so frames of ever-changing sizes do not pay a capture each."""
+        key = (height, width, like.dtype, like.device, balanced)
         graph = self._graphs.get(key)
         if graph is None:
             if key not in self._seen:
@@ -332,7 +371,7 @@ class InferenceRenderer:
                     self._seen.clear()
                 self._seen.add(key)
                 return None
-            graph = _EnhanceGraph(self.model, height, width, like)
+            graph = _EnhanceGraph(self.model, height, width, like, balanced)
             self._graphs[key] = graph
             while len(self._graphs) > MAX_GRAPHS:
                 self._graphs.popitem(last=False)

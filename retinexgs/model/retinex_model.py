@@ -117,14 +117,20 @@ class RetinexGSModel(nn.Module):
         """S_enh for [H,W,3] maps ``R``, ``L`` in the model's tone form (:mod:`retinexgs.model.tone`); returns
         ``rgb``, ``L_enh`` (the enhanced light) [H,W,3] and ``gamma`` (flattened). ``exposure`` adjusts the
         predicted g (< 1 brighter: :func:`retinexgs.model.tone.apply_exposure`); ``gamma`` replaces it."""
+        g = self.enhance_gamma(L, exposure, gamma)
+        rgb, L_enh = self.tone_map(R, L, g)
+        return {"rgb": rgb, "L_enh": L_enh, "gamma": g}
+
+    def enhance_gamma(self, L: Tensor, exposure: Optional[float] = None,
+                      gamma: Optional[float] = None) -> Tensor:
+        """The g (flattened, [C]) that :meth:`enhance` tones with, for the [H,W,3] light ``L``."""
         L_bchw = self.normalized_illumination(L).permute(2, 0, 1).unsqueeze(0)
         g = self.predict_gamma(L_bchw)
         if gamma is not None:
             g = torch.full_like(g, float(gamma))
         elif exposure is not None:
             g = apply_exposure(g, float(exposure), self.illum_ref, self.tone)
-        rgb, L_enh = self.tone_map(R, L, g.reshape(-1))
-        return {"rgb": rgb, "L_enh": L_enh, "gamma": g.reshape(-1)}
+        return g.reshape(-1)
 
     def tone_map(self, R: Tensor, L: Tensor, gamma: Tensor) -> Tuple[Tensor, Tensor]:
         """(S_enh, L_enh) from R̂ [..., 3], the rendered L̂ [..., 3] and g ([1] or [3], broadcast over the last

@@ -78,7 +78,7 @@ PREDATING_VALUES: Dict[str, Any] = {"model.enhancement.tone": "illumination", "l
                                     "density.noise_aware": False, "loss.rec_noise_scale": 1,
                                     "loss.exp_highlight_share": 0.0, "train.momentum_batch_scaling": "none",
                                     "density.last_event": 1.0, "loss.rec_raw": "photo",
-                                    "decomposer.raw_denoise": False}
+                                    "decomposer.raw_denoise": False, "loss.rec_raw_unit": "plain"}
 
 
 def _fill_missing(cfg: RawConfig, default: RawConfig, prefix: str, filled: List[str]) -> RawConfig:

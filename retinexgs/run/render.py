@@ -69,8 +69,10 @@ def render_function(model: RetinexGSModel, cfg: Config, degree: int, exposure: O
 
     ``balance``: a white-balance edit (gains [3] or a 3×3 matrix, :mod:`retinexgs.model.white_balance`) applied
     to the enhanced image's linear light before the shoulder and the sRGB curve; None or exactly the identity
-    leaves ``rgb`` as rendered, bit for bit. ``linear`` (or a balance given): the maps also hold ``rgb_linear``,
-    that light after the balance (:func:`enhanced_linear`)."""
+    leaves ``rgb`` as rendered, bit for bit. With ``fast`` and tone ``exposure`` it is applied inside the
+    renderer's one tone kernel (:meth:`~retinexgs.model.inference.InferenceRenderer.render`), elsewhere by encoding
+    the balanced light again in torch; the two agree to float rounding (tests). ``linear``: the maps also hold
+    ``rgb_linear``, that light after the balance (:func:`enhanced_linear`)."""
     model.eval()
     if fast and renderer is None:
         renderer = InferenceRenderer(model, degree)
@@ -78,12 +80,17 @@ def render_function(model: RetinexGSModel, cfg: Config, degree: int, exposure: O
         balance = torch.as_tensor(balance, dtype=torch.float32)
         eye = torch.ones(3) if balance.dim() == 1 else torch.eye(3)
         balance = None if torch.equal(balance, eye) else balance
+    # The balance inside the renderer's one tone kernel where it can (tone exposure, the default): the frame costs
+    # what an unbalanced one does. Elsewhere the light is balanced and encoded again in torch.
+    fused_balance = None
+    if balance is not None and fast and cfg.method != "post" and renderer.can_balance():
+        fused_balance = torch.diag(balance) if balance.dim() == 1 else balance
 
     def fn(view: Union[View, Camera]) -> Dict:
         camera = view if isinstance(view, Camera) else view_camera(view)
         with torch.no_grad():
             if fast:
-                res = renderer.render(camera, exposure=exposure, gamma=gamma, degree=degree)
+                res = renderer.render(camera, exposure=exposure, gamma=gamma, degree=degree, balance=fused_balance)
             else:
                 res = model.render(camera, degree, exposure=exposure, gamma=gamma)
             if cfg.method == "post":
@@ -92,10 +99,10 @@ def render_function(model: RetinexGSModel, cfg: Config, degree: int, exposure: O
                 res = dict(res, rgb=enhance_for_viewing(R, L))
             if "L" in res:  # scene-wide, not per image: one view's L is comparable with another's, videos keep still
                 res["L_view"] = model.normalized_illumination(res["L"])
-            if linear or balance is not None:
+            if linear or (balance is not None and fused_balance is None):
                 light = white_balance(enhanced_linear(model, cfg, res), balance)
                 res["rgb_linear"] = light
-                if balance is not None:
+                if balance is not None and fused_balance is None:
                     res["rgb"] = encode_enhanced(model, cfg, light)
         return res
 

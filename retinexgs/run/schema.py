@@ -313,6 +313,7 @@ class Loss(Section):
     rec_camera_noise: Bool
     rec_raw: Choice("noise", "relative", "photo")
     rec_raw_model_error: Num(ge=0, le=1)
+    rec_raw_unit: Choice("plain", "sigma")
     w_depth: Num(ge=0)
     depth_edge: Num(ge=0)
 

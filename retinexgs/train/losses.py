@@ -133,15 +133,16 @@ class LinearTarget(NamedTuple):
     b: torch.Tensor
     gain: Optional[torch.Tensor] = None
     model_error: float = 0.0
+    unit: str = "plain"
 
 
 # RawNeRF's ε (Mildenhall et al., CVPR 2022, Sec. 3.2), in exposed units (the scene's full light at 1).
 RELATIVE_EPS = 1e-3
 
 
-def linear_weights(x: torch.Tensor, target: LinearTarget, gain: torch.Tensor) -> torch.Tensor:
-    """Per-pixel weights (no gradient) of :func:`linear_reconstruction`, normalised to mean 1 per image, from the
-    render's own linear light ``x`` [B,C,H,W]:
+def linear_weights(x: torch.Tensor, target: LinearTarget, gain: torch.Tensor, normalise: bool = True) -> torch.Tensor:
+    """Per-pixel weights (no gradient) of :func:`linear_reconstruction`, normalised to mean 1 per image (else the
+    inverse variances of the exposed error, gain·(x − y)), from the render's own linear light ``x`` [B,C,H,W]:
 
     - ``noise``: 1 / (a·x + b), the inverse of the noise variance at the render's value: the weighted least
       squares that is the Gaussian likelihood of the views under their Poisson-Gaussian noise;
@@ -160,12 +161,12 @@ def linear_weights(x: torch.Tensor, target: LinearTarget, gain: torch.Tensor) ->
             var = target.a * xs + target.b
             if target.model_error > 0:
                 var = var + (target.model_error / (linear_to_srgb_slope(gain * xs) * gain)) ** 2
-            w = 1.0 / var
+            w = 1.0 / (var * gain ** 2)
         elif target.mode == "relative":
             w = 1.0 / (gain * xs + RELATIVE_EPS) ** 2
         else:
             raise ValueError(f"unknown linear reconstruction mode {target.mode!r} (noise | relative)")
-        return w / w.mean(dim=(1, 2, 3), keepdim=True)
+        return w / w.mean(dim=(1, 2, 3), keepdim=True) if normalise else w
 
 
 def linear_reconstruction(rec: torch.Tensor, S: torch.Tensor, target: LinearTarget,
@@ -184,8 +185,19 @@ def linear_reconstruction(rec: torch.Tensor, S: torch.Tensor, target: LinearTarg
     y = srgb_to_linear_extended(S)
     gain = target.gain if target.gain is not None else gain
     g = rec.new_ones(()) if gain is None else gain
-    w = linear_weights(x, target, g)
-    return (w * (g * (x - y)) ** 2).mean()
+    if target.unit == "plain":
+        w = linear_weights(x, target, g)
+        return (w * (g * (x - y)) ** 2).mean()
+    if target.unit != "sigma":
+        raise ValueError(f"unknown linear reconstruction unit {target.unit!r} (plain | sigma)")
+    # sigma: Σ w·e² / (2·sqrt(mean w)) per image, w the weights on the exposed error e unnormalised (1 / its
+    # variance): a pixel at the image's typical σ = 1 / sqrt(mean w) is pulled with force e / σ, 1 at one σ, as
+    # an L1 pulls with 1 everywhere. The normalised form (plain) pulls with 2·e·w/mean(w), about σ at one σ: on a
+    # dark capture far weaker than the 2D priors' L1 terms, which then decide the shadows' light.
+    w = linear_weights(x, target, g, normalise=False)
+    with torch.no_grad():
+        scale = 0.5 / w.mean(dim=(1, 2, 3), keepdim=True).sqrt()
+    return (w * scale * (g * (x - y)) ** 2).mean()
 
 
 def l1_ssim(x: torch.Tensor, y: torch.Tensor, lambda_ssim: float = 0.2, huber: float = 0.0,

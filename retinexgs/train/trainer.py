@@ -371,7 +371,8 @@ class Trainer:
         d2 = float(self.cfg.data.downscale) ** 2  # a downscaled view averages d × d pixels
         a = torch.tensor(noise.a, dtype=torch.float32, device=self.device).reshape(1, 3, 1, 1) / d2
         b = torch.tensor(noise.b, dtype=torch.float32, device=self.device).reshape(1, 3, 1, 1) / d2
-        self.linear_target = losses.LinearTarget(mode, a, b, model_error=float(self.cfg.loss.rec_raw_model_error))
+        self.linear_target = losses.LinearTarget(mode, a, b, model_error=float(self.cfg.loss.rec_raw_model_error),
+                                                 unit=self.cfg.loss.rec_raw_unit)
         self.log(f"raw scene: reconstruction in linear light ({mode}); {noise.describe()}")
         if self.camera_noise is not None:
             self.log("loss.rec_camera_noise is not used on a raw scene (its values are not clipped at black)")

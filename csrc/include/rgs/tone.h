@@ -41,10 +41,21 @@ RGS_HD T exposure_tone(T r, T l, T k, T knee) {
     return linear_to_srgb(highlight_shoulder(k * srgb_to_linear(r * l), knee));
 }
 
-// Pixel p of an [P, C] image whose channels 0-2 are R̂ and 3-5 L̂; gain [G] (G = 1: one gain, 3: per channel).
+// Pixel p of an [P, C] image whose channels 0-2 are R̂ and 3-5 L̂; gain [G] (G = 1: one gain, 3: per channel,
+// 9: a 3x3 matrix, row-major, rows the output channels: a white balance times the exposure, W·diag(k), applied to
+// the linear light before the shoulder, as render --white-balance does; issue 53).
 template <typename T>
 RGS_HD void exposure_tone_pixel(int64_t p, int C, int G, const T* image, const T* gain, T knee, T* out) {
     const T* px = image + p * C;
+    if (G == 9) {
+        T lin[3];
+        for (int c = 0; c < 3; ++c) lin[c] = srgb_to_linear(px[c] * px[3 + c]);
+        for (int c = 0; c < 3; ++c) {
+            const T* row = gain + 3 * c;
+            out[p * 3 + c] = linear_to_srgb(highlight_shoulder(row[0] * lin[0] + row[1] * lin[1] + row[2] * lin[2], knee));
+        }
+        return;
+    }
     for (int c = 0; c < 3; ++c) out[p * 3 + c] = exposure_tone(px[c], px[3 + c], gain[G == 1 ? 0 : c], knee);
 }
 
