@@ -340,6 +340,7 @@ def test_enhance_graph_body_equals_model_enhance(tone, shoulder):
     body = _EnhanceGraph.__new__(_EnhanceGraph)  # its state without the capture (CUDA only)
     body.model, body.image, body.size = model, image, 12 * 9 * 3
     body.log_ref = log_lin_ref(model.illum_ref, image)
+    body.balanced = False
     for exposure, gamma in [(None, None), (0.5, None), (2.0, None), (None, 0.7)]:
         body.exposure = torch.tensor(1.0 if exposure is None else exposure, dtype=torch.float64)
         body.fixed = torch.tensor(1.0 if gamma is None else gamma, dtype=torch.float64)
@@ -349,6 +350,20 @@ def test_enhance_graph_body_equals_model_enhance(tone, shoulder):
             ref = model.enhance(image[..., :3], image[..., 3:], exposure, gamma)
         torch.testing.assert_close(out[:body.size].view(12, 9, 3), ref["rgb"], rtol=0, atol=1e-12)
         torch.testing.assert_close(out[body.size:], ref["gamma"], rtol=0, atol=1e-12)
+    if tone != "exposure":
+        return
+    # a balanced graph's body (issue 53): the balance inside the tone kernel, as the torch path applies it
+    from retinexgs.model.tone import exposure_gain, highlight_shoulder, linear_to_srgb, srgb_to_linear, white_balance
+    body.balanced = True
+    body.balance = torch.tensor([[0.87, -0.19, -0.04], [0.01, 1.01, -0.01], [0.02, 0.07, 1.75]], dtype=torch.float64)
+    body.exposure, body.use_fixed = torch.tensor(0.5, dtype=torch.float64), torch.tensor(False)
+    with torch.no_grad():
+        out = body._body()
+        g = model.enhance(image[..., :3], image[..., 3:], 0.5)["gamma"]
+        light = white_balance(exposure_gain(model.illum_ref, g) * srgb_to_linear(image[..., :3] * image[..., 3:]),
+                              body.balance)
+    torch.testing.assert_close(out[:body.size].view(12, 9, 3), linear_to_srgb(highlight_shoulder(light, shoulder)),
+                               rtol=0, atol=1e-12)
 
 
 def test_renderer_without_tile_culling_renders_the_same_frame():

@@ -106,12 +106,14 @@ def run(args: argparse.Namespace) -> int:
     for p in paths:
         read_image(p)
     hint = "--cache DIR (or --set data.cache_dir=DIR)"
+    balance = None  # data.white_balance: the scene's views carry it (open_scene)
     if _has_poses(scene, cfg.data.cache_dir):
         # Decompose exactly the images train will read: undistorted and downscaled copies where the scene
         # needs them, so that train finds every entry in the cache.
         from retinexgs.run.folder import open_scene  # lazy: --help stays fast
 
-        paths = [v.image_path for v in open_scene(scene, cfg, cache_hint=hint).train]
+        train = open_scene(scene, cfg, cache_hint=hint).train
+        paths, balance = [v.image_path for v in train], (train[0].balance if train else None)
     else:
         if cfg.data.downscale != 1:
             raise UserError(f"{scene} has no camera poses yet (no transforms JSON, COLMAP model or cached SfM), so "
@@ -122,7 +124,8 @@ def run(args: argparse.Namespace) -> int:
     cache_root = scene_cache_root(scene, cfg.data.cache_dir)
     _, report = decompose_images(paths, dcfg.method, dict(dcfg.params) or None, cache_root,
                                  args.device, keep=False, preview=args.preview, progress=not args.quiet,
-                                 cache_hint=hint, sweep=True, announce=False, raw_denoise=dcfg.raw_denoise)
+                                 cache_hint=hint, sweep=True, announce=False, raw_denoise=dcfg.raw_denoise,
+                                 balance=balance)
     n = report["swept"]
     swept = f", {n} old-format entr{'y' if n == 1 else 'ies'} deleted" if n else ""
     print(f"{len(paths)} view(s) decomposed with {dcfg.method}: {report['computed']} computed, "

@@ -12,13 +12,14 @@ from __future__ import annotations
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import List, Optional, Union
+from typing import List, Optional, Tuple, Union
 
 import numpy as np
 import torch
 
 from retinexgs.data.camera import Intrinsics
 from retinexgs.data.images import is_raw_file, load_image_tensor
+from retinexgs.data.photo_balance import balance_photo
 
 ArrayLike = Union[np.ndarray, torch.Tensor]
 
@@ -92,6 +93,9 @@ class View:
     camera_to_world: torch.Tensor
     paired_path: Optional[Path] = None
     source_path: Optional[Path] = None
+    # data.white_balance (retinexgs.data.photo_balance): gains on the photo's linear light, set for every view of a
+    # scene by retinexgs.run.folder.open_scene; None: the photo as shot. The paired truth is never balanced.
+    balance: Optional[Tuple[float, float, float]] = None
     _image: Optional[torch.Tensor] = field(default=None, repr=False, compare=False)
     _paired: Optional[torch.Tensor] = field(default=None, repr=False, compare=False)
 
@@ -116,8 +120,8 @@ class View:
         return self._paired
 
     def load_image(self) -> torch.Tensor:
-        """Read the input image from disk (not cached) as float32 [H,W,3] in [0,1]."""
-        return load_image_tensor(self.image_path)
+        """Read the input image from disk (not cached) as float32 [H,W,3] in [0,1] (with :attr:`balance`)."""
+        return balance_photo(load_image_tensor(self.image_path), self.balance)
 
     def load_target(self) -> torch.Tensor:
         """What training compares renders with: :meth:`load_image`, except for a camera raw view, whose values are
@@ -125,8 +129,9 @@ class View:
         black stays zero-mean; issue 52 stage 3b), rounded to float16: 11 bits of mantissa, a relative step of
         2⁻¹¹, far below any raw view's noise, and half the view store's bytes (6 per pixel, a 24 MP raw 144 MB as
         for a 16-bit RGB photo; preloaded and streamed views stay bit-identical)."""
-        target = load_image_tensor(self.image_path, unclipped=True)
-        return target.half().float() if self.is_raw else target
+        raw = self.is_raw
+        target = balance_photo(load_image_tensor(self.image_path, unclipped=True), self.balance, unclipped=raw)
+        return target.half().float() if raw else target
 
     @property
     def is_raw(self) -> bool:

@@ -35,9 +35,9 @@ from dataclasses import dataclass
 from typing import Iterable, Optional, Sequence, Tuple
 
 import numpy as np
-import torch
 from torch import Tensor
 
+from retinexgs.data.photo_balance import grey_edge_light
 from retinexgs.errors import UserError
 
 __all__ = ["REFERENCE_KELVIN", "KELVIN_RANGE", "TINT_RANGE", "WhiteBalance", "parse_white_balance",
@@ -174,16 +174,7 @@ def grey_edge_gains(images: Iterable[Tensor]) -> Tuple[float, float, float]:
     """Grey-edge gains (module docstring) of linear images [H,W,3] (H, W ≥ 2): per channel the mean over all
     pixels of all images of the gradient magnitude (forward differences), e; gains e_G/e_R, 1, e_G/e_B. Summed in
     float64 in a fixed order: deterministic. UserError when the images have no edges in some channel."""
-    total = torch.zeros(3, dtype=torch.float64)
-    count = 0
-    for img in images:
-        x = img.detach().double().cpu()
-        dx = x[:-1, 1:] - x[:-1, :-1]
-        dy = x[1:, :-1] - x[:-1, :-1]
-        mag = (dx * dx + dy * dy).sqrt()
-        total += mag.reshape(-1, 3).sum(0)
-        count += mag.shape[0] * mag.shape[1]
-    e = (total / max(count, 1)).tolist()
+    e = grey_edge_light(images)  # the same sums as the training-time balance of the photos (data.white_balance)
     if min(e) <= 1e-12:
         raise UserError("--white-balance auto: the training views' renders have no edges to estimate a white "
                         "balance from (a flat or black render); give gains:R,G,B, temp:KELVIN or pick:VIEW,X,Y")

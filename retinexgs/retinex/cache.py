@@ -40,6 +40,7 @@ from retinexgs.errors import UserError
 from retinexgs.fileio import TMP_PREFIX, atomic_write
 from retinexgs.retinex.base import enhance_for_viewing, get_decomposer, params_to_dict
 from retinexgs.data.images import holds_unclipped, load_image_tensor
+from retinexgs.data.photo_balance import balance_photo
 from retinexgs.data.raw_noise import PREVIEW_RADIUS, denoised_preview
 from retinexgs.data.undistort import image_key
 
@@ -53,26 +54,32 @@ _IMAGE_FOLDER_NAMES = {"low", "high", "images", "over_exp", "input", "rgb"}
 PathLike = Union[str, os.PathLike]
 
 
-def read_image(path: PathLike, raw_denoise: bool = False) -> torch.Tensor:
+def read_image(path: PathLike, raw_denoise: bool = False, balance: Optional[Sequence[float]] = None) -> torch.Tensor:
     """Read a photo as float32 [H,W,3] in [0,1] (8 or 16 bit, see :mod:`retinexgs.data.images`); raises
     UserError naming the file if it cannot be read. ``raw_denoise`` (``decomposer.raw_denoise``): a camera raw
-    view (or its float copy) is read as :func:`retinexgs.data.raw_noise.denoised_preview` of its unclipped values."""
+    view (or its float copy) is read as :func:`retinexgs.data.raw_noise.denoised_preview` of its unclipped values.
+    ``balance``: the photo's white balance (``data.white_balance``, :func:`retinexgs.data.photo_balance.balance_photo`),
+    applied to its light first."""
 
     p = Path(path)
     if not p.is_file():
         raise UserError(f"image not found: {p}")
     if raw_denoise and holds_unclipped(p):
-        return denoised_preview(load_image_tensor(p, unclipped=True))
-    return load_image_tensor(p)
+        return denoised_preview(balance_photo(load_image_tensor(p, unclipped=True), balance, unclipped=True))
+    return balance_photo(load_image_tensor(p), balance)
 
 
-def prior_key(path: PathLike, raw_denoise: bool = False) -> str:
+def prior_key(path: PathLike, raw_denoise: bool = False, balance: Optional[Sequence[float]] = None) -> str:
     """What a photo's entry is keyed by: :func:`content_hash`, and for a raw view read through the denoised
-    preview also that preview's recipe (its window), so the clipped photo's priors and the preview's never mix."""
+    preview also that preview's recipe (its window), so the clipped photo's priors and the preview's never mix;
+    a balanced photo's (``data.white_balance``) also by its gains."""
     digest = content_hash(path)
-    if not (raw_denoise and holds_unclipped(Path(path))):
-        return digest
-    return hashlib.sha256(f"{digest}:raw-preview-wiener-r{PREVIEW_RADIUS}".encode()).hexdigest()[:_HASH_LEN]
+    if raw_denoise and holds_unclipped(Path(path)):
+        digest = hashlib.sha256(f"{digest}:raw-preview-wiener-r{PREVIEW_RADIUS}".encode()).hexdigest()[:_HASH_LEN]
+    if balance is not None:
+        gains = ",".join(f"{float(v):.9g}" for v in balance)
+        digest = hashlib.sha256(f"{digest}:balance-{gains}".encode()).hexdigest()[:_HASH_LEN]
+    return digest
 
 
 def default_cache_root(image_paths: Sequence[PathLike]) -> Path:
@@ -381,7 +388,8 @@ def iter_decompositions(image_paths: Sequence[PathLike], method: str = "lr3m", p
                         cache_dir: Optional[PathLike] = None, device: Union[str, torch.device] = "cpu", *,
                         preview: bool = False, progress: bool = True, cache_hint: str = "", sweep: bool = False,
                         report: Optional[Dict[str, Any]] = None, announce: bool = True, scene: str = "SCENE",
-                        raw_denoise: bool = False) -> Iterator[Tuple[torch.Tensor, torch.Tensor]]:
+                        raw_denoise: bool = False, balance: Optional[Sequence[float]] = None
+                        ) -> Iterator[Tuple[torch.Tensor, torch.Tensor]]:
     """(R [H,W,3], L [H,W,1]) float32 CPU tensors for each image in turn, from the cache or computed and
     written to it before they are yielded: the caller holds one image's priors at a time, and an interrupted
     run keeps every entry written so far. The values are the cache's float16 ones (a freshly computed entry is
@@ -390,7 +398,9 @@ def iter_decompositions(image_paths: Sequence[PathLike], method: str = "lr3m", p
     (``sweep=True``) runs once the last image has been yielded and the caller asks for the next, and with
     ``announce`` prints :func:`unused_note` (naming ``scene`` in its command) on stderr when there are unused
     entries. ``raw_denoise``: camera raw views are decomposed from their denoised preview (:func:`read_image`,
-    keyed by :func:`prior_key`). Other arguments: :func:`decompose_images`.
+    keyed by :func:`prior_key`). ``balance``: every photo's white balance (``data.white_balance``; the views'
+    :attr:`~retinexgs.data.scene.View.balance`), applied before the decomposition and part of the key. Other
+    arguments: :func:`decompose_images`.
     """
     paths = [Path(p) for p in image_paths]
     if not paths:
@@ -424,14 +434,14 @@ def iter_decompositions(image_paths: Sequence[PathLike], method: str = "lr3m", p
         for p in iterator:
             if not p.is_file():
                 raise UserError(f"image not found: {p}")
-            digest = prior_key(p, raw_denoise)
+            digest = prior_key(p, raw_denoise, balance)
             hashes.append(digest)
             meta = _source_meta(p, dec.cache_key(), dec.name, digest)
             target = by_hash.get(digest, folder / _entry_name(p, digest))  # any name: a renamed photo too
             hit = load_entry(target, meta)
             if hit is None:
                 target = folder / _entry_name(p, digest)
-                image = read_image(p, raw_denoise).to(dev)
+                image = read_image(p, raw_denoise, balance).to(dev)
                 try:
                     r, l = dec.decompose(image)
                 except ValueError as exc:  # e.g. an all-black photo
@@ -468,7 +478,8 @@ def iter_decompositions(image_paths: Sequence[PathLike], method: str = "lr3m", p
 def decompose_images(image_paths: Sequence[PathLike], method: str = "lr3m", params: Any = None,
                      cache_dir: Optional[PathLike] = None, device: Union[str, torch.device] = "cpu", *,
                      keep: bool = True, preview: bool = False, progress: bool = True, cache_hint: str = "",
-                     sweep: bool = False, announce: bool = True, raw_denoise: bool = False
+                     sweep: bool = False, announce: bool = True, raw_denoise: bool = False,
+                     balance: Optional[Sequence[float]] = None
                      ) -> Tuple[List[Optional[Tuple[torch.Tensor, torch.Tensor]]], Dict[str, Any]]:
     """Make sure every image has a valid cache entry; return (results, report).
 
@@ -480,13 +491,13 @@ def decompose_images(image_paths: Sequence[PathLike], method: str = "lr3m", para
     cache; only a needed write fails. ``sweep``: ``image_paths`` are a scene's train views: once all are in
     place, old-format entries are deleted (:func:`sweep_old_format`) and the entries they do not use are counted
     (:func:`unused_entries`; nothing of them is deleted), and with ``announce`` one line says so on stderr.
-    One image's priors at a time: :func:`iter_decompositions` (``raw_denoise`` as there).
+    One image's priors at a time: :func:`iter_decompositions` (``raw_denoise``, ``balance`` as there).
     """
     report: Dict[str, Any] = {}
     results: List[Optional[Tuple[torch.Tensor, torch.Tensor]]] = []
     for hit in iter_decompositions(image_paths, method, params, cache_dir, device, preview=preview,
                                    progress=progress, cache_hint=cache_hint, sweep=sweep, report=report,
-                                   announce=announce, raw_denoise=raw_denoise):
+                                   announce=announce, raw_denoise=raw_denoise, balance=balance):
         results.append(hit if keep else None)
     return results, report
 

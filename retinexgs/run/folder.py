@@ -10,6 +10,7 @@ import torch
 import yaml
 
 from retinexgs.data import Scene, load_scene
+from retinexgs.data.photo_balance import estimate_photo_balance
 from retinexgs.errors import UserError
 from retinexgs.fileio import atomic_write_text
 from retinexgs.model.gaussians import GaussianModel
@@ -34,8 +35,13 @@ def open_scene(path: Path, cfg: Config, cache_hint: str = "--set data.cache_dir=
     that they read the same (undistorted, downscaled) images. ``cache_hint``: the caller's spelling of
     ``data.cache_dir`` for the message when the scene folder is read-only."""
     d = cfg.data
-    return load_scene(path, reader=d.reader, downscale=d.downscale,
-                      cache_dir=d.cache_dir and Path(d.cache_dir) / "scene", cache_hint=cache_hint)
+    scene = load_scene(path, reader=d.reader, downscale=d.downscale,
+                       cache_dir=d.cache_dir and Path(d.cache_dir) / "scene", cache_hint=cache_hint)
+    if d.white_balance == "grey-edge":  # one balance for the capture, from its training photos (deterministic)
+        gains = estimate_photo_balance([v.image_path for v in scene.train])
+        for v in [*scene.train, *scene.test, *scene.val]:
+            v.balance = gains
+    return scene
 
 
 def load_run(run_dir: Path, device: Optional[str] = None) -> Tuple[Config, Scene, RetinexGSModel, int]:

@@ -114,6 +114,7 @@ class Data(Section):
     reader: Choice("auto", "transforms", "colmap", "sfm")
     downscale: Num(ge=1)
     cache_dir: OptStr
+    white_balance: Choice("as-shot", "grey-edge")
 
 
 # ---- the decomposers' parameters (decomposer.params), one class per method: every field of the method's params

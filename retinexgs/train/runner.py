@@ -7,6 +7,7 @@ from typing import Callable, Dict, Iterable, Optional
 
 import torch
 
+from retinexgs.data.photo_balance import describe_photo_balance
 from retinexgs.data import Scene
 from retinexgs.errors import UserError
 from retinexgs.evaluate.evaluate import evaluate
@@ -102,6 +103,8 @@ def _train_run(dist: Distributed, scene_path: Optional[Path], run_dir: Path, con
         if not dist.is_main:
             scene = open_scene(Path(scene_path), cfg)
         log(scene.summary())
+        if scene.train and scene.train[0].balance is not None:
+            log(describe_photo_balance(scene.train[0].balance))
         if relocating:
             ckpt = latest_checkpoint(run_dir)
             names = load_checkpoint(ckpt).get("train_views") if ckpt is not None else None

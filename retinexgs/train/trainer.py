@@ -96,7 +96,7 @@ def decompose_views(views: List[View], cfg: Config, device: str, progress: bool,
                                cache_dir=scene_cache_root(scene_root, cfg.data.cache_dir),
                                device=dcfg.device or device, progress=progress,
                                cache_hint="--set data.cache_dir=DIR", sweep=True, scene=str(scene_root),
-                               raw_denoise=dcfg.raw_denoise)
+                               raw_denoise=dcfg.raw_denoise, balance=views[0].balance if views else None)
 
 
 class Trainer:
