@@ -109,3 +109,27 @@ def test_a_training_with_the_balance_says_so_and_records_it(warm, tmp_path, caps
         == "grey-edge"
     assert yaml.safe_load((tmp_path / "shot" / "config.yaml").read_text())["data"]["white_balance"] \
         == "as-shot"
+
+
+def test_the_view_store_is_keyed_by_the_balance_and_the_raw_preview():
+    """The memory-mapped view store is reused for the same photo files only with the same stored values: a
+    balanced run (data.white_balance) or priors from the raw preview (decomposer.raw_denoise) make their own."""
+    from retinexgs.train.view_store import store_tag
+    plain = store_tag("lr3m-abc")
+    assert plain == "lr3m-abc"
+    tags = {plain, store_tag("lr3m-abc", raw_preview=True), store_tag("lr3m-abc", balance=(0.8, 1.0, 1.2)),
+            store_tag("lr3m-abc", balance=(0.8, 1.0, 1.3)), store_tag("lr3m-abc", True, (0.8, 1.0, 1.2))}
+    assert len(tags) == 5
+    assert store_tag("lr3m-abc", balance=(0.8, 1.0, 1.2)) == store_tag("lr3m-abc", balance=[0.8, 1.0, 1.2])
+
+
+def test_a_streamed_balanced_run_reads_balanced_photos_from_its_own_store(warm, tmp_path, capsys):
+    """With the views streamed from the store, an as-shot run first and a balanced one after it on the same
+    scene: the second must not reuse the first's store (its photos are not balanced)."""
+    sets = [a for s in (*TINY_RUN, "train.stream_views=always") for a in ("--set", s)]
+    for name, extra in (("a", []), ("b", ["--config", "ablations/train_white_balance"])):
+        code, out, err = run_cli(["train", "--data", warm, "--out", tmp_path / name, "--config", "demo", *extra,
+                                  *sets, "--device", "cpu"], capsys)
+        assert code == 0, err
+    stores = sorted(p.name for p in (warm / "retinex_cache").glob("views-*.bin"))
+    assert any("-wb" in n for n in stores) and any("-wb" not in n for n in stores), stores

@@ -32,7 +32,7 @@ from retinexgs.train.graphs import ChannelGraphs, LossGraphs
 from retinexgs.train.noise import CaptureNoise, NoiseProbe, measure_capture_noise, sigma_limit
 from retinexgs.train.stop import DeferredStop
 from retinexgs.train.streamed_views import StreamedViews
-from retinexgs.train.view_store import (ViewStore, check_store_space, store_fingerprint, store_path,
+from retinexgs.train.view_store import (ViewStore, check_store_space, store_fingerprint, store_path, store_tag,
                                         store_size_estimate)
 from retinexgs.train.views import (TrainView, ViewStatistics, check_prior_size, choose_streaming, gib,
                                    make_train_view, preload_bytes_per_pixel, stream_set_up, unpack_edges,
@@ -192,7 +192,8 @@ class Trainer:
             return views
         root = scene_cache_root(self.scene.root, cfg.data.cache_dir)
         dcfg = cfg.decomposer
-        tag = entry_dir(root, dcfg.method, dict(dcfg.params) or None).name if needs_priors else "none"
+        tag = store_tag(entry_dir(root, dcfg.method, dict(dcfg.params) or None).name if needs_priors else "none",
+                        needs_priors and dcfg.raw_denoise and self.scene.raw, train[0].balance if train else None)
         paths = [v.image_path for v in train]
         sizes = [(v.height, v.width) for v in train]
         path = store_path(root, paths, tag)

@@ -253,6 +253,20 @@ def store_fingerprint(image_paths: Sequence[Path], sizes: Sequence[Tuple[int, in
     return hashlib.sha256(blob.encode("utf-8")).hexdigest()
 
 
+def store_tag(priors: str, raw_preview: bool = False, balance: Optional[Sequence[float]] = None) -> str:
+    """The store's settings tag: the priors' (``<method>-<key>`` or ``none``), then what else changes the stored
+    values for the same photo files: priors from the raw views' denoised preview (``decomposer.raw_denoise``), and
+    the photos' white balance (``data.white_balance``, its gains hashed). Without these a store made with other
+    settings would be reused for the same files."""
+    parts = [priors]
+    if raw_preview:
+        parts.append("rawpreview")
+    if balance is not None:
+        gains = ",".join(f"{float(v):.9g}" for v in balance)
+        parts.append("wb" + hashlib.sha256(gains.encode("utf-8")).hexdigest()[:8])
+    return "-".join(parts)
+
+
 def store_path(cache_root: Path, image_paths: Sequence[Path], priors_tag: str) -> Path:
     """``<cache root>/views-<priors tag>-<8 hex of the photos' paths>.bin``: one store per scene view list and
     prior settings, replaced in place when its photos change."""
@@ -269,5 +283,5 @@ def check_store_space(path: Path, nbytes: int, hint: str) -> None:
 
 
 
-__all__ = ["PHOTO_LEVELS", "photo_table", "compact_photo", "StoredView", "ViewStore", "store_size_estimate",
+__all__ = ["PHOTO_LEVELS", "photo_table", "compact_photo", "StoredView", "ViewStore", "store_size_estimate", "store_tag",
            "store_fingerprint", "store_path", "check_store_space"]
