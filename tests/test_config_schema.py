@@ -72,6 +72,7 @@ def test_load_config_returns_typed_validated_data():
     ("data.cache_dir=5", "data.cache_dir must be a string or null, got 5"),
     ("data.white_balance=sepia", "data.white_balance must be one of as-shot, grey-edge, got 'sepia'"),
     ("loss.rec_raw_unit=stops", "loss.rec_raw_unit must be one of plain, sigma, got 'stops'"),
+    ("loss.rec_raw_prior_snr=-1", "loss.rec_raw_prior_snr must be a number >= 0, got -1"),
     ("model.illumination.hidden=0", "model.illumination.hidden must be an integer >= 1, got 0"),
     ("model.illumination=[1]", "model.illumination must be a mapping with the keys pos_freqs"),
     ("model.enhancement.gamma_range=[1, 0.5]",

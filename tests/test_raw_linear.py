@@ -346,3 +346,28 @@ def test_rec_raw_unit_is_a_config_key_whose_runs_from_before_it_keep_plain():
     assert load_config().loss.rec_raw_unit == "plain"
     assert load_config(["ablations/raw_sigma"]).loss.rec_raw_unit == "sigma"
     assert PREDATING_VALUES["loss.rec_raw_unit"] == "plain"
+
+
+def test_the_priors_fade_where_their_preview_cannot_resolve_the_light():
+    """loss.rec_raw_prior_snr k: the priors' L1 weighs each pixel by min(1, m / (k·σ_m)), m the 9×9 mean of the
+    view's light, σ_m its noise: 0 on black, 1 well above the noise; 0 (the default) leaves every pixel alike."""
+    a, b = torch.zeros(1, 3, 1, 1), torch.full((1, 3, 1, 1), 1e-2)  # σ = 0.1 a pixel, 0.1 / 9 for a 9×9 mean
+    light = torch.zeros(1, 3, 24, 48)
+    light[..., 24:] = 0.5  # right half bright, left half black
+    S = linear_to_srgb_extended(light)
+    conf = losses.prior_confidence(S, losses.LinearTarget("noise", a, b, prior_snr=3.0))
+    assert conf.shape == (1, 1, 24, 48)
+    assert float(conf[..., :12].max()) == 0.0 and float(conf[..., 36:].min()) == 1.0
+    # the priors' terms: an error only in the black half counts with k > 0 only when the preview could see it
+    R_hat, L_hat = torch.full((1, 3, 24, 48), 0.5), torch.full((1, 1, 24, 48), 0.5)
+    R, L = R_hat.clone(), L_hat.clone()
+    R[..., :12] = 0.9
+    off = losses.LinearTarget("noise", a, b)
+    on = off._replace(prior_snr=3.0)
+    _, t_off = losses.supervision_loss(R_hat, L_hat, R, L, S, rec_gain=torch.tensor(2.0), linear=off, lambda_ssim=0)
+    _, t_on = losses.supervision_loss(R_hat, L_hat, R, L, S, rec_gain=torch.tensor(2.0), linear=on, lambda_ssim=0)
+    assert float(t_off["sup_r"]) == pytest.approx(0.4 / 4) and float(t_on["sup_r"]) == 0.0
+    assert torch.equal(t_on["sup_rec"], t_off["sup_rec"])
+    from retinexgs.run.config import load_config
+    assert load_config().loss.rec_raw_prior_snr == 0.0
+    assert load_config(["ablations/raw_prior_snr"]).loss.rec_raw_prior_snr == 3.0

@@ -315,6 +315,7 @@ class Loss(Section):
     rec_raw: Choice("noise", "relative", "photo")
     rec_raw_model_error: Num(ge=0, le=1)
     rec_raw_unit: Choice("plain", "sigma")
+    rec_raw_prior_snr: Num(ge=0)
     w_depth: Num(ge=0)
     depth_edge: Num(ge=0)
 

@@ -37,7 +37,7 @@ from retinexgs.run.schema import Loss
 
 __all__ = [
     "to_bchw", "gaussian_window", "ssim", "noise_variance", "robust_abs", "exposed", "camera_expectation", "l1_ssim",
-    "LinearTarget", "RELATIVE_EPS", "linear_weights", "linear_reconstruction", "reconstruction_loss",
+    "LinearTarget", "RELATIVE_EPS", "PRIOR_WINDOW", "prior_confidence", "linear_weights", "linear_reconstruction", "reconstruction_loss",
     "supervision_loss", "tv_loss", "edge_weights", "depth_smoothness_loss", "sh_sparsity_loss",
     "spatial_consistency_loss", "exposure_loss", "color_constancy_loss", "enhancement_loss",
 ]
@@ -134,6 +134,7 @@ class LinearTarget(NamedTuple):
     gain: Optional[torch.Tensor] = None
     model_error: float = 0.0
     unit: str = "plain"
+    prior_snr: float = 0.0
 
 
 # RawNeRF's ε (Mildenhall et al., CVPR 2022, Sec. 3.2), in exposed units (the scene's full light at 1).
@@ -167,6 +168,23 @@ def linear_weights(x: torch.Tensor, target: LinearTarget, gain: torch.Tensor, no
         else:
             raise ValueError(f"unknown linear reconstruction mode {target.mode!r} (noise | relative)")
         return w / w.mean(dim=(1, 2, 3), keepdim=True) if normalise else w
+
+
+PRIOR_WINDOW = 9  # the raw preview's window (data.raw_noise.PREVIEW_RADIUS = 4): what the priors could resolve
+
+
+def prior_confidence(S: torch.Tensor, target: LinearTarget) -> torch.Tensor:
+    """[B,1,H,W] in [0, 1], no gradient: how well a raw view's 2D priors can know the light at each pixel
+    (``loss.rec_raw_prior_snr`` k > 0). The priors come from a preview averaged over 9×9 windows and then clipped;
+    where that window's mean m of the view's light lies within k of its own noise σ_m = sqrt((a·m + b) / 81) of
+    black, the clip lifts and tints it, so the prior says nothing of the light there. The weight is
+    min over channels of clamp(m / (k·σ_m), 0, 1)."""
+    with torch.no_grad():
+        y = srgb_to_linear_extended(S)
+        r = PRIOR_WINDOW // 2
+        m = F.avg_pool2d(F.pad(y, (r, r, r, r), mode="replicate"), PRIOR_WINDOW, 1)
+        sigma = ((target.a * m.clamp_min(0.0) + target.b) / PRIOR_WINDOW ** 2).clamp_min(1e-20).sqrt()
+        return (m / (target.prior_snr * sigma)).clamp(0.0, 1.0).amin(dim=1, keepdim=True)
 
 
 def linear_reconstruction(rec: torch.Tensor, S: torch.Tensor, target: LinearTarget,
@@ -288,7 +306,12 @@ def supervision_loss(R_hat: torch.Tensor, L_hat: torch.Tensor, R: torch.Tensor, 
     x = torch.cat([a for a, _ in pairs], dim=1)
     y = torch.cat([b for _, b in pairs], dim=1)
     err = (x - y).split(sizes, dim=1)
-    l1 = torch.stack([err[0].abs().mean(), err[1].abs().mean(),
+    if linear is not None and linear.prior_snr > 0:  # the priors' L1 only where they resolve the light
+        conf = prior_confidence(S, linear)
+        prior_r, prior_l = (conf * err[0].abs()).mean(), (conf * err[1].abs()).mean()
+    else:
+        prior_r, prior_l = err[0].abs().mean(), err[1].abs().mean()
+    l1 = torch.stack([prior_r, prior_l,
                       robust_abs(err[2], rec_huber).mean() if lin_rec is None else lin_rec])
     if lambda_ssim:
         if rec_s is not rec:

@@ -373,7 +373,8 @@ class Trainer:
         a = torch.tensor(noise.a, dtype=torch.float32, device=self.device).reshape(1, 3, 1, 1) / d2
         b = torch.tensor(noise.b, dtype=torch.float32, device=self.device).reshape(1, 3, 1, 1) / d2
         self.linear_target = losses.LinearTarget(mode, a, b, model_error=float(self.cfg.loss.rec_raw_model_error),
-                                                 unit=self.cfg.loss.rec_raw_unit)
+                                                 unit=self.cfg.loss.rec_raw_unit,
+                                                 prior_snr=float(self.cfg.loss.rec_raw_prior_snr))
         self.log(f"raw scene: reconstruction in linear light ({mode}); {noise.describe()}")
         if self.camera_noise is not None:
             self.log("loss.rec_camera_noise is not used on a raw scene (its values are not clipped at black)")
