@@ -371,3 +371,21 @@ def test_the_priors_fade_where_their_preview_cannot_resolve_the_light():
     from retinexgs.run.config import load_config
     assert load_config().loss.rec_raw_prior_snr == 0.0
     assert load_config(["ablations/raw_prior_snr"]).loss.rec_raw_prior_snr == 3.0
+
+
+def test_a_balanced_raw_scene_scales_its_noise_model_with_the_gains(night, tmp_path):
+    """data.white_balance on a raw scene multiplies each channel's light by g, so the weights' noise model becomes
+    g·a·y + g²·b; the as-shot scene keeps the model as measured."""
+    from retinexgs.run.config import load_config
+    from retinexgs.run.folder import open_scene
+    from retinexgs.train.trainer import Trainer
+    models = {}
+    for name, extra in (("shot", []), ("balanced", ["ablations/train_white_balance"])):
+        cfg = load_config(["demo", *extra], overrides=TINY_RUN)
+        scene = open_scene(night / "raw", cfg)
+        tr = Trainer(cfg, scene, tmp_path / name, "cpu", progress=False, log=lambda m: None)
+        models[name] = (tr.linear_target, scene.train[0].balance)
+    (shot, none), (bal, g) = models["shot"], models["balanced"]
+    assert none is None and g is not None and abs(g[0] - 1.0) + abs(g[2] - 1.0) > 1e-3
+    gt = torch.tensor(g).reshape(1, 3, 1, 1)
+    assert torch.allclose(bal.a, shot.a * gt) and torch.allclose(bal.b, shot.b * gt * gt)

@@ -372,6 +372,10 @@ class Trainer:
         d2 = float(self.cfg.data.downscale) ** 2  # a downscaled view averages d × d pixels
         a = torch.tensor(noise.a, dtype=torch.float32, device=self.device).reshape(1, 3, 1, 1) / d2
         b = torch.tensor(noise.b, dtype=torch.float32, device=self.device).reshape(1, 3, 1, 1) / d2
+        balance = self.scene.train[0].balance if self.scene.train else None
+        if balance is not None:  # data.white_balance scaled each channel's light by g: its variance by g·a·y + g²·b
+            g = torch.tensor(balance, dtype=torch.float32, device=self.device).reshape(1, 3, 1, 1)
+            a, b = a * g, b * g * g
         self.linear_target = losses.LinearTarget(mode, a, b, model_error=float(self.cfg.loss.rec_raw_model_error),
                                                  unit=self.cfg.loss.rec_raw_unit,
                                                  prior_snr=float(self.cfg.loss.rec_raw_prior_snr))
