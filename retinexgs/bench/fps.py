@@ -138,9 +138,8 @@ def benchmark(run: Path, device: Optional[str] = None, width: Optional[int] = No
         if cfg.method == "retinexgs" and renderer.can_balance():
             # the same call as "full (fused)" with the balance (render and the viewer pass it so, through
             # render_function): the frame's own cost of the edit
-            matrix = torch.as_tensor(balance, dtype=torch.float32)
-            matrix = torch.diag(matrix) if matrix.dim() == 1 else matrix
-            stages["fused + balance"] = lambda i: renderer.render(cams[i % len(cams)], balance=matrix)
+            fixed = torch.as_tensor(balance, dtype=torch.float32)
+            stages["fused + balance"] = lambda i: renderer.render(cams[i % len(cams)], balance=fixed)
         else:  # no fused balance for this tone: the light balanced and encoded again in torch
             balanced = render_function(model, cfg, degree, renderer=InferenceRenderer(model, degree),
                                        balance=balance)

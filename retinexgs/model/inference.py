@@ -330,8 +330,8 @@ class InferenceRenderer:
         """The frame of ``camera``: ``rgb`` [H,W,3] equal to ``model.render(camera, degree, exposure, gamma)["rgb"]``
         and, for RetinexGS, ``R``, ``L``, ``S_rec`` [H,W,3] and ``gamma`` [C]. ``exposure`` adjusts the predicted
         gamma, ``gamma`` replaces it (RetinexGS only; baselines ignore both). ``degree`` overrides the SH degree
-        of this and later frames (a live trainer raises it). ``balance``: a white balance, a 3×3 matrix on the
-        linear light (gains as its diagonal; :mod:`retinexgs.model.white_balance`), applied before the highlight
+        of this and later frames (a live trainer raises it). ``balance``: a white balance, gains [3] or a 3×3 matrix
+        on the linear light (:mod:`retinexgs.model.white_balance`), applied before the highlight
         shoulder and the sRGB curve, as ``render --white-balance`` defines it; only where :meth:`can_balance`
         (else refused: the caller balances). None: as trained."""
         if balance is not None and not self.can_balance():
@@ -346,7 +346,8 @@ class InferenceRenderer:
             R, L = image[..., :3], image[..., 3:6]
             balanced = balance is not None
             if balanced:  # kept where the caller has it (the CPU, from numpy): no device-to-host read per frame
-                balance = torch.as_tensor(balance).reshape(3, 3)
+                balance = torch.as_tensor(balance)
+                balance = torch.diag(balance) if balance.dim() == 1 else balance.reshape(3, 3)
             graph = (self._graph(camera.height, camera.width, image, balanced)
                      if self.use_graphs and image.is_cuda else None)
             if graph is not None:

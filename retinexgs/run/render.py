@@ -82,9 +82,8 @@ def render_function(model: RetinexGSModel, cfg: Config, degree: int, exposure: O
         balance = None if torch.equal(balance, eye) else balance
     # The balance inside the renderer's one tone kernel where it can (tone exposure, the default): the frame costs
     # what an unbalanced one does. Elsewhere the light is balanced and encoded again in torch.
-    fused_balance = None
-    if balance is not None and fast and cfg.method != "post" and renderer.can_balance():
-        fused_balance = torch.diag(balance) if balance.dim() == 1 else balance
+    fused_balance = balance if balance is not None and fast and cfg.method != "post" and renderer.can_balance() \
+        else None
 
     def fn(view: Union[View, Camera]) -> Dict:
         camera = view if isinstance(view, Camera) else view_camera(view)

@@ -31,6 +31,7 @@ import torch
 import torch.nn.functional as F
 
 from retinexgs.evaluate.metrics import cached_constant, check_bchw, gaussian_window, ssim
+from retinexgs.data.raw_noise import PREVIEW_RADIUS
 from retinexgs.data.srgb import linear_to_srgb_extended, linear_to_srgb_slope, srgb_to_linear_extended
 from retinexgs.model.tone import camera_mean, highlight_capped_mean, linear_to_srgb, srgb_to_linear
 from retinexgs.run.schema import Loss
@@ -170,13 +171,14 @@ def linear_weights(x: torch.Tensor, target: LinearTarget, gain: torch.Tensor, no
         return w / w.mean(dim=(1, 2, 3), keepdim=True) if normalise else w
 
 
-PRIOR_WINDOW = 9  # the raw preview's window (data.raw_noise.PREVIEW_RADIUS = 4): what the priors could resolve
+PRIOR_WINDOW = 2 * PREVIEW_RADIUS + 1  # the raw preview's window: what the priors could resolve
 
 
 def prior_confidence(S: torch.Tensor, target: LinearTarget) -> torch.Tensor:
     """[B,1,H,W] in [0, 1], no gradient: how well a raw view's 2D priors can know the light at each pixel
-    (``loss.rec_raw_prior_snr`` k > 0). The priors come from a preview averaged over 9×9 windows and then clipped;
-    where that window's mean m of the view's light lies within k of its own noise σ_m = sqrt((a·m + b) / 81) of
+    (``loss.rec_raw_prior_snr`` k > 0). The priors come from a preview averaged over n×n windows (n =
+    :data:`PRIOR_WINDOW`, 9) and then clipped; where that window's mean m of the view's light lies within k of its
+    own noise σ_m = sqrt((a·m + b) / n²) of
     black, the clip lifts and tints it, so the prior says nothing of the light there. The weight is
     min over channels of clamp(m / (k·σ_m), 0, 1)."""
     with torch.no_grad():
