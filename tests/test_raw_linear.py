@@ -350,7 +350,7 @@ def test_rec_raw_unit_is_a_config_key_whose_runs_from_before_it_keep_plain():
 
 def test_the_priors_fade_where_their_preview_cannot_resolve_the_light():
     """loss.rec_raw_prior_snr k: the priors' L1 weighs each pixel by min(1, m / (k·σ_m)), m the 9×9 mean of the
-    view's light, σ_m its noise: 0 on black, 1 well above the noise; 0 (the default) leaves every pixel alike."""
+    view's light, σ_m its noise: 0 on black, 1 well above the noise; k = 0 leaves every pixel alike."""
     a, b = torch.zeros(1, 3, 1, 1), torch.full((1, 3, 1, 1), 1e-2)  # σ = 0.1 a pixel, 0.1 / 9 for a 9×9 mean
     light = torch.zeros(1, 3, 24, 48)
     light[..., 24:] = 0.5  # right half bright, left half black
@@ -369,8 +369,10 @@ def test_the_priors_fade_where_their_preview_cannot_resolve_the_light():
     assert float(t_off["sup_r"]) == pytest.approx(0.4 / 4) and float(t_on["sup_r"]) == 0.0
     assert torch.equal(t_on["sup_rec"], t_off["sup_rec"])
     from retinexgs.run.config import load_config
-    assert load_config().loss.rec_raw_prior_snr == 0.0
-    assert load_config(["ablations/raw_prior_snr"]).loss.rec_raw_prior_snr == 3.0
+    from retinexgs.run.folder import PREDATING_VALUES
+    assert load_config().loss.rec_raw_prior_snr == 3.0
+    assert load_config(["ablations/raw_prior_uniform"]).loss.rec_raw_prior_snr == 0.0
+    assert PREDATING_VALUES["loss.rec_raw_prior_snr"] == 0.0
 
 
 def test_a_balanced_raw_scene_scales_its_noise_model_with_the_gains(night, tmp_path):
