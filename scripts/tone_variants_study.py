@@ -1,0 +1,80 @@
+"""Score highlight roll-offs off the GPU (issue 53: where a warm scene's cast comes from) on dumps of trained runs
+(scripts/white_balance_dump.py): the test views' linear light encoded with each roll-off, then the sRGB curve, and
+scored against the truth with eval's colour error (ΔE of the average colours after GT-mean), GT-mean PSNR and SSIM,
+at half resolution.
+
+    python scripts/tone_variants_study.py DUMP.npz... --data DATA_ROOT [--set data.downscale=2]
+
+Roll-offs: per-channel (the renderer's: each channel through the shoulder), clip (no shoulder), luminance (the
+Rec. 709 luminance through the shoulder, the three channels scaled alike) and max-RGB (the brightest channel through
+the shoulder, the three scaled alike: hue and saturation kept). A dump's scene is found by its file name's first
+part, as in scripts/white_balance_study.py.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Callable, Dict
+
+import numpy as np
+import torch
+
+from retinexgs.data.srgb import linear_to_srgb
+from retinexgs.evaluate.metrics import colour_error, gt_mean_align, psnr, ssim
+from retinexgs.model.tone import highlight_shoulder
+from retinexgs.run.config import load_config
+from retinexgs.run.folder import open_scene
+from white_balance_study import _find_scene, _half_srgb  # scripts/ is on sys.path when run as a script
+
+_LUMA = torch.tensor([0.2126, 0.7152, 0.0722], dtype=torch.float64)
+
+
+def _scaled(v: torch.Tensor, drive: torch.Tensor, knee: float) -> torch.Tensor:
+    drive = drive.clamp_min(1e-9)
+    return v * highlight_shoulder(drive, knee) / drive
+
+
+ROLL_OFFS: Dict[str, Callable[[torch.Tensor, float], torch.Tensor]] = {
+    "per-channel": highlight_shoulder,
+    "clip": lambda v, knee: v,
+    "luminance": lambda v, knee: _scaled(v, (v * _LUMA).sum(-1, keepdim=True), knee),
+    "max-rgb": lambda v, knee: _scaled(v, v.amax(-1, keepdim=True), knee),
+}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("dumps", nargs="+", type=Path)
+    p.add_argument("--data", type=Path, required=True)
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="config override of the scene")
+    args = p.parse_args(argv)
+    cfg = load_config(overrides=args.set)
+    print("run | " + " | ".join(f"{n}: ΔE, GT-mean PSNR, SSIM" for n in ROLL_OFFS))
+    for dump in args.dumps:
+        d = np.load(dump)
+        scene = open_scene(_find_scene(args.data, dump.stem.split("_")[0]), cfg)
+        truth = {v.name: _half_srgb(v.paired_image) for v in scene.test if v.paired_path is not None}
+        knee = float(d["knee"])
+        cells = []
+        for roll in ROLL_OFFS.values():
+            de, ps, ss = [], [], []
+            for k in d.files:
+                if not k.startswith("test/") or k[5:] not in truth:
+                    continue
+                rgb = linear_to_srgb(roll(torch.from_numpy(d[k].astype(np.float64)), knee)).clamp(0, 1)
+                gt = truth[k[5:]]
+                hh, ww = min(rgb.shape[0], gt.shape[0]), min(rgb.shape[1], gt.shape[1])
+                rgb, gt = rgb[:hh, :ww], gt[:hh, :ww]
+                aligned = gt_mean_align(rgb, gt)
+                de.append(colour_error(rgb, gt))
+                ps.append(psnr(aligned, gt))
+                ss.append(float(ssim(aligned.permute(2, 0, 1)[None].float(), gt.permute(2, 0, 1)[None].float())))
+            cells.append(f"{np.mean(de):.2f}, {np.mean(ps):.2f}, {np.mean(ss):.3f}")
+        print(f"{dump.stem} | " + " | ".join(cells))
+        sys.stdout.flush()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
