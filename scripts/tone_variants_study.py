@@ -20,12 +20,10 @@ from typing import Callable, Dict
 import numpy as np
 import torch
 
-from retinexgs.data.srgb import linear_to_srgb
 from retinexgs.evaluate.metrics import colour_error, gt_mean_align, psnr, ssim
 from retinexgs.model.tone import highlight_shoulder
 from retinexgs.run.config import load_config
-from retinexgs.run.folder import open_scene
-from white_balance_study import _find_scene, _half_srgb  # scripts/ is on sys.path when run as a script
+from white_balance_study import encoded_test_views, load_dump  # scripts/ is on sys.path when run as a script
 
 _LUMA = torch.tensor([0.2126, 0.7152, 0.0722], dtype=torch.float64)
 
@@ -52,20 +50,11 @@ def main(argv=None) -> int:
     cfg = load_config(overrides=args.set)
     print("run | " + " | ".join(f"{n}: ΔE, GT-mean PSNR, SSIM" for n in ROLL_OFFS))
     for dump in args.dumps:
-        d = np.load(dump)
-        scene = open_scene(_find_scene(args.data, dump.stem.split("_")[0]), cfg)
-        truth = {v.name: _half_srgb(v.paired_image) for v in scene.test if v.paired_path is not None}
-        knee = float(d["knee"])
+        d, truth, knee = load_dump(dump, args.data, cfg)
         cells = []
         for roll in ROLL_OFFS.values():
             de, ps, ss = [], [], []
-            for k in d.files:
-                if not k.startswith("test/") or k[5:] not in truth:
-                    continue
-                rgb = linear_to_srgb(roll(torch.from_numpy(d[k].astype(np.float64)), knee)).clamp(0, 1)
-                gt = truth[k[5:]]
-                hh, ww = min(rgb.shape[0], gt.shape[0]), min(rgb.shape[1], gt.shape[1])
-                rgb, gt = rgb[:hh, :ww], gt[:hh, :ww]
+            for rgb, gt in encoded_test_views(d, truth, lambda v, roll=roll: roll(v, knee)):
                 aligned = gt_mean_align(rgb, gt)
                 de.append(colour_error(rgb, gt))
                 ps.append(psnr(aligned, gt))

@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
-from typing import Callable, Dict, List
+from typing import Any, Callable, Dict, Iterator, List, Tuple
 
 import numpy as np
 import torch
@@ -87,6 +87,27 @@ def _half_srgb(img: torch.Tensor) -> torch.Tensor:
     return linear_to_srgb(lin[:h, :w].reshape(h // 2, 2, w // 2, 2, 3).mean(dim=(1, 3)))
 
 
+def encoded_test_views(dump, truth: Dict[str, torch.Tensor],
+                       tone: Callable[[torch.Tensor], torch.Tensor]) -> Iterator[Tuple[torch.Tensor, torch.Tensor]]:
+    """(sRGB render, truth) of each dumped test view that has a truth: the view's linear light through ``tone``,
+    the sRGB curve and the clip, both cropped to their common size."""
+    for k in dump.files:
+        if not k.startswith("test/") or k[5:] not in truth:
+            continue
+        rgb = linear_to_srgb(tone(torch.from_numpy(dump[k].astype(np.float64)))).clamp(0, 1)
+        gt = truth[k[5:]]
+        hh, ww = min(rgb.shape[0], gt.shape[0]), min(rgb.shape[1], gt.shape[1])
+        yield rgb[:hh, :ww], gt[:hh, :ww]
+
+
+def load_dump(dump: Path, data: Path, cfg) -> Tuple[Any, Dict[str, torch.Tensor], float]:
+    """A dump's arrays, its scene's test truths at half resolution by view name, and the run's shoulder knee."""
+    d = np.load(dump)
+    scene = open_scene(_find_scene(data, dump.stem.split("_")[0]), cfg)
+    truth = {v.name: _half_srgb(v.paired_image) for v in scene.test if v.paired_path is not None}
+    return d, truth, float(d["knee"])
+
+
 def _find_scene(root: Path, name: str) -> Path:
     hits = [p for p in root.rglob(name) if p.is_dir() and (p / "transforms_test.json").is_file()]
     if not hits:
@@ -104,23 +125,13 @@ def main(argv=None) -> int:
     names = args.estimators.split(",")
     print("run | " + " | ".join(f"{n}: ΔE, PSNR | gains" for n in names))
     for dump in args.dumps:
-        d = np.load(dump)
-        scene = open_scene(_find_scene(args.data, dump.stem.split("_")[0]), cfg)
-        truth = {v.name: _half_srgb(v.paired_image) for v in scene.test if v.paired_path is not None}
-        knee = float(d["knee"])
+        d, truth, knee = load_dump(dump, args.data, cfg)
         train = [d[k].astype(np.float64) for k in d.files if k.startswith("train/")]
         cells = []
         for n in names:
             g = ESTIMATORS[n](train)
             de, ps = [], []
-            for k in d.files:
-                if not k.startswith("test/") or k[5:] not in truth:
-                    continue
-                light = torch.from_numpy(d[k].astype(np.float64)) * torch.from_numpy(g)
-                rgb = linear_to_srgb(highlight_shoulder(light, knee)).clamp(0, 1)
-                gt = truth[k[5:]]
-                hh, ww = min(rgb.shape[0], gt.shape[0]), min(rgb.shape[1], gt.shape[1])
-                rgb, gt = rgb[:hh, :ww], gt[:hh, :ww]
+            for rgb, gt in encoded_test_views(d, truth, lambda v: highlight_shoulder(v * torch.from_numpy(g), knee)):
                 de.append(colour_error(rgb, gt)); ps.append(psnr(gt_mean_align(rgb, gt), gt))
             cells.append(f"{np.mean(de):.2f}, {np.mean(ps):.2f} | {g[0]:.3f},{g[2]:.3f}")
         print(f"{dump.stem} | " + " | ".join(cells))
