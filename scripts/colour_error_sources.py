@@ -13,9 +13,7 @@ its truth's mean luminance:
 """
 from __future__ import annotations
 
-import argparse
 import sys
-from pathlib import Path
 from typing import Dict, List
 
 import numpy as np
@@ -24,9 +22,8 @@ import torch
 from retinexgs.data.srgb import linear_to_srgb, linear_to_srgb_extended, srgb_to_linear
 from retinexgs.evaluate.metrics import colour_error, mean_colour_lab
 from retinexgs.model.tone import highlight_shoulder
-from retinexgs.run.config import load_config
 from retinexgs.run.folder import open_scene
-from white_balance_study import _find_scene, _half_srgb  # scripts/ is on sys.path when run as a script
+from white_balance_study import _find_scene, _half_srgb, dump_study_args  # scripts/ is on sys.path when run as a script
 
 _LUMA = torch.tensor([0.2126, 0.7152, 0.0722], dtype=torch.float64)
 
@@ -43,12 +40,7 @@ def mean_colour_error(light: torch.Tensor, truth_light: torch.Tensor) -> np.ndar
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("dumps", nargs="+", type=Path)
-    p.add_argument("--data", type=Path, required=True)
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="config override of the scene")
-    args = p.parse_args(argv)
-    cfg = load_config(overrides=args.set)
+    args, cfg = dump_study_args(__doc__, argv)
     print("run | fit ΔE (Δa*, Δb*) | novel ΔE (Δa*, Δb*) | rendered ΔE | exposure output/truth | ΔE at the truth's exposure")
     for dump in args.dumps:
         d = np.load(dump)

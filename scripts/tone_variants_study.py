@@ -12,9 +12,7 @@ part, as in scripts/white_balance_study.py.
 """
 from __future__ import annotations
 
-import argparse
 import sys
-from pathlib import Path
 from typing import Callable, Dict
 
 import numpy as np
@@ -22,8 +20,7 @@ import torch
 
 from retinexgs.evaluate.metrics import colour_error, gt_mean_align, psnr, ssim
 from retinexgs.model.tone import highlight_shoulder
-from retinexgs.run.config import load_config
-from white_balance_study import encoded_test_views, load_dump  # scripts/ is on sys.path when run as a script
+from white_balance_study import dump_study_args, encoded_test_views, load_dump  # scripts/ is on sys.path when run as a script
 
 _LUMA = torch.tensor([0.2126, 0.7152, 0.0722], dtype=torch.float64)
 
@@ -42,12 +39,7 @@ ROLL_OFFS: Dict[str, Callable[[torch.Tensor, float], torch.Tensor]] = {
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("dumps", nargs="+", type=Path)
-    p.add_argument("--data", type=Path, required=True)
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="config override of the scene")
-    args = p.parse_args(argv)
-    cfg = load_config(overrides=args.set)
+    args, cfg = dump_study_args(__doc__, argv)
     print("run | " + " | ".join(f"{n}: ΔE, GT-mean PSNR, SSIM" for n in ROLL_OFFS))
     for dump in args.dumps:
         d, truth, knee = load_dump(dump, args.data, cfg)

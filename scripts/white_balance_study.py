@@ -100,6 +100,17 @@ def encoded_test_views(dump, truth: Dict[str, torch.Tensor],
         yield rgb[:hh, :ww], gt[:hh, :ww]
 
 
+def dump_study_args(doc: str, argv=None):
+    """The dump studies' command line (DUMP.npz... --data ROOT [--set KEY=VALUE]...): the parsed arguments and the
+    config the scenes open with."""
+    p = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    p.add_argument("dumps", nargs="+", type=Path)
+    p.add_argument("--data", type=Path, required=True)
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="config override of the scene")
+    args = p.parse_args(argv)
+    return args, load_config(overrides=args.set)
+
+
 def load_dump(dump: Path, data: Path, cfg) -> Tuple[Any, Dict[str, torch.Tensor], float]:
     """A dump's arrays, its scene's test truths at half resolution by view name, and the run's shoulder knee."""
     d = np.load(dump)
