@@ -15,12 +15,10 @@ from __future__ import annotations
 import sys
 from typing import Callable, Dict
 
-import numpy as np
 import torch
 
-from retinexgs.evaluate.metrics import colour_error, gt_mean_align, psnr, ssim
 from retinexgs.model.tone import highlight_shoulder
-from white_balance_study import dump_study_args, encoded_test_views, load_dump  # scripts/ is on sys.path when run as a script
+from white_balance_study import dump_study_args, load_dump, score_test_views  # scripts/ is on sys.path when run as a script
 
 _LUMA = torch.tensor([0.2126, 0.7152, 0.0722], dtype=torch.float64)
 
@@ -45,13 +43,8 @@ def main(argv=None) -> int:
         d, truth, knee = load_dump(dump, args.data, cfg)
         cells = []
         for roll in ROLL_OFFS.values():
-            de, ps, ss = [], [], []
-            for rgb, gt in encoded_test_views(d, truth, lambda v, roll=roll: roll(v, knee)):
-                aligned = gt_mean_align(rgb, gt)
-                de.append(colour_error(rgb, gt))
-                ps.append(psnr(aligned, gt))
-                ss.append(float(ssim(aligned.permute(2, 0, 1)[None].float(), gt.permute(2, 0, 1)[None].float())))
-            cells.append(f"{np.mean(de):.2f}, {np.mean(ps):.2f}, {np.mean(ss):.3f}")
+            de, ps, ss = score_test_views(d, truth, lambda v, roll=roll: roll(v, knee), with_ssim=True)
+            cells.append(f"{de:.2f}, {ps:.2f}, {ss:.3f}")
         print(f"{dump.stem} | " + " | ".join(cells))
         sys.stdout.flush()
     return 0

@@ -12,13 +12,13 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
-from typing import Any, Callable, Dict, Iterator, List, Tuple
+from typing import Any, Callable, Dict, Iterator, List, Optional, Tuple
 
 import numpy as np
 import torch
 
 from retinexgs.data.srgb import linear_to_srgb, srgb_to_linear
-from retinexgs.evaluate.metrics import colour_error, gt_mean_align, psnr
+from retinexgs.evaluate.metrics import colour_error, gt_mean_align, psnr, ssim
 from retinexgs.model.tone import highlight_shoulder
 from retinexgs.model.white_balance import grey_edge_gains
 from retinexgs.run.config import load_config
@@ -119,6 +119,20 @@ def load_dump(dump: Path, data: Path, cfg) -> Tuple[Any, Dict[str, torch.Tensor]
     return d, truth, float(d["knee"])
 
 
+def score_test_views(dump, truth: Dict[str, torch.Tensor], tone: Callable[[torch.Tensor], torch.Tensor],
+                     with_ssim: bool = False) -> Tuple[float, float, Optional[float]]:
+    """Eval's colour error (ΔE after GT-mean), GT-mean PSNR and, with ``with_ssim``, GT-mean SSIM of the dumped
+    test views encoded through ``tone`` (:func:`encoded_test_views`), each the mean over the views."""
+    de, ps, ss = [], [], []
+    for rgb, gt in encoded_test_views(dump, truth, tone):
+        aligned = gt_mean_align(rgb, gt)
+        de.append(colour_error(rgb, gt))
+        ps.append(psnr(aligned, gt))
+        if with_ssim:
+            ss.append(float(ssim(aligned.permute(2, 0, 1)[None].float(), gt.permute(2, 0, 1)[None].float())))
+    return float(np.mean(de)), float(np.mean(ps)), (float(np.mean(ss)) if with_ssim else None)
+
+
 def _find_scene(root: Path, name: str) -> Path:
     hits = [p for p in root.rglob(name) if p.is_dir() and (p / "transforms_test.json").is_file()]
     if not hits:
@@ -141,10 +155,8 @@ def main(argv=None) -> int:
         cells = []
         for n in names:
             g = ESTIMATORS[n](train)
-            de, ps = [], []
-            for rgb, gt in encoded_test_views(d, truth, lambda v: highlight_shoulder(v * torch.from_numpy(g), knee)):
-                de.append(colour_error(rgb, gt)); ps.append(psnr(gt_mean_align(rgb, gt), gt))
-            cells.append(f"{np.mean(de):.2f}, {np.mean(ps):.2f} | {g[0]:.3f},{g[2]:.3f}")
+            de, ps, _ = score_test_views(d, truth, lambda v: highlight_shoulder(v * torch.from_numpy(g), knee))
+            cells.append(f"{de:.2f}, {ps:.2f} | {g[0]:.3f},{g[2]:.3f}")
         print(f"{dump.stem} | " + " | ".join(cells))
         sys.stdout.flush()
     return 0
