@@ -158,7 +158,7 @@ def render_depth(model, view: Union[View, Camera], near: float, far: float) -> T
     """[H,W,1] inverse depth mapped to [0,1] between 1/far (0) and 1/near (1); empty pixels 0. ``view`` is a
     data-layer view or a renderer camera (the viewer's)."""
     g = model.gaussians
-    camera = view if isinstance(view, Camera) else view_camera(view)
+    camera = model.camera_for(view if isinstance(view, Camera) else view_camera(view))  # the near plane of its frames
     with torch.no_grad():
         ones = torch.ones(len(g), 1, dtype=g.means.dtype, device=g.means.device)
         out = rasterize_gaussians(g.means, g.quats, g.scales, g.opacities, ones, camera, render_depth=True)

@@ -288,6 +288,7 @@ class InferenceRenderer:
         binning's host sync waits for the main stream only; elsewhere they are launched after the binning."""
         K = kernels()
         g = self.model.gaussians
+        camera = self.model.camera_for(camera)  # model.near_fraction's near plane, as model.render draws it
         ready = None
         if colors is None and g.means.is_cuda and self.overlap_colors:
             main = torch.cuda.current_stream(g.means.device)

@@ -27,6 +27,7 @@ from torch import Tensor, nn
 from retinexgs.model.enhancement import EnhancementNet
 from retinexgs.model.gaussians import GaussianModel, sh_colors
 from retinexgs.model.illumination import IlluminationField
+from retinexgs.model.near_plane import with_near
 from retinexgs.model.tone import apply_exposure, black_table, tone_map
 from retinexgs.render import Camera, rasterize_gaussians
 
@@ -85,6 +86,36 @@ class RetinexGSModel(nn.Module):
         self.has_background = decomposed and model_cfg.background == "mean"
         if self.has_background:
             self.register_buffer("background", torch.zeros(6))
+        # model.near_fraction: every render draws nothing closer to its camera than ``near`` (model/near_plane.py),
+        # set by the trainer from the training views' content; a buffer, so checkpoints carry it. RetinexGS's only.
+        self.has_near = decomposed and float(model_cfg.near_fraction) > 0
+        if self.has_near:
+            self.register_buffer("near", torch.zeros(()))
+        self._near_cache = (None, 0.0)  # (the buffer's version, its value): no device sync per frame
+        self._near_cameras: Dict[int, Tuple[Camera, float, Camera]] = {}  # id -> (camera, near, its raised copy)
+
+    def near_plane(self) -> float:
+        """The depth below which no Gaussian is drawn (0: none), read once per change of the buffer."""
+        if not self.has_near:
+            return 0.0
+        key = (self.near.data_ptr(), self.near._version)
+        if self._near_cache[0] != key:
+            self._near_cache = (key, float(self.near))
+        return self._near_cache[1]
+
+    def camera_for(self, camera: Camera) -> Camera:
+        """``camera`` as this model renders it: its near plane raised to :meth:`near_plane`."""
+        near = self.near_plane()
+        if near <= 0:
+            return camera
+        hit = self._near_cameras.get(id(camera))
+        if hit is not None and hit[0] is camera and hit[1] == near:  # a frame costs no copy of a camera it has seen
+            return hit[2]
+        if len(self._near_cameras) >= 256:
+            self._near_cameras.clear()
+        raised = with_near(camera, near)
+        self._near_cameras[id(camera)] = (camera, near, raised)
+        return raised
 
     def _set_enhancement(self, enh: Enhancement) -> None:
         """A fresh EnhancementNet, the gamma's layout and the tone form from a ``model.enhancement`` section
@@ -179,6 +210,7 @@ class RetinexGSModel(nn.Module):
         CUDA graph of them), else they are evaluated here. ``depth``: ``out`` also holds the alpha-weighted depth.
         """
         g = self.gaussians
+        camera = self.camera_for(camera)
         if colors is None:
             center = (camera.center if center is None else center).to(g.means)
             colors = self.channels(center, active_degree)

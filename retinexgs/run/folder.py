@@ -76,7 +76,8 @@ def load_run(run_dir: Path, device: Optional[str] = None) -> Tuple[Config, Scene
 # issue 32 (the noise floor of the exposed SSIM, the camera's clipped noise). The exposure meter averaged until
 # the highlight cap (2026-11-27), and a batch of views stepped with torch's Adam betas until β^B (the same day).
 # Density events ran to density.stop until density.last_event capped them. A raw scene's priors weighed
-# every pixel alike until loss.rec_raw_prior_snr (2026-11-28). This table is the one place for these
+# every pixel alike until loss.rec_raw_prior_snr (2026-11-28), and renders drew Gaussians up to 0.01 from the
+# camera until model.near_fraction (the same day). This table is the one place for these
 # values: the code reads every key from the validated config, with no fallback of its own.
 PREDATING_VALUES: Dict[str, Any] = {"model.enhancement.tone": "illumination", "loss.w_depth": 0.0,
                                     "loss.rec_domain": "photo", "model.background": "black",
@@ -86,7 +87,7 @@ PREDATING_VALUES: Dict[str, Any] = {"model.enhancement.tone": "illumination", "l
                                     "loss.exp_highlight_share": 0.0, "train.momentum_batch_scaling": "none",
                                     "density.last_event": 1.0, "loss.rec_raw": "photo",
                                     "decomposer.raw_denoise": False, "loss.rec_raw_unit": "plain",
-                                    "loss.rec_raw_prior_snr": 0.0}
+                                    "loss.rec_raw_prior_snr": 0.0, "model.near_fraction": 0.0}
 
 
 def _fill_missing(cfg: RawConfig, default: RawConfig, prefix: str, filled: List[str]) -> RawConfig:

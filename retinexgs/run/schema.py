@@ -281,6 +281,7 @@ class Model(Section):
     init_opacity: Num(gt=0, le=1)
     max_init_points: Int(1)
     background: Choice("black", "mean")
+    near_fraction: Num(ge=0, le=0.9)
     illumination: Illumination
     enhancement: Enhancement
 

@@ -20,6 +20,7 @@ from retinexgs.data.raw_noise import RawNoise, scene_noise
 from retinexgs.errors import UserError
 from retinexgs.fileio import is_out_of_space, out_of_space_error
 from retinexgs.model.gaussians import GaussianModel
+from retinexgs.model.near_plane import content_depth
 from retinexgs.model.retinex_model import RetinexGSModel
 from retinexgs.model.tone import black_table, exposure_gain
 from retinexgs.train import losses
@@ -243,6 +244,8 @@ class Trainer:
             self.model.illum_ref.fill_(self.illumination_reference())
         if self.model.has_background and state is None:
             self.model.background.copy_(self.mean_background())
+        if self.model.has_near and state is None:
+            self.model.near.fill_(self.near_plane())
         self._set_up_noise(state)
         self._set_up_raw(state)
         lr = self.cfg.lr
@@ -390,6 +393,15 @@ class Trainer:
         without priors, the usual initial illumination estimate). 1 when the quantile is null (no
         normalisation: L_enh = L̂^g as the paper writes it)."""
         return self.view_statistics().illumination_reference()
+
+    def near_plane(self) -> float:
+        """``model.near_fraction`` times the training views' nearest content depth (:func:`content_depth` of the
+        scene's initial points); logged. 0 (no plane) where no view sees enough points."""
+        depth = content_depth(self.scene.points, [view_camera(v) for v in self.scene.train])
+        near = float(self.cfg.model.near_fraction) * depth
+        self.log(f"near plane: {near:.4g} ({self.cfg.model.near_fraction:g} x the training views' nearest content "
+                 f"depth {depth:.4g})" if near > 0 else "near plane: none (no training view sees 8 initial points)")
+        return near
 
     def mean_background(self) -> Tensor:
         """``model.background: mean``: the [6] channel values a render shows where no Gaussian covers a pixel, the
