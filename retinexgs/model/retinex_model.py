@@ -196,8 +196,8 @@ class RetinexGSModel(nn.Module):
 
     def render(self, camera: Camera, active_degree: int, exposure: Optional[float] = None,
                gamma: Optional[float] = None, validate: bool = True, enhance: bool = True,
-               center: Optional[Tensor] = None, colors: Optional[Tensor] = None, depth: bool = False
-               ) -> Dict[str, Tensor]:
+               center: Optional[Tensor] = None, colors: Optional[Tensor] = None, depth: bool = False,
+               near: bool = True) -> Dict[str, Tensor]:
         """Render one view. Returns ``out`` (RenderOutput) and [H,W,3] maps: ``rgb`` (the model's output
         image: S_enh, or the plain render for baselines), and for RetinexGS ``R``, ``L``, ``S_rec``, ``gamma``.
 
@@ -208,9 +208,12 @@ class RetinexGSModel(nn.Module):
         on the device (the trainer caches it per view; otherwise it is computed and copied every call).
         ``colors``: the per-Gaussian channels already evaluated (:func:`gaussian_channels`; the trainer's
         CUDA graph of them), else they are evaluated here. ``depth``: ``out`` also holds the alpha-weighted depth.
+        ``near``: draw with the scene's near plane (:meth:`camera_for`); False draws as the camera says (training,
+        unless ``model.near_in_training``).
         """
         g = self.gaussians
-        camera = self.camera_for(camera)
+        if near:
+            camera = self.camera_for(camera)
         if colors is None:
             center = (camera.center if center is None else center).to(g.means)
             colors = self.channels(center, active_degree)

@@ -282,6 +282,7 @@ class Model(Section):
     max_init_points: Int(1)
     background: Choice("black", "mean")
     near_fraction: Num(ge=0, le=0.9)
+    near_in_training: Bool
     illumination: Illumination
     enhancement: Enhancement
 

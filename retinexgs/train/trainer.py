@@ -612,7 +612,8 @@ class Trainer:
                         self.log(f"CUDA graph capture of the Gaussians' channels failed ({why}); they run eagerly "
                                  "until the Gaussians change")
             return self.model.render(tv.camera, self.active_degree(step), validate=False, enhance=False,
-                                     center=tv.center, colors=colors, depth=self.depth_prior)
+                                     center=tv.center, colors=colors, depth=self.depth_prior,
+                                     near=self.cfg.model.near_in_training)
 
     def train_step(self, step: int, tv, check: bool = True) -> Dict[str, float]:
         """One optimisation step on view ``tv`` (or on this rank's list of the step's views: each is rendered
