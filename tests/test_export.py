@@ -15,7 +15,8 @@ from retinexgs.errors import UserError
 from retinexgs.evaluate.metrics import psnr
 from retinexgs.export.bake import fibonacci_sphere, sh_basis, to_normalized
 from retinexgs.export.paths import interpolate_path, orbit_path, scene_center
-from retinexgs.export.ply import read_background, read_ply, write_ply
+from retinexgs.export.ply import read_background, read_near, read_ply, write_ply
+from retinexgs.model.near_plane import with_near
 from retinexgs.render import rasterize_gaussians, spherical_harmonics
 from retinexgs.run.folder import load_run
 from retinexgs.run.render import view_camera
@@ -49,9 +50,10 @@ def cli(*args):
     return main([*map(str, args), "--device", "cpu", "--quiet"])
 
 
-def render_ply(params, camera, degree, background=None):
+def render_ply(params, camera, degree, background=None, near=None):
     """An exported PLY's Gaussians (already in the run's normalised frame) as a standard 3DGS viewer draws them,
-    over ``background`` [3] (black by default)."""
+    over ``background`` [3] (black by default), with its near plane set to ``near`` (normalised units) if given."""
+    camera = with_near(camera, near) if near else camera
     coeffs = torch.cat([params["sh_dc"], params["sh_rest"]], dim=1)
     colors = (spherical_harmonics(degree, params["means"] - camera.center.float(), coeffs) + 0.5).clamp_min(0.0)
     return rasterize_gaussians(params["means"], params["quats"], params["log_scales"].exp(),
@@ -88,6 +90,14 @@ def test_ply_round_trip_is_exact_in_the_inria_layout(tmp_path):
     assert np.array_equal(v["opacity"], params["opacity_logits"].numpy())
     assert np.array_equal(v["scale_2"], params["log_scales"][:, 2].numpy())
     assert not np.any(v["nx"]) and not np.any(v["nz"])
+
+
+def test_read_near_skips_comments_it_did_not_write(tmp_path):
+    params = {"means": torch.zeros(1, 3), "quats": torch.tensor([[1.0, 0, 0, 0]]), "log_scales": torch.zeros(1, 3),
+              "opacity_logits": torch.zeros(1), "sh_dc": torch.zeros(1, 1, 3), "sh_rest": torch.zeros(1, 0, 3)}
+    assert read_near(write_ply(tmp_path / "a.ply", params, ["made by a test"])) is None
+    assert read_near(write_ply(tmp_path / "b.ply", params, ["near plane: far away"])) is None
+    assert read_near(write_ply(tmp_path / "c.ply", params, ["near plane: 0.25 (units)"])) == 0.25
 
 
 def test_read_background_skips_comments_it_did_not_write(tmp_path):
@@ -134,12 +144,14 @@ def test_export_matches_the_full_enhanced_render(run_dir, tmp_path):
     params = to_normalized(ply, norm)
     background = read_background(out)  # the default's mean background: a viewer set to the recorded colour
     assert background is not None and 0.05 < float(background.mean()) < 0.95
+    near = read_near(out)  # the default's near plane, recorded in the input's units
+    assert near is not None and near * norm.scale == pytest.approx(model.near_plane(), rel=1e-5)
     values = []
     for view in scene.train + scene.test:
         cam = view_camera(view)
         with torch.no_grad():
             full = model.render(cam, 1)["rgb"]
-        values.append(psnr(render_ply(params, cam, 1, background).clamp(0, 1), full))
+        values.append(psnr(render_ply(params, cam, 1, background, near * norm.scale).clamp(0, 1), full))
     assert min(values) >= 33.0, values
 
 
@@ -150,12 +162,13 @@ def test_reflectance_only_export_matches_R(run_dir, tmp_path):
     params = to_normalized(read_ply(out), scene.normalization)
     background = read_background(out)  # R̂'s background: the mean reflectance prior
     torch.testing.assert_close(background, model.background[:3].float(), rtol=0, atol=1e-4)
+    near = read_near(out) * scene.normalization.scale  # a viewer set to the recorded near plane
     for view in scene.train:
         cam = view_camera(view)
         with torch.no_grad():
             R = model.render(cam, 1)["R"]
         # only float32 rounding of the frame change (and the recorded background's 4 decimals) differ
-        assert psnr(render_ply(params, cam, 1, background), R) > 60.0
+        assert psnr(render_ply(params, cam, 1, background, near), R) > 60.0
 
 
 def test_orbit_and_interpolated_paths_follow_the_training_cameras(run_dir):

@@ -111,6 +111,13 @@ def export_run(run_dir: Path, out: Path, reflectance_only: bool = False, directi
                         "set a viewer's background to it)")
         log(f"background colour (set your viewer's background to it; the model renders it where no Gaussian "
             f"covers a pixel): RGB {text}, #{''.join(f'{round(255 * x):02x}' for x in rgb.tolist())}")
+    near = model.near_plane()
+    if near > 0:  # model.near_fraction: in the PLY's (the input's) world units, as its centres are
+        world = near / scene.normalization.scale
+        comments.append(f"near plane: {world:.6g} (the model draws no Gaussian closer to the camera; set a viewer's "
+                        "near plane to it)")
+        log(f"near plane {world:.6g} (input units): set your viewer's near plane to it; the model draws no Gaussian "
+            "closer to the camera")
     params = export_params(model, scene.normalization, sh)
     write_ply(out, params, comments)
     log(f"wrote {len(model.gaussians)} Gaussians (SH degree {model.gaussians.sh_degree}) to {out}")

@@ -97,6 +97,18 @@ def read_background(path: Union[str, Path]) -> Optional[torch.Tensor]:
     return None
 
 
+def read_near(path: Union[str, Path]) -> Optional[float]:
+    """The near plane (in the PLY's world units) that ``retinexgs export`` records for a model with one
+    (``model.near_fraction``), or None: no Gaussian closer to the camera is drawn by the model."""
+    for comment in _plyfile().PlyData.read(str(path)).comments:
+        if comment.startswith("near plane: "):
+            try:  # another tool's comment of the same prefix is not ours: skip it
+                return float(comment.split()[2])
+            except (ValueError, IndexError):
+                continue
+    return None
+
+
 def read_ply(path: Union[str, Path]) -> Dict[str, torch.Tensor]:
     """Read an INRIA 3DGS PLY into a Gaussians dict of float32 tensors (names as in the module docstring).
 
