@@ -54,6 +54,8 @@ def fused_colors_unsupported(field: Optional[IlluminationField]) -> Optional[str
     """Why the fused colour kernel cannot evaluate ``field`` (None when it can)."""
     if field is None:
         return None
+    if getattr(field, "leak", 0.0) > 0:
+        return f"the kernel's hidden layers are ReLUs; model.illumination.leak {field.leak:g} runs the field in torch"
     pos_freqs, dir_freqs, hidden, depth, dir_hidden = illumination_shape(field)
     trunk = [m for m in field.trunk if isinstance(m, nn.Linear)]
     head = [m for m in field.head if isinstance(m, nn.Linear)]

@@ -241,6 +241,7 @@ class Illumination(Section):
     dir_hidden: Int(1)
     init_value: Num(gt=0)
     view_dependent: Bool
+    leak: Num(ge=0, le=0.5)
 
 
 class Enhancement(Section):
