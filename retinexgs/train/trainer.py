@@ -20,7 +20,7 @@ from retinexgs.data.raw_noise import RawNoise, scene_noise
 from retinexgs.errors import UserError
 from retinexgs.fileio import is_out_of_space, out_of_space_error
 from retinexgs.model.gaussians import GaussianModel
-from retinexgs.model.near_plane import content_depth
+from retinexgs.model.near_plane import MIN_POINTS, content_depth
 from retinexgs.model.retinex_model import RetinexGSModel
 from retinexgs.model.tone import black_table, exposure_gain
 from retinexgs.train import losses
@@ -400,7 +400,7 @@ class Trainer:
         depth = content_depth(self.scene.points, [view_camera(v) for v in self.scene.train])
         near = float(self.cfg.model.near_fraction) * depth
         self.log(f"near plane: {near:.4g} ({self.cfg.model.near_fraction:g} x the training views' nearest content "
-                 f"depth {depth:.4g})" if near > 0 else "near plane: none (no training view sees 8 initial points)")
+                 f"depth {depth:.4g})" if near > 0 else f"near plane: none (no training view sees {MIN_POINTS} initial points)")
         return near
 
     def mean_background(self) -> Tensor:
