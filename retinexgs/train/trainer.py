@@ -400,7 +400,8 @@ class Trainer:
         depth = content_depth(self.scene.points, [view_camera(v) for v in self.scene.train])
         near = float(self.cfg.model.near_fraction) * depth
         self.log(f"near plane: {near:.4g} ({self.cfg.model.near_fraction:g} x the training views' nearest content "
-                 f"depth {depth:.4g})" if near > 0 else f"near plane: none (no training view sees {MIN_POINTS} initial points)")
+                 f"depth {depth:.4g})" if near > 0 else
+                 f"near plane: none (no training view sees {MIN_POINTS} initial points)")
         return near
 
     def mean_background(self) -> Tensor:
