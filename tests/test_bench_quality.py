@@ -61,6 +61,21 @@ def test_table_mean_and_sample_std_over_seeds_and_scenes(tmp_path):
     assert img[top + 2, 1, 0] == 0 and img[top + 2, 8 + 1, 0] == 40 and img[top + 2, 24 + 1, 0] == 80
 
 
+def test_contact_sheets_written_at_once_by_two_benches_sharing_runs(tmp_path):
+    """Two benches with one --runs folder write the same sheet at the same time (a device call did): each write
+    has a temporary name of its own, so neither fails and the sheet is whole."""
+    from concurrent.futures import ThreadPoolExecutor
+    jobs = quality.plan([tmp_path / "s1"], ["default"], [0], tmp_path / "runs")
+    for j in jobs:
+        _fake_run(j, 20.0, 0.5)
+    out = tmp_path / "sheet.png"
+    with ThreadPoolExecutor(8) as pool:
+        paths = list(pool.map(lambda _: quality.contact_sheet(jobs, ["default"], "s1", out), range(16)))
+    assert paths == [out] * 16
+    assert np.asarray(Image.open(out)).shape[1] == 8 * 3  # low | default | truth
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".tmp-")] == []
+
+
 def test_aligned_table_reads_the_gt_mean_figures_and_skips_older_runs(tmp_path):
     scenes = [tmp_path / "s1", tmp_path / "s2"]
     jobs = quality.plan(scenes, ["default"], [0, 1], tmp_path / "runs")

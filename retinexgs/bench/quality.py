@@ -29,7 +29,7 @@ import numpy as np
 from retinexgs.data.scene import scene_label
 from retinexgs.data.sensor import NOISE_LADDER, SensorModel, darken_scene
 from retinexgs.errors import UserError
-from retinexgs.fileio import atomic_write_text
+from retinexgs.fileio import atomic_write, atomic_write_text
 from retinexgs.run.checkpoint import latest_checkpoint
 
 
@@ -267,10 +267,8 @@ def contact_sheet(jobs: Sequence[Job], configs: Sequence[str], scene: str, out: 
             fit = max(4, w // 6)
             draw.text((k * w + 2, r * (h + pad) + 1), label if len(label) <= fit else ".." + label[-fit + 2:],
                       fill="black")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".tmp-{out.name}")
-    sheet.save(tmp, format="PNG")
-    tmp.replace(out)
+    # a temporary name of its own: two benches sharing --runs write the same sheet at once
+    atomic_write(out, lambda f: sheet.save(f, format="PNG"), "--runs")
     return out
 
 
