@@ -243,3 +243,16 @@ def test_colour_table_reads_the_colour_error_and_skips_older_runs(tmp_path):
     assert "Colour error" in md
     assert f"| `default` | 5.50 ± {math.sqrt(0.5):.2f} | 5.50 ± {math.sqrt(0.5):.2f} |" in md
     assert f"| `ablations/baseline_pre` | 2.50 ± {math.sqrt(0.5):.2f} | – |" in md
+
+
+def test_linear_colour_table_splits_the_colour_error(tmp_path):
+    jobs = quality.plan([tmp_path / "s1"], ["default"], [0, 1], tmp_path / "runs")
+    for j in jobs:
+        _fake_run(j, 20.0, 0.5)
+        m = json.loads(j.metrics_path.read_text())
+        m["mean"].update(delta_e_linear=0.5 + j.seed, delta_e_tone_floor=2.25)
+        j.metrics_path.write_text(json.dumps(m))
+    md = quality.linear_colour_table(jobs, ["default"])
+    light, floor = md.split("The tone's own cost")[0], md.split("luminance, and of the truth in linear light.")[1]
+    assert f"| `default` | 1.00 ± {math.sqrt(0.5):.2f} |" in light and "light alone" in light
+    assert "| `default` | 2.25 ± 0.00 |" in floor

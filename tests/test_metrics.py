@@ -194,6 +194,48 @@ def test_colour_error_sees_a_cast_not_the_exposure():
         mean_colour_lab(np.zeros((4, 4, 1)))
 
 
+def test_colour_error_linear_scores_the_light_without_a_tone():
+    """The render's linear light against the truth: exposure-free, unbounded, and a cast scores what the same cast
+    scores as an sRGB image's average colour (mean_colour_lab, the independent route)."""
+    from retinexgs.data.srgb import linear_to_srgb, srgb_to_linear
+    from retinexgs.evaluate.metrics import colour_error_linear, mean_colour_lab
+
+    rng = np.random.default_rng(1)
+    truth = torch.from_numpy(rng.uniform(0.05, 0.9, size=(12, 12, 3)))
+    light = srgb_to_linear(truth)
+    assert colour_error_linear(light, truth) == pytest.approx(0.0, abs=1e-9)
+    # any exposure, far past white (no clip in linear light): still 0
+    assert colour_error_linear(light * 7.5, truth) == pytest.approx(0.0, abs=1e-9)
+    assert colour_error_linear(light * 0.01, truth) == pytest.approx(0.0, abs=1e-9)
+    # a cast on a uniform grey: ΔE of the Lab colours of the cast light at the truth's luminance
+    grey = torch.full((4, 4, 3), 0.5, dtype=torch.float64)
+    gains = torch.tensor([1.2, 1.0, 0.8], dtype=torch.float64)
+    cast = srgb_to_linear(grey) * gains
+    lum = torch.tensor([0.2126729, 0.7151522, 0.0721750], dtype=torch.float64)
+    at_truth = cast * float((srgb_to_linear(grey)[0, 0] @ lum) / (cast[0, 0] @ lum))
+    want = np.linalg.norm(np.subtract(mean_colour_lab(linear_to_srgb(at_truth)), mean_colour_lab(grey)))
+    assert want > 5.0
+    assert colour_error_linear(cast * 3.0, grey) == pytest.approx(want, rel=1e-6)
+    with pytest.raises(ValueError, match="RGB"):
+        colour_error_linear(torch.zeros(4, 4, 1), torch.zeros(4, 4, 1))
+
+
+def test_tone_colour_floor_is_what_the_shoulder_does_to_a_clipped_sky():
+    """The truth through the tone at its own exposure: nothing without a shoulder or below the knee; a white
+    (clipped) sky beside a bright blue one rolls off channel by channel, which moves the average colour."""
+    from retinexgs.data.srgb import linear_to_srgb
+    from retinexgs.evaluate.metrics import tone_colour_floor
+
+    rng = np.random.default_rng(2)
+    dim = torch.from_numpy(rng.uniform(0.02, 0.7, size=(8, 8, 3)))  # linear < 0.45: below a knee of 0.5
+    assert tone_colour_floor(dim, 0.5) == pytest.approx(0.0, abs=1e-9)
+    sky = torch.ones(8, 8, 3, dtype=torch.float64)
+    sky[:, 4:] = linear_to_srgb(torch.tensor([0.35, 0.6, 0.98], dtype=torch.float64))
+    assert tone_colour_floor(sky, 1.0) == pytest.approx(0.0, abs=1e-9)
+    assert tone_colour_floor(sky, 0.5) > 0.5
+    assert tone_colour_floor(sky, 0.5) > tone_colour_floor(sky, 0.8)
+
+
 @pytest.mark.parametrize("pad", [0, 5])
 def test_float64_filter_by_shifted_sums_is_the_depthwise_convolution(pad):
     """The evaluation's float64 CPU filter (sums of shifted slices) gives the conv2d filter's values and

@@ -123,9 +123,12 @@ def test_train_run_end_to_end_and_eval(scene_dir, tmp_path):
     for row in metrics["views"]:
         assert row["psnr_gt_mean"] > 0 and 0 < row["ssim_gt_mean"] <= 1
     assert metrics["mean"]["psnr_gt_mean"] == pytest.approx(np.mean([r["psnr_gt_mean"] for r in metrics["views"]]))
+    # the colour error split: the light alone, and the tone's own cost on the truth (both ≥ 0, in every view)
+    assert all(r["delta_e_linear"] >= 0 and r["delta_e_tone_floor"] >= 0 for r in metrics["views"])
     assert json.loads((run / "metrics.json").read_text())["mean"]["psnr"] == pytest.approx(metrics["mean"]["psnr"])
     again = eval_run(run, "cpu", log=lambda s: None)
     assert again["mean"]["psnr"] == pytest.approx(metrics["mean"]["psnr"], abs=1e-6)
+    assert again["mean"]["delta_e_linear"] == pytest.approx(metrics["mean"]["delta_e_linear"], abs=1e-6)
     cfg, scene, model, step = load_run(run, "cpu")
     assert step == 6 and len(model.gaussians) > 0
 

@@ -209,6 +209,20 @@ def colour_table(jobs: Sequence[Job], configs: Sequence[str]) -> str:
                        "(issue 32). Lower is better.")
 
 
+def linear_colour_table(jobs: Sequence[Job], configs: Sequence[str]) -> str:
+    """Markdown: the colour error split in two (runs evaluated since 2026-11-28): ``delta_e_linear`` (the render's
+    linear light before the tone, :func:`retinexgs.evaluate.metrics.colour_error_linear`) and
+    ``delta_e_tone_floor`` (the truth itself through the run's tone, :func:`~retinexgs.evaluate.metrics.tone_colour_floor`)."""
+    light = _seed_table(jobs, configs, "delta_e_linear", 2,
+                        "Colour error of the light alone: CIELAB ΔE between the average colours of the render's linear "
+                        "light (before the highlight shoulder, the sRGB curve and the clip), scaled to the truth's mean "
+                        "luminance, and of the truth in linear light.")
+    floor = _seed_table(jobs, configs, "delta_e_tone_floor", 2,
+                        "The tone's own cost: the colour error (as in the ΔE table) of the truth itself sent through the "
+                        "run's tone at its own exposure, what a render with exactly the truth's light would score.")
+    return light + "\n" + floor
+
+
 def black_table(jobs: Sequence[Job], configs: Sequence[str]) -> str:
     """Markdown: per scene and config the black lift ``black_lift`` (:func:`retinexgs.evaluate.metrics.black_lift`),
     mean ± sample std over seeds, the dark input's first; runs evaluated before the key existed are left out."""
@@ -421,6 +435,8 @@ def main(argv: Sequence[str]) -> int:
         md += "\n" + table(jobs, args.configs, aligned=True)
     if any(m is not None and "delta_e_gt_mean" in m["mean"] for m in map(read_metrics, jobs)):
         md += "\n" + colour_table(jobs, args.configs)
+    if any(m is not None and "delta_e_linear" in m["mean"] for m in map(read_metrics, jobs)):
+        md += "\n" + linear_colour_table(jobs, args.configs)
     if any(m is not None and "black_lift" in m["mean"] for m in map(read_metrics, jobs)):
         md += "\n" + black_table(jobs, args.configs)
     sheets = []

@@ -11,7 +11,8 @@ import torch
 from PIL import Image
 
 from retinexgs.data import Scene
-from retinexgs.evaluate.metrics import black_lift, colour_error, gt_mean_align, lpips_metric, psnr, ssim_metric
+from retinexgs.evaluate.metrics import (black_lift, colour_error, colour_error_linear, gt_mean_align, lpips_metric, psnr,
+                                       ssim_metric, tone_colour_floor)
 from retinexgs.fileio import atomic_write, atomic_write_text
 from retinexgs.run.folder import load_run
 from retinexgs.run.render import active_sh_degree, render_function
@@ -105,6 +106,9 @@ def evaluate(render_fn: Callable, scene: Scene, out_dir: Path, use_lpips: bool =
                "psnr_gt_mean": psnr(aligned, gt), "ssim_gt_mean": ssim_metric(aligned, gt),
                "delta_e_gt_mean": colour_error(rgb, gt), "low_delta_e_gt_mean": colour_error(low, gt),
                "black_lift": black_lift(rgb, gt), "low_black_lift": black_lift(low, gt)}
+        if "rgb_linear" in res:  # the colour error split: the light alone, and what the tone alone costs the truth
+            row["delta_e_linear"] = colour_error_linear(res["rgb_linear"].double().cpu(), gt)
+            row["delta_e_tone_floor"] = tone_colour_floor(gt, res["knee"])
         if use_lpips:
             value, lpips_reason = lpips_metric(rgb, gt)
             if value is not None:
@@ -156,5 +160,5 @@ def evaluate(render_fn: Callable, scene: Scene, out_dir: Path, use_lpips: bool =
 def eval_run(run_dir: Path, device: Optional[str] = None, log: Callable[[str], None] = print) -> Optional[Dict]:
     """Re-evaluate a saved run (rewrites metrics.json and renders/test)."""
     cfg, scene, model, step = load_run(run_dir, device)
-    return evaluate(render_function(model, cfg, active_sh_degree(cfg, step)), scene, Path(run_dir),
+    return evaluate(render_function(model, cfg, active_sh_degree(cfg, step), linear=True), scene, Path(run_dir),
                     cfg.eval.lpips, log)

@@ -28,7 +28,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from retinexgs.model.tone import srgb_to_linear
+from retinexgs.model.tone import highlight_shoulder, linear_to_srgb, srgb_to_linear
 
 
 __all__ = ["psnr", "ssim_metric", "gt_mean_align", "lpips_metric", "lpips_available"]
@@ -219,7 +219,11 @@ def mean_colour_lab(x: ImageLike) -> Tuple[float, float, float]:
     a, _ = _as_pair(x, x)
     if a.shape[-1] != 3:
         raise ValueError(f"mean_colour_lab needs an RGB image, got {a.shape[-1]} channels")
-    lin = srgb_to_linear(a, clip=False).reshape(-1, 3).mean(0)
+    return _lab_of_linear(srgb_to_linear(a, clip=False).reshape(-1, 3).mean(0))
+
+
+def _lab_of_linear(lin: torch.Tensor) -> Tuple[float, float, float]:
+    """CIELAB (D65) of one linear Rec.709 RGB colour [3] (float64)."""
     xyz = torch.tensor(_RGB_TO_XYZ, dtype=torch.float64) @ lin / torch.tensor(_D65, dtype=torch.float64)
     f = torch.where(xyz > (6 / 29) ** 3, xyz.clamp_min(0) ** (1 / 3), xyz / (3 * (6 / 29) ** 2) + 4 / 29)
     return float(116 * f[1] - 16), float(500 * (f[0] - f[1])), float(200 * (f[1] - f[2]))
@@ -248,6 +252,38 @@ def colour_error(x: ImageLike, y: ImageLike) -> float:
     :func:`gt_mean_align` to ``y`` and of ``y``. A colour cast shows in it; the exposure level does not."""
     lx, ly = mean_colour_lab(gt_mean_align(x, y)), mean_colour_lab(y)
     return math.sqrt(sum((p - q) ** 2 for p, q in zip(lx, ly)))
+
+
+def colour_error_linear(light: ImageLike, y: ImageLike) -> float:
+    """The colour of a render's linear light, with no tone between it and the truth: CIELAB ΔE (1976) between the
+    average colour of ``light`` ([H,W,3] linear Rec.709, unbounded: the enhanced light before the highlight shoulder,
+    the sRGB curve and the clip), scaled to the truth's mean luminance, and the average colour of the truth ``y``
+    (sRGB in [0, 1]) in linear light.
+
+    Why beside :func:`colour_error`: that one scores the encoded output, so it also holds what the tone does to the
+    colours (a per-channel shoulder on a bright sky, the clip after the GT-mean scaling); a render whose light is
+    exactly the truth's can score several ΔE there (:func:`tone_colour_floor`). Here only the light is scored."""
+    a, b = _as_pair(light, y)
+    if a.shape[-1] != 3:
+        raise ValueError(f"colour_error_linear needs RGB images, got {a.shape[-1]} channels")
+    lum = torch.tensor(_RGB_TO_XYZ[1], dtype=torch.float64)
+    mine = a.reshape(-1, 3).mean(0)
+    truth = srgb_to_linear(b, clip=False).reshape(-1, 3).mean(0)
+    ya, yb = float(mine @ lum), float(truth @ lum)
+    if not (math.isfinite(ya) and math.isfinite(yb)):
+        raise ValueError("colour_error_linear: the images hold non-finite values")
+    scaled = mine * (yb / ya) if ya > 0.0 else mine
+    return math.sqrt(sum((p - q) ** 2 for p, q in zip(_lab_of_linear(scaled), _lab_of_linear(truth))))
+
+
+def tone_colour_floor(y: ImageLike, knee: float) -> float:
+    """:func:`colour_error` of the truth ``y`` itself sent through a render's tone at the truth's own exposure
+    (linear light, the highlight shoulder at ``knee``, the sRGB curve): what a render whose light were exactly the
+    truth's would score. 0 for knee ≥ 1 (the clip alone: the truth is already in [0, 1]). A truth whose highlights
+    are clipped (a white sky) keeps them at 1 in every channel; the shoulder rolls them off, one channel at a time."""
+    a, _ = _as_pair(y, y)
+    encoded = linear_to_srgb(highlight_shoulder(srgb_to_linear(a, clip=False).clamp_min(0.0), knee))
+    return colour_error(encoded, a)
 
 
 def _hub_checkpoint_dir() -> Path:

@@ -50,9 +50,12 @@ def enhanced_linear(model: RetinexGSModel, cfg: Config, res: Dict) -> Tensor:
 def encode_enhanced(model: RetinexGSModel, cfg: Config, light: Tensor) -> Tensor:
     """The enhanced image (sRGB, [0, 1]) of linear light as :func:`enhanced_linear` returns it: the highlight
     shoulder (RetinexGS, tone ``exposure``) and the sRGB curve, clipping at white."""
-    if cfg.method == "retinexgs" and model.tone == "exposure":
-        light = highlight_shoulder(light, model.shoulder)
-    return linear_to_srgb(light)
+    return linear_to_srgb(highlight_shoulder(light, tone_knee(model, cfg)))
+
+
+def tone_knee(model: RetinexGSModel, cfg: Config) -> float:
+    """The highlight shoulder's knee that :func:`encode_enhanced` applies to this run's light (1: none, the clip)."""
+    return float(model.shoulder) if cfg.method == "retinexgs" and model.tone == "exposure" else 1.0
 
 
 def render_function(model: RetinexGSModel, cfg: Config, degree: int, exposure: Optional[float] = None,
@@ -72,7 +75,7 @@ def render_function(model: RetinexGSModel, cfg: Config, degree: int, exposure: O
     leaves ``rgb`` as rendered, bit for bit. With ``fast`` and tone ``exposure`` it is applied inside the
     renderer's one tone kernel (:meth:`~retinexgs.model.inference.InferenceRenderer.render`), elsewhere by encoding
     the balanced light again in torch; the two agree to float rounding (tests). ``linear``: the maps also hold
-    ``rgb_linear``, that light after the balance (:func:`enhanced_linear`)."""
+    ``rgb_linear``, that light after the balance (:func:`enhanced_linear`), and ``knee`` (:func:`tone_knee`)."""
     model.eval()
     if fast and renderer is None:
         renderer = InferenceRenderer(model, degree)
@@ -101,6 +104,7 @@ def render_function(model: RetinexGSModel, cfg: Config, degree: int, exposure: O
             if linear or (balance is not None and fused_balance is None):
                 light = white_balance(enhanced_linear(model, cfg, res), balance)
                 res["rgb_linear"] = light
+                res["knee"] = tone_knee(model, cfg)
                 if balance is not None and fused_balance is None:
                     res["rgb"] = encode_enhanced(model, cfg, light)
         return res

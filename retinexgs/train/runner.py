@@ -161,7 +161,7 @@ def _train_and_evaluate(trainer: Trainer, cfg: Config, scene: Scene, run_dir: Pa
         log(f"trained {cfg.steps} steps in {took}, {len(trainer.model.gaussians)} Gaussians"
             + (f", peak GPU memory {stats['peak_gpu_memory_gb']:.2f} GB" if "peak_gpu_memory_gb" in stats else ""))
     stats["gaussians"] = len(trainer.model.gaussians)
-    return evaluate(render_function(trainer.model, cfg, trainer.active_degree(cfg.steps)), scene, run_dir,
+    return evaluate(render_function(trainer.model, cfg, trainer.active_degree(cfg.steps), linear=True), scene, run_dir,
                     cfg.eval.lpips, log, extra={"train": stats}, shard=(dist.rank, dist.world),
                     gather=(lambda rows: dist.gather_objects(rows, "the evaluation's rows")) if dist.enabled else None)
 
