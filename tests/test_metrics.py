@@ -234,6 +234,20 @@ def test_tone_colour_floor_is_what_the_shoulder_does_to_a_clipped_sky():
     assert tone_colour_floor(sky, 1.0) == pytest.approx(0.0, abs=1e-9)
     assert tone_colour_floor(sky, 0.5) > 0.5
     assert tone_colour_floor(sky, 0.5) > tone_colour_floor(sky, 0.8)
+    # exposed brighter, the clip alone costs colour too (the blue sky's blue clips first); exposed darker, the
+    # metric itself charges a little, growing with the distance (the GT-mean scales sRGB values, not the light)
+    assert tone_colour_floor(sky, 1.0, exposure=1.5) > 0.5
+    assert 0.0 < tone_colour_floor(dim, 1.0, exposure=0.8) < tone_colour_floor(dim, 1.0, exposure=0.5)
+
+
+def test_exposure_ratio_is_the_light_over_the_truth_in_linear_luminance():
+    from retinexgs.data.srgb import srgb_to_linear
+    from retinexgs.evaluate.metrics import exposure_ratio
+
+    truth = torch.from_numpy(np.random.default_rng(3).uniform(0.05, 0.95, size=(6, 6, 3)))
+    assert exposure_ratio(srgb_to_linear(truth) * 2.5, truth) == pytest.approx(2.5, rel=1e-12)
+    assert exposure_ratio(torch.zeros(6, 6, 3), truth) == 0.0
+    assert exposure_ratio(srgb_to_linear(truth), torch.zeros(6, 6, 3)) == 0.0
 
 
 @pytest.mark.parametrize("pad", [0, 5])

@@ -219,7 +219,8 @@ def linear_colour_table(jobs: Sequence[Job], configs: Sequence[str]) -> str:
                         "luminance, and of the truth in linear light.")
     floor = _seed_table(jobs, configs, "delta_e_tone_floor", 2,
                         "The tone's own cost: the colour error (as in the ΔE table) of the truth itself sent through the "
-                        "run's tone at its own exposure, what a render with exactly the truth's light would score.")
+                        "run's tone at the run's exposure (metrics.json's exposure_ratio), what a render with exactly the "
+                        "truth's light, exposed as the run exposes it, would score.")
     return light + "\n" + floor
 
 

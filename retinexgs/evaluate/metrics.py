@@ -254,6 +254,20 @@ def colour_error(x: ImageLike, y: ImageLike) -> float:
     return math.sqrt(sum((p - q) ** 2 for p, q in zip(lx, ly)))
 
 
+def exposure_ratio(light: ImageLike, y: ImageLike) -> float:
+    """How much brighter a render's linear light ``light`` ([H,W,3], unbounded) is than the truth ``y`` (sRGB in
+    [0, 1]): the ratio of their mean luminances in linear light (Rec. 709 Y); 0 for a black render."""
+    a, b = _as_pair(light, y)
+    if a.shape[-1] != 3:
+        raise ValueError(f"exposure_ratio needs RGB images, got {a.shape[-1]} channels")
+    lum = torch.tensor(_RGB_TO_XYZ[1], dtype=torch.float64)
+    ya = float(a.reshape(-1, 3).mean(0) @ lum)
+    yb = float(srgb_to_linear(b, clip=False).reshape(-1, 3).mean(0) @ lum)
+    if not (math.isfinite(ya) and math.isfinite(yb)):
+        raise ValueError("exposure_ratio: the images hold non-finite values")
+    return ya / yb if yb > 0.0 else 0.0
+
+
 def colour_error_linear(light: ImageLike, y: ImageLike) -> float:
     """The colour of a render's linear light, with no tone between it and the truth: CIELAB ΔE (1976) between the
     average colour of ``light`` ([H,W,3] linear Rec.709, unbounded: the enhanced light before the highlight shoulder,
@@ -264,26 +278,22 @@ def colour_error_linear(light: ImageLike, y: ImageLike) -> float:
     colours (a per-channel shoulder on a bright sky, the clip after the GT-mean scaling); a render whose light is
     exactly the truth's can score several ΔE there (:func:`tone_colour_floor`). Here only the light is scored."""
     a, b = _as_pair(light, y)
-    if a.shape[-1] != 3:
-        raise ValueError(f"colour_error_linear needs RGB images, got {a.shape[-1]} channels")
-    lum = torch.tensor(_RGB_TO_XYZ[1], dtype=torch.float64)
+    ratio = exposure_ratio(a, b)
     mine = a.reshape(-1, 3).mean(0)
     truth = srgb_to_linear(b, clip=False).reshape(-1, 3).mean(0)
-    ya, yb = float(mine @ lum), float(truth @ lum)
-    if not (math.isfinite(ya) and math.isfinite(yb)):
-        raise ValueError("colour_error_linear: the images hold non-finite values")
-    scaled = mine * (yb / ya) if ya > 0.0 else mine
+    scaled = mine / ratio if ratio > 0.0 else mine
     return math.sqrt(sum((p - q) ** 2 for p, q in zip(_lab_of_linear(scaled), _lab_of_linear(truth))))
 
 
-def tone_colour_floor(y: ImageLike, knee: float) -> float:
-    """:func:`colour_error` of the truth ``y`` itself sent through a render's tone at the truth's own exposure
-    (linear light, the highlight shoulder at ``knee``, the sRGB curve): what a render whose light were exactly the
-    truth's would score. 0 for knee ≥ 1 (the clip alone: the truth is already in [0, 1]). A truth whose highlights
-    are clipped (a white sky) keeps them at 1 in every channel; the shoulder rolls them off, one channel at a time."""
+def tone_colour_floor(y: ImageLike, knee: float, exposure: float = 1.0) -> float:
+    """:func:`colour_error` of the truth ``y`` itself sent through a render's tone (linear light times ``exposure``,
+    the highlight shoulder at ``knee``, the sRGB curve and its clip at white): what a render whose light were
+    exactly the truth's, exposed ``exposure`` times brighter, would score. 0 at exposure 1 with knee ≥ 1 (the truth
+    is already in [0, 1]). A truth whose highlights are clipped (a white sky) keeps them at 1 in every channel; the
+    shoulder rolls them off one channel at a time, and a brighter exposure clips more of them."""
     a, _ = _as_pair(y, y)
-    encoded = linear_to_srgb(highlight_shoulder(srgb_to_linear(a, clip=False).clamp_min(0.0), knee))
-    return colour_error(encoded, a)
+    light = srgb_to_linear(a, clip=False).clamp_min(0.0) * float(exposure)
+    return colour_error(linear_to_srgb(highlight_shoulder(light, knee)), a)
 
 
 def _hub_checkpoint_dir() -> Path:
