@@ -254,18 +254,27 @@ def colour_error(x: ImageLike, y: ImageLike) -> float:
     return math.sqrt(sum((p - q) ** 2 for p, q in zip(lx, ly)))
 
 
-def exposure_ratio(light: ImageLike, y: ImageLike) -> float:
-    """How much brighter a render's linear light ``light`` ([H,W,3], unbounded) is than the truth ``y`` (sRGB in
-    [0, 1]): the ratio of their mean luminances in linear light (Rec. 709 Y); 0 for a black render."""
+def _mean_colours(light: ImageLike, y: ImageLike, name: str) -> Tuple[torch.Tensor, torch.Tensor]:
+    """The average linear colours [3] of a render's light and of the truth ``y`` (sRGB), checked finite."""
     a, b = _as_pair(light, y)
     if a.shape[-1] != 3:
-        raise ValueError(f"exposure_ratio needs RGB images, got {a.shape[-1]} channels")
+        raise ValueError(f"{name} needs RGB images, got {a.shape[-1]} channels")
+    mine, truth = a.reshape(-1, 3).mean(0), srgb_to_linear(b, clip=False).reshape(-1, 3).mean(0)
+    if not bool(torch.isfinite(mine).all() and torch.isfinite(truth).all()):
+        raise ValueError(f"{name}: the images hold non-finite values")
+    return mine, truth
+
+
+def _ratio(mine: torch.Tensor, truth: torch.Tensor) -> float:
     lum = torch.tensor(_RGB_TO_XYZ[1], dtype=torch.float64)
-    ya = float(a.reshape(-1, 3).mean(0) @ lum)
-    yb = float(srgb_to_linear(b, clip=False).reshape(-1, 3).mean(0) @ lum)
-    if not (math.isfinite(ya) and math.isfinite(yb)):
-        raise ValueError("exposure_ratio: the images hold non-finite values")
+    ya, yb = float(mine @ lum), float(truth @ lum)
     return ya / yb if yb > 0.0 else 0.0
+
+
+def exposure_ratio(light: ImageLike, y: ImageLike) -> float:
+    """How much brighter a render's linear light ``light`` ([H,W,3], unbounded) is than the truth ``y`` (sRGB in
+    [0, 1]): the ratio of their mean luminances in linear light (Rec. 709 Y); 0 for a black render or truth."""
+    return _ratio(*_mean_colours(light, y, "exposure_ratio"))
 
 
 def colour_error_linear(light: ImageLike, y: ImageLike) -> float:
@@ -277,10 +286,8 @@ def colour_error_linear(light: ImageLike, y: ImageLike) -> float:
     Why beside :func:`colour_error`: that one scores the encoded output, so it also holds what the tone does to the
     colours (a per-channel shoulder on a bright sky, the clip after the GT-mean scaling); a render whose light is
     exactly the truth's can score several ΔE there (:func:`tone_colour_floor`). Here only the light is scored."""
-    a, b = _as_pair(light, y)
-    ratio = exposure_ratio(a, b)
-    mine = a.reshape(-1, 3).mean(0)
-    truth = srgb_to_linear(b, clip=False).reshape(-1, 3).mean(0)
+    mine, truth = _mean_colours(light, y, "colour_error_linear")
+    ratio = _ratio(mine, truth)
     scaled = mine / ratio if ratio > 0.0 else mine
     return math.sqrt(sum((p - q) ** 2 for p, q in zip(_lab_of_linear(scaled), _lab_of_linear(truth))))
 
