@@ -240,6 +240,20 @@ def test_tone_colour_floor_is_what_the_shoulder_does_to_a_clipped_sky():
     assert 0.0 < tone_colour_floor(dim, 1.0, exposure=0.8) < tone_colour_floor(dim, 1.0, exposure=0.5)
 
 
+def test_colour_split_is_the_three_figures_at_once():
+    from retinexgs.data.srgb import srgb_to_linear
+    from retinexgs.evaluate.metrics import colour_error_linear, colour_split, exposure_ratio, tone_colour_floor
+
+    truth = torch.from_numpy(np.random.default_rng(4).uniform(0.05, 1.0, size=(8, 8, 3)))
+    light = srgb_to_linear(truth) * torch.tensor([1.6, 1.4, 1.1], dtype=torch.float64)
+    split = colour_split(light, truth, 0.5)
+    assert split["delta_e_linear"] == pytest.approx(colour_error_linear(light, truth), abs=1e-12)
+    assert split["exposure_ratio"] == pytest.approx(exposure_ratio(light, truth), abs=1e-12)
+    assert split["delta_e_tone_floor"] == pytest.approx(tone_colour_floor(truth, 0.5, split["exposure_ratio"]),
+                                                        abs=1e-12)
+    assert split["delta_e_linear"] > 1.0 and split["delta_e_tone_floor"] > 0.0
+
+
 def test_exposure_ratio_is_the_light_over_the_truth_in_linear_luminance():
     from retinexgs.data.srgb import srgb_to_linear
     from retinexgs.evaluate.metrics import exposure_ratio

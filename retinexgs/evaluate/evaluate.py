@@ -11,8 +11,8 @@ import torch
 from PIL import Image
 
 from retinexgs.data import Scene
-from retinexgs.evaluate.metrics import (black_lift, colour_error, colour_error_linear, exposure_ratio, gt_mean_align,
-                                       lpips_metric, psnr, ssim_metric, tone_colour_floor)
+from retinexgs.evaluate.metrics import (black_lift, colour_error, colour_split, gt_mean_align, lpips_metric, psnr,
+                                       ssim_metric)
 from retinexgs.fileio import atomic_write, atomic_write_text
 from retinexgs.run.folder import load_run
 from retinexgs.run.render import active_sh_degree, render_function
@@ -107,11 +107,7 @@ def evaluate(render_fn: Callable, scene: Scene, out_dir: Path, use_lpips: bool =
                "delta_e_gt_mean": colour_error(rgb, gt), "low_delta_e_gt_mean": colour_error(low, gt),
                "black_lift": black_lift(rgb, gt), "low_black_lift": black_lift(low, gt)}
         if "rgb_linear" in res:  # the colour error split: the light alone, and what the tone alone costs the truth
-            light = res["rgb_linear"].double().cpu()
-            row["delta_e_linear"] = colour_error_linear(light, gt)
-            row["exposure_ratio"] = exposure_ratio(light, gt)
-            row["delta_e_tone_floor"] = tone_colour_floor(gt, res["knee"], row["exposure_ratio"])
-            del light
+            row.update(colour_split(res["rgb_linear"].double().cpu(), gt, res["knee"]))
         if use_lpips:
             value, lpips_reason = lpips_metric(rgb, gt)
             if value is not None:

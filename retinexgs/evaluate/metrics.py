@@ -287,9 +287,22 @@ def colour_error_linear(light: ImageLike, y: ImageLike) -> float:
     colours (a per-channel shoulder on a bright sky, the clip after the GT-mean scaling); a render whose light is
     exactly the truth's can score several ΔE there (:func:`tone_colour_floor`). Here only the light is scored."""
     mine, truth = _mean_colours(light, y, "colour_error_linear")
-    ratio = _ratio(mine, truth)
+    return _linear_delta_e(mine, truth, _ratio(mine, truth))
+
+
+def _linear_delta_e(mine: torch.Tensor, truth: torch.Tensor, ratio: float) -> float:
     scaled = mine / ratio if ratio > 0.0 else mine
     return math.sqrt(sum((p - q) ** 2 for p, q in zip(_lab_of_linear(scaled), _lab_of_linear(truth))))
+
+
+def colour_split(light: ImageLike, y: ImageLike, knee: float) -> Dict[str, float]:
+    """eval's split of the colour error for one view (the image means taken once): ``delta_e_linear``
+    (:func:`colour_error_linear`), ``exposure_ratio`` (:func:`exposure_ratio`) and ``delta_e_tone_floor``
+    (:func:`tone_colour_floor` at that exposure and the run's ``knee``)."""
+    mine, truth = _mean_colours(light, y, "colour_split")
+    ratio = _ratio(mine, truth)
+    return {"delta_e_linear": _linear_delta_e(mine, truth, ratio), "exposure_ratio": ratio,
+            "delta_e_tone_floor": tone_colour_floor(y, knee, ratio)}
 
 
 def tone_colour_floor(y: ImageLike, knee: float, exposure: float = 1.0) -> float:
