@@ -375,6 +375,38 @@ def test_the_priors_fade_where_their_preview_cannot_resolve_the_light():
     assert PREDATING_VALUES["loss.rec_raw_prior_snr"] == 0.0
 
 
+def test_the_highlight_knee_is_shoulder_raw_on_a_raw_scene_and_shoulder_on_a_photo_scene():
+    from retinexgs.run.config import load_config
+    from retinexgs.run.folder import PREDATING_VALUES
+    enh = load_config().model.enhancement
+    assert (enh.shoulder, enh.shoulder_raw) == (0.5, 1.0)
+    assert enh.knee(raw=False) == 0.5 and enh.knee(raw=True) == 1.0
+    old = load_config(["ablations/raw_shoulder"]).model.enhancement
+    assert old.shoulder_raw is None and old.knee(raw=True) == 0.5 == old.knee(raw=False)
+    assert load_config(overrides=["model.enhancement.shoulder_raw=0.7"]).model.enhancement.knee(True) == 0.7
+    assert PREDATING_VALUES["model.enhancement.shoulder_raw"] is None  # runs from before it keep the photos' knee
+    with pytest.raises(Exception, match="shoulder_raw"):
+        load_config(overrides=["model.enhancement.shoulder_raw=0"])
+
+
+def test_a_raw_run_trains_and_renders_with_its_knee_and_a_run_from_before_the_key_keeps_the_photos(
+        night, tmp_path, capsys):
+    """The trainer's model, the run read back (eval, render, export) and a run whose config predates the key."""
+    import yaml
+    from retinexgs.run.folder import load_run
+    for scene, knee in (("raw", 1.0), ("jpeg", 0.5)):
+        code, _, err = _train(night / scene, tmp_path / scene, capsys)
+        assert code == 0, err
+        cfg, loaded, model, _ = load_run(tmp_path / scene, "cpu")
+        assert loaded.raw == (scene == "raw") and model.shoulder == knee and model.raw == loaded.raw
+        assert model.with_enhancement(cfg.model.enhancement).shoulder == knee  # retone keeps the scene's knee
+    path = tmp_path / "raw" / "config.yaml"
+    recorded = yaml.safe_load(path.read_text())
+    del recorded["model"]["enhancement"]["shoulder_raw"]
+    path.write_text(yaml.safe_dump(recorded))
+    assert load_run(tmp_path / "raw", "cpu")[2].shoulder == 0.5
+
+
 def test_a_balanced_raw_scene_scales_its_noise_model_with_the_gains(night, tmp_path):
     """data.white_balance on a raw scene multiplies each channel's light by g, so the weights' noise model becomes
     g·a·y + g²·b; the as-shot scene keeps the model as measured."""

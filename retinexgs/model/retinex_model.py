@@ -63,10 +63,11 @@ class GaussianChannels(nn.Module):
 class RetinexGSModel(nn.Module):
     """Gaussians (+ illumination field and EnhancementNet when ``decomposed``)."""
 
-    def __init__(self, gaussians: GaussianModel, model_cfg: Model, decomposed: bool = True) -> None:
+    def __init__(self, gaussians: GaussianModel, model_cfg: Model, decomposed: bool = True, raw: bool = False) -> None:
         super().__init__()
         self.gaussians = gaussians
         self.decomposed = decomposed
+        self.raw = bool(raw)  # a camera-raw scene's: the tone's knee is model.enhancement.shoulder_raw
         if decomposed:
             il = model_cfg.illumination
             self.illumination = IlluminationField(pos_freqs=il.pos_freqs, dir_freqs=il.dir_freqs, hidden=il.hidden,
@@ -123,7 +124,7 @@ class RetinexGSModel(nn.Module):
         (its ``ref_quantile`` is the trainer's: it sets illum_ref)."""
         self.per_channel_gamma = bool(enh.per_channel)
         self.tone = str(enh.tone)
-        self.shoulder = float(enh.shoulder)  # tone "exposure"'s highlight knee (1: the clip)
+        self.shoulder = enh.knee(self.raw)  # tone "exposure"'s highlight knee (1: the clip)
         # tone "exposure": take the clipped noise's mean out of R̂∘L̂ before the gain (model/tone.scene_linear)
         self.debias_black = bool(enh.debias_black)
         # with it, the radius of the filter that takes the render's residual noise out first (model/tone.smooth_record)

@@ -59,11 +59,11 @@ def load_run(run_dir: Path, device: Optional[str] = None) -> Tuple[Config, Scene
                         "--data NEW_SCENE --relocate-scene`")
     state = load_checkpoint(ckpt)
     gstate = {k[len("gaussians."):]: v for k, v in state["model"].items() if k.startswith("gaussians.")}
+    scene = open_scene(scene_path, cfg)
     model = RetinexGSModel(GaussianModel.empty_like_state(gstate, cfg.model.sh_degree), cfg.model,
-                           cfg.method == "retinexgs")
+                           cfg.method == "retinexgs", raw=scene.raw)
     model.load_state_dict(state["model"])
     model.to(pick_device(device))
-    scene = open_scene(scene_path, cfg)
     return cfg, scene, model, int(state["step"])
 
 
@@ -77,7 +77,8 @@ def load_run(run_dir: Path, device: Optional[str] = None) -> Tuple[Config, Scene
 # the highlight cap (2026-11-27), and a batch of views stepped with torch's Adam betas until β^B (the same day).
 # Density events ran to density.stop until density.last_event capped them. A raw scene's priors weighed
 # every pixel alike until loss.rec_raw_prior_snr (2026-11-28), and renders drew Gaussians up to 0.01 from the
-# camera until model.near_fraction (the same day). This table is the one place for these
+# camera until model.near_fraction (the same day). A raw scene's tone took the photos' highlight knee until
+# model.enhancement.shoulder_raw (the same day). This table is the one place for these
 # values: the code reads every key from the validated config, with no fallback of its own.
 PREDATING_VALUES: Dict[str, Any] = {"model.enhancement.tone": "illumination", "loss.w_depth": 0.0,
                                     "loss.rec_domain": "photo", "model.background": "black",
@@ -87,7 +88,8 @@ PREDATING_VALUES: Dict[str, Any] = {"model.enhancement.tone": "illumination", "l
                                     "loss.exp_highlight_share": 0.0, "train.momentum_batch_scaling": "none",
                                     "density.last_event": 1.0, "loss.rec_raw": "photo",
                                     "decomposer.raw_denoise": False, "loss.rec_raw_unit": "plain",
-                                    "loss.rec_raw_prior_snr": 0.0, "model.near_fraction": 0.0}
+                                    "loss.rec_raw_prior_snr": 0.0, "model.near_fraction": 0.0,
+                                    "model.enhancement.shoulder_raw": None}
 
 
 def _fill_missing(cfg: RawConfig, default: RawConfig, prefix: str, filled: List[str]) -> RawConfig:

@@ -254,6 +254,9 @@ class Enhancement(Section):
     ref_quantile: Annotated[Optional[Annotated[float, BeforeValidator(_yaml_number), Field(gt=0, le=1)]],
                             Expect("a quantile in (0, 1] (1 = the maximum) or null (no normalisation)")]
     shoulder: Num(gt=0, le=1)  # tone "exposure"'s highlight knee; the gamma tones do not read it
+    # the knee on a camera-raw scene (null: ``shoulder``): its light is the sensor's, whose highlights need no roll-off
+    shoulder_raw: Annotated[Optional[Annotated[float, BeforeValidator(_yaml_number), Field(gt=0, le=1)]],
+                            Expect("a knee in (0, 1] (1 = the clip) or null (the same as shoulder)")]
     debias_black: Bool  # tone "exposure": the clipped sensor noise's mean taken out of R̂∘L̂ before the gain
     black_filter: Int(0, 64)  # with debias_black: the radius (px) of the filter that takes the render's noise out first
 
@@ -274,6 +277,10 @@ class Enhancement(Section):
         if self.black_filter and not self.debias_black:  # it filters what the black table reads, nothing else
             raise ValueError(f"model.enhancement.black_filter={self.black_filter} needs debias_black: true")
         return self
+
+    def knee(self, raw: bool) -> float:
+        """Tone "exposure"'s highlight knee for a scene of camera-raw (``raw``) or photo views."""
+        return float(self.shoulder if not raw or self.shoulder_raw is None else self.shoulder_raw)
 
 
 class Model(Section):

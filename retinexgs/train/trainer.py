@@ -239,7 +239,7 @@ class Trainer:
         else:
             gstate = {k[len("gaussians."):]: v for k, v in state["model"].items() if k.startswith("gaussians.")}
             gaussians = GaussianModel.empty_like_state(gstate, mcfg.sh_degree)
-        self.model = RetinexGSModel(gaussians, mcfg, self.decomposed).to(self.device)
+        self.model = RetinexGSModel(gaussians, mcfg, self.decomposed, raw=self.scene.raw).to(self.device)
         if self.decomposed and state is None:
             self.model.illum_ref.fill_(self.illumination_reference())
         if self.model.has_background and state is None:
