@@ -407,6 +407,42 @@ def test_a_raw_run_trains_and_renders_with_its_knee_and_a_run_from_before_the_ke
     assert load_run(tmp_path / "raw", "cpu")[2].shoulder == 0.5
 
 
+def test_the_extended_targets_mean_is_dragged_down_by_the_noise_and_the_photos_is_not():
+    """Why loss.spa_raw reads the photo: L_spa normalises by the input's mean. Light 0.01 under noise σ 0.03: the
+    extended encoding's mean falls far below the sRGB of the light (the negative half is ×12.92, the positive
+    half compressed); the clipped photo's stays near it."""
+    torch.manual_seed(0)
+    light = 0.01 + 0.03 * torch.randn(200_000, dtype=torch.float64)
+    ext, photo = linear_to_srgb_extended(light).mean(), linear_to_srgb(light.clamp(0, 1)).mean()
+    want = float(linear_to_srgb(torch.tensor(0.01, dtype=torch.float64)))
+    assert float(ext) < 0.3 * want and abs(float(photo) - want) < 0.5 * want
+
+
+@pytest.mark.parametrize("spa_raw", ["photo", "extended"])
+def test_l_spa_of_a_raw_view_compares_with_the_photo_it_shows(night, tmp_path, spa_raw):
+    from retinexgs.run.config import load_config
+    from retinexgs.run.folder import PREDATING_VALUES, open_scene
+    from retinexgs.train.trainer import Trainer, enhancement_objective
+    assert load_config().loss.spa_raw == "photo" and PREDATING_VALUES["loss.spa_raw"] == "extended"
+    assert load_config(["ablations/spa_raw_extended"]).loss.spa_raw == "extended"
+    cfg = load_config(["demo"], overrides=[*TINY_RUN, f"loss.spa_raw={spa_raw}"])
+    for kind in ("raw", "jpeg"):
+        scene = open_scene(night / kind, cfg)
+        tr = Trainer(cfg, scene, tmp_path / f"{kind}-{spa_raw}", "cpu", progress=False, log=lambda m: None)
+        S = scene.train[0].load_target()
+        assert (S.min() < 0) == (kind == "raw")  # the raw target keeps its noise below black
+        image = torch.rand(*S.shape[:2], 6) * 0.2
+        _, terms = tr.image_loss(image, S, None, None, enhance=True)
+        S_b = S.permute(2, 0, 1).unsqueeze(0)
+        read = S_b.clamp(0, 1) if kind == "raw" and spa_raw == "photo" else S_b
+        _, want = enhancement_objective(tr.model, cfg.loss, image[..., :3], image[..., 3:6], read)
+        assert float(terms["spa"].detach()) == pytest.approx(float(want["spa"].detach()), rel=1e-6)
+        if kind == "raw":  # and the two readings differ on this view
+            _, other = enhancement_objective(tr.model, cfg.loss, image[..., :3], image[..., 3:6],
+                                             S_b if spa_raw == "photo" else S_b.clamp(0, 1))
+            assert float(other["spa"].detach()) != pytest.approx(float(want["spa"].detach()), rel=1e-3)
+
+
 def test_a_balanced_raw_scene_scales_its_noise_model_with_the_gains(night, tmp_path):
     """data.white_balance on a raw scene multiplies each channel's light by g, so the weights' noise model becomes
     g·a·y + g²·b; the as-shot scene keeps the model as measured."""

@@ -78,7 +78,8 @@ def load_run(run_dir: Path, device: Optional[str] = None) -> Tuple[Config, Scene
 # Density events ran to density.stop until density.last_event capped them. A raw scene's priors weighed
 # every pixel alike until loss.rec_raw_prior_snr (2026-11-28), and renders drew Gaussians up to 0.01 from the
 # camera until model.near_fraction (the same day). A raw scene's tone took the photos' highlight knee until
-# model.enhancement.shoulder_raw (the same day). This table is the one place for these
+# model.enhancement.shoulder_raw (the same day), and its L_spa read the unclipped target until loss.spa_raw.
+# This table is the one place for these
 # values: the code reads every key from the validated config, with no fallback of its own.
 PREDATING_VALUES: Dict[str, Any] = {"model.enhancement.tone": "illumination", "loss.w_depth": 0.0,
                                     "loss.rec_domain": "photo", "model.background": "black",
@@ -89,7 +90,7 @@ PREDATING_VALUES: Dict[str, Any] = {"model.enhancement.tone": "illumination", "l
                                     "density.last_event": 1.0, "loss.rec_raw": "photo",
                                     "decomposer.raw_denoise": False, "loss.rec_raw_unit": "plain",
                                     "loss.rec_raw_prior_snr": 0.0, "model.near_fraction": 0.0,
-                                    "model.enhancement.shoulder_raw": None}
+                                    "model.enhancement.shoulder_raw": None, "loss.spa_raw": "extended"}
 
 
 def _fill_missing(cfg: RawConfig, default: RawConfig, prefix: str, filled: List[str]) -> RawConfig:

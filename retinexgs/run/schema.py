@@ -311,6 +311,7 @@ class Loss(Section):
     exp_form: Choice("l2", "l1")
     exp_highlight_share: Num(ge=0, le=0.5)
     spa_form: Choice("zero_dce", "paper")
+    spa_raw: Choice("photo", "extended")  # what L_spa compares a raw view's enhanced render with
     enhance_scale_invariant: Bool
     sh_reduction: Choice("mean", "sum")
     enhance_from: Step

@@ -488,7 +488,9 @@ class Trainer:
         terms["tv"] = losses.tv_loss(R_hat)
         total = sup + c.w_tv * terms["tv"]
         if enhance:
-            enh, enh_terms = enhancement_objective(self.model, c, R_img, L_img, S_b)
+            # loss.spa_raw photo: L_spa's input is a raw view as the photo it shows (its mean undragged by the noise)
+            S_spa = S_b.clamp(0.0, 1.0) if self.raw_scene and c.spa_raw == "photo" else S_b
+            enh, enh_terms = enhancement_objective(self.model, c, R_img, L_img, S_spa)
             terms.update(enh_terms)
             total = total + enh
         return total, terms
