@@ -65,6 +65,8 @@ setup(
     description="3D Retinex Gaussian splatting: normally-lit, 3D-consistent novel views from dark photos",
     packages=find_packages(include=["retinexgs", "retinexgs.*"]),
     python_requires=">=3.9",
+    license="Apache-2.0",  # LICENSE; third-party parts (weights) in their own notice
+    license_files=["LICENSE"],
     # pycolmap reads COLMAP models and runs SfM; plyfile reads and writes the exported PLY;
     # pydantic checks the config (retinexgs/run/schema.py); pillow-heif reads phone photos (HEIC/HEIF); rawpy (LibRaw)
     # and exifread read camera raw files and their exposure (retinexgs/data/camera_raw.py).
