@@ -33,7 +33,7 @@ def test_the_cap_shortens_only_the_long_axes_of_needles():
           [-2.0, 1.0, 2.0]]                    # two axes over the cap
     g = gaussians_with_scales(ls)
     before = g.log_scales.detach().clone()
-    controller(r).after_optimizer_step(g)
+    controller(r).after_optimizer_step(g, None, 0)
     after = g.log_scales.detach()
     assert torch.equal(after[:2], before[:2])
     assert torch.equal(after.amin(-1), before.amin(-1))  # the short axis is kept
@@ -46,7 +46,7 @@ def test_the_cap_shortens_only_the_long_axes_of_needles():
 def test_zero_is_no_cap():
     g = gaussians_with_scales([[-5.0, 0.0, 5.0], [1.0, -4.0, 0.0]])
     before = g.log_scales.detach().clone()
-    controller(0).after_optimizer_step(g)
+    controller(0).after_optimizer_step(g, None, 0)
     assert torch.equal(g.log_scales.detach(), before)
 
 

@@ -17,6 +17,8 @@ from typing import Annotated, Any, Dict, List, Literal, Optional, Tuple, Union
 from pydantic import (BaseModel, BeforeValidator, ConfigDict, Field, StrictInt, ValidationError, ValidationInfo,
                       field_validator, model_validator)
 
+from retinexgs.strategy import STRATEGIES  # density.kind's choices: the registered strategies
+
 
 class Expect:
     """Annotation metadata: what a field expects, in words (pydantic ignores it; the error formatter reads it)."""
@@ -115,6 +117,7 @@ class Data(Section):
     downscale: Num(ge=1)
     cache_dir: OptStr
     white_balance: Choice("as-shot", "grey-edge")
+    min_registered: Num(ge=0, le=1)
 
 
 # ---- the decomposers' parameters (decomposer.params), one class per method: every field of the method's params
@@ -343,7 +346,18 @@ class LearningRates(Section):
     enhancement: Num(ge=0)
 
 
+class MCMC(Section):
+    """``density.mcmc``: the MCMC strategy's knobs (retinexgs/strategy/mcmc.py)."""
+    cap_max: Int(1)
+    growth: Num(ge=0)
+    min_opacity: Num(gt=0, le=1)
+    noise_lr: Num(ge=0)
+    opacity_reg: Num(ge=0)
+    scale_reg: Num(ge=0)
+
+
 class Density(Section):
+    kind: Choice(*STRATEGIES)
     start: Step
     stop: Step
     every: Every
@@ -356,6 +370,7 @@ class Density(Section):
     max_gaussians: Int(1)
     noise_aware: Bool
     max_aniso: Annotated[float, BeforeValidator(_yaml_number), Expect("0 (no cap) or a ratio >= 1")]
+    mcmc: MCMC
 
     @model_validator(mode="after")
     def _ratio(self) -> "Density":
@@ -376,7 +391,7 @@ class Checkpoint(Section):
 
 
 class Eval(Section):
-    lpips: Bool
+    lpips: Bool  # on by default: LOM papers report LPIPS beside PSNR/SSIM, and the port needs no download
 
 
 class Train(Section):

@@ -14,6 +14,7 @@ from retinexgs.model.gaussians import GaussianModel
 from retinexgs.model.schedule import Schedule
 from retinexgs.render import RenderOutput
 from retinexgs.render.rotation import quat_to_rotmat
+from retinexgs.strategy.base import Strategy, register
 from retinexgs.strategy.ops import cap_anisotropy, edit_gaussians, reset_opacity
 
 if TYPE_CHECKING:  # a type only: the schema lives in the run layer above (.importlinter ignores hint imports)
@@ -41,14 +42,13 @@ def noise_share(grad_sq: Tensor, count: Tensor, noise_sq: Tensor, noise_count: T
     return share.clamp(0.0, 1.0)
 
 
-class DefaultStrategy:
+@register("default")
+class DefaultStrategy(Strategy):
     """Accumulates per-Gaussian screen-space gradient statistics and densifies, prunes and resets on schedule.
     ``cfg``: the config's ``density`` section."""
 
-    def __init__(self, cfg: Density, scene_extent: float, schedule: Schedule) -> None:
-        self.cfg = cfg
-        self.schedule = schedule  # when to densify and reset, in steps (retinexgs.model.schedule)
-        self.extent = float(scene_extent)
+    def __init__(self, cfg: Density, scene_extent: float, schedule: Schedule, seed: int = 0) -> None:
+        super().__init__(cfg, scene_extent, schedule, seed)  # schedule: when to densify and reset, in steps
         self.grad_accum: Optional[Tensor] = None  # Σ over views of the NDC gradient norm (3DGS's statistic)
         self.count: Optional[Tensor] = None       # views that saw each Gaussian
         self.grad_sq: Optional[Tensor] = None     # Σ of the squared norm
@@ -124,7 +124,15 @@ class DefaultStrategy:
             did += " opacity reset"
         return did.strip()
 
-    def after_optimizer_step(self, model: GaussianModel) -> None:
+    def edits_at(self, step: int) -> bool:
+        return self.schedule.densify_at(step) or self.schedule.reset_at(step)
+
+    def probes_noise_at(self, step: int) -> bool:
+        """The noise probe runs inside the densification window (its statistics serve densification alone)."""
+        return self.schedule.densify_start < step <= self.schedule.densify_stop
+
+    def after_optimizer_step(self, model: GaussianModel, optimizer: Optional[torch.optim.Optimizer] = None,
+                             step: int = 0) -> None:
         """Cap every Gaussian's longest axis at ``max_aniso`` times its shortest (0: no cap). Why: a Gaussian far
         longer than wide is a needle, seen as a streak from any view off its axis, and where one or two training
         views see a region nothing stops it growing (the floaters of a view past the training views). The long

@@ -39,7 +39,7 @@ from retinexgs.train.views import (TrainView, ViewStatistics, check_prior_size, 
                                    make_train_view, preload_bytes_per_pixel, stream_set_up, unpack_edges,
                                    unpack_targets)
 from retinexgs.model.schedule import build_schedule
-from retinexgs.strategy import DefaultStrategy
+from retinexgs.strategy import build_strategy
 from retinexgs.run.render import view_camera
 from retinexgs.run.schema import Config, Loss
 from retinexgs.retinex.cache import entry_dir, iter_decompositions, scene_cache_root
@@ -266,7 +266,7 @@ class Trainer:
         rates = {group["name"]: group["lr"] for group in groups}
         # Fused Adam on the GPU: one kernel per parameter group instead of a dozen (the step is launch-bound).
         self.optimizer = torch.optim.Adam(groups, eps=1e-15, fused=self.device.type == "cuda")
-        self.strategy = DefaultStrategy(self.cfg.density, self.extent, self.schedule)
+        self.strategy = build_strategy(self.cfg.density, self.extent, self.schedule, self.cfg.seed)
         if state is not None:
             self.model.load_state_dict(state["model"])
             self.optimizer.load_state_dict(state["optimizer"])
@@ -444,9 +444,7 @@ class Trainer:
         """``density.noise_aware``: on every probed step of the densification window, the gradient the capture's
         noise alone gives this render's 2D means (:class:`NoiseProbe`) goes into the density statistics. Before
         the step's backward, which frees the render's graph."""
-        sched = self.schedule
-        if self.noise_probe is None or not (sched.densify_start < step <= sched.densify_stop) \
-                or not self.noise_probe.due(step):
+        if self.noise_probe is None or not self.strategy.probes_noise_at(step) or not self.noise_probe.due(step):
             return
         c = self.cfg.loss
         with record_function("step/noise_probe"):
@@ -541,8 +539,12 @@ class Trainer:
         image = res["out"].image
         enhance = self.decomposed and self.schedule.enhance_at(step)
         total, terms = self.image_loss(image, tv.target if not self.decomposed else tv.S, tv.R, tv.L, enhance)
-        return self.assemble_terms(total, terms, self.sh_loss() if self.decomposed else None,
-                                   self.depth_loss(res, tv))
+        terms = self.assemble_terms(total, terms, self.sh_loss() if self.decomposed else None,
+                                    self.depth_loss(res, tv))
+        extra = self.strategy.extra_loss(self.model.gaussians)
+        if extra is not None:  # the strategy's regulariser (MCMC: L1 on opacity and scale)
+            terms["density"], terms["total"] = extra.detach(), terms["total"] + extra
+        return terms
 
     def _graphed_loss(self, image: Tensor, packed: Tensor, enhance: bool) -> Tuple[Tensor, Dict[str, Tensor]]:
         """The captured loss: :meth:`image_loss`, and with the depth prior on, its term as the last ("depth",
@@ -593,13 +595,20 @@ class Trainer:
                 if sh.requires_grad and self.cfg.loss.w_sh:
                     roots.append(self.cfg.loss.w_sh * sh)
                     grads.append(None)
+            extra = self.strategy.extra_loss(self.model.gaussians)
+            if extra is not None:
+                roots.append(extra)
+                grads.append(None)
             torch.autograd.backward(roots, grads)
             # The EnhancementNet's gradients are the graph's static buffers: read by this step's optimiser
             # step, overwritten only by the next replay (zero_grad sets .grad to None in between).
             for p, g in zip(self.graphs.params if enhance else [], result.param_grads):
                 p.grad = g if p.grad is None else p.grad + g
-        return self.assemble_terms(values[0], image_terms, None if sh is None else sh.detach(), depth,
-                                   depth_in_total=True)
+        terms = self.assemble_terms(values[0], image_terms, None if sh is None else sh.detach(), depth,
+                                    depth_in_total=True)
+        if extra is not None:
+            terms["density"], terms["total"] = extra.detach(), terms["total"] + extra.detach()
+        return terms
 
     def render_view(self, tv: TrainView, step: int, graphed: bool = True) -> Dict[str, Tensor]:
         """The step's render of ``tv`` (no EnhancementNet: it runs inside the loss, where its losses need it);
@@ -663,9 +672,9 @@ class Trainer:
                 self.dist.reduce_gradients(gradient_params(self.optimizer), self.batch_size, step, verify=check)
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
-        self.strategy.after_optimizer_step(self.model.gaussians)
+        self.strategy.after_optimizer_step(self.model.gaussians, self.optimizer, step)
         values: Dict[str, float] = {}
-        if check or self.schedule.densify_at(step) or self.schedule.reset_at(step):
+        if check or self.strategy.edits_at(step):
             with record_function("step/check"):
                 values = self.dist.mean_values(self.check_finite(step), step)
         size = max(max(v.camera.width, v.camera.height) for v in views)
@@ -801,7 +810,7 @@ class Trainer:
                 check = (self.step % self.cfg.log.every == 0 or self.step == end
                          or self.step % self.cfg.checkpoint.every == 0)
                 views = [self.views[i] for i in indices]
-                if self.step > first and (self.schedule.densify_at(self.step) or self.schedule.reset_at(self.step)):
+                if self.step > first and self.strategy.edits_at(self.step):
                     if timed_from is None:
                         self._sync()
                         timed_from = (time.time(), self.step)
