@@ -13,7 +13,8 @@ from retinexgs.model.tone import srgb_to_linear
 from retinexgs.train import losses
 from retinexgs.run.config import configs_dir, load_config
 from retinexgs.train.noise import sigma_limit
-from retinexgs.train.trainer import Trainer, to_bchw
+from retinexgs.train.trainer import Trainer
+from retinexgs.train.losses import to_bchw
 from retinexgs.train.views import pad_edges, unpack_edges, unpack_targets
 from scenes import needs_cuda
 
@@ -64,10 +65,10 @@ def step_gradients(tr: Trainer, view: int, step: int, graphed: bool):
     tv = tr.views[view]
     res = tr.render_view(tv, step, graphed=graphed)
     if graphed:
-        terms = tr._backward_graphed(res, tv, step)
+        terms = tr.objective.backward_graphed(tr.graphs, res, tv, step, tr._log_graph_failures)
         assert terms is not None, tr.graphs.failures
     else:
-        terms = tr.loss(res, tv, step)
+        terms = tr.objective.loss(res, tv, step)
         terms["total"].backward()
     values = {k: float(v.detach()) for k, v in terms.items()}
     grads = {n: (None if p.grad is None else p.grad.detach().clone()) for n, p in tr.model.named_parameters()}
@@ -150,15 +151,15 @@ def test_eager_loss_is_the_papers_sum(scene_dir, tmp_path, one_thread, name):
     assert tr.depth_prior == (name != "ablations/no_depth")
     tv = tr.views[1]
     res = tr.model.render(tv.camera, 1, depth=tr.depth_prior)
-    terms = tr.loss(res, tv, step=10)
+    terms = tr.objective.loss(res, tv, step=10)
     R_hat, L_hat, S = to_bchw(res["R"]), to_bchw(res["L"]), to_bchw(tv.S)
     # the reconstruction term's options: the g = 1 exposure is 1 / lin(L_ref)
     gain = 1.0 / srgb_to_linear(tr.model.illum_ref) if c["rec_domain"] != "photo" else None
     if gain is not None and c["rec_noise_floor"]:  # capped at the photos' noise floor (train/noise.py)
-        gain = min(float(gain), tr.capture_noise.gain_cap(sigma_limit(c["rec_noise_share"])))
+        gain = min(float(gain), tr.noise.capture_noise.gain_cap(sigma_limit(c["rec_noise_share"])))
     sup, _ = losses.supervision_loss(R_hat, L_hat, to_bchw(tv.R), to_bchw(tv.L), S, c["w_r"], c["w_l"], c["w_s"],
                                      c["lambda_ssim"], c["rec_huber"], gain, c["rec_domain"] == "exposed",
-                                     c["rec_ssim_noise"], tr.capture_noise.camera("cpu") if c["rec_camera_noise"] else None)
+                                     c["rec_ssim_noise"], tr.noise.capture_noise.camera("cpu") if c["rec_camera_noise"] else None)
     out = tr.model.enhance(res["R"].detach(), res["L"].detach())
     E = losses.exposure_target(c, tr.model.tone, res["R"] * res["L"], tr.model.shoulder)
     enh, _ = losses.enhancement_loss(to_bchw(out["rgb"]), S, c["w_spa"], c["w_exp"], c["w_col"], E,
@@ -197,8 +198,8 @@ def test_depth_prior_runs_inside_the_loss_graph(scene_dir, tmp_path, name, one_t
     tv = tr.views[0]
     res = tr.render_view(tv, 1)
     C = res["out"].image.shape[-1]
-    assert tr.graph_input(res).shape[-1] == C + (2 if tr.depth_prior else 0)
-    result = tr.graphs.run(tr.graph_input(res), tv.pack(True, tr.cfg["loss"]["depth_edge"] if tr.depth_prior
+    assert tr.objective.graph_input(res).shape[-1] == C + (2 if tr.depth_prior else 0)
+    result = tr.graphs.run(tr.objective.graph_input(res), tv.pack(True, tr.cfg["loss"]["depth_edge"] if tr.depth_prior
                                                         else None), False)
     assert ("depth" in result.names) == tr.depth_prior
     assert result.grad_image.shape[-1] == C + (2 if tr.depth_prior else 0)

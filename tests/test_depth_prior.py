@@ -111,13 +111,13 @@ def test_the_training_step_logs_and_adds_the_prior(scene_dir, tmp_path):  # noqa
     tv = tr.views[0]
     res = tr.render_view(tv, 0)
     assert res["out"].depth is not None
-    terms = tr.loss(res, tv, 0)
+    terms = tr.objective.loss(res, tv, 0)
     assert list(terms).index("depth") == list(terms).index("sh") + 1
     others = sum(tr.cfg["loss"][w] * terms[k] for k, w in (("sup_r", "w_r"), ("sup_l", "w_l"), ("sup_rec", "w_s"),
                                                             ("tv", "w_tv"), ("sh", "w_sh")))
     assert float(terms["total"].detach()) == pytest.approx(float((others + 2.0 * terms["depth"]).detach()), rel=1e-6)
     tr.optimizer.zero_grad(set_to_none=True)
-    tr.depth_loss(tr.render_view(tv, 0), tv).backward()  # the prior alone reaches the Gaussians' positions
+    tr.objective.depth_loss(tr.render_view(tv, 0), tv).backward()  # the prior alone reaches the Gaussians' positions
     assert tr.model.gaussians.means.grad.abs().sum() > 0
 
 
@@ -128,7 +128,7 @@ def test_off_at_zero_and_for_the_baselines(scene_dir, tmp_path, overrides, metho
     tv = tr.views[0]
     res = tr.render_view(tv, 0)
     assert res["out"].depth is None
-    assert "depth" not in tr.loss(res, tv, 0)
+    assert "depth" not in tr.objective.loss(res, tv, 0)
 
 
 def test_a_negative_weight_is_refused():
@@ -140,4 +140,4 @@ def test_a_render_without_depth_is_refused_by_name(scene_dir, tmp_path):  # noqa
     tr = trainer_for(scene_dir, tmp_path / "run", ["loss.w_depth=0.3"])
     res = tr.model.render(tr.views[0].camera, 0)  # depth not asked for
     with pytest.raises(ValueError, match="depth=True"):
-        tr.loss(res, tr.views[0], 0)
+        tr.objective.loss(res, tr.views[0], 0)

@@ -285,7 +285,7 @@ def test_a_non_finite_loss_between_checks_is_named_with_its_step(tiny_scene, tmp
     run.mkdir()
     cfg = load_config(["demo"], TINY + ["log.every=10"])
     tr = Trainer(cfg, load_scene(tiny_scene), run, "cpu", progress=False, log=lambda s: None)
-    real_loss = tr.loss
+    real_loss = tr.objective.loss
 
     def poisoned(res, tv, step):
         terms = real_loss(res, tv, step)
@@ -293,7 +293,7 @@ def test_a_non_finite_loss_between_checks_is_named_with_its_step(tiny_scene, tmp
             terms["sh"] = terms["sh"].detach() * float("nan")  # logged, not in the total: parameters stay finite
         return terms
 
-    tr.loss = poisoned
+    tr.objective.loss = poisoned
     with pytest.raises(TrainingDiverged, match=r"^loss term sh became non-finite at step 5; the last good"):
         tr.train()
     assert [p.name for p in list_checkpoints(run)] == ["step_000003.pt"]

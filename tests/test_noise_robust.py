@@ -80,9 +80,9 @@ def test_the_trainer_places_the_cap_at_the_configured_share(tmp_path):
                             height=72, n_points=300)
     half = _trainer(scene, tmp_path / "half")
     most = _trainer(scene, tmp_path / "most", ["loss.rec_noise_share=0.9"])
-    noise = half.capture_noise
-    assert float(most.rec_gain_cap) == pytest.approx(noise.gain_cap(N.sigma_limit(0.9)))
-    assert float(most.rec_gain_cap) > float(half.rec_gain_cap)  # more noise let through: a higher gain
+    noise = half.noise.capture_noise
+    assert float(most.noise.rec_gain_cap) == pytest.approx(noise.gain_cap(N.sigma_limit(0.9)))
+    assert float(most.noise.rec_gain_cap) > float(half.noise.rec_gain_cap)  # more noise let through: a higher gain
 
 
 def _photo(model, seed=0, size=(160, 200)):
@@ -137,9 +137,9 @@ def test_trainer_caps_the_exposed_ssim_of_a_noisy_capture_and_resumes_with_the_s
                                                                                          monkeypatch):
     lines = []
     tr = _trainer(scenes[0], tmp_path / "run", log=lines.append)
-    noise = tr.capture_noise
+    noise = tr.noise.capture_noise
     assert noise is not None and math.isfinite(noise.gain_cap())
-    assert float(tr.rec_gain_cap) == pytest.approx(noise.gain_cap())
+    assert float(tr.noise.rec_gain_cap) == pytest.approx(noise.gain_cap())
     assert any(line.startswith("capture noise") for line in lines)
     tr.train(stop_after=2)
     assert load_checkpoint(latest_checkpoint(tmp_path / "run"))["capture_noise"] == noise.state_dict()
@@ -147,9 +147,9 @@ def test_trainer_caps_the_exposed_ssim_of_a_noisy_capture_and_resumes_with_the_s
     def no_measure(*a, **k):
         raise AssertionError("a resume measures the noise again")
 
-    monkeypatch.setattr("retinexgs.train.trainer.measure_capture_noise", no_measure)
+    monkeypatch.setattr("retinexgs.train.capture_setup.measure_capture_noise", no_measure)
     resumed = _trainer(scenes[0], tmp_path / "run", resume=True)
-    assert resumed.capture_noise == noise and float(resumed.rec_gain_cap) == float(tr.rec_gain_cap)
+    assert resumed.noise.capture_noise == noise and float(resumed.noise.rec_gain_cap) == float(tr.noise.rec_gain_cap)
     resumed.train()
 
 
@@ -160,10 +160,10 @@ def test_a_clean_capture_trains_exactly_as_the_noise_blind_default(scenes, tmp_p
         torch.manual_seed(0)
         tr = _trainer(scenes[1], tmp_path / name, extra)
         if name == "default":
-            assert tr.capture_noise is not None and math.isinf(tr.capture_noise.gain_cap())
-            assert tr.rec_gain_cap is None
+            assert tr.noise.capture_noise is not None and math.isinf(tr.noise.capture_noise.gain_cap())
+            assert tr.noise.rec_gain_cap is None
         else:
-            assert tr.capture_noise is None
+            assert tr.noise.capture_noise is None
         tr.train()
         runs[name] = {k: v.detach().clone() for k, v in tr.model.state_dict().items()}
     for k, v in runs["default"].items():
@@ -237,16 +237,16 @@ def test_the_probe_gradient_is_the_backward_of_the_ssim_against_a_noisy_render(s
     from retinexgs.evaluate.metrics import ssim
     from retinexgs.train.losses import exposed
     tr = _trainer(scenes[0], tmp_path / "run", ["density.noise_aware=true"])
-    assert tr.noise_probe is not None
-    tv, gain = tr.views[0], tr.rec_gain()
+    assert tr.noise.noise_probe is not None
+    tv, gain = tr.views[0], tr.objective.rec_gain()
     res = tr.render_view(tv, 1, graphed=False)
-    tr.noise_probe.generator.manual_seed(5)
-    g = tr.noise_probe.means2d_gradient(res["out"], gain, 0.2, 1.0)
+    tr.noise.noise_probe.generator.manual_seed(5)
+    g = tr.noise.noise_probe.means2d_gradient(res["out"], gain, 0.2, 1.0)
     res["out"].image.sum().backward()  # the render's graph survives the probe for the step's own backward
     out = tr.render_view(tv, 1, graphed=False)["out"]
-    tr.noise_probe.generator.manual_seed(5)
+    tr.noise.noise_probe.generator.manual_seed(5)
     rec = (out.image[..., :3] * out.image[..., 3:6]).permute(2, 0, 1).unsqueeze(0)
-    target = tr.noise_probe.noisy(rec.detach())
+    target = tr.noise.noise_probe.noisy(rec.detach())
     (0.2 * (1.0 - ssim(exposed(rec, gain), exposed(target, gain)))).backward()
     assert g.abs().sum() > 0
     torch.testing.assert_close(g, out.means2d.grad, rtol=1e-4, atol=1e-9)
@@ -326,11 +326,11 @@ def test_the_trainer_measures_the_noise_at_the_configured_scale(scenes, tmp_path
         seen.update(kwargs)
         return real(*args, **kwargs)
 
-    monkeypatch.setattr("retinexgs.train.trainer.measure_capture_noise", spy)
+    monkeypatch.setattr("retinexgs.train.capture_setup.measure_capture_noise", spy)
     tr = _trainer(scenes[0], tmp_path / "run", [f"loss.rec_noise_scale={scale}"])
     assert seen["scale"] == scale
     photos = [v.source_path or v.image_path for v in tr.scene.train]
-    assert tr.capture_noise == real(photos, 1.0, scale=scale)
+    assert tr.noise.capture_noise == real(photos, 1.0, scale=scale)
 
 
 def test_a_bad_noise_scale_is_refused_by_name():
@@ -345,11 +345,11 @@ def test_a_resume_draws_the_probe_noise_where_the_run_stopped(scenes, tmp_path):
     tr = _trainer(scenes[0], tmp_path / "run", extra)
     tr.train(stop_after=4)
     saved = load_checkpoint(latest_checkpoint(tmp_path / "run"))["noise_probe_rng"]
-    assert torch.equal(saved, tr.noise_probe.generator.get_state())
-    fresh = _trainer(scenes[0], tmp_path / "other", extra).noise_probe.generator.get_state()
+    assert torch.equal(saved, tr.noise.noise_probe.generator.get_state())
+    fresh = _trainer(scenes[0], tmp_path / "other", extra).noise.noise_probe.generator.get_state()
     assert not torch.equal(saved, fresh)  # the probe drew noise in those steps
     resumed = _trainer(scenes[0], tmp_path / "run", extra, resume=True)
-    assert torch.equal(resumed.noise_probe.generator.get_state(), saved)
+    assert torch.equal(resumed.noise.noise_probe.generator.get_state(), saved)
 
 
 # ---- model.enhancement.debias_black: the tone takes the clipped noise's mean out of R̂∘L̂ -------------------------
@@ -399,7 +399,7 @@ def test_tone_map_with_the_table_puts_the_noise_floor_at_black():
 def test_debias_black_trains_with_the_measured_noise_and_resumes(scenes, tmp_path):
     from retinexgs.model.tone import black_table
     tr = _trainer(scenes[0], tmp_path / "run", ["model.enhancement.debias_black=true"])
-    noise = tr.capture_noise
+    noise = tr.noise.capture_noise
     assert noise is not None and tr.model.tone_noise() is tr.model.black_table
     torch.testing.assert_close(tr.model.black_table, black_table(noise.a, noise.b))
     assert not torch.allclose(tr.model.black_table, black_table())  # a noisy capture: not the identity
@@ -417,7 +417,7 @@ def test_black_filter_reads_the_noise_over_the_training_views_and_is_checkpointe
     training images' scale) over the number of training views, set at set-up and carried by the checkpoint."""
     extra = ["model.enhancement.debias_black=true", "model.enhancement.black_filter=2"]
     tr = _trainer(scenes[0], tmp_path / "run", extra)
-    noise, views = tr.capture_noise, len(tr.scene.train)
+    noise, views = tr.noise.capture_noise, len(tr.scene.train)
     expected = torch.tensor([noise.a, noise.b], dtype=torch.float32) / views
     assert views == 3 and float(expected.min()) > 0
     torch.testing.assert_close(tr.model.black_spread, expected)

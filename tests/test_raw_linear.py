@@ -432,7 +432,7 @@ def test_l_spa_of_a_raw_view_compares_with_the_photo_it_shows(night, tmp_path, s
         S = scene.train[0].load_target()
         assert (S.min() < 0) == (kind == "raw")  # the raw target keeps its noise below black
         image = torch.rand(*S.shape[:2], 6) * 0.2
-        _, terms = tr.image_loss(image, S, None, None, enhance=True)
+        _, terms = tr.objective.image_loss(image, S, None, None, enhance=True)
         S_b = S.permute(2, 0, 1).unsqueeze(0)
         read = S_b.clamp(0, 1) if kind == "raw" and spa_raw == "photo" else S_b
         _, want = enhancement_objective(tr.model, cfg.loss, image[..., :3], image[..., 3:6], read)
@@ -454,7 +454,7 @@ def test_a_balanced_raw_scene_scales_its_noise_model_with_the_gains(night, tmp_p
         cfg = load_config(["demo", *extra], overrides=TINY_RUN)
         scene = open_scene(night / "raw", cfg)
         tr = Trainer(cfg, scene, tmp_path / name, "cpu", progress=False, log=lambda m: None)
-        models[name] = (tr.linear_target, scene.train[0].balance)
+        models[name] = (tr.noise.linear_target, scene.train[0].balance)
     (shot, none), (bal, g) = models["shot"], models["balanced"]
     assert none is None and g is not None and abs(g[0] - 1.0) + abs(g[2] - 1.0) > 1e-3
     gt = torch.tensor(g).reshape(1, 3, 1, 1)

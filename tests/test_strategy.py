@@ -109,12 +109,12 @@ def test_mcmc_stops_growing_at_the_cap_and_noise_moves_only_the_transparent():
 def test_mcmc_adds_its_regulariser_to_the_loss(scene_dir, tmp_path):
     tr = trainer_for(scene_dir, tmp_path / "run", ["density.kind=mcmc"])
     res = tr.render_view(tr.views[0], 1, graphed=False)
-    terms = tr.loss(res, tr.views[0], 1)
+    terms = tr.objective.loss(res, tr.views[0], 1)
     g = tr.model.gaussians
     expected = 0.01 * g.opacities.mean() + 0.01 * g.scales.mean()
     assert float(terms["density"]) == pytest.approx(float(expected.detach()), rel=1e-6)
     default = trainer_for(scene_dir, tmp_path / "run2")
-    assert "density" not in default.loss(default.render_view(default.views[0], 1, graphed=False),
+    assert "density" not in default.objective.loss(default.render_view(default.views[0], 1, graphed=False),
                                          default.views[0], 1)
 
 

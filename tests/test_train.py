@@ -55,7 +55,7 @@ def test_one_step_changes_every_parameter_group(scene_dir, tmp_path):
 def test_enhancement_loss_trains_only_the_enhancement_net_by_default(scene_dir, tmp_path):
     tr = trainer_for(scene_dir, tmp_path / "run", ["loss.enhance_from=1"])
     res = tr.model.render(tr.views[0].camera, 0, depth=tr.depth_prior)
-    terms = tr.loss(res, tr.views[0], step=5)
+    terms = tr.objective.loss(res, tr.views[0], step=5)
     enh = tr.cfg["loss"]["w_exp"] * terms["exp"]
     enh.backward()
     assert tr.model.gaussians.means.grad is None or float(tr.model.gaussians.means.grad.abs().sum()) == 0
@@ -65,8 +65,8 @@ def test_enhancement_loss_trains_only_the_enhancement_net_by_default(scene_dir, 
 def test_enhancement_losses_switch_on_at_enhance_from(scene_dir, tmp_path):
     tr = trainer_for(scene_dir, tmp_path / "run")
     res = tr.model.render(tr.views[0].camera, 0, depth=tr.depth_prior)
-    before = tr.loss(res, tr.views[0], step=3)
-    after = tr.loss(res, tr.views[0], step=4)
+    before = tr.objective.loss(res, tr.views[0], step=3)
+    after = tr.objective.loss(res, tr.views[0], step=4)
     assert not {"spa", "exp", "col"} & set(before)
     assert {"spa", "exp", "col"} <= set(after)
     extra = tr.cfg["loss"]["w_spa"] * after["spa"] + tr.cfg["loss"]["w_exp"] * after["exp"] \
@@ -93,7 +93,7 @@ def test_the_loss_log_carries_the_exposure_meters_target(scene_dir, tmp_path):
     _, plain = enhancement_objective(tr.model, c.model_copy(update={"exp_highlight_share": 0.0}), R, L, S_b)
     assert float(plain["exp_E"]) == c["exposure_E"]
     res = tr.model.render(tr.views[0].camera, 0, depth=tr.depth_prior)
-    assert "exp_E" in tr.loss(res, tr.views[0], step=4) and "exp_E" not in tr.loss(res, tr.views[0], step=3)
+    assert "exp_E" in tr.objective.loss(res, tr.views[0], step=4) and "exp_E" not in tr.objective.loss(res, tr.views[0], step=3)
 
 
 def test_checkpoint_resume_gives_the_same_parameters(scene_dir, tmp_path):
@@ -170,7 +170,7 @@ def test_nan_loss_stops_with_the_term_and_step(scene_dir, tmp_path, monkeypatch)
     tr = trainer_for(scene_dir, run)
     tr.train(stop_after=3)  # checkpoint at step 3
     good = sorted((run / "checkpoints").glob("*.pt"))
-    real_loss = tr.loss
+    real_loss = tr.objective.loss
 
     def poisoned(res, tv, step):
         terms = real_loss(res, tv, step)
@@ -178,7 +178,7 @@ def test_nan_loss_stops_with_the_term_and_step(scene_dir, tmp_path, monkeypatch)
         terms["total"] = terms["total"] + terms["tv"]
         return terms
 
-    monkeypatch.setattr(tr, "loss", poisoned)
+    monkeypatch.setattr(tr.objective, "loss", poisoned)
     with pytest.raises(TrainingDiverged, match=r"tv .* step 4"):
         tr.train()
     assert sorted((run / "checkpoints").glob("*.pt")) == good
@@ -255,7 +255,7 @@ def test_exposure_on_the_illumination_sets_the_gamma_the_image_level_does_not(sc
     tr = trainer_for(scene_dir, tmp_path / "run", ["loss.enhance_from=1"])
     res = tr.model.render(tr.views[0].camera, 0, depth=tr.depth_prior)
     out = tr.model.enhance(res["R"].detach(), res["L"].detach())
-    terms = tr.loss(res, tr.views[0], step=5)
+    terms = tr.objective.loss(res, tr.views[0], step=5)
     c = tr.cfg["loss"]
     assert c["exp_on"] == "image" and c["exp_patch"] == 0 and c["exposure_E"] == 0.5
     want = float(out["rgb"].detach().mean() - c["exposure_E"]) ** 2
@@ -264,12 +264,12 @@ def test_exposure_on_the_illumination_sets_the_gamma_the_image_level_does_not(sc
     res1 = light.model.render(light.views[0].camera, 0, depth=light.depth_prior)
     out1 = light.model.enhance(res1["R"].detach(), res1["L"].detach())
     want = float(out1["L_enh"].detach().mean() - c["exposure_E"]) ** 2
-    assert float(light.loss(res1, light.views[0], step=5)["exp"].detach()) == pytest.approx(want, rel=1e-4)
+    assert float(light.objective.loss(res1, light.views[0], step=5)["exp"].detach()) == pytest.approx(want, rel=1e-4)
     img = trainer_for(scene_dir, tmp_path / "run2", ["loss.enhance_from=1", "loss.exp_on=image",
                                                   "loss.exp_patch=8"])
     res2 = img.model.render(img.views[0].camera, 0, depth=img.depth_prior)
     out2 = img.model.enhance(res2["R"].detach(), res2["L"].detach())
-    t2 = img.loss(res2, img.views[0], step=5)
+    t2 = img.objective.loss(res2, img.views[0], step=5)
     bchw = out2["rgb"].permute(2, 0, 1)[None]
     assert float(t2["exp"].detach()) == pytest.approx(float(losses.exposure_loss(bchw.detach(), c["exposure_E"], 8)), rel=1e-4)
 

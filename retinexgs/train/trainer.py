@@ -7,7 +7,6 @@ import json
 import math
 import random
 import time
-from dataclasses import asdict
 from pathlib import Path
 from typing import Callable, Dict, Iterator, List, Optional, Sequence, Tuple
 
@@ -16,32 +15,28 @@ from torch import Tensor
 from torch.profiler import record_function
 
 from retinexgs.data import Scene, View
-from retinexgs.data.raw_noise import RawNoise, scene_noise
 from retinexgs.errors import UserError
 from retinexgs.fileio import is_out_of_space, out_of_space_error
 from retinexgs.model.gaussians import GaussianModel
 from retinexgs.model.near_plane import MIN_POINTS, content_depth
 from retinexgs.model.retinex_model import RetinexGSModel
-from retinexgs.model.tone import black_table, exposure_gain
-from retinexgs.train import losses
-from retinexgs.train.losses import to_bchw
 from retinexgs.run.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
+from retinexgs.train.capture_setup import set_up_noise
+from retinexgs.train.objective import build_objective, enhancement_objective  # noqa: F401 (re-exported)
 from retinexgs.train.divergence import DivergenceWatch, TrainingDiverged  # noqa: F401 (re-exported)
 from retinexgs.train.distributed import (Distributed, adam_betas_for_batch, gradient_params, lr_batch_factor,
                                          process_start_time, take_gradients)
 from retinexgs.train.graphs import ChannelGraphs, LossGraphs
-from retinexgs.train.noise import CaptureNoise, NoiseProbe, measure_capture_noise, sigma_limit
 from retinexgs.train.stop import DeferredStop
 from retinexgs.train.streamed_views import StreamedViews
 from retinexgs.train.view_store import (ViewStore, check_store_space, store_fingerprint, store_path, store_tag,
                                         store_size_estimate)
 from retinexgs.train.views import (TrainView, ViewStatistics, check_prior_size, choose_streaming, gib,
-                                   make_train_view, preload_bytes_per_pixel, stream_set_up, unpack_edges,
-                                   unpack_targets)
+                                   make_train_view, preload_bytes_per_pixel, stream_set_up)
 from retinexgs.model.schedule import build_schedule
 from retinexgs.strategy import build_strategy
 from retinexgs.run.render import view_camera
-from retinexgs.run.schema import Config, Loss
+from retinexgs.run.schema import Config
 from retinexgs.retinex.cache import entry_dir, iter_decompositions, scene_cache_root
 
 
@@ -49,29 +44,6 @@ def scene_extent(scene: Scene) -> float:
     """1.1 x the largest distance of a train camera from the centroid of the train cameras (3DGS)."""
     centers = torch.stack([v.camera_center for v in scene.train]).float()
     return float(1.1 * (centers - centers.mean(0)).norm(dim=-1).max().clamp_min(1e-3))
-
-
-def enhancement_objective(model: RetinexGSModel, c: Loss, R_img: Tensor, L_img: Tensor, S_b: Tensor
-                          ) -> Tuple[Tensor, Dict[str, Tensor]]:
-    """L_enhance (weighted sum, unweighted terms) of the enhanced render of [H,W,3] maps R̂, L̂ against the
-    low-light view ``S_b`` [1,3,H,W], with the loss section ``c`` of a config (L_exp's target from
-    :func:`retinexgs.train.losses.exposure_target`). Unless
-    ``c.enhance_trains_scene``, R̂ and L̂ are detached: only the EnhancementNet learns from it. The terms
-    include ``exp_E``, L_exp's target (for the log; not part of the sum)."""
-    if not c.enhance_trains_scene:
-        # The paper trains the EnhancementNet alone with L_enhance: without this the exposure term would
-        # flatten R̂ and L̂ towards E instead of adjusting the gamma.
-        R_img, L_img = R_img.detach(), L_img.detach()
-    out = model.enhance(R_img, L_img)
-    light = to_bchw(out["L_enh"]) if c.exp_on == "illumination" else None
-    E = losses.exposure_target(c, model.tone, R_img * L_img, model.shoulder, model.tone_noise())
-    total, terms = losses.enhancement_loss(
-        to_bchw(out["rgb"]), S_b, c.w_spa, c.w_exp, c.w_col, E,
-        illumination=light, exp_patch=c.exp_patch, exp_form=c.exp_form, spa_form=c.spa_form,
-        scale_invariant=c.enhance_scale_invariant)
-    # Logged, not a loss: L_exp's target, below exposure_E where the highlight meter caps it (issue 32).
-    terms["exp_E"] = E.detach().float() if torch.is_tensor(E) else torch.full((), float(E), device=R_img.device)
-    return total, terms
 
 
 def _append_record(f, record: Dict) -> None:
@@ -97,7 +69,8 @@ def decompose_views(views: List[View], cfg: Config, device: str, progress: bool,
                                cache_dir=scene_cache_root(scene_root, cfg.data.cache_dir),
                                device=dcfg.device or device, progress=progress,
                                cache_hint="--set data.cache_dir=DIR", sweep=True, scene=str(scene_root),
-                               raw_denoise=dcfg.raw_denoise, balance=views[0].balance if views else None)
+                               raw_denoise=dcfg.raw_denoise, balance=views[0].balance if views else None,
+                               names=[v.source_path or v.image_path for v in views])  # errors name the user's photo
 
 
 class Trainer:
@@ -246,8 +219,7 @@ class Trainer:
             self.model.background.copy_(self.mean_background())
         if self.model.has_near and state is None:
             self.model.near.fill_(self.near_plane())
-        self._set_up_noise(state)
-        self._set_up_raw(state)
+        self.noise = set_up_noise(self.cfg, self.scene, self.model, state, self.device, self._setup_dist, self.log)
         lr = self.cfg.lr
         g = self.model.gaussians
         groups = [
@@ -267,6 +239,7 @@ class Trainer:
         # Fused Adam on the GPU: one kernel per parameter group instead of a dozen (the step is launch-bound).
         self.optimizer = torch.optim.Adam(groups, eps=1e-15, fused=self.device.type == "cuda")
         self.strategy = build_strategy(self.cfg.density, self.extent, self.schedule, self.cfg.seed)
+        self.objective = build_objective(self.cfg, self.model, self.schedule, self.strategy, self.noise)
         if state is not None:
             self.model.load_state_dict(state["model"])
             self.optimizer.load_state_dict(state["optimizer"])
@@ -285,107 +258,9 @@ class Trainer:
         self.channel_graphs: Optional[ChannelGraphs] = None
         self._graph_failures_logged: set = set()
         if self.cfg.train.cuda_graphs and (self.device.type == "cuda" or emulate_graphs):
-            params = self.model.enhancement.used_parameters() if self.decomposed else []
-            self.graphs = LossGraphs(self._graphed_loss, params, emulate=emulate_graphs)
+            self.graphs = LossGraphs(self.objective.graphed_loss, self.objective.graphed_params(),
+                                     emulate=emulate_graphs)
             self.channel_graphs = ChannelGraphs(self.model, emulate=emulate_graphs)
-
-    def _set_up_noise(self, state: Optional[Dict]) -> None:
-        """The capture's noise (:mod:`retinexgs.train.noise`) where ``loss.rec_noise_floor``,
-        ``loss.rec_camera_noise``, ``density.noise_aware`` or ``model.enhancement.debias_black`` uses it: measured
-        at set-up (or read from the checkpoint, so a resume trains on the same figures), then the reconstruction's
-        gain cap, the camera's (a, b) as device tensors made once (the captured CUDA graphs read them) and the
-        black table."""
-        c = self.cfg.loss
-        self.capture_noise: Optional[CaptureNoise] = None
-        self.rec_gain_cap: Optional[Tensor] = None
-        self.camera_noise: Optional[Tuple[Tensor, Tensor]] = None
-        self.noise_probe: Optional[NoiseProbe] = None
-        noise_aware = bool(self.cfg.density.noise_aware)
-        debias = self.decomposed and self.model.tone_noise() is not None
-        if not self.decomposed or not (c.rec_noise_floor or c.rec_camera_noise or noise_aware or debias):
-            return
-        saved = (state or {}).get("capture_noise")
-        if saved:
-            noise = CaptureNoise.from_state(saved)
-        else:
-            # The user's files where they still exist (undistorted copies hide part of the noise), else the copies.
-            noise = measure_capture_noise([v.source_path if v.source_path is not None and Path(v.source_path).is_file()
-                                           else v.image_path for v in self.scene.train],
-                                          self.cfg.data.downscale, self.device, scale=c.rec_noise_scale,
-                                          through_codec=debias or c.rec_camera_noise)  # the users of (a, b)
-        dist = self._setup_dist
-        if dist is not None and dist.enabled:  # rank 0's figures everywhere (each rank measured the same views)
-            noise = dist.broadcast_object(noise, "the capture's noise")
-        if noise is None:
-            return
-        self.capture_noise = noise
-        limit = sigma_limit(c.rec_noise_share)
-        gain = None
-        if c.rec_domain != "photo":  # L_ref: the checkpoint's on a resume (the model's is filled later)
-            ref = (state or {}).get("model", {}).get("illum_ref", self.model.illum_ref)
-            gain = float(exposure_gain(ref, ref.new_ones(())))
-        self.log(noise.describe(limit, gain))
-        cap = noise.gain_cap(limit)
-        if c.rec_noise_floor and c.rec_domain != "photo" and math.isfinite(cap):
-            self.rec_gain_cap = torch.tensor(cap, dtype=torch.float32, device=self.device)
-        if c.rec_camera_noise:
-            self.camera_noise = noise.camera(self.device)
-        if debias:  # model.enhancement.debias_black: the tone reads R̂∘L̂'s light through the noise's black table
-            with torch.no_grad():
-                self.model.black_table.copy_(black_table(*noise.at_capture()))
-                if hasattr(self.model, "black_spread"):  # the render averages the training views' noise
-                    spread = torch.tensor([noise.a, noise.b], dtype=torch.float32) / len(self.scene.train)
-                    self.model.black_spread.copy_(spread)
-        if noise_aware:  # its own random stream, one per rank (each rank probes its own views)
-            rank = dist.rank if dist is not None and dist.enabled else 0
-            self.noise_probe = NoiseProbe(noise, self.device, 1_000_003 * (self.cfg.seed + 1) + rank)
-            probe_rng = (state or {}).get("noise_probe_rng")
-            if probe_rng is not None and not (dist is not None and dist.enabled):  # a resume draws on where it was
-                self.noise_probe.generator.set_state(probe_rng)
-
-    def _set_up_raw(self, state: Optional[Dict]) -> None:
-        """A camera raw scene (issue 52 stage 3b): unless ``loss.rec_raw`` is ``photo``, the reconstruction compares
-        R̂∘L̂ with the views' unclipped values in linear light, weighted by the views' noise (``self.linear_target``,
-        :class:`retinexgs.train.losses.LinearTarget`; the noise from the DNG NoiseProfile or the mosaic,
-        :mod:`retinexgs.data.raw_noise`, read from the checkpoint on a resume). The camera's clipped-noise response
-        (``loss.rec_camera_noise``) describes a JPEG's clip at black, which raw values do not have: not used."""
-        self.raw_noise: Optional[RawNoise] = None
-        self.linear_target: Optional[losses.LinearTarget] = None
-        self.raw_scene = self.scene.raw
-        mode = self.cfg.loss.rec_raw
-        if not (self.decomposed and self.raw_scene) or mode == "photo":
-            return
-        saved = (state or {}).get("raw_noise")
-        if saved:
-            noise: Optional[RawNoise] = RawNoise(**saved)
-        else:
-            noise = scene_noise([v.source_path if v.source_path is not None else v.image_path
-                                 for v in self.scene.train])
-            if noise is not None:
-                for note in noise.notes:
-                    self.log(f"warning: {note}")
-        dist = self._setup_dist
-        if dist is not None and dist.enabled:
-            noise = dist.broadcast_object(noise, "the raw views' noise")
-        if noise is None:  # no flat area anywhere: equal weights (plain least squares in linear light)
-            self.log("warning: the raw views' noise could not be measured: the linear reconstruction weighs pixels "
-                     "equally")
-            noise = RawNoise((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), "none")
-        self.raw_noise = noise
-        d2 = float(self.cfg.data.downscale) ** 2  # a downscaled view averages d × d pixels
-        a = torch.tensor(noise.a, dtype=torch.float32, device=self.device).reshape(1, 3, 1, 1) / d2
-        b = torch.tensor(noise.b, dtype=torch.float32, device=self.device).reshape(1, 3, 1, 1) / d2
-        balance = self.scene.train[0].balance if self.scene.train else None
-        if balance is not None:  # data.white_balance scaled each channel's light by g: its variance by g·a·y + g²·b
-            g = torch.tensor(balance, dtype=torch.float32, device=self.device).reshape(1, 3, 1, 1)
-            a, b = a * g, b * g * g
-        self.linear_target = losses.LinearTarget(mode, a, b, model_error=float(self.cfg.loss.rec_raw_model_error),
-                                                 unit=self.cfg.loss.rec_raw_unit,
-                                                 prior_snr=float(self.cfg.loss.rec_raw_prior_snr))
-        self.log(f"raw scene: reconstruction in linear light ({mode}); {noise.describe()}")
-        if self.camera_noise is not None:
-            self.log("loss.rec_camera_noise is not used on a raw scene (its values are not clipped at black)")
-            self.camera_noise = None
 
     def illumination_reference(self) -> float:
         """L_ref, the scene's "full light" level that the enhancement normalises L̂ by: the median over the
@@ -431,184 +306,24 @@ class Trainer:
     def active_degree(self, step: int) -> int:
         return self.schedule.sh_degree_at(step)
 
-    def rec_gain(self) -> Optional[Tensor]:
-        """The reconstruction's exposure gain (a scalar tensor; None for ``rec_domain: photo``): the tone's gain at
-        g = 1, 1 / lin(L_ref), a constant of the scene, capped where the photos' noise asks (train/noise.py)."""
-        if self.cfg.loss.rec_domain == "photo":
-            return None
-        ref = self.model.illum_ref
-        gain = exposure_gain(ref, ref.new_ones(()))
-        return gain if self.rec_gain_cap is None else torch.minimum(gain, self.rec_gain_cap)
-
     def probe_noise(self, res: Dict[str, Tensor], view, step: int) -> None:
         """``density.noise_aware``: on every probed step of the densification window, the gradient the capture's
         noise alone gives this render's 2D means (:class:`NoiseProbe`) goes into the density statistics. Before
         the step's backward, which frees the render's graph."""
-        if self.noise_probe is None or not self.strategy.probes_noise_at(step) or not self.noise_probe.due(step):
+        probe = self.noise.noise_probe
+        if probe is None or not self.strategy.probes_noise_at(step) or not probe.due(step):
             return
         c = self.cfg.loss
         with record_function("step/noise_probe"):
-            grad = self.noise_probe.means2d_gradient(res["out"], self.rec_gain(), c.lambda_ssim, c.w_s)
+            grad = probe.means2d_gradient(res["out"], self.objective.rec_gain(), c.lambda_ssim, c.w_s)
             if grad is not None:
                 self.strategy.add_noise_probe(grad, res["out"].visible, view.camera.width, view.camera.height)
 
-    def image_loss(self, image: Tensor, S: Tensor, R: Optional[Tensor], L: Optional[Tensor],
-                   enhance: bool) -> Tuple[Tensor, Dict[str, Tensor]]:
-        """Every loss term that depends only on the rendered ``image`` [H,W,C] (all but L_SH) and their
-        weighted sum. ``S`` is the low-light view (the baselines' target), ``R``/``L`` its 2D priors or None;
-        ``enhance``: the enhancement losses are on. The same function runs eagerly and inside the captured
-        CUDA graphs (:mod:`retinexgs.train.graphs`): it never syncs with the host."""
-        c = self.cfg.loss
-        if not self.decomposed:
-            rgb = losses.l1_ssim(to_bchw(image), to_bchw(S), c.lambda_ssim)
-            return rgb, {"rgb": rgb}
-        R_img, L_img = image[..., :3], image[..., 3:6]
-        R_hat, L_hat, S_b = to_bchw(R_img), to_bchw(L_img), to_bchw(S)
-        if self.linear_target is None and self.raw_scene:  # loss.rec_raw photo: the raw view as a clipped photo
-            S_b = S_b.clamp(0.0, 1.0)
-        terms: Dict[str, Tensor] = {}
-        gain = self.rec_gain()
-        l1_exposed = c.rec_domain == "exposed"
-        linear = self.linear_target
-        if linear is not None:  # at the scene's own exposure, not the noise floor's cap (LinearTarget)
-            ref = self.model.illum_ref
-            linear = linear._replace(gain=exposure_gain(ref, ref.new_ones(())))
-        if R is not None:
-            sup, sup_terms = losses.supervision_loss(R_hat, L_hat, to_bchw(R), to_bchw(L), S_b, c.w_r,
-                                                     c.w_l, c.w_s, c.lambda_ssim, c.rec_huber, gain,
-                                                     l1_exposed, c.rec_ssim_noise, self.camera_noise, linear)
-            terms.update(sup_terms)
-        else:  # no 2D priors: only the reconstruction is supervised
-            terms["sup_rec"] = losses.reconstruction_loss(R_hat * L_hat, S_b, c.lambda_ssim, c.rec_huber,
-                                                          gain, l1_exposed, c.rec_ssim_noise, self.camera_noise,
-                                                          linear)
-            sup = c.w_s * terms["sup_rec"]
-        terms["tv"] = losses.tv_loss(R_hat)
-        total = sup + c.w_tv * terms["tv"]
-        if enhance:
-            # loss.spa_raw photo: L_spa's input is a raw view as the photo it shows (its mean undragged by the noise)
-            S_spa = S_b.clamp(0.0, 1.0) if self.raw_scene and c.spa_raw == "photo" else S_b
-            enh, enh_terms = enhancement_objective(self.model, c, R_img, L_img, S_spa)
-            terms.update(enh_terms)
-            total = total + enh
-        return total, terms
-
-    def sh_loss(self) -> Tensor:
-        """L_SH on the Gaussians' higher-order SH (unweighted; its shape follows the Gaussian count, so it is
-        not part of the graphed image losses)."""
-        return losses.sh_sparsity_loss(self.model.gaussians.sh_rest, self.cfg.loss.sh_reduction)
-
-    def depth_loss(self, res: Dict[str, Tensor], tv: TrainView) -> Optional[Tensor]:
-        """The depth prior (unweighted) of a render made with ``depth=True``; None while ``loss.w_depth`` is 0.
-        The eager path's; the graphed one computes the same inside the graph (:meth:`_graphed_loss`)."""
-        if not self.depth_prior:
-            return None
-        depth, alpha = self._depth_maps(res)
-        wx, wy = tv.edge_weights(self.cfg.loss.depth_edge)
-        return losses.depth_smoothness_loss(to_bchw(depth), to_bchw(alpha), wx, wy)
-
-    @staticmethod
-    def _depth_maps(res: Dict[str, Tensor]) -> Tuple[Tensor, Tensor]:
-        """(depth, alpha) [H,W,1] of a render made with ``depth=True``, the depth prior's inputs."""
-        out = res["out"]
-        if out.depth is None:
-            raise ValueError("loss.w_depth > 0 needs the render's depth: render with depth=True (render_view does)")
-        return out.depth, out.alpha
-
-    def assemble_terms(self, image_total: Tensor, image_terms: Dict[str, Tensor], sh: Optional[Tensor],
-                       depth: Optional[Tensor] = None, depth_in_total: bool = False) -> Dict[str, Tensor]:
-        """Every logged term in the log's order (L_SH after L_TV, then the depth prior) with ``total`` = image
-        losses + w_sh·L_SH (+ w_depth·depth prior, unless ``depth_in_total``: the graphed sum holds it)."""
-        if not self.decomposed:
-            return {"total": image_total, **image_terms}
-        terms: Dict[str, Tensor] = {}
-        for name, value in image_terms.items():
-            terms[name] = value
-            if name == "tv":
-                terms["sh"] = sh
-                if depth is not None:
-                    terms["depth"] = depth
-        total = torch.add(image_total, sh, alpha=self.cfg.loss.w_sh)
-        if depth is not None and not depth_in_total:
-            total = torch.add(total, depth, alpha=self.cfg.loss.w_depth)
-        terms["total"] = total
-        return terms
-
-    def loss(self, res: Dict[str, Tensor], tv: TrainView, step: int) -> Dict[str, Tensor]:
-        """Every loss term of this step (weighted terms sum to ``total``), eagerly, from a render's ``res``."""
-        image = res["out"].image
-        enhance = self.decomposed and self.schedule.enhance_at(step)
-        total, terms = self.image_loss(image, tv.target if not self.decomposed else tv.S, tv.R, tv.L, enhance)
-        terms = self.assemble_terms(total, terms, self.sh_loss() if self.decomposed else None,
-                                    self.depth_loss(res, tv))
-        extra = self.strategy.extra_loss(self.model.gaussians)
-        if extra is not None:  # the strategy's regulariser (MCMC: L1 on opacity and scale)
-            terms["density"], terms["total"] = extra.detach(), terms["total"] + extra
-        return terms
-
-    def _graphed_loss(self, image: Tensor, packed: Tensor, enhance: bool) -> Tuple[Tensor, Dict[str, Tensor]]:
-        """The captured loss: :meth:`image_loss`, and with the depth prior on, its term as the last ("depth",
-        weighted into the sum) on the two channels that :meth:`graph_input` appends (depth, alpha)."""
-        S, R, L = unpack_targets(packed, self.decomposed, self.depth_prior)
-        if not self.depth_prior:
-            return self.image_loss(image, S, R, L, enhance)
-        C = image.shape[-1] - 2
-        total, terms = self.image_loss(image[..., :C], S, R, L, enhance)
-        terms["depth"] = losses.depth_smoothness_loss(to_bchw(image[..., C:C + 1]), to_bchw(image[..., C + 1:]),
-                                                      *unpack_edges(packed))
-        return torch.add(total, terms["depth"], alpha=self.cfg.loss.w_depth), terms
-
-    def graph_input(self, res: Dict[str, Tensor]) -> Tensor:
-        """The captured loss's input [H,W,C(+2)]: the rendered channels, then the depth prior's depth and alpha
-        (its ~60 small kernels run inside the graph instead of eagerly)."""
-        if not self.depth_prior:
-            return res["out"].image
-        return torch.cat([res["out"].image, *self._depth_maps(res)], dim=-1)
-
-    def _backward_graphed(self, res: Dict[str, Tensor], tv: TrainView, step: int) -> Optional[Dict[str, Tensor]]:
-        """The loss and its backward through the captured graph; None when this view must run eagerly."""
-        enhance = self.decomposed and self.schedule.enhance_at(step)
-        out = res["out"]
-        with record_function("step/loss_graph"):
-            edge = self.cfg.loss.depth_edge if self.depth_prior else None
-            result = self.graphs.run(self.graph_input(res), tv.pack(self.decomposed, edge), enhance)
-        if result is None:
-            for key, why in self.graphs.failures.items():
-                if key not in self._graph_failures_logged:
-                    self._graph_failures_logged.add(key)
-                    self.log(f"CUDA graph capture failed for {key[0]} images ({why}); that size trains eagerly")
-            return None
-        values = result.values
-        image_terms = {name: values[i + 1] for i, name in enumerate(result.names)}
-        depth = image_terms.pop("depth", None)  # already weighted into values[0]
-        with record_function("step/backward"):
-            grad = result.grad_image
-            if depth is None:
-                roots, grads = [out.image], [grad]
-            else:
-                C = out.image.shape[-1]
-                roots = [out.image, out.depth, out.alpha]
-                grads = [grad[..., :C], grad[..., C:C + 1], grad[..., C + 1:]]
-            sh = None
-            if self.decomposed:
-                sh = self.sh_loss()
-                if sh.requires_grad and self.cfg.loss.w_sh:
-                    roots.append(self.cfg.loss.w_sh * sh)
-                    grads.append(None)
-            extra = self.strategy.extra_loss(self.model.gaussians)
-            if extra is not None:
-                roots.append(extra)
-                grads.append(None)
-            torch.autograd.backward(roots, grads)
-            # The EnhancementNet's gradients are the graph's static buffers: read by this step's optimiser
-            # step, overwritten only by the next replay (zero_grad sets .grad to None in between).
-            for p, g in zip(self.graphs.params if enhance else [], result.param_grads):
-                p.grad = g if p.grad is None else p.grad + g
-        terms = self.assemble_terms(values[0], image_terms, None if sh is None else sh.detach(), depth,
-                                    depth_in_total=True)
-        if extra is not None:
-            terms["density"], terms["total"] = extra.detach(), terms["total"] + extra.detach()
-        return terms
+    def _log_graph_failures(self, failures: Dict) -> None:
+        for key, why in failures.items():
+            if key not in self._graph_failures_logged:
+                self._graph_failures_logged.add(key)
+                self.log(f"CUDA graph capture failed for {key[0]} images ({why}); that size trains eagerly")
 
     def render_view(self, tv: TrainView, step: int, graphed: bool = True) -> Dict[str, Tensor]:
         """The step's render of ``tv`` (no EnhancementNet: it runs inside the loss, where its losses need it);
@@ -647,10 +362,11 @@ class Trainer:
         for view in views:
             res = self.render_view(view, step)
             self.probe_noise(res, view, step)
-            terms = self._backward_graphed(res, view, step) if self.graphs is not None else None
+            terms = (self.objective.backward_graphed(self.graphs, res, view, step, self._log_graph_failures)
+                     if self.graphs is not None else None)
             if terms is None:
                 with record_function("step/loss"):
-                    terms = self.loss(res, view, step)
+                    terms = self.objective.loss(res, view, step)
                 with record_function("step/backward"):
                     terms["total"].backward()
             if several:  # this view's gradients go into the step's sum (p.grad free for the next view)
@@ -747,9 +463,7 @@ class Trainer:
                     "center": self.scene.normalization.center, "scale": self.scene.normalization.scale},
                 "scene_root": str(self.scene.root), "train_views": [v.name for v in self.scene.train],
                 "train_seconds": self.train_seconds(),
-                "capture_noise": self.capture_noise.state_dict() if self.capture_noise is not None else None,
-                "raw_noise": asdict(self.raw_noise) if self.raw_noise is not None else None,
-                "noise_probe_rng": self.noise_probe.generator.get_state() if self.noise_probe is not None else None,
+                **self.noise.state_dict(),
                 # For information (a checkpoint resumes with any number of ranks): how it was trained.
                 "ranks": self.dist.world, "views_per_step": self.batch_size}
 

@@ -1,0 +1,141 @@
+"""The capture's noise as training uses it, measured once at set-up (or read from the checkpoint, so that a resume
+trains on the same figures): the photos' noise (:mod:`retinexgs.train.noise`) for the reconstruction's gain cap,
+the camera's clipped-noise response, the noise-aware densification probe and the tone's black table; on a
+camera-raw scene the raw views' noise (:mod:`retinexgs.data.raw_noise`) for the linear reconstruction."""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Callable, Dict, Optional, Tuple
+
+import torch
+from torch import Tensor
+
+from retinexgs.data import Scene
+from retinexgs.data.raw_noise import RawNoise, scene_noise
+from retinexgs.model.retinex_model import RetinexGSModel
+from retinexgs.model.tone import black_table, exposure_gain
+from retinexgs.run.schema import Config
+from retinexgs.train import losses
+from retinexgs.train.noise import CaptureNoise, NoiseProbe, measure_capture_noise, sigma_limit
+
+
+@dataclass
+class NoiseSetUp:
+    """What the capture's noise set up for a run (each None where unused)."""
+
+    raw_scene: bool = False                                 # the views are camera raw (linear, unclipped)
+    capture_noise: Optional[CaptureNoise] = None            # the photos' noise (a, b)
+    rec_gain_cap: Optional[Tensor] = None                   # the reconstruction's gain cap (loss.rec_noise_floor)
+    camera_noise: Optional[Tuple[Tensor, Tensor]] = None     # the camera's (a, b) (loss.rec_camera_noise)
+    noise_probe: Optional[NoiseProbe] = None                # density.noise_aware's probe
+    raw_noise: Optional[RawNoise] = None                    # the raw views' noise
+    linear_target: Optional[losses.LinearTarget] = None     # the raw reconstruction in linear light
+
+    def state_dict(self) -> Dict[str, object]:
+        """The checkpoint's entries (a resume trains on the same figures)."""
+        return {"capture_noise": self.capture_noise.state_dict() if self.capture_noise is not None else None,
+                "raw_noise": asdict(self.raw_noise) if self.raw_noise is not None else None,
+                "noise_probe_rng": self.noise_probe.generator.get_state() if self.noise_probe is not None else None}
+
+
+def set_up_noise(cfg: Config, scene: Scene, model: RetinexGSModel, state: Optional[Dict], device: torch.device,
+                 dist, log: Callable[[str], None]) -> NoiseSetUp:
+    """The run's :class:`NoiseSetUp` (RetinexGS only: the baselines get an empty one). ``dist``: this rank among
+    several, or None; ``state``: the checkpoint resumed from, or None."""
+    out = NoiseSetUp(raw_scene=bool(scene.raw))
+    if cfg.method != "retinexgs":
+        return out
+    _photo_noise(out, cfg, scene, model, state, device, dist, log)
+    _raw_noise(out, cfg, scene, state, device, dist, log)
+    return out
+
+
+def _photo_noise(out: NoiseSetUp, cfg: Config, scene: Scene, model: RetinexGSModel, state: Optional[Dict],
+                 device: torch.device, dist, log: Callable[[str], None]) -> None:
+    """Where ``loss.rec_noise_floor``, ``loss.rec_camera_noise``, ``density.noise_aware`` or
+    ``model.enhancement.debias_black`` uses it: the reconstruction's gain cap, the camera's (a, b) as device tensors
+    made once (the captured CUDA graphs read them) and the black table."""
+    c = cfg.loss
+    noise_aware = bool(cfg.density.noise_aware)
+    debias = model.tone_noise() is not None
+    if not (c.rec_noise_floor or c.rec_camera_noise or noise_aware or debias):
+        return
+    saved = (state or {}).get("capture_noise")
+    if saved:
+        noise = CaptureNoise.from_state(saved)
+    else:
+        # The user's files where they still exist (undistorted copies hide part of the noise), else the copies.
+        noise = measure_capture_noise([v.source_path if v.source_path is not None and Path(v.source_path).is_file()
+                                       else v.image_path for v in scene.train],
+                                      cfg.data.downscale, device, scale=c.rec_noise_scale,
+                                      through_codec=debias or c.rec_camera_noise)  # the users of (a, b)
+    if dist is not None and dist.enabled:  # rank 0's figures everywhere (each rank measured the same views)
+        noise = dist.broadcast_object(noise, "the capture's noise")
+    if noise is None:
+        return
+    out.capture_noise = noise
+    limit = sigma_limit(c.rec_noise_share)
+    gain = None
+    if c.rec_domain != "photo":  # L_ref: the checkpoint's on a resume (the model's is filled later)
+        ref = (state or {}).get("model", {}).get("illum_ref", model.illum_ref)
+        gain = float(exposure_gain(ref, ref.new_ones(())))
+    log(noise.describe(limit, gain))
+    cap = noise.gain_cap(limit)
+    if c.rec_noise_floor and c.rec_domain != "photo" and math.isfinite(cap):
+        out.rec_gain_cap = torch.tensor(cap, dtype=torch.float32, device=device)
+    if c.rec_camera_noise:
+        out.camera_noise = noise.camera(device)
+    if debias:  # model.enhancement.debias_black: the tone reads R̂∘L̂'s light through the noise's black table
+        with torch.no_grad():
+            model.black_table.copy_(black_table(*noise.at_capture()))
+            if hasattr(model, "black_spread"):  # the render averages the training views' noise
+                spread = torch.tensor([noise.a, noise.b], dtype=torch.float32) / len(scene.train)
+                model.black_spread.copy_(spread)
+    if noise_aware:  # its own random stream, one per rank (each rank probes its own views)
+        rank = dist.rank if dist is not None and dist.enabled else 0
+        out.noise_probe = NoiseProbe(noise, device, 1_000_003 * (cfg.seed + 1) + rank)
+        probe_rng = (state or {}).get("noise_probe_rng")
+        if probe_rng is not None and not (dist is not None and dist.enabled):  # a resume draws on where it was
+            out.noise_probe.generator.set_state(probe_rng)
+
+
+def _raw_noise(out: NoiseSetUp, cfg: Config, scene: Scene, state: Optional[Dict], device: torch.device, dist,
+               log: Callable[[str], None]) -> None:
+    """A camera raw scene (issue 52 stage 3b): unless ``loss.rec_raw`` is ``photo``, the reconstruction compares
+    R̂∘L̂ with the views' unclipped values in linear light, weighted by the views' noise
+    (:class:`retinexgs.train.losses.LinearTarget`; the noise from the DNG NoiseProfile or the mosaic). The
+    camera's clipped-noise response (``loss.rec_camera_noise``) describes a JPEG's clip at black, which raw values
+    do not have: not used."""
+    mode = cfg.loss.rec_raw
+    if not out.raw_scene or mode == "photo":
+        return
+    saved = (state or {}).get("raw_noise")
+    if saved:
+        noise: Optional[RawNoise] = RawNoise(**saved)
+    else:
+        noise = scene_noise([v.source_path if v.source_path is not None else v.image_path for v in scene.train])
+        if noise is not None:
+            for note in noise.notes:
+                log(f"warning: {note}")
+    if dist is not None and dist.enabled:
+        noise = dist.broadcast_object(noise, "the raw views' noise")
+    if noise is None:  # no flat area anywhere: equal weights (plain least squares in linear light)
+        log("warning: the raw views' noise could not be measured: the linear reconstruction weighs pixels equally")
+        noise = RawNoise((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), "none")
+    out.raw_noise = noise
+    d2 = float(cfg.data.downscale) ** 2  # a downscaled view averages d × d pixels
+    a = torch.tensor(noise.a, dtype=torch.float32, device=device).reshape(1, 3, 1, 1) / d2
+    b = torch.tensor(noise.b, dtype=torch.float32, device=device).reshape(1, 3, 1, 1) / d2
+    balance = scene.train[0].balance if scene.train else None
+    if balance is not None:  # data.white_balance scaled each channel's light by g: its variance by g·a·y + g²·b
+        g = torch.tensor(balance, dtype=torch.float32, device=device).reshape(1, 3, 1, 1)
+        a, b = a * g, b * g * g
+    c = cfg.loss
+    out.linear_target = losses.LinearTarget(mode, a, b, model_error=float(c.rec_raw_model_error),
+                                            unit=c.rec_raw_unit, prior_snr=float(c.rec_raw_prior_snr))
+    log(f"raw scene: reconstruction in linear light ({mode}); {noise.describe()}")
+    if out.camera_noise is not None:
+        log("loss.rec_camera_noise is not used on a raw scene (its values are not clipped at black)")
+        out.camera_noise = None

@@ -1,0 +1,283 @@
+"""A method's training objective (nerfstudio's ``Model.get_loss_dict`` is the model): every loss term of a step
+from the render and the training view, eagerly or through the captured CUDA graphs of the image losses.
+
+- :class:`RetinexObjective`: RetinexGS (the paper's §3.3 and §3.4): the 2D priors' supervision of R̂ and L̂, the
+  reconstruction R̂∘L̂ ≈ S (in linear light on a camera-raw scene), L_TV, L_SH, the depth prior and, from
+  ``loss.enhance_from``, the EnhancementNet's L_enhance;
+- :class:`PlainObjective`: the 3DGS baselines (``method`` 3dgs, pre, post): L1 + D-SSIM on the target.
+
+The trainer builds one with :func:`build_objective` and only loops; the density strategy's regulariser
+(:meth:`retinexgs.strategy.Strategy.extra_loss`) is added here, to both paths.
+"""
+from __future__ import annotations
+
+from typing import Callable, Dict, List, Optional, Tuple
+
+import torch
+from torch import Tensor
+from torch.profiler import record_function
+
+from retinexgs.model.retinex_model import RetinexGSModel
+from retinexgs.model.schedule import Schedule
+from retinexgs.model.tone import exposure_gain
+from retinexgs.run.schema import Config, Loss
+from retinexgs.strategy import Strategy
+from retinexgs.train import losses
+from retinexgs.train.capture_setup import NoiseSetUp
+from retinexgs.train.graphs import LossGraphs
+from retinexgs.train.losses import to_bchw
+from retinexgs.train.views import TrainView, unpack_edges, unpack_targets
+
+
+def enhancement_objective(model: RetinexGSModel, c: Loss, R_img: Tensor, L_img: Tensor, S_b: Tensor
+                          ) -> Tuple[Tensor, Dict[str, Tensor]]:
+    """L_enhance (weighted sum, unweighted terms) of the enhanced render of [H,W,3] maps R̂, L̂ against the
+    low-light view ``S_b`` [1,3,H,W], with the loss section ``c`` of a config (L_exp's target from
+    :func:`retinexgs.train.losses.exposure_target`). Unless
+    ``c.enhance_trains_scene``, R̂ and L̂ are detached: only the EnhancementNet learns from it. The terms
+    include ``exp_E``, L_exp's target (for the log; not part of the sum)."""
+    if not c.enhance_trains_scene:
+        # The paper trains the EnhancementNet alone with L_enhance: without this the exposure term would
+        # flatten R̂ and L̂ towards E instead of adjusting the gamma.
+        R_img, L_img = R_img.detach(), L_img.detach()
+    out = model.enhance(R_img, L_img)
+    light = to_bchw(out["L_enh"]) if c.exp_on == "illumination" else None
+    E = losses.exposure_target(c, model.tone, R_img * L_img, model.shoulder, model.tone_noise())
+    total, terms = losses.enhancement_loss(
+        to_bchw(out["rgb"]), S_b, c.w_spa, c.w_exp, c.w_col, E,
+        illumination=light, exp_patch=c.exp_patch, exp_form=c.exp_form, spa_form=c.spa_form,
+        scale_invariant=c.enhance_scale_invariant)
+    # Logged, not a loss: L_exp's target, below exposure_E where the highlight meter caps it (issue 32).
+    terms["exp_E"] = E.detach().float() if torch.is_tensor(E) else torch.full((), float(E), device=R_img.device)
+    return total, terms
+
+
+class PlainObjective:
+    """The 3DGS baselines' loss: L1 + λ·D-SSIM of the render against the view's target (and the strategy's
+    regulariser). The base of :class:`RetinexObjective`."""
+
+    decomposed = False  # the render carries R̂ and L̂ (6 channels) rather than RGB
+
+    def __init__(self, cfg: Config, model: RetinexGSModel, schedule: Schedule, strategy: Strategy,
+                 noise: NoiseSetUp, depth_prior: bool = False) -> None:
+        self.cfg, self.model, self.schedule, self.strategy, self.noise = cfg, model, schedule, strategy, noise
+        self.depth_prior = depth_prior
+
+    # ---- the terms -----------------------------------------------------------------------------------------
+    def image_loss(self, image: Tensor, S: Tensor, R: Optional[Tensor], L: Optional[Tensor],
+                   enhance: bool) -> Tuple[Tensor, Dict[str, Tensor]]:
+        """Every loss term that depends only on the rendered ``image`` [H,W,C] and their weighted sum. The same
+        function runs eagerly and inside the captured CUDA graphs (:mod:`retinexgs.train.graphs`): it never
+        syncs with the host."""
+        rgb = losses.l1_ssim(to_bchw(image), to_bchw(S), self.cfg.loss.lambda_ssim)
+        return rgb, {"rgb": rgb}
+
+    def target(self, tv: TrainView) -> Tensor:
+        """What the render is compared with."""
+        return tv.target
+
+    def sh_loss(self) -> Optional[Tensor]:
+        """L_SH (unweighted), or None where the method has none."""
+        return None
+
+    def depth_loss(self, res: Dict[str, Tensor], tv: TrainView) -> Optional[Tensor]:
+        """The depth prior (unweighted) of a render made with ``depth=True``; None while it is off."""
+        if not self.depth_prior:
+            return None
+        depth, alpha = self._depth_maps(res)
+        wx, wy = tv.edge_weights(self.cfg.loss.depth_edge)
+        return losses.depth_smoothness_loss(to_bchw(depth), to_bchw(alpha), wx, wy)
+
+    @staticmethod
+    def _depth_maps(res: Dict[str, Tensor]) -> Tuple[Tensor, Tensor]:
+        """(depth, alpha) [H,W,1] of a render made with ``depth=True``, the depth prior's inputs."""
+        out = res["out"]
+        if out.depth is None:
+            raise ValueError("loss.w_depth > 0 needs the render's depth: render with depth=True (render_view does)")
+        return out.depth, out.alpha
+
+    def assemble_terms(self, image_total: Tensor, image_terms: Dict[str, Tensor], sh: Optional[Tensor],
+                       depth: Optional[Tensor] = None, depth_in_total: bool = False) -> Dict[str, Tensor]:
+        """Every logged term in the log's order, with ``total``."""
+        return {"total": image_total, **image_terms}
+
+    def enhance_at(self, step: int) -> bool:
+        """Whether the enhancement losses are on at ``step``."""
+        return False
+
+    def _add_strategy_loss(self, terms: Dict[str, Tensor], extra: Optional[Tensor], detach: bool
+                           ) -> Dict[str, Tensor]:
+        if extra is not None:  # the strategy's regulariser (MCMC: L1 on opacity and scale)
+            terms["density"] = extra.detach()
+            terms["total"] = terms["total"] + (extra.detach() if detach else extra)
+        return terms
+
+    # ---- eager -----------------------------------------------------------------------------------------------
+    def loss(self, res: Dict[str, Tensor], tv: TrainView, step: int) -> Dict[str, Tensor]:
+        """Every loss term of this step (weighted terms sum to ``total``), eagerly, from a render's ``res``."""
+        total, terms = self.image_loss(res["out"].image, self.target(tv), tv.R, tv.L, self.enhance_at(step))
+        terms = self.assemble_terms(total, terms, self.sh_loss(), self.depth_loss(res, tv))
+        return self._add_strategy_loss(terms, self.strategy.extra_loss(self.model.gaussians), detach=False)
+
+    # ---- through the captured graphs -------------------------------------------------------------------------
+    def graphed_params(self) -> List[Tensor]:
+        """The parameters the captured image losses reach (their gradients come out of the graph)."""
+        return []
+
+    def graphed_loss(self, image: Tensor, packed: Tensor, enhance: bool) -> Tuple[Tensor, Dict[str, Tensor]]:
+        """The captured loss: :meth:`image_loss`, and with the depth prior on, its term as the last ("depth",
+        weighted into the sum) on the two channels that :meth:`graph_input` appends (depth, alpha)."""
+        S, R, L = unpack_targets(packed, self.decomposed, self.depth_prior)
+        if not self.depth_prior:
+            return self.image_loss(image, S, R, L, enhance)
+        C = image.shape[-1] - 2
+        total, terms = self.image_loss(image[..., :C], S, R, L, enhance)
+        terms["depth"] = losses.depth_smoothness_loss(to_bchw(image[..., C:C + 1]), to_bchw(image[..., C + 1:]),
+                                                      *unpack_edges(packed))
+        return torch.add(total, terms["depth"], alpha=self.cfg.loss.w_depth), terms
+
+    def graph_input(self, res: Dict[str, Tensor]) -> Tensor:
+        """The captured loss's input [H,W,C(+2)]: the rendered channels, then the depth prior's depth and alpha
+        (its ~60 small kernels run inside the graph instead of eagerly)."""
+        if not self.depth_prior:
+            return res["out"].image
+        return torch.cat([res["out"].image, *self._depth_maps(res)], dim=-1)
+
+    def backward_graphed(self, graphs: LossGraphs, res: Dict[str, Tensor], tv: TrainView, step: int,
+                         log_failures: Callable[[Dict], None]) -> Optional[Dict[str, Tensor]]:
+        """The loss and its backward through the captured graph; None when this view must run eagerly (the
+        capture's failures go to ``log_failures``)."""
+        enhance = self.enhance_at(step)
+        out = res["out"]
+        with record_function("step/loss_graph"):
+            edge = self.cfg.loss.depth_edge if self.depth_prior else None
+            result = graphs.run(self.graph_input(res), tv.pack(self.decomposed, edge), enhance)
+        if result is None:
+            log_failures(graphs.failures)
+            return None
+        values = result.values
+        image_terms = {name: values[i + 1] for i, name in enumerate(result.names)}
+        depth = image_terms.pop("depth", None)  # already weighted into values[0]
+        with record_function("step/backward"):
+            grad = result.grad_image
+            if depth is None:
+                roots, grads = [out.image], [grad]
+            else:
+                C = out.image.shape[-1]
+                roots = [out.image, out.depth, out.alpha]
+                grads = [grad[..., :C], grad[..., C:C + 1], grad[..., C + 1:]]
+            sh = self.sh_loss()
+            if sh is not None and sh.requires_grad and self.cfg.loss.w_sh:
+                roots.append(self.cfg.loss.w_sh * sh)
+                grads.append(None)
+            extra = self.strategy.extra_loss(self.model.gaussians)
+            if extra is not None:
+                roots.append(extra)
+                grads.append(None)
+            torch.autograd.backward(roots, grads)
+            # The EnhancementNet's gradients are the graph's static buffers: read by this step's optimiser
+            # step, overwritten only by the next replay (zero_grad sets .grad to None in between).
+            for p, g in zip(graphs.params if enhance else [], result.param_grads):
+                p.grad = g if p.grad is None else p.grad + g
+        terms = self.assemble_terms(values[0], image_terms, None if sh is None else sh.detach(), depth,
+                                    depth_in_total=True)
+        return self._add_strategy_loss(terms, extra, detach=True)
+
+
+class RetinexObjective(PlainObjective):
+    """RetinexGS's loss: the priors' supervision, the reconstruction, L_TV, L_SH, the depth prior and
+    L_enhance (``cfg.loss``; the capture's noise set-up in ``noise``)."""
+
+    decomposed = True
+
+    def __init__(self, cfg: Config, model: RetinexGSModel, schedule: Schedule, strategy: Strategy,
+                 noise: NoiseSetUp, depth_prior: bool = False) -> None:
+        super().__init__(cfg, model, schedule, strategy, noise, depth_prior)
+        self.raw_scene = noise.raw_scene
+
+    def target(self, tv: TrainView) -> Tensor:
+        return tv.S
+
+    def enhance_at(self, step: int) -> bool:
+        return self.schedule.enhance_at(step)
+
+    def graphed_params(self) -> List[Tensor]:
+        return self.model.enhancement.used_parameters()
+
+    def rec_gain(self) -> Optional[Tensor]:
+        """The reconstruction's exposure gain (a scalar tensor; None for ``rec_domain: photo``): the tone's gain at
+        g = 1, 1 / lin(L_ref), a constant of the scene, capped where the photos' noise asks (train/noise.py)."""
+        if self.cfg.loss.rec_domain == "photo":
+            return None
+        ref = self.model.illum_ref
+        gain = exposure_gain(ref, ref.new_ones(()))
+        cap = self.noise.rec_gain_cap
+        return gain if cap is None else torch.minimum(gain, cap)
+
+    def image_loss(self, image: Tensor, S: Tensor, R: Optional[Tensor], L: Optional[Tensor],
+                   enhance: bool) -> Tuple[Tensor, Dict[str, Tensor]]:
+        """All but L_SH; ``S`` is the low-light view, ``R``/``L`` its 2D priors or None; ``enhance``: the
+        enhancement losses are on."""
+        c = self.cfg.loss
+        R_img, L_img = image[..., :3], image[..., 3:6]
+        R_hat, L_hat, S_b = to_bchw(R_img), to_bchw(L_img), to_bchw(S)
+        linear = self.noise.linear_target
+        if linear is None and self.raw_scene:  # loss.rec_raw photo: the raw view as a clipped photo
+            S_b = S_b.clamp(0.0, 1.0)
+        terms: Dict[str, Tensor] = {}
+        gain = self.rec_gain()
+        l1_exposed = c.rec_domain == "exposed"
+        camera_noise = self.noise.camera_noise
+        if linear is not None:  # at the scene's own exposure, not the noise floor's cap (LinearTarget)
+            ref = self.model.illum_ref
+            linear = linear._replace(gain=exposure_gain(ref, ref.new_ones(())))
+        if R is not None:
+            sup, sup_terms = losses.supervision_loss(R_hat, L_hat, to_bchw(R), to_bchw(L), S_b, c.w_r,
+                                                     c.w_l, c.w_s, c.lambda_ssim, c.rec_huber, gain,
+                                                     l1_exposed, c.rec_ssim_noise, camera_noise, linear)
+            terms.update(sup_terms)
+        else:  # no 2D priors: only the reconstruction is supervised
+            terms["sup_rec"] = losses.reconstruction_loss(R_hat * L_hat, S_b, c.lambda_ssim, c.rec_huber,
+                                                          gain, l1_exposed, c.rec_ssim_noise, camera_noise,
+                                                          linear)
+            sup = c.w_s * terms["sup_rec"]
+        terms["tv"] = losses.tv_loss(R_hat)
+        total = sup + c.w_tv * terms["tv"]
+        if enhance:
+            # loss.spa_raw photo: L_spa's input is a raw view as the photo it shows (its mean undragged by the noise)
+            S_spa = S_b.clamp(0.0, 1.0) if self.raw_scene and c.spa_raw == "photo" else S_b
+            enh, enh_terms = enhancement_objective(self.model, c, R_img, L_img, S_spa)
+            terms.update(enh_terms)
+            total = total + enh
+        return total, terms
+
+    def sh_loss(self) -> Tensor:
+        """L_SH on the Gaussians' higher-order SH (unweighted; its shape follows the Gaussian count, so it is
+        not part of the graphed image losses)."""
+        return losses.sh_sparsity_loss(self.model.gaussians.sh_rest, self.cfg.loss.sh_reduction)
+
+    def assemble_terms(self, image_total: Tensor, image_terms: Dict[str, Tensor], sh: Optional[Tensor],
+                       depth: Optional[Tensor] = None, depth_in_total: bool = False) -> Dict[str, Tensor]:
+        """Every logged term in the log's order (L_SH after L_TV, then the depth prior) with ``total`` = image
+        losses + w_sh·L_SH (+ w_depth·depth prior, unless ``depth_in_total``: the graphed sum holds it)."""
+        terms: Dict[str, Tensor] = {}
+        for name, value in image_terms.items():
+            terms[name] = value
+            if name == "tv":
+                terms["sh"] = sh
+                if depth is not None:
+                    terms["depth"] = depth
+        total = torch.add(image_total, sh, alpha=self.cfg.loss.w_sh)
+        if depth is not None and not depth_in_total:
+            total = torch.add(total, depth, alpha=self.cfg.loss.w_depth)
+        terms["total"] = total
+        return terms
+
+
+def build_objective(cfg: Config, model: RetinexGSModel, schedule: Schedule, strategy: Strategy,
+                    noise: NoiseSetUp) -> PlainObjective:
+    """RetinexGS's objective for ``method: retinexgs``, the plain one for the 3DGS baselines. The depth prior is
+    RetinexGS's (the baselines stay as published)."""
+    if cfg.method == "retinexgs":
+        return RetinexObjective(cfg, model, schedule, strategy, noise, depth_prior=cfg.loss.w_depth > 0)
+    return PlainObjective(cfg, model, schedule, strategy, noise)
