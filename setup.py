@@ -5,6 +5,7 @@ toolkit is found (``TORCH_CUDA_ARCH_LIST`` is respected). Set ``RETINEXGS_CPU_ON
 """
 import glob
 import os
+import re
 import shutil
 import sys
 
@@ -14,6 +15,13 @@ from torch.utils.cpp_extension import CUDA_HOME, BuildExtension, CppExtension, C
 import torch
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+
+
+def _version() -> str:
+    """retinexgs.__version__, read from the source (importing the package here would need it built): the one
+    place the version is written; `retinexgs --version` and the package metadata both show it."""
+    with open(os.path.join(HERE, "retinexgs", "__init__.py"), encoding="utf-8") as f:
+        return re.search(r'^__version__ = "([^"]+)"', f.read(), re.M).group(1)
 
 
 def _sources(pattern: str) -> list:
@@ -61,17 +69,22 @@ class BuildPyWithConfigs(build_py):
 
 setup(
     name="retinexgs",
-    version="0.1.0",
+    version=_version(),
     description="3D Retinex Gaussian splatting: normally-lit, 3D-consistent novel views from dark photos",
     packages=find_packages(include=["retinexgs", "retinexgs.*"]),
+    # LPIPS-AlexNet's weights (retinexgs/evaluate/lpips.py: eval reports LPIPS offline) and their licences.
+    package_data={"retinexgs.evaluate": ["weights/lpips_alex.npz", "weights/THIRD_PARTY.md"]},
     python_requires=">=3.9",
     license="Apache-2.0",  # LICENSE; third-party parts (weights) in their own notice
     license_files=["LICENSE"],
     # pycolmap reads COLMAP models and runs SfM; plyfile reads and writes the exported PLY;
     # pydantic checks the config (retinexgs/run/schema.py); pillow-heif reads phone photos (HEIC/HEIF); rawpy (LibRaw)
-    # and exifread read camera raw files and their exposure (retinexgs/data/camera_raw.py).
+    # and exifread read camera raw files and their exposure (retinexgs/data/camera_raw.py); imageio-ffmpeg decodes
+    # a phone's night video for `retinexgs frames` (retinexgs/data/video.py) with the static ffmpeg its wheel
+    # ships (68 MB), so that no system ffmpeg is needed.
     install_requires=["torch>=2.1", "numpy", "pyyaml", "tqdm", "pillow", "opencv-contrib-python-headless>=4.8",
-                      "pycolmap>=4.0", "plyfile", "pydantic>=2", "pillow-heif>=0.10", "rawpy>=0.28", "exifread>=3.0"],
+                      "pycolmap>=4.0", "plyfile", "pydantic>=2", "pillow-heif>=0.10", "rawpy>=0.28", "exifread>=3.0",
+                      "imageio-ffmpeg>=0.4.5"],
     extras_require={
         # import-linter: the layer contracts (.importlinter). viser and selenium: the viewer's server and browser
         # tests (the browser test also needs Debian's chromium and chromium-driver, installed by .ci/run; without

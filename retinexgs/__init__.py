@@ -2,4 +2,5 @@
 
 The public rendering API is :func:`retinexgs.render.rasterize_gaussians`.
 """
+# The one place the version is written: setup.py reads it from here, `retinexgs --version` prints it.
 __version__ = "0.1.0"

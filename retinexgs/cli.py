@@ -12,9 +12,12 @@ import os
 import signal
 import sys
 import threading
+from pathlib import Path
 from typing import List, Optional
 
+from retinexgs import __version__
 from retinexgs.errors import Terminated, UserError
+from retinexgs.fileio import missing_folders, remove_empty_trees
 from retinexgs.openmp import bound_openmp_spinning
 
 # Before any sub-command imports torch (they do so lazily): idle OpenMP threads spin briefly, then sleep.
@@ -24,11 +27,13 @@ bound_openmp_spinning()
 _COMMAND_MODULES = [
     "retinexgs.commands.train",
     "retinexgs.commands.decompose",
+    "retinexgs.commands.frames",
     "retinexgs.commands.sfm",
     "retinexgs.commands.sensor",
     "retinexgs.commands.render",
     "retinexgs.commands.export",
     "retinexgs.commands.view",
+    "retinexgs.commands.bench",
 ]
 
 
@@ -38,6 +43,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog="retinexgs",
         description="RetinexGS: normally-lit, 3D-consistent novel views from multi-view photos taken in the "
                     "dark. One sub-command per stage, each with its own --help.")
+    # The version of the installed package: retinexgs.__version__, which setup.py reads (one source).
+    parser.add_argument("--version", action="version", version=f"retinexgs {__version__}",
+                        help="print the version and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in _COMMAND_MODULES:
         try:
@@ -74,21 +82,31 @@ def main(argv: Optional[List[str]] = None) -> int:
         parser.print_help()
         return 2
     args.argv = list(sys.argv[1:] if argv is None else argv)  # as given (train --gpus re-launches with them)
+    # The folders the command's path arguments would create (the outermost missing one of each): a command that
+    # fails removes those it left empty (a full disk's --out new/a/b.ply), never a folder that existed before.
+    fresh = missing_folders(v for v in vars(args).values() if isinstance(v, Path))
     restore = None
     if threading.current_thread() is threading.main_thread():
         restore = signal.signal(signal.SIGTERM, _raise_terminated)
+    code = 1  # an unexpected exception (a bug) counts as a failure too
     try:
-        return int(args.func(args) or 0)
+        code = int(args.func(args) or 0)
+        return code
     except UserError as exc:
         print(f"retinexgs {args.command}: error: {exc}", file=sys.stderr)
+        code = 2
         return 2
     except Terminated:
         print(f"retinexgs {args.command}: terminated{_rank_note()}", file=sys.stderr)
+        code = 143
         return 143
     except KeyboardInterrupt:
         print(f"retinexgs {args.command}: interrupted", file=sys.stderr)
+        code = 130
         return 130
     finally:
+        if code != 0:
+            remove_empty_trees(fresh)
         if restore is not None:  # main() called in-process (tests): leave the caller's handler as it was
             signal.signal(signal.SIGTERM, restore)
 

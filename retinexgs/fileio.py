@@ -10,7 +10,7 @@ import hashlib
 import os
 import tempfile
 from pathlib import Path
-from typing import BinaryIO, Callable, Optional, Union
+from typing import BinaryIO, Callable, Iterable, List, Optional, Sequence, Tuple, Union
 
 from retinexgs.errors import UserError
 
@@ -27,6 +27,12 @@ def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
     return mask
+
+
+def default_file_mode() -> int:
+    """The permissions a plain ``open(path, "w")`` gives a new file: 0666 minus the umask. Every output gets them
+    (``mkstemp``'s temporaries alone would be 0600, readable by their owner only)."""
+    return 0o666 & ~_umask()
 
 
 def nearest_existing(path: Path) -> Path:
@@ -119,18 +125,94 @@ def out_of_space_error(path: Union[str, Path], elsewhere: str = "--out") -> User
     return UserError(f"no space left on device writing {path}{room}: free some space or write elsewhere{where}")
 
 
+def make_folders(folder: Union[str, Path]) -> List[Path]:
+    """Create ``folder`` and its missing parents; returns the folders this call made, deepest first, for
+    :func:`remove_empty_folders` when what was to go into them could not be written."""
+    folder = Path(folder)
+    made: List[Path] = []
+    p = folder
+    while not (p.exists() or p.is_symlink()) and p != p.parent:
+        made.append(p)
+        p = p.parent
+    folder.mkdir(parents=True, exist_ok=True)
+    return made
+
+
+def remove_empty_folders(made: Sequence[Path]) -> None:
+    """Remove the folders of ``made`` (deepest first, as :func:`make_folders` lists them) while they are empty: a
+    folder that holds anything stays, and so do the ones above it. Only what a failed write made itself is passed
+    here, so a full disk leaves no empty folders behind and never touches the user's."""
+    for p in made:
+        try:
+            os.rmdir(p)
+        except FileNotFoundError:
+            continue
+        except OSError:  # not empty (another writer's file), or not ours to remove
+            return
+
+
+def missing_folders(paths: Iterable[Union[str, Path]]) -> List[Path]:
+    """For each path that does not exist: its outermost missing folder (itself, or the first parent that
+    ``mkdir(parents=True)`` would make), as an absolute path. Taken before a command runs: what a failed command
+    created there is its own (:func:`remove_empty_trees`)."""
+    found: List[Path] = []
+    for path in paths:
+        p, top = Path(path).absolute(), None
+        while not (p.exists() or p.is_symlink()) and p != p.parent:
+            top, p = p, p.parent
+        if top is not None and top not in found:
+            found.append(top)
+    return found
+
+
+def remove_empty_trees(roots: Iterable[Path]) -> List[Path]:
+    """Remove each folder of ``roots`` and the folders below it that hold nothing else (deepest first; a folder
+    with a file, a link or a non-empty folder in it stays, and so do its parents). Returns the folders removed."""
+    removed: List[Path] = []
+    for root in roots:
+        root = Path(root)
+        if root.is_symlink() or not root.is_dir():
+            continue
+        for folder, _, _ in os.walk(root, topdown=False):  # links are not followed: a link keeps its folder
+            try:
+                os.rmdir(folder)
+            except OSError:
+                continue
+            removed.append(Path(folder))
+    return removed
+
+
+def temporary_file(folder: Path, prefix: str, suffix: str = "") -> Tuple[int, str, List[Path]]:
+    """``mkstemp`` in ``folder``, made first when missing: (fd, name, the folders made, see :func:`make_folders`).
+    Another writer's failed call may remove the empty folder between the two steps: it is then made once more."""
+    made: List[Path] = []
+    for attempt in (0, 1):
+        try:
+            made = make_folders(folder) + made
+            fd, tmp = tempfile.mkstemp(prefix=prefix, suffix=suffix, dir=folder)
+            return fd, tmp, made
+        except FileNotFoundError:
+            if attempt:
+                remove_empty_folders(made)
+                raise
+        except BaseException:
+            remove_empty_folders(made)
+            raise
+    raise AssertionError("unreachable")
+
+
 def atomic_write(path: Union[str, Path], write: Callable[[BinaryIO], None], elsewhere: str = "--out") -> Path:
     """Call ``write(f)`` on a binary temporary file next to ``path`` and rename it to ``path`` when done.
 
     The folder is created if needed; the file gets the usual permissions (0666 minus the umask, where
-    ``mkstemp`` alone would leave 0600); on any error the temporary file is removed and ``path`` untouched.
-    A full disk (see :func:`is_out_of_space`) raises a :class:`UserError` naming ``path``, the free space and
-    ``elsewhere`` (the caller's option for writing to another disk).
+    ``mkstemp`` alone would leave 0600); on any error the temporary file is removed, ``path`` untouched, and the
+    folders this call made are removed again while empty. A full disk (see :func:`is_out_of_space`) raises a
+    :class:`UserError` naming ``path``, the free space and ``elsewhere`` (the caller's option for writing to
+    another disk).
     """
     path = Path(path)
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=TMP_PREFIX, suffix=path.suffix, dir=path.parent)
+        fd, tmp, made = temporary_file(path.parent, TMP_PREFIX, path.suffix)
     except OSError as exc:
         if is_out_of_space(exc, path.parent):
             raise out_of_space_error(path, elsewhere) from None
@@ -140,13 +222,14 @@ def atomic_write(path: Union[str, Path], write: Callable[[BinaryIO], None], else
             write(f)
             f.flush()
             os.fsync(f.fileno())
-        os.chmod(tmp, 0o666 & ~_umask())
+        os.chmod(tmp, default_file_mode())
         os.replace(tmp, path)
     except BaseException as exc:
         try:
             os.unlink(tmp)
         except FileNotFoundError:
             pass
+        remove_empty_folders(made)
         if isinstance(exc, Exception) and not isinstance(exc, UserError) and is_out_of_space(exc, path.parent):
             raise out_of_space_error(path, elsewhere) from None
         raise

@@ -100,6 +100,23 @@ def setup_photos(root, o, n=2, corrupt=False):
         (photos / "9999.jpg").write_bytes(NOT_AN_IMAGE)
 
 
+def setup_video(root, o, busy=False):
+    """A 2-second MP4 of the scene's low photos (for `frames`), and with ``busy`` an --out holding a user's file."""
+    import imageio_ffmpeg
+    from PIL import Image
+
+    frames = [Image.open(p).convert("RGB") for p in sorted((o["scene"] / "low").glob("*.png"))]
+    w, h = frames[0].size
+    g = imageio_ffmpeg.write_frames(str(root / "night.mp4"), (w, h), fps=10, macro_block_size=1)
+    g.send(None)
+    for i in range(20):
+        g.send(frames[i % len(frames)].tobytes())
+    g.close()
+    if busy:
+        (root / "busy").mkdir()
+        (root / "busy" / "mine.txt").write_text("keep me\n")
+
+
 def setup_one_view(root, o):
     """The scene with one training frame left in transforms_train.json."""
     path = _scene(root, o) / "transforms_train.json"
@@ -134,6 +151,8 @@ SETUPS: Dict[str, Callable[[Path, Dict], None]] = {
     "photos_corrupt": lambda root, o: setup_photos(root, o, n=2, corrupt=True),
     "photos_two": lambda root, o: setup_photos(root, o, n=2),
     "one_view": setup_one_view,
+    "video_busy_out": lambda root, o: setup_video(root, o, busy=True),
+    "a_photo": lambda root, o: shutil.copy(o["scene"] / "low" / "0000.png", root / "night.png"),
 }
 
 
@@ -230,7 +249,7 @@ CASES: List[Case] = [
          "reconstruction needs at least 2 views", "one_view"),
     # decompose
     Case("decompose-missing-scene", ["decompose", "--data", "{root}/missing", "--quiet"], "not found: {root}/missing"),
-    Case("decompose-empty-folder", ["decompose", "--data", "{root}/empty", "--quiet"], "no images", "empty_dir"),
+    Case("decompose-empty-folder", ["decompose", "--data", "{root}/empty", "--quiet"], "no photos in", "empty_dir"),
     Case("decompose-scene-is-a-file", ["decompose", "--data", "{root}/afile.txt", "--quiet"], "got a file",
          "a_file"),
     Case("decompose-corrupt-image", ["decompose", "--data", "{root}/scene", "--method", "lime", "--quiet"],
@@ -267,6 +286,17 @@ CASES: List[Case] = [
          "--max-features must be a positive number", "photos_two"),
     Case("sfm-negative-threads", ["sfm", "--images", "{root}/photos", "--enhance", "on", "--threads", "-5",
                                   "--quiet"], "--threads must be -1 (all CPU threads", "photos_two"),
+    # frames (issue 62; more bad videos in test_frames_video.py)
+    Case("frames-missing-video", ["frames", "--video", "{root}/night.mp4", "--out", "{root}/photos"],
+         "--video {root}/night.mp4 does not exist"),
+    Case("frames-text-file", ["frames", "--video", "{root}/afile.txt", "--out", "{root}/photos"],
+         "is not a video ffmpeg can read", "a_file"),
+    Case("frames-a-photo", ["frames", "--video", "{root}/night.png", "--out", "{root}/photos"],
+         "is a still photo (PNG), not a video", "a_photo"),
+    Case("frames-busy-out", ["frames", "--video", "{root}/night.mp4", "--out", "{root}/busy", "--quiet"],
+         "--out {root}/busy is not empty (mine.txt)", "video_busy_out"),
+    Case("frames-max-below-3", ["frames", "--video", "{root}/night.mp4", "--out", "{root}/photos", "--max", "2"],
+         "--max must be at least 3", "video_busy_out"),
 ]
 
 # ---- render / export (retinexgs.export; rows used only while those commands exist) ----------------------------
@@ -295,6 +325,9 @@ RENDER_EXPORT_CASES: List[Case] = [
          "step_000003.pt is unreadable", "truncated_checkpoint"),
     Case("view-bad-port", ["view", "--run", "{root}/run", "--device", "cpu", "--port", "99999"],
          "--port must be 0..65535"),
+    # bench (issue 62): the dispatcher of python -m retinexgs.bench; each benchmark checks its own options.
+    Case("bench-unknown", ["bench", "nosuch"], "retinexgs bench: error: unknown benchmark 'nosuch'"),
+    Case("bench-no-name", ["bench"], "choose one of raster, lr3m"),
 ]
 
 

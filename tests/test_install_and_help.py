@@ -82,35 +82,41 @@ def test_pycolmap_and_plyfile_are_requirements():
     assert {"pycolmap", "plyfile"} <= names
 
 
-# ---- TensorBoard and LPIPS: off by default, one line when asked for and missing ----------------------------
+# ---- TensorBoard off by default, LPIPS on (shipped weights); one line when asked for and missing ---------------
 
 @pytest.fixture(scope="module")
 def tiny_scene(tmp_path_factory):
-    return make_demo_scene(tmp_path_factory.mktemp("scene") / "demo", n_train=3, n_test=2, width=32, height=24,
+    # 40x32: large enough for LPIPS's AlexNet (31x31 at least)
+    return make_demo_scene(tmp_path_factory.mktemp("scene") / "demo", n_train=3, n_test=2, width=40, height=32,
                            n_points=200)
 
 
 def _train_lines(scene, run, overrides, monkeypatch):
-    # As on a machine without tensorboard (and, like this one, without lpips or its weights).
+    # As on a machine without tensorboard (LPIPS needs nothing installed: its weights ship with the package).
     monkeypatch.setitem(sys.modules, "torch.utils.tensorboard", None)
     logs = []
     train_run(scene, run, [], TINY + overrides, "cpu", progress=False, log=logs.append)
     return logs
 
 
-def test_default_run_prints_nothing_about_tensorboard_or_lpips(tiny_scene, tmp_path, monkeypatch, one_thread):
+def test_default_run_reports_lpips_and_prints_nothing_about_tensorboard(tiny_scene, tmp_path, monkeypatch,
+                                                                        one_thread):
     cfg = load_config([])
-    assert cfg["log"]["tensorboard"] is False and cfg["eval"]["lpips"] is False
+    assert cfg["log"]["tensorboard"] is False and cfg["eval"]["lpips"] is True
     logs = _train_lines(tiny_scene, tmp_path / "run", [], monkeypatch)
-    assert not [ln for ln in logs if "tensorboard" in ln.lower() or "lpips" in ln.lower()], logs
+    assert not [ln for ln in logs if "tensorboard" in ln.lower() or "LPIPS not reported" in ln], logs
+    assert len([ln for ln in logs if ln.startswith("test views:") and ", LPIPS 0." in ln]) == 1, logs
 
 
 def test_asking_for_missing_tensorboard_and_lpips_says_so_once(tiny_scene, tmp_path, monkeypatch, one_thread):
+    import retinexgs.evaluate.lpips as lpips_port
+
+    monkeypatch.setattr(lpips_port, "WEIGHTS", tmp_path / "lpips_alex.npz")  # a broken install without the weights
     logs = _train_lines(tiny_scene, tmp_path / "run", ["log.tensorboard=true", "eval.lpips=true"], monkeypatch)
     tb = [ln for ln in logs if "tensorboard" in ln.lower()]
     lp = [ln for ln in logs if ln.startswith("LPIPS not reported")]
     assert len(tb) == 1 and "pip install tensorboard" in tb[0], logs
-    assert len(lp) == 1 and "lpips" in lp[0][len("LPIPS"):], logs  # two test views, one line with the reason
+    assert len(lp) == 1 and "reinstall retinexgs" in lp[0], logs  # two test views, one line with the reason
 
 
 # ---- OpenMP threads ------------------------------------------------------------------------------------
@@ -151,7 +157,7 @@ def test_every_readme_use_command_parses():
     assert len(commands) >= 8
     for argv in commands:
         assert argv[0] == "retinexgs"
-        if argv[1:] != ["--help"]:
+        if argv[1:] not in (["--help"], ["--version"]):  # both print and exit
             build_parser().parse_args(argv[1:])  # argparse exits (a test error) on an unknown option
 
 

@@ -1,7 +1,5 @@
-"""Evaluation metrics: PSNR, SSIM (against an independent scipy version) and the offline LPIPS check."""
-import importlib.util
+"""Evaluation metrics: PSNR, SSIM (against an independent scipy version) and LPIPS in the evaluation."""
 import math
-import sys
 
 import numpy as np
 import pytest
@@ -97,51 +95,100 @@ def test_gt_mean_align_rejects_bad_input():
         M.gt_mean_align(bad, torch.ones(4, 4, 3))
 
 
-def test_lpips_offline_check(monkeypatch):
-    x = torch.rand(32, 32, 3)
-    value, reason = M.lpips_metric(x, x)
-    if importlib.util.find_spec("lpips") is None:
-        assert value is None and "not installed" in reason
-    else:
-        assert (value is None) == bool(reason)
-    # Simulate a machine without the package: never raises, never downloads.
-    real = importlib.util.find_spec
-    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "lpips" else real(name, *a))
-    assert M.lpips_metric(x, x) == (None, "the 'lpips' package is not installed")
-    ok, why = M.lpips_available("nope")
-    assert not ok and "unknown" in why
+def test_lpips_metric_is_the_port_on_hwc_images():
+    """LPIPS (issue 62): the package's own port, always available (shipped weights, no lpips package, no download)."""
+    from retinexgs.evaluate.lpips import lpips_distance
+
+    assert M.lpips_available() == (True, "")
+    gen = torch.Generator().manual_seed(0)
+    y = torch.rand(40, 48, 3, generator=gen)
+    xs = [(y + 0.1 * torch.randn(y.shape, generator=gen)).clamp(0, 1), y.flip(0), y]
+    values = M.lpips_metrics(xs, y)
+    assert values[2] == 0.0 and values[0] > 0.0 and values[1] > 0.0
+    # one batch with the reference's features once == each pair alone == the [B,3,H,W] port itself
+    assert values[:2] == pytest.approx([M.lpips_metric(x, y) for x in xs[:2]], abs=1e-6)
+    assert values[0] == pytest.approx(float(lpips_distance(xs[0].permute(2, 0, 1)[None], y.permute(2, 0, 1)[None])),
+                                      abs=1e-6)
+    assert M.lpips_metric(xs[0].numpy().astype(np.float64), y.numpy()) == pytest.approx(values[0], abs=1e-6)
+    # a grey image is the RGB image with three equal channels
+    g = y[..., 0]
+    assert M.lpips_metric(g.flip(1), g) == pytest.approx(M.lpips_metric(g.flip(1)[..., None].expand(-1, -1, 3),
+                                                                         g[..., None].expand(-1, -1, 3)), abs=1e-7)
+    assert M.lpips_metrics([], y) == []
 
 
-def test_lpips_runs_when_everything_is_local(tmp_path, monkeypatch):
-    """With a (fake) lpips package, its weights and the backbone checkpoint present, a value comes back."""
-    pkg = tmp_path / "site" / "lpips"
-    (pkg / "weights" / "v0.1").mkdir(parents=True)
-    (pkg / "weights" / "v0.1" / "alex.pth").write_bytes(b"")
-    (pkg / "__init__.py").write_text(
-        "import torch\n"
-        "class LPIPS(torch.nn.Module):\n"
-        "    def __init__(self, net='alex', verbose=True):\n"
-        "        super().__init__()\n"
-        "    def forward(self, a, b):\n"
-        "        assert a.min() >= -1 and a.max() <= 1 and a.shape[1] == 3\n"
-        "        return ((a - b) ** 2).mean(dim=(1, 2, 3), keepdim=True)\n")
-    hub = tmp_path / "hub"
-    (hub / "checkpoints").mkdir(parents=True)
-    monkeypatch.syspath_prepend(str(tmp_path / "site"))
-    monkeypatch.setattr(torch.hub, "get_dir", lambda: str(hub))
-    real = importlib.util.find_spec
-    monkeypatch.setattr(importlib.util, "find_spec",
-                        lambda name, *a: real("json") if name == "torchvision" else real(name, *a))
-    monkeypatch.setattr(M, "_LPIPS_CACHE", {})
-    x = torch.zeros(8, 8, 3)
-    try:
-        value, reason = M.lpips_metric(x, x + 0.25)
-        assert value is None and "backbone weights not found" in reason
-        (hub / "checkpoints" / "alexnet-owt-7be5be79.pth").write_bytes(b"")
-        value, reason = M.lpips_metric(x, x + 0.25)
-        assert reason == "" and value == pytest.approx(0.25)  # inputs mapped to [-1,1]: difference 0.5
-    finally:
-        sys.modules.pop("lpips", None)  # the fake must not leak into other tests
+@pytest.mark.parametrize("x, y, match", [
+    (np.zeros((40, 40, 4)), np.zeros((40, 40, 4)), r"\[H,W,3\]"),
+    (np.zeros((40, 40, 3)), np.zeros((40, 41, 3)), "shape mismatch"),
+    (np.zeros((20, 40, 3)), np.zeros((20, 40, 3)), "at least 31x31"),
+    (np.full((40, 40, 3), 255, np.uint8), np.zeros((40, 40, 3)), r"in \[0, 1\]"),
+])
+def test_lpips_metric_rejects_bad_input_in_one_line(x, y, match):
+    with pytest.raises(ValueError, match=match) as e:
+        M.lpips_metric(x, y)
+    assert "\n" not in str(e.value)
+
+
+def _eval_scene(tmp_path, width, height):
+    from retinexgs.data import load_scene
+    from retinexgs.demo.synthetic import make_demo_scene
+
+    return load_scene(make_demo_scene(tmp_path / f"scene{width}", n_train=2, n_test=2, width=width, height=height,
+                                      n_points=50, supersample=1))
+
+
+def test_evaluate_reports_lpips_like_psnr_and_ssim(tmp_path):
+    """eval.lpips (on by default): metrics.json holds lpips, lpips_gt_mean and low_lpips per view and in the mean,
+    each the port's figure for the output (clipped to [0, 1] as its PNG), its GT-mean alignment and the dark input."""
+    import json
+
+    from retinexgs.evaluate.evaluate import evaluate
+    from retinexgs.run.config import load_config
+
+    assert load_config([])["eval"]["lpips"] is True
+    scene = _eval_scene(tmp_path, 48, 40)
+    outputs = {}
+
+    def render(view):
+        out = (view.paired_image.float() * 0.6 + 0.1 * torch.rand(view.paired_image.shape)).clamp(0, 1)
+        out[0, 0] = 1.3  # a render may leave [0, 1]: LPIPS sees it clipped, as the PNG holds it
+        outputs[view.name] = out
+        return {"rgb": out}
+
+    logs = []
+    m = evaluate(render, scene, tmp_path / "run", use_lpips=True, log=logs.append)
+    assert "lpips_unavailable" not in m and not [ln for ln in logs if "LPIPS not reported" in ln]
+    for row, view in zip(m["views"], [v for v in scene.test if v.paired_path is not None]):
+        out, gt = outputs[view.name], view.paired_image
+        want = M.lpips_metrics([out.clamp(0, 1), M.gt_mean_align(out, gt), view.image], gt)
+        assert [row["lpips"], row["lpips_gt_mean"], row["low_lpips"]] == pytest.approx(want, abs=1e-6)
+        assert row["lpips"] > 0.0 and row["lpips"] != row["low_lpips"]
+    for k in ("lpips", "lpips_gt_mean", "low_lpips"):
+        assert m["mean"][k] == pytest.approx(np.mean([r[k] for r in m["views"]]))
+    assert json.loads((tmp_path / "run" / "metrics.json").read_text())["mean"]["lpips"] == m["mean"]["lpips"]
+    assert any(f"LPIPS {m['mean']['lpips']:.3f}" in ln for ln in logs)
+    off = evaluate(render, scene, tmp_path / "off", use_lpips=False, log=lambda s: None)
+    assert not [k for k in off["mean"] if "lpips" in k] and "lpips_unavailable" not in off
+
+
+def test_evaluate_says_once_why_lpips_is_missing(tmp_path, monkeypatch):
+    """Images smaller than the network takes, or a broken install without the weights file: no LPIPS figures, the
+    reason in metrics.json and one log line; the other figures as always."""
+    from retinexgs.evaluate import lpips as L
+    from retinexgs.evaluate.evaluate import evaluate
+
+    render = lambda view: {"rgb": view.paired_image.float()}  # noqa: E731
+    small = _eval_scene(tmp_path, 32, 24)
+    logs = []
+    m = evaluate(render, small, tmp_path / "small", use_lpips=True, log=logs.append)
+    assert not [k for k in m["mean"] if "lpips" in k] and m["mean"]["psnr"] == math.inf
+    assert "smaller than LPIPS's 31x31" in m["lpips_unavailable"]
+    assert len([ln for ln in logs if ln.startswith("LPIPS not reported")]) == 1
+    monkeypatch.setattr(L, "WEIGHTS", tmp_path / "missing.npz")
+    logs = []
+    m = evaluate(render, _eval_scene(tmp_path, 48, 40), tmp_path / "broken", use_lpips=True, log=logs.append)
+    assert "missing.npz is missing" in m["lpips_unavailable"] and "lpips" not in m["mean"]
+    assert len([ln for ln in logs if ln.startswith("LPIPS not reported")]) == 1
 
 
 def test_black_lift_sees_lifted_and_crushed_blacks_not_the_exposure():

@@ -36,6 +36,8 @@ def test_demo_overwrite_replaces_only_its_scene_and_run(tmp_path, monkeypatch, c
         (out / name).mkdir(parents=True)
         (out / name / "old.png").write_bytes(b"earlier")
     (out / ".retinexgs-demo").write_text("made by `retinexgs demo`\n")
+    # what the earlier demo recorded as its own (issue 62: anything else in scene/ or run/ is refused)
+    (out / ".retinexgs-demo-files.json").write_text(json.dumps({"files": ["run/old.png", "scene/old.png"]}))
     (out / "notes.txt").write_text("my notes")
     made = {}
 

@@ -411,7 +411,7 @@ def test_command_errors(tmp_path):
     with pytest.raises(UserError, match="not found"):
         _run_cli(["decompose", "--data", str(tmp_path / "nope")])
     (tmp_path / "empty").mkdir()
-    with pytest.raises(UserError, match="no images"):
+    with pytest.raises(UserError, match="no photos in"):
         _run_cli(["decompose", "--data", str(tmp_path / "empty")])
     bad = tmp_path / "bad"
     bad.mkdir()

@@ -1,9 +1,11 @@
-"""``python -m retinexgs.bench NAME [options]``: run one benchmark script (raster, lr3m, fps, quality, scale, ...)."""
+"""``python -m retinexgs.bench NAME [options]`` (or ``retinexgs bench NAME [options]``): run one benchmark script
+(raster, lr3m, fps, quality, scale, ...)."""
 import ast
 import importlib.util
 import sys
 import textwrap
 from pathlib import Path
+from typing import List, Optional
 
 from retinexgs.openmp import bound_openmp_spinning
 
@@ -36,7 +38,15 @@ def _load(name: str):
     return module
 
 
-USAGE = f"usage: python -m retinexgs.bench {{{','.join(BENCHES)}}} [options]"
+PROG = "python -m retinexgs.bench"
+
+
+def usage(prog: str = PROG) -> str:
+    """The usage line of ``prog`` (``python -m retinexgs.bench`` or ``retinexgs bench``)."""
+    return f"usage: {prog} {{{','.join(BENCHES)}}} [options]"
+
+
+USAGE = usage()
 
 
 def _summary(module: str) -> str:
@@ -48,26 +58,29 @@ def _summary(module: str) -> str:
     return " ".join(doc.split("\n\n")[0].split()).replace("``", "")
 
 
-def help_text() -> str:
+def help_text(prog: str = PROG) -> str:
     """``--help``: the usage line and one entry per benchmark."""
     intro = ("Run one RetinexGS benchmark (figures and how to read them: docs/benchmarks.md). Each benchmark "
-             "has its own options: python -m retinexgs.bench NAME --help")
-    lines = [USAGE, "", *textwrap.wrap(intro, 110), "", "benchmarks:"]
+             f"has its own options: {prog} NAME --help")
+    lines = [usage(prog), "", *textwrap.wrap(intro, 110), "", "benchmarks:"]
     for name, module in BENCHES.items():
         lines += textwrap.wrap(_summary(module), 110, initial_indent=f"  {name:<13}", subsequent_indent=" " * 15)
     return "\n".join(lines)
 
 
-def main() -> int:
-    if len(sys.argv) >= 2 and sys.argv[1] in ("-h", "--help", "help"):
-        print(help_text())
+def main(argv: Optional[List[str]] = None, prog: str = PROG) -> int:
+    """Run the benchmark ``argv[0]`` with the options ``argv[1:]`` (default: the command line's); the exit code.
+    ``prog``: how the messages name the command (``retinexgs bench`` dispatches here)."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] in ("-h", "--help", "help"):
+        print(help_text(prog))
         return 0
-    if len(sys.argv) < 2 or sys.argv[1] not in BENCHES:
-        unknown = f"unknown benchmark {sys.argv[1]!r}; " if len(sys.argv) >= 2 else ""
-        print(f"{USAGE}\npython -m retinexgs.bench: error: {unknown}choose one of {', '.join(BENCHES)} "
+    if not argv or argv[0] not in BENCHES:
+        unknown = f"unknown benchmark {argv[0]!r}; " if argv else ""
+        print(f"{usage(prog)}\n{prog}: error: {unknown}choose one of {', '.join(BENCHES)} "
               "(--help lists what each measures)", file=sys.stderr)
         return 2
-    name = sys.argv[1]
+    name = argv[0]
     if name in ("quality", "proxy", "retone", "scale"):  # trainings in child processes (scale: the scene's writer)
         bound_openmp_spinning()  # before torch loads; these often share the CPU with trainings (docs/benchmarks.md)
     try:
@@ -77,7 +90,7 @@ def main() -> int:
             raise
         print(f"benchmark {name!r} is not part of this build", file=sys.stderr)
         return 2
-    return int(module.main(sys.argv[2:]) or 0)
+    return int(module.main(argv[1:]) or 0)
 
 
 if __name__ == "__main__":

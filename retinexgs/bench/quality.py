@@ -124,13 +124,21 @@ def _mean_std(values: Sequence[float], digits: int) -> str:
     return f"{mean:.{digits}f} ± {float(np.std(values, ddof=1)):.{digits}f}"
 
 
-def table(jobs: Sequence[Job], configs: Sequence[str], aligned: bool = False) -> str:
-    """Markdown: per scene and config PSNR / SSIM (mean ± sample std over seeds) and train time; then the mean
-    over scenes (each seed's scene-mean, so its ± is the spread of the whole benchmark over seeds).
+def _with_lpips(values: Sequence[Optional[float]], digits: int = 3) -> str:
+    """The cell's LPIPS part, ``" / mean ± std"``, when every one of ``values`` has it; else "" (runs evaluated
+    before LPIPS was on by default)."""
+    return f" / {_mean_std(list(values), digits)}" if values and all(v is not None for v in values) else ""
 
-    ``aligned``: the figures after the "GT-mean" alignment instead (``psnr_gt_mean`` / ``ssim_gt_mean``,
-    :func:`retinexgs.evaluate.metrics.gt_mean_align`); runs evaluated before those keys existed are left out."""
-    kp, ks = ("psnr_gt_mean", "ssim_gt_mean") if aligned else ("psnr", "ssim")
+
+def table(jobs: Sequence[Job], configs: Sequence[str], aligned: bool = False) -> str:
+    """Markdown: per scene and config PSNR / SSIM / LPIPS (mean ± sample std over seeds) and train time; then the
+    mean over scenes (each seed's scene-mean, so its ± is the spread of the whole benchmark over seeds). A cell
+    shows LPIPS only when all its runs have it (runs evaluated before it was on by default have two figures).
+
+    ``aligned``: the figures after the "GT-mean" alignment instead (``psnr_gt_mean`` / ``ssim_gt_mean`` /
+    ``lpips_gt_mean``, :func:`retinexgs.evaluate.metrics.gt_mean_align`); runs evaluated before those keys existed
+    are left out."""
+    kp, ks, kl = ("psnr_gt_mean", "ssim_gt_mean", "lpips_gt_mean") if aligned else ("psnr", "ssim", "lpips")
     scenes = list(dict.fromkeys(scene_label(j.scene) for j in jobs))
     results: Dict = {}
     low: Dict[str, tuple] = {}
@@ -141,38 +149,44 @@ def table(jobs: Sequence[Job], configs: Sequence[str], aligned: bool = False) ->
         s = scene_label(j.scene)
         secs = None if (j.run / RESUMED).is_file() else m.get("train", {}).get("train_seconds")
         count = m.get("train", {}).get("gaussians")
-        results.setdefault((s, j.config), []).append((j.seed, m["mean"][kp], m["mean"][ks], secs, count))
-        low[s] = (m["mean"]["low_psnr"], m["mean"]["low_ssim"])
+        results.setdefault((s, j.config), []).append((j.seed, m["mean"][kp], m["mean"][ks], secs, count,
+                                                       m["mean"].get(kl)))
+        # the dark photos are the same in every run of a scene: an older run (no LPIPS) does not hide a newer one's
+        low_lpips = m["mean"].get("low_lpips", low.get(s, (None,) * 3)[2])
+        low[s] = (m["mean"]["low_psnr"], m["mean"]["low_ssim"], low_lpips)
     head = "| config | " + " | ".join(scenes) + " | mean |"
     lines = [head, "|" + "---|" * (len(scenes) + 2)]
     if not aligned:  # the dark photo against its truth, as given (aligning it would undo what is being measured)
-        lines.append("| low input | " + " | ".join(f"{low[s][0]:.2f} / {low[s][1]:.3f}" if s in low else "–"
-                                                   for s in scenes) + " | – |")
+        lines.append("| low input | " + " | ".join(f"{low[s][0]:.2f} / {low[s][1]:.3f}{_with_lpips(low[s][2:])}"
+                                                   if s in low else "–" for s in scenes) + " | – |")
     for c in configs:
         cells = []
         per_seed: Dict[int, List[tuple]] = {}
         for s in scenes:
             r = results.get((s, c), [])
-            for seed, p, q, _, _ in r:
-                per_seed.setdefault(seed, []).append((p, q))
-            secs = [t for *_, t, _ in r if t is not None]
-            counts = [n for *_, n in r if n is not None]
+            for seed, p, q, _, _, lp in r:
+                per_seed.setdefault(seed, []).append((p, q, lp))
+            secs = [t for _, _, _, t, _, _ in r if t is not None]
+            counts = [n for _, _, _, _, n, _ in r if n is not None]
             # the Gaussian count beside the time: a change that densifies more also trains slower and may fit noise
             extra = [] if aligned else ([f"{np.mean(secs):.0f} s"] if secs else []) + (
                 [f"{np.mean(counts) / 1000:.0f}k Gaussians"] if counts else [])
             cells.append(f"{_mean_std([r_[1] for r_ in r], 2)} / {_mean_std([r_[2] for r_ in r], 3)}"
-                         + (f" ({', '.join(extra)})" if extra else ""))
+                         + _with_lpips([r_[5] for r_ in r]) + (f" ({', '.join(extra)})" if extra else ""))
         full = [v for v in per_seed.values() if len(v) == len(scenes)]
-        mean_cell = (f"{_mean_std([np.mean([p for p, _ in v]) for v in full], 2)} / "
-                     f"{_mean_std([np.mean([q for _, q in v]) for v in full], 3)}") if full else "–"
+        lp_full = [None if any(lp is None for *_, lp in v) else float(np.mean([lp for *_, lp in v])) for v in full]
+        mean_cell = (f"{_mean_std([np.mean([p for p, _, _ in v]) for v in full], 2)} / "
+                     f"{_mean_std([np.mean([q for _, q, _ in v]) for v in full], 3)}"
+                     + _with_lpips(lp_full)) if full else "–"
         n = sorted({len(results.get((s, c), [])) for s in scenes})
         lines.append(f"| `{c}` (n={'/'.join(map(str, n))}) | " + " | ".join(cells) + f" | {mean_cell} |")
     if aligned:
         return "\n".join(lines) + "\n\nThe same runs after the \"GT-mean\" alignment of low-light enhancement: each " \
-            "output scaled so that its grey mean equals its truth's, then PSNR (dB) / SSIM. What this leaves out is " \
-            "the exposure level of the normal-light photos, which no method trained on the dark photos alone can " \
-            "know; the plain figures above are the benchmark's.\n"
-    return "\n".join(lines) + "\n\nPSNR (dB) / SSIM on the test views against the normal-light photos, mean ± sample " \
+            "output scaled so that its grey mean equals its truth's, then PSNR (dB) / SSIM / LPIPS. What this " \
+            "leaves out is the exposure level of the normal-light photos, which no method trained on the dark " \
+            "photos alone can know; the plain figures above are the benchmark's.\n"
+    return "\n".join(lines) + "\n\nPSNR (dB) / SSIM / LPIPS (AlexNet, lower is better; absent for runs evaluated " \
+        "before it was on) on the test views against the normal-light photos, mean ± sample " \
         "std over seeds (n = seeds per scene); (s) = mean training time (of the runs trained in one go), then " \
         "the mean number of Gaussians at the end. The " \
         "mean column averages each seed's scene means (seeds with every scene only).\n"

@@ -9,12 +9,7 @@ from pathlib import Path
 from typing import List, Optional
 
 from retinexgs.errors import UserError
-
-_EXTS = (".jpg", ".jpeg", ".png")
-
-
-def _images_in(folder: Path) -> List[Path]:
-    return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in _EXTS)
+from retinexgs.formats import IMAGE_EXTENSIONS, readable_formats  # the one list train, sfm, noise, darken read
 
 
 def _resolve_frame(scene: Path, file_path: str) -> Path:
@@ -22,11 +17,10 @@ def _resolve_frame(scene: Path, file_path: str) -> Path:
     p = (scene / file_path).resolve() if not Path(file_path).is_absolute() else Path(file_path)
     if p.is_file():
         return p
-    if p.suffix.lower() not in _EXTS:
-        for ext in _EXTS + tuple(e.upper() for e in _EXTS):
-            cand = p.with_name(p.name + ext)
-            if cand.is_file():
-                return cand
+    if p.suffix.lower() not in IMAGE_EXTENSIONS and p.parent.is_dir():  # any case: NAME.HEIC, NAME.dng
+        for q in sorted(p.parent.iterdir()):
+            if q.stem == p.name and q.suffix.lower() in IMAGE_EXTENSIONS and q.is_file():
+                return q
     return p
 
 
@@ -57,11 +51,14 @@ def list_scene_images(scene: Path, images_subdir: Optional[str] = None) -> List[
             raise UserError(f"{len(missing)} image(s) listed in {transforms} are missing: "
                             f"{', '.join(missing[:3])}{more}")
         return paths
+    from retinexgs.data.images import list_images, no_images_reason  # lazy: --help stays fast
+
     folder = scene / images_subdir if images_subdir and (scene / images_subdir).is_dir() else scene
-    paths = _images_in(folder)
+    paths = list_images(folder)
     if not paths:
-        raise UserError(f"no images (.jpg/.jpeg/.png) found in {folder}"
-                        + (f" (and no {images_subdir}/ subfolder)" if folder == scene and images_subdir else ""))
+        raise UserError(f"no photos in {folder}"
+                        + (f" (and no {images_subdir}/ subfolder)" if folder == scene and images_subdir else "")
+                        + f": {no_images_reason(folder)}")
     return paths
 
 
@@ -107,6 +104,7 @@ def run(args: argparse.Namespace) -> int:
         read_image(p)
     hint = "--cache DIR (or --set data.cache_dir=DIR)"
     balance = None  # data.white_balance: the scene's views carry it (open_scene)
+    names = None  # the user's photos, named in errors where paths are the loader's undistorted/downscaled copies
     if _has_poses(scene, cfg.data.cache_dir):
         # Decompose exactly the images train will read: undistorted and downscaled copies where the scene
         # needs them, so that train finds every entry in the cache.
@@ -114,6 +112,7 @@ def run(args: argparse.Namespace) -> int:
 
         train = open_scene(scene, cfg, cache_hint=hint).train
         paths, balance = [v.image_path for v in train], (train[0].balance if train else None)
+        names = [v.source_path or v.image_path for v in train]
     else:
         if cfg.data.downscale != 1:
             raise UserError(f"{scene} has no camera poses yet (no transforms JSON, COLMAP model or cached SfM), so "
@@ -125,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
     _, report = decompose_images(paths, dcfg.method, dict(dcfg.params) or None, cache_root,
                                  args.device, keep=False, preview=args.preview, progress=not args.quiet,
                                  cache_hint=hint, sweep=True, announce=False, raw_denoise=dcfg.raw_denoise,
-                                 balance=balance)
+                                 balance=balance, names=names)
     n = report["swept"]
     swept = f", {n} old-format entr{'y' if n == 1 else 'ies'} deleted" if n else ""
     print(f"{len(paths)} view(s) decomposed with {dcfg.method}: {report['computed']} computed, "
@@ -199,8 +198,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "results where train looks for them (same settings: --config/--set as for train). A "
                     "scene with poses (transforms JSON or COLMAP model) is loaded as train loads it "
                     "(undistorted, downscaled by data.downscale) and its train views are decomposed; a "
-                    "folder of photos without poses has every .jpg/.jpeg/.png in SCENE/<images-subdir>/ "
-                    "(or SCENE) decomposed. Entries are keyed by the photo's content and the settings, so "
+                    "folder of photos without poses has every photo in SCENE/<images-subdir>/ (or SCENE) "
+                    f"decomposed ({readable_formats()}, as train reads them). Entries are keyed by the photo's "
+                    "content and the settings, so "
                     "they are reused unless the photo or the parameters changed (also in a copy of the "
                     "scene). Nothing is deleted on its own: entries of other resolutions (data.downscale), "
                     "parameters, edited or removed photos, or other scenes sharing --cache DIR are kept for "

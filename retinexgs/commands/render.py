@@ -22,9 +22,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     # one paragraph) like every other input problem, and nothing is loaded first.
     p.add_argument("--views", default=None, help="test (default), train, val (when the scene has a val split), or path (a camera path; see --path)")
     p.add_argument("--out", type=Path,
-                   help="views and --format png: a folder (a name ending in .mp4 is refused); a path video: a .mp4 "
-                        "file, or a folder to write path_<kind>.mp4 into. Default RUN/renders/<views> or "
-                        "RUN/renders/path_<kind>.mp4")
+                   help="views and --format png/exr: a folder (a name ending in .mp4, or in an image file's "
+                        "suffix such as .exr or .png, is refused); a path video: a .mp4 file, or a folder to write "
+                        "path_<kind>.mp4 into. Default RUN/renders/<views> or RUN/renders/path_<kind>.mp4")
     p.add_argument("--maps", default="enhanced",
                    help="comma-separated: enhanced,R,L,L_raw,depth,low (default enhanced). L is the illumination "
                         "normalised for viewing, L̂/L_ref clipped to [0,1] with one scene-wide L_ref (as eval's "
@@ -47,7 +47,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--white-balance", default="as-trained", metavar="WB",
                    help="a white-balance edit of the enhanced image, in linear light before the highlight shoulder "
                         "and the sRGB curve (PNG, EXR and MP4); a neutral's green is kept. as-trained (default), "
-                        "auto (grey-edge over the training views' renders), gains:R,G,B (divided by G), "
+                        "auto (grey-edge over the training views' renders), gains:R,G,B (divided by G; R/G and B/G "
+                        "within 1/512..512), "
                         "temp:KELVIN[,TINT] (KELVIN 1000..40000 is the light the scene is taken to be lit by, "
                         "adapted to 6504 K, the trained scene's neutral: higher is warmer; TINT -100..100, + "
                         "magenta), or pick:VIEW,X,Y (pixel column X, row Y of view VIEW, e.g. 0001, is made grey). "

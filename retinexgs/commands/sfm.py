@@ -3,6 +3,9 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
+
+from retinexgs.formats import readable_formats
 
 
 def register(subparsers) -> None:
@@ -10,8 +13,14 @@ def register(subparsers) -> None:
     p = subparsers.add_parser(
         "sfm", help="estimate camera poses and sparse points from a folder of photos (pycolmap)",
         description="Run structure-from-motion on the photos in --images and cache the COLMAP model in "
-                    "--out/sparse/0. Dark photos are brightened and denoised for feature extraction.")
-    p.add_argument("--images", required=True, help="folder of photos (not searched recursively)")
+                    "--out/sparse/0. Dark photos are brightened and denoised for feature extraction. Photos "
+                    f"are read from {readable_formats()}.")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--images", help="folder of photos (not searched recursively)")
+    src.add_argument("--video", type=Path,
+                     help="a video instead of photos: its sharpest frame per interval (as retinexgs frames does, "
+                          "at most 60) goes to SCENE/images first, SCENE being the video's path without its "
+                          "extension (clips/night.mp4: clips/night); then retinexgs train --data SCENE")
     p.add_argument("--out", default=None,
                    help="output folder (default: <scene>/retinexgs_sfm, the scene being the photo folder, "
                         "or its parent when the folder is named images/); COLMAP files already there that "
@@ -28,23 +37,50 @@ def register(subparsers) -> None:
     p.add_argument("--force", action="store_true",
                    help="recompute even when a cached model matches, and replace COLMAP files (database.db, "
                         "sparse/0) in --out that retinexgs sfm did not make (without it they are refused)")
+    p.add_argument("--min-registered", type=float, default=None, metavar="SHARE",
+                   help="refuse the model when SfM registers less than this share of the photos (default 0.5; 0 "
+                        "accepts any model; the photos left out are named either way)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """Run SfM for parsed ``args`` and print a summary; returns the exit code."""
-    from retinexgs.data.sfm import run_sfm  # lazy: --help stays fast
+    from retinexgs.data.sfm import MIN_REGISTERED_SHARE, run_sfm  # lazy: --help stays fast
 
+    say = None if args.quiet else (lambda m: print(f"[sfm] {m}", file=sys.stderr, flush=True))
+    images = args.images if args.video is None else _frames_from_video(args.video, say)
     enhance = {"auto": "auto", "on": True, "off": False}[args.enhance]
-    result = run_sfm(args.images, args.out, matching=args.matching, enhance=enhance,
+    result = run_sfm(images, args.out, matching=args.matching, enhance=enhance,
                      camera_model=args.camera_model, max_num_features=args.max_features,
                      num_threads=args.threads, force=args.force,
-                     progress=None if args.quiet else (lambda m: print(f"[sfm] {m}", file=sys.stderr,
-                                                                         flush=True)))
+                     min_registered=MIN_REGISTERED_SHARE if args.min_registered is None else args.min_registered,
+                     progress=say)
     print(f"registered views: {result.num_registered}/{result.num_images}")
     print(f"points: {result.num_points}")
     print(f"model: {result.model_dir}")
     print(f"time: {result.seconds:.1f} s{' (cached)' if result.cached else ''}"
           f"{', features from enhanced copies' if result.enhanced else ''}")
     return 0 if result.num_registered > 0 else 1
+
+
+def _frames_from_video(video: Path, say) -> Path:
+    """``sfm --video``: the video's frames in SCENE/images (made by retinexgs frames' defaults, or those an
+    earlier call made from the same video); returns that folder."""
+    from retinexgs.data.video import check_video_file, extract_frames, frames_made_from
+    from retinexgs.errors import UserError
+
+    video = check_video_file(video)
+    # A video without an extension would share its path with the scene folder.
+    scene = video.with_suffix("") if video.suffix else video.with_name(video.name + "-scene")
+    images = scene / "images"
+    if frames_made_from(images, video):
+        if say:
+            say(f"using the frames of {video.name} already in {images}")
+        return images
+    if images.is_dir() and any(images.iterdir()):
+        raise UserError(f"sfm --video writes the frames of {video} into {images}, which already holds other files: "
+                        f"make the frames yourself with retinexgs frames --video {video} --out DIR, then run "
+                        f"retinexgs sfm --images DIR")
+    extract_frames(video, images, progress=say)
+    return images

@@ -29,19 +29,23 @@ import numpy as np
 
 from retinexgs.data.srgb import linear_to_srgb
 from retinexgs.errors import UserError
+# Raw types that scene loading accepts as photos (listing, reading, SfM): those whose cameras LibRaw reads as a 2x2
+# Bayer mosaic, kept with every other readable type in retinexgs.formats (the one list). Compared in lower case.
+from retinexgs.formats import BAYER_RAW_EXTENSIONS  # noqa: F401 (the name colmap and images import from here)
 
 # Raw types LibRaw reads that later stages will accept; compared in lower case.
 RAW_EXTENSIONS = (".dng", ".crw", ".cr2", ".cr3", ".nef", ".nrw", ".arw", ".srf", ".sr2", ".raf", ".orf",
                   ".rw2", ".pef", ".srw", ".3fr", ".iiq", ".erf", ".mrw", ".kdc", ".dcr", ".mos", ".x3f")
-# Raw types that scene loading accepts as photos (listing, reading, SfM): those whose cameras LibRaw reads as a
-# 2x2 Bayer mosaic. .raf is kept although most Fujifilm X bodies are X-Trans (read_raw refuses those with one
-# line naming the sensor); Sigma .x3f (Foveon, never Bayer) and the rarer medium-format/legacy types of
-# RAW_EXTENSIONS are left out. Compared in lower case.
-BAYER_RAW_EXTENSIONS = (".dng", ".cr2", ".cr3", ".crw", ".nef", ".nrw", ".arw", ".srf", ".sr2", ".raf", ".orf",
-                        ".rw2", ".pef", ".srw")
 # Raw types that are plain TIFF files (header II*\0 or MM\0*): their structure is checked before LibRaw.
 TIFF_RAW_EXTENSIONS = (".dng", ".cr2", ".nef", ".nrw", ".arw", ".srf", ".sr2", ".pef", ".3fr", ".erf", ".kdc",
                        ".dcr", ".mos", ".iiq")
+# GoPro's raw photos (.gpr): DNGs whose mosaic is VC-5 coded (TIFF compression 9), which LibRaw decodes only when
+# built with GoPro's SDK, as rawpy's wheels are not. Recognised (by name, or by that compression in a renamed file)
+# to say so in one line instead of "no photos" or LibRaw's "unsupported file format".
+GPR_EXTENSIONS = (".gpr",)
+_VC5_COMPRESSION = 9
+GPR_ADVICE = ("GoPro GPR is a DNG variant compressed with VC-5, which LibRaw (rawpy) cannot decode; convert it to a "
+              "plain DNG first, e.g. with GoPro's gpr_tools: gpr_tools -i IN.GPR -o OUT.DNG")
 MIN_RAW_BYTES = 1024  # no real raw file is smaller; random junk this small is refused before LibRaw
 _MAX_IFDS = 64
 _TYPE_SIZES = {1: 1, 2: 1, 3: 2, 4: 4, 5: 8, 6: 1, 7: 1, 8: 2, 9: 4, 10: 8, 11: 4, 12: 8, 13: 4, 16: 8}
@@ -218,7 +222,10 @@ def _check_path(path: Path) -> int:
 
 
 def _open_tiff(path: Path, size: int) -> Optional[_Tiff]:
-    """The TIFF structure of a TIFF-based raw, checked; None for other formats (LibRaw checks those)."""
+    """The TIFF structure of a TIFF-based raw, checked; None for other formats (LibRaw checks those). UserError
+    for a GoPro GPR (:data:`GPR_ADVICE`), by name or by its VC-5 compression."""
+    if path.suffix.lower() in GPR_EXTENSIONS:
+        raise UserError(f"{path}: {GPR_ADVICE}")
     with open(path, "rb") as f:
         magic = f.read(4)
         is_tiff = magic in (b"II*\0", b"MM\0*")
@@ -231,6 +238,8 @@ def _open_tiff(path: Path, size: int) -> Optional[_Tiff]:
             return None
         try:
             tiff = _Tiff(path, size)
+            if any(tiff.get(ifd, 259, [1])[0] == _VC5_COMPRESSION for ifd in tiff.ifds):  # a GPR renamed .dng
+                raise UserError(f"{path}: {GPR_ADVICE}")
             tiff.check_image_data()
         except (_Corrupt, struct.error, UnicodeDecodeError) as exc:
             raise UserError(f"{path}: not a readable {path.suffix.upper().lstrip('.') or 'raw'} file: {exc}") \
@@ -683,8 +692,9 @@ def read_header(path: Union[str, Path]) -> RawHeader:
 
 
 def is_raw_path(path: Union[str, Path]) -> bool:
-    """True when the name ends in one of :data:`BAYER_RAW_EXTENSIONS` (any case)."""
-    return Path(path).suffix.lower() in BAYER_RAW_EXTENSIONS
+    """True when the name ends in one of :data:`BAYER_RAW_EXTENSIONS` or is a GoPro .gpr (any case): a .gpr a scene
+    names goes to the raw reader, which refuses it in one line (:data:`GPR_ADVICE`), not to Pillow."""
+    return Path(path).suffix.lower() in BAYER_RAW_EXTENSIONS + GPR_EXTENSIONS
 
 
 @dataclass

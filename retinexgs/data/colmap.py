@@ -24,7 +24,6 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from retinexgs.data.camera import Intrinsics, c2w_from_w2c, camera_from_colmap, check_rotation
-from retinexgs.data.camera_raw import BAYER_RAW_EXTENSIONS
 from retinexgs.data.declared import DeclaredScene, DeclaredView
 from retinexgs.errors import UserError
 from retinexgs.data.pairing import check_same_files, high_partner
@@ -62,12 +61,28 @@ def model_format(model_dir: Path) -> str:
     return ""
 
 
+# The three files of a COLMAP model, per format; rigs/frames (COLMAP >= 3.12) are optional.
+MODEL_FILES = {"bin": ("cameras.bin", "images.bin", "points3D.bin"),
+               "txt": ("cameras.txt", "images.txt", "points3D.txt")}
+
+
 def find_model_dir(path: Path) -> Optional[Path]:
-    """The first folder under ``path`` (see MODEL_SUBDIRS) holding cameras.bin or cameras.txt."""
+    """The first folder under ``path`` (see MODEL_SUBDIRS) holding cameras.bin or cameras.txt.
+
+    UserError for a folder on that list holding part of a model without its cameras file (e.g. only
+    points3D.bin, a half copy): taken for "no model", the scene went to SfM, which wrote into the scene folder
+    for a minute; the files missing are named instead."""
     for sub in MODEL_SUBDIRS:
         d = (Path(path) / sub)
         if model_format(d):
             return d
+        for fmt, names in MODEL_FILES.items():
+            present = [n for n in names if (d / n).is_file()]
+            if present:
+                missing = [n for n in names if n not in present]
+                raise UserError(f"COLMAP model {d} is incomplete: it holds {', '.join(present)} but not "
+                                f"{', '.join(missing)}; copy the whole model (cameras, images and points3D) "
+                                f"or remove the folder")
     return None
 
 
@@ -368,30 +383,85 @@ def similarity_from_centres(src: np.ndarray, dst: np.ndarray) -> Tuple[float, np
     return s, R, mu_d - s * R @ mu_s
 
 
-def points_in_frame_of(model: ColmapModel, views: Sequence[DeclaredView]) -> np.ndarray:
-    """The model's points expressed in the world frame of ``views`` (matched to model images by file name).
+# Below this many views matched to model images, a similarity between the two frames is not determined
+# (3 non-collinear centres fix its 7 degrees of freedom).
+MIN_FRAME_MATCHES = 3
+# A fit whose camera centres miss their matches by more than this share of the rig's spread (RMS) means the views
+# were matched to the wrong images or the two frames are not one reconstruction: points mapped through it would
+# land in the wrong place, so random points are used. Frames that are copies of each other fit to ~1e-6.
+FRAME_FIT_TOLERANCE = 0.05
 
-    LOM and instant-ngp JSON poses may be a re-centred/rotated/scaled copy of the COLMAP frame; the
-    similarity between matched camera centres maps the points across. With fewer than 3 matches the
-    frames are assumed equal.
-    """
-    by_name = {Path(im.name).name: im for im in model.images.values()}
-    by_stem = {Path(im.name).stem: im for im in model.images.values()}
-    src, dst = [], []
+
+def match_views_to_model(model: ColmapModel, views: Sequence[DeclaredView]
+                         ) -> Tuple[List[Tuple[ColmapImage, DeclaredView]], List[str]]:
+    """(model image, view) pairs, and the stems that could not be matched by stem because they are ambiguous.
+
+    A view matches the model image of its file name, else the one of its stem in any format (a LOM scene's
+    ``low/X.png`` or ``low/X.dng`` takes the model's ``X.JPG``: the photos are often converted, the model keeps
+    the camera's names). A stem names two model images (``a.JPG`` and ``a.png``) or two of the views' files:
+    then only full names match it."""
+    by_name: Dict[str, List[ColmapImage]] = {}
+    by_stem: Dict[str, List[ColmapImage]] = {}
+    for im in model.images.values():
+        by_name.setdefault(Path(im.name).name, []).append(im)
+        by_stem.setdefault(Path(im.name).stem, []).append(im)
+    view_files: Dict[str, set] = {}
     for v in views:
-        # by stem as well: a raw scene's low/X.dng has the poses of the model's X.png (darken --raw copies both)
-        im = by_name.get(v.image.name) or by_name.get(Path(v.name).name)
-        if im is None and v.image.suffix.lower() in BAYER_RAW_EXTENSIONS:
-            im = by_stem.get(v.image.stem)
-        if im is not None:
-            src.append(im.c2w[:3, 3])
-            dst.append(v.c2w[:3, 3])
-    if len(src) < 3:
-        return model.points
-    src_a, dst_a = np.asarray(src), np.asarray(dst)
+        view_files.setdefault(Path(v.image).stem, set()).add(Path(v.image).name)
+    pairs: List[Tuple[ColmapImage, DeclaredView]] = []
+    ambiguous: List[str] = []
+    for v in views:
+        hit = None
+        for name in (Path(v.image).name, Path(v.name).name):
+            if len(by_name.get(name, [])) == 1:
+                hit = by_name[name][0]
+                break
+        stem = Path(v.image).stem
+        if hit is None and stem in by_stem:
+            if len(by_stem[stem]) == 1 and len(view_files[stem]) == 1:
+                hit = by_stem[stem][0]
+            elif stem not in ambiguous:
+                ambiguous.append(stem)
+        if hit is not None:
+            pairs.append((hit, v))
+    return pairs, ambiguous
+
+
+def points_in_frame_of(model: ColmapModel, views: Sequence[DeclaredView]) -> Optional[np.ndarray]:
+    """The model's points expressed in the world frame of ``views``, or None (after one ``warning:`` line on
+    stderr) when the two frames cannot be related: the caller then starts from random points.
+
+    LOM and instant-ngp JSON poses may be a re-centred/rotated/scaled copy of the COLMAP frame; the similarity
+    between matched camera centres (:func:`match_views_to_model`) maps the points across. Fewer than
+    ``MIN_FRAME_MATCHES`` matches, or a fit off by more than ``FRAME_FIT_TOLERANCE``, returns None: assuming the
+    frames equal put the points elsewhere (733 Gaussians and -4 dB on a LOM scene saved as PNG).
+    """
+    from retinexgs.data.scene import warn  # lazy: the loaders' warning style (scene imports torch)
+
+    pairs, ambiguous = match_views_to_model(model, views)
+    src_a = np.asarray([im.c2w[:3, 3] for im, _ in pairs], np.float64).reshape(-1, 3)
+    dst_a = np.asarray([v.c2w[:3, 3] for _, v in pairs], np.float64).reshape(-1, 3)
+    if len(pairs) < MIN_FRAME_MATCHES:
+        views_shown = ", ".join(sorted({Path(v.image).name for v in views})[:3])
+        model_shown = ", ".join(sorted(Path(im.name).name for im in model.images.values())[:3])
+        why = (f"; stems {', '.join(ambiguous[:3])} name several files, so only full names match them"
+               if ambiguous else "")
+        warn(f"the COLMAP model {model.path} names {len(model.images)} images but only {len(pairs)} of the "
+             f"{len(views)} views match one by file name or stem (views: {views_shown} ...; model: {model_shown} "
+             f"...){why}: its {len(model.points)} points cannot be placed in the views' frame, so training starts "
+             f"from random points; rename the model's images to the photos' names to use them")
+        return None
     if np.allclose(src_a, dst_a, atol=1e-6 * (1 + np.abs(dst_a).max())):
         return model.points
     s, R, t = similarity_from_centres(src_a, dst_a)
+    spread = float(np.sqrt(((dst_a - dst_a.mean(0)) ** 2).sum(1).mean()))
+    miss = float(np.sqrt(((s * src_a @ R.T + t - dst_a) ** 2).sum(1).mean()))
+    if not (spread > 0 and miss <= FRAME_FIT_TOLERANCE * spread):  # coinciding views fix no frame either
+        warn(f"the camera centres of the COLMAP model {model.path} and of the {len(pairs)} views matched to it do "
+             f"not agree up to a similarity (off by {miss / max(spread, 1e-300):.0%} of the cameras' spread): the "
+             f"views were matched to the wrong images or come from another reconstruction, so its points are not "
+             f"used and training starts from random points")
+        return None
     return s * model.points @ R.T + t
 
 

@@ -36,15 +36,13 @@ from typing import Iterator, List, Tuple
 import numpy as np
 import torch
 
-from retinexgs.data.camera_raw import BAYER_RAW_EXTENSIONS, is_raw_path
+from retinexgs.data.camera_raw import GPR_ADVICE, GPR_EXTENSIONS, is_raw_path
 from retinexgs.errors import UserError
 from retinexgs.fileio import atomic_write
+# The one list of readable types (retinexgs/formats.py, light enough for --help texts), re-exported here.
+from retinexgs.formats import BAYER_RAW_EXTENSIONS, HEIF_EXTENSIONS, IMAGE_EXTENSIONS, readable_formats  # noqa: F401
 
-# Compared in lower case: .HEIC, .JPG and .jpg alike. HEIC/HEIF need pillow-heif (an install requirement).
-# Camera raw types: camera_raw.BAYER_RAW_EXTENSIONS (read with rawpy, an install requirement).
-RAW_EXTENSIONS = BAYER_RAW_EXTENSIONS
-IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".heic", ".heif") + RAW_EXTENSIONS
-HEIF_EXTENSIONS = (".heic", ".heif")
+RAW_EXTENSIONS = BAYER_RAW_EXTENSIONS  # camera raw types (read with rawpy, an install requirement)
 # The image cache's copy of a raw view (float32 [H,W,3], extended sRGB encoding): readable, never listed as a photo.
 FLOAT_CACHE_EXTENSION = ".npy"
 
@@ -52,11 +50,6 @@ FLOAT_CACHE_EXTENSION = ".npy"
 def is_raw_file(path: Path) -> bool:
     """True when ``path``'s extension is a camera raw type (:data:`RAW_EXTENSIONS`, any case)."""
     return is_raw_path(path)
-
-
-def readable_formats() -> str:
-    """The readable file types for messages: ".jpg, .jpeg, ... .heif (any case)"."""
-    return ", ".join(IMAGE_EXTENSIONS) + " (any case)"
 
 
 def no_images_reason(folder: Path) -> str:
@@ -69,6 +62,8 @@ def no_images_reason(folder: Path) -> str:
                     if p.is_file() and not p.name.startswith(".")})
     held = (f"it holds only {', '.join(kinds[:8])}{' ...' if len(kinds) > 8 else ''} files" if kinds
             else "it holds no files")
+    if any(k in GPR_EXTENSIONS for k in kinds):  # say why GoPro raws are not read, and how to convert them
+        return f"{held}: {GPR_ADVICE}"
     return f"photos are read from {readable_formats()}; {held}"
 
 

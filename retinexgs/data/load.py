@@ -13,9 +13,13 @@ Caches (the only files written into the scene folder; ``cache_dir=`` moves them 
 Camera raw photos (docs/raw.md, "Raw scenes"): a view whose image is a raw file is read as a float sRGB photo
 (:func:`retinexgs.data.images.read_image_float`), divided by its exposure relative to the median of its folder's
 raw files. Refused, one line each: raw and other photos in one split; raw photos of different cameras
-(EXIF make/model) or sizes in one split. Printed: one line with the exposure factors' range, one warning naming
-the raw files without exposure metadata (taken at the median). A bare folder of RAW + JPEG pairs gets its poses
-from the JPEGs (SfM) and trains on the raw files.
+(EXIF make/model) or sizes in one split (a bare folder's raw files by :func:`retinexgs.data.sfm.run_sfm`,
+before SfM: the views after it are only the photos it registered). Printed: one line with the exposure factors'
+range, one warning naming the raw files without exposure metadata (taken at the median). A bare folder of
+RAW + JPEG pairs gets its poses from the JPEGs (SfM) and trains on the raw files.
+
+A bare folder goes through SfM (``sfm_options``, e.g. ``min_registered``): the photos it did not register are
+named in a warning, and too few registered is refused (:func:`retinexgs.data.sfm.check_registration`).
 
 Without input points (a transforms JSON with no COLMAP model), initial points are random: points along
 random train-camera rays at depths uniform in [0.05, 2.5] (normalised units, i.e. up to 2.5 times the
@@ -80,11 +84,14 @@ def _fit_camera(view: DeclaredView) -> Intrinsics:
     w, h = image_size(view.image)
     cam = view.camera
     pw, ph = image_size(view.paired) if view.paired is not None else (w, h)
-    if is_raw_file(Path(view.image)) and (pw - w, ph - h) in ((1, 0), (0, 1), (1, 1)) \
-            and (cam.width, cam.height) in ((pw, ph), (w, h)):
+    odd = ((1, 0), (0, 1), (1, 1))
+    if is_raw_file(Path(view.image)) and (
+            ((pw - w, ph - h) in odd and (cam.width, cam.height) in ((pw, ph), (w, h)))
+            or ((pw, ph) == (w, h) and (cam.width - w, cam.height - h) in odd)):
         # A raw file's odd last row/column is dropped (whole 2x2 colour quads): its view is the top-left w x h of
         # the sensor, so the camera keeps its focal length and centre and the truth is cropped alike
-        # (View.paired_image).
+        # (View.paired_image). The same for a camera of the uncropped size without a truth (a RAW + JPEG pair posed
+        # from its JPEG): rescaling it instead stretched one axis (1 x 0.9973), two camera models for one photo.
         return Intrinsics(w, h, cam.fx, cam.fy, cam.cx, cam.cy, cam.dist)
     if view.paired is not None and (pw, ph) != (w, h):
         raise UserError(f"paired images differ in size: {view.image} is {w}x{h}, "

@@ -27,7 +27,8 @@ import numpy as np
 from retinexgs.data.camera_raw import (RawPhoto, estimate_noise, folder_exposure, noise_from_profile,
                                       normalised_mosaic, read_raw)
 
-__all__ = ["BILINEAR_VARIANCE", "RawNoise", "view_noise", "scene_noise", "DISAGREEMENT", "denoised_preview"]
+__all__ = ["BILINEAR_VARIANCE", "RawNoise", "ViewNoise", "view_noise", "views_noise", "scene_noise",
+           "combine_views", "DISAGREEMENT", "NOISE_VIEWS", "denoised_preview"]
 
 # The mean variance of a bilinear-demosaiced channel over the 2×2 pattern, per sample's (R, G, B): R/B are sampled at
 # 1 of 4 pixels, averaged over 2 at 2 of 4 and over 4 at 1 of 4 (1/4 + 2/4·1/2 + 1/4·1/4); G at 2 of 4 and over 4
@@ -102,28 +103,56 @@ def view_noise(photo: RawPhoto, factor: float = 1.0) -> Tuple[Optional[np.ndarra
     return None, None, "none", f"{photo.path}: too little flat area to measure its noise; not used for the model"
 
 
+@dataclass
+class ViewNoise:
+    """One raw photo's noise as :func:`view_noise` gives it (a, b None when neither source gives a finite model);
+    ``black``: every mosaic sample at or below the black level (a lens-cap frame written without read noise), whose
+    view is all zero."""
+    path: Path
+    a: Optional[np.ndarray]
+    b: Optional[np.ndarray]
+    source: str
+    note: Optional[str]
+    black: bool = False
+
+
+def views_noise(paths: Sequence[Path], views: int = NOISE_VIEWS, progress: bool = False) -> List[ViewNoise]:
+    """:class:`ViewNoise` of up to ``views`` of ``paths`` (spread evenly, the ones :func:`scene_noise` reads), each
+    at its view's exposure factor within its folder; ``progress``: a bar on stderr (a large raw file takes a second
+    or two)."""
+    from tqdm import tqdm
+
+    paths = [Path(p) for p in paths]
+    chosen = paths[::max(1, len(paths) // views)][:views]
+    out = []
+    for p in tqdm(chosen, desc="raw noise", unit="photo", disable=not progress, dynamic_ncols=True):
+        factor = folder_exposure(p.parent).factors.get(p.name, 1.0)
+        photo = read_raw(p)
+        black = not bool(np.any(normalised_mosaic(photo) > 0))
+        a, b, source, note = view_noise(photo, factor)
+        out.append(ViewNoise(p, a, b, source, note, black))
+    return out
+
+
+def combine_views(measured: Sequence[ViewNoise]) -> Optional[RawNoise]:
+    """:class:`RawNoise` of the views ``measured``: per channel the median of their (a, b); None when no view gives
+    a model."""
+    got = [v for v in measured if v.a is not None and v.b is not None]
+    notes = [v.note for v in measured if v.note]
+    if not got:
+        return None
+    a = np.maximum(np.median(np.stack([v.a for v in got]), axis=0), 0.0)
+    # a variance floor: never a zero weight's inverse
+    b = np.maximum(np.median(np.stack([v.b for v in got]), axis=0), 1e-12)
+    sources = {v.source for v in got}
+    source = sources.pop() if len(sources) == 1 else "mixed"
+    return RawNoise(tuple(float(v) for v in a), tuple(float(v) for v in b), source, notes)
+
+
 def scene_noise(paths: Sequence[Path], views: int = NOISE_VIEWS) -> Optional[RawNoise]:
     """:class:`RawNoise` of a raw scene from up to ``views`` of its files (spread evenly): per channel the median
     of the views' (a, b), each at its view's exposure factor. None when no view gives a model."""
-    paths = [Path(p) for p in paths]
-    chosen = paths[::max(1, len(paths) // views)][:views]
-    got_a, got_b, sources, notes = [], [], set(), []
-    for p in chosen:
-        factor = folder_exposure(p.parent).factors.get(p.name, 1.0)
-        a, b, source, note = view_noise(read_raw(p), factor)
-        if note:
-            notes.append(note)
-        if a is None:
-            continue
-        got_a.append(a)
-        got_b.append(b)
-        sources.add(source)
-    if not got_a:
-        return None
-    a = np.maximum(np.median(np.stack(got_a), axis=0), 0.0)
-    b = np.maximum(np.median(np.stack(got_b), axis=0), 1e-12)  # a variance floor: never a zero weight's inverse
-    source = sources.pop() if len(sources) == 1 else "mixed"
-    return RawNoise(tuple(float(v) for v in a), tuple(float(v) for v in b), source, notes)
+    return combine_views(views_noise(paths, views))
 
 
 # ---- the 2D priors' photo -----------------------------------------------------------------------------------------

@@ -39,6 +39,7 @@ from retinexgs.data.srgb import linear_to_srgb, srgb_to_linear  # noqa: F401 (re
 from retinexgs.data.images import list_images, no_images_reason, read_image_float, write_image_atomic
 from retinexgs.errors import UserError
 from retinexgs.fileio import atomic_write_text, check_writable_folder, is_out_of_space, out_of_space_error
+from retinexgs.formats import PLAIN_EXTENSIONS
 
 if TYPE_CHECKING:  # a type hint only: raw_sim is imported lazily where --raw uses it
     from retinexgs.data.raw_sim import RawCamera
@@ -102,12 +103,35 @@ class DarkenReport:
     exposures: Dict[str, float] = field(default_factory=dict)
 
 
-def _scene_photos(src: Path) -> Tuple[Path, List[Tuple[Path, str]]]:
-    """(the folder of normal-light photos, [(photo, the darkened file's path relative to the output)])."""
+def _dark_name(name: str, quality: int) -> str:
+    """The dark photo's file name: the source's, unless darken cannot write its type (HEIC/HEIF, camera raw; the
+    writer knows :data:`retinexgs.formats.PLAIN_EXTENSIONS`): then the stem with .jpg (.png at quality 0), so that
+    the extension says what the file holds and every command reads it (``IMG_1.HEIC`` -> ``IMG_1.jpg``)."""
+    p = Path(name)
+    return name if p.suffix.lower() in PLAIN_EXTENSIONS else p.stem + (".jpg" if quality else ".png")
+
+
+def _scene_photos(src: Path, quality: int, raw: bool) -> Tuple[Path, List[Tuple[Path, str]]]:
+    """(the folder of normal-light photos, [(photo, the darkened file's path relative to the output)]); UserError
+    when two photos would get one name, or for a LOM scene whose high/ photos darken cannot write by name."""
     high = src / "high"
     if high.is_dir():  # a LOM-style scene: high/NAME -> low/NAME (LOM pairs the two folders by file name)
-        return high, [(p, f"low/{p.name}") for p in list_images(high)]
-    return src, [(p, p.name) for p in list_images(src)]
+        photos = list_images(high)
+        odd = [p.name for p in photos if _dark_name(p.name, quality) != p.name]
+        if odd and not raw:  # renaming low/ alone would break the pairing; --raw's low/NAME.dng pairs by stem
+            more = f" (and {len(odd) - 1} more)" if len(odd) > 1 else ""
+            raise UserError(f"{high / odd[0]}{more}: darken cannot write a {Path(odd[0]).suffix} photo, and a scene's "
+                            "low/ and high/ pair by file name: convert high/ to PNG or JPEG (and the names in its "
+                            f"transforms JSON), darken {high} as a plain folder of photos, or use --raw")
+        return high, [(p, f"low/{p.name}") for p in photos]
+    jobs = [(p, _dark_name(p.name, quality)) for p in list_images(src)]
+    seen: Dict[str, Path] = {}
+    for photo, rel in jobs:
+        other = seen.setdefault(rel, photo)
+        if other != photo:
+            raise UserError(f"{other.name} and {photo.name} in {src} would both be written as {rel} (darken "
+                            "writes HEIC and raw photos as .jpg, .png at --jpeg-quality 0); rename one of them")
+    return src, jobs
 
 
 def darken_scene(src: Path, out: Path, model: SensorModel, seed: int = 0, progress: bool = True,
@@ -117,7 +141,8 @@ def darken_scene(src: Path, out: Path, model: SensorModel, seed: int = 0, progre
     ``src`` is a scene in LOM's layout (``high/`` photos with ``transforms_*.json``, ``split.json``,
     ``colmap_sparse/``; the poses are copied, ``high/`` too, and ``low/`` is written from ``high/``, so the result
     trains and scores like LOM's own scenes) or a plain folder of photos (darkened beside nothing else).
-    ``out/sensor.json`` records the model, the seed and every view's exposure.
+    ``out/sensor.json`` records the model, the seed and every view's exposure. A dark photo keeps its source's
+    name, but for a type darken cannot write (HEIC, camera raw: :func:`_dark_name`, ``.jpg`` or ``.png``).
 
     ``raw`` (a :class:`retinexgs.data.raw_sim.RawCamera`): simulate the camera's raw files instead, see
     :func:`_darken_raw`: ``out/raw/`` (DNGs) and ``out/jpeg/`` (the camera's JPEGs of the same photons)."""
@@ -125,7 +150,7 @@ def darken_scene(src: Path, out: Path, model: SensorModel, seed: int = 0, progre
     if raw is not None:
         return _darken_raw(Path(src), Path(out), model, raw, seed, progress)
     src, out = Path(src), Path(out)
-    folder, jobs = _darken_inputs(src, out)
+    folder, jobs = _darken_inputs(src, out, model.jpeg_quality, raw=False)
     rng = np.random.default_rng(seed)
     report = DarkenReport(out, len(jobs))
     check_writable_folder(out)  # a read-only or misplaced --out: one line before any work
@@ -146,14 +171,15 @@ def darken_scene(src: Path, out: Path, model: SensorModel, seed: int = 0, progre
     return report
 
 
-def _darken_inputs(src: Path, out: Path) -> Tuple[Path, List[Tuple[Path, str]]]:
-    """The photo folder and the (photo, relative name) jobs of ``src``; UserError for a missing source, an ``out``
-    that holds files, or a source without photos (checked before anything is written)."""
+def _darken_inputs(src: Path, out: Path, quality: int, raw: bool) -> Tuple[Path, List[Tuple[Path, str]]]:
+    """The photo folder and the (photo, relative name) jobs of ``src`` (see :func:`_scene_photos`); UserError for
+    a missing source, an ``out`` that holds files, or a source without photos (checked before anything is
+    written)."""
     if not src.is_dir():
         raise UserError(f"{src} is not a folder of photos or a scene folder")
     if out.exists() and any(out.iterdir()):
         raise UserError(f"{out} already exists and is not empty; choose another --out")
-    folder, jobs = _scene_photos(src)
+    folder, jobs = _scene_photos(src, quality, raw)
     if not jobs:
         raise UserError(f"no photos in {folder}: {no_images_reason(folder)}")
     return folder, jobs
@@ -227,7 +253,7 @@ def _darken_raw(src: Path, out: Path, model: SensorModel, camera: "RawCamera", s
 
     camera.check()
     camera.black_level(model.full_well, model.read_noise)  # a read noise no raw range holds: one line, now
-    folder, jobs = _darken_inputs(src, out)
+    folder, jobs = _darken_inputs(src, out, model.jpeg_quality, raw=True)
     names: Dict[str, Path] = {}
     for photo, _ in jobs:
         other = names.setdefault(_dng_name(photo.name), photo)

@@ -22,7 +22,12 @@ and denoised), written into ``enhanced/`` under the raw file's own name as PNG b
 the name), and the mapper takes its point colours from those copies. A folder of RAW + JPEG pairs (every raw
 file with a photo of the same stem beside it, as a camera writes them) uses the JPEGs for SfM, as they are (one
 log line says so); the loader then trains on the raw files (:func:`raw_jpeg_pairs`). Raw and other photos that
-do not pair up are refused (one line).
+do not pair up are refused (one line), and so are raw files of different sizes (training refuses them, and SfM
+posed only the photos of one size: the check on the registered views never saw the others).
+
+Dropped photos (issue 62): the photos SfM did not register are named in one ``warning:`` line; when fewer than
+``min_registered`` of them (a share, :data:`MIN_REGISTERED_SHARE` by default) are registered, UserError: the model
+is kept (a lower ``min_registered``, e.g. ``--min-registered 0``, then uses it without running SfM again).
 """
 from __future__ import annotations
 
@@ -59,6 +64,12 @@ ENHANCED_MANIFEST = ".retinexgs_enhanced.json"
 TMP_PREFIX = ".tmp-sfm-"
 # A temporary folder of another host, or of the old unnamed kind, is taken as abandoned after this long.
 STALE_TMP_SECONDS = 24 * 3600
+# The least share of the photos SfM must register for the model to be used (``--min-registered``, the config's
+# data.min_registered): below half, most of the capture is missing from the scene (a night capture at 1000 e-
+# registered 2 of 25 photos and trained on 2 views without a word); 0 accepts any model.
+MIN_REGISTERED_SHARE = 0.5
+# Dropped photos named in the warning / error before "... (N more)".
+SHOWN_NAMES = 20
 
 
 @dataclass
@@ -109,6 +120,58 @@ def raw_jpeg_pairs(paths: List[Path]) -> Optional[dict]:
                         f"or all not (a RAW + JPEG capture, NAME.dng beside NAME.jpg, is also accepted): move "
                         f"the others to another folder")
     return {p: by_stem[p.stem][0] for p in raws}
+
+
+def check_min_registered(min_registered: float) -> float:
+    """``min_registered`` as a float when it is a share in [0, 1], else UserError."""
+    try:
+        share = float(min_registered)
+    except (TypeError, ValueError):
+        share = float("nan")
+    if isinstance(min_registered, bool) or not 0.0 <= share <= 1.0:
+        raise UserError(f"--min-registered must be the least share of the photos SfM must register, between 0 and 1 "
+                        f"(default {MIN_REGISTERED_SHARE:g}; 0 accepts any model), got {min_registered!r}")
+    return share
+
+
+def _listed(names: List[str]) -> str:
+    """``names`` joined by commas, the first SHOWN_NAMES of them and a count of the rest."""
+    shown = ", ".join(names[:SHOWN_NAMES])
+    return shown + (f" ... ({len(names) - SHOWN_NAMES} more)" if len(names) > SHOWN_NAMES else "")
+
+
+def check_registration(image_dir: Path, names: List[str], registered: List[str], min_registered: float,
+                       model_dir: Path) -> None:
+    """Name the photos SfM left out (one ``warning:`` line); UserError when the registered share is below
+    ``min_registered`` (see the module docstring)."""
+    from retinexgs.data.scene import warn  # lazy: scene imports the image tensors' code
+
+    reg = set(registered)
+    dropped = [n for n in sorted(names) if n not in reg]
+    if not dropped:
+        return
+    k, n = len(names) - len(dropped), len(names)
+    if k / n < min_registered:
+        floor = int(k / n * 100) / 100  # the share this model passes, rounded down
+        raise UserError(f"SfM registered only {k} of {n} photos in {image_dir} ({k / n:.0%}, below "
+                        f"--min-registered {min_registered:g}), so the scene would leave out the rest of the capture; "
+                        f"not registered: {_listed(dropped)}. Photos too dark, blurred or overlapping too little with "
+                        f"the others are dropped: add overlapping photos or remove those, or pass --min-registered "
+                        f"{floor:g} (0 accepts any model) to use the {k} registered (the model is kept in {model_dir})")
+    warn(f"SfM registered {k} of {n} photos in {image_dir}; not registered, left out of the scene: "
+         f"{_listed(dropped)}")
+
+
+def check_raw_sizes(raws: List[Path], where: Path) -> None:
+    """UserError when the raw files ``raws`` are not all of one size (read from their headers)."""
+    sizes: dict = {}
+    for p in raws:
+        sizes.setdefault(image_size(p), p)
+    if len(sizes) > 1:
+        (a, pa), (b, pb) = list(sizes.items())[:2]
+        raise UserError(f"{where} holds raw photos of different sizes: {pa.name} is {a[0]}x{a[1]}, {pb.name} "
+                        f"{b[0]}x{b[1]}; one scene is one sensor format (SfM would pose only one size's photos): "
+                        f"shoot one format (no crop modes) or train them as separate scenes")
 
 
 def _raw_preview(src: Path) -> "np.ndarray":
@@ -259,17 +322,20 @@ def default_sfm_dir(image_dir: Path) -> Path:
 def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *, matching: str = "auto",
             enhance: Union[str, bool] = "auto", camera_model: str = "SIMPLE_RADIAL", single_camera: bool = True,
             max_num_features: int = 8192, max_image_size: int = 3200, num_threads: int = -1, seed: int = 0,
-            force: bool = False, progress: Optional[Progress] = _stderr_progress) -> SfmResult:
+            force: bool = False, progress: Optional[Progress] = _stderr_progress,
+            min_registered: float = MIN_REGISTERED_SHARE) -> SfmResult:
     """Run SfM on the photos directly inside ``images``; the model goes to ``<out>/sparse/0``.
 
     ``matching`` is "auto", "exhaustive" or "sequential"; ``enhance`` is "auto" (dark folders only), True
     or False. Returns a :class:`SfmResult`; reuses a cached model unless ``force``. Raises UserError for
-    an empty folder, unreadable photos, or when no model can be built, and when ``out`` holds COLMAP files
-    (database.db, sparse/) this function did not make, unless ``force`` (which also recomputes a cached
-    model).
+    an empty folder, unreadable photos, raw files of different sizes, or when no model can be built, when
+    ``out`` holds COLMAP files (database.db, sparse/) this function did not make, unless ``force`` (which also
+    recomputes a cached model), and when fewer than ``min_registered`` (a share) of the photos are registered
+    (the model is kept; the photos left out are named in a warning otherwise).
     """
     say = progress or (lambda _msg: None)
     check_sfm_numbers(max_num_features, max_image_size, num_threads)
+    min_registered = check_min_registered(min_registered)
     image_dir = Path(images)
     if image_dir.exists() and not image_dir.is_dir():
         raise UserError(f"image folder {image_dir} is a file, not a folder: pass the folder that holds the photos")
@@ -283,6 +349,8 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
         paths = sorted(pairs.values(), key=lambda p: p.name)
         say(f"{len(pairs)} RAW + JPEG pairs in {image_dir}: SfM runs on the JPEGs, training reads the raw files")
     raw_input = pairs == {}  # raw files only: COLMAP reads their previews
+    if pairs is not None:  # before SfM: it would register one size's photos and training would never see the rest
+        check_raw_sizes(sorted(pairs) if pairs else paths, image_dir)
     if len(paths) < 2:
         raise UserError(f"image folder {image_dir} holds only one photo; SfM needs at least two")
     if matching not in ("auto", "exhaustive", "sequential"):
@@ -318,6 +386,7 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
         if meta and meta.get("signature") == signature:
             say(f"using cached model {model_dir}")
             r = meta["result"]
+            check_registration(image_dir, [p.name for p in paths], r["registered"], min_registered, model_dir)
             return SfmResult(model_dir, image_dir, len(paths), r["registered"], r["num_points"],
                              r["seconds"], r["enhanced"], True, matching, r.get("stage_seconds", {}))
 
@@ -495,5 +564,6 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
         pycolmap.logging.minloglevel = old_level
         shutil.rmtree(tmp, ignore_errors=True)
     say(f"registered {len(registered)}/{len(paths)} photos, {num_points} points, {seconds:.1f} s -> {model_dir}")
+    check_registration(image_dir, names, registered, min_registered, model_dir)
     return SfmResult(model_dir, image_dir, len(paths), registered, num_points, seconds, do_enhance, False,
                      matching, stages)

@@ -11,7 +11,9 @@ LOM layout: train frames list ``low/X``; test frames list ``high/X``. Each view'
 folders exist (they must then hold the same file names). Camera raw inputs pair by stem: ``low/X.dng`` with
 ``high/X.png`` (or ``.jpg``), and a frame listing ``high/X.png`` takes ``low/X.dng`` as its input. ``file_path`` may omit the extension.
 Initial points come from ``colmap_sparse/0`` (or any COLMAP model found in the folder) when present,
-mapped into the JSON's frame by matching camera centres by file name.
+mapped into the JSON's frame by matching camera centres by file name or stem (the model's ``X.JPG`` for a
+photo saved as ``X.png``; :func:`retinexgs.data.colmap.match_views_to_model`); when too few match, or the centres
+do not agree, a warning says so and the points are random.
 """
 from __future__ import annotations
 
@@ -193,8 +195,9 @@ def read_transforms_scene(root: Path) -> DeclaredScene:
     model_dir = find_model_dir(root)
     if model_dir is not None:
         model = read_model(model_dir)
-        if len(model.points):
-            scene.points = points_in_frame_of(model, scene.train + scene.test)
+        points = points_in_frame_of(model, scene.train + scene.test) if len(model.points) else None
+        if points is not None:  # None: the frames could not be related (a warning said so): random points
+            scene.points = points
             scene.colors = model.colors
             scene.points_source = "colmap"
     return scene

@@ -1,4 +1,4 @@
-"""Evaluation metrics: PSNR, SSIM and (when available locally) LPIPS."""
-from retinexgs.evaluate.metrics import lpips_available, lpips_metric, psnr, ssim_metric
+"""Evaluation metrics: PSNR, SSIM and LPIPS (AlexNet, the package's own port with shipped weights)."""
+from retinexgs.evaluate.metrics import lpips_available, lpips_metric, lpips_metrics, psnr, ssim_metric
 
-__all__ = ["lpips_available", "lpips_metric", "psnr", "ssim_metric"]
+__all__ = ["lpips_available", "lpips_metric", "lpips_metrics", "psnr", "ssim_metric"]

@@ -1,5 +1,5 @@
-"""Evaluate a trained model on the scene's test views: PSNR / SSIM (and LPIPS when available) of the enhanced
-renders against the normal-light images, side-by-side PNGs, and ``metrics.json`` (written atomically)."""
+"""Evaluate a trained model on the scene's test views: PSNR / SSIM / LPIPS of the enhanced renders against the
+normal-light images, side-by-side PNGs, and ``metrics.json`` (written atomically)."""
 from __future__ import annotations
 
 import json
@@ -11,8 +11,9 @@ import torch
 from PIL import Image
 
 from retinexgs.data import Scene
-from retinexgs.evaluate.metrics import (black_lift, colour_error, colour_split, gt_mean_align, lpips_metric, psnr,
-                                       ssim_metric)
+from retinexgs.evaluate.lpips import MIN_SIZE as LPIPS_MIN_SIZE
+from retinexgs.evaluate.metrics import (black_lift, colour_error, colour_split, gt_mean_align, lpips_available,
+                                       lpips_metrics, psnr, ssim_metric)
 from retinexgs.fileio import atomic_write, atomic_write_text
 from retinexgs.run.folder import load_run
 from retinexgs.run.render import active_sh_degree, render_function
@@ -92,7 +93,7 @@ def evaluate(render_fn: Callable, scene: Scene, out_dir: Path, use_lpips: bool =
     train_files = {Path(v.source_path or v.image_path).resolve() for v in scene.train}
     test_in_train = sum(Path(v.source_path or v.image_path).resolve() in train_files for v in views)
     rows: List[Dict] = []
-    lpips_reason = ""
+    lpips_reason = lpips_available()[1] if use_lpips else ""
     has_maps = False  # the renders have R and L (a RetinexGS run)
     for view in views[rank::ranks]:
         with torch.no_grad():
@@ -108,10 +109,14 @@ def evaluate(render_fn: Callable, scene: Scene, out_dir: Path, use_lpips: bool =
                "black_lift": black_lift(rgb, gt), "low_black_lift": black_lift(low, gt)}
         if "rgb_linear" in res:  # the colour error split: the light alone, and what the tone alone costs the truth
             row.update(colour_split(res["rgb_linear"].double().cpu(), gt, res["knee"]))
-        if use_lpips:
-            value, lpips_reason = lpips_metric(rgb, gt)
-            if value is not None:
-                row["lpips"] = value
+        if use_lpips and not lpips_reason and min(gt.shape[:2]) < LPIPS_MIN_SIZE:
+            lpips_reason = f"the test images ({gt.shape[1]}x{gt.shape[0]}) are smaller than LPIPS's " \
+                           f"{LPIPS_MIN_SIZE}x{LPIPS_MIN_SIZE} pixels"
+        if use_lpips and not lpips_reason:
+            # As psnr / ssim: the output, its GT-mean alignment and the dark input, each against the truth, in one
+            # batch on the render's device. The output clipped to [0, 1] (the network's range), as its PNG holds it.
+            row["lpips"], row["lpips_gt_mean"], row["low_lpips"] = lpips_metrics(
+                [rgb.clamp(0.0, 1.0), aligned, low], gt, device=res["rgb"].device)
         rows.append(row)
         panels = [low, rgb]
         labels = PANEL_LABELS[:2]
@@ -135,6 +140,10 @@ def evaluate(render_fn: Callable, scene: Scene, out_dir: Path, use_lpips: bool =
             order[r::ranks] = part
             has_maps, lpips_reason = has_maps or maps, lpips_reason or reason
         rows = order
+    if lpips_reason:  # LPIPS for every view or for none (a mean over some views would mislead)
+        for r in rows:
+            for k in ("lpips", "lpips_gt_mean", "low_lpips"):
+                r.pop(k, None)
     mean = {k: float(np.mean([r[k] for r in rows])) for k in rows[0] if k != "view"}
     metrics = {"mean": mean, "views": rows, "panels": "low input | output | R̂ | L̂ / L_ref | ground truth"
                if has_maps else "low input | output | ground truth",
@@ -149,7 +158,8 @@ def evaluate(render_fn: Callable, scene: Scene, out_dir: Path, use_lpips: bool =
         atomic_json(metrics, out_dir / "metrics.json")
     log(f"test views: PSNR {mean['psnr']:.2f} dB, SSIM {mean['ssim']:.3f}"
         + (f", LPIPS {mean['lpips']:.3f}" if "lpips" in mean else "")
-        + f"  (brightness aligned to the truth, GT-mean: {mean['psnr_gt_mean']:.2f} dB, {mean['ssim_gt_mean']:.3f})"
+        + f"  (brightness aligned to the truth, GT-mean: {mean['psnr_gt_mean']:.2f} dB, {mean['ssim_gt_mean']:.3f}"
+        + (f", {mean['lpips_gt_mean']:.3f}" if "lpips_gt_mean" in mean else "") + ")"
         + f"  (low input: PSNR {mean['low_psnr']:.2f} dB, SSIM {mean['low_ssim']:.3f})"
         + (f"  (not held-out: {test_in_train} of {len(views)} test views are training views)" if test_in_train
            else ""))

@@ -14,34 +14,26 @@ Metrics are computed in float64 on the CPU side of the caller's device.
   "GT-mean" evaluation): PSNR / SSIM after it measure everything but the overall brightness, which for a method
   that never sees a normal-light photo is the photographer's choice (docs/benchmarks.md, "Exposure-aligned").
   Reported beside the plain figures, never instead of them.
-- :func:`lpips_metric`: LPIPS when the ``lpips`` package, its linear-layer weights and the torchvision
-  backbone weights are already on this machine; never downloads. Returns (value, "") or (None, reason).
+- :func:`lpips_metric` / :func:`lpips_metrics`: LPIPS-AlexNet (v0.1 heads), the package's own torch port
+  (:mod:`retinexgs.evaluate.lpips`) with its shipped weights: no ``lpips`` package, no torchvision, no download.
+  Computed in float32 on the given device (the CPU by default), unlike the float64 figures above.
 """
 from __future__ import annotations
 
-import importlib.util
 import math
-from pathlib import Path
-from typing import Any, Callable, Dict, Optional, Tuple, Union
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
+from retinexgs.evaluate.lpips import lpips_distance, weights_available
 from retinexgs.model.tone import highlight_shoulder, linear_to_srgb, srgb_to_linear
 
 
-__all__ = ["psnr", "ssim_metric", "gt_mean_align", "lpips_metric", "lpips_available"]
+__all__ = ["psnr", "ssim_metric", "gt_mean_align", "lpips_metric", "lpips_metrics", "lpips_available"]
 
 ImageLike = Union[torch.Tensor, np.ndarray]
-
-# torchvision's backbone checkpoints that lpips loads (file names as torchvision stores them).
-_BACKBONE_FILES = {
-    "alex": "alexnet-owt-7be5be79.pth",
-    "vgg": "vgg16-397923af.pth",
-    "squeeze": "squeezenet1_1-b8a52dc0.pth",
-}
-_LPIPS_CACHE: Dict[Tuple[str, str], object] = {}
 
 
 def check_bchw(*xs: torch.Tensor) -> None:
@@ -316,63 +308,41 @@ def tone_colour_floor(y: ImageLike, knee: float, exposure: float = 1.0) -> float
     return colour_error(linear_to_srgb(highlight_shoulder(light, knee)), a)
 
 
-def _hub_checkpoint_dir() -> Path:
-    """torch.hub's checkpoint folder (TORCH_HOME respected), without touching the network."""
-    return Path(torch.hub.get_dir()) / "checkpoints"
+def lpips_available() -> Tuple[bool, str]:
+    """Whether :func:`lpips_metric` can run: its weights ship with the package, so only a broken install lacks
+    them; the reason when not."""
+    return weights_available()
 
 
-def lpips_available(net: str = "alex") -> Tuple[bool, str]:
-    """Whether :func:`lpips_metric` can run offline for ``net``; the reason when not."""
-    if net not in _BACKBONE_FILES:
-        return False, f"unknown LPIPS network {net!r} (use one of {sorted(_BACKBONE_FILES)})"
-    spec = importlib.util.find_spec("lpips")
-    if spec is None or spec.origin is None:
-        return False, "the 'lpips' package is not installed"
-    if importlib.util.find_spec("torchvision") is None:
-        return False, "the 'lpips' package needs torchvision, which is not installed"
-    lin = Path(spec.origin).parent / "weights" / "v0.1" / f"{net}.pth"
-    if not lin.is_file():
-        return False, f"LPIPS linear weights not found at {lin}"
-    backbone = _hub_checkpoint_dir() / _BACKBONE_FILES[net]
-    if not backbone.is_file():
-        return False, (f"{net} backbone weights not found at {backbone} "
-                       "(not downloaded: copy them there to enable LPIPS)")
-    return True, ""
+def _rgb_bchw(x: ImageLike) -> torch.Tensor:
+    """[H,W,3] (or grey [H,W] / [H,W,1], repeated to RGB: the network takes three channels) -> [1,3,H,W]."""
+    t = torch.as_tensor(np.asarray(x) if not isinstance(x, torch.Tensor) else x).detach()
+    if t.dim() == 2:
+        t = t[..., None]
+    if t.dim() != 3 or t.shape[-1] not in (1, 3):
+        raise ValueError(f"LPIPS needs [H,W,3] or [H,W] images, got shape {tuple(t.shape)}")
+    return t.expand(*t.shape[:2], 3).permute(2, 0, 1)[None]
 
 
-def _lpips_model(net: str, device: torch.device):
-    key = (net, str(device))
-    model = _LPIPS_CACHE.get(key)
-    if model is None:
-        import lpips  # imported only when the weights are known to be local
+def lpips_metrics(xs: Sequence[ImageLike], y: ImageLike,
+                  device: Optional[Union[str, torch.device]] = None) -> List[float]:
+    """LPIPS-AlexNet of each [H,W,3] image of ``xs`` against ``y`` (all in [0,1], one size), in one batch: ``y``'s
+    features are computed once. ``device``: where the network runs (default: ``y``'s device if a tensor, else the
+    CPU). A bad shape or a value outside [0,1] raises a one-line ValueError."""
+    if not xs:
+        return []
+    ref = _rgb_bchw(y)
+    dev = torch.device(device) if device is not None else ref.device
+    batch = [_rgb_bchw(x) for x in xs]
+    if any(b.shape != ref.shape for b in batch):
+        bad = next(b for b in batch if b.shape != ref.shape)
+        raise ValueError(f"LPIPS: shape mismatch {tuple(bad.shape[-2:])} vs {tuple(ref.shape[-2:])}")
+    # float32: the weights' own precision (an integer image becomes 0..255 and is refused as out of range)
+    xb, yb = torch.cat([b.to(dev, torch.float32) for b in batch]), ref.to(dev, torch.float32)
+    return [float(v) for v in lpips_distance(xb, yb, device=dev)]
 
-        # lpips_available() has checked every file it loads, so this constructor does not download.
-        model = lpips.LPIPS(net=net, verbose=False).to(device).eval()
-        _LPIPS_CACHE[key] = model
-    return model
 
-
-def lpips_metric(x: ImageLike, y: ImageLike, net: str = "alex",
-                 device: Optional[Union[str, torch.device]] = None) -> Tuple[Optional[float], str]:
-    """LPIPS distance of two [H,W,3] images in [0,1]; returns (value, "") or (None, reason).
-
-    ``net``: "alex" (Luminance-GS reports this) or "vgg" (Aleth-NeRF reports this). Nothing is ever
-    downloaded: when the package or any weight file is missing the reason says which.
-    """
-    ok, reason = lpips_available(net)
-    if not ok:
-        return None, reason
-    a, b = _as_pair(x, y)
-    if a.shape[-1] != 3:
-        return None, "LPIPS needs RGB images"
-    dev = torch.device(device) if device is not None else (
-        x.device if isinstance(x, torch.Tensor) else torch.device("cpu"))
-    try:
-        model = _lpips_model(net, dev)
-        with torch.no_grad():
-            # lpips expects [B,3,H,W] in [-1, 1].
-            ta = (a.permute(2, 0, 1)[None].float().to(dev) * 2 - 1)
-            tb = (b.permute(2, 0, 1)[None].float().to(dev) * 2 - 1)
-            return float(model(ta, tb).mean()), ""
-    except Exception as exc:  # a broken local install must not stop an evaluation run
-        return None, f"LPIPS failed: {type(exc).__name__}: {exc}"
+def lpips_metric(x: ImageLike, y: ImageLike, device: Optional[Union[str, torch.device]] = None) -> float:
+    """LPIPS-AlexNet distance of two [H,W,3] images in [0,1] (sides ≥ 31 pixels); 0 for identical images, lower is
+    more similar. See :func:`lpips_metrics`."""
+    return lpips_metrics([x], y, device)[0]

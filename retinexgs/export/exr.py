@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from retinexgs.errors import UserError
-from retinexgs.fileio import TMP_PREFIX, atomic_write
+from retinexgs.fileio import TMP_PREFIX, atomic_write, make_folders, remove_empty_folders
 
 # Rec.709 / sRGB primaries and white (x, y of red, green, blue, white): what the linear values mean.
 REC709_CHROMATICITIES = (0.64, 0.33, 0.30, 0.60, 0.15, 0.06, 0.3127, 0.3290)
@@ -48,13 +48,17 @@ def write_exr(path: Path, image, attributes: Optional[Dict[str, str]] = None) ->
               "chromaticities": REC709_CHROMATICITIES}
     header.update({str(k): str(v) for k, v in (attributes or {}).items()})
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(prefix=TMP_PREFIX, dir=path.parent) as tmp:
-        tmp_file = Path(tmp) / "image.exr"
-        with OpenEXR.File(header, {"RGB": arr}) as f:
-            f.write(str(tmp_file))
-        with open(tmp_file, "rb") as f_in:
-            atomic_write(path, lambda f_out: shutil.copyfileobj(f_in, f_out))
+    made = make_folders(path.parent)
+    try:
+        with tempfile.TemporaryDirectory(prefix=TMP_PREFIX, dir=path.parent) as tmp:
+            tmp_file = Path(tmp) / "image.exr"
+            with OpenEXR.File(header, {"RGB": arr}) as f:
+                f.write(str(tmp_file))
+            with open(tmp_file, "rb") as f_in:
+                atomic_write(path, lambda f_out: shutil.copyfileobj(f_in, f_out))
+    except BaseException:
+        remove_empty_folders(made)  # a failed first frame leaves no empty OUT/<map>/ behind
+        raise
     return path
 
 

@@ -12,8 +12,9 @@ Files: views go to ``OUT/<map>/<view name>.png`` (default OUT = ``RUN/renders/<t
 folder, and one ending in ``.mp4`` is refused (views are PNG files; a video is a ``--path``). A path video goes
 to OUT when OUT ends in ``.mp4``, else into the folder OUT (made when missing) as ``OUT/path_<kind>.mp4``
 (default ``RUN/renders/path_<kind>.mp4``), for the first map, and with ``_<map>`` before the suffix for the
-others; with ``--format png`` to ``OUT/<map>/<frame>.png`` (default OUT = ``RUN/renders/path_<kind>``). Existing
-files are kept unless ``force``; every file is written atomically.
+others; with ``--format png`` to ``OUT/<map>/<frame>.png`` (default OUT = ``RUN/renders/path_<kind>``). An OUT
+named like one image file (``o.exr``, ``o.png``: :data:`_IMAGE_SUFFIXES`) is refused for both, unless it is an
+existing folder. Existing files are kept unless ``force``; every file is written atomically.
 
 ``--format exr`` (views and paths; ``png,exr`` for both side by side) writes scene-linear float32 OpenEXR
 (Rec.709 primaries, :mod:`retinexgs.export.exr`) to ``OUT/<map>/<name>.exr`` instead of the PNG: ``enhanced`` is
@@ -47,7 +48,8 @@ from retinexgs.fileio import check_writable_file
 from retinexgs.export import PATH_KINDS
 from retinexgs.export.exr import need_openexr, write_exr
 from retinexgs.export.paths import camera_path
-from retinexgs.fileio import TMP_PREFIX, atomic_write, is_out_of_space, out_of_space_error
+from retinexgs.fileio import (TMP_PREFIX, atomic_write, is_out_of_space, make_folders, out_of_space_error,
+                              remove_empty_folders)
 from retinexgs.render import Camera, rasterize_gaussians
 from retinexgs.run.folder import load_run
 from retinexgs.model.tone import srgb_to_linear
@@ -61,6 +63,11 @@ DECOMPOSED_MAPS = ("R", "L", "L_raw", "low")
 _KEYS = {"enhanced": "rgb", "R": "R", "L": "L_view", "L_raw": "L", "low": "S_rec"}
 # What players and editors take for a video file: a path video must be .mp4; any of these is refused, not a folder.
 _VIDEO_SUFFIXES = (".mp4", ".m4v", ".mov", ".mkv", ".avi", ".webm", ".gif")
+# What names one image file: an --out ending in one of these is refused where the output is a folder (views, a path's
+# frames) or an MP4 (a path video), unless that folder exists. Refused, not written to the name without the suffix:
+# `--out o.exr` made a folder o.exr of frames, which tools then took for one EXR file; writing to o/ instead would
+# put the output where the user did not say. Checked before the run loads.
+_IMAGE_SUFFIXES = (".png", ".exr", ".jpg", ".jpeg", ".tif", ".tiff", ".webp", ".bmp", ".hdr", ".ply")
 VIEW_SETS = ("test", "train", "val", "path")
 FORMATS = ("mp4", "png", "exr")
 # What --format exr writes per map: a note for the file's header (the scale is in the module docstring).
@@ -258,6 +265,17 @@ def render_run(run_dir: Path, views: Optional[str] = None, out: Optional[Path] =
                 if path is None else "; drop --format png for an MP4")
         raise UserError(f"--out {out} names a video file, but {what}: pass a folder (e.g. --out "
                         f"{Path(out).with_suffix('')}){hint}")
+    if out is not None and Path(out).suffix.lower() in _IMAGE_SUFFIXES and not Path(out).is_dir():
+        kind = Path(out).suffix.upper().lstrip(".")
+        kind = ("an " if kind[0] in "AEFHILMNORSX" else "a ") + kind  # as spelled out: an EXR, an HDR, a PNG
+        if video:
+            raise UserError(f"--out {out} names {kind} file, but a path video is one MP4: name a .mp4 file, or a "
+                            f"folder to write path_{path}.mp4 into (e.g. --out {Path(out).with_suffix('')})")
+        ext = "|".join(f for f in formats if f != "mp4") or "png"
+        what = "the path's frames render" if path else f"the {views} views render"
+        raise UserError(f"--out {out} names {kind} file, but {what} to one file each in a folder "
+                        f"(OUT/<map>/<name>.{ext}): pass a folder name without a file extension (e.g. --out "
+                        f"{Path(out).with_suffix('')})")
     if video:
         _need_ffmpeg()
 
@@ -313,8 +331,20 @@ def render_run(run_dir: Path, views: Optional[str] = None, out: Optional[Path] =
         log(f"wrote {len(targets)} {kinds} files to {out}/<{'|'.join(maps)}>/")
         return targets
 
+    made = make_folders(out.parent)
+    try:
+        _write_videos(fn, model, frames_views, maps, zrange, fps, bar, out, targets)
+    except BaseException:
+        remove_empty_folders(made)  # a failed video leaves no empty folder of its own behind
+        raise
+    log(f"wrote {len(frames_views)} frames at {fps:g} fps to " + ", ".join(str(t) for t in targets))
+    return targets
+
+
+def _write_videos(fn: Callable, model, frames_views: Sequence, maps: Sequence[str], zrange: Tuple[float, float],
+                  fps: float, bar, out: Path, targets: Sequence[Path]) -> None:
+    """Encode one MP4 per map of ``frames_views`` to ``targets`` (``out``'s folder exists)."""
     import imageio
-    out.parent.mkdir(parents=True, exist_ok=True)
     # ffmpeg writes to a file name: encode into a temporary folder next to the output, then copy each video
     # through atomic_write, so an interrupted render never leaves a truncated MP4 under the final name.
     with tempfile.TemporaryDirectory(prefix=TMP_PREFIX, dir=out.parent) as tmp:
@@ -336,5 +366,3 @@ def render_run(run_dir: Path, views: Optional[str] = None, out: Optional[Path] =
         for src, dst in zip(tmp_files, targets):
             with open(src, "rb") as f_in:
                 atomic_write(dst, lambda f_out: shutil.copyfileobj(f_in, f_out))
-    log(f"wrote {len(frames_views)} frames at {fps:g} fps to " + ", ".join(str(t) for t in targets))
-    return targets

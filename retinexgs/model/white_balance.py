@@ -40,12 +40,16 @@ from torch import Tensor
 from retinexgs.data.photo_balance import grey_edge_light
 from retinexgs.errors import UserError
 
-__all__ = ["REFERENCE_KELVIN", "KELVIN_RANGE", "TINT_RANGE", "WhiteBalance", "parse_white_balance",
+__all__ = ["REFERENCE_KELVIN", "KELVIN_RANGE", "TINT_RANGE", "MAX_GAIN_RATIO", "WhiteBalance", "parse_white_balance",
            "normalized_gains", "temperature_matrix", "neutral_gains", "grey_edge_gains", "describe_balance"]
 
 REFERENCE_KELVIN = 6504.0  # the black body nearest D65, sRGB's white: the trained scene's neutral
 KELVIN_RANGE = (1000.0, 40000.0)
 TINT_RANGE = (-100.0, 100.0)
+# Gains R/G and B/G (after the division by G) lie in [1/MAX_GAIN_RATIO, MAX_GAIN_RATIO], 9 stops each way: the
+# widest the temperature range reaches on a neutral is B/G = 418 (1000 K, tint +100) and the viewer's gain sliders
+# span 0.05..20 (a ratio of 400); a gain beyond it leaves one channel (gains:1e9,1,1 is a red frame), a typo.
+MAX_GAIN_RATIO = 512.0
 FORMS = "as-trained, auto, gains:R,G,B, temp:KELVIN[,TINT] or pick:VIEW,X,Y"
 
 # CIE 1931 2° colour-matching functions as Wyman, Sloan & Shirley's multi-lobe piecewise Gaussian fit (JCGT 2013),
@@ -90,12 +94,23 @@ def _numbers(text: str, what: str, spec: str) -> Sequence[float]:
 
 
 def normalized_gains(gains: Sequence[float], spec: str = "") -> Tuple[float, float, float]:
-    """Gains R, G, B (each > 0) divided by G; UserError (naming ``spec``) for a gain ≤ 0 or not finite."""
+    """Gains R, G, B (each > 0) divided by G; UserError (naming ``spec``) for a gain ≤ 0 or not finite, or a ratio
+    R/G or B/G outside [1/MAX_GAIN_RATIO, MAX_GAIN_RATIO]."""
     if len(gains) != 3 or not all(math.isfinite(g) and g > 0 for g in gains):
         raise UserError(f"--white-balance {spec}: gains must be three positive numbers R,G,B "
                         f"(e.g. gains:1.2,1,0.8), got {','.join(f'{g:g}' for g in gains)}")
     g = float(gains[1])
-    return (float(gains[0]) / g, 1.0, float(gains[2]) / g)
+    out = (float(gains[0]) / g, 1.0, float(gains[2]) / g)
+    _check_ratios(out, f"--white-balance {spec}", "a balance that far leaves one colour channel: check the numbers")
+    return out
+
+
+def _check_ratios(gains: Sequence[float], where: str, advice: str) -> None:
+    """UserError when R/G or B/G of ``gains`` (G = 1) lies outside [1/MAX_GAIN_RATIO, MAX_GAIN_RATIO]."""
+    for name, ratio in (("R/G", gains[0]), ("B/G", gains[2])):
+        if not 1.0 / MAX_GAIN_RATIO <= ratio <= MAX_GAIN_RATIO:
+            raise UserError(f"{where}: the gain ratio {name} = {ratio:.4g} lies outside 1/{MAX_GAIN_RATIO:g}.."
+                            f"{MAX_GAIN_RATIO:g} (9 stops each way, past the widest temperature, 1000 K); {advice}")
 
 
 def parse_white_balance(text: Optional[str]) -> WhiteBalance:
@@ -167,7 +182,10 @@ def neutral_gains(colour: Sequence[float], where: str) -> Tuple[float, float, fl
         raise UserError(f"--white-balance {where}: the picked pixel is black (linear {c[0]:.2g}, {c[1]:.2g}, "
                         f"{c[2]:.2g}) and has no colour to neutralise; pick a brighter neutral (grey or white) "
                         "surface")
-    return (c[1] / c[0], 1.0, c[1] / c[2])
+    gains = (c[1] / c[0], 1.0, c[1] / c[2])
+    _check_ratios(gains, f"--white-balance {where}", "the picked pixel is strongly coloured, not a neutral: pick a "
+                  "grey or white surface")
+    return gains
 
 
 def grey_edge_gains(images: Iterable[Tensor]) -> Tuple[float, float, float]:

@@ -388,7 +388,8 @@ def iter_decompositions(image_paths: Sequence[PathLike], method: str = "lr3m", p
                         cache_dir: Optional[PathLike] = None, device: Union[str, torch.device] = "cpu", *,
                         preview: bool = False, progress: bool = True, cache_hint: str = "", sweep: bool = False,
                         report: Optional[Dict[str, Any]] = None, announce: bool = True, scene: str = "SCENE",
-                        raw_denoise: bool = False, balance: Optional[Sequence[float]] = None
+                        raw_denoise: bool = False, balance: Optional[Sequence[float]] = None,
+                        names: Optional[Sequence[PathLike]] = None
                         ) -> Iterator[Tuple[torch.Tensor, torch.Tensor]]:
     """(R [H,W,3], L [H,W,1]) float32 CPU tensors for each image in turn, from the cache or computed and
     written to it before they are yielded: the caller holds one image's priors at a time, and an interrupted
@@ -399,12 +400,16 @@ def iter_decompositions(image_paths: Sequence[PathLike], method: str = "lr3m", p
     ``announce`` prints :func:`unused_note` (naming ``scene`` in its command) on stderr when there are unused
     entries. ``raw_denoise``: camera raw views are decomposed from their denoised preview (:func:`read_image`,
     keyed by :func:`prior_key`). ``balance``: every photo's white balance (``data.white_balance``; the views'
-    :attr:`~retinexgs.data.scene.View.balance`), applied before the decomposition and part of the key. Other
-    arguments: :func:`decompose_images`.
+    :attr:`~retinexgs.data.scene.View.balance`), applied before the decomposition and part of the key. ``names``:
+    the user's file for each image, named in errors instead (a view's ``source_path``: the photo an undistorted or
+    downscaled copy was made from). Other arguments: :func:`decompose_images`.
     """
     paths = [Path(p) for p in image_paths]
     if not paths:
         raise UserError("no images to decompose")
+    if names is not None and len(names) != len(paths):
+        raise ValueError(f"names: {len(names)} for {len(paths)} images")
+    shown = dict(zip(paths, (Path(n) for n in names))) if names is not None else {}
     dev = resolve_device(device)
     dec = get_decomposer(method, params)
     root = Path(cache_dir) if cache_dir is not None else default_cache_root(paths)
@@ -444,8 +449,8 @@ def iter_decompositions(image_paths: Sequence[PathLike], method: str = "lr3m", p
                 image = read_image(p, raw_denoise, balance).to(dev)
                 try:
                     r, l = dec.decompose(image)
-                except ValueError as exc:  # e.g. an all-black photo
-                    raise UserError(f"cannot decompose {p}: {exc}") from None
+                except ValueError as exc:  # e.g. an all-black photo: named as the user knows it, not the cache copy
+                    raise UserError(f"cannot decompose {shown.get(p, p)}: {exc}") from None
                 del image
                 r, l = r.to("cpu", torch.float32), l.to("cpu", torch.float32)
                 save_entry(target, r, l, {**meta, "source": p.name}, cache_hint)
@@ -479,7 +484,7 @@ def decompose_images(image_paths: Sequence[PathLike], method: str = "lr3m", para
                      cache_dir: Optional[PathLike] = None, device: Union[str, torch.device] = "cpu", *,
                      keep: bool = True, preview: bool = False, progress: bool = True, cache_hint: str = "",
                      sweep: bool = False, announce: bool = True, raw_denoise: bool = False,
-                     balance: Optional[Sequence[float]] = None
+                     balance: Optional[Sequence[float]] = None, names: Optional[Sequence[PathLike]] = None
                      ) -> Tuple[List[Optional[Tuple[torch.Tensor, torch.Tensor]]], Dict[str, Any]]:
     """Make sure every image has a valid cache entry; return (results, report).
 
@@ -491,13 +496,13 @@ def decompose_images(image_paths: Sequence[PathLike], method: str = "lr3m", para
     cache; only a needed write fails. ``sweep``: ``image_paths`` are a scene's train views: once all are in
     place, old-format entries are deleted (:func:`sweep_old_format`) and the entries they do not use are counted
     (:func:`unused_entries`; nothing of them is deleted), and with ``announce`` one line says so on stderr.
-    One image's priors at a time: :func:`iter_decompositions` (``raw_denoise``, ``balance`` as there).
+    One image's priors at a time: :func:`iter_decompositions` (``raw_denoise``, ``balance``, ``names`` as there).
     """
     report: Dict[str, Any] = {}
     results: List[Optional[Tuple[torch.Tensor, torch.Tensor]]] = []
     for hit in iter_decompositions(image_paths, method, params, cache_dir, device, preview=preview,
                                    progress=progress, cache_hint=cache_hint, sweep=sweep, report=report,
-                                   announce=announce, raw_denoise=raw_denoise, balance=balance):
+                                   announce=announce, raw_denoise=raw_denoise, balance=balance, names=names):
         results.append(hit if keep else None)
     return results, report
 

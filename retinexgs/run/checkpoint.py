@@ -6,14 +6,14 @@ from __future__ import annotations
 
 import os
 import re
-import tempfile
 from pathlib import Path
 from typing import Any, Dict, List, Optional
 
 import torch
 
 from retinexgs.errors import UserError
-from retinexgs.fileio import is_out_of_space, out_of_space_error
+from retinexgs.fileio import (default_file_mode, is_out_of_space, out_of_space_error, remove_empty_folders,
+                              temporary_file)
 
 _PATTERN = re.compile(r"step_(\d+)\.pt$")
 _TEMP_PATTERN = re.compile(r"^\.step_\d+\.pt\..*\.tmp$")  # what atomic_save leaves when killed mid-write
@@ -33,11 +33,11 @@ def list_checkpoints(run: Path) -> List[Path]:
 
 
 def atomic_save(obj: Any, path: Path) -> None:
-    """torch.save to a temporary file in the same folder, fsync, then rename over ``path``."""
+    """torch.save to a temporary file in the same folder, fsync, then rename over ``path`` (with the permissions of
+    every other output, 0666 minus the umask). On failure the folders it made are removed again while empty."""
     path = Path(path)
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        fd, tmp, made = temporary_file(path.parent, f".{path.name}.", ".tmp")
     except OSError as exc:
         if is_out_of_space(exc, path.parent):
             raise out_of_space_error(path) from None
@@ -47,10 +47,12 @@ def atomic_save(obj: Any, path: Path) -> None:
             torch.save(obj, f)
             f.flush()
             os.fsync(f.fileno())
+        os.chmod(tmp, default_file_mode())  # as every other output: the umask's, not mkstemp's 0600
         os.replace(tmp, path)
     except BaseException as exc:
         if os.path.exists(tmp):
             os.unlink(tmp)
+        remove_empty_folders(made)  # a first checkpoint that failed leaves no empty checkpoints/ behind
         # a full disk: torch's zip writer says "unexpected pos ..." / "file write failed" (not ENOSPC)
         if isinstance(exc, Exception) and is_out_of_space(exc, path.parent):
             raise out_of_space_error(path) from None

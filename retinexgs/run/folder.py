@@ -36,7 +36,8 @@ def open_scene(path: Path, cfg: Config, cache_hint: str = "--set data.cache_dir=
     ``data.cache_dir`` for the message when the scene folder is read-only."""
     d = cfg.data
     scene = load_scene(path, reader=d.reader, downscale=d.downscale,
-                       cache_dir=d.cache_dir and Path(d.cache_dir) / "scene", cache_hint=cache_hint)
+                       cache_dir=d.cache_dir and Path(d.cache_dir) / "scene", cache_hint=cache_hint,
+                       sfm_options=dict(min_registered=d.min_registered))
     if d.white_balance == "grey-edge":  # one balance for the capture, from its training photos (deterministic)
         gains = estimate_photo_balance([v.image_path for v in scene.train])
         for v in [*scene.train, *scene.test, *scene.val]:
@@ -79,6 +80,7 @@ def load_run(run_dir: Path, device: Optional[str] = None) -> Tuple[Config, Scene
 # every pixel alike until loss.rec_raw_prior_snr (2026-11-28), and renders drew Gaussians up to 0.01 from the
 # camera until model.near_fraction (the same day). A raw scene's tone took the photos' highlight knee until
 # model.enhancement.shoulder_raw (the same day), and its L_spa read the unclipped target until loss.spa_raw.
+# A folder posed by SfM was used whatever share of its photos SfM registered until data.min_registered.
 # This table is the one place for these
 # values: the code reads every key from the validated config, with no fallback of its own.
 PREDATING_VALUES: Dict[str, Any] = {"model.enhancement.tone": "illumination", "loss.w_depth": 0.0,
@@ -90,7 +92,8 @@ PREDATING_VALUES: Dict[str, Any] = {"model.enhancement.tone": "illumination", "l
                                     "density.last_event": 1.0, "loss.rec_raw": "photo",
                                     "decomposer.raw_denoise": False, "loss.rec_raw_unit": "plain",
                                     "loss.rec_raw_prior_snr": 0.0, "model.near_fraction": 0.0,
-                                    "model.enhancement.shoulder_raw": None, "loss.spa_raw": "extended"}
+                                    "model.enhancement.shoulder_raw": None, "loss.spa_raw": "extended",
+                                    "data.min_registered": 0.0}
 
 
 def _fill_missing(cfg: RawConfig, default: RawConfig, prefix: str, filled: List[str]) -> RawConfig:

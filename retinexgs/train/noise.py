@@ -38,8 +38,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from retinexgs.data.images import read_image_float
+from retinexgs.data.images import is_raw_file, read_image_float
 from retinexgs.data.sensor import JpegCodec, estimate_noise, estimate_noise_through_codec
+from retinexgs.errors import UserError
 from retinexgs.evaluate.metrics import ssim
 from retinexgs.model.tone import linear_to_srgb, srgb_to_linear
 from retinexgs.train.losses import exposed, noise_variance
@@ -192,6 +193,20 @@ class NoiseMeter:
         return CaptureNoise(a, b, GAINS, sigma, len(self._sigma), d)  # type: ignore[arg-type]
 
 
+def check_not_black(photo: np.ndarray, path: Path) -> None:
+    """UserError naming ``path`` when its photo [H,W,3] is all zero (black): it holds no noise to measure (every fit
+    would read a = b = 0, an infinite full well). The same refusal ``train`` gives such a photo (its decomposition)."""
+    if not bool(np.any(np.asarray(photo) > 0)):
+        raise UserError(f"cannot measure the noise of {path}: the photo is all zero (black): there is nothing to "
+                        "measure")
+
+
+def jpeg_codec(path: Path) -> Optional[JpegCodec]:
+    """The JPEG codec of ``path`` (:meth:`JpegCodec.of_file`); None for a camera raw file, which is never opened with
+    PIL: PIL does not read a DNG or CRW (UnidentifiedImageError), and reads a NEF as a TIFF preview."""
+    return None if is_raw_file(path) else JpegCodec.of_file(path)
+
+
 def measure_capture_noise(photos: Sequence[Path], downscale: float = 1.0, device: torch.device = torch.device("cpu"),
                           views: int = MEASURED_VIEWS, scale: int = NOISE_SCALE,
                           through_codec: bool = False, progress: bool = False) -> Optional[CaptureNoise]:
@@ -205,7 +220,9 @@ def measure_capture_noise(photos: Sequence[Path], downscale: float = 1.0, device
     meter = NoiseMeter(device, scale, through_codec)
     chosen = photos[::max(1, len(photos) // views)][:views]
     for p in tqdm(chosen, desc="noise", unit="photo", disable=not progress, dynamic_ncols=True):
-        meter.add(read_image_float(p), JpegCodec.of_file(p) if through_codec else None)
+        photo = read_image_float(p)  # a raw file: its view, as training reads it
+        check_not_black(photo, p)
+        meter.add(photo, jpeg_codec(p) if through_codec else None)
     return meter.result(downscale)
 
 
@@ -262,5 +279,6 @@ class NoiseProbe:
         return torch.autograd.grad(out.image, out.means2d, grad_outputs=g, retain_graph=True)[0]
 
 
-__all__ = ["NoiseProbe", "CaptureNoise", "NoiseMeter", "measure_capture_noise", "exposed_noise_sigma", "centre_crop", "GAINS",
+__all__ = ["NoiseProbe", "CaptureNoise", "NoiseMeter", "measure_capture_noise", "exposed_noise_sigma", "centre_crop",
+           "check_not_black", "jpeg_codec", "GAINS",
            "SSIM_K2", "NOISE_SCALE", "MEASURED_VIEWS", "CROP", "sigma_limit"]
