@@ -78,7 +78,7 @@ setup(
     license="Apache-2.0",  # LICENSE; third-party parts (weights) in their own notice
     license_files=["LICENSE"],
     # pycolmap reads COLMAP models and runs SfM; plyfile reads and writes the exported PLY;
-    # pydantic checks the config (retinexgs/run/schema.py); pillow-heif reads phone photos (HEIC/HEIF); rawpy (LibRaw)
+    # pydantic checks the config (retinexgs/config/schema.py); pillow-heif reads phone photos (HEIC/HEIF); rawpy (LibRaw)
     # and exifread read camera raw files and their exposure (retinexgs/data/camera_raw.py); imageio-ffmpeg decodes
     # a phone's night video for `retinexgs frames` (retinexgs/data/video.py) with the static ffmpeg its wheel
     # ships (68 MB), so that no system ffmpeg is needed.

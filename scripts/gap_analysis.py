@@ -21,7 +21,7 @@ Each RUN is a trained run with ``renders/test/*.png`` (the panels ``retinexgs ev
 
 ``--ceiling`` runs (e.g. plain 3DGS trained on the normal-light photos themselves) are scored the same way: the
 3D reconstruction's own ceiling on those views. No GPU needed; the numbers of
-docs/experiments/2026-11-24-remaining-gap.md came from this script on runs copied back from the GPU machine.
+experiments/notes/2026-11-24-remaining-gap.md came from this script on runs copied back from the GPU machine.
 """
 from __future__ import annotations
 

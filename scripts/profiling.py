@@ -288,7 +288,7 @@ def count_ops(args: argparse.Namespace) -> None:
         graphed = sum(v for k, v in counter.phases.items() if k.endswith("_graph"))
         print(f"steps {first}..{tr.step} on {device}, {len(tr.model.gaussians)} Gaussians, "
               f"config {args.config or ['default']} {args.overrides}, "
-              f"cuda_graphs={cfg['train']['cuda_graphs'] if 'train' in cfg else 'n/a'}")
+              f"cuda_graphs={cfg.train.cuda_graphs}")
         print(f"aten ops per step (all):          {sum(counter.ops.values()) / n:8.1f}")
         print(f"kernel ops per step (no views):   {sum(kernel_ops.values()) / n - optim / n:8.1f}"
               f"  (+ {optim / n:.1f} in the optimiser step: one fused kernel per group on the GPU)")

@@ -22,7 +22,7 @@ def gaussians_with_scales(log_scales):
 
 def controller(max_aniso):
     cfg = load_config([], [f"density.max_aniso={max_aniso}"])
-    return DefaultStrategy(cfg["density"], 1.0, build_schedule(cfg))
+    return DefaultStrategy(cfg.density, 1.0, build_schedule(cfg))
 
 
 def test_the_cap_shortens_only_the_long_axes_of_needles():

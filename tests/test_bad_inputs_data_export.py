@@ -203,7 +203,8 @@ def test_render_val_without_a_val_split_names_the_splits_there_are(tmp_path, mon
     run.mkdir()
     import yaml
 
-    from retinexgs.run.config import load_config, plain
+    from retinexgs.config import plain
+    from retinexgs.run.config import load_config
 
     # a whole recorded config: render validates it before loading the run
     (run / "config.yaml").write_text(yaml.safe_dump(dict(plain(load_config()), scene=str(tmp_path))))

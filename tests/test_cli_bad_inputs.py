@@ -52,9 +52,9 @@ def _run(root: Path, o: Dict, scene: Path = None) -> Path:
     dst = root / "run"
     shutil.copytree(o["run"], dst)
     if scene is not None:
-        cfg = yaml.safe_load((dst / "config.yaml").read_text())
-        cfg["scene"] = str(scene)
-        (dst / "config.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
+        data = yaml.safe_load((dst / "config.yaml").read_text())
+        data["scene"] = str(scene)
+        (dst / "config.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
     return dst
 
 
@@ -117,6 +117,34 @@ def setup_video(root, o, busy=False):
         (root / "busy" / "mine.txt").write_text("keep me\n")
 
 
+def setup_black_photos(root, o):
+    """Issue 62: two all-black photos (noise printed "full well inf e-, SNR 0.0")."""
+    photos = root / "photos"
+    photos.mkdir()
+    for i in range(2):
+        from PIL import Image
+        Image.new("RGB", (32, 24)).save(photos / f"{i:04d}.png")
+
+
+def setup_incomplete_model(root, o):
+    """Issue 62: a photo folder whose colmap_sparse/0 holds only points3D.bin (SfM ran 50 s into the scene)."""
+    setup_photos(root, o, n=2)
+    model = root / "photos" / "colmap_sparse" / "0"
+    model.mkdir(parents=True)
+    (model / "points3D.bin").write_bytes(b"\0" * 8)
+
+
+def setup_demo_with_user_file(root, o):
+    """Issue 62: a demo folder the demo made (its record of its files), with a user's note added in run/."""
+    out = root / "demo"
+    for sub, name in (("scene", "a.png"), ("run", "metrics.json")):
+        (out / sub).mkdir(parents=True)
+        (out / sub / name).write_text("demo")
+    (out / ".retinexgs-demo").write_text("")
+    (out / ".retinexgs-demo-files.json").write_text(json.dumps({"files": ["scene/a.png", "run/metrics.json"]}))
+    (out / "run" / "notes.txt").write_text("mine")
+
+
 def setup_one_view(root, o):
     """The scene with one training frame left in transforms_train.json."""
     path = _scene(root, o) / "transforms_train.json"
@@ -153,6 +181,9 @@ SETUPS: Dict[str, Callable[[Path, Dict], None]] = {
     "one_view": setup_one_view,
     "video_busy_out": lambda root, o: setup_video(root, o, busy=True),
     "a_photo": lambda root, o: shutil.copy(o["scene"] / "low" / "0000.png", root / "night.png"),
+    "photos_black": setup_black_photos,
+    "incomplete_model": setup_incomplete_model,
+    "demo_with_user_file": setup_demo_with_user_file,
 }
 
 
@@ -239,6 +270,9 @@ CASES: List[Case] = [
     # demo (only the refusals: a real demo trains for minutes)
     Case("demo-out-is-a-file", ["demo", "--out", "{root}/afile.txt", *T], "--out {root}/afile.txt is a file", "a_file"),
     Case("demo-out-not-empty", ["demo", "--out", "{root}/busy", *T], "already exists", "busy_out"),
+    # issue 62: --overwrite deleted the user's files inside run/ and scene/
+    Case("demo-overwrite-keeps-the-users-files", ["demo", "--out", "{root}/demo", "--overwrite", *T], "run/notes.txt",
+         "demo_with_user_file"),
     Case("demo-zero-steps", ["demo", "--out", "{root}/demo", "--steps", "0", *T], "--steps must be a positive"),
     Case("demo-negative-steps", ["demo", "--out", "{root}/demo", "--steps", "-5", *T], "--steps must be a positive"),
     # issue 36: --overwrite on a folder the demo did not make gave the message of a plain refusal
@@ -274,6 +308,11 @@ CASES: List[Case] = [
     Case("darken-bad-cast", ["darken", "--data", "{root}/scene", "--out", "{root}/dark", "--cast", "1,1"],
          "expected three gains R,G,B", "scene"),
     Case("noise-empty-folder", ["noise", "--data", "{root}/photos"], "no photos in {root}/photos", "photos_empty"),
+    # issue 62: all-black photos were "full well inf e-, SNR 0.0"
+    Case("noise-all-black-photos", ["noise", "--data", "{root}/photos"], "is all zero (black)", "photos_black"),
+    # issue 62: a model folder holding points3D.bin alone was "no model", and SfM wrote into the scene
+    Case("train-incomplete-colmap-model", TRAIN + ["--data", "{root}/photos"],
+         "colmap_sparse/0 is incomplete", "incomplete_model"),
     # sfm
     Case("sfm-missing-folder", ["sfm", "--images", "{root}/missing", "--quiet"], "{root}/missing does not exist"),
     Case("sfm-empty-folder", ["sfm", "--images", "{root}/photos", "--quiet"], "is empty", "photos_empty"),

@@ -6,8 +6,9 @@ import yaml
 
 from retinexgs.cli import main
 from retinexgs.errors import UserError
-from retinexgs.run.config import configs_dir, load_config, plain, read_yaml, validate
-from retinexgs.run.schema import ConfigSchema
+from retinexgs.config import configs_dir, plain, read_yaml
+from retinexgs.config.schema import ConfigSchema
+from retinexgs.run.config import load_config, validate
 
 SHIPPED = sorted(p for p in configs_dir().rglob("*.yaml"))
 
@@ -45,9 +46,9 @@ def test_load_config_returns_typed_validated_data():
     data = plain(cfg)  # what a run records in config.yaml and a checkpoint
     assert type(data) is dict and type(data["loss"]) is dict and type(data["model"]["illumination"]) is dict
     assert yaml.safe_load(yaml.safe_dump(data)) == data
-    assert cfg["loss"]["w_tv"] == 0.0 and isinstance(cfg["loss"]["w_tv"], float)
-    assert cfg["lr"]["means"] == 1e-4  # PyYAML reads 1e-4 as a string: a string spelling a number is that number
-    assert cfg["decomposer"]["params"] == {"iterations": 3, "beta": 1.0}  # checked per method, typed as its schema says
+    assert cfg.loss.w_tv == 0.0 and isinstance(cfg.loss.w_tv, float)
+    assert cfg.lr.means == 1e-4  # PyYAML reads 1e-4 as a string: a string spelling a number is that number
+    assert cfg.decomposer.params == {"iterations": 3, "beta": 1.0}  # checked per method, typed as its schema says
 
 
 @pytest.mark.parametrize("setting, expect", [
@@ -92,7 +93,7 @@ def test_exposed_reconstruction_needs_the_scene_reference():
     with pytest.raises(UserError) as info:
         load_config(["paper"], overrides=["loss.rec_domain=exposed_ssim"])  # the paper has no L_ref
     assert "loss.rec_domain 'exposed_ssim' exposes the photo by 1 / lin(L_ref)" in str(info.value)
-    assert load_config(overrides=["loss.rec_domain=exposed"])["loss"]["rec_domain"] == "exposed"
+    assert load_config(overrides=["loss.rec_domain=exposed"]).loss.rec_domain == "exposed"
     with pytest.raises(UserError, match="loss.rec_domain must be one of photo, exposed, exposed_ssim"):
         load_config(overrides=["loss.rec_domain=linear"])
 

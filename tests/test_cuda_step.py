@@ -11,7 +11,8 @@ from retinexgs.data import load_scene
 from retinexgs.demo.synthetic import make_demo_scene
 from retinexgs.model.tone import srgb_to_linear
 from retinexgs.train import losses
-from retinexgs.run.config import configs_dir, load_config
+from retinexgs.config import configs_dir
+from retinexgs.run.config import load_config
 from retinexgs.train.noise import sigma_limit
 from retinexgs.train.trainer import Trainer
 from retinexgs.train.losses import to_bchw
@@ -34,7 +35,7 @@ def config_overrides(name):
     sets = list(TINY)
     # LIME: the same code path as LR3M, much faster on tiny views; LR3M's own parameters (a config that tunes
     # them, e.g. ablations/lr3m_beta_0.15) keep LR3M, which LIME would refuse.
-    if cfg["decomposer"]["method"] == "lr3m" and not cfg["decomposer"]["params"]:
+    if cfg.decomposer.method == "lr3m" and not cfg.decomposer.params:
         sets.append("decomposer.method=lime")
     return [] if name == "default" else [name], sets
 
@@ -147,32 +148,33 @@ def test_eager_loss_is_the_papers_sum(scene_dir, tmp_path, one_thread, name):
     L_sup + w_tv·L_TV + w_sh·L_SH + L_enhance on the detached R̂, L̂ (the default; L_exp on the image, or on
     the enhanced light for the previous default), + w_depth·(depth prior) where it is on."""
     tr = make_trainer(scene_dir, tmp_path / "ref", name, "cpu")
-    c = tr.cfg["loss"]
+    c = tr.cfg.loss
     assert tr.depth_prior == (name != "ablations/no_depth")
     tv = tr.views[1]
     res = tr.model.render(tv.camera, 1, depth=tr.depth_prior)
     terms = tr.objective.loss(res, tv, step=10)
     R_hat, L_hat, S = to_bchw(res["R"]), to_bchw(res["L"]), to_bchw(tv.S)
     # the reconstruction term's options: the g = 1 exposure is 1 / lin(L_ref)
-    gain = 1.0 / srgb_to_linear(tr.model.illum_ref) if c["rec_domain"] != "photo" else None
-    if gain is not None and c["rec_noise_floor"]:  # capped at the photos' noise floor (train/noise.py)
-        gain = min(float(gain), tr.noise.capture_noise.gain_cap(sigma_limit(c["rec_noise_share"])))
-    sup, _ = losses.supervision_loss(R_hat, L_hat, to_bchw(tv.R), to_bchw(tv.L), S, c["w_r"], c["w_l"], c["w_s"],
-                                     c["lambda_ssim"], c["rec_huber"], gain, c["rec_domain"] == "exposed",
-                                     c["rec_ssim_noise"], tr.noise.capture_noise.camera("cpu") if c["rec_camera_noise"] else None)
+    gain = 1.0 / srgb_to_linear(tr.model.illum_ref) if c.rec_domain != "photo" else None
+    if gain is not None and c.rec_noise_floor:  # capped at the photos' noise floor (train/noise.py)
+        gain = min(float(gain), tr.noise.capture_noise.gain_cap(sigma_limit(c.rec_noise_share)))
+    sup, _ = losses.supervision_loss(R_hat, L_hat, to_bchw(tv.R), to_bchw(tv.L), S, c.w_r, c.w_l, c.w_s,
+                                     c.lambda_ssim, c.rec_huber, gain, c.rec_domain == "exposed",
+                                     c.rec_ssim_noise,
+                                     tr.noise.capture_noise.camera("cpu") if c.rec_camera_noise else None)
     out = tr.model.enhance(res["R"].detach(), res["L"].detach())
     E = losses.exposure_target(c, tr.model.tone, res["R"] * res["L"], tr.model.shoulder)
-    enh, _ = losses.enhancement_loss(to_bchw(out["rgb"]), S, c["w_spa"], c["w_exp"], c["w_col"], E,
-                                     illumination=to_bchw(out["L_enh"]) if c["exp_on"] == "illumination" else None,
-                                     exp_patch=c["exp_patch"],
-                                     exp_form=c["exp_form"], spa_form=c["spa_form"],
-                                     scale_invariant=c["enhance_scale_invariant"])
-    want = sup + c["w_tv"] * losses.tv_loss(R_hat) + c["w_sh"] * losses.sh_sparsity_loss(
-        tr.model.gaussians.sh_rest, c["sh_reduction"]) + enh
+    enh, _ = losses.enhancement_loss(to_bchw(out["rgb"]), S, c.w_spa, c.w_exp, c.w_col, E,
+                                     illumination=to_bchw(out["L_enh"]) if c.exp_on == "illumination" else None,
+                                     exp_patch=c.exp_patch,
+                                     exp_form=c.exp_form, spa_form=c.spa_form,
+                                     scale_invariant=c.enhance_scale_invariant)
+    want = sup + c.w_tv * losses.tv_loss(R_hat) + c.w_sh * losses.sh_sparsity_loss(
+        tr.model.gaussians.sh_rest, c.sh_reduction) + enh
     if tr.depth_prior:
         out = res["out"]
-        want = want + c["w_depth"] * losses.depth_smoothness_loss(
-            to_bchw(out.depth), to_bchw(out.alpha), *losses.edge_weights(to_bchw(tv.R), c["depth_edge"]))
+        want = want + c.w_depth * losses.depth_smoothness_loss(
+            to_bchw(out.depth), to_bchw(out.alpha), *losses.edge_weights(to_bchw(tv.R), c.depth_edge))
     assert float(terms["total"].detach()) == pytest.approx(float(want.detach()), rel=1e-6)
     depth = ["depth"] if tr.depth_prior else []
     assert list(terms) == ["sup_r", "sup_l", "sup_rec", "tv", "sh"] + depth + ["spa", "exp", "col", "exp_E", "total"]
@@ -199,7 +201,7 @@ def test_depth_prior_runs_inside_the_loss_graph(scene_dir, tmp_path, name, one_t
     res = tr.render_view(tv, 1)
     C = res["out"].image.shape[-1]
     assert tr.objective.graph_input(res).shape[-1] == C + (2 if tr.depth_prior else 0)
-    result = tr.graphs.run(tr.objective.graph_input(res), tv.pack(True, tr.cfg["loss"]["depth_edge"] if tr.depth_prior
+    result = tr.graphs.run(tr.objective.graph_input(res), tv.pack(True, tr.cfg.loss.depth_edge if tr.depth_prior
                                                         else None), False)
     assert ("depth" in result.names) == tr.depth_prior
     assert result.grad_image.shape[-1] == C + (2 if tr.depth_prior else 0)

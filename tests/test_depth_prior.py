@@ -113,8 +113,8 @@ def test_the_training_step_logs_and_adds_the_prior(scene_dir, tmp_path):  # noqa
     assert res["out"].depth is not None
     terms = tr.objective.loss(res, tv, 0)
     assert list(terms).index("depth") == list(terms).index("sh") + 1
-    others = sum(tr.cfg["loss"][w] * terms[k] for k, w in (("sup_r", "w_r"), ("sup_l", "w_l"), ("sup_rec", "w_s"),
-                                                            ("tv", "w_tv"), ("sh", "w_sh")))
+    others = sum(getattr(tr.cfg.loss, w) * terms[k] for k, w in (("sup_r", "w_r"), ("sup_l", "w_l"),
+                                                                 ("sup_rec", "w_s"), ("tv", "w_tv"), ("sh", "w_sh")))
     assert float(terms["total"].detach()) == pytest.approx(float((others + 2.0 * terms["depth"]).detach()), rel=1e-6)
     tr.optimizer.zero_grad(set_to_none=True)
     tr.objective.depth_loss(tr.render_view(tv, 0), tv).backward()  # the prior alone reaches the Gaussians' positions

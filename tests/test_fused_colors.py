@@ -10,7 +10,7 @@ from retinexgs.model.illumination import IlluminationField
 from retinexgs.model.inference import (InferenceRenderer, camera_center, fused_colors_unsupported,
                                        fused_gaussian_colors, illumination_shape, pack_illumination)
 from retinexgs.model.retinex_model import RetinexGSModel
-from retinexgs.run.schema import Model
+from retinexgs.config.schema import Model
 from retinexgs.render._backend import kernels
 from scenes import make_camera
 

@@ -98,10 +98,10 @@ def test_config_reaches_the_model_and_old_checkpoints_load():
     key existed (same tensors) loads into either kind of field."""
     cfg = load_config(["ablations/illum_static"])
     g = GaussianModel.from_points(torch.randn(50, 3), torch.rand(50, 3), sh_degree=3)
-    model = RetinexGSModel(g, cfg["model"])
+    model = RetinexGSModel(g, cfg.model)
     assert model.illumination.view_dependent is False
-    assert load_config([])["model"]["illumination"]["view_dependent"] is True
-    assert load_config(["paper"])["model"]["illumination"]["view_dependent"] is True
+    assert load_config([]).model.illumination.view_dependent is True
+    assert load_config(["paper"]).model.illumination.view_dependent is True
     state = field(True).state_dict()
     assert not any("head_mask" in k for k in state)
     static = field(False)

@@ -102,7 +102,7 @@ def _train_lines(scene, run, overrides, monkeypatch):
 def test_default_run_reports_lpips_and_prints_nothing_about_tensorboard(tiny_scene, tmp_path, monkeypatch,
                                                                         one_thread):
     cfg = load_config([])
-    assert cfg["log"]["tensorboard"] is False and cfg["eval"]["lpips"] is True
+    assert cfg.log.tensorboard is False and cfg.eval.lpips is True
     logs = _train_lines(tiny_scene, tmp_path / "run", [], monkeypatch)
     assert not [ln for ln in logs if "tensorboard" in ln.lower() or "LPIPS not reported" in ln], logs
     assert len([ln for ln in logs if ln.startswith("test views:") and ", LPIPS 0." in ln]) == 1, logs

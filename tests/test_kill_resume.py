@@ -22,7 +22,8 @@ import torch
 from retinexgs.data import load_scene
 from retinexgs.demo.synthetic import make_demo_scene
 from retinexgs.run.checkpoint import list_checkpoints, load_checkpoint
-from retinexgs.run.config import load_config, read_yaml
+from retinexgs.config import read_yaml
+from retinexgs.run.config import load_config
 from retinexgs.train.trainer import Trainer, TrainingDiverged
 
 KILL_TRIALS = 5

@@ -145,7 +145,7 @@ def test_evaluate_reports_lpips_like_psnr_and_ssim(tmp_path):
     from retinexgs.evaluate.evaluate import evaluate
     from retinexgs.run.config import load_config
 
-    assert load_config([])["eval"]["lpips"] is True
+    assert load_config([]).eval.lpips is True
     scene = _eval_scene(tmp_path, 48, 40)
     outputs = {}
 

@@ -119,21 +119,25 @@ def test_the_trainer_sets_the_plane_from_the_initial_points_and_the_run_keeps_it
 
 
 def test_a_run_from_before_the_key_renders_as_it_did(tiny_run, tmp_path):
-    """A run whose config.yaml predates model.near_fraction gets 0 (PREDATING_VALUES): no buffer, no plane."""
+    """A run whose config.yaml predates model.near_fraction gets 0 (its format-0 migration, FORMAT_0_VALUES): no
+    buffer, no plane."""
     import shutil
 
-    from retinexgs.run.folder import PREDATING_VALUES, load_run
+    from retinexgs.config.versions import FORMAT_0_VALUES
+    from retinexgs.run.folder import load_run
     _, run = tiny_run
     old = tmp_path / "old"
     shutil.copytree(run, old)
     raw = yaml.safe_load((old / "config.yaml").read_text())
     cfg_part = raw.get("config", raw)
     del cfg_part["model"]["near_fraction"], cfg_part["model"]["near_in_training"]
+    assert raw.pop("format") == 1  # written today; a run from before the key had no format (format 0)
     (old / "config.yaml").write_text(yaml.safe_dump(raw))
     ckpt = sorted((old / "checkpoints").glob("step_*.pt"))[-1]
     state = torch.load(ckpt, weights_only=False)
     del state["model"]["near"]
+    del state["format"]
     torch.save(state, ckpt)
-    assert PREDATING_VALUES["model.near_fraction"] == 0.0
+    assert FORMAT_0_VALUES["model.near_fraction"] == 0.0
     cfg, _, model, _ = load_run(old, "cpu")
     assert cfg.model.near_fraction == 0.0 and not model.has_near and model.near_plane() == 0.0

@@ -18,7 +18,7 @@ from retinexgs.data.images import read_image, resize_image
 from retinexgs.demo.synthetic import make_demo_scene
 from retinexgs.retinex.lime import LIMEParams
 from retinexgs.retinex.lr3m import LR3MParams
-from retinexgs.run.schema import LIMEParamsSchema, LR3MParamsSchema
+from retinexgs.config.schema import LIMEParamsSchema, LR3MParamsSchema
 from retinexgs.train.view_store import store_fingerprint
 from scenes import run_cli
 
@@ -140,20 +140,20 @@ def test_lime_params_are_checked_as_lime_and_good_values_pass(tmp_path, capsys):
     from retinexgs.run.config import load_config
 
     cfg = load_config(overrides=["decomposer.method=lime", "decomposer.params={alpha: 0.3, cg_max_iter: 50}"])
-    assert cfg["decomposer"]["params"] == {"alpha": 0.3, "cg_max_iter": 50}
-    assert load_config(overrides=["decomposer.params.beta=1"])["decomposer"]["params"] == {"beta": 1.0}
+    assert cfg.decomposer.params == {"alpha": 0.3, "cg_max_iter": 50}
+    assert load_config(overrides=["decomposer.params.beta=1"]).decomposer.params == {"beta": 1.0}
     from retinexgs.errors import UserError
     with pytest.raises(UserError, match="lime has no parameter 'iterations'"):
         load_config(overrides=["decomposer.method=lime", "decomposer.params.iterations=3"])
     # method none reads no parameters: nothing to check
-    assert load_config(overrides=["decomposer.method=none"])["decomposer"]["params"] == {}
+    assert load_config(overrides=["decomposer.method=none"]).decomposer.params == {}
 
 
 def test_every_decomposer_parameter_has_a_schema_field():
     for params, schema in ((LR3MParams, LR3MParamsSchema), (LIMEParams, LIMEParamsSchema)):
         assert [f.name for f in dataclasses.fields(params)] == list(schema.model_fields), params
         # the published defaults pass their own schema
-        from retinexgs.run.schema import check_decomposer_params
+        from retinexgs.config.schema import check_decomposer_params
         method = "lr3m" if params is LR3MParams else "lime"
         assert check_decomposer_params(method, dataclasses.asdict(params())) == dataclasses.asdict(params())
 
@@ -228,8 +228,8 @@ def test_decomposer_params_from_several_sources_add_up_and_a_new_method_resets_t
     from retinexgs.run.config import load_config
 
     cfg = load_config([], ["decomposer.params.beta=0.3", "decomposer.params.cg_max_iter=50"])
-    assert cfg["decomposer"]["params"]["beta"] == 0.3 and cfg["decomposer"]["params"]["cg_max_iter"] == 50
+    assert cfg.decomposer.params["beta"] == 0.3 and cfg.decomposer.params["cg_max_iter"] == 50
     cfg = load_config([], ["decomposer.params.beta=0.3", "decomposer.method=lime"])
-    assert cfg["decomposer"]["method"] == "lime" and cfg["decomposer"]["params"] == {}
+    assert cfg.decomposer.method == "lime" and cfg.decomposer.params == {}
     cfg = load_config([], ["decomposer.params.beta=0.3", "decomposer.params={}"])
-    assert cfg["decomposer"]["params"] == {}
+    assert cfg.decomposer.params == {}

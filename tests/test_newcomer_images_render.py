@@ -251,7 +251,7 @@ def test_exported_ply_comment_states_the_runs_tone(run_dir, tmp_path):
     assert cli("export", "--run", run_dir, "--out", out) == 0
     comments = " ".join(plyfile.PlyData.read(str(out)).comments)
     _, _, model, _ = load_run(run_dir, "cpu")
-    assert model.tone == "exposure"  # the default tone: the comment describes a gain, not a gamma on L
+    assert model.tone.name == "exposure"  # the default tone: the comment describes a gain, not a gamma on L
     assert "srgb(" in comments and "k = lin(L_ref)^(-1/g)" in comments and "(L/L_ref)^g" not in comments
     g = torch.tensor([0.5, 0.5, 0.5], dtype=torch.float64)
     model.tone = "illumination"

@@ -321,7 +321,8 @@ def test_train_min_registered_out_of_range_is_one_line(photos, tmp_path, capsys,
 
 def test_the_default_share_is_the_configs_and_older_runs_accept_any_model(tmp_path):
     from retinexgs.data.sfm import MIN_REGISTERED_SHARE
-    from retinexgs.run.config import configs_dir, load_config, plain
+    from retinexgs.config import configs_dir, plain
+    from retinexgs.run.config import load_config
     from retinexgs.run.folder import read_run_config
 
     default = yaml.safe_load((configs_dir() / "default.yaml").read_text())

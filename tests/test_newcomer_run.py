@@ -26,7 +26,7 @@ REPO = Path(__file__).resolve().parent.parent
 # ---- demo --overwrite --------------------------------------------------------------------------------------
 
 def test_demo_overwrite_replaces_only_its_scene_and_run(tmp_path, monkeypatch, capsys):
-    """The README puts `render --out retinexgs-demo/exposure-X` folders into the demo folder and a user adds
+    """docs/usage.md puts `render --out retinexgs-demo/exposure-X` folders into the demo folder and a user adds
     notes: `demo --overwrite` must keep them and replace only scene/ and run/."""
     import retinexgs.demo.synthetic as synthetic
     import retinexgs.train.runner as runner

@@ -195,7 +195,7 @@ def test_densification_statistic_keeps_the_gradient_the_noise_does_not_explain(a
     from retinexgs.strategy import DefaultStrategy
     from retinexgs.model.schedule import build_schedule
     cfg = load_config([], [f"density.noise_aware={str(aware).lower()}"])
-    d = DefaultStrategy(cfg["density"], 1.0, build_schedule(cfg))
+    d = DefaultStrategy(cfg.density, 1.0, build_schedule(cfg))
     d._ensure(3, torch.device("cpu"))
     d.grad_accum += torch.tensor([4.0, 4.0, 4.0])
     d.grad_sq += torch.tensor([16.0, 16.0, 16.0])
@@ -309,7 +309,7 @@ def test_a_checkpoint_from_before_the_squared_statistics_resumes():
     from retinexgs.strategy import DefaultStrategy
     from retinexgs.model.schedule import build_schedule
     cfg = load_config([], ["density.noise_aware=true"])
-    d = DefaultStrategy(cfg["density"], 1.0, build_schedule(cfg))
+    d = DefaultStrategy(cfg.density, 1.0, build_schedule(cfg))
     d.load_state_dict({"grad_accum": torch.tensor([1.0, 2.0]), "count": torch.tensor([1.0, 1.0]),
                        "max_radius": torch.tensor([3.0, 4.0])}, torch.device("cpu"))
     assert torch.equal(d.grad_sq, torch.zeros(2)) and torch.equal(d.noise_count, torch.zeros(2))

@@ -342,10 +342,10 @@ def test_the_sigma_unit_pulls_a_pixel_at_one_sigma_with_force_one_and_keeps_the_
 
 def test_rec_raw_unit_is_a_config_key_whose_runs_from_before_it_keep_plain():
     from retinexgs.run.config import load_config
-    from retinexgs.run.folder import PREDATING_VALUES
+    from retinexgs.config.versions import FORMAT_0_VALUES
     assert load_config().loss.rec_raw_unit == "plain"
     assert load_config(["ablations/raw_sigma"]).loss.rec_raw_unit == "sigma"
-    assert PREDATING_VALUES["loss.rec_raw_unit"] == "plain"
+    assert FORMAT_0_VALUES["loss.rec_raw_unit"] == "plain"
 
 
 def test_the_priors_fade_where_their_preview_cannot_resolve_the_light():
@@ -369,22 +369,22 @@ def test_the_priors_fade_where_their_preview_cannot_resolve_the_light():
     assert float(t_off["sup_r"]) == pytest.approx(0.4 / 4) and float(t_on["sup_r"]) == 0.0
     assert torch.equal(t_on["sup_rec"], t_off["sup_rec"])
     from retinexgs.run.config import load_config
-    from retinexgs.run.folder import PREDATING_VALUES
+    from retinexgs.config.versions import FORMAT_0_VALUES
     assert load_config().loss.rec_raw_prior_snr == 3.0
     assert load_config(["ablations/raw_prior_uniform"]).loss.rec_raw_prior_snr == 0.0
-    assert PREDATING_VALUES["loss.rec_raw_prior_snr"] == 0.0
+    assert FORMAT_0_VALUES["loss.rec_raw_prior_snr"] == 0.0
 
 
 def test_the_highlight_knee_is_shoulder_raw_on_a_raw_scene_and_shoulder_on_a_photo_scene():
     from retinexgs.run.config import load_config
-    from retinexgs.run.folder import PREDATING_VALUES
+    from retinexgs.config.versions import FORMAT_0_VALUES
     enh = load_config().model.enhancement
     assert (enh.shoulder, enh.shoulder_raw) == (0.5, 1.0)
     assert enh.knee(raw=False) == 0.5 and enh.knee(raw=True) == 1.0
     old = load_config(["ablations/raw_shoulder"]).model.enhancement
     assert old.shoulder_raw is None and old.knee(raw=True) == 0.5 == old.knee(raw=False)
     assert load_config(overrides=["model.enhancement.shoulder_raw=0.7"]).model.enhancement.knee(True) == 0.7
-    assert PREDATING_VALUES["model.enhancement.shoulder_raw"] is None  # runs from before it keep the photos' knee
+    assert FORMAT_0_VALUES["model.enhancement.shoulder_raw"] is None  # runs from before it keep the photos' knee
     with pytest.raises(Exception, match="shoulder_raw"):
         load_config(overrides=["model.enhancement.shoulder_raw=0"])
 
@@ -403,6 +403,7 @@ def test_a_raw_run_trains_and_renders_with_its_knee_and_a_run_from_before_the_ke
     path = tmp_path / "raw" / "config.yaml"
     recorded = yaml.safe_load(path.read_text())
     del recorded["model"]["enhancement"]["shoulder_raw"]
+    assert recorded.pop("format") == 1  # written today; a run from before the key had no format (format 0)
     path.write_text(yaml.safe_dump(recorded))
     assert load_run(tmp_path / "raw", "cpu")[2].shoulder == 0.5
 
@@ -421,9 +422,10 @@ def test_the_extended_targets_mean_is_dragged_down_by_the_noise_and_the_photos_i
 @pytest.mark.parametrize("spa_raw", ["photo", "extended"])
 def test_l_spa_of_a_raw_view_compares_with_the_photo_it_shows(night, tmp_path, spa_raw):
     from retinexgs.run.config import load_config
-    from retinexgs.run.folder import PREDATING_VALUES, open_scene
+    from retinexgs.config.versions import FORMAT_0_VALUES
+    from retinexgs.run.folder import open_scene
     from retinexgs.train.trainer import Trainer, enhancement_objective
-    assert load_config().loss.spa_raw == "photo" and PREDATING_VALUES["loss.spa_raw"] == "extended"
+    assert load_config().loss.spa_raw == "photo" and FORMAT_0_VALUES["loss.spa_raw"] == "extended"
     assert load_config(["ablations/spa_raw_extended"]).loss.spa_raw == "extended"
     cfg = load_config(["demo"], overrides=[*TINY_RUN, f"loss.spa_raw={spa_raw}"])
     for kind in ("raw", "jpeg"):

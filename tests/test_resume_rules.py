@@ -83,8 +83,8 @@ def test_resume_config_file_is_applied_and_recorded(run, capsys):
     code, out, err = cli(["train", "--out", str(run), "--resume", "--config", "ablations/no_tv", "--set", "steps=4",
                           *T], capsys)
     assert code == 0, err
-    cfg = recorded(run)
-    assert cfg["loss"]["w_tv"] == 0 and cfg["steps"] == 4
+    data = recorded(run)
+    assert data["loss"]["w_tv"] == 0 and data["steps"] == 4
     assert "--resume: loss.w_tv" in out and "recorded in" in out
     assert latest_checkpoint(run).name == "step_000004.pt"
 
@@ -164,9 +164,9 @@ def test_relocate_scene_points_the_run_at_the_moved_folder(run, originals, tmp_p
 
 
 def test_resume_of_a_moved_scene_says_how_to_relocate(run, originals, tmp_path, capsys):
-    cfg = recorded(run)
-    cfg["scene"] = str(tmp_path / "gone")
-    (run / "config.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
+    data = recorded(run)
+    data["scene"] = str(tmp_path / "gone")
+    (run / "config.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
     code, out, err = cli(["train", "--out", str(run), "--resume", *T], capsys)
     assert code == 2 and f"{tmp_path / 'gone'}, does not exist" in err and "--relocate-scene" in err
     code, out, err = cli(["train", "--out", str(run), "--resume", "--data", str(originals[0]), "--relocate-scene",
@@ -299,10 +299,12 @@ def test_out_not_writable(originals, tmp_path, capsys, no_scene_load, monkeypatc
 
 def test_a_run_older_than_a_key_gets_the_behaviour_it_was_trained_with(run):
     """A config.yaml without keys added later is filled from default.yaml, except keys whose default changed since
-    they were added: a run from before ``model.enhancement.tone`` was trained with the gamma on L̂, so it must
-    render that way, not with today's default tone."""
+    they were added (its format's migration, retinexgs/config/versions.py): a run from before
+    ``model.enhancement.tone`` was trained with the gamma on L̂, so it must render that way, not with today's
+    default tone."""
     from retinexgs.run.folder import read_run_config
     raw = recorded(run)
+    assert raw.pop("format") == 1  # a run made today records its format; one without is format 0 (before formats)
     assert raw["model"]["enhancement"]["tone"] == "exposure"  # a run made today records it
     assert raw["loss"]["w_depth"] == 0.3
     assert raw["loss"]["rec_domain"] == "exposed_ssim"
@@ -324,17 +326,17 @@ def test_a_run_older_than_a_key_gets_the_behaviour_it_was_trained_with(run):
     (run / "config.yaml").write_text(yaml.safe_dump(raw))
     lines = []
     cfg, _ = read_run_config(run, lines.append)
-    assert cfg["model"]["enhancement"]["tone"] == "illumination"
-    assert cfg["loss"]["w_depth"] == 0.0  # trained without the depth prior
-    assert cfg["model"]["enhancement"]["per_view"] is True  # unchanged default: filled from default.yaml
-    assert cfg["loss"]["depth_edge"] == 10.0
-    assert cfg["loss"]["rec_domain"] == "photo"  # trained with the reconstruction term on the dark values
-    assert cfg["loss"]["rec_huber"] == 0.0
-    assert cfg["model"]["background"] == "black"  # rendered over black: no background buffer in its checkpoints
-    assert cfg["model"]["enhancement"]["shoulder"] == 1.0  # its highlights clipped
-    assert cfg["loss"]["exp_highlight_share"] == 0.0  # metered by the average alone
-    assert cfg["train"]["momentum_batch_scaling"] == "none"  # torch's betas whatever the batch
-    assert cfg["train"]["views_pinned_gb"] == 4.0  # no effect on the numbers: today's default
+    assert cfg.model.enhancement.tone == "illumination"
+    assert cfg.loss.w_depth == 0.0  # trained without the depth prior
+    assert cfg.model.enhancement.per_view is True  # unchanged default: filled from default.yaml
+    assert cfg.loss.depth_edge == 10.0
+    assert cfg.loss.rec_domain == "photo"  # trained with the reconstruction term on the dark values
+    assert cfg.loss.rec_huber == 0.0
+    assert cfg.model.background == "black"  # rendered over black: no background buffer in its checkpoints
+    assert cfg.model.enhancement.shoulder == 1.0  # its highlights clipped
+    assert cfg.loss.exp_highlight_share == 0.0  # metered by the average alone
+    assert cfg.train.momentum_batch_scaling == "none"  # torch's betas whatever the batch
+    assert cfg.train.views_pinned_gb == 4.0  # no effect on the numbers: today's default
     for key in ("model.enhancement.tone", "model.enhancement.per_view", "loss.w_depth", "loss.depth_edge",
                 "loss.rec_domain", "loss.rec_huber", "model.background", "model.enhancement.shoulder",
                 "loss.exp_highlight_share", "train.momentum_batch_scaling", "train.views_pinned_gb"):
@@ -344,9 +346,9 @@ def test_a_run_older_than_a_key_gets_the_behaviour_it_was_trained_with(run):
 @pytest.mark.parametrize("argv", [["eval"], ["render"], ["export", "--out", "OUT/fox.ply"]])
 def test_a_run_whose_scene_moved_says_how_to_relocate_it(run, tmp_path, capsys, argv):
     """eval, render and export of a run whose scene folder is gone name the folder and the --relocate-scene fix."""
-    cfg = recorded(run)
-    cfg["scene"] = str(tmp_path / "gone")
-    (run / "config.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
+    data = recorded(run)
+    data["scene"] = str(tmp_path / "gone")
+    (run / "config.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
     argv = [a.replace("OUT", str(tmp_path)) for a in argv]
     code, out, err = cli([argv[0], "--run", str(run), *argv[1:], "--device", "cpu"], capsys)
     assert code == 2, err

@@ -42,14 +42,14 @@ def test_default_schedule_at_10k_steps_is_unchanged():
     """The paper's 10k-step run: every event on the same step as with the absolute schedule it replaced
     (densify 500..5000 every 100, opacity reset at 3000, enhancement from 3000, SH degree +1 every 1000)."""
     cfg = load_config()
-    assert cfg["steps"] == 10000
+    assert cfg.steps == 10000
     assert events(build_schedule(cfg), 10000) == old_events(10000, 500, 5000, 100, 3000, 3000, 3, 1000)
     assert build_schedule(cfg).resets() == [3000]
 
 
 def test_demo_schedule_at_1500_steps_is_unchanged():
     cfg = load_config(["demo"])
-    assert cfg["steps"] == 1500
+    assert cfg.steps == 1500
     assert events(build_schedule(cfg), 1500) == old_events(1500, 200, 1000, 100, 100000, 450, 1, 500)
 
 

@@ -91,19 +91,19 @@ def test_schema_refuses_the_exposure_tone_without_a_scene_reference():
     from retinexgs.errors import UserError
     from retinexgs.run.config import load_config
     cfg = load_config([], [])
-    assert cfg["model"]["enhancement"]["tone"] == "exposure"  # the default since 2026-11-25
+    assert cfg.model.enhancement.tone == "exposure"  # the default since 2026-11-25
     with pytest.raises((UserError, ValueError), match="ref_quantile"):
         load_config([], ["model.enhancement.ref_quantile=null"])
-    assert load_config(["paper"], [])["model"]["enhancement"]["tone"] == "illumination"
+    assert load_config(["paper"], []).model.enhancement.tone == "illumination"
     # debias_black is read by tone "exposure" alone: with another tone it would be silently ignored
     with pytest.raises((UserError, ValueError), match="debias_black needs tone 'exposure'"):
         load_config(["paper"], ["model.enhancement.debias_black=true"])
-    assert load_config(["ablations/debias_black"], [])["model"]["enhancement"]["debias_black"] is True
+    assert load_config(["ablations/debias_black"], []).model.enhancement.debias_black is True
     # black_filter filters what the black table reads: without the table it would be silently ignored
     with pytest.raises((UserError, ValueError), match="black_filter=4 needs debias_black"):
         load_config([], ["model.enhancement.black_filter=4"])
-    enh = load_config(["ablations/debias_black_filtered"], [])["model"]["enhancement"]
-    assert enh["debias_black"] is True and enh["black_filter"] == 4
+    enh = load_config(["ablations/debias_black_filtered"], []).model.enhancement
+    assert enh.debias_black is True and enh.black_filter == 4
 
 
 def test_a_run_with_the_exposure_tone_renders_exports_and_follows_the_exposure_control(tmp_path):
@@ -128,7 +128,7 @@ def test_a_run_with_the_exposure_tone_renders_exports_and_follows_the_exposure_c
             "model.enhancement.init_gamma=1.0"]
     _, run = tiny_trained_run(tmp_path, tiny, n_test=2, width=40, height=30, n_points=1200)
     cfg, scene, model, step = load_run(run, "cpu")
-    assert model.tone == "exposure"
+    assert model.tone.name == "exposure"
     fast = render_function(model, cfg, 1)
     cam = view_camera(scene.test[0])
     with torch.no_grad():
@@ -240,15 +240,15 @@ def test_exposure_tone_with_a_shoulder_has_finite_gradients_far_past_the_knee():
 def test_schema_takes_a_shoulder_in_0_1():
     from retinexgs.errors import UserError
     from retinexgs.run.config import load_config
-    assert load_config([], [])["model"]["enhancement"]["shoulder"] == 0.5  # the default since stop 28
-    assert load_config(["ablations/no_shoulder"], [])["model"]["enhancement"]["shoulder"] == 1.0
+    assert load_config([], []).model.enhancement.shoulder == 0.5  # the default since stop 28
+    assert load_config(["ablations/no_shoulder"], []).model.enhancement.shoulder == 1.0
     for pinned in ("paper", "ablations/background_black", "ablations/aniso_cap"):
-        assert load_config([pinned], [])["model"]["enhancement"]["shoulder"] == 1.0, pinned
+        assert load_config([pinned], []).model.enhancement.shoulder == 1.0, pinned
     for bad in ("0", "1.5", "-0.2"):
         with pytest.raises((UserError, ValueError), match="shoulder"):
             load_config([], [f"model.enhancement.shoulder={bad}"])
     # the gamma tones do not read it: switching the default's tone needs no second setting
-    assert load_config([], ["model.enhancement.tone=illumination"])["model"]["enhancement"]["shoulder"] == 0.5
+    assert load_config([], ["model.enhancement.tone=illumination"]).model.enhancement.shoulder == 0.5
     R, L = torch.rand(4, 4, 3, dtype=torch.float64), 0.3 * torch.rand(4, 4, 3, dtype=torch.float64)
     ref, g = torch.tensor(0.3, dtype=torch.float64), torch.tensor([0.5], dtype=torch.float64)
     for tone in ("illumination", "signal"):
@@ -284,12 +284,12 @@ def test_the_highlight_meter_acts_only_on_the_whole_image_meter_of_the_exposure_
     from retinexgs.train.losses import highlight_meter_applies
 
     cfg = load_config([])
-    assert cfg["loss"]["exp_highlight_share"] == 0.05  # the default since 2026-11-27
-    assert load_config(["ablations/meter_average"])["loss"]["exp_highlight_share"] == 0.0
-    assert highlight_meter_applies(cfg["model"]["enhancement"]["tone"], cfg["loss"])
+    assert cfg.loss.exp_highlight_share == 0.05  # the default since 2026-11-27
+    assert load_config(["ablations/meter_average"]).loss.exp_highlight_share == 0.0
+    assert highlight_meter_applies(cfg.model.enhancement.tone, cfg.loss)
     for extra in (["model.enhancement.tone=illumination"], ["loss.exp_on=illumination"], ["loss.exp_patch=16"]):
         c = load_config([], extra)  # accepted, and ignored there
-        assert not highlight_meter_applies(c["model"]["enhancement"]["tone"], c["loss"]), extra
+        assert not highlight_meter_applies(c.model.enhancement.tone, c.loss), extra
 
 
 # ---- model.enhancement.black_filter: a guided filter before the black table ------------------------------------

@@ -56,7 +56,7 @@ def test_enhancement_loss_trains_only_the_enhancement_net_by_default(scene_dir, 
     tr = trainer_for(scene_dir, tmp_path / "run", ["loss.enhance_from=1"])
     res = tr.model.render(tr.views[0].camera, 0, depth=tr.depth_prior)
     terms = tr.objective.loss(res, tr.views[0], step=5)
-    enh = tr.cfg["loss"]["w_exp"] * terms["exp"]
+    enh = tr.cfg.loss.w_exp * terms["exp"]
     enh.backward()
     assert tr.model.gaussians.means.grad is None or float(tr.model.gaussians.means.grad.abs().sum()) == 0
     assert any(float(p.grad.abs().sum()) > 0 for p in tr.model.enhancement.parameters() if p.grad is not None)
@@ -69,8 +69,8 @@ def test_enhancement_losses_switch_on_at_enhance_from(scene_dir, tmp_path):
     after = tr.objective.loss(res, tr.views[0], step=4)
     assert not {"spa", "exp", "col"} & set(before)
     assert {"spa", "exp", "col"} <= set(after)
-    extra = tr.cfg["loss"]["w_spa"] * after["spa"] + tr.cfg["loss"]["w_exp"] * after["exp"] \
-        + tr.cfg["loss"]["w_col"] * after["col"]
+    extra = tr.cfg.loss.w_spa * after["spa"] + tr.cfg.loss.w_exp * after["exp"] \
+        + tr.cfg.loss.w_col * after["col"]
     torch.testing.assert_close(after["total"], before["total"] + extra)
 
 
@@ -80,18 +80,18 @@ def test_the_loss_log_carries_the_exposure_meters_target(scene_dir, tmp_path):
     from retinexgs.train.trainer import enhancement_objective
 
     tr = trainer_for(scene_dir, tmp_path / "run")
-    c = tr.cfg["loss"]
+    c = tr.cfg.loss
     H, W = 30, 40
     R, L = torch.full((H, W, 3), 0.5), torch.full((H, W, 3), 0.02)  # the rendered light is RGB
     R[: H // 5], L[: H // 5] = 1.0, 0.4  # a fifth of the frame 40x brighter: metered to 0.5 it would blow out
     S_b = (R * L).permute(2, 0, 1).unsqueeze(0)
     total, terms = enhancement_objective(tr.model, c, R, L, S_b)
     want = losses.exposure_target(c, tr.model.tone, R * L, tr.model.shoulder)
-    assert float(terms["exp_E"]) == pytest.approx(float(want)) and float(terms["exp_E"]) < c["exposure_E"] - 0.05
-    parts = c["w_spa"] * terms["spa"] + c["w_exp"] * terms["exp"] + c["w_col"] * terms["col"]
+    assert float(terms["exp_E"]) == pytest.approx(float(want)) and float(terms["exp_E"]) < c.exposure_E - 0.05
+    parts = c.w_spa * terms["spa"] + c.w_exp * terms["exp"] + c.w_col * terms["col"]
     assert float(total.detach()) == pytest.approx(float(parts.detach()))  # exp_E is not part of the sum
     _, plain = enhancement_objective(tr.model, c.model_copy(update={"exp_highlight_share": 0.0}), R, L, S_b)
-    assert float(plain["exp_E"]) == c["exposure_E"]
+    assert float(plain["exp_E"]) == c.exposure_E
     res = tr.model.render(tr.views[0].camera, 0, depth=tr.depth_prior)
     assert "exp_E" in tr.objective.loss(res, tr.views[0], step=4) and "exp_E" not in tr.objective.loss(res, tr.views[0], step=3)
 
@@ -234,7 +234,7 @@ def test_enhancement_normalises_by_the_scene_illumination_level(scene_dir, tmp_p
     L = torch.full((5, 7, 3), ref)
     assert torch.allclose(tr.model.enhance(R, L, gamma=1.0)["rgb"], R.clamp(0, 1), atol=1e-6)
     half = tr.model.enhance(R, L * 0.25, gamma=0.5)["rgb"]
-    assert tr.model.tone == "illumination"
+    assert tr.model.tone.name == "illumination"
     assert torch.allclose(half, (R * 0.5).clamp(0, 1), atol=1e-5)
     # Tone "signal": the gamma acts on R̂ too, (R̂ · L̂/L_ref)^g.
     sig = trainer_for(scene_dir, tmp_path / "run_signal", ["model.enhancement.tone=signal"])
@@ -256,14 +256,14 @@ def test_exposure_on_the_illumination_sets_the_gamma_the_image_level_does_not(sc
     res = tr.model.render(tr.views[0].camera, 0, depth=tr.depth_prior)
     out = tr.model.enhance(res["R"].detach(), res["L"].detach())
     terms = tr.objective.loss(res, tr.views[0], step=5)
-    c = tr.cfg["loss"]
-    assert c["exp_on"] == "image" and c["exp_patch"] == 0 and c["exposure_E"] == 0.5
-    want = float(out["rgb"].detach().mean() - c["exposure_E"]) ** 2
+    c = tr.cfg.loss
+    assert c.exp_on == "image" and c.exp_patch == 0 and c.exposure_E == 0.5
+    want = float(out["rgb"].detach().mean() - c.exposure_E) ** 2
     assert float(terms["exp"].detach()) == pytest.approx(want, rel=1e-4)
     light = trainer_for(scene_dir, tmp_path / "run1", ["loss.enhance_from=1", "loss.exp_on=illumination"])
     res1 = light.model.render(light.views[0].camera, 0, depth=light.depth_prior)
     out1 = light.model.enhance(res1["R"].detach(), res1["L"].detach())
-    want = float(out1["L_enh"].detach().mean() - c["exposure_E"]) ** 2
+    want = float(out1["L_enh"].detach().mean() - c.exposure_E) ** 2
     assert float(light.objective.loss(res1, light.views[0], step=5)["exp"].detach()) == pytest.approx(want, rel=1e-4)
     img = trainer_for(scene_dir, tmp_path / "run2", ["loss.enhance_from=1", "loss.exp_on=image",
                                                   "loss.exp_patch=8"])
@@ -271,7 +271,8 @@ def test_exposure_on_the_illumination_sets_the_gamma_the_image_level_does_not(sc
     out2 = img.model.enhance(res2["R"].detach(), res2["L"].detach())
     t2 = img.objective.loss(res2, img.views[0], step=5)
     bchw = out2["rgb"].permute(2, 0, 1)[None]
-    assert float(t2["exp"].detach()) == pytest.approx(float(losses.exposure_loss(bchw.detach(), c["exposure_E"], 8)), rel=1e-4)
+    assert float(t2["exp"].detach()) == pytest.approx(float(losses.exposure_loss(bchw.detach(), c.exposure_E, 8)),
+                                                rel=1e-4)
 
 
 def test_paper_config_runs_end_to_end(scene_dir, tmp_path):
@@ -283,8 +284,8 @@ def test_paper_config_runs_end_to_end(scene_dir, tmp_path):
     values = tr.train()
     assert {"spa", "exp", "col", "sh"} <= set(values) and all(map(lambda v: v == v, values.values()))
     paper = load_config(["paper"])
-    assert paper["loss"]["sh_reduction"] == "sum" and paper["loss"]["enhance_trains_scene"] is True
-    assert paper["loss"]["exp_on"] == "image" and paper["model"]["enhancement"]["ref_quantile"] is None
+    assert paper.loss.sh_reduction == "sum" and paper.loss.enhance_trains_scene is True
+    assert paper.loss.exp_on == "image" and paper.model.enhancement.ref_quantile is None
 
 
 def test_mean_background_comes_from_the_priors_and_travels_with_the_run(scene_dir, tmp_path):
@@ -293,11 +294,11 @@ def test_mean_background_comes_from_the_priors_and_travels_with_the_run(scene_di
     run = tmp_path / "run"
     metrics = train_run(scene_dir, run, ["demo"], TINY + ["steps=2"], "cpu", progress=False, log=lambda s: None)
     cfg, scene, model, step = load_run(run, "cpu")
-    assert cfg["model"]["background"] == "mean" and model.has_background
+    assert cfg.model.background == "mean" and model.has_background
     from retinexgs.retinex.cache import load_or_compute, scene_cache_root
-    dcfg = cfg["decomposer"]
-    priors = load_or_compute([v.image_path for v in scene.train], dcfg["method"], dict(dcfg["params"]) or None,
-                             cache_dir=scene_cache_root(scene.root, cfg["data"]["cache_dir"]), device="cpu",
+    dcfg = cfg.decomposer
+    priors = load_or_compute([v.image_path for v in scene.train], dcfg.method, dict(dcfg.params) or None,
+                             cache_dir=scene_cache_root(scene.root, cfg.data.cache_dir), device="cpu",
                              progress=False)
     R = torch.stack([r.reshape(-1, 3).float().mean(0) for r, _ in priors]).mean(0)
     L = torch.stack([l.float().mean() for _, l in priors]).mean()
@@ -306,5 +307,5 @@ def test_mean_background_comes_from_the_priors_and_travels_with_the_run(scene_di
     again = eval_run(run, "cpu", log=lambda s: None)
     assert again["mean"]["psnr"] == pytest.approx(metrics["mean"]["psnr"], abs=1e-6)
     # Over black (the default before it): no background buffer, so older checkpoints keep their keys.
-    black = RetinexGSModel(model.gaussians, load_config(["ablations/background_black"])["model"])
+    black = RetinexGSModel(model.gaussians, load_config(["ablations/background_black"]).model)
     assert not black.has_background and "background" not in black.state_dict()

@@ -1,7 +1,8 @@
 """One typed config from the loader to the kernels (issue #51): the package reads config keys as attributes of
-the validated :class:`retinexgs.run.schema.Config`, never by string and never with a fallback of its own, so a
-key's default lives in configs/default.yaml alone (and, for run folders older than the key, in
-``retinexgs.run.folder.PREDATING_VALUES``)."""
+the validated :class:`retinexgs.config.schema.Config`, never by string and never with a fallback of its own, so a
+key's default lives in configs/default.yaml alone (and, for run folders older than the key, in the migration of
+their format, ``retinexgs.config.versions``). The config has no mapping methods at all (issue 63): tests and
+scripts read attributes too."""
 from __future__ import annotations
 
 import ast
@@ -16,14 +17,15 @@ import yaml
 import retinexgs
 from retinexgs.model.gaussians import GaussianModel
 from retinexgs.model.retinex_model import RetinexGSModel
-from retinexgs.run.config import configs_dir, load_config, plain
-from retinexgs.run.schema import Config, Section
+from retinexgs.config import configs_dir, plain
+from retinexgs.config.schema import Config, Section
+from retinexgs.run.config import load_config
 
 PACKAGE = Path(retinexgs.__file__).resolve().parent
 
 # The loader and the schema work on plain YAML data by design (merge, predating fill, resume's key-by-key
 # comparison); everything else receives the typed object.
-LOADER = {"run/config.py", "run/schema.py"}
+LOADER = {"run/config.py", "config/schema.py", "config/files.py", "config/versions.py"}
 
 # The heuristic, stated: a name is "a config" when it is spelt like one (``cfg``, ``config``, ``*_cfg``,
 # ``*cfg`` such as ``dcfg``, as a variable or an attribute like ``self.cfg``), when it is a parameter annotated
@@ -34,7 +36,7 @@ LOADER = {"run/config.py", "run/schema.py"}
 CONFIG_NAME = re.compile(r"^(cfg|config|\w*cfg|\w*_config)$")
 # Calls that return a config: ``load_config(...)["loss"]`` is a read by string too.
 CONFIG_CALLS = {"load_config", "validate", "read_run_config", "load_run", "variant_config"}
-SCHEMA_CLASSES = {name for name, obj in vars(__import__("retinexgs.run.schema", fromlist=["x"])).items()
+SCHEMA_CLASSES = {name for name, obj in vars(__import__("retinexgs.config.schema", fromlist=["x"])).items()
                   if isinstance(obj, type) and issubclass(obj, Section)} | {"Config"}
 
 
@@ -138,12 +140,36 @@ def test_the_package_reads_no_config_key_by_string():
 
 def test_load_config_returns_the_typed_config_and_plain_data_round_trips():
     cfg = load_config()
-    assert isinstance(cfg, Config) and cfg.loss.w_tv == cfg["loss"]["w_tv"]
-    assert "loss" in cfg and "nope" not in cfg and cfg.get("nope") is None
+    assert isinstance(cfg, Config) and cfg.loss.w_tv == plain(cfg)["loss"]["w_tv"]
     data = plain(cfg)
     assert isinstance(data, dict) and isinstance(data["model"]["enhancement"], dict)
     assert yaml.safe_load(yaml.safe_dump(data)) == data
     assert load_config(base=data) == cfg
+
+
+def test_the_config_has_no_mapping_methods():
+    """Attributes only (the dict shim of the plain-dict days is gone): a read by string fails at once, in the
+    package, the tests and the scripts alike, instead of working in one place and not in another."""
+    cfg = load_config()
+    for read in (lambda: cfg["loss"], lambda: cfg.loss["w_tv"], lambda: cfg.get("loss"), lambda: cfg.keys()):
+        with pytest.raises((TypeError, AttributeError)):
+            read()
+    with pytest.raises(TypeError):
+        cfg.loss["w_tv"] = 0.0
+    for name in ("__getitem__", "__setitem__", "__contains__", "get", "keys"):
+        assert not hasattr(Section, name), name
+
+
+def test_the_tests_and_scripts_read_no_config_key_by_string():
+    root = PACKAGE.parent
+    offenders = []
+    for folder in ("tests", "scripts", "experiments"):
+        for path in sorted((root / folder).rglob("*.py")):
+            if path.name == "test_typed_config.py":  # this file: the reads above are meant to fail
+                continue
+            offenders += [f"{folder}/{path.relative_to(root / folder).as_posix()}:{hit}"
+                          for hit in string_reads(path.read_text(), str(path))]
+    assert not offenders, "config keys read by string (the config has attributes only):\n" + "\n".join(offenders)
 
 
 def _leaves(d, prefix=()):
@@ -168,7 +194,7 @@ def test_the_default_model_follows_default_yaml_not_old_fallbacks():
     cfg = load_config()
     g = GaussianModel.from_points(torch.rand(8, 3), torch.rand(8, 3), cfg.model.sh_degree, cfg.model.init_opacity)
     model = RetinexGSModel(g, cfg.model, decomposed=True)
-    assert model.has_background and model.tone == "exposure" and model.shoulder == 0.5
+    assert model.has_background and model.tone.name == "exposure" and model.shoulder == 0.5
     assert model.debias_black == enh["debias_black"] and model.black_filter == enh["black_filter"]
     other = load_config(overrides=["model.enhancement.shoulder=0.8", "model.background=black"])
     model = RetinexGSModel(g, other.model, decomposed=True)
@@ -192,8 +218,8 @@ def test_the_proxy_tone_maps_with_the_configs_shoulder():
 
 
 def test_a_run_recorded_before_last_event_keeps_its_uncapped_schedule(tmp_path):
-    """density.last_event's old inline fallback (1.0, no cap) lives in PREDATING_VALUES now, the one place for
-    what a run folder made before a key existed did."""
+    """density.last_event's old inline fallback (1.0, no cap) lives in the format-0 migration now
+    (FORMAT_0_VALUES), the one place for what a run folder made before a key existed did."""
     from retinexgs.model.schedule import build_schedule
     from retinexgs.run.folder import read_run_config
 
@@ -203,7 +229,8 @@ def test_a_run_recorded_before_last_event_keeps_its_uncapped_schedule(tmp_path):
     (tmp_path / "config.yaml").write_text(yaml.safe_dump(data))
     cfg, _ = read_run_config(tmp_path)
     assert cfg.density.last_event == 1.0
-    assert build_schedule(cfg).densify_stop == build_schedule(load_config(overrides=["density.last_event=1.0"])).densify_stop
+    uncapped = load_config(overrides=["density.last_event=1.0"])
+    assert build_schedule(cfg).densify_stop == build_schedule(uncapped).densify_stop
 
 
 def test_run_config_and_checkpoint_hold_plain_data(tmp_path):

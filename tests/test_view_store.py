@@ -16,7 +16,7 @@ import pytest
 import torch
 from PIL import Image
 
-import retinexgs.train.trainer as trainer_mod
+import retinexgs.train.view_setup as view_setup_mod
 import retinexgs.train.streamed_views as streamed_mod
 import retinexgs.train.view_store as store_mod
 import retinexgs.train.views as views_mod
@@ -29,6 +29,7 @@ from retinexgs.retinex.cache import clean_cache, iter_decompositions
 from retinexgs.run.config import load_config
 from retinexgs.train.resume import RESUMABLE
 from retinexgs.train.trainer import Trainer
+from retinexgs.train.view_setup import view_statistics
 from retinexgs.train.streamed_views import StreamedViews
 from retinexgs.train.view_store import ViewStore, compact_photo, photo_table, store_fingerprint
 from retinexgs.train.views import ViewStatistics, choose_streaming, preload_bytes_per_pixel, stream_set_up
@@ -115,7 +116,7 @@ def test_streamed_views_equal_the_preloaded(scene_dir, tmp_path, method, extra):
     pre = make(scene_dir, tmp_path / "pre", "never", extra, method=method)
     st = make(scene_dir, tmp_path / "st", "always", extra, method=method)
     store = st.views.store
-    edge = pre.cfg["loss"]["depth_edge"] if pre.depth_prior else None
+    edge = pre.cfg.loss.depth_edge if pre.depth_prior else None
     for i in reversed(range(len(pre.views))):  # out of order: every view loaded on demand
         a, b = pre.views[i], st.views[i]
         # The store's bytes: the photo's 8-bit samples, the priors as the cache's float16 (exactly the floats).
@@ -137,28 +138,33 @@ def test_streamed_views_equal_the_preloaded(scene_dir, tmp_path, method, extra):
         assert torch.equal(b.center, a.center) and b.camera is st.views.cameras[i]
 
 
+def _stats(trainer):
+    """The training views' set-up statistics as the trainer's model was initialised from."""
+    return view_statistics(trainer.cfg, trainer.views, trainer._stats)
+
+
 def test_set_up_statistics_are_the_same(scene_dir, tmp_path):
     pre = make(scene_dir, tmp_path / "pre", "never")
     st = make(scene_dir, tmp_path / "st", "always")
-    assert pre.illumination_reference() == st.illumination_reference()
-    assert torch.equal(pre.mean_background(), st.mean_background())
+    assert _stats(pre).illumination_reference() == _stats(st).illumination_reference()
+    assert torch.equal(_stats(pre).mean_background(), _stats(st).mean_background())
     assert torch.equal(pre.model.illum_ref, st.model.illum_ref) and torch.equal(pre.model.background,
                                                                                st.model.background)
     # The formulas that read every view on the device at once (before issue 34), on the preloaded views.
-    q = pre.cfg["model"]["enhancement"]["ref_quantile"]
+    q = pre.cfg.model.enhancement.ref_quantile
     refs = []
     for tv in pre.views:
         flat = tv.L.reshape(-1).float()
         refs.append(flat.kthvalue(min(flat.numel(), max(1, round(float(q) * flat.numel())))).values)
-    assert pre.illumination_reference() == float(torch.stack(refs).median().clamp_min(1e-3))
+    assert _stats(pre).illumination_reference() == float(torch.stack(refs).median().clamp_min(1e-3))
     R = torch.stack([tv.R.reshape(-1, 3).float().mean(0) for tv in pre.views]).mean(0)
     L = torch.stack([tv.L.reshape(-1, 1).float().mean(0) for tv in pre.views]).mean(0)
-    assert torch.equal(pre.mean_background(), torch.cat([R, L.expand(3)]))
+    assert torch.equal(_stats(pre).mean_background(), torch.cat([R, L.expand(3)]))
     # A reused store gathers them again from the store: the same values.
     again = make(scene_dir, tmp_path / "again", "always")
     assert again._stats is None or len(again._stats) == len(again.views)
-    assert again.illumination_reference() == pre.illumination_reference()
-    assert torch.equal(again.mean_background(), pre.mean_background())
+    assert _stats(again).illumination_reference() == _stats(pre).illumination_reference()
+    assert torch.equal(_stats(again).mean_background(), _stats(pre).mean_background())
 
 
 def params(tr):
@@ -234,7 +240,7 @@ def test_threaded_prefetch_gives_the_same_views(scene_dir, tmp_path):
     pre = make(scene_dir, tmp_path / "pre", "never")
     order = [3, 1, 4, 0, 2, 2, 0]
     threaded = StreamedViews(st.views.store, st.views.cameras, st.views.centers, st.device, st.method,
-                             st.cfg["loss"]["depth_edge"], threaded=True)
+                             st.cfg.loss.depth_edge, threaded=True)
     try:
         pending = list(order)
         threaded.upcoming = lambda: pending[:-3:-1]
@@ -242,7 +248,7 @@ def test_threaded_prefetch_gives_the_same_views(scene_dir, tmp_path):
         while pending:
             i = pending.pop()
             tv = threaded[i]
-            assert torch.equal(tv.packed, pre.views[i].pack(True, st.cfg["loss"]["depth_edge"]))
+            assert torch.equal(tv.packed, pre.views[i].pack(True, st.cfg.loss.depth_edge))
             if pending:  # the next view is on the device, the one after it read (or being read) on the host
                 assert pending[-1] in threaded._holds
             if len(pending) > 1 and pending[-2] not in threaded._holds:
@@ -553,7 +559,7 @@ def test_building_the_store_holds_a_bounded_number_of_views(tmp_path, monkeypatc
         photos.append(weakref.ref(image))
         return image
 
-    decompose = trainer_mod.decompose_views
+    decompose = view_setup_mod.decompose_views
 
     def counted_priors(*args, **kwargs):
         for R, L in decompose(*args, **kwargs):
@@ -561,7 +567,7 @@ def test_building_the_store_holds_a_bounded_number_of_views(tmp_path, monkeypatc
             yield R, L
 
     monkeypatch.setattr(View, "load_target", counted)
-    monkeypatch.setattr(trainer_mod, "decompose_views", counted_priors)
+    monkeypatch.setattr(view_setup_mod, "decompose_views", counted_priors)
     tr = make(scene, tmp_path / "run", "always")
     assert len(photos) == 10 and len(priors) == 10
     assert max(p for p, _ in alive) <= 3 and max(q for _, q in alive) <= 2, alive
@@ -631,7 +637,7 @@ def test_cuda_streamed_training_matches_preloaded(scene_dir, tmp_path):
     pre, st = runs["never"][2], runs["always"][2]
     assert st.views.hits == 6 and st.views.misses == 2
     assert st.views._graphs and not st.views.graph_failures  # the conversion replayed as CUDA graphs
-    edge = pre.cfg["loss"]["depth_edge"]
+    edge = pre.cfg.loss.depth_edge
     for i in [1, 3, 0, 2, 4, 4, 1]:
         assert torch.equal(st.views[i].packed, pre.views[i].pack(True, edge))
     st.views.close()

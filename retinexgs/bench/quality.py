@@ -247,6 +247,17 @@ def black_table(jobs: Sequence[Job], configs: Sequence[str]) -> str:
                        "sensor noise), negative = crushed, 0 = the truth's (issue 32).")
 
 
+def chroma_table(jobs: Sequence[Job], configs: Sequence[str]) -> str:
+    """Markdown: per scene and config the colour-noise figure ``chroma_noise``
+    (:func:`retinexgs.evaluate.metrics.chroma_noise`), mean ± sample std over seeds, the dark input's first; runs
+    evaluated before the key existed are left out ("–")."""
+    return _seed_table(jobs, configs, "chroma_noise", 2,
+                       "Chroma noise: the energy of the output's CIELAB a*/b* at scales of 2-32 px (a difference of "
+                       "Gaussians), brightness-aligned to its truth (GT-mean), over the truth's in the same band; "
+                       "1.0 = as much colour structure as the truth, colour speckle and blotches score far above, a "
+                       "cast does not count (issue 64). Lower is better down to 1.0.")
+
+
 def contact_sheet(jobs: Sequence[Job], configs: Sequence[str], scene: str, out: Path, views: int = 2) -> Optional[Path]:
     """low | each config (lowest seed) | truth for the first ``views`` test views, from the runs' side-by-side
     PNGs (their first panel is the low input, the second the output, the last the normal-light truth). Each column
@@ -454,6 +465,8 @@ def main(argv: Sequence[str]) -> int:
         md += "\n" + linear_colour_table(jobs, args.configs)
     if any(m is not None and "black_lift" in m["mean"] for m in map(read_metrics, jobs)):
         md += "\n" + black_table(jobs, args.configs)
+    if any(m is not None and "chroma_noise" in m["mean"] for m in map(read_metrics, jobs)):
+        md += "\n" + chroma_table(jobs, args.configs)
     sheets = []
     for scene in dict.fromkeys(scene_label(j.scene) for j in jobs):
         path = contact_sheet(jobs, args.configs, scene, args.runs / f"sheet_{scene.replace('/', '-')}.png")

@@ -625,7 +625,7 @@ def _run(args: argparse.Namespace, gpus: List[int], device: str, seeds: Sequence
               f"training views), device {device}"
               + ("" if no_priors else ", decomposition done once beforehand"))
     if len(gpus) > 1 and args.views_seen < SHORT_RUN_PASSES * views:
-        # What the PSNR column can say: measured on one H100 (docs/experiments/2026-11-27-batch-views-seen.md).
+        # What the PSNR column can say: measured on one H100 (experiments/notes/2026-11-27-batch-views-seen.md).
         header += (f"\n\nA short run (under {SHORT_RUN_PASSES} passes): at equal views seen a batch of several views "
                    "makes fewer optimiser steps, and in a short run it trails one view a step (a batch of 4: −0.37 dB "
                    "at 8 passes on 4 H100s, and +0.44 dB at 20, GT-mean −0.15 dB; −0.76 dB at 10 passes and +0.66 dB "

@@ -59,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
             from tqdm import tqdm
 
             state["t"] = tqdm(total=expected or None, desc="[frames] scoring", unit="frame", file=sys.stderr,
-                              leave=False)
+                              leave=True)  # its last line stays: an error after it starts a line of its own
         t = state["t"]
         t.update(done - t.n)
 

@@ -150,7 +150,7 @@ def _eval(args: argparse.Namespace) -> int:
 
 
 # What `retinexgs demo` writes into its --out: only these are replaced by --overwrite. Anything else there (the
-# README's `render --out retinexgs-demo/exposure-X` folders, the user's notes) was made by someone else: kept.
+# docs/usage.md's `render --out retinexgs-demo/exposure-X` folders, the user's notes) was made by someone else: kept.
 _DEMO_MADE = ("scene", "run")
 # The files the demo wrote into scene/ and run/ (paths relative to --out), recorded when it ends (also after an
 # error or Ctrl-C). --overwrite refuses, naming them, while anything else is in there (notes, an exported PLY,

@@ -19,9 +19,9 @@ a 3×3 second-difference filter (Immerkær 1996; its taps' squares sum to 36) ca
 smooth image; its robust spread (MAD) in bins of local brightness, fitted by ``a · y + b`` as seen through the
 clip at black (near black the recorded noise is clipped: smaller, and its mean above the light), gives both numbers.
 JPEG removes part of the noise, so estimates from JPEG photos are lower than the sensor's truth, most near black
-(``docs/experiments/2026-11-26-noise-estimate.md``). :func:`estimate_noise_through_codec` models that loss with the
+(``experiments/notes/2026-11-26-noise-estimate.md``). :func:`estimate_noise_through_codec` models that loss with the
 file's own JPEG tables (:class:`JpegCodec`) and reads the floor within about 25 %
-(``docs/experiments/2026-11-27-black-level.md``).
+(``experiments/notes/2026-11-27-black-level.md``).
 """
 from __future__ import annotations
 
@@ -554,7 +554,7 @@ def estimate_noise_through_codec(srgb: np.ndarray, codec: JpegCodec, rounds: int
     ``pool_channels``: one (a, b) for the three channels, fitted to all their bins. Read noise and full well belong
     to the sensor, not to a colour; fitted per channel through JPEG, the read noise near black came out 0.08–1.55 of
     the truth on 512² crops (the chroma channels are quantised hardest), pooled 0.99–1.23
-    (docs/experiments/2026-11-27-black-level.md). A camera's white balance, applied after the noise, makes the
+    (experiments/notes/2026-11-27-black-level.md). A camera's white balance, applied after the noise, makes the
     channels differ in truth; the pooled figure is then their compromise."""
     _check_photo(srgb)
     lin = srgb_to_linear(srgb.astype(np.float64))

@@ -12,8 +12,8 @@ from PIL import Image
 
 from retinexgs.data import Scene
 from retinexgs.evaluate.lpips import MIN_SIZE as LPIPS_MIN_SIZE
-from retinexgs.evaluate.metrics import (black_lift, colour_error, colour_split, gt_mean_align, lpips_available,
-                                       lpips_metrics, psnr, ssim_metric)
+from retinexgs.evaluate.metrics import (CHROMA_BAND_PX, black_lift, chroma_band_px, chroma_noises, colour_error,
+                                       colour_split, gt_mean_align, lpips_available, lpips_metrics, psnr, ssim_metric)
 from retinexgs.fileio import atomic_write, atomic_write_text
 from retinexgs.run.folder import load_run
 from retinexgs.run.render import active_sh_degree, render_function
@@ -95,6 +95,7 @@ def evaluate(render_fn: Callable, scene: Scene, out_dir: Path, use_lpips: bool =
     rows: List[Dict] = []
     lpips_reason = lpips_available()[1] if use_lpips else ""
     has_maps = False  # the renders have R and L (a RetinexGS run)
+    band_top = CHROMA_BAND_PX[1]  # chroma_noise's coarsest scale that fits every test view (metrics.chroma_band_px)
     for view in views[rank::ranks]:
         with torch.no_grad():
             res = render_fn(view)
@@ -107,6 +108,9 @@ def evaluate(render_fn: Callable, scene: Scene, out_dir: Path, use_lpips: bool =
                "psnr_gt_mean": psnr(aligned, gt), "ssim_gt_mean": ssim_metric(aligned, gt),
                "delta_e_gt_mean": colour_error(rgb, gt), "low_delta_e_gt_mean": colour_error(low, gt),
                "black_lift": black_lift(rgb, gt), "low_black_lift": black_lift(low, gt)}
+        # issue 64's colour speckle and blotches, on the render's device (its FFTs are the slow part on a CPU)
+        row["chroma_noise"], row["low_chroma_noise"] = chroma_noises([res["rgb"], low], gt, device=res["rgb"].device)
+        band_top = min(band_top, chroma_band_px(gt.shape[0], gt.shape[1])[1])
         if "rgb_linear" in res:  # the colour error split: the light alone, and what the tone alone costs the truth
             row.update(colour_split(res["rgb_linear"].double().cpu(), gt, res["knee"]))
         if use_lpips and not lpips_reason and min(gt.shape[:2]) < LPIPS_MIN_SIZE:
@@ -134,11 +138,11 @@ def evaluate(render_fn: Callable, scene: Scene, out_dir: Path, use_lpips: bool =
         view.release_images()
         del panels, low, gt, rgb, aligned
     if gather is not None:  # every rank's rows back in the test views' order (rank r scored r, r + N, ...)
-        parts = gather((rows, has_maps, lpips_reason))
+        parts = gather((rows, has_maps, lpips_reason, band_top))
         order = [None] * len(views)
-        for r, (part, maps, reason) in enumerate(parts):
+        for r, (part, maps, reason, top) in enumerate(parts):
             order[r::ranks] = part
-            has_maps, lpips_reason = has_maps or maps, lpips_reason or reason
+            has_maps, lpips_reason, band_top = has_maps or maps, lpips_reason or reason, min(band_top, top)
         rows = order
     if lpips_reason:  # LPIPS for every view or for none (a mean over some views would mislead)
         for r in rows:
@@ -147,7 +151,9 @@ def evaluate(render_fn: Callable, scene: Scene, out_dir: Path, use_lpips: bool =
     mean = {k: float(np.mean([r[k] for r in rows])) for k in rows[0] if k != "view"}
     metrics = {"mean": mean, "views": rows, "panels": "low input | output | R̂ | L̂ / L_ref | ground truth"
                if has_maps else "low input | output | ground truth",
-               "label_rows": LABEL_ROWS}  # the PNGs' strip naming the panels, above them
+               "label_rows": LABEL_ROWS,  # the PNGs' strip naming the panels, above them
+               # the scales chroma_noise measured (px): 2-32, or less where a test view is under 64 px
+               "chroma_noise_band_px": [CHROMA_BAND_PX[0], band_top]}
     if test_in_train:
         metrics["test_in_train"] = test_in_train
     metrics.update(extra or {})
@@ -160,6 +166,7 @@ def evaluate(render_fn: Callable, scene: Scene, out_dir: Path, use_lpips: bool =
         + (f", LPIPS {mean['lpips']:.3f}" if "lpips" in mean else "")
         + f"  (brightness aligned to the truth, GT-mean: {mean['psnr_gt_mean']:.2f} dB, {mean['ssim_gt_mean']:.3f}"
         + (f", {mean['lpips_gt_mean']:.3f}" if "lpips_gt_mean" in mean else "") + ")"
+        + f"  (chroma noise {mean['chroma_noise']:.2f}, 1 = the truth's)"
         + f"  (low input: PSNR {mean['low_psnr']:.2f} dB, SSIM {mean['low_ssim']:.3f})"
         + (f"  (not held-out: {test_in_train} of {len(views)} test views are training views)" if test_in_train
            else ""))

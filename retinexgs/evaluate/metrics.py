@@ -14,6 +14,8 @@ Metrics are computed in float64 on the CPU side of the caller's device.
   "GT-mean" evaluation): PSNR / SSIM after it measure everything but the overall brightness, which for a method
   that never sees a normal-light photo is the photographer's choice (docs/benchmarks.md, "Exposure-aligned").
   Reported beside the plain figures, never instead of them.
+- :func:`chroma_noise`: the render's CIELAB a*/b* energy at scales of 2-32 px over the truth's (issue 64's colour
+  speckle and blotches; 1.0 = the truth's), after the GT-mean alignment; on the caller's device, in float64.
 - :func:`lpips_metric` / :func:`lpips_metrics`: LPIPS-AlexNet (v0.1 heads), the package's own torch port
   (:mod:`retinexgs.evaluate.lpips`) with its shipped weights: no ``lpips`` package, no torchvision, no download.
   Computed in float32 on the given device (the CPU by default), unlike the float64 figures above.
@@ -31,7 +33,8 @@ from retinexgs.evaluate.lpips import lpips_distance, weights_available
 from retinexgs.model.tone import highlight_shoulder, linear_to_srgb, srgb_to_linear
 
 
-__all__ = ["psnr", "ssim_metric", "gt_mean_align", "lpips_metric", "lpips_metrics", "lpips_available"]
+__all__ = ["psnr", "ssim_metric", "gt_mean_align", "chroma_noise", "chroma_noises", "lpips_metric", "lpips_metrics",
+           "lpips_available"]
 
 ImageLike = Union[torch.Tensor, np.ndarray]
 
@@ -306,6 +309,148 @@ def tone_colour_floor(y: ImageLike, knee: float, exposure: float = 1.0) -> float
     a, _ = _as_pair(y, y)
     light = srgb_to_linear(a, clip=False).clamp_min(0.0) * float(exposure)
     return colour_error(linear_to_srgb(highlight_shoulder(light, knee)), a)
+
+
+# chroma_noise's band of scales, in pixels, and the difference of Gaussians that measures it. The fine end is a 2-px
+# period, one pixel's colour speckle: G(σ = 0.5) keeps it (its transfer exp(−2π²σ²f²) is 0.29 at the 2-px period)
+# and passes 30 % of per-pixel white noise's energy; σ = 1 would pass 8 %, and speckle of 0.05 per sRGB channel
+# (plainly visible) would score 1.1 instead of 1.6 (tests/test_chroma_noise.py's fixture). The coarse end is a blob
+# 32 px across, G(σ = 16) (a blob ≈ 2σ): it keeps the low-frequency colour blotches of a noisy night render
+# (issue 64) and drops a scene's broad colour regions and any cast.
+CHROMA_BAND_PX = (2, 32)
+CHROMA_SIGMA_FINE = 0.5
+# Added to both band energies (CIELAB a*/b* units², summed over a* and b*): an RMS of 0.5 in each, about one 8-bit
+# sRGB step of chroma and well below a visible difference (ΔE ≈ 2.3). A flat grey truth (energy 0) then divides by
+# it instead of by zero, and a flat render of it scores 1; a photo's chroma detail (band energies 15, 114 and 210 on
+# the first truth of LOM's sofa, buu and bike) barely feels it.
+CHROMA_FLOOR = 0.5
+
+
+def chroma_band_px(height: int, width: int) -> Tuple[int, int]:
+    """The band of scales (finest, coarsest) in pixels that :func:`chroma_noise` measures on an ``height`` x ``width``
+    image: :data:`CHROMA_BAND_PX` where the shorter side holds the coarsest scale twice (≥ 64 px), else its coarse end
+    halved until it does (a shorter side of 32-63 px: 2-16 px; 16-31: 2-8; 8-15: 2-4). Below 8 px a ValueError."""
+    fine, top = CHROMA_BAND_PX
+    side = min(int(height), int(width))
+    while top > 2 * fine and 2 * top > side:
+        top //= 2
+    if 2 * top > side:
+        raise ValueError(f"chroma_noise needs images of at least {4 * fine}x{4 * fine} pixels, got {width}x{height}")
+    return fine, top
+
+
+def _image_tensor(x: ImageLike, name: str) -> torch.Tensor:
+    """``x`` as a tensor (no copy where possible), refused in one line unless a floating [H,W,3] image."""
+    t = x.detach() if isinstance(x, torch.Tensor) else torch.as_tensor(np.asarray(x))
+    if not t.is_floating_point():
+        raise ValueError(f"chroma_noise needs float images in [0, 1], got {name} of dtype {t.dtype}")
+    if t.dim() != 3 or t.shape[-1] != 3:
+        raise ValueError(f"chroma_noise needs [H,W,3] RGB images, got {name} of shape {tuple(t.shape)}")
+    return t
+
+
+def _lab_ab(srgb: torch.Tensor) -> torch.Tensor:
+    """CIELAB (D65) a*, b* [2,H,W] of an sRGB [H,W,3] image (per pixel, the same formulas as :func:`_lab_of_linear`)."""
+    lin = srgb_to_linear(srgb, clip=False)
+    m = torch.tensor(_RGB_TO_XYZ, dtype=srgb.dtype, device=srgb.device)
+    xyz = (lin @ m.T / torch.tensor(_D65, dtype=srgb.dtype, device=srgb.device)).permute(2, 0, 1)
+    f = torch.where(xyz > (6 / 29) ** 3, xyz.clamp_min(0) ** (1 / 3), xyz / (3 * (6 / 29) ** 2) + 4 / 29)
+    return torch.stack([500 * (f[0] - f[1]), 200 * (f[1] - f[2])])
+
+
+def _fft_size(n: int) -> int:
+    """The smallest m ≥ n whose only prime factors are 2, 3 and 5."""
+    m = n
+    while True:
+        k = m
+        for f in (2, 3, 5):
+            while k % f == 0:
+                k //= f
+        if k == 1:
+            return m
+        m += 1
+
+
+def _band_energy(planes: torch.Tensor, sigma_fine: float, sigma_coarse: float) -> float:
+    """Σ over planes of the mean over pixels of (G_fine ∗ p − G_coarse ∗ p)², ``planes`` [N,H,W]. The Gaussians are
+    applied in the frequency domain (transfer exp(−2π²σ²|f|²)) after a mirror padding of 3σ_coarse: the cost does not
+    grow with σ (a 97-tap σ = 16 filter on a 12 MP view would take seconds on a CPU), and the mirror keeps the image's
+    border from reading as a colour edge. The padded sides are then rounded up to a size of factors 2, 3 and 5 (a
+    prime factor makes an FFT many times slower) by repeating the mirror's last row and column, over 3σ from any
+    pixel kept. One plane at a time: a 12 MP view's padded spectra stay ~200 MB."""
+    pad = int(math.ceil(3 * sigma_coarse))
+    h, w = planes.shape[-2:]
+    fh, fw = _fft_size(h + 2 * pad), _fft_size(w + 2 * pad)
+    total = 0.0
+    for p in planes:
+        q = F.pad(p[None, None], (pad, pad, pad, pad), mode="reflect")
+        q = F.pad(q, (0, fw - q.shape[-1], 0, fh - q.shape[-2]), mode="replicate")[0, 0]
+        fy = torch.fft.fftfreq(q.shape[0], dtype=q.dtype, device=q.device)[:, None]
+        fx = torch.fft.rfftfreq(q.shape[1], dtype=q.dtype, device=q.device)[None, :]
+        f2 = (2 * math.pi ** 2) * (fy * fy + fx * fx)
+        gain = torch.exp(-f2 * sigma_fine ** 2) - torch.exp(-f2 * sigma_coarse ** 2)
+        band = torch.fft.irfft2(torch.fft.rfft2(q) * gain, s=q.shape)[pad:pad + h, pad:pad + w]
+        total += float((band * band).mean())
+    return total
+
+
+def chroma_noises(xs: Sequence[ImageLike], y: ImageLike,
+                  device: Optional[Union[str, torch.device]] = None) -> List[float]:
+    """:func:`chroma_noise` of each image of ``xs`` against ``y``, the truth's band energy computed once (eval scores
+    the render and the dark input against one truth)."""
+    imgs = [_image_tensor(x, "the render") for x in xs]
+    b = _image_tensor(y, "the truth")
+    dev = torch.device(device) if device is not None else b.device
+    for a in imgs:
+        if a.shape != b.shape:
+            raise ValueError(f"chroma_noise: shape mismatch {tuple(a.shape)} vs {tuple(b.shape)}")
+    _, top = chroma_band_px(b.shape[0], b.shape[1])
+    b = b.to(dev, torch.float64)
+    grey = torch.tensor(_GREY, dtype=torch.float64, device=dev)
+
+    def energy(img: torch.Tensor) -> float:
+        if not bool(torch.isfinite(img).all()):
+            raise ValueError("chroma_noise: the images hold non-finite values")
+        return _band_energy(_lab_ab(img), CHROMA_SIGMA_FINE, top / 2)
+
+    truth, mb, out = energy(b), float((b @ grey).mean()), []
+    for a in imgs:
+        a = a.to(dev, torch.float64)
+        if not bool(torch.isfinite(a).all()):  # before the mean: a NaN would pass `ma > 0` unnoticed
+            raise ValueError("chroma_noise: the images hold non-finite values")
+        ma = float((a @ grey).mean())
+        if ma > 0.0:  # gt_mean_align's rule, on this device: a black render stays black
+            a = (a * (mb / ma)).clamp(0.0, 1.0)
+        out.append((energy(a) + CHROMA_FLOOR) / (truth + CHROMA_FLOOR))
+    return out
+
+
+def chroma_noise(x: ImageLike, y: ImageLike, device: Optional[Union[str, torch.device]] = None) -> float:
+    """Issue 64's colour-noise figure: how much chroma structure the render ``x`` holds at the scales of colour
+    speckle and blotches, over what its truth ``y`` holds there. 1.0 = as much as the truth; per-pixel colour noise
+    and low-frequency colour blotches score far above, a softer render a little below; a colour cast, the exposure
+    level and luma noise barely move it. Lower is better down to 1.
+
+    Precisely, for [H,W,3] sRGB images in [0, 1] (float; the same shape):
+
+    1. ``x`` is brightness-aligned to ``y`` as :func:`gt_mean_align` does (one factor on its values so that the grey
+       means agree, clipped to [0, 1]): the other GT-mean figures' convention, so that a dark render's chroma is not
+       shrunk by its exposure (CIELAB chroma scales with brightness).
+    2. Both go to CIELAB (D65, the sRGB curve and matrix); only a* and b* are kept (luma detail is not scored).
+    3. Each of a*, b* is band-passed by a difference of Gaussians, σ = 0.5 minus σ = 16 px: structures from a 2-px
+       period (single-pixel speckle) to blobs 32 px across (:data:`CHROMA_BAND_PX`; why σ = 0.5 and not 1 at the
+       fine end: the comment above it). One DoG rather than a sum over octave bands: G₀.₅ − G₁₆ is exactly the sum of
+       the octave band-passes G_s − G₂ₛ (s = 0.5 ... 8), so it measures the same band in two blurs with one energy
+       (no overlap between neighbouring octaves counted twice). A constant (a cast's shift of a*) does not pass it.
+       A view whose shorter side is below 64 px uses the scales that fit (:func:`chroma_band_px`: the coarse σ
+       halved to 8, 4 or 2; below 8 px a ValueError). Borders are mirrored.
+    4. The energy of an image is the band-passed a*² + b*², averaged over the pixels; the figure is
+       (energy(x) + :data:`CHROMA_FLOOR`) / (energy(y) + :data:`CHROMA_FLOOR`): the floor keeps a flat grey truth
+       from dividing by zero (a flat render of it scores 1, a speckled one its energy over the floor).
+
+    ``device``: where it runs (default: ``y``'s device if a tensor, else the CPU), in float64 there. A bad shape,
+    a non-float dtype or a non-finite value raises a one-line ValueError."""
+    return chroma_noises([x], y, device)[0]
 
 
 def lpips_available() -> Tuple[bool, str]:

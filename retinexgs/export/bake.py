@@ -23,7 +23,7 @@ applies it: in the enhanced colour's linear light before the highlight shoulder 
 (:func:`retinexgs.model.tone.white_balance`); the fit then sees the balanced colour. As trained (no balance, or
 exactly gains 1, 1, 1) the baked SH are bit for bit those of a bake without it.
 
-What the bake cannot reproduce exactly (also said in the README): the model composites R̂ and L̂
+What the bake cannot reproduce exactly (also said in docs/usage.md, "Render and export"): the model composites R̂ and L̂
 *before* raising L̂ to g and multiplying, the bake multiplies per Gaussian and lets the viewer composite.
 The two agree where one opaque Gaussian dominates a pixel; where several semi-transparent Gaussians mix, or
 coverage is partial (alpha < 1), they differ: a pixel of alpha a shows a·R·E(L) in the viewer instead of
@@ -49,8 +49,7 @@ from retinexgs.data.scene import Normalization
 from retinexgs.model.gaussians import PARAM_NAMES
 from retinexgs.model.inference import InferenceRenderer
 from retinexgs.model.retinex_model import RetinexGSModel
-from retinexgs.model.tone import (exposure_gain, exposure_linear, highlight_shoulder, linear_to_srgb,
-                                  srgb_to_linear, tone_map, white_balance)
+from retinexgs.model.tone import highlight_shoulder, linear_to_srgb, srgb_to_linear, white_balance
 from retinexgs.model.white_balance import WhiteBalance, describe_balance
 from retinexgs.render import Camera, spherical_harmonics
 
@@ -93,11 +92,11 @@ def enhanced_colour(model: RetinexGSModel, R: Tensor, L: Tensor, gamma: Tensor,
     The model's tone map, except that the capture-noise filter (``black_filter``) is not applied: it filters an
     image, and a chunk of Gaussians × directions is none (before, it would have smoothed neighbouring Gaussians'
     colours into each other). Without that filter and without a balance: ``model.tone_map``'s colour, bit for bit."""
-    noise = model.tone_noise()
-    if model.tone == "exposure":
-        light = white_balance(exposure_linear(R, L, model.illum_ref, gamma, noise), balance)
-        return linear_to_srgb(highlight_shoulder(light, model.shoulder))
-    colour = tone_map(R, L, model.illum_ref, gamma, model.tone, model.enhancement.eps, model.shoulder)[0]
+    tone = model.tone
+    light = tone.linear(R, L, model.illum_ref, gamma, model.tone_noise())
+    if light is not None:  # a tone with a linear form (exposure): the balance acts on it
+        return linear_to_srgb(highlight_shoulder(white_balance(light, balance), tone.knee(model.shoulder)))
+    colour = tone.map(R, L, model.illum_ref, gamma, model.enhancement.eps, model.shoulder)[0]
     if balance is None:
         return colour
     return linear_to_srgb(white_balance(srgb_to_linear(colour), balance))  # the gamma tones clip before: [0, 1]
@@ -152,22 +151,7 @@ def baked_colour_text(model: RetinexGSModel, gamma: Tensor, directions: int, wb:
     and the highlight knee, and whether R̂∘L̂ is read through the capture's black table), and with ``wb`` the
     white balance W in the formula and its numbers (:func:`retinexgs.model.white_balance.describe_balance`)."""
     g = torch.as_tensor(gamma, dtype=torch.float64).reshape(-1).cpu()
-    gtext = ", ".join(f"{x:.4f}" for x in g.tolist())
-    ref = float(model.illum_ref)
-    if model.tone == "exposure":
-        k = exposure_gain(model.illum_ref.detach().double().cpu(), g)
-        ktext = ", ".join(f"{x:.4g}" for x in k.tolist())
-        light = "lin(R*L)" if model.tone_noise() is None else "black_table(R*L)"
-        light = f"W*k*{light}" if balance is not None else f"k*{light}"
-        curve = (f"shoulder({light}, {model.shoulder:g})" if model.shoulder < 1.0 else light)
-        text = (f"colour: enhanced as a longer exposure, srgb({curve}) with k = lin(L_ref)^(-1/g) = ({ktext}), "
-                f"L_ref = {ref:.4f}, g = ({gtext})")
-        if model.tone_noise() is not None:
-            text += " (black_table: the capture's clipped noise taken out of R*L)"
-    else:
-        form = "R^g*clip(L/L_ref,0,1)^g" if model.tone == "signal" else "R*clip(L/L_ref,0,1)^g"
-        form = f"srgb(W*lin({form}))" if balance is not None else form
-        text = f"colour: enhanced {form}, L_ref = {ref:.4f}, g = ({gtext})"
+    text = model.tone.describe(g, model.illum_ref, model.shoulder, model.tone_noise() is not None, balance is not None)
     if wb is not None:  # beside the exposure's numbers: the form given and W's numbers (or none: as trained)
         text += f"; W = {describe_balance(wb, balance)}" if balance is not None else f"; {describe_balance(wb, None)}"
     return text + f", clipped to [0,1] and baked into SH by least squares over {directions} directions"

@@ -7,7 +7,7 @@ from typing import Iterable, Optional
 
 from retinexgs.errors import UserError
 from retinexgs.run import folder
-from retinexgs.run.schema import Config
+from retinexgs.config.schema import Config
 
 
 def read_run_config(run_dir: Path) -> Config:

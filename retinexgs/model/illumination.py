@@ -91,7 +91,7 @@ class IlluminationField(nn.Module):
         leak: the hidden layers' negative slope (0: ReLU). Why leaky: where every unit of the head is off (a dark
             region pushes them there) the output is sigmoid(last bias), a floor shared with the whole scene, and no
             gradient reaches the weights that could take it lower (fox-dark@1000 e⁻ RAW: 20–30 % of the Gaussians
-            sat at L̂ = 0.059 where the priors said 0.028; docs/experiments/2026-11-28-near-plane.md §6).
+            sat at L̂ = 0.059 where the priors said 0.028; experiments/notes/2026-11-28-near-plane.md §6).
     """
 
     def __init__(self, pos_freqs: int = 10, dir_freqs: int = 4, hidden: int = 64, depth: int = 3,

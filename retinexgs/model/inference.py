@@ -32,7 +32,7 @@ from torch import Tensor, nn
 
 from retinexgs.model.gaussians import GaussianModel
 from retinexgs.model.illumination import IlluminationField, encoded_dim
-from retinexgs.model.tone import apply_exposure, exposure_gain, log_lin_ref
+from retinexgs.model.tones.exposure import log_lin_ref
 from retinexgs.render import cuda_graphs
 from retinexgs.render._backend import kernels
 from retinexgs.render.camera import Camera
@@ -159,16 +159,18 @@ class _EnhanceGraph:
         L_bchw = self.model.normalized_illumination(L).permute(2, 0, 1).unsqueeze(0)
         g = self.model.predict_gamma(L_bchw)
         # RetinexGSModel.enhance: gamma replaces g, else exposure adjusts it (exposure 1, when unset: g exactly).
-        exposed = apply_exposure(g, self.exposure, self.model.illum_ref, self.model.tone, self.log_ref)
+        tone = self.model.tone
+        exposed = tone.apply_exposure(g, self.exposure, self.model.illum_ref, self.log_ref)
         g = torch.where(self.use_fixed, self.fixed, torch.where(self.exposure == 1.0, g, exposed))
-        if self.model.tone == "exposure" and self.model.tone_noise() is None:
-            # One kernel for srgb(s(k·lin(R̂∘L̂))) (csrc: exposure_tone): in torch the two sRGB curves are ~20
-            # elementwise kernels over the frame, and L_enh, which the frame does not show, as many again.
-            gain = exposure_gain(self.model.illum_ref, g.reshape(-1), self.log_ref)
+        if tone.fusable(self.model.tone_noise()):
+            # One kernel for the tone (exposure's srgb(s(k·lin(R̂∘L̂))), csrc: exposure_tone): in torch the two
+            # sRGB curves are ~20 elementwise kernels over the frame, and L_enh, which the frame does not show, as
+            # many again.
+            gain = tone.fused_gain(self.model.illum_ref, g.reshape(-1), self.log_ref)
             if self.balanced:
                 gain = balanced_gain(self.balance, gain)
-            rgb = kernels().exposure_tone(self.image, gain, self.model.shoulder)
-        else:  # the gamma tones; tone "exposure" through a black table (debias_black) has no fused kernel yet
+            rgb = tone.fused(self.image, gain, self.model.shoulder)
+        else:  # a tone without a fused kernel (the gamma tones), or one read through a black table (debias_black)
             rgb, _ = self.model.tone_map(R, L, g.reshape(-1))
         return torch.cat([rgb.reshape(-1), g.reshape(-1)])
 
@@ -224,7 +226,8 @@ class InferenceRenderer:
         # Tile culling (pairs only where a Gaussian reaches alpha >= 1/255) changes no pixel, only the work split:
         # fewer pairs to sort and composite against a pair count that tests every tile twice. None: off on CUDA,
         # where on the trained fox-dark (83k Gaussians, H100) it costs 0.15-0.2 ms a frame more than it saves;
-        # on on the CPU, where compositing dominates and it gained a few % (docs/experiments/2026-11-22-raster-vs-gsplat.md).
+        # on on the CPU, where compositing dominates and it gained a few %
+        # (experiments/notes/2026-11-22-raster-vs-gsplat.md).
         self.cull_tiles: Optional[bool] = None
         self._side: Optional["torch.cuda.Stream"] = None  # created on the first CUDA frame
         self._graphs: "OrderedDict[Tuple, _EnhanceGraph]" = OrderedDict()
@@ -324,9 +327,10 @@ class InferenceRenderer:
         return stream
 
     def can_balance(self) -> bool:
-        """Whether :meth:`render` applies a white balance itself: RetinexGS with tone ``exposure`` read without a
-        black table (the one kernel; the default). Elsewhere the caller balances the frame's light in torch."""
-        return self.decomposed and self.model.tone == "exposure" and self.model.tone_noise() is None
+        """Whether :meth:`render` applies a white balance itself: RetinexGS with a tone of one fused kernel read
+        without a black table (tone ``exposure``, the default). Elsewhere the caller balances the frame's light in
+        torch."""
+        return self.decomposed and self.model.tone.fusable(self.model.tone_noise())
 
     def render(self, camera: Camera, exposure: Optional[float] = None, gamma: Optional[float] = None,
                degree: Optional[int] = None, balance: Optional[Tensor] = None) -> FrameMaps:
@@ -357,8 +361,8 @@ class InferenceRenderer:
                 rgb, g = graph.run(image, exposure, gamma, balance)
             elif balanced:
                 g = self.model.enhance_gamma(L, exposure, gamma)
-                gain = balanced_gain(balance.to(image), exposure_gain(self.model.illum_ref, g))
-                rgb = kernels().exposure_tone(image, gain, self.model.shoulder)
+                gain = balanced_gain(balance.to(image), self.model.tone.fused_gain(self.model.illum_ref, g))
+                rgb = self.model.tone.fused(image, gain, self.model.shoulder)
             else:
                 enh = self.model.enhance(R, L, exposure, gamma)
                 rgb, g = enh["rgb"], enh["gamma"]

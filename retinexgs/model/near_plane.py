@@ -3,7 +3,7 @@
 Why: a Gaussian that the training views saw as a speck in front of the far content (fitting one view's noise)
 covers the whole frame of a camera that passes through it. A novel view on the capture's path does (the test
 views of castlep30-dark at 1000 e⁻: 15–69 % of a veiled view's compositing weight came from Gaussians within a
-tenth of the scene's depth of its camera; docs/experiments/2026-11-28-near-plane.md). Drawing nothing closer than
+tenth of the scene's depth of its camera; experiments/notes/2026-11-28-near-plane.md). Drawing nothing closer than
 a fraction of the nearest content the training views saw removes them, and nothing the views saw. 3DGS's own
 renderer culls at a fixed depth of 0.2 scene units; here the depth follows the scene.
 """

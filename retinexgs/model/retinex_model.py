@@ -4,7 +4,7 @@ Per view: reflectance colours (SH, albedo) and illumination (MLP on PE(x), PE(d)
 rasterized together as 6 channels, giving R̂ and L̂; the low-light reconstruction is R̂∘L̂ and the enhanced
 output S_enh is a tone map of R̂, L̂ with g predicted by the EnhancementNet from L̂/L_ref (one g per image by
 default): the default's longer exposure srgb(k·lin(R̂∘L̂)), k = lin(L_ref)^(−1/g), or the paper's
-clip(R̂∘(L̂/L_ref)^g, 0, 1) (``model.enhancement.tone``, :mod:`retinexgs.model.tone`).
+clip(R̂∘(L̂/L_ref)^g, 0, 1) (``model.enhancement.tone``, :mod:`retinexgs.model.tones`).
 
 Why L_ref: L̂ lives in the photos' exposure scale (the 2D prior L is "in the scale of S", ~0.1-0.3 for a dark
 scene), and a gamma curve only brightens with the right contrast on an illumination normalised to [0, 1]
@@ -19,20 +19,19 @@ The plain-3DGS baselines use the same Gaussians with 3 colour channels and no il
 from __future__ import annotations
 
 import copy
-from typing import TYPE_CHECKING, Dict, Optional, Tuple
+from typing import Any, Callable, Dict, List, Optional, Tuple
 
 import torch
 from torch import Tensor, nn
 
+from retinexgs.config.schema import Enhancement, Model
 from retinexgs.model.enhancement import EnhancementNet
 from retinexgs.model.gaussians import GaussianModel, sh_colors
 from retinexgs.model.illumination import IlluminationField
 from retinexgs.model.near_plane import with_near
-from retinexgs.model.tone import apply_exposure, black_table, tone_map
+from retinexgs.model.tones import Tone, get_tone
+from retinexgs.model.tones.curves import black_table
 from retinexgs.render import Camera, rasterize_gaussians
-
-if TYPE_CHECKING:  # types only: the schema lives in the run layer above (.importlinter ignores hint imports)
-    from retinexgs.run.schema import Enhancement, Model
 
 
 def gaussian_channels(means: Tensor, sh_dc: Tensor, sh_rest: Tensor, center: Tensor, degree: int,
@@ -77,10 +76,10 @@ class RetinexGSModel(nn.Module):
             self._set_enhancement(model_cfg.enhancement)
             self.register_buffer("illum_ref", torch.ones(()))  # L_ref; set by the trainer from the 2D priors
             if model_cfg.enhancement.debias_black:
-                # model/tone.black_table of the capture's noise, set by the trainer; until then lin itself.
+                # model/tones/curves.black_table of the capture's noise, set by the trainer; until then lin itself.
                 self.register_buffer("black_table", black_table())
                 if model_cfg.enhancement.black_filter > 0:
-                    # model/tone.smooth_record's spread: a, b of the render's residual noise, set by the trainer
+                    # model/tones/curves.smooth_record's spread: a, b of the render's residual noise, set by the trainer
                     self.register_buffer("black_spread", torch.zeros(2, 3))
         # model.background "mean": uncovered pixels show [6] channel values (R̂ then L̂) that the trainer sets from
         # the training views' priors, instead of black; a buffer, so checkpoints carry it. RetinexGS's only: the
@@ -95,6 +94,36 @@ class RetinexGSModel(nn.Module):
             self.register_buffer("near", torch.zeros(()))
         self._near_cache = (None, 0.0)  # (the buffer's version, its value): no device sync per frame
         self._near_cameras: Dict[int, Tuple[Camera, float, Camera]] = {}  # id -> (camera, near, its raised copy)
+
+    @torch.no_grad()
+    def initialise_levels(self, statistics: Callable[[], Any], near: Callable[[], float]) -> None:
+        """Set the levels a new model starts from (a checkpoint holds its own): L_ref, the median over the views of
+        the prior L's ``ref_quantile`` quantile, and the mean background (the views' mean R̂ and L̂: the best
+        constant where no view sees anything), both from ``statistics()`` (the training views' ViewStatistics),
+        and the near plane from ``near()``; each only where this model has it."""
+        stats = statistics() if self.decomposed or self.has_background else None
+        if self.decomposed:
+            self.illum_ref.fill_(stats.illumination_reference())
+        if self.has_background:
+            self.background.copy_(stats.mean_background())
+        if self.has_near:
+            self.near.fill_(near())
+
+    def param_groups(self, lr: Any, extent: float) -> List[Dict[str, Any]]:
+        """The optimiser's parameter groups, one per Gaussian parameter (named as the strategy's edits expect) and
+        one per network, at the config's learning rates ``lr`` (``cfg.lr``; the means' scaled by the scene's
+        ``extent``)."""
+        g = self.gaussians
+        groups = [{"params": [g.means], "lr": lr.means * extent, "name": "means"},
+                  {"params": [g.quats], "lr": lr.quats, "name": "quats"},
+                  {"params": [g.log_scales], "lr": lr.scales, "name": "log_scales"},
+                  {"params": [g.opacity_logits], "lr": lr.opacities, "name": "opacity_logits"},
+                  {"params": [g.sh_dc], "lr": lr.sh_dc, "name": "sh_dc"},
+                  {"params": [g.sh_rest], "lr": lr.sh_rest, "name": "sh_rest"}]
+        if self.decomposed:
+            groups += [{"params": list(self.illumination.parameters()), "lr": lr.illumination, "name": "illumination"},
+                       {"params": list(self.enhancement.parameters()), "lr": lr.enhancement, "name": "enhancement"}]
+        return groups
 
     def near_plane(self) -> float:
         """The depth below which no Gaussian is drawn (0: none), read once per change of the buffer."""
@@ -123,14 +152,24 @@ class RetinexGSModel(nn.Module):
         """A fresh EnhancementNet, the gamma's layout and the tone form from a ``model.enhancement`` section
         (its ``ref_quantile`` is the trainer's: it sets illum_ref)."""
         self.per_channel_gamma = bool(enh.per_channel)
-        self.tone = str(enh.tone)
-        self.shoulder = enh.knee(self.raw)  # tone "exposure"'s highlight knee (1: the clip)
-        # tone "exposure": take the clipped noise's mean out of R̂∘L̂ before the gain (model/tone.scene_linear)
+        self.tone = enh.tone  # the registered Tone of the name (the ``tone`` property)
+        self.shoulder = enh.knee(self.raw)  # the highlight knee of a tone with a shoulder (1: the clip)
+        # a tone that reads the black table: the clipped noise's mean out of R̂∘L̂ first (tones/curves.scene_linear)
         self.debias_black = bool(enh.debias_black)
-        # with it, the radius of the filter that takes the render's residual noise out first (model/tone.smooth_record)
+        # with it, the radius of the filter that takes the render's residual noise out first (curves.smooth_record)
         self.black_filter = int(enh.black_filter)
         self.enhancement = EnhancementNet(channels=3, gamma_range=tuple(enh.gamma_range), init_gamma=enh.init_gamma,
                                           per_view=enh.per_view)
+
+    @property
+    def tone(self) -> Tone:
+        """The tone form (``model.enhancement.tone``: a :class:`~retinexgs.model.tones.Tone` of the registry);
+        assign a name or a Tone."""
+        return self._tone
+
+    @tone.setter
+    def tone(self, value) -> None:
+        self._tone = get_tone(value)
 
     def with_enhancement(self, enh_cfg: Enhancement) -> "RetinexGSModel":
         """A model that shares this one's Gaussians, illumination field and L_ref (not copied, not trained here)
@@ -147,9 +186,9 @@ class RetinexGSModel(nn.Module):
 
     def enhance(self, R: Tensor, L: Tensor, exposure: Optional[float] = None,
                 gamma: Optional[float] = None) -> Dict[str, Tensor]:
-        """S_enh for [H,W,3] maps ``R``, ``L`` in the model's tone form (:mod:`retinexgs.model.tone`); returns
+        """S_enh for [H,W,3] maps ``R``, ``L`` in the model's tone form (:mod:`retinexgs.model.tones`); returns
         ``rgb``, ``L_enh`` (the enhanced light) [H,W,3] and ``gamma`` (flattened). ``exposure`` adjusts the
-        predicted g (< 1 brighter: :func:`retinexgs.model.tone.apply_exposure`); ``gamma`` replaces it."""
+        predicted g (< 1 brighter: :meth:`retinexgs.model.tones.Tone.apply_exposure`); ``gamma`` replaces it."""
         g = self.enhance_gamma(L, exposure, gamma)
         rgb, L_enh = self.tone_map(R, L, g)
         return {"rgb": rgb, "L_enh": L_enh, "gamma": g}
@@ -162,21 +201,29 @@ class RetinexGSModel(nn.Module):
         if gamma is not None:
             g = torch.full_like(g, float(gamma))
         elif exposure is not None:
-            g = apply_exposure(g, float(exposure), self.illum_ref, self.tone)
+            g = self.tone.apply_exposure(g, float(exposure), self.illum_ref)
         return g.reshape(-1)
 
     def tone_map(self, R: Tensor, L: Tensor, gamma: Tensor) -> Tuple[Tensor, Tensor]:
         """(S_enh, L_enh) from R̂ [..., 3], the rendered L̂ [..., 3] and g ([1] or [3], broadcast over the last
-        axis), in the model's tone form (``model.enhancement.tone``: :func:`retinexgs.model.tone.tone_map`)."""
+        axis), in the model's tone form (``model.enhancement.tone``: :meth:`retinexgs.model.tones.Tone.map`)."""
         noise = self.tone_noise()
         spread = getattr(self, "black_spread", None) if noise is not None else None
-        return tone_map(R, L, self.illum_ref, gamma, self.tone, self.enhancement.eps, self.shoulder, noise,
-                        spread, self.black_filter)
+        return self.tone.map(R, L, self.illum_ref, gamma, self.enhancement.eps, self.shoulder, noise, spread,
+                             self.black_filter)
+
+    def tone_linear(self, R: Tensor, L: Tensor, gamma: Tensor) -> Optional[Tensor]:
+        """The enhanced linear light before the highlight shoulder and the sRGB curve of :meth:`tone_map`'s image
+        (through the black table and its filter where the model has them), or None for a tone without a linear
+        form, whose light is lin(S_enh) (:meth:`retinexgs.model.tones.Tone.linear`)."""
+        noise = self.tone_noise()
+        spread = getattr(self, "black_spread", None) if noise is not None else None
+        return self.tone.linear(R, L, self.illum_ref, gamma, noise, spread, self.black_filter)
 
     def tone_noise(self) -> Optional[Tensor]:
-        """The black table (:func:`retinexgs.model.tone.black_table`) through which tone "exposure" reads the light
-        of R̂∘L̂ (``model.enhancement.debias_black``), or None: off, another tone, or a model without the table."""
-        if not self.debias_black or self.tone != "exposure":
+        """The black table (:func:`retinexgs.model.tones.curves.black_table`) through which the tone reads the light
+        of R̂∘L̂ (``model.enhancement.debias_black``), or None: off, a tone that reads none, or a model without it."""
+        if not self.debias_black or not self.tone.reads_black_table:
             return None
         return getattr(self, "black_table", None)
 

@@ -13,12 +13,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, List, Union
+from typing import List, Union
 
+from retinexgs.config.schema import Config
 from retinexgs.errors import UserError
-
-if TYPE_CHECKING:  # a type only: the schema lives in the run layer above (.importlinter ignores hint imports)
-    from retinexgs.run.schema import Config
 
 Point = Union[int, float]
 

@@ -50,7 +50,7 @@ def capture_lean(graph: "torch.cuda.CUDAGraph", stream: "torch.cuda.Stream", poo
     the collector paused, and none of ``torch.cuda.graph``'s preparations: no device synchronisation, no full
     collection, no emptying of the device and pinned-host caches. With a GPU-bound step in flight those cost
     most of a density event's 34-44 ms (the host waits for the queue, then cudaFree and cudaMalloc refill the
-    cache; docs/experiments/2026-11-26-scale-events.md), and the Gaussians' channels are re-captured at every
+    cache; experiments/notes/2026-11-26-scale-events.md), and the Gaussians' channels are re-captured at every
     densification, dozens of times a run. For re-captures of work already run eagerly in this process (library
     handles and workspaces exist)."""
     stream.wait_stream(torch.cuda.current_stream(stream.device))

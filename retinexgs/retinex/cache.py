@@ -43,6 +43,7 @@ from retinexgs.data.images import holds_unclipped, load_image_tensor
 from retinexgs.data.photo_balance import balance_photo
 from retinexgs.data.raw_noise import PREVIEW_RADIUS, denoised_preview
 from retinexgs.data.undistort import image_key
+from retinexgs.retinex.denoise import DENOISED_DIRNAME, DenoiseSpec, denoised_view
 
 from retinexgs.data.images import IMAGE_EXTENSIONS  # the one list of readable types (data/images.py)
 CACHE_DIRNAME = "retinex_cache"
@@ -54,27 +55,40 @@ _IMAGE_FOLDER_NAMES = {"low", "high", "images", "over_exp", "input", "rgb"}
 PathLike = Union[str, os.PathLike]
 
 
-def read_image(path: PathLike, raw_denoise: bool = False, balance: Optional[Sequence[float]] = None) -> torch.Tensor:
+def read_image(path: PathLike, raw_denoise: bool = False, balance: Optional[Sequence[float]] = None,
+               denoise: Optional[DenoiseSpec] = None, cache_root: Optional[PathLike] = None,
+               cache_hint: str = "") -> torch.Tensor:
     """Read a photo as float32 [H,W,3] in [0,1] (8 or 16 bit, see :mod:`retinexgs.data.images`); raises
     UserError naming the file if it cannot be read. ``raw_denoise`` (``decomposer.raw_denoise``): a camera raw
     view (or its float copy) is read as :func:`retinexgs.data.raw_noise.denoised_preview` of its unclipped values.
     ``balance``: the photo's white balance (``data.white_balance``, :func:`retinexgs.data.photo_balance.balance_photo`),
-    applied to its light first."""
+    applied to its light first. ``denoise`` (``decomposer.denoise``, not ``none``): every photo, raw or not, is read
+    through :func:`retinexgs.retinex.denoise.denoised_view` instead (the raw preview's filter is then not used),
+    cached under ``cache_root`` by the photo's content."""
 
     p = Path(path)
     if not p.is_file():
         raise UserError(f"image not found: {p}")
+    if denoise is not None and denoise.method != "none":
+        raw = holds_unclipped(p)
+        image = balance_photo(load_image_tensor(p, unclipped=raw), balance, unclipped=raw)
+        return denoised_view(p, image, denoise.noise, denoise.method, raw, cache_root, denoise.params,
+                             content=prior_key(p, False, balance), hint=cache_hint)[0]
     if raw_denoise and holds_unclipped(p):
         return denoised_preview(balance_photo(load_image_tensor(p, unclipped=True), balance, unclipped=True))
     return balance_photo(load_image_tensor(p), balance)
 
 
-def prior_key(path: PathLike, raw_denoise: bool = False, balance: Optional[Sequence[float]] = None) -> str:
+def prior_key(path: PathLike, raw_denoise: bool = False, balance: Optional[Sequence[float]] = None,
+              denoise: Optional[DenoiseSpec] = None) -> str:
     """What a photo's entry is keyed by: :func:`content_hash`, and for a raw view read through the denoised
     preview also that preview's recipe (its window), so the clipped photo's priors and the preview's never mix;
-    a balanced photo's (``data.white_balance``) also by its gains."""
+    a balanced photo's (``data.white_balance``) also by its gains; a photo read through the denoiser
+    (``decomposer.denoise``) also by its recipe (method, settings, noise model)."""
     digest = content_hash(path)
-    if raw_denoise and holds_unclipped(Path(path)):
+    if denoise is not None and denoise.method != "none":
+        digest = hashlib.sha256(f"{digest}:denoise-{denoise.recipe}".encode()).hexdigest()[:_HASH_LEN]
+    elif raw_denoise and holds_unclipped(Path(path)):
         digest = hashlib.sha256(f"{digest}:raw-preview-wiener-r{PREVIEW_RADIUS}".encode()).hexdigest()[:_HASH_LEN]
     if balance is not None:
         gains = ",".join(f"{float(v):.9g}" for v in balance)
@@ -337,7 +351,8 @@ def _delete(path: Path) -> int:
 
 def clean_cache(root: PathLike) -> Tuple[int, int]:
     """Delete every decomposition under ``root`` (entries, previews, ``params.json``, temporaries of an
-    interrupted write), the trainer's view stores in ``root`` and the folders left empty, ``root`` included;
+    interrupted write), the trainer's view stores in ``root``, the denoised views (``decomposer.denoise``) and the
+    folders left empty, ``root`` included;
     files this module did not name are left where they are. Returns (entries deleted, bytes freed); UserError if
     something cannot be deleted."""
     root = Path(root)
@@ -365,11 +380,32 @@ def clean_cache(root: PathLike) -> Tuple[int, int]:
         stores = []
     for p in stores:
         freed += _delete(p)
+    freed += _clean_denoised(root / DENOISED_DIRNAME)
     try:
         root.rmdir()
     except OSError:
         pass
     return count, freed
+
+
+def _clean_denoised(folder: Path) -> int:
+    """Delete the denoised views under ``folder`` (only names :func:`retinexgs.retinex.denoise.denoised_view` writes,
+    and temporaries of an interrupted write) and the folders left empty; the bytes freed."""
+    freed = 0
+    try:
+        recipes = sorted(p for p in folder.iterdir() if p.is_dir() and _SETTINGS_DIR.match(p.name))
+    except OSError:
+        return 0
+    for d in recipes:
+        for p in sorted(d.iterdir()):
+            if p.is_file() and (_ENTRY.match(p.name) or p.name.startswith(_TMP_PREFIX)):
+                freed += _delete(p)
+        for gone in (d, folder):
+            try:
+                gone.rmdir()
+            except OSError:  # holds a file we did not write
+                pass
+    return freed
 
 
 def resolve_device(device: Union[str, torch.device, None]) -> torch.device:
@@ -389,7 +425,7 @@ def iter_decompositions(image_paths: Sequence[PathLike], method: str = "lr3m", p
                         preview: bool = False, progress: bool = True, cache_hint: str = "", sweep: bool = False,
                         report: Optional[Dict[str, Any]] = None, announce: bool = True, scene: str = "SCENE",
                         raw_denoise: bool = False, balance: Optional[Sequence[float]] = None,
-                        names: Optional[Sequence[PathLike]] = None
+                        names: Optional[Sequence[PathLike]] = None, denoise: Optional[DenoiseSpec] = None
                         ) -> Iterator[Tuple[torch.Tensor, torch.Tensor]]:
     """(R [H,W,3], L [H,W,1]) float32 CPU tensors for each image in turn, from the cache or computed and
     written to it before they are yielded: the caller holds one image's priors at a time, and an interrupted
@@ -402,7 +438,9 @@ def iter_decompositions(image_paths: Sequence[PathLike], method: str = "lr3m", p
     keyed by :func:`prior_key`). ``balance``: every photo's white balance (``data.white_balance``; the views'
     :attr:`~retinexgs.data.scene.View.balance`), applied before the decomposition and part of the key. ``names``:
     the user's file for each image, named in errors instead (a view's ``source_path``: the photo an undistorted or
-    downscaled copy was made from). Other arguments: :func:`decompose_images`.
+    downscaled copy was made from). ``denoise``: every photo is decomposed from its denoised view
+    (``decomposer.denoise``, :func:`read_image`; cached in ``<root>/denoised/``, keyed by :func:`prior_key`). Other
+    arguments: :func:`decompose_images`.
     """
     paths = [Path(p) for p in image_paths]
     if not paths:
@@ -439,14 +477,14 @@ def iter_decompositions(image_paths: Sequence[PathLike], method: str = "lr3m", p
         for p in iterator:
             if not p.is_file():
                 raise UserError(f"image not found: {p}")
-            digest = prior_key(p, raw_denoise, balance)
+            digest = prior_key(p, raw_denoise, balance, denoise)
             hashes.append(digest)
             meta = _source_meta(p, dec.cache_key(), dec.name, digest)
             target = by_hash.get(digest, folder / _entry_name(p, digest))  # any name: a renamed photo too
             hit = load_entry(target, meta)
             if hit is None:
                 target = folder / _entry_name(p, digest)
-                image = read_image(p, raw_denoise, balance).to(dev)
+                image = read_image(p, raw_denoise, balance, denoise, root, cache_hint).to(dev)
                 try:
                     r, l = dec.decompose(image)
                 except ValueError as exc:  # e.g. an all-black photo: named as the user knows it, not the cache copy
@@ -484,7 +522,8 @@ def decompose_images(image_paths: Sequence[PathLike], method: str = "lr3m", para
                      cache_dir: Optional[PathLike] = None, device: Union[str, torch.device] = "cpu", *,
                      keep: bool = True, preview: bool = False, progress: bool = True, cache_hint: str = "",
                      sweep: bool = False, announce: bool = True, raw_denoise: bool = False,
-                     balance: Optional[Sequence[float]] = None, names: Optional[Sequence[PathLike]] = None
+                     balance: Optional[Sequence[float]] = None, names: Optional[Sequence[PathLike]] = None,
+                     denoise: Optional[DenoiseSpec] = None
                      ) -> Tuple[List[Optional[Tuple[torch.Tensor, torch.Tensor]]], Dict[str, Any]]:
     """Make sure every image has a valid cache entry; return (results, report).
 
@@ -496,13 +535,15 @@ def decompose_images(image_paths: Sequence[PathLike], method: str = "lr3m", para
     cache; only a needed write fails. ``sweep``: ``image_paths`` are a scene's train views: once all are in
     place, old-format entries are deleted (:func:`sweep_old_format`) and the entries they do not use are counted
     (:func:`unused_entries`; nothing of them is deleted), and with ``announce`` one line says so on stderr.
-    One image's priors at a time: :func:`iter_decompositions` (``raw_denoise``, ``balance``, ``names`` as there).
+    One image's priors at a time: :func:`iter_decompositions` (``raw_denoise``, ``balance``, ``names``, ``denoise``
+    as there).
     """
     report: Dict[str, Any] = {}
     results: List[Optional[Tuple[torch.Tensor, torch.Tensor]]] = []
     for hit in iter_decompositions(image_paths, method, params, cache_dir, device, preview=preview,
                                    progress=progress, cache_hint=cache_hint, sweep=sweep, report=report,
-                                   announce=announce, raw_denoise=raw_denoise, balance=balance, names=names):
+                                   announce=announce, raw_denoise=raw_denoise, balance=balance, names=names,
+                                   denoise=denoise):
         results.append(hit if keep else None)
     return results, report
 

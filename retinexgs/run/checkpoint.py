@@ -1,4 +1,6 @@
-"""Atomic checkpoints in ``RUN/checkpoints/step_XXXXX.pt`` (temporary file + rename; never a partial file).
+"""Atomic checkpoints in ``RUN/checkpoints/step_XXXXX.pt`` (temporary file + rename; never a partial file), each
+carrying the run format it was written in and read back migrated to this version's
+(:func:`retinexgs.config.migrate_checkpoint`).
 
 A save interrupted by a kill leaves at worst a hidden ``.step_XXXXX.pt.*.tmp``: never listed or loaded, and
 removed by the run's next save (one run folder has one trainer at a time)."""
@@ -11,6 +13,7 @@ from typing import Any, Dict, List, Optional
 
 import torch
 
+from retinexgs.config import FORMAT, migrate_checkpoint
 from retinexgs.errors import UserError
 from retinexgs.fileio import (default_file_mode, is_out_of_space, out_of_space_error, remove_empty_folders,
                               temporary_file)
@@ -60,9 +63,9 @@ def atomic_save(obj: Any, path: Path) -> None:
 
 
 def save_checkpoint(run: Path, step: int, state: Dict[str, Any], keep: int = 2) -> Path:
-    """Write ``step_XXXXX.pt`` atomically and delete all but the newest ``keep`` checkpoints."""
+    """Write ``step_XXXXX.pt`` atomically (with the run format) and delete all but the newest ``keep`` checkpoints."""
     path = checkpoint_dir(run) / f"step_{step:06d}.pt"
-    atomic_save(state, path)
+    atomic_save({"format": FORMAT, **state}, path)
     for old in list_checkpoints(run)[:-keep] if keep > 0 else []:
         old.unlink(missing_ok=True)
     for stale in checkpoint_dir(run).iterdir():  # temporaries of a save interrupted by a kill (never listed)
@@ -72,7 +75,8 @@ def save_checkpoint(run: Path, step: int, state: Dict[str, Any], keep: int = 2) 
 
 
 def load_checkpoint(path: Path, map_location: str = "cpu") -> Dict[str, Any]:
-    """Load a checkpoint with an error that names the file when it is unreadable or truncated."""
+    """Load a checkpoint, migrated from the format it was written in to this version's; an error that names the file
+    when it is unreadable or truncated, or written by a newer version."""
     try:
         state = torch.load(path, map_location=map_location, weights_only=False)
     except Exception as exc:  # truncated zip, wrong format, ...
@@ -80,7 +84,7 @@ def load_checkpoint(path: Path, map_location: str = "cpu") -> Dict[str, Any]:
                         "to the previous one") from exc
     if not isinstance(state, dict) or "step" not in state or "model" not in state:
         raise UserError(f"checkpoint {path} is not a RetinexGS checkpoint")
-    return state
+    return migrate_checkpoint(state, f"checkpoint {path}")
 
 
 def latest_checkpoint(run: Path) -> Optional[Path]:

@@ -2,9 +2,8 @@
 checkpoint (what eval, render, export, view and resume read back)."""
 from __future__ import annotations
 
-import copy
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional, Tuple
+from typing import Callable, Optional, Tuple
 
 import torch
 import yaml
@@ -16,7 +15,8 @@ from retinexgs.fileio import atomic_write_text
 from retinexgs.model.gaussians import GaussianModel
 from retinexgs.model.retinex_model import RetinexGSModel
 from retinexgs.run.checkpoint import latest_checkpoint, load_checkpoint
-from retinexgs.run.config import Config, RawConfig, configs_dir, load_config, plain, read_yaml
+from retinexgs.config import FORMAT, Config, migrate_config, plain, read_yaml
+from retinexgs.run.config import load_config
 
 
 def pick_device(device: Optional[str]) -> str:
@@ -68,49 +68,9 @@ def load_run(run_dir: Path, device: Optional[str] = None) -> Tuple[Config, Scene
     return cfg, scene, model, int(state["step"])
 
 
-# Keys whose default changed after they were added: a run made before the key existed behaved as the value here,
-# not as today's default (which would re-render it differently). The tone form was the gamma on L̂ until
-# 2026-11-25, when the exposure tone became the default; the depth prior came in later that day, at weight 0.3
-# in the default (a run made before it, resumed, must not start using it); the reconstruction term was on the
-# dark photo's values (rec_domain photo) until the exposed SSIM became the default, later still; renders were over
-# black until the mean background became the default (2026-11-26), and blind to the capture's noise until
-# issue 32 (the noise floor of the exposed SSIM, the camera's clipped noise). The exposure meter averaged until
-# the highlight cap (2026-11-27), and a batch of views stepped with torch's Adam betas until β^B (the same day).
-# Density events ran to density.stop until density.last_event capped them. A raw scene's priors weighed
-# every pixel alike until loss.rec_raw_prior_snr (2026-11-28), and renders drew Gaussians up to 0.01 from the
-# camera until model.near_fraction (the same day). A raw scene's tone took the photos' highlight knee until
-# model.enhancement.shoulder_raw (the same day), and its L_spa read the unclipped target until loss.spa_raw.
-# A folder posed by SfM was used whatever share of its photos SfM registered until data.min_registered.
-# This table is the one place for these
-# values: the code reads every key from the validated config, with no fallback of its own.
-PREDATING_VALUES: Dict[str, Any] = {"model.enhancement.tone": "illumination", "loss.w_depth": 0.0,
-                                    "loss.rec_domain": "photo", "model.background": "black",
-                                    "model.enhancement.shoulder": 1.0, "loss.rec_noise_floor": False,
-                                    "loss.rec_camera_noise": False, "loss.rec_noise_share": 0.5,
-                                    "density.noise_aware": False, "loss.rec_noise_scale": 1,
-                                    "loss.exp_highlight_share": 0.0, "train.momentum_batch_scaling": "none",
-                                    "density.last_event": 1.0, "loss.rec_raw": "photo",
-                                    "decomposer.raw_denoise": False, "loss.rec_raw_unit": "plain",
-                                    "loss.rec_raw_prior_snr": 0.0, "model.near_fraction": 0.0,
-                                    "model.enhancement.shoulder_raw": None, "loss.spa_raw": "extended",
-                                    "data.min_registered": 0.0}
-
-
-def _fill_missing(cfg: RawConfig, default: RawConfig, prefix: str, filled: List[str]) -> RawConfig:
-    """Keys added to default.yaml after the run was made get the behaviour the run had: the value in
-    :data:`PREDATING_VALUES` where the default changed since, else their default (a run folder outlives versions)."""
-    out = dict(cfg)
-    for key, value in default.items():
-        if key not in out:
-            out[key] = copy.deepcopy(PREDATING_VALUES.get(prefix + key, value))
-            filled.append(prefix + key)
-        elif isinstance(value, dict) and isinstance(out[key], dict) and key != "params":
-            out[key] = _fill_missing(out[key], value, f"{prefix}{key}.", filled)
-    return out
-
-
 def read_run_config(run_dir: Path, log: Optional[Callable[[str], None]] = None) -> Tuple[Config, Path]:
-    """(validated config, scene path) recorded in ``run_dir/config.yaml``."""
+    """(validated config, scene path) recorded in ``run_dir/config.yaml``, migrated from the format it was
+    written in (:mod:`retinexgs.config.versions`); ``log`` hears which keys the recorded config lacked."""
     path = Path(run_dir) / "config.yaml"
     if not path.is_file():
         raise UserError(f"{run_dir} is not a run folder (no config.yaml)")
@@ -118,15 +78,14 @@ def read_run_config(run_dir: Path, log: Optional[Callable[[str], None]] = None) 
     scene = raw.pop("scene", None)
     if not isinstance(scene, str):
         raise UserError(f"{path} does not name the run's scene (key 'scene'); it is not a RetinexGS run config")
-    filled: List[str] = []
-    raw = _fill_missing(raw, read_yaml(configs_dir() / "default.yaml"), "", filled)
+    raw, filled = migrate_config(raw, str(path))
     if filled and log is not None:
         log(f"{path} predates config keys {', '.join(filled)}: using the values that match how it was trained")
     return load_config(base=raw, base_label=str(path)), Path(scene)
 
 
 def write_run_config(run: Path, cfg: Config, scene_path: Path) -> None:
-    """The resolved config of a run (what resume, eval, render and export read back), written as plain data."""
-    data = plain(cfg)
-    data["scene"] = str(Path(scene_path).resolve())
+    """The resolved config of a run (what resume, eval, render and export read back), written as plain data
+    with the run format first."""
+    data = {"format": FORMAT, **plain(cfg), "scene": str(Path(scene_path).resolve())}
     atomic_write_text(run / "config.yaml", yaml.safe_dump(data, sort_keys=False))

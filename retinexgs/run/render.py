@@ -17,10 +17,10 @@ from retinexgs.model.inference import InferenceRenderer
 from retinexgs.model.retinex_model import RetinexGSModel
 from retinexgs.model.schedule import build_schedule
 from retinexgs.model.white_balance import WhiteBalance, grey_edge_gains, neutral_gains, temperature_matrix
-from retinexgs.model.tone import exposure_linear, highlight_shoulder, linear_to_srgb, srgb_to_linear, white_balance
+from retinexgs.model.tone import highlight_shoulder, linear_to_srgb, srgb_to_linear, white_balance
 from retinexgs.render import Camera
 from retinexgs.retinex import decompose, enhance_for_viewing
-from retinexgs.run.schema import Config
+from retinexgs.config.schema import Config
 
 
 def active_sh_degree(cfg: Config, step: int) -> int:
@@ -35,27 +35,26 @@ def view_camera(view: View) -> Camera:
 
 def enhanced_linear(model: RetinexGSModel, cfg: Config, res: Dict) -> Tensor:
     """The linear light (Rec.709 primaries) [H,W,3] that a render's enhanced image ``res["rgb"]`` encodes: for a
-    RetinexGS run of tone ``exposure`` k·lin(R̂∘L̂) (through the capture's black table where the model has one)
-    before the highlight shoulder and the sRGB curve, so it exceeds 1 where the PNG clips or rolls off; otherwise
-    (the gamma tones, the baselines) lin(rgb), in [0, 1]. On both scales 1.0 is the PNG's white (with the
-    shoulder off)."""
-    if cfg.method == "retinexgs" and model.tone == "exposure" and "R" in res and "gamma" in res:
-        noise = model.tone_noise()
-        spread = getattr(model, "black_spread", None) if noise is not None else None
-        return exposure_linear(res["R"], res["L"], model.illum_ref, res["gamma"].reshape(-1), noise, spread,
-                               model.black_filter)
+    RetinexGS run whose tone has a linear form (``exposure``: k·lin(R̂∘L̂), through the capture's black table where
+    the model has one; :meth:`~retinexgs.model.RetinexGSModel.tone_linear`) that light before the highlight
+    shoulder and the sRGB curve, so it exceeds 1 where the PNG clips or rolls off; otherwise (the gamma tones, the
+    baselines) lin(rgb), in [0, 1]. On both scales 1.0 is the PNG's white (with the shoulder off)."""
+    if cfg.method == "retinexgs" and "R" in res and "gamma" in res:
+        light = model.tone_linear(res["R"], res["L"], res["gamma"].reshape(-1))
+        if light is not None:
+            return light
     return srgb_to_linear(res["rgb"])
 
 
 def encode_enhanced(model: RetinexGSModel, cfg: Config, light: Tensor) -> Tensor:
     """The enhanced image (sRGB, [0, 1]) of linear light as :func:`enhanced_linear` returns it: the highlight
-    shoulder (RetinexGS, tone ``exposure``) and the sRGB curve, clipping at white."""
+    shoulder (RetinexGS, a tone with one: ``exposure``) and the sRGB curve, clipping at white."""
     return linear_to_srgb(highlight_shoulder(light, tone_knee(model, cfg)))
 
 
 def tone_knee(model: RetinexGSModel, cfg: Config) -> float:
     """The highlight shoulder's knee that :func:`encode_enhanced` applies to this run's light (1: none, the clip)."""
-    return float(model.shoulder) if cfg.method == "retinexgs" and model.tone == "exposure" else 1.0
+    return float(model.tone.knee(float(model.shoulder))) if cfg.method == "retinexgs" else 1.0
 
 
 def render_function(model: RetinexGSModel, cfg: Config, degree: int, exposure: Optional[float] = None,

@@ -8,17 +8,15 @@ schedule itself. A new strategy is one module: a :class:`Strategy` subclass deco
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Callable, ClassVar, Dict, Optional, Tuple, Type
+from typing import Callable, ClassVar, Dict, Optional, Tuple, Type
 
 import torch
 from torch import Tensor
 
+from retinexgs.config.schema import Density
 from retinexgs.model.gaussians import PARAM_NAMES, GaussianModel
 from retinexgs.model.schedule import Schedule
 from retinexgs.render import RenderOutput
-
-if TYPE_CHECKING:  # a type only: the schema lives in the run layer above (.importlinter ignores hint imports)
-    from retinexgs.run.schema import Density
 
 STRATEGIES: Dict[str, Type["Strategy"]] = {}
 
@@ -96,5 +94,5 @@ class Strategy:
 
 
 def build_strategy(cfg: "Density", scene_extent: float, schedule: Schedule, seed: int = 0) -> Strategy:
-    """The strategy ``cfg.kind`` names (the schema has checked the name against :data:`STRATEGIES`)."""
+    """The strategy ``cfg.kind`` names (the loader has checked the name against :data:`STRATEGIES`)."""
     return STRATEGIES[cfg.kind](cfg, scene_extent, schedule, seed)

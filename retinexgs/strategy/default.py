@@ -5,20 +5,18 @@ needles after every optimiser step. Parameters and Adam moments change only thro
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Callable, Dict, Optional
+from typing import Callable, Dict, Optional
 
 import torch
 from torch import Tensor
 
+from retinexgs.config.schema import Density
 from retinexgs.model.gaussians import GaussianModel
 from retinexgs.model.schedule import Schedule
 from retinexgs.render import RenderOutput
 from retinexgs.render.rotation import quat_to_rotmat
 from retinexgs.strategy.base import Strategy, register
 from retinexgs.strategy.ops import cap_anisotropy, edit_gaussians, reset_opacity
-
-if TYPE_CHECKING:  # a type only: the schema lives in the run layer above (.importlinter ignores hint imports)
-    from retinexgs.run.schema import Density
 
 
 # The per-Gaussian statistics summed over views (and over ranks before a densification), and the one kept as a

@@ -13,19 +13,17 @@ noise-driven exploration instead of gradient thresholds that a noisy capture's g
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Dict, Optional, Tuple
+from typing import Dict, Optional, Tuple
 
 import torch
 from torch import Tensor
 
+from retinexgs.config.schema import Density
 from retinexgs.model.gaussians import GaussianModel
 from retinexgs.model.schedule import Schedule
 from retinexgs.render.rotation import quat_to_rotmat
 from retinexgs.strategy.base import Strategy, register
 from retinexgs.strategy.ops import cap_anisotropy, edit_gaussians
-
-if TYPE_CHECKING:  # a type only: the schema lives in the run layer above (.importlinter ignores hint imports)
-    from retinexgs.run.schema import Density
 
 N_MAX = 51  # the most copies one Gaussian becomes in one event (the binomial sum's table)
 

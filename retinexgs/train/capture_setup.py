@@ -16,7 +16,7 @@ from retinexgs.data import Scene
 from retinexgs.data.raw_noise import RawNoise, scene_noise
 from retinexgs.model.retinex_model import RetinexGSModel
 from retinexgs.model.tone import black_table, exposure_gain
-from retinexgs.run.schema import Config
+from retinexgs.config.schema import Config
 from retinexgs.train import losses
 from retinexgs.train.noise import CaptureNoise, NoiseProbe, measure_capture_noise, sigma_limit
 

@@ -47,7 +47,7 @@ from torch import Tensor, nn
 from retinexgs.errors import UserError
 from retinexgs.model.gaussians import PARAM_NAMES
 from retinexgs.retinex.cache import decompose_images, scene_cache_root
-from retinexgs.run.schema import Config
+from retinexgs.config.schema import Config
 from retinexgs.strategy.ops import resize_gaussians
 
 TIMEOUT_ENV = "RETINEXGS_DIST_TIMEOUT"

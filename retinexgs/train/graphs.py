@@ -197,7 +197,7 @@ class _ChannelCapture:
         self.fwd, self.bwd = torch.cuda.CUDAGraph(), torch.cuda.CUDAGraph()
         pool = torch.cuda.graph_pool_handle()  # shared by the two: the backward reads the forward's saved tensors
         # The lean capture: a re-capture at every densification must not drain the GPU's queue nor empty the
-        # allocator's caches, as torch.cuda.graph does (docs/experiments/2026-11-26-scale-events.md).
+        # allocator's caches, as torch.cuda.graph does (experiments/notes/2026-11-26-scale-events.md).
         with cuda_graphs.capture_lean(self.fwd, side, pool):
             out = module(*self.inputs)
         self.grad_out = torch.empty_like(out)

@@ -25,7 +25,7 @@ picks the paper's, configs/default.yaml the product's, with the reasons in the f
 """
 from __future__ import annotations
 
-from typing import Dict, NamedTuple, Optional, Tuple
+from typing import Dict, NamedTuple, Optional, Tuple, Union
 
 import torch
 import torch.nn.functional as F
@@ -34,7 +34,8 @@ from retinexgs.evaluate.metrics import cached_constant, check_bchw, gaussian_win
 from retinexgs.data.raw_noise import PREVIEW_RADIUS
 from retinexgs.data.srgb import linear_to_srgb_extended, linear_to_srgb_slope, srgb_to_linear_extended
 from retinexgs.model.tone import camera_mean, highlight_capped_mean, linear_to_srgb, srgb_to_linear
-from retinexgs.run.schema import Loss
+from retinexgs.model.tones import Tone, get_tone
+from retinexgs.config.schema import Loss
 
 __all__ = [
     "to_bchw", "gaussian_window", "ssim", "noise_variance", "robust_abs", "exposed", "camera_expectation", "l1_ssim",
@@ -461,14 +462,15 @@ def exposure_loss(enh: torch.Tensor, E: float = 0.6, patch: int = 16, form: str 
     raise ValueError("form must be 'l2' or 'l1'")
 
 
-def highlight_meter_applies(tone: str, c: Loss) -> bool:
+def highlight_meter_applies(tone: Union[str, Tone], c: Loss) -> bool:
     """Whether ``loss.exp_highlight_share`` (config loss section ``c``) acts: it caps the target of the whole-image
-    meter of tone ``exposure`` (``exp_on: image``, ``exp_patch: 0``; :func:`retinexgs.model.tone.highlight_capped_mean`);
-    the other tones and meters (the paper's, the ablations') ignore it."""
-    return tone == "exposure" and c.exp_on == "image" and c.exp_patch == 0
+    meter (``exp_on: image``, ``exp_patch: 0``; :func:`retinexgs.model.tone.highlight_capped_mean`) of a tone whose
+    ``meter_applies`` (``exposure``'s); the other tones and meters (the paper's, the ablations') ignore it.
+    ``tone``: a name or a :class:`~retinexgs.model.tones.Tone`."""
+    return get_tone(tone).meter_applies and c.exp_on == "image" and c.exp_patch == 0
 
 
-def exposure_target(c: Loss, tone: str, RL: torch.Tensor, shoulder: float, noise=None):
+def exposure_target(c: Loss, tone: Union[str, Tone], RL: torch.Tensor, shoulder: float, noise=None):
     """L_exp's target E for the image whose R̂∘L̂ is ``RL`` [..., 3]: ``c.exposure_E``, capped by the highlight
     meter where :func:`highlight_meter_applies` (a 0-d tensor then, no gradient). Training and the 2D proxy both
     meter through this. ``noise``: the capture's noise the tone takes out (``model.enhancement.debias_black``)."""

@@ -21,7 +21,7 @@ linear light) and the exposed noise σ (Immerkær on 2×2 averages, the largest 
 at each gain of :data:`GAINS`; the capture's
 figures are the medians over the photos, divided by ``data.downscale`` (a d×d average divides white noise's σ by d).
 Through 8-bit JPEG the pixel-scale (a, b) sees 0.15–0.9 of the true σ, least near black
-(docs/experiments/2026-11-26-noise-estimate.md); the exposed σ on 2×2 averages sees 0.94–1.19 of it. Where (a, b)
+(experiments/notes/2026-11-26-noise-estimate.md); the exposed σ on 2×2 averages sees 0.94–1.19 of it. Where (a, b)
 is used (``loss.rec_camera_noise``, ``model.enhancement.debias_black``), the (a, b) of JPEG files is fitted through
 their own JPEG (``through_codec``, :func:`retinexgs.data.sensor.estimate_noise_through_codec`; 512² crops, about
 2 s a photo on a CPU core), since the clipped noise's mean, which lifts the blacks, passes JPEG whole.
@@ -129,7 +129,7 @@ def exposed_noise_sigma(S: Tensor, gains: Tuple[float, ...] = GAINS, scale: int 
     at the 2–5 px scale that SSIM's window (Gaussian, σ 1.5 px) and a Gaussian splat fit. On photos darkened by
     the sensor model, with the noise known, the pixel-scale estimate read 0.22–0.37 of the SSIM-visible σ at 8000
     and 3000 e⁻, 0.49–0.57 at 1500 e⁻; averaged over 2×2 pixels it reads 0.94–1.19 at every level and gain
-    (docs/experiments/2026-11-26-noise-scale.md)."""
+    (experiments/notes/2026-11-26-noise-scale.md)."""
     x = S.detach().float().permute(2, 0, 1).unsqueeze(0)
     if min(x.shape[-2:]) < 3 * scale:  # too small to average: the pixel scale
         scale = 1

@@ -20,7 +20,7 @@ from torch.profiler import record_function
 from retinexgs.model.retinex_model import RetinexGSModel
 from retinexgs.model.schedule import Schedule
 from retinexgs.model.tone import exposure_gain
-from retinexgs.run.schema import Config, Loss
+from retinexgs.config.schema import Config, Loss
 from retinexgs.strategy import Strategy
 from retinexgs.train import losses
 from retinexgs.train.capture_setup import NoiseSetUp

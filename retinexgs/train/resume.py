@@ -11,7 +11,8 @@ from typing import Any, Dict, Iterable, Iterator, Optional, Sequence, Tuple, Uni
 
 from retinexgs.errors import UserError
 from retinexgs.fileio import TMP_PREFIX, check_writable_folder  # noqa: F401 (re-exported for runner)
-from retinexgs.run.config import Config, RawConfig, load_config, plain
+from retinexgs.config import Config, RawConfig, plain
+from retinexgs.run.config import load_config
 
 # Keys a resumed run may change: they act from the next step on (the run's length, its logging and
 # checkpointing, learning rates, loss weights, the density and SH schedules, evaluation, the cache folder).

@@ -12,8 +12,8 @@ from retinexgs.data import Scene
 from retinexgs.errors import UserError
 from retinexgs.evaluate.evaluate import evaluate
 from retinexgs.run.checkpoint import latest_checkpoint, load_checkpoint
+from retinexgs.config.schema import Config
 from retinexgs.run.config import load_config
-from retinexgs.run.schema import Config
 from retinexgs.train.resume import check_same_views, check_writable_folder, is_empty_run_folder, resume_config, resume_scene, run_lock
 from retinexgs.run.folder import read_run_config
 from retinexgs.model.schedule import build_schedule
@@ -107,7 +107,7 @@ def _train_run(dist: Distributed, scene_path: Optional[Path], run_dir: Path, con
             log(describe_photo_balance(scene.train[0].balance))
         if relocating:
             ckpt = latest_checkpoint(run_dir)
-            names = load_checkpoint(ckpt).get("train_views") if ckpt is not None else None
+            names = load_checkpoint(ckpt)["train_views"] if ckpt is not None else None
             if not check_same_views(names, [v.name for v in scene.train], recorded_scene, Path(scene_path)):
                 log(f"--relocate-scene: {run_dir} has no record of its training views to compare with (a "
                     "checkpoint from an older version); the new scene is taken as it is")

@@ -8,42 +8,42 @@ import math
 import random
 import time
 from pathlib import Path
-from typing import Callable, Dict, Iterator, List, Optional, Sequence, Tuple
+from typing import Callable, Dict, List, Optional, Tuple
 
 import torch
 from torch import Tensor
 from torch.profiler import record_function
 
-from retinexgs.data import Scene, View
+from retinexgs.data import Scene
 from retinexgs.errors import UserError
 from retinexgs.fileio import is_out_of_space, out_of_space_error
 from retinexgs.model.gaussians import GaussianModel
-from retinexgs.model.near_plane import MIN_POINTS, content_depth
 from retinexgs.model.retinex_model import RetinexGSModel
+from retinexgs.model.schedule import build_schedule
 from retinexgs.run.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
+from retinexgs.config.schema import Config
+from retinexgs.strategy import build_strategy
 from retinexgs.train.capture_setup import set_up_noise
-from retinexgs.train.objective import build_objective, enhancement_objective  # noqa: F401 (re-exported)
-from retinexgs.train.divergence import DivergenceWatch, TrainingDiverged  # noqa: F401 (re-exported)
 from retinexgs.train.distributed import (Distributed, adam_betas_for_batch, gradient_params, lr_batch_factor,
                                          process_start_time, take_gradients)
+from retinexgs.train.divergence import DivergenceWatch, TrainingDiverged  # noqa: F401 (re-exported)
 from retinexgs.train.graphs import ChannelGraphs, LossGraphs
+from retinexgs.train.objective import build_objective, enhancement_objective  # noqa: F401 (re-exported)
 from retinexgs.train.stop import DeferredStop
-from retinexgs.train.streamed_views import StreamedViews
-from retinexgs.train.view_store import (ViewStore, check_store_space, store_fingerprint, store_path, store_tag,
-                                        store_size_estimate)
-from retinexgs.train.views import (TrainView, ViewStatistics, check_prior_size, choose_streaming, gib,
-                                   make_train_view, preload_bytes_per_pixel, stream_set_up)
-from retinexgs.model.schedule import build_schedule
-from retinexgs.strategy import build_strategy
-from retinexgs.run.render import view_camera
-from retinexgs.run.schema import Config
-from retinexgs.retinex.cache import entry_dir, iter_decompositions, scene_cache_root
+from retinexgs.train.view_setup import near_plane, prepare_views, scene_extent, view_statistics
+from retinexgs.train.views import TrainView
 
 
-def scene_extent(scene: Scene) -> float:
-    """1.1 x the largest distance of a train camera from the centroid of the train cameras (3DGS)."""
-    centers = torch.stack([v.camera_center for v in scene.train]).float()
-    return float(1.1 * (centers - centers.mean(0)).norm(dim=-1).max().clamp_min(1e-3))
+def open_tensorboard(cfg: Config, run: Path, log: Callable[[str], None]):
+    """A TensorBoard writer in ``RUN/tb`` where ``log.tensorboard`` asks for one and it is installed, else None."""
+    if not cfg.log.tensorboard:
+        return None
+    try:
+        from torch.utils.tensorboard import SummaryWriter
+    except Exception:  # tensorboard not installed: the JSONL log still has everything
+        log("tensorboard is not installed: losses are logged to train_log.jsonl only (pip install tensorboard)")
+        return None
+    return SummaryWriter(str(run / "tb"))
 
 
 def _append_record(f, record: Dict) -> None:
@@ -57,20 +57,6 @@ def _append_record(f, record: Dict) -> None:
         if is_out_of_space(exc, Path(f.name).parent):
             raise out_of_space_error(f.name) from None
         raise
-
-
-def decompose_views(views: List[View], cfg: Config, device: str, progress: bool, scene_root: Path) -> Iterator:
-    """(R, L) per view, one view at a time, from the per-scene cache (computed and written where missing;
-    ``retinexgs decompose`` fills the same cache, see :func:`retinexgs.retinex.cache.scene_cache_root`). Run it
-    to its end: the cache's sweep of other photos' entries follows the last view."""
-
-    dcfg = cfg.decomposer
-    return iter_decompositions([v.image_path for v in views], dcfg.method, dict(dcfg.params) or None,
-                               cache_dir=scene_cache_root(scene_root, cfg.data.cache_dir),
-                               device=dcfg.device or device, progress=progress,
-                               cache_hint="--set data.cache_dir=DIR", sweep=True, scene=str(scene_root),
-                               raw_denoise=dcfg.raw_denoise, balance=views[0].balance if views else None,
-                               names=[v.source_path or v.image_path for v in views])  # errors name the user's photo
 
 
 class Trainer:
@@ -95,11 +81,12 @@ class Trainer:
         self.depth_prior = self.decomposed and cfg.loss.w_depth > 0
         torch.manual_seed(cfg.seed)
         random.seed(cfg.seed)
-        self._setup_dist = dist  # _prepare_views: rank 0 alone writes a shared view store
-        self.views = self._prepare_views()
+        self._setup_dist = dist
+        self.order: List[int] = []  # the rest of this epoch's view order (saved, so resume continues it)
+        self.views, self.streamed, self._stats = prepare_views(cfg, scene, self.device, self.depth_prior, dist,
+                                                               progress, log, self._upcoming_views)
         self.extent = scene_extent(scene)
         self.step = 0
-        self.order: List[int] = []  # the rest of this epoch's view order (saved, so resume continues it)
         state = None
         if resume:
             ckpt = latest_checkpoint(self.run)
@@ -112,94 +99,6 @@ class Trainer:
         self._setup_batch(dist)
 
     # ---- set-up ----------------------------------------------------------------------------------------
-    def _prepare_views(self) -> Sequence[TrainView]:
-        """The training views on the device: preloaded (a list of :class:`TrainView`) or streamed from the
-        scene's view store (:class:`StreamedViews`), as ``train.stream_views`` and ``train.views_on_device_gb``
-        decide (:mod:`retinexgs.train.views`). Either way the photos and priors are read one view at a time,
-        and the set-up statistics are gathered as they pass (:meth:`view_statistics`)."""
-        cfg, dev = self.cfg, self.device
-        needs_priors = self.method in ("retinexgs", "pre") and cfg.decomposer.method != "none"
-        if self.method == "pre" and cfg.decomposer.method == "none":
-            raise UserError("the pre-enhancement baseline needs a decomposer (decomposer.method lr3m or lime)")
-        train = self.scene.train
-        cameras = [view_camera(v) for v in train]
-        # Once, not every step: the camera centre is computed on the host and copied to the device.
-        centers = [cam.center.to(dev, torch.float32) for cam in cameras]
-        pixels = sum(v.width * v.height for v in train)
-        preload = pixels * preload_bytes_per_pixel(self.method, needs_priors, self.depth_prior)
-        tcfg = cfg.train
-        self.streamed = choose_streaming(tcfg.stream_views, preload, tcfg.views_on_device_gb)
-        if self.streamed and tcfg.views_per_rank > 1:
-            # A streamed view stays valid on the device for one step; a batch of several views on one rank would
-            # need them all at once. Several ranks with one view each stream as they are.
-            raise UserError(f"train.views_per_rank={tcfg.views_per_rank} needs the training views on the device, "
-                            f"but they are streamed ({gib(preload)} preloaded would exceed train.views_on_device_gb="
-                            f"{tcfg.views_on_device_gb:g}, or train.stream_views=always): use several ranks with "
-                            "one view each (--gpus N), or train.stream_views=never if they fit")
-        # What set-up needs from every view (the illumination reference, the mean background): RetinexGS's.
-        self._stats: Optional[ViewStatistics] = None
-        stats = ViewStatistics(cfg.model.enhancement.ref_quantile) if self.decomposed else None
-        priors: Optional[Iterator] = None
-        if needs_priors:
-            self.log(f"2D priors: {cfg.decomposer.method} on {len(train)} views (cached per scene)")
-        if not self.streamed:
-            self.log(f"views: preloaded on the device ({gib(preload)} for {len(train)} views; streamed above "
-                     f"train.views_on_device_gb={tcfg.views_on_device_gb:g})")
-            if needs_priors:
-                priors = decompose_views(train, cfg, str(dev), self.progress, self.scene.root)
-            views: List[TrainView] = []
-            for i, v in enumerate(train):
-                S = v.load_target().to(dev)
-                v.release_images()  # the device copy is the one kept (on the CPU: the same tensor)
-                R = L = None
-                if priors is not None:
-                    R, L = next(priors)
-                    check_prior_size(R, S)
-                    R, L = R.to(dev), L.to(dev)
-                tv = make_train_view(cameras[i], centers[i], S, R, L, self.method)
-                if stats is not None:
-                    stats.add(tv.S, tv.R, tv.L)
-                views.append(tv)
-            for _ in priors or ():  # the cache's sweep runs once the last view has gone by
-                pass
-            self._stats = stats
-            return views
-        root = scene_cache_root(self.scene.root, cfg.data.cache_dir)
-        dcfg = cfg.decomposer
-        tag = store_tag(entry_dir(root, dcfg.method, dict(dcfg.params) or None).name if needs_priors else "none",
-                        needs_priors and dcfg.raw_denoise and self.scene.raw, train[0].balance if train else None)
-        paths = [v.image_path for v in train]
-        sizes = [(v.height, v.width) for v in train]
-        path = store_path(root, paths, tag)
-        fingerprint = store_fingerprint(paths, sizes, tag)
-        dist = self._setup_dist
-        shared = dist is not None and dist.enabled  # ranks on one machine share the store file: rank 0 writes it
-        if shared and dist.rank != 0:
-            dist.barrier("the view store, which rank 0 writes")
-        store = ViewStore.open(path, fingerprint)
-        hint = "put it elsewhere with --set data.cache_dir=DIR, or preload with --set train.stream_views=never"
-        if store is None:
-            check_store_space(path, store_size_estimate(sizes, needs_priors), hint)
-            self.log(f"views: streamed ({gib(preload)} preloaded would exceed train.views_on_device_gb="
-                     f"{tcfg.views_on_device_gb:g}); writing the view store {path}")
-            if needs_priors:
-                priors = decompose_views(train, cfg, str(dev), self.progress, self.scene.root)
-            items = stream_set_up(train, priors, dev, stats)
-            store = ViewStore.build(path, fingerprint, needs_priors, items, "--set data.cache_dir=DIR")
-            self._stats = stats
-        else:
-            self.log(f"views: streamed from the view store {path} ({gib(store.nbytes)})")
-        if shared and dist.rank == 0:
-            dist.barrier("the view store, which rank 0 writes")
-        views = StreamedViews(store, cameras, centers, dev, self.method,
-                              cfg.loss.depth_edge if self.depth_prior else None,
-                              upcoming=self._upcoming_views, graphs=bool(tcfg.cuda_graphs), log=self.log,
-                              resident_bytes=int(tcfg.views_pinned_gb * 1e9))
-        self.log(f"views: {gib(views.slot_bytes)} of reused buffers on the device" +
-                 (f"; the store held in {'pinned ' if dev.type == 'cuda' else ''}host memory ({gib(views.resident_bytes)}"
-                  f" <= train.views_pinned_gb={tcfg.views_pinned_gb:g})" if views.resident_bytes else ""))
-        return views
-
     def _build(self, state: Optional[Dict], emulate_graphs: bool = False) -> None:
         mcfg = self.cfg.model
         if state is None:
@@ -213,28 +112,11 @@ class Trainer:
             gstate = {k[len("gaussians."):]: v for k, v in state["model"].items() if k.startswith("gaussians.")}
             gaussians = GaussianModel.empty_like_state(gstate, mcfg.sh_degree)
         self.model = RetinexGSModel(gaussians, mcfg, self.decomposed, raw=self.scene.raw).to(self.device)
-        if self.decomposed and state is None:
-            self.model.illum_ref.fill_(self.illumination_reference())
-        if self.model.has_background and state is None:
-            self.model.background.copy_(self.mean_background())
-        if self.model.has_near and state is None:
-            self.model.near.fill_(self.near_plane())
+        if state is None:
+            self.model.initialise_levels(lambda: view_statistics(self.cfg, self.views, self._stats),
+                                         lambda: near_plane(self.cfg, self.scene, self.log))
         self.noise = set_up_noise(self.cfg, self.scene, self.model, state, self.device, self._setup_dist, self.log)
-        lr = self.cfg.lr
-        g = self.model.gaussians
-        groups = [
-            {"params": [g.means], "lr": lr.means * self.extent, "name": "means"},
-            {"params": [g.quats], "lr": lr.quats, "name": "quats"},
-            {"params": [g.log_scales], "lr": lr.scales, "name": "log_scales"},
-            {"params": [g.opacity_logits], "lr": lr.opacities, "name": "opacity_logits"},
-            {"params": [g.sh_dc], "lr": lr.sh_dc, "name": "sh_dc"},
-            {"params": [g.sh_rest], "lr": lr.sh_rest, "name": "sh_rest"},
-        ]
-        if self.decomposed:
-            groups += [{"params": list(self.model.illumination.parameters()), "lr": lr.illumination,
-                        "name": "illumination"},
-                       {"params": list(self.model.enhancement.parameters()), "lr": lr.enhancement,
-                        "name": "enhancement"}]
+        groups = self.model.param_groups(self.cfg.lr, self.extent)
         rates = {group["name"]: group["lr"] for group in groups}
         # Fused Adam on the GPU: one kernel per parameter group instead of a dozen (the step is launch-bound).
         self.optimizer = torch.optim.Adam(groups, eps=1e-15, fused=self.device.type == "cuda")
@@ -246,12 +128,12 @@ class Trainer:
             for group in self.optimizer.param_groups:  # the config's rates: a resume may change them
                 group["lr"] = rates[group["name"]]
             self.step = int(state["step"])
-            # Training time of the steps the checkpoint holds (older checkpoints did not record it: 0).
-            self.seconds_before = float(state.get("train_seconds", 0.0))
+            # Training time of the steps the checkpoint holds (0 for a format-0 checkpoint: its migration).
+            self.seconds_before = float(state["train_seconds"])
             torch.set_rng_state(state["rng"])
             random.setstate(state["py_rng"])
-            self.order = list(state.get("order", []))
-            self.strategy.load_state_dict(state.get("density", {}), self.device)
+            self.order = list(state["order"])
+            self.strategy.load_state_dict(state["density"], self.device)
         self.divergence = DivergenceWatch(self.model, self.run, self.step)
         # The image losses as CUDA graphs (train.cuda_graphs; CUDA only, eager elsewhere).
         self.graphs: Optional[LossGraphs] = None
@@ -261,41 +143,6 @@ class Trainer:
             self.graphs = LossGraphs(self.objective.graphed_loss, self.objective.graphed_params(),
                                      emulate=emulate_graphs)
             self.channel_graphs = ChannelGraphs(self.model, emulate=emulate_graphs)
-
-    def illumination_reference(self) -> float:
-        """L_ref, the scene's "full light" level that the enhancement normalises L̂ by: the median over the
-        training views of the ``model.enhancement.ref_quantile`` quantile of the 2D prior L (of max-RGB of S
-        without priors, the usual initial illumination estimate). 1 when the quantile is null (no
-        normalisation: L_enh = L̂^g as the paper writes it)."""
-        return self.view_statistics().illumination_reference()
-
-    def near_plane(self) -> float:
-        """``model.near_fraction`` times the training views' nearest content depth (:func:`content_depth` of the
-        scene's initial points); logged. 0 (no plane) where no view sees enough points."""
-        depth = content_depth(self.scene.points, [view_camera(v) for v in self.scene.train])
-        near = float(self.cfg.model.near_fraction) * depth
-        self.log(f"near plane: {near:.4g} ({self.cfg.model.near_fraction:g} x the training views' nearest content "
-                 f"depth {depth:.4g})" if near > 0 else
-                 f"near plane: none (no training view sees {MIN_POINTS} initial points)")
-        return near
-
-    def mean_background(self) -> Tensor:
-        """``model.background: mean``: the [6] channel values a render shows where no Gaussian covers a pixel, the
-        training views' means: R̂ of the reflectance priors and L̂ of the illumination priors (without priors, S
-        and its max-RGB). Under squared error the mean is the best constant for what no view constrains; black
-        is the darkest guess, and in dark photos it lets transparency pass for dark content."""
-        return self.view_statistics().mean_background()
-
-    def view_statistics(self) -> ViewStatistics:
-        """Every training view's contribution to :meth:`illumination_reference` and :meth:`mean_background`,
-        gathered at set-up as the views were read, or (a reused view store) now, one view at a time."""
-        if self._stats is None:
-            stats = ViewStatistics(self.cfg.model.enhancement.ref_quantile)
-            for i in range(len(self.views)):
-                tv = self.views.get(i, prefetch=False) if isinstance(self.views, StreamedViews) else self.views[i]
-                stats.add(tv.S, tv.R, tv.L)
-            self._stats = stats
-        return self._stats
 
     # ---- one step ----------------------------------------------------------------------------------------
     def _means_lr(self, step: int) -> float:
@@ -374,7 +221,7 @@ class Trainer:
                 acc = take_gradients(gradient_params(self.optimizer), acc)
             else:
                 with record_function("step/watch"):
-                    self._watch(terms, step)
+                    self.divergence.watch(terms, step)
             with record_function("step/density"):
                 self.strategy.after_backward(res["out"], view.camera.width, view.camera.height)
             del res
@@ -382,7 +229,7 @@ class Trainer:
             for p, g in zip(gradient_params(self.optimizer), acc):
                 p.grad = g
             with record_function("step/watch"):
-                self._watch({k: sum(t[k] for t in per_view) / len(per_view) for k in per_view[0]}, step)
+                self.divergence.watch({k: sum(t[k] for t in per_view) / len(per_view) for k in per_view[0]}, step)
         if self.batch_size > 1:
             with record_function("step/all_reduce"):
                 self.dist.reduce_gradients(gradient_params(self.optimizer), self.batch_size, step, verify=check)
@@ -404,10 +251,6 @@ class Trainer:
         return values
 
     # ---- divergence (retinexgs/train/divergence.py) -------------------------------------------------------
-    def _watch(self, terms: Dict[str, Tensor], step: int) -> None:
-        """Record this step's loss terms and the parameters' finiteness on the device (:class:`DivergenceWatch`)."""
-        self.divergence.watch(terms, step)
-
     def check_finite(self, step: int) -> Dict[str, float]:
         """Raise :class:`TrainingDiverged` naming the first loss term or parameter that became non-finite since the
         last check (:meth:`DivergenceWatch.check`); returns the last step's loss values."""
@@ -502,7 +345,7 @@ class Trainer:
         total_steps = self.cfg.steps
         end = total_steps if stop_after is None else min(total_steps, self.step + stop_after)
         main = self.dist.is_main  # only rank 0 logs, shows progress and writes
-        writer = self._tensorboard() if main else None
+        writer = open_tensorboard(self.cfg, self.run, self.log) if main else None
         log_path = self.run / "train_log.jsonl"
         values: Dict[str, float] = {}
         t0 = self._session_start = time.time()
@@ -573,16 +416,3 @@ class Trainer:
     def _sync(self) -> None:
         if self.device.type == "cuda":
             torch.cuda.synchronize(self.device)
-
-    def _tensorboard(self):
-        if not self.cfg.log.tensorboard:
-            return None
-        try:
-            from torch.utils.tensorboard import SummaryWriter
-        except Exception:  # tensorboard not installed: the JSONL log still has everything
-            self.log("tensorboard is not installed: losses are logged to train_log.jsonl only "
-                     "(pip install tensorboard)")
-            return None
-        return SummaryWriter(str(self.run / "tb"))
-
-

@@ -31,7 +31,7 @@ from retinexgs.model.inference import InferenceRenderer
 from retinexgs.model.tone import linear_to_srgb
 from retinexgs.model.white_balance import WhiteBalance, describe_balance, parse_white_balance
 from retinexgs.run.render import neutral_at, render_function, white_balance_of
-from retinexgs.run.schema import Config
+from retinexgs.config.schema import Config
 from retinexgs.viewer.camera import ViewerCamera, viewer_to_camera
 
 VIEW_MAPS = ("enhanced", "R", "L", "low", "depth")
@@ -95,8 +95,8 @@ class FrameRenderer:
         # trainer's scene drifts from them; choosing auto again re-measures (forget_auto).
         self._auto: Dict[Tuple, object] = {}
         self.balance_text = "white balance as-trained: none (as trained)"  # the last enhanced frame's, as render says
-        # the shoulder switch exists where the run has one: tone "exposure" with a knee below 1
-        self.has_shoulder = self.decomposed and model.tone == "exposure" and float(model.shoulder) < 1.0
+        # the shoulder switch exists where the run has one: a tone with a highlight knee below 1 (exposure's)
+        self.has_shoulder = self.decomposed and model.tone.knee(float(model.shoulder)) < 1.0
         if guard is None:
             lock = threading.Lock()
             self._guard = lambda: lock

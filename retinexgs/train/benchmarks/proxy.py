@@ -7,7 +7,7 @@ the minimiser (on a grid) of that config's L_enhance on S_enh = R·(L/L_ref)^g, 
 chosen views of the config's quantile of L; the table gives the PSNR of that S_enh against the normal-light
 photo. It is what the 3D model does with perfect 2D priors and a perfect EnhancementNet, in seconds on a CPU:
 a way to compare enhancement losses before spending GPU time (it tracked our 3D runs within 2.5 dB on the dev
-scenes; docs/experiments/2026-11-23-enhancement-losses.md). No normal-light photo is used except for scoring.
+scenes; experiments/notes/2026-11-23-enhancement-losses.md). No normal-light photo is used except for scoring.
 
 The texture split: the share of the high-pass energy (x − Gaussian blur σ = 2 px, of log luminance) of
 log S = log R + log L that lands in log L versus log R. Texture in L is what a gamma on L compresses.
@@ -27,8 +27,8 @@ from retinexgs.model.tone import tone_map
 from retinexgs.train import losses
 from retinexgs.run.folder import open_scene
 from retinexgs.retinex import decompose
+from retinexgs.config.schema import Config
 from retinexgs.run.config import load_config
-from retinexgs.run.schema import Config
 from retinexgs.retinex.lr3m import LR3MParams
 from retinexgs.data.scene import scene_label
 

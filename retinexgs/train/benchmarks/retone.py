@@ -30,8 +30,9 @@ import torch
 
 from retinexgs.errors import UserError
 from retinexgs.evaluate.metrics import psnr, ssim_metric
-from retinexgs.run.config import load_config, plain
-from retinexgs.run.schema import Config
+from retinexgs.config import plain
+from retinexgs.config.schema import Config
+from retinexgs.run.config import load_config
 from retinexgs.train.losses import to_bchw
 from retinexgs.train.trainer import enhancement_objective
 from retinexgs.run.folder import load_run

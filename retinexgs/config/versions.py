@@ -1,0 +1,125 @@
+"""Versioned runs: the format number written in ``RUN/config.yaml`` and in every checkpoint, and one migration a
+format step that turns what an older version wrote into what this one reads.
+
+The rule: a change that makes an existing run behave differently when read back (a new key whose default is not
+what runs made before it did, a renamed or regrouped key, a checkpoint field that changed meaning) raises
+:data:`FORMAT` by one and adds the migration from the previous format to :data:`CONFIG_MIGRATIONS` (and
+:data:`CHECKPOINT_MIGRATIONS` when checkpoints change). A new key whose default is what older runs did needs no
+step: whatever a recorded config lacks after its migrations is taken from ``configs/default.yaml``. A format newer
+than this code knows is refused in one line (reading it as ours would silently be wrong). Format 0 is every run
+written before formats existed (no ``format`` key)."""
+from __future__ import annotations
+
+import copy
+from typing import Any, Callable, Dict, List, Tuple
+
+from retinexgs.config.files import RawConfig, configs_dir, read_yaml
+from retinexgs.errors import UserError
+
+FORMAT = 1  # the format this code writes
+
+# Format 0 -> 1: the keys whose default changed after they were added. A run made before a key existed behaved as
+# the value here, not as today's default (which would re-render it differently). The tone form was the gamma on L̂
+# until 2026-11-25, when the exposure tone became the default; the depth prior came in later that day, at weight
+# 0.3 in the default (a run made before it, resumed, must not start using it); the reconstruction term was on the
+# dark photo's values (rec_domain photo) until the exposed SSIM became the default, later still; renders were over
+# black until the mean background became the default (2026-11-26), and blind to the capture's noise until issue 32
+# (the noise floor of the exposed SSIM, the camera's clipped noise). The exposure meter averaged until the
+# highlight cap (2026-11-27), and a batch of views stepped with torch's Adam betas until β^B (the same day).
+# Density events ran to density.stop until density.last_event capped them. A raw scene's priors weighed every
+# pixel alike until loss.rec_raw_prior_snr (2026-11-28), and renders drew Gaussians up to 0.01 from the camera
+# until model.near_fraction (the same day). A raw scene's tone took the photos' highlight knee until
+# model.enhancement.shoulder_raw (the same day), and its L_spa read the unclipped target until loss.spa_raw. A
+# folder posed by SfM was used whatever share of its photos SfM registered until data.min_registered.
+FORMAT_0_VALUES: Dict[str, Any] = {
+    "model.enhancement.tone": "illumination", "loss.w_depth": 0.0, "loss.rec_domain": "photo",
+    "model.background": "black", "model.enhancement.shoulder": 1.0, "loss.rec_noise_floor": False,
+    "loss.rec_camera_noise": False, "loss.rec_noise_share": 0.5, "density.noise_aware": False,
+    "loss.rec_noise_scale": 1, "loss.exp_highlight_share": 0.0, "train.momentum_batch_scaling": "none",
+    "density.last_event": 1.0, "loss.rec_raw": "photo", "decomposer.raw_denoise": False,
+    "loss.rec_raw_unit": "plain", "loss.rec_raw_prior_snr": 0.0, "model.near_fraction": 0.0,
+    "model.enhancement.shoulder_raw": None, "loss.spa_raw": "extended", "data.min_registered": 0.0}
+
+
+def _set_missing(cfg: RawConfig, values: Dict[str, Any], filled: List[str]) -> None:
+    """Set each dotted key of ``values`` that ``cfg`` lacks (making its sections as needed: a run that lacks a
+    whole section predates every key in it)."""
+    for dotted, value in values.items():
+        *sections, key = dotted.split(".")
+        node = cfg
+        for name in sections:
+            if not isinstance(node.get(name, {}), dict):
+                break  # not a section: the schema names that error
+            node = node.setdefault(name, {})
+        else:
+            if key not in node:
+                node[key] = copy.deepcopy(value)
+                filled.append(dotted)
+
+
+def config_0_to_1(cfg: RawConfig, filled: List[str]) -> RawConfig:
+    """Format 0 -> 1: the values runs had before the keys of :data:`FORMAT_0_VALUES` existed."""
+    _set_missing(cfg, FORMAT_0_VALUES, filled)
+    return cfg
+
+
+def checkpoint_0_to_1(state: Dict[str, Any]) -> Dict[str, Any]:
+    """Format 0 -> 1: checkpoint fields older versions did not write: no training time recorded (0 s), no view
+    order (a fresh shuffle), no strategy statistics, no record of the training views."""
+    for key, value in (("train_seconds", 0.0), ("order", []), ("density", {}), ("train_views", None)):
+        state.setdefault(key, value)
+    return state
+
+
+# CONFIG_MIGRATIONS[n] turns format n into n + 1 (likewise for checkpoints' own fields): FORMAT steps each
+# (tests/test_run_format.py checks it).
+CONFIG_MIGRATIONS: List[Callable[[RawConfig, List[str]], RawConfig]] = [config_0_to_1]
+CHECKPOINT_MIGRATIONS: List[Callable[[Dict[str, Any]], Dict[str, Any]]] = [checkpoint_0_to_1]
+
+
+def format_of(data: Dict[str, Any], where: str) -> int:
+    """The format ``data`` (a recorded config or a checkpoint) was written in: 0 without a ``format`` key; a
+    format newer than :data:`FORMAT`, or not a whole number, is refused in one line naming ``where``."""
+    fmt = data.get("format", 0)
+    if isinstance(fmt, bool) or not isinstance(fmt, int) or fmt < 0:
+        raise UserError(f"{where}: format must be a whole number 0..{FORMAT}, got {fmt!r}")
+    if fmt > FORMAT:
+        raise UserError(f"{where} is in run format {fmt}, newer than this retinexgs reads (format {FORMAT}): "
+                        "update retinexgs to read it")
+    return fmt
+
+
+def _fill_defaults(cfg: RawConfig, default: RawConfig, prefix: str, filled: List[str]) -> RawConfig:
+    for key, value in default.items():
+        if key not in cfg:
+            cfg[key] = copy.deepcopy(value)
+            filled.append(prefix + key)
+        elif isinstance(value, dict) and isinstance(cfg[key], dict) and key != "params":
+            _fill_defaults(cfg[key], value, f"{prefix}{key}.", filled)
+    return cfg
+
+
+def migrate_config(recorded: RawConfig, where: str) -> Tuple[RawConfig, List[str]]:
+    """A recorded config (plain data, with or without its ``format`` key) as this version reads it: each
+    migration from its format on, then the keys still missing from ``configs/default.yaml``. Returns the config
+    (without ``format``; not validated yet) and the dotted keys it lacked."""
+    fmt = format_of(recorded, where)
+    cfg = copy.deepcopy(recorded)
+    cfg.pop("format", None)
+    filled: List[str] = []
+    for step in CONFIG_MIGRATIONS[fmt:]:
+        cfg = step(cfg, filled)
+    _fill_defaults(cfg, read_yaml(configs_dir() / "default.yaml"), "", filled)
+    return cfg, filled
+
+
+def migrate_checkpoint(state: Dict[str, Any], where: str) -> Dict[str, Any]:
+    """A loaded checkpoint as this version reads it: its own fields and its config migrated from its format to
+    :data:`FORMAT` (which it then carries)."""
+    fmt = format_of(state, where)
+    for step in CHECKPOINT_MIGRATIONS[fmt:]:
+        state = step(state)
+    if isinstance(state.get("config"), dict):
+        state["config"] = migrate_config({**state["config"], "format": fmt}, where)[0]
+    state["format"] = FORMAT
+    return state

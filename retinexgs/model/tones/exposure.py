@@ -1,0 +1,104 @@
+"""Tone ``exposure`` (the default): the enhancement as a longer exposure.
+
+A camera records light linearly and then encodes it with its tone curve (sRGB for JPEGs); a longer exposure
+multiplies the recorded light by a gain k before that curve. So the enhancement undoes the curve, applies the gain
+and re-encodes:
+    S_enh = srgb(s(k · lin(R̂ ∘ L̂))),   L_enh = srgb(s(k · lin(L̂))),   k = lin(L_ref)^(−1/g),
+s the highlight shoulder (:func:`~retinexgs.model.tones.curves.highlight_shoulder`; knee 1: the clip). g keeps its
+role: at g = 1 the scene's full light L_ref maps to white (LR3M's L / max L, in linear light), a smaller g is a
+longer exposure (log k = −log lin(L_ref) / g), so the EnhancementNet and ``--gamma`` work unchanged; ``--exposure X``
+divides the light by X (k → k / X: 0.5 is one stop brighter) where the gamma tones scale g by X. A gamma curve on
+sRGB values instead lifts the shadows more than the mid-tones (it flattens the image); a gain keeps the scene's
+contrast as the longer exposure records it, up to the curve's clipping of highlights. With a black table
+(``model.enhancement.debias_black``) R̂∘L̂ is read as the photos' average record rather than as light
+(:func:`~retinexgs.model.tones.curves.scene_linear`). One fused kernel (csrc: ``exposure_tone``) renders a frame.
+"""
+from __future__ import annotations
+
+from typing import Optional, Tuple
+
+import torch
+from torch import Tensor
+
+from retinexgs.model.tones.base import Noise, Tone, _numbers, register
+from retinexgs.model.tones.curves import (highlight_shoulder, linear_to_srgb, scene_linear, smooth_record,
+                                          srgb_to_linear)
+
+__all__ = ["ExposureTone", "log_lin_ref", "exposure_gain", "exposure_linear"]
+
+
+def log_lin_ref(illum_ref: Tensor, like: Tensor) -> Tensor:
+    """log lin(L_ref), kept below 0 (L_ref < 1: a dark scene's light), in ``like``'s dtype and device."""
+    return torch.log(srgb_to_linear(illum_ref.to(like)).clamp_min(1e-6)).clamp_max(-1e-6)
+
+
+def exposure_gain(illum_ref: Tensor, gamma: Tensor, log_ref: Optional[Tensor] = None) -> Tensor:
+    """k = lin(L_ref)^(−1/g), the linear-light gain of tone ``exposure`` (``gamma`` of any shape). Capped at
+    e^40 (everything but black is white long before): a tiny fixed ``--gamma`` would overflow k to inf, and
+    inf · 0 on black pixels is NaN. ``log_ref``: log lin(L_ref) already computed (:func:`log_lin_ref`; the
+    frame graph keeps it instead of a dozen scalar kernels per frame)."""
+    log_ref = log_lin_ref(illum_ref, gamma) if log_ref is None else log_ref
+    return torch.exp((-log_ref / gamma).clamp_max(40.0))
+
+
+def exposure_linear(R: Tensor, L: Tensor, illum_ref: Tensor, gamma: Tensor, noise: Noise = None,
+                    spread: Optional[Tensor] = None, radius: int = 0, k: Optional[Tensor] = None) -> Tensor:
+    """k · scene_linear(R̂∘L̂): the linear light of tone ``exposure`` before the highlight shoulder and the sRGB
+    curve (arguments as in :meth:`ExposureTone.map`; ``k``: the gain already computed). On this scale 1.0 is what the
+    PNG shows as white when the shoulder is off (the clip); ``render --format exr`` writes it, and the white
+    balance (:func:`~retinexgs.model.tones.curves.white_balance`) acts on it."""
+    k = exposure_gain(illum_ref, gamma) if k is None else k
+    RL = R * L
+    if noise is not None and spread is not None and radius > 0:
+        RL = smooth_record(RL, spread, radius)
+    return k * scene_linear(RL, noise)
+
+
+@register
+class ExposureTone(Tone):
+    """A gain in linear light set by g, the highlights rolled off by the shoulder (module docstring)."""
+
+    name = "exposure"
+    formula = "srgb(shoulder(k*lin(R*L))), k = lin(L_ref)^(-1/g)"
+    fused_kernel = "exposure_tone"
+    meter_applies = True
+    needs_reference = True
+    reads_black_table = True
+
+    def map(self, R: Tensor, L: Tensor, illum_ref: Tensor, gamma: Tensor, eps: float = 1e-3, shoulder: float = 1.0,
+            noise: Noise = None, spread: Optional[Tensor] = None, radius: int = 0) -> Tuple[Tensor, Tensor]:
+        k = exposure_gain(illum_ref, gamma)
+        return (linear_to_srgb(highlight_shoulder(exposure_linear(R, L, illum_ref, gamma, noise, spread, radius, k),
+                                                  shoulder)),
+                linear_to_srgb(highlight_shoulder(k * srgb_to_linear(L), shoulder)))
+
+    def linear(self, R: Tensor, L: Tensor, illum_ref: Tensor, gamma: Tensor, noise: Noise = None,
+               spread: Optional[Tensor] = None, radius: int = 0) -> Optional[Tensor]:
+        return exposure_linear(R, L, illum_ref, gamma, noise, spread, radius)
+
+    def knee(self, shoulder: float) -> float:
+        return shoulder
+
+    def apply_exposure(self, gamma: Tensor, exposure, illum_ref: Tensor, log_ref: Optional[Tensor] = None) -> Tensor:
+        """The gain divided by X, k' = k / X (X = 0.5: twice the light, one photographic stop), i.e. 1/g' = 1/g +
+        log X / log lin(L_ref); a gain below 1 (darker than the capture) is not reached. Scaling g here would raise
+        the gain to the power 1/X (X = 0.5 squares a gain of 30)."""
+        if not torch.is_tensor(exposure) and float(exposure) == 1.0:
+            return gamma  # exactly, as with no exposure given
+        x = torch.as_tensor(exposure, dtype=gamma.dtype, device=gamma.device)
+        log_ref = log_lin_ref(illum_ref, gamma) if log_ref is None else log_ref
+        return 1.0 / (1.0 / gamma + torch.log(x) / log_ref).clamp_min(1e-3)
+
+    def fused_gain(self, illum_ref: Tensor, gamma: Tensor, log_ref: Optional[Tensor] = None) -> Tensor:
+        return exposure_gain(illum_ref, gamma, log_ref)
+
+    def describe(self, gamma: Tensor, illum_ref: Tensor, shoulder: float, table: bool, balanced: bool) -> str:
+        k = exposure_gain(illum_ref.detach().double().cpu(), gamma)
+        light = "black_table(R*L)" if table else "lin(R*L)"
+        light = f"W*k*{light}" if balanced else f"k*{light}"
+        curve = f"shoulder({light}, {shoulder:g})" if shoulder < 1.0 else light
+        text = (f"colour: enhanced as a longer exposure, srgb({curve}) with k = lin(L_ref)^(-1/g) = "
+                f"({_numbers(k, '.4g')}), L_ref = {float(illum_ref):.4f}, g = ({_numbers(gamma, '.4f')})")
+        if table:
+            text += " (black_table: the capture's clipped noise taken out of R*L)"
+        return text

@@ -1,0 +1,328 @@
+"""A noise-level-aware denoising prior for noisy views (issue 64, item 1).
+
+A view's light (linear RGB: a raw view's unclipped values, or a photo's sRGB undone) has Poisson–Gaussian noise,
+``var(y_c) = a_c·y_c + b_c`` per channel c (:class:`retinexgs.data.raw_noise.RawNoise` for raw views, the capture's
+:class:`retinexgs.train.noise.CaptureNoise` for photos). The generalised Anscombe transform makes that noise
+unit-variance Gaussian, the denoiser works at σ = 1, and the transform is inverted without bias:
+
+- ``nlm``: OpenCV's non-local means on an orthonormal luma/chroma split of the stabilised channels (unit noise
+  in each), the chroma much stronger than the luma (at low light chroma carries far less detail than luma);
+- ``chroma``: the luma as ``nlm``'s, the chroma by a guided filter (He et al.) at a large radius, guided by the
+  denoised luma: colour follows luma's edges and is otherwise smoothed hard.
+
+The result feeds the 2D priors (``decomposer.denoise``); the views' luminance target stays the unbiased photo.
+:func:`denoised_view` caches it per photo by content, as :mod:`retinexgs.retinex.cache` keys LR3M's entries.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Dict, Mapping, Optional, Sequence, Tuple, Union
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from retinexgs.errors import UserError
+
+__all__ = ["METHODS", "DenoiseParams", "DenoiseSpec", "NoiseModel", "noise_model", "gat_forward",
+           "gat_inverse", "denoise_linear", "denoise_view_image", "denoise_key", "denoised_view", "DENOISE_VERSION",
+           "DENOISED_DIRNAME"]
+
+METHODS = ("none", "nlm", "chroma")
+DENOISE_VERSION = 1  # part of every cache key: a change of the algorithm recomputes its entries
+# Where denoised views are cached in a scene's cache root: <root>/denoised/<method>-<12 hex>/<stem>-<16 hex>.npz
+DENOISED_DIRNAME = "denoised"
+
+# Orthonormal luma/chroma basis of the stabilised RGB: rows (R+G+B)/√3, (R−B)/√2, (R−2G+B)/√6. Orthonormal, so each
+# output keeps unit noise variance when the channels' noise is independent and of unit variance (after the GAT).
+_YCC = torch.tensor([[1 / math.sqrt(3), 1 / math.sqrt(3), 1 / math.sqrt(3)],
+                     [1 / math.sqrt(2), 0.0, -1 / math.sqrt(2)],
+                     [1 / math.sqrt(6), -2 / math.sqrt(6), 1 / math.sqrt(6)]], dtype=torch.float64)
+
+
+@dataclass(frozen=True)
+class DenoiseParams:
+    """The denoiser's settings (``decomposer.denoise`` uses these defaults; every one is part of the cache key).
+
+    ``h_luma``/``h_chroma``: non-local means' filter strength in units of the (unit) noise σ after the GAT; chroma
+    far stronger because at SNR ≈ 1 its detail is below the noise anyway. ``patch``/``search``: NLM's template and
+    search windows (OpenCV's defaults 7 and 21). ``radius``: the guided chroma filter's window half-size in pixels
+    at 640 px wide (scaled with the view's width, so a larger photo gets the same angular support); ``eps``: its
+    regulariser in units of σ² (larger: flatter colour, fewer luma edges kept). ``calibrate``: each luma/chroma
+    component's noise σ after the GAT is also measured on the view (:func:`_measured_sigma`) and the larger of it
+    and the model's 1 is used: a pixel-scale model under-reads the noise at the scale of the filters' patches where
+    the pixels' noise is correlated (a demosaiced raw view; a JPEG's quantisation, which removes the finest part of
+    the noise; the colour matrix, which mixes the channels' noise)."""
+    h_luma: float = 0.8
+    h_chroma: float = 4.0
+    patch: int = 7
+    search: int = 21
+    radius: int = 24
+    eps: float = 16.0
+    calibrate: bool = True
+
+    @classmethod
+    def from_mapping(cls, params: Optional[Mapping[str, Any]]) -> "DenoiseParams":
+        """Settings from a dict of overrides; UserError (one line) for an unknown name or a bad value."""
+        params = dict(params or {})
+        known = {f for f in cls.__dataclass_fields__}
+        bad = sorted(set(params) - known)
+        if bad:
+            raise UserError(f"unknown denoiser parameter {bad[0]!r} (known: {', '.join(sorted(known))})")
+        if any(isinstance(getattr(cls, k), bool) and not isinstance(v, bool) for k, v in params.items()):
+            raise UserError("denoiser parameter 'calibrate' must be true or false")
+        try:
+            out = cls(**{k: type(getattr(cls, k))(v) for k, v in params.items()})
+        except (TypeError, ValueError) as exc:
+            raise UserError(f"bad denoiser parameter: {exc}") from None
+        if out.h_luma < 0 or out.h_chroma < 0 or out.eps <= 0 or min(out.radius, out.patch, out.search) < 1:
+            raise UserError(f"denoiser parameters out of range: {asdict(out)} (h >= 0, eps > 0, radius, patch, "
+                            "search >= 1)")
+        return out
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """Per-channel Poisson–Gaussian noise of a view's linear light: ``var(y_c) = a[c]·y_c + b[c]``."""
+    a: Tuple[float, float, float]
+    b: Tuple[float, float, float]
+
+
+def noise_model(noise: Any, balance: Optional[Sequence[float]] = None, downscale: float = 1.0) -> NoiseModel:
+    """A :class:`NoiseModel` from anything with per-channel ``a`` and ``b`` (a RawNoise, a CaptureNoise, a pair of
+    sequences), checked: UserError (one line) when it cannot be used. ``balance``: the white balance applied to the
+    view's light (gain g: variance g·a·y + g²·b); ``downscale``: a view d× smaller averages d×d pixels (÷ d²).
+
+    A model with a ≤ 0 in every channel has no shot noise: that is what an unmeasurable capture falls back to
+    (RawNoise's "none"), not a real sensor, and the transform would have nothing to stabilise."""
+    if isinstance(noise, (tuple, list)) and len(noise) == 2:
+        a, b = noise
+    else:
+        a, b = getattr(noise, "a", None), getattr(noise, "b", None)
+    try:
+        a = np.asarray(a, np.float64).reshape(-1)
+        b = np.asarray(b, np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise UserError("the denoiser needs a noise model with per-channel a and b (var = a·y + b)") from None
+    if a.size == 1:
+        a = np.repeat(a, 3)
+    if b.size == 1:
+        b = np.repeat(b, 3)
+    if a.size != 3 or b.size != 3:
+        raise UserError(f"the denoiser's noise model needs 3 channels of a and b, got {a.size} and {b.size}")
+    if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+        raise UserError("the denoiser's noise model is not finite (the capture's noise could not be measured): "
+                        "set decomposer.denoise=none")
+    if np.all(a <= 0):
+        raise UserError("the denoiser's noise model has no shot noise (a <= 0 in every channel): the capture's noise "
+                        "was not measured; set decomposer.denoise=none")
+    if np.any(b < 0):
+        raise UserError(f"the denoiser's noise model has a negative read-noise variance b = {b.tolist()}")
+    d2 = float(downscale) ** 2
+    a, b = a / d2, b / d2
+    if balance is not None:
+        g = np.asarray(balance, np.float64).reshape(3)
+        a, b = a * g, b * g * g
+    # A channel without shot noise (a <= 0) takes the others' smallest a: keeps the transform's square root defined.
+    a = np.where(a > 0, a, float(a[a > 0].min()))
+    return NoiseModel(tuple(float(v) for v in a), tuple(float(v) for v in b))
+
+
+def _per_channel(v: Sequence[float], x: torch.Tensor) -> torch.Tensor:
+    return torch.as_tensor(np.asarray(v, np.float64), dtype=x.dtype, device=x.device).reshape(1, 1, -1)
+
+
+def gat_forward(y: torch.Tensor, a: Sequence[float], b: Sequence[float]) -> torch.Tensor:
+    """The generalised Anscombe transform of ``y`` [H,W,C] with ``var(y) = a·y + b`` per channel (a > 0): per
+    channel f(y) = 2·sqrt(max(y/a + 3/8 + b/a², 0)), whose noise has variance ≈ 1 (Makitalo & Foi, "Optimal
+    inversion of the generalized Anscombe transformation for Poisson-Gaussian noise", IEEE TIP 22(1), 2013: the
+    GAT for z = α·p + N(0, σ²) with α = a, σ² = b, written on z/α with σ/α)."""
+    a_, b_ = _per_channel(a, y), _per_channel(b, y)
+    return 2.0 * torch.sqrt((y / a_ + 0.375 + b_ / (a_ * a_)).clamp_min(0.0))
+
+
+def gat_inverse(d: torch.Tensor, a: Sequence[float], b: Sequence[float]) -> torch.Tensor:
+    """The closed-form approximation of the exact unbiased inverse of :func:`gat_forward` (Makitalo & Foi 2013,
+    the same paper): on the normalised scale s = σ/α,
+    I(D) = D²/4 + √(3/2)/(4D) − 11/(8D²) + 5√(3/2)/(8D³) − 1/8 − s², clipped at 0, times α. It inverts the
+    *expectation* of f(y) (what a denoiser estimates), where the algebraic inverse D²/4 − 3/8 − s² would leave a
+    bias of about 1/8·α that matters most in the dark. Below D = 1 the series diverges; the exact inverse is ~0
+    there, so D is floored at 1 and the result at 0."""
+    a_, b_ = _per_channel(a, d), _per_channel(b, d)
+    s2 = b_ / (a_ * a_)
+    D = d.clamp_min(1.0)
+    r = math.sqrt(1.5)
+    inv = 0.25 * D * D + 0.25 * r / D - 1.375 / (D * D) + 0.625 * r / (D * D * D) - 0.125 - s2
+    return inv.clamp_min(0.0) * a_
+
+
+def _box(x: torch.Tensor, r: int) -> torch.Tensor:
+    """Mean over a (2r+1)² window of [C,H,W] (reflected at the borders), by running sums: the cost does not grow
+    with the radius (a pooling kernel's does, with its area)."""
+    k = 2 * r + 1
+    p = F.pad(x[None], (r, r, r, r), mode="reflect")[0]
+    c = F.pad(p.cumsum(-1), (1, 0))
+    p = c[..., k:] - c[..., :-k]
+    c = F.pad(p.cumsum(-2), (0, 0, 1, 0))
+    return (c[..., k:, :] - c[..., :-k, :]) / (k * k)
+
+
+def _guided(guide: torch.Tensor, src: torch.Tensor, r: int, eps: float) -> torch.Tensor:
+    """He et al.'s guided filter: ``src`` [C,H,W] filtered by the single-channel ``guide`` [1,H,W]."""
+    mi, ms = _box(guide, r), _box(src, r)
+    cov = _box(guide * src, r) - mi * ms
+    var = _box(guide * guide, r) - mi * mi
+    k = cov / (var + eps)
+    return _box(k, r) * guide + _box(ms - k * mi, r)
+
+
+# The scale (pixels a side of the averages) at which :func:`_measured_sigma` reads the noise: patches of NLM (7×7)
+# and the guided filter's windows average about this many pixels a side. fox-dark at 1000 e⁻, one view, the luma's σ
+# after the GAT on 1×1, 2×2, 4×4 averages: raw 0.08, 0.48, 1.03 (its demosaic and the colour matrix correlate
+# the noise); the camera JPEG of the same photons 1.02, 4.1, 8.2 (its pixel-scale model under-reads it ~8×).
+_SIGMA_SCALE = 4
+
+
+def _measured_sigma(x: torch.Tensor, scale: int = _SIGMA_SCALE) -> float:
+    """The noise σ of one component ``x`` [H,W] as seen at ``scale`` × ``scale`` averages: Immerkær's estimate
+    (J. Immerkær, "Fast noise variance estimation", CVIU 64(2), 1996) on the averages, times ``scale`` (the factor by
+    which such an average divides white noise's σ). Texture reads as noise too, so it is an upper bound."""
+    if min(x.shape) < 3 * scale:
+        scale = 1
+    y = F.avg_pool2d(x[None, None], scale)[0, 0] if scale > 1 else x
+    k = torch.tensor([[1.0, -2.0, 1.0], [-2.0, 4.0, -2.0], [1.0, -2.0, 1.0]], dtype=y.dtype, device=y.device)
+    c = F.conv2d(y[None, None], k[None, None])[0, 0]
+    return float(math.sqrt(math.pi / 2.0) * c.abs().mean() / 6.0) * scale
+
+
+def _nlm(x: np.ndarray, h: float, p: DenoiseParams) -> np.ndarray:
+    """OpenCV non-local means of one channel ``x`` [H,W] with unit noise σ: mapped to 8 bits with the noise at
+    ``scale`` levels (a finer step than that only costs range), denoised with h = ``h``·σ, mapped back."""
+    import cv2
+
+    if h <= 0:
+        return x
+    lo, hi = np.percentile(x, [0.1, 99.9])
+    # 8-bit levels per σ: as many as the range allows (at least 1), at most 8 (quantisation then adds <0.2 % noise).
+    scale = float(np.clip(250.0 / max(hi - lo, 1e-6), 1.0, 8.0))
+    off = lo - 2.0 / scale
+    u8 = np.clip((x - off) * scale, 0, 255).round().astype(np.uint8)
+    out = cv2.fastNlMeansDenoising(u8, None, h=float(h * scale), templateWindowSize=p.patch | 1,
+                                   searchWindowSize=p.search | 1)
+    res = out.astype(np.float32) / scale + off
+    # Pixels clipped by the 8-bit window (beyond the percentiles) keep their own value rather than the clip.
+    clipped = (x < off) | (x > off + 255.0 / scale)
+    return np.where(clipped, x, res).astype(np.float32)
+
+
+def denoise_linear(lin: torch.Tensor, noise: NoiseModel, method: str, params: Optional[DenoiseParams] = None
+                   ) -> torch.Tensor:
+    """The denoised linear light of ``lin`` [H,W,3] (float, unclipped allowed) under ``noise``: GAT, ``method``
+    at unit σ, the unbiased inverse. ``none`` returns ``lin`` unchanged. The transform and the guided filter run
+    on ``lin``'s device; OpenCV's NLM runs on the CPU (no CUDA build of OpenCV in the wheels)."""
+    if method not in METHODS:
+        raise UserError(f"unknown denoiser {method!r} (decomposer.denoise: {' | '.join(METHODS)})")
+    if method == "none":
+        return lin
+    if lin.dim() != 3 or lin.shape[-1] != 3:
+        raise UserError(f"the denoiser needs an [H,W,3] image, got {list(lin.shape)}")
+    p = params or DenoiseParams()
+    x = lin.double()
+    d = gat_forward(x, noise.a, noise.b)                       # unit noise per channel
+    ycc = torch.einsum("ij,hwj->ihw", _YCC.to(d.device), d)    # [3,H,W]: luma, two chroma, unit noise each
+    out_ycc = _filter(ycc, method, p, 1.0)
+    out = torch.einsum("ij,ihw->hwj", _YCC.to(d.device), out_ycc)  # orthonormal: its inverse is its transpose
+    return gat_inverse(out, noise.a, noise.b).to(lin.dtype)
+
+
+def _filter(ycc: torch.Tensor, method: str, p: DenoiseParams, floor: float) -> torch.Tensor:
+    """``method`` on the stabilised luma/chroma ``ycc`` [3,H,W] whose model noise σ is ``floor``: NLM on the luma,
+    then NLM or the luma-guided filter on the chroma."""
+    sig = [max(floor, _measured_sigma(c)) if p.calibrate else floor for c in ycc]
+    luma = torch.from_numpy(_nlm(ycc[0].cpu().numpy().astype(np.float32), p.h_luma * sig[0], p)).to(ycc)
+    if method == "nlm":
+        chroma = torch.stack([torch.from_numpy(_nlm(c.cpu().numpy().astype(np.float32), p.h_chroma * s, p)).to(ycc)
+                              for c, s in zip(ycc[1:], sig[1:])])
+    else:
+        h, w = ycc.shape[-2:]
+        r = int(max(1, min(round(p.radius * w / 640.0), (min(h, w) - 1) // 2)))
+        chroma = torch.cat([_guided(luma[None], c[None], r, p.eps * s * s) for c, s in zip(ycc[1:], sig[1:])])
+    return torch.cat([luma[None], chroma])
+
+
+def denoise_view_image(image: torch.Tensor, noise: NoiseModel, method: str, unclipped: bool,
+                       params: Optional[DenoiseParams] = None) -> torch.Tensor:
+    """The 2D priors' photo, float32 [H,W,3] sRGB in [0,1], from a view ``image`` as training reads it: a raw view's
+    unclipped encoding (``unclipped``: :func:`retinexgs.data.srgb.linear_to_srgb_extended`) or a photo's sRGB.
+    Denoised in linear light (:func:`denoise_linear`), then clipped and encoded."""
+    from retinexgs.data.srgb import linear_to_srgb, srgb_to_linear, srgb_to_linear_extended
+
+    lin = srgb_to_linear_extended(image.float()) if unclipped else srgb_to_linear(image.float())
+    out = denoise_linear(lin, noise, method, params)
+    return linear_to_srgb(out.clamp(0.0, 1.0)).float().contiguous()
+
+
+@dataclass(frozen=True)
+class DenoiseSpec:
+    """What :mod:`retinexgs.retinex.cache` needs to read a view through the denoiser (``decomposer.denoise``): the
+    method, the views' noise model (in the light of the images it reads: downscale and white balance applied) and
+    the settings."""
+    method: str
+    noise: NoiseModel
+    params: DenoiseParams = field(default_factory=DenoiseParams)
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise UserError(f"unknown denoiser {self.method!r} (decomposer.denoise: {' | '.join(METHODS)})")
+
+    @property
+    def recipe(self) -> str:
+        """12 hex digits naming the recipe (:func:`denoise_key`)."""
+        return denoise_key(self.method, self.noise, self.params)
+
+
+def denoise_key(method: str, noise: NoiseModel, params: Optional[DenoiseParams] = None) -> str:
+    """12 hex digits naming a denoising recipe (method, its settings, the noise model, the algorithm's version)."""
+    p = params or DenoiseParams()
+    text = json.dumps({"method": method, "params": asdict(p), "a": [f"{v:.6g}" for v in noise.a],
+                       "b": [f"{v:.6g}" for v in noise.b], "version": DENOISE_VERSION}, sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:12]
+
+
+def denoised_view(path: Union[str, Path], image: torch.Tensor, noise: NoiseModel, method: str, unclipped: bool,
+                  cache_root: Optional[Union[str, Path]], params: Optional[DenoiseParams] = None,
+                  content: Optional[str] = None, hint: str = "") -> Tuple[torch.Tensor, bool]:
+    """(:func:`denoise_view_image` of ``image``, whether it came from the cache). Cached under
+    ``<cache_root>/denoised/<method>-<recipe>/<stem>-<content>.npz`` (float16) where ``content`` is the photo's
+    key (:func:`retinexgs.retinex.cache.prior_key`: its bytes' SHA-256, and its white balance); an entry is trusted
+    only if its meta names the same content and recipe. ``cache_root`` None: no cache. Written atomically."""
+    from retinexgs.fileio import atomic_write
+
+    if cache_root is None or content is None:
+        return denoise_view_image(image, noise, method, unclipped, params), False
+    recipe = denoise_key(method, noise, params)
+    folder = Path(cache_root) / DENOISED_DIRNAME / f"{method}-{recipe}"
+    target = folder / f"{Path(path).stem}-{content}.npz"
+    meta = {"content": content, "recipe": recipe, "method": method, "shape": list(image.shape)}
+    hits = sorted(folder.glob(f"*-{content}.npz")) if folder.is_dir() else []
+    for hit in hits:  # any stem: a renamed photo reuses its entry
+        try:
+            with np.load(hit, allow_pickle=False) as z:
+                if json.loads(str(z["meta"])) == meta:
+                    return torch.from_numpy(z["image"].astype(np.float32)), True
+        except Exception:  # truncated or foreign: recomputed below
+            pass
+    out = denoise_view_image(image, noise, method, unclipped, params)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        arr = out.cpu().numpy().astype(np.float16)
+        atomic_write(target, lambda f: np.savez(f, image=arr, meta=np.array(json.dumps(meta, sort_keys=True))),
+                     elsewhere=hint or "--set data.cache_dir=DIR")
+    except OSError as exc:
+        where = f"; put the caches elsewhere with {hint}" if hint else ""
+        raise UserError(f"cannot write the denoising cache {folder}: {exc.strerror or exc}{where}") from None
+    return out.half().float(), False
