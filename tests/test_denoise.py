@@ -163,12 +163,12 @@ def test_bad_inputs_are_one_line_errors():
     assert "unknown denoiser parameter 'strength'" in _one_line(e)
 
 
-def test_the_config_key_defaults_off_and_names_its_choices():
-    assert load_config().decomposer.denoise == "none"
+def test_the_config_key_defaults_to_auto_and_names_its_choices():
+    assert load_config().decomposer.denoise == "auto"
     assert load_config(overrides=["decomposer.denoise=chroma"]).decomposer.denoise == "chroma"
     with pytest.raises(UserError) as e:
         load_config(overrides=["decomposer.denoise=bm3d"])
-    assert "decomposer.denoise must be one of none, nlm, chroma" in _one_line(e)
+    assert "decomposer.denoise must be one of auto, none, nlm, chroma" in _one_line(e)
 
 
 def test_calibration_catches_a_model_that_under_reads_the_noise():
@@ -233,3 +233,21 @@ def test_a_capture_whose_noise_cannot_be_measured_is_one_line(night, tmp_path, c
     assert code == 2 and "Traceback" not in err, err
     lines = [ln for ln in err.strip().splitlines() if ln.startswith("retinexgs")]
     assert len(lines) == 1 and "decomposer.denoise=nlm" in lines[0] and "could not be measured" in lines[0], err
+
+
+@pytest.mark.parametrize("kind,want", [("raw", "chroma"), ("jpeg", None)])
+def test_auto_denoises_a_raw_scene_and_leaves_photos_as_they_are(night, kind, want):
+    """decomposer.denoise=auto (the default): chroma on camera raw views (a measured noise model), nothing on photos;
+    a raw scene with no flat area to measure on falls back to the noisy views instead of stopping."""
+    from retinexgs.data import load_scene
+    from retinexgs.train import view_setup
+
+    scene = load_scene(night / kind)
+    spec = view_setup.denoise_spec(scene.train, load_config(), "cpu")
+    assert (spec.method if spec is not None else None) == want
+    if kind == "raw":
+        import unittest.mock as mock
+        with mock.patch.object(view_setup, "scene_noise", lambda *a, **k: None):
+            assert view_setup.denoise_spec(scene.train, load_config(), "cpu") is None
+            with pytest.raises(UserError):
+                view_setup.denoise_spec(scene.train, load_config(overrides=["decomposer.denoise=chroma"]), "cpu")

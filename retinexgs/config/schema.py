@@ -188,7 +188,7 @@ class Decomposer(Section):
     params: Annotated[Dict[str, Any], Expect("a mapping of the decomposer's parameters")]
     device: OptStr
     raw_denoise: Bool
-    denoise: Choice("none", "nlm", "chroma")  # the 2D priors' photo through a denoiser (retinexgs/retinex/denoise.py)
+    denoise: Choice("auto", "none", "nlm", "chroma")  # the 2D priors' photo through a denoiser (retinex/denoise.py)
 
     @field_validator("params", mode="after")
     @classmethod

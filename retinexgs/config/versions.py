@@ -30,7 +30,8 @@ FORMAT = 1  # the format this code writes
 # pixel alike until loss.rec_raw_prior_snr (2026-11-28), and renders drew Gaussians up to 0.01 from the camera
 # until model.near_fraction (the same day). A raw scene's tone took the photos' highlight knee until
 # model.enhancement.shoulder_raw (the same day), and its L_spa read the unclipped target until loss.spa_raw. A
-# folder posed by SfM was used whatever share of its photos SfM registered until data.min_registered.
+# folder posed by SfM was used whatever share of its photos SfM registered until data.min_registered, and the 2D
+# priors read the noisy views until decomposer.denoise.
 FORMAT_0_VALUES: Dict[str, Any] = {
     "model.enhancement.tone": "illumination", "loss.w_depth": 0.0, "loss.rec_domain": "photo",
     "model.background": "black", "model.enhancement.shoulder": 1.0, "loss.rec_noise_floor": False,
@@ -38,7 +39,8 @@ FORMAT_0_VALUES: Dict[str, Any] = {
     "loss.rec_noise_scale": 1, "loss.exp_highlight_share": 0.0, "train.momentum_batch_scaling": "none",
     "density.last_event": 1.0, "loss.rec_raw": "photo", "decomposer.raw_denoise": False,
     "loss.rec_raw_unit": "plain", "loss.rec_raw_prior_snr": 0.0, "model.near_fraction": 0.0,
-    "model.enhancement.shoulder_raw": None, "loss.spa_raw": "extended", "data.min_registered": 0.0}
+    "model.enhancement.shoulder_raw": None, "loss.spa_raw": "extended", "data.min_registered": 0.0,
+    "decomposer.denoise": "none"}
 
 
 def _set_missing(cfg: RawConfig, values: Dict[str, Any], filled: List[str]) -> None:

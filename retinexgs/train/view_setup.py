@@ -35,7 +35,9 @@ def denoise_spec(views: List[View], cfg: Config, device: str) -> Optional[Denois
     the light of the images decomposed, as training measures it: a raw scene's :class:`RawNoise` (DNG NoiseProfile
     or the mosaic's estimate), a photo scene's :class:`CaptureNoise` (already at the training resolution);
     ``data.downscale`` and the white balance applied. UserError (one line) when it cannot be measured."""
-    method = cfg.decomposer.denoise
+    method = auto = cfg.decomposer.denoise
+    if auto == "auto":  # raw: a measured noise model and +0.02..+0.21 SSIM at 1000 e-; photos: not yet measured
+        method = "chroma" if views and views[0].is_raw else "none"
     if method == "none" or not views:
         return None
     sources = [v.source_path if v.source_path is not None and Path(v.source_path).is_file() else v.image_path
@@ -46,6 +48,8 @@ def denoise_spec(views: List[View], cfg: Config, device: str) -> Optional[Denois
     else:
         noise = measure_capture_noise(sources, cfg.data.downscale, torch.device(device))
         model = None if noise is None else noise_model(noise, views[0].balance)
+    if model is None and auto == "auto":  # nothing flat to measure the noise on: the noisy views, as before
+        return None
     if model is None:
         raise UserError(f"decomposer.denoise={method}: the views' noise could not be measured (no flat area in any "
                         "view): set decomposer.denoise=none")
