@@ -247,7 +247,8 @@ def test_auto_denoises_a_raw_scene_and_leaves_photos_as_they_are(night, kind, wa
     assert (spec.method if spec is not None else None) == want
     if kind == "raw":
         import unittest.mock as mock
-        with mock.patch.object(view_setup, "scene_noise", lambda *a, **k: None):
+        from retinexgs.data import capture  # the raw capture measures its noise (retinexgs/data/capture.py)
+        with mock.patch.object(capture, "scene_noise", lambda *a, **k: None):
             assert view_setup.denoise_spec(scene.train, load_config(), "cpu") is None
             with pytest.raises(UserError):
                 view_setup.denoise_spec(scene.train, load_config(overrides=["decomposer.denoise=chroma"]), "cpu")

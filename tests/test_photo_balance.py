@@ -113,7 +113,7 @@ def test_a_training_with_the_balance_says_so_and_records_it(warm, tmp_path, caps
 
 def test_the_view_store_is_keyed_by_the_balance_and_the_raw_preview():
     """The memory-mapped view store is reused for the same photo files only with the same stored values: a
-    balanced run (data.white_balance) or priors from the raw preview (decomposer.raw_denoise) make their own."""
+    balanced run (data.white_balance) or priors from the raw preview (decomposer.raw.preview_denoise) make their own."""
     from retinexgs.train.view_store import store_tag
     plain = store_tag("lr3m-abc")
     assert plain == "lr3m-abc"

@@ -159,7 +159,7 @@ def _train(scene, out, capsys, *extra):
 
 @pytest.mark.parametrize("mode", ["noise", "relative", "photo"])
 def test_a_raw_scene_trains_in_the_chosen_domain_and_says_so(night, tmp_path, capsys, mode):
-    code, out, err = _train(night / "raw", tmp_path / "run", capsys, f"loss.rec_raw={mode}")
+    code, out, err = _train(night / "raw", tmp_path / "run", capsys, f"loss.raw.mode={mode}")
     assert code == 0, err
     said = "reconstruction in linear light" in out + err
     assert said == (mode != "photo"), (mode, out + err)
@@ -173,7 +173,7 @@ def test_a_raw_scene_trains_in_the_chosen_domain_and_says_so(night, tmp_path, ca
 
 
 def test_a_jpeg_scene_is_not_touched_by_rec_raw(night, tmp_path, capsys):
-    code, out, err = _train(night / "jpeg", tmp_path / "run", capsys, "loss.rec_raw=noise")
+    code, out, err = _train(night / "jpeg", tmp_path / "run", capsys, "loss.raw.mode=noise")
     assert code == 0, err
     assert "linear light" not in out + err
 
@@ -310,7 +310,7 @@ def test_the_model_error_turns_the_weights_into_the_display_s_without_noise_and_
 
 
 def test_the_sigma_unit_pulls_a_pixel_at_one_sigma_with_force_one_and_keeps_the_weights_ratios():
-    """loss.rec_raw_unit sigma: Σ w·e² / (2·sqrt(mean w)) per image, w = 1 / var of the exposed error: on an image
+    """loss.raw.unit sigma: Σ w·e² / (2·sqrt(mean w)) per image, w = 1 / var of the exposed error: on an image
     of one noise level σ the force on the exposed error at e = σ is 1 (an L1's), where plain's is 2σ; between
     pixels the weights keep the noise model's ratios (each pixel's minimiser is plain's)."""
     a = torch.zeros(1, 3, 1, 1)
@@ -343,13 +343,13 @@ def test_the_sigma_unit_pulls_a_pixel_at_one_sigma_with_force_one_and_keeps_the_
 def test_rec_raw_unit_is_a_config_key_whose_runs_from_before_it_keep_plain():
     from retinexgs.run.config import load_config
     from retinexgs.config.versions import FORMAT_0_VALUES
-    assert load_config().loss.rec_raw_unit == "plain"
-    assert load_config(["ablations/raw_sigma"]).loss.rec_raw_unit == "sigma"
+    assert load_config().loss.raw.unit == "plain"
+    assert load_config(["ablations/raw_sigma"]).loss.raw.unit == "sigma"
     assert FORMAT_0_VALUES["loss.rec_raw_unit"] == "plain"
 
 
 def test_the_priors_fade_where_their_preview_cannot_resolve_the_light():
-    """loss.rec_raw_prior_snr k: the priors' L1 weighs each pixel by min(1, m / (k·σ_m)), m the 9×9 mean of the
+    """loss.raw.prior_snr k: the priors' L1 weighs each pixel by min(1, m / (k·σ_m)), m the 9×9 mean of the
     view's light, σ_m its noise: 0 on black, 1 well above the noise; k = 0 leaves every pixel alike."""
     a, b = torch.zeros(1, 3, 1, 1), torch.full((1, 3, 1, 1), 1e-2)  # σ = 0.1 a pixel, 0.1 / 9 for a 9×9 mean
     light = torch.zeros(1, 3, 24, 48)
@@ -370,23 +370,24 @@ def test_the_priors_fade_where_their_preview_cannot_resolve_the_light():
     assert torch.equal(t_on["sup_rec"], t_off["sup_rec"])
     from retinexgs.run.config import load_config
     from retinexgs.config.versions import FORMAT_0_VALUES
-    assert load_config().loss.rec_raw_prior_snr == 3.0
-    assert load_config(["ablations/raw_prior_uniform"]).loss.rec_raw_prior_snr == 0.0
+    assert load_config().loss.raw.prior_snr == 3.0
+    assert load_config(["ablations/raw_prior_uniform"]).loss.raw.prior_snr == 0.0
     assert FORMAT_0_VALUES["loss.rec_raw_prior_snr"] == 0.0
 
 
-def test_the_highlight_knee_is_shoulder_raw_on_a_raw_scene_and_shoulder_on_a_photo_scene():
+def test_the_highlight_knee_is_the_raw_shoulder_on_a_raw_scene_and_shoulder_on_a_photo_scene():
     from retinexgs.run.config import load_config
     from retinexgs.config.versions import FORMAT_0_VALUES
+    from retinexgs.data.capture import PHOTO, RAW
     enh = load_config().model.enhancement
-    assert (enh.shoulder, enh.shoulder_raw) == (0.5, 1.0)
-    assert enh.knee(raw=False) == 0.5 and enh.knee(raw=True) == 1.0
+    assert (enh.shoulder, enh.raw.shoulder) == (0.5, 1.0)
+    assert PHOTO.knee(enh) == 0.5 and RAW.knee(enh) == 1.0
     old = load_config(["ablations/raw_shoulder"]).model.enhancement
-    assert old.shoulder_raw is None and old.knee(raw=True) == 0.5 == old.knee(raw=False)
-    assert load_config(overrides=["model.enhancement.shoulder_raw=0.7"]).model.enhancement.knee(True) == 0.7
+    assert old.raw.shoulder is None and RAW.knee(old) == 0.5 == PHOTO.knee(old)
+    assert RAW.knee(load_config(overrides=["model.enhancement.raw.shoulder=0.7"]).model.enhancement) == 0.7
     assert FORMAT_0_VALUES["model.enhancement.shoulder_raw"] is None  # runs from before it keep the photos' knee
-    with pytest.raises(Exception, match="shoulder_raw"):
-        load_config(overrides=["model.enhancement.shoulder_raw=0"])
+    with pytest.raises(Exception, match="model.enhancement.raw.shoulder"):
+        load_config(overrides=["model.enhancement.raw.shoulder=0"])
 
 
 def test_a_raw_run_trains_and_renders_with_its_knee_and_a_run_from_before_the_key_keeps_the_photos(
@@ -398,18 +399,18 @@ def test_a_raw_run_trains_and_renders_with_its_knee_and_a_run_from_before_the_ke
         code, _, err = _train(night / scene, tmp_path / scene, capsys)
         assert code == 0, err
         cfg, loaded, model, _ = load_run(tmp_path / scene, "cpu")
-        assert loaded.raw == (scene == "raw") and model.shoulder == knee and model.raw == loaded.raw
+        assert loaded.raw == (scene == "raw") and model.shoulder == knee and model.capture is loaded.capture
         assert model.with_enhancement(cfg.model.enhancement).shoulder == knee  # retone keeps the scene's knee
     path = tmp_path / "raw" / "config.yaml"
     recorded = yaml.safe_load(path.read_text())
-    del recorded["model"]["enhancement"]["shoulder_raw"]
-    assert recorded.pop("format") == 1  # written today; a run from before the key had no format (format 0)
+    del recorded["model"]["enhancement"]["raw"]
+    assert recorded.pop("format") == 2  # written today; a run from before the key had no format (format 0)
     path.write_text(yaml.safe_dump(recorded))
     assert load_run(tmp_path / "raw", "cpu")[2].shoulder == 0.5
 
 
 def test_the_extended_targets_mean_is_dragged_down_by_the_noise_and_the_photos_is_not():
-    """Why loss.spa_raw reads the photo: L_spa normalises by the input's mean. Light 0.01 under noise σ 0.03: the
+    """Why loss.raw.spa reads the photo: L_spa normalises by the input's mean. Light 0.01 under noise σ 0.03: the
     extended encoding's mean falls far below the sRGB of the light (the negative half is ×12.92, the positive
     half compressed); the clipped photo's stays near it."""
     torch.manual_seed(0)
@@ -425,9 +426,9 @@ def test_l_spa_of_a_raw_view_compares_with_the_photo_it_shows(night, tmp_path, s
     from retinexgs.config.versions import FORMAT_0_VALUES
     from retinexgs.run.folder import open_scene
     from retinexgs.train.trainer import Trainer, enhancement_objective
-    assert load_config().loss.spa_raw == "photo" and FORMAT_0_VALUES["loss.spa_raw"] == "extended"
-    assert load_config(["ablations/spa_raw_extended"]).loss.spa_raw == "extended"
-    cfg = load_config(["demo"], overrides=[*TINY_RUN, f"loss.spa_raw={spa_raw}"])
+    assert load_config().loss.raw.spa == "photo" and FORMAT_0_VALUES["loss.spa_raw"] == "extended"
+    assert load_config(["ablations/spa_raw_extended"]).loss.raw.spa == "extended"
+    cfg = load_config(["demo"], overrides=[*TINY_RUN, f"loss.raw.spa={spa_raw}"])
     for kind in ("raw", "jpeg"):
         scene = open_scene(night / kind, cfg)
         tr = Trainer(cfg, scene, tmp_path / f"{kind}-{spa_raw}", "cpu", progress=False, log=lambda m: None)

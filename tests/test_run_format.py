@@ -9,7 +9,7 @@ import torch
 import yaml
 
 from retinexgs.config import FORMAT, plain
-from retinexgs.config.versions import CHECKPOINT_MIGRATIONS, CONFIG_MIGRATIONS, FORMAT_0_VALUES
+from retinexgs.config.versions import CHECKPOINT_MIGRATIONS, CONFIG_MIGRATIONS, FORMAT_0_VALUES, RAW_KEYS_1_TO_2
 from retinexgs.errors import UserError
 from retinexgs.run import config as run_config
 from retinexgs.run.checkpoint import load_checkpoint, save_checkpoint
@@ -31,7 +31,7 @@ def _write(run, data: dict) -> None:
 
 
 def test_one_migration_a_format_step():
-    assert FORMAT == 1 and len(CONFIG_MIGRATIONS) == len(CHECKPOINT_MIGRATIONS) == FORMAT
+    assert FORMAT == 2 and len(CONFIG_MIGRATIONS) == len(CHECKPOINT_MIGRATIONS) == FORMAT
 
 
 def test_a_format_1_run_is_written_with_its_format_and_round_trips(tmp_path):
@@ -51,8 +51,8 @@ def test_a_format_0_run_gets_the_values_runs_had_before_the_keys(tmp_path):
     a whole section missing (``train``) is made with the old values inside."""
     data = plain(load_config())
     changed = [k for k, v in FORMAT_0_VALUES.items() if k.split(".")[0] != "train"]
-    for key in changed:
-        _drop(data, key)
+    for key in changed:  # the format-0 values name keys as format 1 did: today's place after the 1 -> 2 move
+        _drop(data, RAW_KEYS_1_TO_2.get(key, key))
     del data["train"]
     _drop(data, "loss.rec_huber")  # not in the migration: today's default is what older runs did
     data["scene"] = str(tmp_path)
@@ -62,7 +62,7 @@ def test_a_format_0_run_gets_the_values_runs_had_before_the_keys(tmp_path):
     got = plain(cfg)
     for key, old in FORMAT_0_VALUES.items():
         node = got
-        for part in key.split("."):
+        for part in RAW_KEYS_1_TO_2.get(key, key).split("."):
             node = node[part]
         assert node == old, key
     assert cfg.model.enhancement.tone == "illumination" and cfg.loss.w_depth == 0.0  # not today's defaults
@@ -77,9 +77,9 @@ def test_a_format_0_run_gets_the_values_runs_had_before_the_keys(tmp_path):
 
 
 @pytest.mark.parametrize("fmt, expect", [
-    (2, "is in run format 2, newer than this retinexgs reads (format 1)"),
-    ("one", "format must be a whole number 0..1, got 'one'"),
-    (-1, "format must be a whole number 0..1, got -1"),
+    (3, "is in run format 3, newer than this retinexgs reads (format 2)"),
+    ("one", "format must be a whole number 0..2, got 'one'"),
+    (-1, "format must be a whole number 0..2, got -1"),
 ])
 def test_a_newer_or_malformed_run_format_is_refused_in_one_line(tmp_path, fmt, expect):
     write_run_config(tmp_path, load_config(), tmp_path)

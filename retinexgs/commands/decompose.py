@@ -123,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
     cache_root = scene_cache_root(scene, cfg.data.cache_dir)
     _, report = decompose_images(paths, dcfg.method, dict(dcfg.params) or None, cache_root,
                                  args.device, keep=False, preview=args.preview, progress=not args.quiet,
-                                 cache_hint=hint, sweep=True, announce=False, raw_denoise=dcfg.raw_denoise,
+                                 cache_hint=hint, sweep=True, announce=False, raw_denoise=dcfg.raw.preview_denoise,
                                  balance=balance, names=names)
     n = report["swept"]
     swept = f", {n} old-format entr{'y' if n == 1 else 'ies'} deleted" if n else ""

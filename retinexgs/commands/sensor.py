@@ -155,7 +155,7 @@ def _print_model(a, b, median_photo: Path, lift_b=None) -> None:
         print(f"  {name}: full well {'inf' if math.isinf(fw) else f'{fw:.0f}'} e-, a={est.a[c]:.3g}, b={est.b[c]:.3g}")
     if lift_b is None:
         print("  black is not lifted: raw values keep the noise below black, and training fits them unclipped "
-              "(loss.rec_raw)")
+              "(loss.raw.mode)")
     else:
         # black as the camera records it on average: the mean of the read noise clipped at 0, from the photos' noise
         lift = clipped_moments(np.zeros(3), np.sqrt(np.maximum(lift_b, 0.0)))[0]
@@ -179,7 +179,7 @@ def _print_cap(g: float, limit: float, share: float) -> None:
 
 
 def _raw_noise(args: argparse.Namespace, folder: Path, photos, raws, loss, share: float, limit: float) -> int:
-    """``noise`` on camera raw files: the noise model training weighs their linear light by (loss.rec_raw; the DNG
+    """``noise`` on camera raw files: the noise model training weighs their linear light by (loss.raw.mode; the DNG
     NoiseProfile, or measured on the mosaic: retinexgs/data/raw_noise.py), per photo and the median training uses,
     in the views' linear light (1 = the raw's white at the folder's median exposure), and the SSIM's cap from the
     same views read as photos. No raw file is opened with PIL."""
@@ -204,7 +204,7 @@ def _raw_noise(args: argparse.Namespace, folder: Path, photos, raws, loss, share
     source = {"profile": "from their DNG NoiseProfile", "estimate": "measured on their raw mosaic",
               "mixed": "from the DNG NoiseProfile or measured on the raw mosaic"}
     print(f"{folder}: {len(raws)} camera raw photos ({', '.join(kinds)}), noise from {len(measured)} in their views' "
-          f"linear light (1 = the raw's white), as training weighs them (loss.rec_raw {loss.rec_raw}), "
+          f"linear light (1 = the raw's white), as training weighs them (loss.raw.mode {loss.raw.mode}), "
           + (source[noise.source] if noise is not None else "not measurable (no NoiseProfile, no flat area)")
           + (f"; the {others} other photos beside them are left out (a scene trains on its raw files)"
              if others else ""))

@@ -182,12 +182,18 @@ def check_decomposer_params(method: str, params: Dict[str, Any], where: str = "d
     return {k: getattr(model, k) for k in params}
 
 
+class DecomposerRaw(Section):
+    """``decomposer.raw``: read on camera-raw scenes only (retinexgs.data.capture)."""
+
+    preview_denoise: Bool  # the priors from a denoised linear preview of the raw view
+
+
 class Decomposer(Section):
     method: Choice("lr3m", "lime", "none")
     # The method's parameters, checked by its schema above (names, types, ranges) before anything loads.
     params: Annotated[Dict[str, Any], Expect("a mapping of the decomposer's parameters")]
     device: OptStr
-    raw_denoise: Bool
+    raw: DecomposerRaw
     denoise: Choice("auto", "none", "nlm", "chroma")  # the 2D priors' photo through a denoiser (retinex/denoise.py)
 
     @field_validator("params", mode="after")
@@ -210,6 +216,14 @@ class Illumination(Section):
     leak: Num(ge=0, le=0.5)
 
 
+class EnhancementRaw(Section):
+    """``model.enhancement.raw``: read on camera-raw scenes only (retinexgs.data.capture)."""
+
+    # the knee on a camera-raw scene (null: ``shoulder``): its light is the sensor's, whose highlights need no roll-off
+    shoulder: Annotated[Optional[Annotated[float, BeforeValidator(_yaml_number), Field(gt=0, le=1)]],
+                        Expect("a knee in (0, 1] (1 = the clip) or null (the same as shoulder)")]
+
+
 class Enhancement(Section):
     gamma_range: Annotated[List[Annotated[float, BeforeValidator(_yaml_number), Field(gt=0)]],
                            Field(min_length=2, max_length=2), Expect("a list [low, high] of two numbers > 0")]
@@ -222,9 +236,7 @@ class Enhancement(Section):
     ref_quantile: Annotated[Optional[Annotated[float, BeforeValidator(_yaml_number), Field(gt=0, le=1)]],
                             Expect("a quantile in (0, 1] (1 = the maximum) or null (no normalisation)")]
     shoulder: Num(gt=0, le=1)  # the highlight knee of a tone with one (exposure's); the gamma tones do not read it
-    # the knee on a camera-raw scene (null: ``shoulder``): its light is the sensor's, whose highlights need no roll-off
-    shoulder_raw: Annotated[Optional[Annotated[float, BeforeValidator(_yaml_number), Field(gt=0, le=1)]],
-                            Expect("a knee in (0, 1] (1 = the clip) or null (the same as shoulder)")]
+    raw: EnhancementRaw  # the camera-raw scenes' own keys
     debias_black: Bool  # the clipped sensor noise's mean taken out of R̂∘L̂ before the gain (a tone that reads it)
     black_filter: Int(0, 64)  # with debias_black: the radius (px) of the filter that takes the render's noise out first
 
@@ -240,10 +252,6 @@ class Enhancement(Section):
             raise ValueError(f"model.enhancement.black_filter={self.black_filter} needs debias_black: true")
         return self
 
-    def knee(self, raw: bool) -> float:
-        """The highlight knee (of a tone with one) for a scene of camera-raw (``raw``) or photo views."""
-        return float(self.shoulder if not raw or self.shoulder_raw is None else self.shoulder_raw)
-
 
 class Model(Section):
     sh_degree: Int(0, 3)
@@ -255,6 +263,16 @@ class Model(Section):
     near_in_training: Bool
     illumination: Illumination
     enhancement: Enhancement
+
+
+class LossRaw(Section):
+    """``loss.raw``: read on camera-raw scenes only (retinexgs.data.capture)."""
+
+    mode: Choice("noise", "relative", "photo")  # the reconstruction: linear light (weighted) or as the photo shown
+    model_error: Num(ge=0, le=1)
+    unit: Choice("plain", "sigma")
+    prior_snr: Num(ge=0)
+    spa: Choice("photo", "extended")  # what L_spa compares a raw view's enhanced render with
 
 
 class Loss(Section):
@@ -273,7 +291,6 @@ class Loss(Section):
     exp_form: Choice("l2", "l1")
     exp_highlight_share: Num(ge=0, le=0.5)
     spa_form: Choice("zero_dce", "paper")
-    spa_raw: Choice("photo", "extended")  # what L_spa compares a raw view's enhanced render with
     enhance_scale_invariant: Bool
     sh_reduction: Choice("mean", "sum")
     enhance_from: Step
@@ -285,10 +302,7 @@ class Loss(Section):
     rec_noise_share: Num(gt=0, le=0.9)
     rec_noise_scale: Int(1)
     rec_camera_noise: Bool
-    rec_raw: Choice("noise", "relative", "photo")
-    rec_raw_model_error: Num(ge=0, le=1)
-    rec_raw_unit: Choice("plain", "sigma")
-    rec_raw_prior_snr: Num(ge=0)
+    raw: LossRaw  # the camera-raw scenes' own keys
     w_depth: Num(ge=0)
     depth_edge: Num(ge=0)
 

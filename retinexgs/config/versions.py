@@ -16,7 +16,7 @@ from typing import Any, Callable, Dict, List, Tuple
 from retinexgs.config.files import RawConfig, configs_dir, read_yaml
 from retinexgs.errors import UserError
 
-FORMAT = 1  # the format this code writes
+FORMAT = 2  # the format this code writes
 
 # Format 0 -> 1: the keys whose default changed after they were added. A run made before a key existed behaved as
 # the value here, not as today's default (which would re-render it differently). The tone form was the gamma on L̂
@@ -32,6 +32,7 @@ FORMAT = 1  # the format this code writes
 # model.enhancement.shoulder_raw (the same day), and its L_spa read the unclipped target until loss.spa_raw. A
 # folder posed by SfM was used whatever share of its photos SfM registered until data.min_registered, and the 2D
 # priors read the noisy views until decomposer.denoise.
+# The keys are named as format 1 named them (the raw ones move in config_1_to_2).
 FORMAT_0_VALUES: Dict[str, Any] = {
     "model.enhancement.tone": "illumination", "loss.w_depth": 0.0, "loss.rec_domain": "photo",
     "model.background": "black", "model.enhancement.shoulder": 1.0, "loss.rec_noise_floor": False,
@@ -65,6 +66,40 @@ def config_0_to_1(cfg: RawConfig, filled: List[str]) -> RawConfig:
     return cfg
 
 
+# Format 1 -> 2 (issue 63): the camera-raw scenes' own keys grouped under ``raw`` sections instead of ``*_raw``
+# suffixes (retinexgs.data.capture reads them): old dotted key -> new dotted key, values unchanged.
+RAW_KEYS_1_TO_2: Dict[str, str] = {
+    "decomposer.raw_denoise": "decomposer.raw.preview_denoise",
+    "model.enhancement.shoulder_raw": "model.enhancement.raw.shoulder",
+    "loss.rec_raw": "loss.raw.mode", "loss.rec_raw_model_error": "loss.raw.model_error",
+    "loss.rec_raw_unit": "loss.raw.unit", "loss.rec_raw_prior_snr": "loss.raw.prior_snr",
+    "loss.spa_raw": "loss.raw.spa"}
+
+
+def config_1_to_2(cfg: RawConfig, filled: List[str]) -> RawConfig:
+    """Format 1 -> 2: each key of :data:`RAW_KEYS_1_TO_2` the config has moves to its new place (a value already
+    there is kept: the new key was written on purpose). A format-0 run gets the format-0 values first
+    (:data:`FORMAT_0_VALUES`, by their format-1 names), then this move."""
+    for old, new in RAW_KEYS_1_TO_2.items():
+        *old_sections, old_key = old.split(".")
+        node = cfg
+        for name in old_sections:
+            node = node.get(name) if isinstance(node, dict) else None
+        if not isinstance(node, dict) or old_key not in node:
+            continue
+        value = node.pop(old_key)
+        *new_sections, new_key = new.split(".")
+        target = cfg
+        for name in new_sections:
+            if not isinstance(target.get(name, {}), dict):
+                break  # not a section: the schema names that error
+            target = target.setdefault(name, {})
+        else:
+            target.setdefault(new_key, value)
+    filled[:] = [RAW_KEYS_1_TO_2.get(key, key) for key in filled]  # a format-0 run's filled keys, by today's names
+    return cfg
+
+
 def checkpoint_0_to_1(state: Dict[str, Any]) -> Dict[str, Any]:
     """Format 0 -> 1: checkpoint fields older versions did not write: no training time recorded (0 s), no view
     order (a fresh shuffle), no strategy statistics, no record of the training views."""
@@ -73,10 +108,15 @@ def checkpoint_0_to_1(state: Dict[str, Any]) -> Dict[str, Any]:
     return state
 
 
+def _checkpoint_same(state: Dict[str, Any]) -> Dict[str, Any]:
+    """A step whose checkpoint fields did not change (its config is migrated by :func:`migrate_checkpoint`)."""
+    return state
+
+
 # CONFIG_MIGRATIONS[n] turns format n into n + 1 (likewise for checkpoints' own fields): FORMAT steps each
 # (tests/test_run_format.py checks it).
-CONFIG_MIGRATIONS: List[Callable[[RawConfig, List[str]], RawConfig]] = [config_0_to_1]
-CHECKPOINT_MIGRATIONS: List[Callable[[Dict[str, Any]], Dict[str, Any]]] = [checkpoint_0_to_1]
+CONFIG_MIGRATIONS: List[Callable[[RawConfig, List[str]], RawConfig]] = [config_0_to_1, config_1_to_2]
+CHECKPOINT_MIGRATIONS: List[Callable[[Dict[str, Any]], Dict[str, Any]]] = [checkpoint_0_to_1, _checkpoint_same]
 
 
 def format_of(data: Dict[str, Any], where: str) -> int:

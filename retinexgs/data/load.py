@@ -38,6 +38,7 @@ import numpy as np
 import torch
 
 from retinexgs.data.camera import Intrinsics
+from retinexgs.data.capture import capture_of_files
 from retinexgs.data.images import image_size, is_raw_file, list_images, no_images_reason
 from retinexgs.data.declared import DeclaredScene, DeclaredView
 from retinexgs.data.scene import Normalization, Scene, View, warn
@@ -361,7 +362,7 @@ def build_scene(raw: DeclaredScene, downscale: float = 1, cache_dir: Optional[Pa
         colors = torch.full_like(points, 0.5)
         source = "random"
     return Scene(root, raw.reader, split_views["train"], split_views["test"], points, colors, norm, source,
-                 split_views["val"])
+                 split_views["val"], capture_of_files([v.user_path for v in split_views["train"]]))
 
 
 def load_scene(path: PathLike, reader: str = "auto", downscale: float = 1, *, images: Optional[PathLike] = None,

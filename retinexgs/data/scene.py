@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from retinexgs.data.camera import Intrinsics
+from retinexgs.data.capture import Capture, capture_of_files
 from retinexgs.data.images import is_raw_file, load_image_tensor
 from retinexgs.data.photo_balance import balance_photo
 
@@ -129,14 +130,25 @@ class View:
         black stays zero-mean; issue 52 stage 3b), rounded to float16: 11 bits of mantissa, a relative step of
         2⁻¹¹, far below any raw view's noise, and half the view store's bytes (6 per pixel, a 24 MP raw 144 MB as
         for a 16-bit RGB photo; preloaded and streamed views stay bit-identical)."""
-        raw = self.is_raw
-        target = balance_photo(load_image_tensor(self.image_path, unclipped=True), self.balance, unclipped=raw)
-        return target.half().float() if raw else target
+        capture = self.capture
+        target = balance_photo(load_image_tensor(self.image_path, unclipped=True), self.balance,
+                               unclipped=capture.unclipped)
+        return capture.encode_target(target)
 
     @property
     def is_raw(self) -> bool:
         """True when the user's file is a camera raw file."""
-        return is_raw_file(Path(self.source_path if self.source_path is not None else self.image_path))
+        return is_raw_file(self.user_path)
+
+    @property
+    def user_path(self) -> Path:
+        """The user's file (:attr:`source_path`, else :attr:`image_path`)."""
+        return Path(self.source_path if self.source_path is not None else self.image_path)
+
+    @property
+    def capture(self) -> Capture:
+        """The kind of capture the user's file is (:mod:`retinexgs.data.capture`)."""
+        return capture_of_files([self.user_path])
 
     def release_images(self) -> None:
         """Drop the cached image tensors (they are read again on next use)."""
@@ -195,6 +207,12 @@ class Scene:
     normalization: Normalization
     points_source: str = "colmap"
     val: List[View] = field(default_factory=list)
+    # what the training views are (photo or camera raw; retinexgs.data.capture): made by load_scene, else here
+    capture: Optional[Capture] = None
+
+    def __post_init__(self) -> None:
+        if self.capture is None:
+            self.capture = capture_of_files([v.user_path for v in self.train])
 
     @property
     def views(self) -> List[View]:
@@ -203,9 +221,9 @@ class Scene:
 
     @property
     def raw(self) -> bool:
-        """True when the training views are camera raw files (a split is all raw or none: the loader refuses a
-        mix)."""
-        return bool(self.train) and all(v.is_raw for v in self.train)
+        """True when the training views are camera raw files (:attr:`capture`'s kind; a split is all raw or none:
+        the loader refuses a mix)."""
+        return self.capture.kind == "raw"
 
     def summary(self) -> str:
         """One line describing the scene (counts and resolution)."""

@@ -25,6 +25,7 @@ import torch
 from torch import Tensor, nn
 
 from retinexgs.config.schema import Enhancement, Model
+from retinexgs.data.capture import PHOTO, Capture
 from retinexgs.model.enhancement import EnhancementNet
 from retinexgs.model.gaussians import GaussianModel, sh_colors
 from retinexgs.model.illumination import IlluminationField
@@ -62,11 +63,12 @@ class GaussianChannels(nn.Module):
 class RetinexGSModel(nn.Module):
     """Gaussians (+ illumination field and EnhancementNet when ``decomposed``)."""
 
-    def __init__(self, gaussians: GaussianModel, model_cfg: Model, decomposed: bool = True, raw: bool = False) -> None:
+    def __init__(self, gaussians: GaussianModel, model_cfg: Model, decomposed: bool = True,
+                 capture: Capture = PHOTO) -> None:
         super().__init__()
         self.gaussians = gaussians
         self.decomposed = decomposed
-        self.raw = bool(raw)  # a camera-raw scene's: the tone's knee is model.enhancement.shoulder_raw
+        self.capture = capture  # the scene's kind of capture: it sets the tone's knee (model.enhancement.raw.shoulder)
         if decomposed:
             il = model_cfg.illumination
             self.illumination = IlluminationField(pos_freqs=il.pos_freqs, dir_freqs=il.dir_freqs, hidden=il.hidden,
@@ -153,7 +155,7 @@ class RetinexGSModel(nn.Module):
         (its ``ref_quantile`` is the trainer's: it sets illum_ref)."""
         self.per_channel_gamma = bool(enh.per_channel)
         self.tone = enh.tone  # the registered Tone of the name (the ``tone`` property)
-        self.shoulder = enh.knee(self.raw)  # the highlight knee of a tone with a shoulder (1: the clip)
+        self.shoulder = self.capture.knee(enh)  # the highlight knee of a tone with a shoulder (1: the clip)
         # a tone that reads the black table: the clipped noise's mean out of R̂∘L̂ first (tones/curves.scene_linear)
         self.debias_black = bool(enh.debias_black)
         # with it, the radius of the filter that takes the render's residual noise out first (curves.smooth_record)

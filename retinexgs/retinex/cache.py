@@ -59,7 +59,7 @@ def read_image(path: PathLike, raw_denoise: bool = False, balance: Optional[Sequ
                denoise: Optional[DenoiseSpec] = None, cache_root: Optional[PathLike] = None,
                cache_hint: str = "") -> torch.Tensor:
     """Read a photo as float32 [H,W,3] in [0,1] (8 or 16 bit, see :mod:`retinexgs.data.images`); raises
-    UserError naming the file if it cannot be read. ``raw_denoise`` (``decomposer.raw_denoise``): a camera raw
+    UserError naming the file if it cannot be read. ``raw_denoise`` (``decomposer.raw.preview_denoise``): a camera raw
     view (or its float copy) is read as :func:`retinexgs.data.raw_noise.denoised_preview` of its unclipped values.
     ``balance``: the photo's white balance (``data.white_balance``, :func:`retinexgs.data.photo_balance.balance_photo`),
     applied to its light first. ``denoise`` (``decomposer.denoise``, not ``none``): every photo, raw or not, is read

@@ -62,7 +62,7 @@ def load_run(run_dir: Path, device: Optional[str] = None) -> Tuple[Config, Scene
     gstate = {k[len("gaussians."):]: v for k, v in state["model"].items() if k.startswith("gaussians.")}
     scene = open_scene(scene_path, cfg)
     model = RetinexGSModel(GaussianModel.empty_like_state(gstate, cfg.model.sh_degree), cfg.model,
-                           cfg.method == "retinexgs", raw=scene.raw)
+                           cfg.method == "retinexgs", scene.capture)
     model.load_state_dict(state["model"])
     model.to(pick_device(device))
     return cfg, scene, model, int(state["step"])

@@ -13,7 +13,8 @@ import torch
 from torch import Tensor
 
 from retinexgs.data import Scene
-from retinexgs.data.raw_noise import RawNoise, scene_noise
+from retinexgs.data.capture import PHOTO, Capture
+from retinexgs.data.raw_noise import RawNoise
 from retinexgs.model.retinex_model import RetinexGSModel
 from retinexgs.model.tone import black_table, exposure_gain
 from retinexgs.config.schema import Config
@@ -25,7 +26,7 @@ from retinexgs.train.noise import CaptureNoise, NoiseProbe, measure_capture_nois
 class NoiseSetUp:
     """What the capture's noise set up for a run (each None where unused)."""
 
-    raw_scene: bool = False                                 # the views are camera raw (linear, unclipped)
+    capture: Capture = PHOTO                                # the views' kind (photo or camera raw)
     capture_noise: Optional[CaptureNoise] = None            # the photos' noise (a, b)
     rec_gain_cap: Optional[Tensor] = None                   # the reconstruction's gain cap (loss.rec_noise_floor)
     camera_noise: Optional[Tuple[Tensor, Tensor]] = None     # the camera's (a, b) (loss.rec_camera_noise)
@@ -44,7 +45,7 @@ def set_up_noise(cfg: Config, scene: Scene, model: RetinexGSModel, state: Option
                  dist, log: Callable[[str], None]) -> NoiseSetUp:
     """The run's :class:`NoiseSetUp` (RetinexGS only: the baselines get an empty one). ``dist``: this rank among
     several, or None; ``state``: the checkpoint resumed from, or None."""
-    out = NoiseSetUp(raw_scene=bool(scene.raw))
+    out = NoiseSetUp(capture=scene.capture)
     if cfg.method != "retinexgs":
         return out
     _photo_noise(out, cfg, scene, model, state, device, dist, log)
@@ -103,19 +104,19 @@ def _photo_noise(out: NoiseSetUp, cfg: Config, scene: Scene, model: RetinexGSMod
 
 def _raw_noise(out: NoiseSetUp, cfg: Config, scene: Scene, state: Optional[Dict], device: torch.device, dist,
                log: Callable[[str], None]) -> None:
-    """A camera raw scene (issue 52 stage 3b): unless ``loss.rec_raw`` is ``photo``, the reconstruction compares
+    """A camera raw scene (issue 52 stage 3b): unless ``loss.raw.mode`` is ``photo``, the reconstruction compares
     R̂∘L̂ with the views' unclipped values in linear light, weighted by the views' noise
     (:class:`retinexgs.train.losses.LinearTarget`; the noise from the DNG NoiseProfile or the mosaic). The
     camera's clipped-noise response (``loss.rec_camera_noise``) describes a JPEG's clip at black, which raw values
     do not have: not used."""
-    mode = cfg.loss.rec_raw
-    if not out.raw_scene or mode == "photo":
+    mode = out.capture.linear_mode(cfg.loss)  # None: photos, or a raw scene compared as the photos it shows
+    if mode is None:
         return
     saved = (state or {}).get("raw_noise")
     if saved:
         noise: Optional[RawNoise] = RawNoise(**saved)
     else:
-        noise = scene_noise([v.source_path if v.source_path is not None else v.image_path for v in scene.train])
+        noise = out.capture.noise([v.user_path for v in scene.train])
         if noise is not None:
             for note in noise.notes:
                 log(f"warning: {note}")
@@ -132,9 +133,9 @@ def _raw_noise(out: NoiseSetUp, cfg: Config, scene: Scene, state: Optional[Dict]
     if balance is not None:  # data.white_balance scaled each channel's light by g: its variance by g·a·y + g²·b
         g = torch.tensor(balance, dtype=torch.float32, device=device).reshape(1, 3, 1, 1)
         a, b = a * g, b * g * g
-    c = cfg.loss
-    out.linear_target = losses.LinearTarget(mode, a, b, model_error=float(c.rec_raw_model_error),
-                                            unit=c.rec_raw_unit, prior_snr=float(c.rec_raw_prior_snr))
+    c = cfg.loss.raw
+    out.linear_target = losses.LinearTarget(mode, a, b, model_error=float(c.model_error),
+                                            unit=c.unit, prior_snr=float(c.prior_snr))
     log(f"raw scene: reconstruction in linear light ({mode}); {noise.describe()}")
     if out.camera_noise is not None:
         log("loss.rec_camera_noise is not used on a raw scene (its values are not clipped at black)")

@@ -403,7 +403,7 @@ class Distributed:
             decompose_images([v.image_path for v in mine], dcfg.method, dict(dcfg.params) or None,
                              cache_dir=scene_cache_root(scene.root, cfg.data.cache_dir),
                              device=dcfg.device or device, keep=False, progress=progress and self.is_main,
-                             cache_hint="--set data.cache_dir=DIR", sweep=False, raw_denoise=dcfg.raw_denoise,
+                             cache_hint="--set data.cache_dir=DIR", sweep=False, raw_denoise=dcfg.raw.preview_denoise,
                              balance=mine[0].balance, names=[v.source_path or v.image_path for v in mine])
         self.barrier("every rank's share of the decomposition")
 

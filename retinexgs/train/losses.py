@@ -122,7 +122,7 @@ def camera_expectation(x: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> tor
 
 
 class LinearTarget(NamedTuple):
-    """A raw scene's reconstruction in linear light (``loss.rec_raw``, issue 52 stage 3b): ``mode`` "noise" or
+    """A raw scene's reconstruction in linear light (``loss.raw.mode``, issue 52 stage 3b): ``mode`` "noise" or
     "relative" (:func:`linear_weights`); ``a``, ``b``: the views' noise var = a·y + b per channel, [1,3,1,1]
     tensors (:mod:`retinexgs.data.raw_noise`); ``gain``: the exposure the error is measured at (a scalar tensor;
     None: the reconstruction's gain, which the noise floor may cap for its SSIM).
@@ -177,7 +177,7 @@ PRIOR_WINDOW = 2 * PREVIEW_RADIUS + 1  # the raw preview's window: what the prio
 
 def prior_confidence(S: torch.Tensor, target: LinearTarget) -> torch.Tensor:
     """[B,1,H,W] in [0, 1], no gradient: how well a raw view's 2D priors can know the light at each pixel
-    (``loss.rec_raw_prior_snr`` k > 0). The priors come from a preview averaged over n×n windows (n =
+    (``loss.raw.prior_snr`` k > 0). The priors come from a preview averaged over n×n windows (n =
     :data:`PRIOR_WINDOW`, 9) and then clipped; where that window's mean m of the view's light lies within k of its
     own noise σ_m = sqrt((a·m + b) / n²) of
     black, the clip lifts and tints it, so the prior says nothing of the light there. The weight is

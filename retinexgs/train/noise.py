@@ -38,7 +38,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from retinexgs.data.images import is_raw_file, read_image_float
+from retinexgs.data.capture import capture_of_files
+from retinexgs.data.images import read_image_float
 from retinexgs.data.sensor import JpegCodec, estimate_noise, estimate_noise_through_codec
 from retinexgs.errors import UserError
 from retinexgs.evaluate.metrics import ssim
@@ -204,7 +205,7 @@ def check_not_black(photo: np.ndarray, path: Path) -> None:
 def jpeg_codec(path: Path) -> Optional[JpegCodec]:
     """The JPEG codec of ``path`` (:meth:`JpegCodec.of_file`); None for a camera raw file, which is never opened with
     PIL: PIL does not read a DNG or CRW (UnidentifiedImageError), and reads a NEF as a TIFF preview."""
-    return None if is_raw_file(path) else JpegCodec.of_file(path)
+    return capture_of_files([path]).jpeg_codec(path)
 
 
 def measure_capture_noise(photos: Sequence[Path], downscale: float = 1.0, device: torch.device = torch.device("cpu"),

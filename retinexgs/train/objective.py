@@ -193,7 +193,7 @@ class RetinexObjective(PlainObjective):
     def __init__(self, cfg: Config, model: RetinexGSModel, schedule: Schedule, strategy: Strategy,
                  noise: NoiseSetUp, depth_prior: bool = False) -> None:
         super().__init__(cfg, model, schedule, strategy, noise, depth_prior)
-        self.raw_scene = noise.raw_scene
+        self.capture = noise.capture
 
     def target(self, tv: TrainView) -> Tensor:
         return tv.S
@@ -222,8 +222,8 @@ class RetinexObjective(PlainObjective):
         R_img, L_img = image[..., :3], image[..., 3:6]
         R_hat, L_hat, S_b = to_bchw(R_img), to_bchw(L_img), to_bchw(S)
         linear = self.noise.linear_target
-        if linear is None and self.raw_scene:  # loss.rec_raw photo: the raw view as a clipped photo
-            S_b = S_b.clamp(0.0, 1.0)
+        if linear is None:  # compared as photos (loss.raw.mode photo on a raw scene: the raw view clipped)
+            S_b = self.capture.as_photo(S_b)
         terms: Dict[str, Tensor] = {}
         gain = self.rec_gain()
         l1_exposed = c.rec_domain == "exposed"
@@ -244,8 +244,8 @@ class RetinexObjective(PlainObjective):
         terms["tv"] = losses.tv_loss(R_hat)
         total = sup + c.w_tv * terms["tv"]
         if enhance:
-            # loss.spa_raw photo: L_spa's input is a raw view as the photo it shows (its mean undragged by the noise)
-            S_spa = S_b.clamp(0.0, 1.0) if self.raw_scene and c.spa_raw == "photo" else S_b
+            # loss.raw.spa photo: L_spa's input is a raw view as the photo it shows (its mean undragged by the noise)
+            S_spa = self.capture.spa_input(S_b, c)
             enh, enh_terms = enhancement_objective(self.model, c, R_img, L_img, S_spa)
             terms.update(enh_terms)
             total = total + enh

@@ -111,7 +111,7 @@ class Trainer:
         else:
             gstate = {k[len("gaussians."):]: v for k, v in state["model"].items() if k.startswith("gaussians.")}
             gaussians = GaussianModel.empty_like_state(gstate, mcfg.sh_degree)
-        self.model = RetinexGSModel(gaussians, mcfg, self.decomposed, raw=self.scene.raw).to(self.device)
+        self.model = RetinexGSModel(gaussians, mcfg, self.decomposed, self.scene.capture).to(self.device)
         if state is None:
             self.model.initialise_levels(lambda: view_statistics(self.cfg, self.views, self._stats),
                                          lambda: near_plane(self.cfg, self.scene, self.log))

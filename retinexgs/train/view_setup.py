@@ -11,7 +11,7 @@ import torch
 from retinexgs.data import Scene, View
 from retinexgs.errors import UserError
 from retinexgs.model.near_plane import MIN_POINTS, content_depth
-from retinexgs.data.raw_noise import scene_noise
+from retinexgs.data.capture import capture_of_files
 from retinexgs.retinex.cache import entry_dir, iter_decompositions, scene_cache_root
 from retinexgs.retinex.denoise import DenoiseSpec, noise_model
 from retinexgs.run.render import view_camera
@@ -35,19 +35,18 @@ def denoise_spec(views: List[View], cfg: Config, device: str) -> Optional[Denois
     the light of the images decomposed, as training measures it: a raw scene's :class:`RawNoise` (DNG NoiseProfile
     or the mosaic's estimate), a photo scene's :class:`CaptureNoise` (already at the training resolution);
     ``data.downscale`` and the white balance applied. UserError (one line) when it cannot be measured."""
+    capture = capture_of_files([v.user_path for v in views])
     method = auto = cfg.decomposer.denoise
-    if auto == "auto":  # raw: a measured noise model and +0.02..+0.21 SSIM at 1000 e-; photos: not yet measured
-        method = "chroma" if views and views[0].is_raw else "none"
+    if auto == "auto":  # the capture's choice (raw: chroma; photos: none, not yet measured)
+        method = capture.auto_denoise()
     if method == "none" or not views:
         return None
     sources = [v.source_path if v.source_path is not None and Path(v.source_path).is_file() else v.image_path
                for v in views]
-    if views[0].is_raw:
-        noise = scene_noise(sources)
-        model = None if noise is None else noise_model(noise, views[0].balance, float(cfg.data.downscale))
-    else:
-        noise = measure_capture_noise(sources, cfg.data.downscale, torch.device(device))
-        model = None if noise is None else noise_model(noise, views[0].balance)
+    noise = capture.noise(sources, lambda paths: measure_capture_noise(paths, cfg.data.downscale,
+                                                                       torch.device(device)))
+    model = None if noise is None else noise_model(noise, views[0].balance,
+                                                   capture.noise_downscale(float(cfg.data.downscale)))
     if model is None and auto == "auto":  # nothing flat to measure the noise on: the noisy views, as before
         return None
     if model is None:
@@ -70,7 +69,7 @@ def decompose_views(views: List[View], cfg: Config, device: str, progress: bool,
                                cache_dir=scene_cache_root(scene_root, cfg.data.cache_dir),
                                device=dcfg.device or device, progress=progress,
                                cache_hint="--set data.cache_dir=DIR", sweep=True, scene=str(scene_root),
-                               raw_denoise=dcfg.raw_denoise, balance=views[0].balance if views else None,
+                               raw_denoise=dcfg.raw.preview_denoise, balance=views[0].balance if views else None,
                                names=[v.source_path or v.image_path for v in views],  # errors name the user's photo
                                denoise=denoise)
 
@@ -134,7 +133,7 @@ def prepare_views(cfg: Config, scene: Scene, device: torch.device, depth_prior: 
     dcfg = cfg.decomposer
     spec = denoise_spec(train, cfg, str(dev)) if needs_priors else None
     tag = store_tag(entry_dir(root, dcfg.method, dict(dcfg.params) or None).name if needs_priors else "none",
-                    needs_priors and dcfg.raw_denoise and scene.raw and spec is None,
+                    needs_priors and scene.capture.preview_denoise(dcfg) and spec is None,
                     train[0].balance if train else None)
     if spec is not None:  # priors of the denoised views: another store than the plain priors'
         tag = f"{tag}-dn{spec.recipe[:8]}"

@@ -255,9 +255,9 @@ def store_fingerprint(image_paths: Sequence[Path], sizes: Sequence[Tuple[int, in
 
 def store_tag(priors: str, raw_preview: bool = False, balance: Optional[Sequence[float]] = None) -> str:
     """The store's settings tag: the priors' (``<method>-<key>`` or ``none``), then what else changes the stored
-    values for the same photo files: priors from the raw views' denoised preview (``decomposer.raw_denoise``), and
-    the photos' white balance (``data.white_balance``, its gains hashed). Without these a store made with other
-    settings would be reused for the same files."""
+    values for the same photo files: priors from the raw views' denoised preview
+    (``decomposer.raw.preview_denoise``), and the photos' white balance (``data.white_balance``, its gains hashed).
+    Without these a store made with other settings would be reused for the same files."""
     parts = [priors]
     if raw_preview:
         parts.append("rawpreview")
