@@ -26,6 +26,7 @@ import numpy as np
 
 from retinexgs.data.camera_raw import (RawPhoto, estimate_noise, folder_exposure, noise_from_profile,
                                       normalised_mosaic, read_raw)
+from retinexgs.data.noise_model import PoissonGaussian
 
 __all__ = ["BILINEAR_VARIANCE", "RawNoise", "ViewNoise", "view_noise", "views_noise", "scene_noise",
            "combine_views", "DISAGREEMENT", "NOISE_VIEWS", "denoised_preview"]
@@ -44,8 +45,8 @@ NOISE_VIEWS = 5
 
 
 @dataclass
-class RawNoise:
-    """A raw scene's view noise: var(y) ≈ a·y + b per channel (R, G, B) of the views' linear light; ``source``:
+class RawNoise(PoissonGaussian):
+    """A raw scene's view noise (the noise protocol, :mod:`retinexgs.data.noise_model`): var(y) ≈ a·y + b per channel (R, G, B) of the views' linear light; ``source``:
     "profile" (the DNG NoiseProfile), "estimate" (measured on the mosaic) or "mixed"; ``notes``: one line each
     for what the user should know (a profile not used, a view without a usable estimate)."""
     a: Tuple[float, float, float]

@@ -41,6 +41,7 @@ from torch import Tensor
 from retinexgs.data.capture import capture_of_files
 from retinexgs.data.images import read_image_float
 from retinexgs.data.sensor import JpegCodec, estimate_noise, estimate_noise_through_codec
+from retinexgs.data.noise_model import PoissonGaussian
 from retinexgs.errors import UserError
 from retinexgs.evaluate.metrics import ssim
 from retinexgs.model.tone import linear_to_srgb, srgb_to_linear
@@ -65,8 +66,8 @@ def sigma_limit(share: float) -> float:
 
 
 @dataclass(frozen=True)
-class CaptureNoise:
-    """A capture's noise: per channel ``var = a·y + b`` in linear light at the training images' resolution, and the
+class CaptureNoise(PoissonGaussian):
+    """A capture's noise (the noise protocol, :mod:`retinexgs.data.noise_model`): per channel ``var = a·y + b`` in linear light at the training images' resolution, and the
     exposed photos' noise σ at each of ``gains``; ``downscale``: the d by which the training images are smaller than
     the photos (d × d averages: a and b are the photos' ÷ d²)."""
 
