@@ -29,6 +29,10 @@ def register(subparsers) -> None:
                    help="pair selection: exhaustive up to 100 photos, else sequential (default: auto)")
     p.add_argument("--enhance", choices=["auto", "on", "off"], default="auto",
                    help="brighten+denoise before feature extraction: auto = only for dark folders")
+    p.add_argument("--denoise", choices=["auto", "none", "nlm", "chroma"], default="auto",
+                   help="denoise the brightened previews of dark photos and raw files first, under their measured "
+                        "noise (at night the brightened noise buries the features): auto (default) = chroma where "
+                        "the brightened previews' noise is high (σ > 0.08) and can be measured, none otherwise")
     p.add_argument("--camera-model", default="SIMPLE_RADIAL",
                    help="COLMAP camera model: SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL (default), RADIAL, OPENCV "
                         "or FULL_OPENCV")
@@ -47,11 +51,13 @@ def register(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run SfM for parsed ``args`` and print a summary; returns the exit code."""
     from retinexgs.data.sfm import MIN_REGISTERED_SHARE, run_sfm  # lazy: --help stays fast
+    from retinexgs.commands.sfm_preview import sfm_preview_denoise
 
     say = None if args.quiet else (lambda m: print(f"[sfm] {m}", file=sys.stderr, flush=True))
     images = args.images if args.video is None else _frames_from_video(args.video, say)
     enhance = {"auto": "auto", "on": True, "off": False}[args.enhance]
-    result = run_sfm(images, args.out, matching=args.matching, enhance=enhance,
+    denoise = sfm_preview_denoise(images, args.denoise, enhance, say)
+    result = run_sfm(images, args.out, matching=args.matching, enhance=enhance, denoise=denoise,
                      camera_model=args.camera_model, max_num_features=args.max_features,
                      num_threads=args.threads, force=args.force,
                      min_registered=MIN_REGISTERED_SHARE if args.min_registered is None else args.min_registered,

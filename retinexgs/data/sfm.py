@@ -28,6 +28,13 @@ posed only the photos of one size: the check on the registered views never saw t
 Dropped photos (issue 62): the photos SfM did not register are named in one ``warning:`` line; when fewer than
 ``min_registered`` of them (a share, :data:`MIN_REGISTERED_SHARE` by default) are registered, UserError: the model
 is kept (a lower ``min_registered``, e.g. ``--min-registered 0``, then uses it without running SfM again).
+
+Denoised previews (issue 62 item 3, issue 64 item 5): with a :class:`PreviewDenoise` (``sfm --denoise``, built by
+:mod:`retinexgs.commands.sfm_preview`, since the denoiser lives in a layer above this one) the previews of dark photos
+and raw files are denoised in linear light, under their noise model, before they are brightened: a raw file by its
+own noise (:func:`retinexgs.data.raw_noise.view_noise`), a photo by the capture's (``PreviewDenoise.photo_noise``).
+The recipe is part of the copies' cache key and of the cached model's signature (absent without a denoiser, so
+models cached before it still match).
 """
 from __future__ import annotations
 
@@ -42,10 +49,9 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, List, Optional, Union
+from typing import Callable, List, Optional, Sequence, Tuple, Union
 
-if TYPE_CHECKING:
-    import numpy as np
+import numpy as np
 
 from retinexgs.data.camera import COLMAP_MODELS
 from retinexgs.data.images import (HEIF_EXTENSIONS, image_size, is_raw_file, list_images, read_image,
@@ -70,6 +76,18 @@ STALE_TMP_SECONDS = 24 * 3600
 MIN_REGISTERED_SHARE = 0.5
 # Dropped photos named in the warning / error before "... (N more)".
 SHOWN_NAMES = 20
+
+
+@dataclass(frozen=True)
+class PreviewDenoise:
+    """How SfM's previews of dark photos are denoised before they are brightened (module docstring).
+
+    ``recipe``: names the method, its settings and the photos' noise model (the copies' cache key); ``apply``:
+    (linear RGB float32 [H,W,3], per-channel a, per-channel b of ``var = a·y + b``) -> the denoised linear RGB;
+    ``photo_noise``: the (a, b) of the photos' linear light (None: photos other than raw files are not denoised)."""
+    recipe: str
+    apply: Callable[[np.ndarray, Sequence[float], Sequence[float]], np.ndarray]
+    photo_noise: Optional[Tuple[Sequence[float], Sequence[float]]] = None
 
 
 @dataclass
@@ -174,11 +192,51 @@ def check_raw_sizes(raws: List[Path], where: Path) -> None:
                         f"shoot one format (no crop modes) or train them as separate scenes")
 
 
-def _raw_preview(src: Path) -> "np.ndarray":
-    """uint8 [H, W, 3]: the full-size bright, denoised preview of a raw file that COLMAP reads instead of it."""
-    from retinexgs.data.camera_raw import preview_srgb, read_raw
+def _raw_preview(src: Path, denoise: Optional[PreviewDenoise] = None) -> "np.ndarray":
+    """uint8 [H, W, 3]: the full-size bright, denoised preview of a raw file that COLMAP reads instead of it;
+    with ``denoise``, its linear light goes through it under the file's own noise model first (the light
+    bilateral filter of the plain preview is then left out), unless that noise cannot be measured."""
+    from retinexgs.data.camera_raw import _demosaiced_srgb_linear, preview_srgb, read_raw
+    from retinexgs.data.raw_noise import view_noise
 
-    return preview_srgb(read_raw(src), full_size=True)
+    photo = read_raw(src)
+    if denoise is not None:
+        a, b, _source, _note = view_noise(photo)  # the light of _demosaiced_srgb_linear (exposure factor 1)
+        if a is not None and b is not None and np.any(a > 0):
+            return _bright_preview(denoise.apply(_demosaiced_srgb_linear(photo), a, b), percentile=99.0,
+                                   target=0.9)
+    return preview_srgb(photo, full_size=True)
+
+
+def _bright_preview(lin: "np.ndarray", percentile: Optional[float] = None, target: float = 0.9) -> "np.ndarray":
+    """uint8 sRGB of denoised linear light ``lin`` [H,W,3] brightened as the plain previews are: the luminance's
+    ``percentile`` to ``target`` (the raw preview's rule), or (None) the median to the enhancement's mid-grey with
+    its gain bounds (:mod:`retinexgs.data.enhance`)."""
+    from retinexgs.data.enhance import MAX_GAIN, TARGET_MEDIAN_LINEAR
+    from retinexgs.data.srgb import linear_to_srgb
+
+    lin = np.asarray(lin, np.float32)
+    lum = lin @ np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
+    if percentile is not None:
+        level = float(np.percentile(lum, percentile))
+        gain = target / level if level > 1e-6 else 1.0
+    else:
+        gain = float(np.clip(TARGET_MEDIAN_LINEAR / max(float(np.median(lum)), 1e-6), 1.0, MAX_GAIN))
+    out = np.asarray(linear_to_srgb(np.clip(lin * np.float32(gain), 0.0, 1.0)), np.float32)
+    return np.clip(np.round(out * 255.0), 0, 255).astype(np.uint8)
+
+
+def _photo_preview(src: Path, denoise: Optional[PreviewDenoise]) -> "np.ndarray":
+    """uint8 [H,W,3]: the enhanced copy of a dark photo; with ``denoise`` and the photos' noise model, its linear
+    light is denoised and then brightened (no blur: the denoiser took the noise the blur was for)."""
+    rgb = read_image(src)
+    if denoise is None or denoise.photo_noise is None:
+        return enhance_for_features(rgb)
+    from retinexgs.data.srgb import srgb_to_linear
+
+    lin = np.asarray(srgb_to_linear(rgb.astype(np.float32) / 255.0), np.float32)
+    a, b = denoise.photo_noise
+    return _bright_preview(denoise.apply(lin, a, b))
 
 
 def _pycolmap():
@@ -323,7 +381,7 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
             enhance: Union[str, bool] = "auto", camera_model: str = "SIMPLE_RADIAL", single_camera: bool = True,
             max_num_features: int = 8192, max_image_size: int = 3200, num_threads: int = -1, seed: int = 0,
             force: bool = False, progress: Optional[Progress] = _stderr_progress,
-            min_registered: float = MIN_REGISTERED_SHARE) -> SfmResult:
+            min_registered: float = MIN_REGISTERED_SHARE, denoise: Optional[PreviewDenoise] = None) -> SfmResult:
     """Run SfM on the photos directly inside ``images``; the model goes to ``<out>/sparse/0``.
 
     ``matching`` is "auto", "exhaustive" or "sequential"; ``enhance`` is "auto" (dark folders only), True
@@ -331,7 +389,8 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
     an empty folder, unreadable photos, raw files of different sizes, or when no model can be built, when
     ``out`` holds COLMAP files (database.db, sparse/) this function did not make, unless ``force`` (which also
     recomputes a cached model), and when fewer than ``min_registered`` (a share) of the photos are registered
-    (the model is kept; the photos left out are named in a warning otherwise).
+    (the model is kept; the photos left out are named in a warning otherwise). ``denoise``: the previews of dark
+    photos and raw files are denoised before they are brightened (:class:`PreviewDenoise`).
     """
     say = progress or (lambda _msg: None)
     check_sfm_numbers(max_num_features, max_image_size, num_threads)
@@ -375,6 +434,8 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
                    enhance_method=RAW_PREVIEW_METHOD if raw_input else enhance_method, camera_model=camera_model,
                    single_camera=single_camera, max_num_features=max_num_features,
                    max_image_size=max_image_size, seed=seed)
+    if denoise is not None:  # only then: a model cached without a denoiser keeps its signature
+        options["denoise"] = denoise.recipe
     signature = dict(options=options, images=[[p.name, list(sizes[p.name]), digests[p.name]] for p in paths])
     meta_path = out_dir / META_NAME
     model_dir = out_dir / "sparse" / "0"
@@ -426,6 +487,8 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
         # COLMAP cannot decode raw files nor HEIC/HEIF: it reads copies of them (PNG bytes under the same names)
         unreadable = raw_input or any(p.suffix.lower() in HEIF_EXTENSIONS for p in paths)
         method = RAW_PREVIEW_METHOD if raw_input else enhance_method if do_enhance else "decoded"
+        if denoise is not None and (raw_input or do_enhance):  # the copies' cache key names the recipe
+            method += f"+denoise-{denoise.recipe}"
         feature_dir = image_dir
         if do_enhance or unreadable:
             feature_dir = out_dir / "enhanced"
@@ -446,7 +509,7 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
                 dst = feature_dir / p.name
                 if made_from.get(p.name) != digests[p.name] or not dst.is_file():
                     # PNG bytes under the photo's own name (write_image_atomic writes PNG for a raw suffix)
-                    copy = (_raw_preview(p) if raw_input else enhance_for_features(read_image(p)) if do_enhance
+                    copy = (_raw_preview(p, denoise) if raw_input else _photo_preview(p, denoise) if do_enhance
                             else read_image(p))
                     write_image_atomic(dst, copy, quality=97)
 

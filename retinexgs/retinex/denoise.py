@@ -29,8 +29,8 @@ import torch.nn.functional as F
 from retinexgs.errors import UserError
 
 __all__ = ["METHODS", "DenoiseParams", "DenoiseSpec", "NoiseModel", "noise_model", "gat_forward",
-           "gat_inverse", "denoise_linear", "denoise_view_image", "denoise_key", "denoised_view", "DENOISE_VERSION",
-           "DENOISED_DIRNAME"]
+           "gat_inverse", "measured_sigma", "denoise_linear", "denoise_view_image", "denoise_key", "denoised_view",
+           "DENOISE_VERSION", "DENOISED_DIRNAME"]
 
 METHODS = ("none", "nlm", "chroma")
 DENOISE_VERSION = 1  # part of every cache key: a change of the algorithm recomputes its entries
@@ -197,6 +197,12 @@ def _measured_sigma(x: torch.Tensor, scale: int = _SIGMA_SCALE) -> float:
     k = torch.tensor([[1.0, -2.0, 1.0], [-2.0, 4.0, -2.0], [1.0, -2.0, 1.0]], dtype=y.dtype, device=y.device)
     c = F.conv2d(y[None, None], k[None, None])[0, 0]
     return float(math.sqrt(math.pi / 2.0) * c.abs().mean() / 6.0) * scale
+
+
+def measured_sigma(x: torch.Tensor, scale: int = _SIGMA_SCALE) -> float:
+    """The noise σ of one channel ``x`` [H,W] as seen at ``scale`` × ``scale`` averages (an upper bound: texture reads
+    as noise too); public for callers that decide whether to denoise at all (``sfm --denoise auto``)."""
+    return _measured_sigma(x, scale)
 
 
 def _nlm(x: np.ndarray, h: float, p: DenoiseParams) -> np.ndarray:
