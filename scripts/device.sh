@@ -54,7 +54,7 @@
 #       stream     `bench train-speed` on --scene with train.stream_views=never, always (the store pinned whole),
 #                  always with train.views_pinned_gb=0 (staged view by view), --repeats times
 #       raster     `bench raster --vs ${VS:-reference}`, --raster-runs times
-#       profile    scripts/profiling.py train on --scene (300 warm-up steps, 30 profiled)
+#       profile    scripts/profiling.py train on --scene (PROFILE_WARMUP=300 warm-up steps, 30 profiled)
 #       fprofile   scripts/profiling.py frame --fused on the run      rprofile  scripts/profiling.py raster
 #       lr3m       scripts/profiling.py lr3m on --scene's first low-light photo
 #       bigphoto   `bench lr3m` on --scene's first photo resized to 3000x4000 (12 MP), on tiles (tile_memory_share=0),
@@ -418,7 +418,7 @@ print('gsplat ready')" > "$LOGS/gsplat_build.log" 2>&1; echo "gsplat JIT: exit $
     done
   fi
   if has profile; then
-    timeout 150 python3 scripts/profiling.py train "$scene" --steps 300 --profile 30 "${cfg[@]}" > "$OUT/profile.txt" 2>&1
+    timeout 150 python3 scripts/profiling.py train "$scene" --steps "${PROFILE_WARMUP:-300}" --profile 30 "${cfg[@]}" > "$OUT/profile.txt" 2>&1
     grep -v -i warn "$OUT/profile.txt" | head -4
   fi
   if has fprofile; then
