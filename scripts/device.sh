@@ -44,7 +44,8 @@
 #   train [JOB...]  trainings through `python -m retinexgs train`, JOB = NAME[:CONFIG[:SCENE[:SEED]]] (default
 #       `default`: configs/default.yaml on --scene fox-dark, --seed 0); prints each one's wall time, training
 #       seconds, Gaussians, PSNR / SSIM. Options: --jobs N (1: in turn; N side by side, e.g. the same seed twice
-#       for the run-to-run spread), --steps N, --set KEY=VALUE, --scene, --seed.
+#       for the run-to-run spread), --steps N, --set KEY=VALUE, --scene, --seed, --gpus G (job i on GPU i mod G: side by side
+#       on a machine of G GPUs, each alone on its card).
 #       -> train.txt (the summary), runs.tgz (metrics, configs, logs)
 #   speed [STAGE...]  timings (default stages: train fps trainspeed raster profile):
 #       train      a --scene training alone for each --seeds' first seed, the others side by side (wall time)
@@ -316,14 +317,15 @@ mode_bench() {
 
 # ------------------------------------------------------------------------------------------------------ train
 mode_train() {
-  JOBS=${JOBS:-1} STEPS=${STEPS:-} SCENE=${SCENE:-fox-dark} SEED=${SEED:-0}
-  parse "jobs steps scene seed" "$@"
+  JOBS=${JOBS:-1} STEPS=${STEPS:-} SCENE=${SCENE:-fox-dark} SEED=${SEED:-0} GPUS=${GPUS:-1}
+  parse "jobs steps scene seed gpus" "$@"
   local specs=("${ARGS[@]}"); [ ${#specs[@]} -gt 0 ] || specs=(default)
   setup; need_train_wheels; stage_data
   local extra=("${SETS[@]}"); [ -n "$STEPS" ] && extra+=(--set "steps=$STEPS")
-  local spec name cfg scene seed args
+  local spec name cfg scene seed args i=0
   mkdir -p /tmp/train
   for spec in "${specs[@]}"; do
+    i=$((i + 1))
     IFS=: read -r name cfg scene seed <<< "$spec"
     scene=${scene:-$SCENE}; seed=${seed:-$SEED}; need_scene "$scene"
     args=(); [ -n "$cfg" ] && args+=(--config "$cfg")
@@ -331,7 +333,8 @@ mode_train() {
     rm -rf "/tmp/train/$name"
     (
       t=$SECONDS
-      python3 -m retinexgs train --data "/tmp/data/$scene" --out "/tmp/train/$name" --device cuda --quiet \
+      CUDA_VISIBLE_DEVICES=$(( (i - 1) % GPUS )) python3 -m retinexgs train --data "/tmp/data/$scene" \
+        --out "/tmp/train/$name" --device cuda --quiet \
         "${args[@]}" --set "seed=$seed" "${extra[@]}" > "/tmp/train/$name.log" 2>&1
       echo "== $name (${cfg:-default}, $scene, seed $seed): exit $? in $(( SECONDS - t )) s wall"
       metrics "   $name" "/tmp/train/$name"

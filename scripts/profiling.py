@@ -4,7 +4,9 @@
     python scripts/profiling.py frame RUN [--frames 50] [--fused]
     python scripts/profiling.py raster [--repeats 10]
     python scripts/profiling.py ops [SCENE] [--device cpu|cuda] [--steps 300] [--profile 30] [--emulate-graphs]
+    python scripts/profiling.py syncs [SCENE] [--device cpu|cuda] [--steps 300] [--profile 100]
     python scripts/profiling.py lr3m IMAGE
+    python scripts/profiling.py ssim [--device cpu|cuda] [--shape 1,15,360,640] [--padding same|valid]
 
 Modes (each one's ``--help`` says more):
 
@@ -18,7 +20,11 @@ Modes (each one's ``--help`` says more):
   case and renderer: the wall time per forward and the CUDA kernels' total time per forward, largest first.
 - ``ops`` (CPU or GPU): counts the operators of training steps as the backends see them, per step and by name (a
   proxy for kernel launches; a small synthetic scene without SCENE). Run it on the CPU before and after a change.
+- ``syncs`` (CPU or GPU): host reads of tensor values (a sync each on the GPU) per training step, by the line that
+  made them and by the step's kind; the ordinary step should make none. On CUDA also torch's sync debug warnings.
 - ``lr3m`` (GPU): times LR3M variants on one image; prints the fastest setting as ``--set`` overrides.
+- ``ssim`` (CPU or GPU): SSIM's Gaussian filter, forward + backward, ours vs the 2-D depthwise reference and
+  candidates (channels as a batch, banded matrix products whole or in tiles, sums of shifted slices): time, ratio and largest difference.
 
 ``scripts/device.sh speed`` runs the GPU modes on the device machine (its stages profile, fprofile, rprofile, lr3m).
 """
@@ -30,7 +36,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Dict, List
+from typing import Dict, List, Optional, Tuple
 
 import torch
 
@@ -47,6 +53,9 @@ def profile_train(args: argparse.Namespace) -> None:
     with tempfile.TemporaryDirectory() as run:
         tr = Trainer(cfg, scene, Path(run), "cuda", progress=False, log=lambda s: None)
         tr.train(stop_after=args.steps)
+        # A session's last step always writes a checkpoint (~50 device->host copies, a disk write): not part of
+        # the step being measured, so the timed and profiled windows below write none (`syncs` mode: per step).
+        tr.save = lambda: None
         torch.cuda.synchronize()
         t0 = time.perf_counter()
         tr.train(stop_after=args.profile)
@@ -321,6 +330,58 @@ def count_ops(args: argparse.Namespace) -> None:
             print(f"  {count / n:8.2f}  {name}")
 
 
+# ---------------------------------------------------------------------------------------------------- syncs
+SYNCS_DOC = """Host reads of tensor values (each one a sync on the GPU) per training step, by call site.
+
+Without SCENE a small synthetic scene is generated (96x72, 4000 points). Trains ``--steps`` warm-up steps with
+the enhancement losses switched on half way (as the ``train`` mode does), then trains ``--profile`` more steps
+inside retinexgs.bench.syncs.SyncFinder: .item() .tolist() .cpu() .numpy() .to(cpu), bool/int/float/index of a
+tensor, nonzero / unique / masked_select / where(cond), repeat_interleave without output_size and boolean-mask
+indexing are counted by the project line that called them, per step of each kind: ordinary (should be none),
+first, check (logging / checkpoint), density (densify, prune, opacity reset), after_event (graph re-captures).
+On CUDA torch's sync debug mode ("warn") also counts the syncs torch sees inside operators (cuda-sync), and
+torch.profiler counts the CUDA runtime's synchronize calls of each step whoever made them (cuda-runtime: the
+rasterizer's pair count, read by the extension itself, is one a render). Exits 1 if an ordinary step read.
+"""
+
+
+def find_syncs(args: argparse.Namespace) -> int:
+    """Host reads per training step by call site (CPU or GPU); 1 if an ordinary step made any."""
+    from retinexgs.bench.syncs import SyncFinder
+    from retinexgs.run.config import load_config
+    from retinexgs.run.folder import open_scene
+    from retinexgs.train.trainer import Trainer
+
+    device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
+    cuda = device.startswith("cuda")
+    with tempfile.TemporaryDirectory() as tmp:
+        scene_path = args.scene
+        if scene_path is None:
+            from retinexgs.demo.synthetic import make_demo_scene
+            scene_path = make_demo_scene(Path(tmp) / "scene", n_train=6, n_test=1, width=96, height=72,
+                                         n_points=4000)
+        cfg = load_config(args.config, [f"loss.enhance_from={args.steps // 2}"] + args.overrides)
+        scene = open_scene(scene_path, cfg)
+        run = Path(tmp) / "run"
+        run.mkdir()
+        extra = {"emulate_graphs": True} if args.emulate_graphs else {}
+        tr = Trainer(cfg, scene, run, device, progress=False, log=lambda s: None, **extra)
+        tr.train(stop_after=args.steps)
+        # On CUDA nothing is ignored: the trainer's Adam is fused there (no step-count reads).
+        finder = SyncFinder(cuda_warn=cuda, ignore_via=() if cuda else ("torch/optim/",), cuda_profile=cuda)
+        unwatch = finder.watch_trainer(tr)
+        first = tr.step + 1
+        try:
+            with finder:
+                tr.train(stop_after=args.profile)
+        finally:
+            unwatch()
+        print(f"steps {first}..{tr.step} on {device}, {len(tr.model.gaussians)} Gaussians, "
+              f"config {args.config or ['default']} {args.overrides}")
+        finder.report()
+        return 1 if finder.ordinary() else 0
+
+
 # ----------------------------------------------------------------------------------------------------- lr3m
 def time_lr3m(args: argparse.Namespace) -> None:
     """LR3M variants on one image on the GPU; prints the fastest setting as KEY=VALUE overrides."""
@@ -341,6 +402,183 @@ def time_lr3m(args: argparse.Namespace) -> None:
         if best is None or dt < best[0]:
             best = (dt, params)
     print("BEST " + " ".join(f"--set decomposer.params.{k}={v}" for k, v in best[1].items()) + f" # {best[0]:.2f}")
+
+
+# ----------------------------------------------------------------------------------------------------- ssim
+def _const(key: tuple, build):
+    """A candidate's constant, built once (a captured CUDA graph cannot hold its host->device copy)."""
+    from retinexgs.evaluate.metrics import cached_constant
+
+    return cached_constant(("profiling.ssim",) + key, build)
+
+
+def _filter_2d(x: torch.Tensor, size: int, sigma: float, pad: int) -> torch.Tensor:
+    """SSIM's Gaussian filter as one depthwise 2-D convolution ([C,1,K,K]): the reference the 1-D passes match."""
+    import torch.nn.functional as F
+    from retinexgs.evaluate.metrics import gaussian_window
+
+    w = _const(("2d", x.shape[1], size, sigma, x.dtype, x.device), lambda: (
+        lambda g: (g[:, None] * g[None, :]).expand(x.shape[1], 1, size, size).contiguous())(
+        gaussian_window(size, sigma, x.dtype, x.device)))
+    return F.conv2d(x, w, padding=pad, groups=x.shape[1])
+
+
+def _filter_batched(x: torch.Tensor, size: int, sigma: float, pad: int) -> torch.Tensor:
+    """Candidate: the channels as the batch of a 1-channel conv (cuDNN rather than the depthwise kernel)."""
+    import torch.nn.functional as F
+    from retinexgs.evaluate.metrics import gaussian_window
+
+    b, c, h, w = x.shape
+    g = _const(("g", size, sigma, x.dtype, x.device), lambda: gaussian_window(size, sigma, x.dtype, x.device))
+    y = F.conv2d(x.reshape(b * c, 1, h, w), g.view(1, 1, 1, size), padding=(0, pad))
+    y = F.conv2d(y, g.view(1, 1, size, 1), padding=(pad, 0))
+    return y.reshape(b, c, *y.shape[-2:])
+
+
+def _filter_matmul(x: torch.Tensor, size: int, sigma: float, pad: int) -> torch.Tensor:
+    """Candidate: each 1-D pass as a product with a banded (Toeplitz) matrix (TF32 off: full float32)."""
+    from retinexgs.evaluate.metrics import gaussian_window
+
+    g = gaussian_window(size, sigma, x.dtype)
+
+    def band(n: int) -> torch.Tensor:  # [n, n + 2 pad - size + 1]: input index by output index
+        def build() -> torch.Tensor:
+            k = torch.arange(n)[:, None] - torch.arange(n + 2 * pad - size + 1) + pad
+            return torch.where((k >= 0) & (k < size), g[k.clamp(0, size - 1)], 0.0).to(x.device)
+        return _const(("band", n, size, sigma, pad, x.dtype, x.device), build)
+    y = x @ band(x.shape[-1])
+    return band(x.shape[-2]).t() @ y
+
+
+def _filter_tiled(x: torch.Tensor, size: int, sigma: float, pad: int, tile: int = 64) -> torch.Tensor:
+    """Candidate: each 1-D pass as products of overlapping tiles (tile + size - 1 inputs) with one small band
+    matrix [tile + size - 1, tile]: the matmul candidate's speed without its cost growing with the image width."""
+    import torch.nn.functional as F
+    from retinexgs.evaluate.metrics import gaussian_window
+
+    def build() -> torch.Tensor:
+        g = gaussian_window(size, sigma, x.dtype)
+        k = torch.arange(tile + size - 1)[:, None] - torch.arange(tile)
+        return torch.where((k >= 0) & (k < size), g[k.clamp(0, size - 1)], 0.0).to(x.device)
+    band = _const(("tile", tile, size, sigma, x.dtype, x.device), build)
+
+    def along_last(v: torch.Tensor) -> torch.Tensor:
+        n = v.shape[-1]
+        m = n + 2 * pad - size + 1
+        nt = -(-m // tile)
+        v = F.pad(v, (pad, nt * tile + size - 1 - n - pad))
+        return (v.unfold(-1, tile + size - 1, tile) @ band).flatten(-2)[..., :m]
+
+    return along_last(along_last(x).transpose(-1, -2)).transpose(-1, -2)
+
+
+def _ssim_one_call(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """The training SSIM with its five moments in one filter call (before x's and y's were split): the reference of
+    the bench's SSIM rows."""
+    from retinexgs.evaluate.metrics import gaussian_filter
+
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    mx, my, exx, eyy, exy = gaussian_filter(torch.cat([x, y, x * x, y * y, x * y], dim=1), 11, 1.5, 5).chunk(5, 1)
+    sxx, syy, sxy = exx - mx * mx, eyy - my * my, exy - mx * my
+    return (((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))).mean()
+
+
+def _time_step(step, cuda: bool, repeats: int) -> Tuple[float, Optional[float]]:
+    """Seconds per call of ``step`` (after warm-up) and, on CUDA, the GPU kernels' seconds per call (training
+    replays the losses as a CUDA graph, where launches cost little)."""
+    def sync() -> None:
+        if cuda:
+            torch.cuda.synchronize()
+
+    for _ in range(3):
+        step()
+    sync()
+    t0 = time.perf_counter()
+    for _ in range(repeats):
+        step()
+    sync()
+    wall = (time.perf_counter() - t0) / repeats
+    if not cuda:
+        return wall, None
+    with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CUDA]) as prof:
+        for _ in range(5):
+            step()
+        sync()
+    us = sum(getattr(e, "self_device_time_total", getattr(e, "self_cuda_time_total", 0))
+             for e in prof.key_averages() if e.device_type == torch.autograd.DeviceType.CUDA)
+    return wall, max(us / 5 * 1e-6, 1e-9)
+
+
+def time_ssim(args: argparse.Namespace) -> None:
+    """SSIM's Gaussian filter (the five moments' channels of one training view), forward + backward: ours
+    (retinexgs.evaluate.metrics.gaussian_filter) against the 2-D depthwise reference and candidates; per variant
+    the time per forward+backward, its ratio to the reference, and the largest difference from the reference.
+    Then the training SSIM itself (x learns, the target y is fixed): ours against the five moments in one call."""
+    from retinexgs.evaluate.metrics import _shifted_sums, gaussian_filter, ssim
+
+    device = torch.device(args.device)
+    cuda = device.type == "cuda"
+    if cuda:
+        torch.backends.cuda.matmul.allow_tf32 = False  # the matmul candidates must stay float32 to compare
+        torch.backends.cudnn.allow_tf32 = False
+    shape = tuple(int(s) for s in args.shape.split(","))
+    pad = args.window // 2 if args.padding == "same" else 0
+    variants = {"2d-reference": _filter_2d, "ours": gaussian_filter, "batched": _filter_batched,
+                "matmul": _filter_matmul, "shifted-sums": _shifted_sums, "tiled": _filter_tiled}
+    gen = torch.Generator().manual_seed(0)
+    x0 = torch.rand(shape, generator=gen, dtype=torch.float32).to(device)
+    grad = torch.rand(x0.shape[:2] + tuple(s - 2 * (args.window // 2 - pad) for s in x0.shape[-2:]),
+                      generator=gen).to(device)
+    print(f"gaussian filter {args.window}x{args.window} sigma {args.sigma} '{args.padding}' on {list(shape)} "
+          f"float32, {device}, forward + backward, {args.repeats} repeats"
+          + ("" if cuda else f" ({torch.get_num_threads()} threads)"))
+
+    def row(name: str, t: Tuple[float, Optional[float]], t_ref: Tuple[float, Optional[float]], err: float) -> None:
+        k = "" if t[1] is None else f"   kernels {t[1] * 1e3:7.3f} ms x{t_ref[1] / t[1]:5.2f}"
+        print(f"  {name:14s} {t[0] * 1e3:8.3f} ms x{t_ref[0] / t[0]:5.2f} vs reference{k}   max |diff| {err:.2e}",
+              flush=True)
+
+    ref = t_ref = None
+    for name, fn in variants.items():
+        x = x0.clone().requires_grad_(True)
+
+        def step(fn=fn, x=x):
+            out = fn(x, args.window, args.sigma, pad)
+            (gx,) = torch.autograd.grad(out, x, grad)
+            return out, gx
+
+        out, gx = step()
+        if ref is None:
+            ref = (out.detach(), gx.detach())
+        err = max((out - ref[0]).abs().max().item(), (gx - ref[1]).abs().max().item())
+        t = _time_step(step, cuda, args.repeats)
+        t_ref = t_ref or t
+        row(name, t, t_ref, err)
+
+    if shape[1] % 5 == 0 and args.padding == "same" and args.window == 11:
+        c = shape[1] // 5
+        print(f"training SSIM (11x11, 'same') of [{shape[0]},{c},{shape[2]},{shape[3]}], x learns, y fixed: "
+              "forward + backward")
+        x = x0[:, :c].clone().requires_grad_(True)
+        y = x0[:, c:2 * c].clone()
+        ref = t_ref = None
+        for name, fn in {"one-call": _ssim_one_call, "ours": lambda a, b: ssim(a, b)}.items():
+            def step(fn=fn):
+                out = fn(x, y)
+                (gx,) = torch.autograd.grad(out, x)
+                return out, gx
+
+            out, gx = step()
+            if ref is None:
+                ref = (out.detach(), gx.detach())
+            err = max((out - ref[0]).abs().max().item(), (gx - ref[1]).abs().max().item())
+            t = _time_step(step, cuda, args.repeats)
+            t_ref = t_ref or t
+            row(name, t, t_ref, err)
+        # A constant of the view that training makes again each step (issue 65: candidates beyond the filter).
+        from retinexgs.train.losses import noise_variance
+        t = _time_step(lambda: noise_variance(y), cuda, args.repeats)
+        print(f"  noise_variance(y) {t[0] * 1e3:8.3f} ms" + ("" if t[1] is None else f"   kernels {t[1] * 1e3:7.3f} ms"))
 
 
 # ----------------------------------------------------------------------------------------------------- main
@@ -386,13 +624,34 @@ def main(argv: List[str] | None = None) -> int:
                         "loss_graph and channel_graph, which are 3 graph launches on the GPU)")
     p.set_defaults(fn=count_ops)
 
+    p = sub.add_parser("syncs", help="host reads of tensor values per training step, by call site (CPU or GPU)",
+                       description=SYNCS_DOC, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("scene", type=Path, nargs="?", help="a scene folder (default: a small synthetic scene)")
+    p.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
+    p.add_argument("--steps", type=int, default=300, help="warm-up steps before the counted ones (default 300)")
+    p.add_argument("--profile", type=int, default=100, help="counted steps (default 100)")
+    p.add_argument("--config", action="append", default=[])
+    p.add_argument("--set", action="append", default=[], dest="overrides")
+    p.add_argument("--emulate-graphs", action="store_true",
+                   help="CPU: run the CUDA-graph path of the step eagerly")
+    p.set_defaults(fn=find_syncs)
+
     p = sub.add_parser("lr3m", help="time LR3M variants on one image (GPU)", description=time_lr3m.__doc__)
     p.add_argument("image", type=Path, help="e.g. a low-light photo of fox-dark")
     p.set_defaults(fn=time_lr3m)
 
+    p = sub.add_parser("ssim", help="SSIM's Gaussian filter, ours vs the 2-D reference, forward + backward",
+                       description=time_ssim.__doc__)
+    p.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
+    p.add_argument("--shape", default="1,15,360,640", help="B,C,H,W of the filtered moments (default 1,15,360,640)")
+    p.add_argument("--window", type=int, default=11)
+    p.add_argument("--sigma", type=float, default=1.5)
+    p.add_argument("--padding", choices=["same", "valid"], default="same", help="'same' as training (default)")
+    p.add_argument("--repeats", type=int, default=20)
+    p.set_defaults(fn=time_ssim)
+
     args = ap.parse_args(argv)
-    args.fn(args)
-    return 0
+    return args.fn(args) or 0
 
 
 if __name__ == "__main__":

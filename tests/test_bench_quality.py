@@ -256,3 +256,34 @@ def test_linear_colour_table_splits_the_colour_error(tmp_path):
     light, floor = md.split("The tone's own cost")[0], md.split("luminance, and of the truth in linear light.")[1]
     assert f"| `default` | 1.00 ± {math.sqrt(0.5):.2f} |" in light and "light alone" in light
     assert "| `default` | 2.25 ± 0.00 |" in floor
+
+
+def test_raw_ladder_800e_rung_has_its_stated_noise_and_bit_depth(tmp_path):
+    """--raw-ladder 800e: 12-bit DNGs whose noise, measured on flat patches, is the rung's Poisson-Gaussian model:
+    variance of x = (DN - black)/(white - black) = x/800 + (6/800)^2 (+ the rounding to whole DN)."""
+    from retinexgs.data.camera_raw import normalised_mosaic, read_raw
+
+    assert "800e" in [label for label, _, _ in quality.NOISE_LADDER]
+    src = tmp_path / "flat"
+    (src / "high").mkdir(parents=True)
+    levels = (0.0, 0.35, 0.55, 0.75, 0.95)  # sRGB grey of each band; 0 holds read noise only
+    band = 32
+    img = np.concatenate([np.full((192, band, 3), v) for v in levels], axis=1)
+    Image.fromarray(np.round(img * 255).astype(np.uint8)).save(src / "high" / "0000.png")
+    out = quality.raw_ladder_scenes([src], tmp_path / "ladder", exposure=0.5, levels=["800e"])
+    assert [p.name for p in out] == ["flat@800e-raw", "flat@800e-jpeg"]
+    photo = read_raw(out[0] / "low" / "0000.dng")
+    assert photo.white_level == 2 ** 12 - 1
+    x = normalised_mosaic(photo).astype(np.float64)
+    means, variances = [], []
+    for b in range(len(levels)):
+        for i in range(2):
+            for j in range(2):
+                patch = x[i::2, b * band + 2 + j:(b + 1) * band - 2:2]  # away from the band's edges (demosaic-free)
+                means.append(patch.mean())
+                variances.append(patch.var(ddof=1))
+    a, b0 = np.polyfit(means, variances, 1)
+    span = photo.white_level - float(photo.black_level.mean())
+    assert a == pytest.approx(1 / 800, rel=0.12), (a, means, variances)
+    assert b0 == pytest.approx((6 / 800) ** 2 + 1 / (12 * span ** 2), rel=0.25), b0
+    assert max(means) > 0.1  # the bright bands are well above the read noise: the slope is measured

@@ -12,6 +12,7 @@ import pytest
 import torch
 import yaml
 
+from retinexgs.config import FORMAT
 from retinexgs.data.capture import PHOTO, RAW, Capture, PhotoCapture, RawCapture, capture_of_files
 from retinexgs.demo.synthetic import make_demo_scene
 from retinexgs.run.config import load_config
@@ -86,9 +87,10 @@ def test_a_raw_scene_s_capture_is_raw_and_a_jpeg_scene_s_photo(night, tmp_path):
 
 def _as_format_1(run: Path) -> None:
     """Rewrite a run folder as format 1 wrote it: the raw keys under their old names (with values unlike today's
-    defaults), in config.yaml and in the checkpoints."""
+    defaults, but loss.rec_raw_model_error at its default: format 3 deleted it, and drops it silently there), in
+    config.yaml and in the checkpoints."""
     old = {"decomposer": {"raw_denoise": False}, "model": {"enhancement": {"shoulder_raw": 0.7}},
-           "loss": {"rec_raw": "relative", "rec_raw_model_error": 0.02, "rec_raw_unit": "sigma",
+           "loss": {"rec_raw": "relative", "rec_raw_model_error": 0.0, "rec_raw_unit": "sigma",
                     "rec_raw_prior_snr": 1.5, "spa_raw": "extended"}}
 
     def back(recorded: dict) -> dict:  # plain data as written, not a Config
@@ -99,7 +101,7 @@ def _as_format_1(run: Path) -> None:
         return recorded
 
     data = yaml.safe_load((run / "config.yaml").read_text())
-    assert data["format"] == 2
+    assert data["format"] == FORMAT
     data = back(data)
     data["format"] = 1
     (run / "config.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
@@ -120,7 +122,8 @@ def test_a_format_1_run_with_the_old_raw_keys_reads_them_in_their_new_places_and
     cfg, _ = read_run_config(run, lines.append)
     assert (cfg.decomposer.raw.preview_denoise, cfg.model.enhancement.raw.shoulder) == (False, 0.7)
     r = cfg.loss.raw
-    assert (r.mode, r.model_error, r.unit, r.prior_snr, r.spa) == ("relative", 0.02, "sigma", 1.5, "extended")
+    assert (r.mode, r.unit, r.prior_snr, r.spa) == ("relative", "sigma", 1.5, "extended")
+    assert not hasattr(r, "model_error")  # format 3 dropped it (its default)
     assert lines == []  # moved, not filled: nothing predates a key
     assert load_run(run, "cpu")[2].shoulder == 0.7  # the raw scene's knee, read from its old key
     code, out, err = run_cli(["eval", "--run", run, "--device", "cpu"], capsys)
@@ -129,23 +132,23 @@ def test_a_format_1_run_with_the_old_raw_keys_reads_them_in_their_new_places_and
                              capsys)
     assert code == 0, err
     written = yaml.safe_load((run / "config.yaml").read_text())  # rewritten in today's format
-    assert written["format"] == 2 and written["loss"]["raw"]["mode"] == "relative"
+    assert written["format"] == FORMAT and written["loss"]["raw"]["mode"] == "relative"
     assert written["model"]["enhancement"]["raw"]["shoulder"] == 0.7 and "rec_raw" not in written["loss"]
 
 
-def test_a_format_3_run_folder_is_refused_in_one_line(night, tmp_path, capsys):
+def test_a_run_folder_of_a_newer_format_is_refused_in_one_line(night, tmp_path, capsys):
     from retinexgs.run.checkpoint import save_checkpoint
     from retinexgs.run.folder import write_run_config
     run = tmp_path / "run"
     run.mkdir()
     write_run_config(run, load_config(), night / "raw")
     data = yaml.safe_load((run / "config.yaml").read_text())
-    data["format"] = 3
+    data["format"] = FORMAT + 1
     (run / "config.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
     save_checkpoint(run, 1, {"step": 1, "model": {}})
     code, out, err = run_cli(["eval", "--run", run, "--device", "cpu"], capsys)
     assert code == 2, (code, out, err)
-    assert "is in run format 3, newer than this retinexgs reads (format 2)" in err
+    assert f"is in run format {FORMAT + 1}, newer than this retinexgs reads (format {FORMAT})" in err
     assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
 
 

@@ -166,18 +166,6 @@ def test_densification_decides_alike_on_every_rank(two_ranks):
     assert metrics["train"]["gaussians"] == events[-1]["gaussians"] == len(final_state(two_ranks)["model"]["gaussians.means"])
 
 
-def test_noise_aware_densification_decides_alike_on_every_rank(scene, tmp_path):
-    """density.noise_aware: each rank probes its own view's noise (its own random stream); the probe's statistics
-    are summed over the ranks with the others, so both ranks still split and prune the same Gaussians."""
-    run = tmp_path / "run"
-    res, _ = torchrun(train_args(scene, run, ["density.noise_aware=true"]))
-    assert res.returncode == 0, res.stdout + res.stderr
-    events = [r for r in map(json.loads, (run / "train_log.jsonl").read_text().splitlines()) if "event" in r]
-    assert [e["step"] for e in events] == [4]
-    assert "noise: median share" in events[0]["event"]  # the probe ran before the densification
-    assert all(e["ranks_agree"] is True for e in events)
-
-
 def test_a_two_rank_checkpoint_resumes_on_one_rank_and_exports(two_ranks, one_rank_two_views, tmp_path, capsys):
     # 2 -> 1: resumed from step 3 on one rank taking both views of a step, it trains what 2 ranks trained.
     run = without_last_checkpoint(two_ranks, tmp_path / "resumed")

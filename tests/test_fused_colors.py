@@ -183,10 +183,9 @@ def test_wide_fields_are_reported_unsupported():
 MODEL_CFG = {"sh_degree": 3, "sh_degree_every": 0.1, "init_opacity": 0.1, "max_init_points": 100000,
              "near_fraction": 0.0, "near_in_training": True,
              "illumination": {"pos_freqs": 10, "dir_freqs": 4, "hidden": 64, "depth": 3, "dir_hidden": 32,
-                              "init_value": 0.1, "view_dependent": True, "leak": 0.0},
+                              "init_value": 0.1, "view_dependent": True},
              "enhancement": {"gamma_range": [0.1, 1.0], "init_gamma": 0.45, "per_channel": False,
-                             "per_view": True, "ref_quantile": 1.0, "raw": {"shoulder": None}, "debias_black": False,
-                             "black_filter": 0}}
+                             "per_view": True, "ref_quantile": 1.0, "raw": {"shoulder": None}}}
 
 
 def make_model(decomposed=True, per_channel=False, illumination=None, n=400, dtype=torch.float32,

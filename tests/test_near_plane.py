@@ -131,7 +131,7 @@ def test_a_run_from_before_the_key_renders_as_it_did(tiny_run, tmp_path):
     raw = yaml.safe_load((old / "config.yaml").read_text())
     cfg_part = raw.get("config", raw)
     del cfg_part["model"]["near_fraction"], cfg_part["model"]["near_in_training"]
-    assert raw.pop("format") == 2  # written today; a run from before the key had no format (format 0)
+    assert raw.pop("format") == 3  # written today; a run from before the key had no format (format 0)
     (old / "config.yaml").write_text(yaml.safe_dump(raw))
     ckpt = sorted((old / "checkpoints").glob("step_*.pt"))[-1]
     state = torch.load(ckpt, weights_only=False)

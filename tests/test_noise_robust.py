@@ -180,95 +180,6 @@ def test_the_cap_changes_training_on_a_noisy_capture(scenes, tmp_path):
     assert not torch.equal(states[0], states[1])
 
 
-# ---- density.noise_aware: the noise probe and the densification statistic ---------------------------------------
-def test_noise_share_is_the_noise_part_of_the_gradient_energy():
-    from retinexgs.strategy import noise_share
-    t = lambda *v: torch.tensor(v, dtype=torch.float32)  # noqa: E731
-    share = noise_share(grad_sq=t(8.0, 8.0, 2.0, 5.0, 0.0), count=t(2, 2, 2, 0, 1),
-                        noise_sq=t(1.0, 0.0, 9.0, 1.0, 1.0), noise_count=t(1, 3, 1, 1, 1))
-    # 1/4 of a mean energy of 4; none; more than all (clamped); never seen by the training; no training gradient
-    torch.testing.assert_close(share, t(0.25, 0.0, 1.0, 0.0, 0.0))
-
-
-@pytest.mark.parametrize("aware", [False, True])
-def test_densification_statistic_keeps_the_gradient_the_noise_does_not_explain(aware):
-    from retinexgs.strategy import DefaultStrategy
-    from retinexgs.model.schedule import build_schedule
-    cfg = load_config([], [f"density.noise_aware={str(aware).lower()}"])
-    d = DefaultStrategy(cfg.density, 1.0, build_schedule(cfg))
-    d._ensure(3, torch.device("cpu"))
-    d.grad_accum += torch.tensor([4.0, 4.0, 4.0])
-    d.grad_sq += torch.tensor([16.0, 16.0, 16.0])
-    d.count += 2
-    d.noise_sq += torch.tensor([0.0, 6.0, 100.0])  # no noise; 6 / (16 / 2) = 3/4 of the energy; all of it
-    d.noise_count += torch.tensor([1.0, 1.0, 1.0])
-    want = torch.tensor([2.0, 1.0, 0.0]) if aware else torch.tensor([2.0, 2.0, 2.0])
-    torch.testing.assert_close(d.densification_statistic(), want)
-
-
-def _probe(a=1 / 300, b=(8 / 300) ** 2, seed=0):
-    return N.NoiseProbe(N.CaptureNoise((a,) * 3, (b,) * 3, (1.0,), (0.0,), 1), torch.device("cpu"), seed)
-
-
-def test_the_probe_sees_no_gradient_without_noise_and_leaves_the_random_stream_alone():
-    image = torch.rand(24, 32, 6, dtype=torch.float64) * 0.8 + 0.1
-    gain = torch.tensor(4.0, dtype=torch.float64)
-    before = torch.get_rng_state()
-    g0 = _probe(0.0, 0.0).image_gradient(image, gain, 0.2, 1.0)
-    assert g0.abs().max() < 1e-9  # the render is the noise-free photo: SSIM is at its maximum
-    g = _probe().image_gradient(image, gain, 0.2, 1.0)
-    assert torch.equal(torch.get_rng_state(), before)
-    assert g.abs().max() > 1e-5
-    torch.testing.assert_close(_probe(seed=3).image_gradient(image, gain, 0.2, 1.0),
-                               _probe(seed=3).image_gradient(image, gain, 0.2, 1.0), rtol=0, atol=0)
-
-
-def test_the_probe_draws_the_capture_noise():
-    probe = _probe(a=2e-3, b=1e-4)
-    clean = torch.full((1, 3, 200, 200), 0.5)
-    lin = lambda x: torch.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)  # noqa: E731
-    diff = lin(probe.noisy(clean)) - lin(clean)
-    m = float(lin(torch.tensor(0.5)))
-    assert float(diff.std()) == pytest.approx(math.sqrt(2e-3 * m + 1e-4), rel=0.03)
-    assert abs(float(diff.mean())) < 3e-3
-
-
-def test_the_probe_gradient_is_the_backward_of_the_ssim_against_a_noisy_render(scenes, tmp_path):
-    from retinexgs.evaluate.metrics import ssim
-    from retinexgs.train.losses import exposed
-    tr = _trainer(scenes[0], tmp_path / "run", ["density.noise_aware=true"])
-    assert tr.noise.noise_probe is not None
-    tv, gain = tr.views[0], tr.objective.rec_gain()
-    res = tr.render_view(tv, 1, graphed=False)
-    tr.noise.noise_probe.generator.manual_seed(5)
-    g = tr.noise.noise_probe.means2d_gradient(res["out"], gain, 0.2, 1.0)
-    res["out"].image.sum().backward()  # the render's graph survives the probe for the step's own backward
-    out = tr.render_view(tv, 1, graphed=False)["out"]
-    tr.noise.noise_probe.generator.manual_seed(5)
-    rec = (out.image[..., :3] * out.image[..., 3:6]).permute(2, 0, 1).unsqueeze(0)
-    target = tr.noise.noise_probe.noisy(rec.detach())
-    (0.2 * (1.0 - ssim(exposed(rec, gain), exposed(target, gain)))).backward()
-    assert g.abs().sum() > 0
-    torch.testing.assert_close(g, out.means2d.grad, rtol=1e-4, atol=1e-9)
-
-
-def test_training_probes_the_noise_of_a_noisy_capture_more_than_of_a_clean_one(scenes, tmp_path):
-    extra = ["density.noise_aware=true", "steps=20", "density.start=0", "density.stop=10", "density.every=5",
-             "checkpoint.every=100"]
-    shares = []
-    for k, scene in enumerate(scenes):
-        tr = _trainer(scene, tmp_path / f"run{k}", extra)
-        tr.train(stop_after=4)
-        d = tr.strategy
-        assert float(d.noise_count.sum()) > 0 and float(d.grad_sq.sum()) > 0
-        seen = (d.count > 0) & (d.noise_count > 0)
-        from retinexgs.strategy import noise_share
-        shares.append(float(noise_share(d.grad_sq, d.count, d.noise_sq, d.noise_count)[seen].median()))
-        tr.train()  # densifies on the statistic through the end of the run
-        assert all(torch.isfinite(p).all() for p in tr.model.parameters())
-    assert shares[0] > 2 * shares[1], shares
-
-
 def _local_sigma(n):
     """The noise σ that SSIM's window sees in a noise field n [1,C,H,W]: its Gaussian-weighted (σ 1.5 px, 11 px)
     local variance, averaged over the image; the largest channel."""
@@ -304,19 +215,6 @@ def test_the_exposed_noise_is_measured_as_ssim_sees_it_through_jpeg(full_well, r
     assert pixel < 0.6 * truth  # what the pixel scale alone read (the cap this replaced)
 
 
-def test_a_checkpoint_from_before_the_squared_statistics_resumes():
-    """Density state written before grad_sq / noise_sq existed: they restart at zero, the old sums are kept."""
-    from retinexgs.strategy import DefaultStrategy
-    from retinexgs.model.schedule import build_schedule
-    cfg = load_config([], ["density.noise_aware=true"])
-    d = DefaultStrategy(cfg.density, 1.0, build_schedule(cfg))
-    d.load_state_dict({"grad_accum": torch.tensor([1.0, 2.0]), "count": torch.tensor([1.0, 1.0]),
-                       "max_radius": torch.tensor([3.0, 4.0])}, torch.device("cpu"))
-    assert torch.equal(d.grad_sq, torch.zeros(2)) and torch.equal(d.noise_count, torch.zeros(2))
-    torch.testing.assert_close(d.densification_statistic(), torch.tensor([1.0, 2.0]))  # no noise measured yet
-    assert set(d.state_dict()) == {"grad_accum", "count", "grad_sq", "noise_sq", "noise_count", "max_radius"}
-
-
 @pytest.mark.parametrize("scale", [1, 2])
 def test_the_trainer_measures_the_noise_at_the_configured_scale(scenes, tmp_path, monkeypatch, scale):
     seen = {}
@@ -339,105 +237,9 @@ def test_a_bad_noise_scale_is_refused_by_name():
         load_config([], ["loss.rec_noise_scale=0"])
 
 
-def test_a_resume_draws_the_probe_noise_where_the_run_stopped(scenes, tmp_path):
-    extra = ["density.noise_aware=true", "steps=20", "density.start=0", "density.stop=10", "density.every=5",
-             "checkpoint.every=4"]
-    tr = _trainer(scenes[0], tmp_path / "run", extra)
-    tr.train(stop_after=4)
-    saved = load_checkpoint(latest_checkpoint(tmp_path / "run"))["noise_probe_rng"]
-    assert torch.equal(saved, tr.noise.noise_probe.generator.get_state())
-    fresh = _trainer(scenes[0], tmp_path / "other", extra).noise.noise_probe.generator.get_state()
-    assert not torch.equal(saved, fresh)  # the probe drew noise in those steps
-    resumed = _trainer(scenes[0], tmp_path / "run", extra, resume=True)
-    assert torch.equal(resumed.noise.noise_probe.generator.get_state(), saved)
-
-
-# ---- model.enhancement.debias_black: the tone takes the clipped noise's mean out of R̂∘L̂ -------------------------
-
-def test_black_table_without_noise_is_the_srgb_decoding():
-    from retinexgs.model.tone import black_table, scene_linear, srgb_to_linear
-    y = torch.rand(4, 9, 3, generator=torch.Generator().manual_seed(0))
-    assert float((scene_linear(y, black_table()) - srgb_to_linear(y)).abs().max()) < 1e-6
-
-
-def test_black_table_inverts_the_cameras_mean_record():
-    """A render that matches the photos' mean (the clipped, encoded noise's mean, camera_mean) is read back as the
-    light that made it; below the record of black, as black. 1000 e- full well, read noise 6 e- (the ladder's
-    noisiest level)."""
-    from retinexgs.model.tone import black_table, camera_mean, linear_to_srgb, scene_linear
-    a, b = torch.tensor([1e-3, 1e-3, 2e-3]), torch.tensor([3.6e-5, 3.6e-5, 7.2e-5])
-    table = black_table(a, b)
-    mu = torch.tensor([0.0, 3e-4, 1e-3, 3e-3, 1e-2, 5e-2, 0.2, 0.6]).reshape(-1, 1).expand(-1, 3)
-    record = camera_mean(linear_to_srgb(mu), a, b)
-    assert float(record[0, 0]) > 0.02  # black is recorded far above black: what the table undoes
-    back = scene_linear(record, table)
-    torch.testing.assert_close(back, mu, atol=2e-5, rtol=2e-3)
-    below = scene_linear(record[:1] * 0.5, table)
-    assert float(below.abs().max()) < 1e-5
-
-
-def test_scene_linear_through_a_table_has_the_interpolations_gradient():
-    from retinexgs.model.tone import black_table, scene_linear
-    table = black_table([1e-3] * 3, [3.6e-5] * 3).double()
-    n = table.shape[-1]
-    idx = torch.tensor([[40, 700, 2000], [90, 1500, 3900]], dtype=torch.float64)
-    y = ((idx + 0.5) / (n - 1)).requires_grad_(True)  # between knots: the interpolation is smooth there
-    assert torch.autograd.gradcheck(lambda v: scene_linear(v, table), (y,), eps=1e-7, atol=1e-6)
-
-
-def test_tone_map_with_the_table_puts_the_noise_floor_at_black():
-    from retinexgs.model.tone import black_table, camera_mean, tone_map
-    a, b = torch.full((3,), 1e-3), torch.full((3,), 3.6e-5)
-    floor = camera_mean(torch.zeros(1, 3), a, b)  # the average record of black
-    R, L = floor / 0.5, torch.full((1, 3), 0.5)
-    ref, g = torch.tensor(0.5), torch.tensor([0.4])
-    lifted = tone_map(R, L, ref, g, "exposure", shoulder=0.5)[0]
-    fixed = tone_map(R, L, ref, g, "exposure", shoulder=0.5, noise=black_table(a, b))[0]
-    assert float(lifted.min()) > 0.2 and float(fixed.max()) < 0.01
-
-
-def test_debias_black_trains_with_the_measured_noise_and_resumes(scenes, tmp_path):
-    from retinexgs.model.tone import black_table
-    tr = _trainer(scenes[0], tmp_path / "run", ["model.enhancement.debias_black=true"])
-    noise = tr.noise.capture_noise
-    assert noise is not None and tr.model.tone_noise() is tr.model.black_table
-    torch.testing.assert_close(tr.model.black_table, black_table(noise.a, noise.b))
-    assert not torch.allclose(tr.model.black_table, black_table())  # a noisy capture: not the identity
-    tr.train(stop_after=2)
-    saved = load_checkpoint(latest_checkpoint(tmp_path / "run"))["model"]["black_table"]
-    torch.testing.assert_close(saved, tr.model.black_table)
-    resumed = _trainer(scenes[0], tmp_path / "run", ["model.enhancement.debias_black=true"], resume=True)
-    resumed.train()
-    off = _trainer(scenes[0], tmp_path / "off")
-    assert off.model.tone_noise() is None and not hasattr(off.model, "black_table")
-
-
-def test_black_filter_reads_the_noise_over_the_training_views_and_is_checkpointed(scenes, tmp_path):
-    """model.enhancement.black_filter: ε of the filter before the black table is the capture's noise (a, b at the
-    training images' scale) over the number of training views, set at set-up and carried by the checkpoint."""
-    extra = ["model.enhancement.debias_black=true", "model.enhancement.black_filter=2"]
-    tr = _trainer(scenes[0], tmp_path / "run", extra)
-    noise, views = tr.noise.capture_noise, len(tr.scene.train)
-    expected = torch.tensor([noise.a, noise.b], dtype=torch.float32) / views
-    assert views == 3 and float(expected.min()) > 0
-    torch.testing.assert_close(tr.model.black_spread, expected)
-    tr.train(stop_after=2)
-    saved = load_checkpoint(latest_checkpoint(tmp_path / "run"))["model"]["black_spread"]
-    torch.testing.assert_close(saved, expected)
-    # the enhanced frame is the filtered reading: not the unfiltered one of the same maps
-    from retinexgs.run.render import view_camera
-    with torch.no_grad():
-        res = tr.model.render(view_camera(tr.scene.test[0]), 0)
-        tr.model.black_filter = 0
-        unfiltered = tr.model.tone_map(res["R"], res["L"], res["gamma"])[0]
-    assert float((res["rgb"] - unfiltered).abs().max()) > 1e-4
-    off = _trainer(scenes[0], tmp_path / "off", ["model.enhancement.debias_black=true"])
-    assert not hasattr(off.model, "black_spread")
-
-
 def test_the_camera_s_mean_record_uses_the_noise_before_the_downscale():
-    """A d×d average divides the noise's variance by d², not the mean of noise clipped at black: the SSIM cap and
-    the probe read the averaged noise, the camera's mean record (black table, camera expectation) the captured."""
+    """A d×d average divides the noise's variance by d², not the mean of noise clipped at black: the SSIM cap
+    reads the averaged noise, the camera's mean record (camera expectation) the captured."""
     meter = N.NoiseMeter()
     for s in range(2):
         meter.add(_photo(SensorModel(exposure=0.03, exposure_jitter=0, full_well=1000.0, read_noise=6.0,

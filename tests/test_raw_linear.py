@@ -94,7 +94,7 @@ def test_supervision_loss_uses_the_linear_term_for_the_reconstruction_only():
     ssim = losses.ssim(losses.exposed(rec, gain), losses.exposed(S, gain, extended=True))
     want = 0.8 * losses.linear_reconstruction(rec, S, t, gain) + 0.2 * (1 - ssim)
     assert torch.allclose(lin["sup_rec"], want, atol=1e-6)
-    alone = losses.reconstruction_loss(rec, S, 0.2, 0.0, gain, False, linear=t)
+    alone = losses.reconstruction_loss(rec, S, 0.2, gain, False, linear=t)
     assert torch.allclose(alone, want, atol=1e-6)
 
 
@@ -293,22 +293,6 @@ def test_a_raw_scene_s_views_are_stored_as_float16_and_stream_as_they_preload(ni
         assert torch.equal(a.S.half().float(), a.S)
 
 
-def test_the_model_error_turns_the_weights_into_the_display_s_without_noise_and_leaves_them_with_it():
-    from retinexgs.data.srgb import linear_to_srgb as enc
-    x = torch.rand(1, 3, 6, 6, dtype=torch.float64) * 0.05 + 1e-3
-    gain = torch.tensor(15.0, dtype=torch.float64)
-    quiet = _target("noise", a=(0.0, 0.0, 0.0), b=(1e-12, 1e-12, 1e-12))._replace(model_error=0.02)
-    w = losses.linear_weights(x, quiet, gain)
-    xs = (gain * x).clone().requires_grad_(True)
-    enc(xs, clip=False).sum().backward()
-    display = xs.grad ** 2  # the sRGB slope², as autograd gives it
-    assert torch.allclose(w, display / display.mean(), rtol=1e-4)  # (b = 1e-12 moves them by 1e-5)
-    loud = _target("noise", a=(0.01, 0.01, 0.01), b=(1e-3, 1e-3, 1e-3))
-    plain = losses.linear_weights(x, loud, gain)
-    mixed = losses.linear_weights(x, loud._replace(model_error=1e-4), gain)
-    assert torch.allclose(plain, mixed, rtol=1e-3)
-
-
 def test_the_sigma_unit_pulls_a_pixel_at_one_sigma_with_force_one_and_keeps_the_weights_ratios():
     """loss.raw.unit sigma: Σ w·e² / (2·sqrt(mean w)) per image, w = 1 / var of the exposed error: on an image
     of one noise level σ the force on the exposed error at e = σ is 1 (an L1's), where plain's is 2σ; between
@@ -404,7 +388,7 @@ def test_a_raw_run_trains_and_renders_with_its_knee_and_a_run_from_before_the_ke
     path = tmp_path / "raw" / "config.yaml"
     recorded = yaml.safe_load(path.read_text())
     del recorded["model"]["enhancement"]["raw"]
-    assert recorded.pop("format") == 2  # written today; a run from before the key had no format (format 0)
+    assert recorded.pop("format") == 3  # written today; a run from before the key had no format (format 0)
     path.write_text(yaml.safe_dump(recorded))
     assert load_run(tmp_path / "raw", "cpu")[2].shoulder == 0.5
 

@@ -304,7 +304,7 @@ def test_a_run_older_than_a_key_gets_the_behaviour_it_was_trained_with(run):
     default tone."""
     from retinexgs.run.folder import read_run_config
     raw = recorded(run)
-    assert raw.pop("format") == 2  # a run made today records its format; one without is format 0 (before formats)
+    assert raw.pop("format") == 3  # a run made today records its format; one without is format 0 (before formats)
     assert raw["model"]["enhancement"]["tone"] == "exposure"  # a run made today records it
     assert raw["loss"]["w_depth"] == 0.3
     assert raw["loss"]["rec_domain"] == "exposed_ssim"
@@ -317,7 +317,6 @@ def test_a_run_older_than_a_key_gets_the_behaviour_it_was_trained_with(run):
     del raw["loss"]["w_depth"]
     del raw["loss"]["depth_edge"]
     del raw["loss"]["rec_domain"]
-    del raw["loss"]["rec_huber"]
     assert raw["loss"]["exp_highlight_share"] == 0.05 and raw["train"]["momentum_batch_scaling"] == "power"
     assert raw["train"]["views_pinned_gb"] == 4.0
     del raw["loss"]["exp_highlight_share"]
@@ -331,14 +330,13 @@ def test_a_run_older_than_a_key_gets_the_behaviour_it_was_trained_with(run):
     assert cfg.model.enhancement.per_view is True  # unchanged default: filled from default.yaml
     assert cfg.loss.depth_edge == 10.0
     assert cfg.loss.rec_domain == "photo"  # trained with the reconstruction term on the dark values
-    assert cfg.loss.rec_huber == 0.0
     assert cfg.model.background == "black"  # rendered over black: no background buffer in its checkpoints
     assert cfg.model.enhancement.shoulder == 1.0  # its highlights clipped
     assert cfg.loss.exp_highlight_share == 0.0  # metered by the average alone
     assert cfg.train.momentum_batch_scaling == "none"  # torch's betas whatever the batch
     assert cfg.train.views_pinned_gb == 4.0  # no effect on the numbers: today's default
     for key in ("model.enhancement.tone", "model.enhancement.per_view", "loss.w_depth", "loss.depth_edge",
-                "loss.rec_domain", "loss.rec_huber", "model.background", "model.enhancement.shoulder",
+                "loss.rec_domain", "model.background", "model.enhancement.shoulder",
                 "loss.exp_highlight_share", "train.momentum_batch_scaling", "train.views_pinned_gb"):
         assert key in lines[0]
 

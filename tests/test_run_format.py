@@ -31,7 +31,7 @@ def _write(run, data: dict) -> None:
 
 
 def test_one_migration_a_format_step():
-    assert FORMAT == 2 and len(CONFIG_MIGRATIONS) == len(CHECKPOINT_MIGRATIONS) == FORMAT
+    assert FORMAT == 3 and len(CONFIG_MIGRATIONS) == len(CHECKPOINT_MIGRATIONS) == FORMAT
 
 
 def test_a_format_1_run_is_written_with_its_format_and_round_trips(tmp_path):
@@ -54,7 +54,7 @@ def test_a_format_0_run_gets_the_values_runs_had_before_the_keys(tmp_path):
     for key in changed:  # the format-0 values name keys as format 1 did: today's place after the 1 -> 2 move
         _drop(data, RAW_KEYS_1_TO_2.get(key, key))
     del data["train"]
-    _drop(data, "loss.rec_huber")  # not in the migration: today's default is what older runs did
+    _drop(data, "loss.depth_edge")  # not in the migration: today's default is what older runs did
     data["scene"] = str(tmp_path)
     _write(tmp_path, data)
     lines = []
@@ -67,9 +67,9 @@ def test_a_format_0_run_gets_the_values_runs_had_before_the_keys(tmp_path):
         assert node == old, key
     assert cfg.model.enhancement.tone == "illumination" and cfg.loss.w_depth == 0.0  # not today's defaults
     assert cfg.train.momentum_batch_scaling == "none"  # inside the missing section: the old value too
-    assert cfg.loss.rec_huber == load_config().loss.rec_huber
+    assert cfg.loss.depth_edge == load_config().loss.depth_edge
     assert cfg.train.views_pinned_gb == load_config().train.views_pinned_gb
-    assert len(lines) == 1 and "predates config keys" in lines[0] and "loss.rec_huber" in lines[0]
+    assert len(lines) == 1 and "predates config keys" in lines[0] and "loss.depth_edge" in lines[0]
     assert "model.enhancement.tone" in lines[0] and "train" in lines[0]
     # a run written by today's code with the same values reads back the same: the migration ran once, at format 0
     write_run_config(tmp_path, cfg, tmp_path)
@@ -77,9 +77,9 @@ def test_a_format_0_run_gets_the_values_runs_had_before_the_keys(tmp_path):
 
 
 @pytest.mark.parametrize("fmt, expect", [
-    (3, "is in run format 3, newer than this retinexgs reads (format 2)"),
-    ("one", "format must be a whole number 0..2, got 'one'"),
-    (-1, "format must be a whole number 0..2, got -1"),
+    (4, "is in run format 4, newer than this retinexgs reads (format 3)"),
+    ("one", "format must be a whole number 0..3, got 'one'"),
+    (-1, "format must be a whole number 0..3, got -1"),
 ])
 def test_a_newer_or_malformed_run_format_is_refused_in_one_line(tmp_path, fmt, expect):
     write_run_config(tmp_path, load_config(), tmp_path)

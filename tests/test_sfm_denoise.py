@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from retinexgs.commands.sfm_preview import (AUTO_MIN_SIGMA, check_denoise, linear_denoiser, preview_recipe,
-                                            previews_noise_sigma, sfm_preview_denoise)
+from retinexgs.train.sfm_preview import (AUTO_MIN_SIGMA, check_denoise, linear_denoiser, preview_recipe,
+                                         previews_noise_sigma, sfm_preview_denoise)
 from retinexgs.data.sfm import ENHANCED_MANIFEST, META_NAME, PreviewDenoise, _bright_preview, _photo_preview
 from retinexgs.data.srgb import linear_to_srgb
 from retinexgs.errors import UserError
@@ -250,3 +250,58 @@ def test_sfm_denoise_auto_on_raw_night_captures(tmp_path, capsys, fake):
     assert set(fake.previews) == set(plain)
     for n in plain:  # the denoised previews were used: far smoother than the plain ones (bilateral filter only)
         assert _rough(fake.previews[n]) < 0.5 * _rough(plain[n]), n
+
+
+# ---- train's own SfM on a bare folder (data.sfm_denoise) ---------------------------------------------------------
+
+def test_train_on_a_bare_night_folder_denoises_sfm_previews_and_reads_its_model_back(tmp_path, capsys, fake):
+    """``train`` on a bare folder of night photos runs SfM on denoised previews by ``data.sfm_denoise`` (default
+    auto, the rule of ``sfm --denoise``); ``none`` is the plain previews of before the key; a finished run read back
+    (no denoiser at hand: eval, render) takes the model its training cached instead of running SfM again."""
+    from retinexgs.run.config import load_config
+    from retinexgs.run.folder import open_scene
+    from retinexgs.train.sfm_preview import scene_sfm_denoise
+    from scenes import TINY_RUN
+
+    photos = _dark_photos(tmp_path / "night")
+    cache = tmp_path / "night" / "retinexgs_sfm"
+    plain = load_config(overrides=["data.sfm_denoise=none"])
+    auto = load_config()
+    assert auto.data.sfm_denoise == "auto" and scene_sfm_denoise("none") is None
+
+    open_scene(photos, plain, sfm_denoise=scene_sfm_denoise("none"))
+    options, method = _record(cache)
+    assert fake.maps == 1 and "denoise" not in options and "denoise" not in method  # as runs before the key
+    scene = open_scene(photos, auto, sfm_denoise=scene_sfm_denoise("auto"))
+    options, method = _record(cache)
+    assert fake.maps == 2 and options["denoise"].startswith("chroma-")  # another recipe: SfM again
+    assert len(scene.train) + len(scene.test) == 4
+    open_scene(photos, auto)  # a finished run read back: the cached model, whichever recipe made it
+    open_scene(photos, auto, sfm_denoise=scene_sfm_denoise("auto"))  # train again, or --resume: the same recipe
+    assert fake.maps == 2
+    open_scene(photos, plain)  # a run recorded before the key (none): its own recipe, as before
+    assert fake.maps == 3 and "denoise" not in _record(cache)[0]
+
+    # the train command end to end: its SfM goes through the denoiser, and says so
+    sets = [a for s in TINY_RUN for a in ("--set", s)]
+    code, out, err = run_cli(["train", "--data", photos, "--out", tmp_path / "run", "--config", "demo", *sets,
+                            "--device", "cpu"], capsys)
+    assert code == 0, err
+    assert fake.maps == 4 and _record(cache)[0]["denoise"].startswith("chroma-")
+    assert "denoising them (chroma)" in out + err, out  # train's log names the denoiser, as `sfm` does
+    code, _, err = run_cli(["train", "--data", photos, "--out", tmp_path / "run2", "--set", "data.sfm_denoise=fast",
+                            "--device", "cpu"], capsys)
+    assert code == 2 and "sfm_denoise" in err and err.strip().count("\n") == 0, err
+
+
+def test_runs_recorded_before_sfm_denoise_read_none():
+    """A run of format 2 (before the key) posed its bare folder from plain previews: it reads ``none``, so its
+    resume finds the SfM model it trained on; a run of today's format without the key gets today's default."""
+    from retinexgs.config.versions import FORMAT, migrate_config
+
+    old, filled = migrate_config({"format": 2, "data": {"reader": "auto"}}, "old/config.yaml")
+    assert old["data"]["sfm_denoise"] == "none" and "data.sfm_denoise" in filled
+    kept, _ = migrate_config({"format": 2, "data": {"sfm_denoise": "nlm"}}, "old/config.yaml")
+    assert kept["data"]["sfm_denoise"] == "nlm"
+    new, _ = migrate_config({"format": FORMAT, "data": {"reader": "auto"}}, "new/config.yaml")
+    assert new["data"]["sfm_denoise"] == "auto"

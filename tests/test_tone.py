@@ -95,15 +95,6 @@ def test_schema_refuses_the_exposure_tone_without_a_scene_reference():
     with pytest.raises((UserError, ValueError), match="ref_quantile"):
         load_config([], ["model.enhancement.ref_quantile=null"])
     assert load_config(["paper"], []).model.enhancement.tone == "illumination"
-    # debias_black is read by tone "exposure" alone: with another tone it would be silently ignored
-    with pytest.raises((UserError, ValueError), match="debias_black needs tone 'exposure'"):
-        load_config(["paper"], ["model.enhancement.debias_black=true"])
-    assert load_config(["ablations/debias_black"], []).model.enhancement.debias_black is True
-    # black_filter filters what the black table reads: without the table it would be silently ignored
-    with pytest.raises((UserError, ValueError), match="black_filter=4 needs debias_black"):
-        load_config([], ["model.enhancement.black_filter=4"])
-    enh = load_config(["ablations/debias_black_filtered"], []).model.enhancement
-    assert enh.debias_black is True and enh.black_filter == 4
 
 
 def test_a_run_with_the_exposure_tone_renders_exports_and_follows_the_exposure_control(tmp_path):
@@ -290,92 +281,3 @@ def test_the_highlight_meter_acts_only_on_the_whole_image_meter_of_the_exposure_
     for extra in (["model.enhancement.tone=illumination"], ["loss.exp_on=illumination"], ["loss.exp_patch=16"]):
         c = load_config([], extra)  # accepted, and ignored there
         assert not highlight_meter_applies(c.model.enhancement.tone, c.loss), extra
-
-
-# ---- model.enhancement.black_filter: a guided filter before the black table ------------------------------------
-
-def _window_fit_reference(p, guide, r, eps):
-    """The guided filter written as its definition, window by window (He et al. 2010, Eq. 5-8): a least-squares line
-    p ≈ a·I + b with the ridge ε on a in every (2r+1)² window, then each pixel averages the lines of the windows that
-    hold it. Only pixels 2r or more from the border are returned (their windows need no padding)."""
-    H, W = p.shape
-    a = torch.zeros(H, W, dtype=torch.float64)
-    b = torch.zeros(H, W, dtype=torch.float64)
-    for i in range(r, H - r):
-        for j in range(r, W - r):
-            I, P = guide[i - r:i + r + 1, j - r:j + r + 1].reshape(-1), p[i - r:i + r + 1, j - r:j + r + 1].reshape(-1)
-            e = float(eps[i, j])
-            A = torch.stack([I, torch.ones_like(I)], 1)
-            reg = torch.diag(torch.tensor([e * I.numel(), 0.0], dtype=torch.float64))
-            a[i, j], b[i, j] = torch.linalg.solve(A.T @ A + reg, A.T @ P)
-    out = torch.zeros(H, W, dtype=torch.float64)
-    for i in range(2 * r, H - 2 * r):
-        for j in range(2 * r, W - 2 * r):
-            sa = a[i - r:i + r + 1, j - r:j + r + 1].mean()
-            sb = b[i - r:i + r + 1, j - r:j + r + 1].mean()
-            out[i, j] = sa * guide[i, j] + sb
-    return out[2 * r:H - 2 * r, 2 * r:W - 2 * r]
-
-
-def test_guided_filter_is_the_window_by_window_least_squares_fit():
-    from retinexgs.model.tone import guided_filter
-    gen = torch.Generator().manual_seed(3)
-    p = torch.rand(1, 1, 14, 13, generator=gen, dtype=torch.float64)
-    r = 2
-    # a constant ε: the filter's per-pixel ε enters each window's fit at the window's own pixel, the reference's at
-    # its centre, which agree only where ε is constant
-    eps_c = torch.full_like(p, 0.013)
-    out = guided_filter(p, r, eps_c)
-    ref = _window_fit_reference(p[0, 0], p[0, 0], r, eps_c[0, 0])
-    torch.testing.assert_close(out[0, 0, 2 * r:-2 * r, 2 * r:-2 * r], ref, atol=1e-10, rtol=1e-9)
-
-
-def test_guided_filter_has_the_gradient_of_finite_differences():
-    from retinexgs.model.tone import guided_filter
-    gen = torch.Generator().manual_seed(4)
-    p = torch.rand(1, 2, 7, 6, generator=gen, dtype=torch.float64).requires_grad_(True)
-    eps = torch.full((1, 2, 7, 6), 0.01, dtype=torch.float64)
-    assert torch.autograd.gradcheck(lambda x: guided_filter(x, 1, eps), (p,), eps=1e-6, atol=1e-6)
-
-
-def test_smooth_record_flattens_noise_at_its_level_keeps_an_edge_and_is_the_identity_on_a_clean_capture():
-    from retinexgs.model.tone import linear_to_srgb, smooth_record, srgb_to_linear
-    gen = torch.Generator().manual_seed(5)
-    light = torch.full((40, 40, 3), 0.01, dtype=torch.float64)
-    light[:, 20:] = 0.2  # a step edge 20 times the noise's σ
-    sigma = 0.003
-    noisy = (light + sigma * torch.randn(40, 40, 3, generator=gen, dtype=torch.float64)).clamp_min(0)
-    RL = linear_to_srgb(noisy)
-    spread = torch.tensor([[0.0] * 3, [sigma ** 2] * 3], dtype=torch.float64)  # var = a·x + b: b = σ²
-    out = srgb_to_linear(smooth_record(RL, spread, 3))
-    flat_in, flat_out = noisy[5:35, 3:14].std(), out[5:35, 3:14].std()
-    # ε = the noise's variance: a = var / (var + ε) ≈ 1/2 in a flat window, then the windows' average
-    assert float(flat_out) < 0.6 * float(flat_in)  # the noise in the flat half
-    step_in = light[:, 22:].mean() - light[:, :18].mean()
-    step_out = out[:, 22:].mean() - out[:, :18].mean()
-    assert abs(float(step_out / step_in) - 1.0) < 0.03  # the edge stays
-    assert float(out[:, 21:].min()) > 0.15 and float(out[:, :19].max()) < 0.05  # and stays sharp
-    # A clean capture (no noise measured) or a radius 0: the record unchanged.
-    torch.testing.assert_close(smooth_record(RL, torch.zeros(2, 3, dtype=torch.float64), 3), RL, atol=1e-12, rtol=0)
-    assert smooth_record(RL, spread, 0) is RL
-    small = RL[:3, :3]
-    assert smooth_record(small, spread, 3) is small  # smaller than the window: not filtered
-
-
-def test_tone_map_filters_only_what_the_black_table_reads():
-    from retinexgs.model.tone import black_table, tone_map
-    gen = torch.Generator().manual_seed(6)
-    R = torch.rand(16, 16, 3, generator=gen) * 0.2
-    L = torch.full((16, 16, 3), 0.5)
-    ref, g = torch.tensor(0.5), torch.tensor([0.5])
-    spread = torch.tensor([[1e-3] * 3, [1e-4] * 3])
-    table = black_table([1e-3] * 3, [3.6e-5] * 3)
-    plain = tone_map(R, L, ref, g, "exposure", shoulder=0.5)[0]
-    # without the table the spread is not read
-    torch.testing.assert_close(tone_map(R, L, ref, g, "exposure", shoulder=0.5, spread=spread, radius=2)[0], plain)
-    read = tone_map(R, L, ref, g, "exposure", shoulder=0.5, noise=table)[0]
-    filtered = tone_map(R, L, ref, g, "exposure", shoulder=0.5, noise=table, spread=spread, radius=2)[0]
-    assert float((filtered - read).abs().max()) > 1e-3  # the filter acts
-    # and a smoother image: the total variation falls
-    tv = lambda x: float((x[1:] - x[:-1]).abs().mean() + (x[:, 1:] - x[:, :-1]).abs().mean())
-    assert tv(filtered) < 0.8 * tv(read)

@@ -45,19 +45,18 @@ def test_the_builtin_tones_are_registered_with_their_rules():
     assert list(TONES) == ["illumination", "signal", "exposure"]  # the order error messages name them in
     exposure, illumination, signal = (get_tone(n) for n in ("exposure", "illumination", "signal"))
     assert get_tone(exposure) is exposure and exposure.name == "exposure"
-    # only the exposure tone has a linear form, a knee, a fused kernel, the meter, and needs L_ref and the table
+    # only the exposure tone has a linear form, a knee, a fused kernel, the meter, and needs L_ref
     assert exposure.knee(0.6) == 0.6 and illumination.knee(0.6) == 1.0 and signal.knee(0.6) == 1.0
     assert exposure.meter_applies and not illumination.meter_applies and not signal.meter_applies
-    assert exposure.needs_reference and exposure.reads_black_table and not signal.reads_black_table
-    assert exposure.fusable(None) and not exposure.fusable(torch.zeros(3, 8)) and not illumination.fusable(None)
+    assert exposure.needs_reference and not signal.needs_reference
+    assert exposure.fusable() and not illumination.fusable()
     from retinexgs.render._backend import kernels
     assert callable(getattr(kernels(), exposure.fused_kernel))
     R, L = torch.full((2, 2, 3), 0.5, dtype=torch.float64), torch.full((2, 2, 3), 0.1, dtype=torch.float64)
     ref, g = torch.tensor(0.2, dtype=torch.float64), torch.tensor([0.5], dtype=torch.float64)
     assert exposure.linear(R, L, ref, g) is not None and illumination.linear(R, L, ref, g) is None
     torch.testing.assert_close(illumination.apply_exposure(g, 0.5, ref), g * 0.5)
-    assert "R^g" in signal.describe(g, ref, 1.0, False, False) and "longer exposure" in exposure.describe(
-        g, ref, 0.5, False, False)
+    assert "R^g" in signal.describe(g, ref, 1.0, False) and "longer exposure" in exposure.describe(g, ref, 0.5, False)
     with pytest.raises(ValueError, match="tone must be one of illumination, signal, exposure, got 'filmic'"):
         get_tone("filmic")
     with pytest.raises(TypeError, match="compare tone.name"):  # a stale name check fails loudly, not silently
@@ -84,9 +83,7 @@ def test_the_configs_tone_choices_are_the_registrys(toy_tone):
                                         r"of illumination, signal, exposure, toy-half-gamma, got 'filmic'$"):
         load_config([], ["model.enhancement.tone=filmic"])
     assert load_config([], [f"model.enhancement.tone={toy_tone.name}"]).model.enhancement.tone == toy_tone.name
-    # the rules a tone sets, from its attributes: the toy reads no black table and needs no reference
-    with pytest.raises(UserError, match="debias_black needs tone 'exposure', got tone 'toy-half-gamma'"):
-        load_config([], [f"model.enhancement.tone={toy_tone.name}", "model.enhancement.debias_black=true"])
+    # the rules a tone sets, from its attributes: the toy needs no reference
     with pytest.raises(UserError, match="tone 'exposure' needs a ref_quantile.*only valid with 'illumination' or "
                                         "'signal' or 'toy-half-gamma'"):
         load_config([], ["model.enhancement.ref_quantile=null", "loss.rec_domain=photo"])

@@ -195,7 +195,6 @@ def test_the_default_model_follows_default_yaml_not_old_fallbacks():
     g = GaussianModel.from_points(torch.rand(8, 3), torch.rand(8, 3), cfg.model.sh_degree, cfg.model.init_opacity)
     model = RetinexGSModel(g, cfg.model, decomposed=True)
     assert model.has_background and model.tone.name == "exposure" and model.shoulder == 0.5
-    assert model.debias_black == enh["debias_black"] and model.black_filter == enh["black_filter"]
     other = load_config(overrides=["model.enhancement.shoulder=0.8", "model.background=black"])
     model = RetinexGSModel(g, other.model, decomposed=True)
     assert model.shoulder == 0.8 and not model.has_background

@@ -11,8 +11,9 @@ from retinexgs.openmp import bound_openmp_spinning
 
 BENCHES = {"raster": "retinexgs.bench.raster", "lr3m": "retinexgs.bench.lr3m", "fps": "retinexgs.bench.fps",
            "quality": "retinexgs.bench.quality", "scale": "retinexgs.bench.scale",
+           "denoise": "retinexgs.bench.denoise",
            "proxy": "retinexgs.train.benchmarks.proxy", "retone": "retinexgs.train.benchmarks.retone",
-           "train-speed": "retinexgs.train.benchmarks.speed"}
+           "train-speed": "retinexgs.train.benchmarks.speed", "darken": "retinexgs.bench.darken"}
 
 
 def _load(name: str):
@@ -29,6 +30,10 @@ def _load(name: str):
         from retinexgs.bench import quality as module
     elif name == "scale":
         from retinexgs.bench import scale as module
+    elif name == "darken":
+        from retinexgs.bench import darken as module
+    elif name == "denoise":
+        from retinexgs.bench import denoise as module
     elif name == "proxy":
         from retinexgs.train.benchmarks import proxy as module
     elif name == "retone":

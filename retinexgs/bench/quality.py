@@ -22,15 +22,20 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Dict, List, Optional, Sequence
+from typing import TYPE_CHECKING, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
 from retinexgs.data.scene import scene_label
-from retinexgs.data.sensor import NOISE_LADDER, SensorModel, darken_scene
+from retinexgs.data.sensor import LADDER_RAW_BITS, NOISE_LADDER, SensorModel, darken_scene
 from retinexgs.errors import UserError
 from retinexgs.fileio import atomic_write, atomic_write_text
 from retinexgs.run.checkpoint import latest_checkpoint
+
+if TYPE_CHECKING:  # type hints only: raw_sim and Pillow are imported where they are needed
+    from PIL import Image
+
+    from retinexgs.data.raw_sim import RawCamera
 
 
 @dataclass(frozen=True)
@@ -262,8 +267,6 @@ def contact_sheet(jobs: Sequence[Job], configs: Sequence[str], scene: str, out: 
     """low | each config (lowest seed) | truth for the first ``views`` test views, from the runs' side-by-side
     PNGs (their first panel is the low input, the second the output, the last the normal-light truth). Each column
     is labelled with its config and seed: configs run with different seeds show different seeds."""
-    from PIL import Image, ImageDraw
-
     chosen: Dict[str, Job] = {}
     for j in sorted(jobs, key=lambda j: j.seed):
         if scene_label(j.scene) == scene and j.config not in chosen and read_metrics(j) is not None:
@@ -277,26 +280,43 @@ def contact_sheet(jobs: Sequence[Job], configs: Sequence[str], scene: str, out: 
     first = chosen[next(iter(chosen))]
     m = read_metrics(first)
     names = [Path(v["view"]).stem for v in m["views"]][:views]
-    w = h = 0
     rows = []
     for name in names:
         cols, labels = [], []
         for k, c in enumerate(c for c in configs if c in chosen):
-            img = Image.open(chosen[c].run / "renders" / "test" / f"{name}.png").convert("RGB")
-            top = int(read_metrics(chosen[c]).get("label_rows", 0))  # the strip naming the panels
-            img = img.crop((0, top, img.width, img.height))
-            h = img.height
-            panels = 5 if read_metrics(chosen[c]).get("panels", "").count("|") == 4 else 3
-            w = img.width // panels
+            low, output, truth = run_panels(chosen[c].run, read_metrics(chosen[c]), name)
             if k == 0:
-                cols.append(img.crop((0, 0, w, h)))
+                cols.append(low)
                 labels.append("low input")
-            cols.append(img.crop((w, 0, 2 * w, h)))
+            cols.append(output)
             labels.append(f"{c}, seed {chosen[c].seed}")
-            truth = img.crop((img.width - w, 0, img.width, h))
         cols.append(truth)
         labels.append("truth")
         rows.append((cols, labels))
+    return write_sheet(rows, out)
+
+
+def run_panels(run: Path, metrics: Dict, name: str) -> Tuple["Image.Image", "Image.Image", "Image.Image"]:
+    """(low input, output, truth) of test view ``name`` (a file stem) from a run's side-by-side PNG (``eval``'s
+    ``renders/test/NAME.png``: its first panel is the low input, the second the output, the last the truth), below
+    the strip naming the panels; ``metrics``: the run's metrics.json."""
+    from PIL import Image
+
+    img = Image.open(run / "renders" / "test" / f"{name}.png").convert("RGB")
+    top = int(metrics.get("label_rows", 0))  # the strip naming the panels
+    img = img.crop((0, top, img.width, img.height))
+    h = img.height
+    w = img.width // (5 if metrics.get("panels", "").count("|") == 4 else 3)
+    return img.crop((0, 0, w, h)), img.crop((w, 0, 2 * w, h)), img.crop((img.width - w, 0, img.width, h))
+
+
+def write_sheet(rows: Sequence[Tuple[Sequence["Image.Image"], Sequence[str]]], out: Path,
+                elsewhere: str = "--runs") -> Path:
+    """Write a contact sheet: one row per ``(images, labels)``, every image one size, each labelled above;
+    ``elsewhere``: the caller's option naming another place to write, for a full disk's message."""
+    from PIL import Image, ImageDraw
+
+    w, h = rows[0][0][0].size
     pad = 14
     sheet = Image.new("RGB", (w * len(rows[0][0]), (h + pad) * len(rows)), "white")
     draw = ImageDraw.Draw(sheet)
@@ -308,7 +328,7 @@ def contact_sheet(jobs: Sequence[Job], configs: Sequence[str], scene: str, out: 
             draw.text((k * w + 2, r * (h + pad) + 1), label if len(label) <= fit else ".." + label[-fit + 2:],
                       fill="black")
     # a temporary name of its own: two benches sharing --runs write the same sheet at once
-    atomic_write(out, lambda f: sheet.save(f, format="PNG"), "--runs")
+    atomic_write(out, lambda f: sheet.save(f, format="PNG"), elsewhere)
     return out
 
 
@@ -344,13 +364,28 @@ def parse_gpus(text: str) -> List[int]:
     return list(range(int(text)))
 
 
-def raw_ladder_scenes(scenes: Sequence[Path], root: Path, exposure: float, levels: Sequence[str]) -> List[Path]:
-    """Every scene captured by the raw simulator (``darken --raw``, the default camera) at each of ``levels`` of
-    the noise ladder: ``root/SCENE@LEVEL-raw`` (the DNGs) beside ``root/SCENE@LEVEL-jpeg`` (the camera's JPEGs of
-    the same noisy mosaics), so that the two paths train on the same photons (issue 52). Made once: a level whose
-    sensor.json records the same model is reused."""
+def ladder_camera(label: str) -> "RawCamera":
+    """The simulated camera of the raw ladder's level ``label``: the default camera, at the level's bit depth
+    (:data:`retinexgs.data.sensor.LADDER_RAW_BITS`; 14 bit where it names none)."""
     from retinexgs.data.raw_sim import RawCamera
 
+    return RawCamera(bits=LADDER_RAW_BITS.get(label, RawCamera.bits))
+
+
+def _ladder_record(path: Path) -> Optional[dict]:
+    """{"model", "bits"} of a raw ladder level's sensor.json (what decides whether it is reused); None if unreadable."""
+    try:
+        data = json.loads(path.read_text())
+        return {"model": data["model"], "bits": data["camera"]["bits"]}
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def raw_ladder_scenes(scenes: Sequence[Path], root: Path, exposure: float, levels: Sequence[str]) -> List[Path]:
+    """Every scene captured by the raw simulator (``darken --raw``, :func:`ladder_camera`) at each of ``levels``
+    of the noise ladder: ``root/SCENE@LEVEL-raw`` (the DNGs) beside ``root/SCENE@LEVEL-jpeg`` (the camera's JPEGs
+    of the same noisy mosaics), so that the two paths train on the same photons (issue 52). Made once: a level
+    whose sensor.json records the same model and bit depth is reused."""
     known = {label: (fw, rn) for label, fw, rn in NOISE_LADDER}
     bad = [lv for lv in levels if lv not in known]
     if bad:
@@ -362,18 +397,19 @@ def raw_ladder_scenes(scenes: Sequence[Path], root: Path, exposure: float, level
         for label in levels:
             full_well, read_noise = known[label]
             model = SensorModel(exposure=exposure, full_well=full_well, read_noise=read_noise)
+            camera = ladder_camera(label)
             base = root / f"{scene_label(Path(scene)).replace('/', '-')}@{label}"
             pair = [base.with_name(base.name + "-raw"), base.with_name(base.name + "-jpeg")]
             done = [p / "sensor.json" for p in pair]
-            want = json.loads(json.dumps(asdict(model)))
-            if all(d.is_file() and json.loads(d.read_text())["model"] == want for d in done):
+            want = json.loads(json.dumps({"model": asdict(model), "bits": camera.bits}))
+            if all(d.is_file() and _ladder_record(d) == want for d in done):
                 out.extend(pair)
                 continue
             tmp = base.with_name(f".tmp-{base.name}")
             for p in (*pair, tmp):
                 if p.exists():
                     shutil.rmtree(p)  # a level made with another model (or cut off): made again
-            darken_scene(Path(scene), tmp, model, seed=0, progress=False, raw=RawCamera())
+            darken_scene(Path(scene), tmp, model, seed=0, progress=False, raw=camera)
             for p, sub in zip(pair, ("raw", "jpeg")):  # each holds its own sensor.json (darken writes it there)
                 (tmp / sub).rename(p)
             shutil.rmtree(tmp)
@@ -400,13 +436,14 @@ def main(argv: Sequence[str]) -> int:
     ap.add_argument("--no-train", action="store_true", help="only tabulate the runs that exist")
     ap.add_argument("--noise-ladder", action="store_true",
                     help="train each scene's normal-light photos (high/) darkened at every level of the noise "
-                         "ladder instead (retinexgs.data.sensor.NOISE_LADDER: clean to 1000 e- full well, read "
+                         "ladder instead (retinexgs.data.sensor.NOISE_LADDER: clean to 800 e- full well, read "
                          "noise 6 e-), each level a column SCENE@LEVEL; the dark scenes go to RUNS/ladder/")
     ap.add_argument("--ladder-exposure", type=float, default=0.05, help="the ladder's exposure k (default 0.05)")
     ap.add_argument("--raw-ladder", default=None, metavar="LEVELS",
                     help="train each scene captured by the raw simulator at these ladder levels (comma list, e.g. "
-                         "clean,1500e,1000e): columns SCENE@LEVEL-raw (DNGs) and SCENE@LEVEL-jpeg (the camera's "
-                         "JPEGs of the same captures); the dark scenes go to RUNS/ladder/")
+                         "clean,1500e,1000e,800e; 800e's DNGs are 12 bit, the others 14): columns SCENE@LEVEL-raw "
+                         "(DNGs) and SCENE@LEVEL-jpeg (the camera's JPEGs of the same captures); the dark scenes go "
+                         "to RUNS/ladder/")
     args = ap.parse_args(list(argv))
     for s in args.scenes:
         if not s.is_dir():

@@ -19,7 +19,8 @@ class _BenchHelp(argparse.Action):
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``bench`` sub-command to the CLI's sub-parsers."""
     p = sub.add_parser("bench", add_help=False,
-                       help="run a benchmark (raster, lr3m, fps, quality, scale, proxy, retone, train-speed); "
+                       help="run a benchmark (raster, lr3m, fps, quality, scale, denoise, proxy, retone, train-speed, "
+                            "darken); "
                             "bench --help lists them",
                        description="Run one RetinexGS benchmark, as python -m retinexgs.bench NAME does (figures "
                                    "and how to read them: docs/benchmarks.md). retinexgs bench --help lists the "

@@ -109,8 +109,10 @@ def run(args: argparse.Namespace) -> int:
         # Decompose exactly the images train will read: undistorted and downscaled copies where the scene
         # needs them, so that train finds every entry in the cache.
         from retinexgs.run.folder import open_scene  # lazy: --help stays fast
+        from retinexgs.train.sfm_preview import scene_sfm_denoise
 
-        train = open_scene(scene, cfg, cache_hint=hint).train
+        # the SfM model train uses (data.sfm_denoise names its previews' recipe, part of the cache key)
+        train = open_scene(scene, cfg, cache_hint=hint, sfm_denoise=scene_sfm_denoise(cfg.data.sfm_denoise)).train
         paths, balance = [v.image_path for v in train], (train[0].balance if train else None)
         names = [v.source_path or v.image_path for v in train]
     else:

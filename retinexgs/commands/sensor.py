@@ -53,6 +53,9 @@ def register(subparsers) -> None:
     p.add_argument("--cfa", default=None, type=str.upper,
                    help="with --raw: the Bayer pattern from the top-left pixel, RGGB, BGGR, GRBG or GBRG "
                         "(default RGGB)")
+    p.add_argument("--jobs", type=int, default=None,
+                   help="with --raw: worker processes, one view each at a time (default: one per CPU core; the "
+                        "files are the same for any number: each view has its own random stream)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_darken)
 
@@ -87,10 +90,11 @@ def _darken(args: argparse.Namespace) -> int:
         from retinexgs.data.raw_sim import RawCamera  # lazy: --help stays fast
 
         camera = RawCamera(bits=14 if args.bits is None else args.bits, cfa=args.cfa or "RGGB")
-    elif args.bits is not None or args.cfa is not None:
-        raise UserError(f"{'--bits' if args.bits is not None else '--cfa'} applies only to raw files: "
-                        f"add --raw, or leave it out")
-    report = darken_scene(args.data, args.out, model, seed=args.seed, progress=not args.quiet, raw=camera)
+    elif args.bits is not None or args.cfa is not None or args.jobs is not None:
+        flag = "--bits" if args.bits is not None else "--cfa" if args.cfa is not None else "--jobs"
+        raise UserError(f"{flag} applies only to raw files: add --raw, or leave it out")
+    report = darken_scene(args.data, args.out, model, seed=args.seed, progress=not args.quiet, raw=camera,
+                          jobs=args.jobs)
     if camera is not None:
         print(f"{report.photos} dark raw photos (DNG) written to {report.out / 'raw'} and the camera's JPEGs of "
               f"the same captures to {report.out / 'jpeg'} (model and exposures in {report.out / 'sensor.json'})")

@@ -51,7 +51,7 @@ def register(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run SfM for parsed ``args`` and print a summary; returns the exit code."""
     from retinexgs.data.sfm import MIN_REGISTERED_SHARE, run_sfm  # lazy: --help stays fast
-    from retinexgs.commands.sfm_preview import sfm_preview_denoise
+    from retinexgs.train.sfm_preview import sfm_preview_denoise
 
     say = None if args.quiet else (lambda m: print(f"[sfm] {m}", file=sys.stderr, flush=True))
     images = args.images if args.video is None else _frames_from_video(args.video, say)

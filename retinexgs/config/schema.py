@@ -84,6 +84,13 @@ EveryOrOff = Annotated[Union[Annotated[StrictInt, Field(ge=0)], Annotated[float,
                               "(an integer >= 1), or 0 for never")]
 
 
+def _pairs(value: Any) -> Any:
+    """A YAML list of two-item lists as a list of tuples (strict mode reads a tuple field from tuples only)."""
+    if isinstance(value, list):
+        return [tuple(v) if isinstance(v, list) else v for v in value]
+    return value
+
+
 class Section(BaseModel):
     """A config section: strict types, unknown keys refused. Read by attribute only (``cfg.loss.w_tv``), so
     that an editor finds every user of a key; a config as data is :func:`retinexgs.config.plain`'s
@@ -99,6 +106,7 @@ class Data(Section):
     cache_dir: OptStr
     white_balance: Choice("as-shot", "grey-edge")
     min_registered: Num(ge=0, le=1)
+    sfm_denoise: Choice("auto", "none", "nlm", "chroma")
 
 
 # ---- the decomposers' parameters (decomposer.params), one class per method: every field of the method's params
@@ -195,6 +203,7 @@ class Decomposer(Section):
     device: OptStr
     raw: DecomposerRaw
     denoise: Choice("auto", "none", "nlm", "chroma")  # the 2D priors' photo through a denoiser (retinex/denoise.py)
+    denoise_backend: Choice("auto", "torch", "opencv")  # who runs its non-local means (auto: torch on CUDA)
 
     @field_validator("params", mode="after")
     @classmethod
@@ -213,7 +222,6 @@ class Illumination(Section):
     dir_hidden: Int(1)
     init_value: Num(gt=0)
     view_dependent: Bool
-    leak: Num(ge=0, le=0.5)
 
 
 class EnhancementRaw(Section):
@@ -237,8 +245,6 @@ class Enhancement(Section):
                             Expect("a quantile in (0, 1] (1 = the maximum) or null (no normalisation)")]
     shoulder: Num(gt=0, le=1)  # the highlight knee of a tone with one (exposure's); the gamma tones do not read it
     raw: EnhancementRaw  # the camera-raw scenes' own keys
-    debias_black: Bool  # the clipped sensor noise's mean taken out of R̂∘L̂ before the gain (a tone that reads it)
-    black_filter: Int(0, 64)  # with debias_black: the radius (px) of the filter that takes the render's noise out first
 
     @model_validator(mode="after")
     def _ordered(self) -> "Enhancement":
@@ -248,8 +254,6 @@ class Enhancement(Section):
         if not lo <= self.init_gamma <= hi:
             raise ValueError(f"model.enhancement.init_gamma must lie in gamma_range [{lo}, {hi}], "
                              f"got {self.init_gamma}")
-        if self.black_filter and not self.debias_black:  # it filters what the black table reads, nothing else
-            raise ValueError(f"model.enhancement.black_filter={self.black_filter} needs debias_black: true")
         return self
 
 
@@ -269,7 +273,6 @@ class LossRaw(Section):
     """``loss.raw``: read on camera-raw scenes only (retinexgs.data.capture)."""
 
     mode: Choice("noise", "relative", "photo")  # the reconstruction: linear light (weighted) or as the photo shown
-    model_error: Num(ge=0, le=1)
     unit: Choice("plain", "sigma")
     prior_snr: Num(ge=0)
     spa: Choice("photo", "extended")  # what L_spa compares a raw view's enhanced render with
@@ -295,7 +298,6 @@ class Loss(Section):
     sh_reduction: Choice("mean", "sum")
     enhance_from: Step
     enhance_trains_scene: Bool
-    rec_huber: Num(ge=0, le=1)
     rec_domain: Choice("photo", "exposed", "exposed_ssim")
     rec_ssim_noise: Bool
     rec_noise_floor: Bool
@@ -343,7 +345,6 @@ class Density(Section):
     last_event: Step
     max_screen_fraction: Num(gt=0)
     max_gaussians: Int(1)
-    noise_aware: Bool
     max_aniso: Annotated[float, BeforeValidator(_yaml_number), Expect("0 (no cap) or a ratio >= 1")]
     mcmc: MCMC
 
@@ -377,6 +378,10 @@ class Train(Section):
     stream_views: Choice("auto", "always", "never")
     views_on_device_gb: Num(ge=0)
     views_pinned_gb: Num(ge=0)
+    # [[until, downsample], ...] (retinexgs.train.resolution); YAML lists become the tuples strict mode wants
+    resolution: Annotated[List[Tuple[Step, Annotated[StrictInt, Field(ge=1, le=64)]]], BeforeValidator(_pairs),
+                          Expect("a list of [until, downsample] pairs: until a fraction of steps 0..1 or a step, "
+                                 "downsample an integer 1..64, e.g. [[0.2, 4], [0.5, 2]]; [] for full size")]
 
 
 class ConfigSchema(Section):

@@ -5,7 +5,9 @@ The rule: a change that makes an existing run behave differently when read back 
 what runs made before it did, a renamed or regrouped key, a checkpoint field that changed meaning) raises
 :data:`FORMAT` by one and adds the migration from the previous format to :data:`CONFIG_MIGRATIONS` (and
 :data:`CHECKPOINT_MIGRATIONS` when checkpoints change). A new key whose default is what older runs did needs no
-step: whatever a recorded config lacks after its migrations is taken from ``configs/default.yaml``. A format newer
+step: whatever a recorded config lacks after its migrations is taken from ``configs/default.yaml``. A key deleted
+(an option that lost its ablation) is dropped by the next step where the run used its old default, and the run is
+refused in one line where it did not (this code cannot reproduce it). A format newer
 than this code knows is refused in one line (reading it as ours would silently be wrong). Format 0 is every run
 written before formats existed (no ``format`` key)."""
 from __future__ import annotations
@@ -16,7 +18,7 @@ from typing import Any, Callable, Dict, List, Tuple
 from retinexgs.config.files import RawConfig, configs_dir, read_yaml
 from retinexgs.errors import UserError
 
-FORMAT = 2  # the format this code writes
+FORMAT = 3  # the format this code writes
 
 # Format 0 -> 1: the keys whose default changed after they were added. A run made before a key existed behaved as
 # the value here, not as today's default (which would re-render it differently). The tone form was the gamma on L̂
@@ -32,11 +34,12 @@ FORMAT = 2  # the format this code writes
 # model.enhancement.shoulder_raw (the same day), and its L_spa read the unclipped target until loss.spa_raw. A
 # folder posed by SfM was used whatever share of its photos SfM registered until data.min_registered, and the 2D
 # priors read the noisy views until decomposer.denoise.
-# The keys are named as format 1 named them (the raw ones move in config_1_to_2).
+# The keys are named as format 1 named them (the raw ones move in config_1_to_2). density.noise_aware is gone (format
+# 3 deleted it): its format-0 value was its default, which is how every run without it trains.
 FORMAT_0_VALUES: Dict[str, Any] = {
     "model.enhancement.tone": "illumination", "loss.w_depth": 0.0, "loss.rec_domain": "photo",
     "model.background": "black", "model.enhancement.shoulder": 1.0, "loss.rec_noise_floor": False,
-    "loss.rec_camera_noise": False, "loss.rec_noise_share": 0.5, "density.noise_aware": False,
+    "loss.rec_camera_noise": False, "loss.rec_noise_share": 0.5,
     "loss.rec_noise_scale": 1, "loss.exp_highlight_share": 0.0, "train.momentum_batch_scaling": "none",
     "density.last_event": 1.0, "loss.rec_raw": "photo", "decomposer.raw_denoise": False,
     "loss.rec_raw_unit": "plain", "loss.rec_raw_prior_snr": 0.0, "model.near_fraction": 0.0,
@@ -100,11 +103,58 @@ def config_1_to_2(cfg: RawConfig, filled: List[str]) -> RawConfig:
     return cfg
 
 
+# Format 2 -> 3 (issue 63): the options that only an ablation switched on and whose ablation lost, deleted with the
+# code that implemented them: dotted key -> the default every run had unless it set the option on purpose.
+REMOVED_2_TO_3: Dict[str, Any] = {
+    "model.illumination.leak": 0.0, "model.enhancement.debias_black": False, "model.enhancement.black_filter": 0,
+    "loss.raw.model_error": 0.0, "density.noise_aware": False, "loss.rec_huber": 0.0}
+
+
+def _drop_removed(cfg: RawConfig, removed: Dict[str, Any]) -> None:
+    """Take each dotted key of ``removed`` out of ``cfg``; UserError (one line, naming the key and its value)
+    where the recorded value is not the old default: the run used an option this code no longer has."""
+    for dotted, default in removed.items():
+        *sections, key = dotted.split(".")
+        node: Any = cfg
+        for name in sections:
+            node = node.get(name) if isinstance(node, dict) else None
+        if not isinstance(node, dict) or key not in node:
+            continue
+        value = node.pop(key)
+        if isinstance(value, bool) != isinstance(default, bool) or value != default:
+            raise UserError(f"{dotted} is {value!r}: that option was removed from retinexgs (it lost its ablation), "
+                            "so this version cannot reproduce the run; use the retinexgs that made it")
+
+
+# Format 2 -> 3, keys added with a default that is not what older runs did (issue 64): a bare folder's SfM previews were
+# not denoised before data.sfm_denoise, and SfM runs again on --resume when the cached model's recipe differs.
+ADDED_2_TO_3: Dict[str, Any] = {"data.sfm_denoise": "none"}
+
+
+def config_2_to_3(cfg: RawConfig, filled: List[str]) -> RawConfig:
+    """Format 2 -> 3: the keys of :data:`REMOVED_2_TO_3` dropped where they hold their old default (the run
+    behaves as it did); a run that set one of them otherwise is refused in one line. The keys of
+    :data:`ADDED_2_TO_3` the config lacks get the value older runs had."""
+    _drop_removed(cfg, REMOVED_2_TO_3)
+    _set_missing(cfg, ADDED_2_TO_3, filled)
+    return cfg
+
+
 def checkpoint_0_to_1(state: Dict[str, Any]) -> Dict[str, Any]:
     """Format 0 -> 1: checkpoint fields older versions did not write: no training time recorded (0 s), no view
     order (a fresh shuffle), no strategy statistics, no record of the training views."""
     for key, value in (("train_seconds", 0.0), ("order", []), ("density", {}), ("train_views", None)):
         state.setdefault(key, value)
+    return state
+
+
+def checkpoint_2_to_3(state: Dict[str, Any]) -> Dict[str, Any]:
+    """Format 2 -> 3: the fields only ``density.noise_aware`` used (its probe's random state, the default
+    strategy's squared-gradient sums) are dropped; nothing reads them now."""
+    state.pop("noise_probe_rng", None)
+    if isinstance(state.get("density"), dict):
+        for key in ("grad_sq", "noise_sq", "noise_count"):
+            state["density"].pop(key, None)
     return state
 
 
@@ -115,8 +165,9 @@ def _checkpoint_same(state: Dict[str, Any]) -> Dict[str, Any]:
 
 # CONFIG_MIGRATIONS[n] turns format n into n + 1 (likewise for checkpoints' own fields): FORMAT steps each
 # (tests/test_run_format.py checks it).
-CONFIG_MIGRATIONS: List[Callable[[RawConfig, List[str]], RawConfig]] = [config_0_to_1, config_1_to_2]
-CHECKPOINT_MIGRATIONS: List[Callable[[Dict[str, Any]], Dict[str, Any]]] = [checkpoint_0_to_1, _checkpoint_same]
+CONFIG_MIGRATIONS: List[Callable[[RawConfig, List[str]], RawConfig]] = [config_0_to_1, config_1_to_2, config_2_to_3]
+CHECKPOINT_MIGRATIONS: List[Callable[[Dict[str, Any]], Dict[str, Any]]] = [checkpoint_0_to_1, _checkpoint_same,
+                                                                          checkpoint_2_to_3]
 
 
 def format_of(data: Dict[str, Any], where: str) -> int:
@@ -150,7 +201,10 @@ def migrate_config(recorded: RawConfig, where: str) -> Tuple[RawConfig, List[str
     cfg.pop("format", None)
     filled: List[str] = []
     for step in CONFIG_MIGRATIONS[fmt:]:
-        cfg = step(cfg, filled)
+        try:
+            cfg = step(cfg, filled)
+        except UserError as exc:  # a step names the key; the reader needs the file too
+            raise UserError(f"{where}: {exc}") from None
     _fill_defaults(cfg, read_yaml(configs_dir() / "default.yaml"), "", filled)
     return cfg, filled
 

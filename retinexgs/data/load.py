@@ -48,7 +48,7 @@ from retinexgs.data.colmap import find_model_dir
 from retinexgs.data.transforms_json import has_transforms
 from retinexgs.data.transforms_json import read_transforms_scene
 from retinexgs.data.colmap import read_colmap_scene
-from retinexgs.data.sfm import raw_jpeg_pairs, run_sfm
+from retinexgs.data.sfm import PreviewDenoise, raw_jpeg_pairs, run_sfm
 
 READERS = ("auto", "transforms", "colmap", "sfm")
 PathLike = Union[str, Path]
@@ -368,14 +368,17 @@ def build_scene(raw: DeclaredScene, downscale: float = 1, cache_dir: Optional[Pa
 def load_scene(path: PathLike, reader: str = "auto", downscale: float = 1, *, images: Optional[PathLike] = None,
                cache_dir: Optional[PathLike] = None, normalize: bool = True, test_every: int = 0,
                num_random_points: int = 50_000, seed: int = 0, sfm_options: Optional[dict] = None,
-               progress: Optional[Callable[[str], None]] = None, cache_hint: str = CACHE_HINT) -> Scene:
+               progress: Optional[Callable[[str], None]] = None, cache_hint: str = CACHE_HINT,
+               sfm_denoise: Optional[Callable[[Path], Optional[PreviewDenoise]]] = None) -> Scene:
     """Load a scene folder in any supported format (see the module docstring).
 
     ``reader``: "auto", "transforms", "colmap" or "sfm". ``downscale``: resize factor (>= 1) applied to
     images and intrinsics. ``images``: image folder for the colmap/sfm readers (relative to ``path`` or
     absolute). ``test_every``: for colmap/sfm scenes without split.json, hold out every N-th view.
     ``sfm_options``: keyword arguments for :func:`retinexgs.data.sfm.run_sfm`. ``cache_hint``: how the
-    caller spells ``cache_dir`` (for the message when the scene folder cannot be written).
+    caller spells ``cache_dir`` (for the message when the scene folder cannot be written). ``sfm_denoise``: (the
+    folder of photos SfM reads) -> the denoiser of its previews (``data.sfm_denoise``, built above this layer by
+    :func:`retinexgs.train.sfm_preview.scene_sfm_denoise`); called only when the scene is posed by SfM.
     """
     root = Path(path)
     if not root.exists():
@@ -408,6 +411,8 @@ def load_scene(path: PathLike, reader: str = "auto", downscale: float = 1, *, im
         kwargs = dict(sfm_options or {})
         if progress is not None:
             kwargs.setdefault("progress", progress)
+        if sfm_denoise is not None:
+            kwargs["denoise"] = sfm_denoise(image_dir)
         result = run_sfm(image_dir, out, **kwargs)
         raw = read_colmap_scene(root, result.model_dir, images=image_dir.resolve(), test_every=test_every,
                                 reader="sfm")

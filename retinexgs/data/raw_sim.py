@@ -37,7 +37,7 @@ from typing import Dict, Optional, Tuple
 
 import numpy as np
 
-from retinexgs.data.camera_raw import XYZ_FROM_SRGB, demosaic_bilinear, srgb_encode
+from retinexgs.data.camera_raw import _K_G, _K_RB, XYZ_FROM_SRGB, demosaic_bilinear, srgb_encode
 from retinexgs.data.srgb import srgb_to_linear
 from retinexgs.data.dng import MIN_SIDE, write_dng
 from retinexgs.errors import UserError
@@ -159,7 +159,74 @@ def capture_mosaic(srgb: np.ndarray, model, camera: RawCamera, k_view: float,
                    rng: Optional[np.random.Generator]) -> np.ndarray:
     """uint16 [H, W]: the raw DN mosaic a camera records of the normal-light sRGB photo ``srgb`` at exposure
     ``k_view`` with the noise of ``model`` (a :class:`retinexgs.data.sensor.SensorModel`; its full well None,
-    or ``rng`` None, is noise-free). Clipped only at 0 DN and at white."""
+    or ``rng`` None, is noise-free). Clipped only at 0 DN and at white.
+
+    The same numbers as :func:`capture_mosaic_reference`, bit for bit and with the same random draws, faster: the
+    sRGB curve through a table of the photo's 8- or 16-bit codes (:func:`_srgb_to_linear_codes`), each CFA phase
+    picked by slicing, and the arithmetic in place."""
+    lin = _srgb_to_linear_codes(srgb)
+    lin *= np.asarray(model.cast, dtype=np.float64)
+    cam = lin @ camera.cam_from_srgb().T  # the reference's matmul as it is: its rounding is the reference's
+    del lin
+    cam /= np.asarray(camera.white_balance, dtype=np.float64)
+    h, w = cam.shape[:2]
+    signal = np.empty((h, w), dtype=np.float64)
+    quad = camera.cfa_indices()
+    for py in (0, 1):
+        for px in (0, 1):
+            signal[py::2, px::2] = cam[py::2, px::2, quad[py, px]]
+    del cam
+    signal *= k_view
+    np.maximum(signal, 0.0, out=signal)  # no negative light (np.clip(x, 0, None) of the reference)
+    if model.full_well is None or rng is None:
+        x = signal
+    else:
+        signal *= model.full_well
+        x = rng.poisson(signal).astype(np.float64)
+        del signal
+        x += rng.normal(0.0, model.read_noise, size=x.shape)
+        x /= model.full_well
+    black = camera.black_level(model.full_well, model.read_noise)
+    x *= camera.white_level - black
+    x += black  # black + x * span: the reference's order of operations (the sum is commutative, bit for bit)
+    np.round(x, out=x)
+    np.clip(x, 0, camera.white_level, out=x)
+    return x.astype(np.uint16)  # where a real sensor clips: 0 DN and white
+
+
+# The codes of 8- and 16-bit photos as read_image_float returns them (float32 code / levels) and their linear light.
+_CODE_TABLES: Dict[int, Tuple[np.ndarray, np.ndarray]] = {}
+
+
+def _code_table(levels: int) -> Tuple[np.ndarray, np.ndarray]:
+    if levels not in _CODE_TABLES:
+        codes = np.arange(levels + 1, dtype=np.float32) / np.float32(levels)
+        _CODE_TABLES[levels] = (codes, srgb_to_linear(codes.astype(np.float64)))
+    return _CODE_TABLES[levels]
+
+
+def _srgb_to_linear_codes(srgb: np.ndarray) -> np.ndarray:
+    """float64 [H, W, 3]: ``srgb_to_linear(float64(srgb))``, a new array. A float32 photo that holds only the
+    values of 8- or 16-bit codes (what :func:`retinexgs.data.images.read_image_float` returns for JPEG and PNG)
+    goes through a table of the curve at those codes: the same numbers, without the power on every pixel (the
+    most expensive step of a 12 MP view). Any other photo is converted as it is."""
+    s = np.asarray(srgb)
+    if s.dtype == np.float32 and s.size:
+        for levels in (255, 65535):
+            codes = np.rint(s * np.float32(levels))
+            np.clip(codes, 0, levels, out=codes)  # NaN stays NaN: the check below refuses it
+            idx = codes.astype(np.uint16)
+            del codes
+            table_in, table_out = _code_table(levels)
+            if np.array_equal(table_in[idx], s):
+                return table_out[idx]
+    return srgb_to_linear(s.astype(np.float64))
+
+
+def capture_mosaic_reference(srgb: np.ndarray, model, camera: RawCamera, k_view: float,
+                             rng: Optional[np.random.Generator]) -> np.ndarray:
+    """The plain definition of :func:`capture_mosaic` (the module docstring's steps on whole arrays): the
+    reference its fast path must equal bit for bit (tests, ``bench darken``)."""
     signal = mosaic(unprocess(srgb, camera, model.cast), camera.cfa) * k_view
     signal = np.clip(signal, 0.0, None)  # no negative light (the matrix keeps in-gamut colours positive)
     if model.full_well is None or rng is None:
@@ -178,7 +245,61 @@ def capture_mosaic(srgb: np.ndarray, model, camera: RawCamera, k_view: float,
 def process(dn: np.ndarray, camera: RawCamera, black: float) -> np.ndarray:
     """float32 [H, W, 3] sRGB in [0, 1]: the camera's ISP of a raw DN mosaic: normalise (not clipped), bilinear
     demosaic, white balance, camera -> sRGB matrix, clip to [0, 1], sRGB curve. No brightening: the JPEG is as
-    dark as the exposure made it, like the JPEG ``darken``."""
+    dark as the exposure made it, like the JPEG ``darken``. :func:`process_reference` bit for bit, with the
+    demosaic of :func:`demosaic_bilinear_sliced`."""
+    x = (dn.astype(np.float64) - black) / (camera.white_level - black)
+    rgb = demosaic_bilinear_sliced(x, camera.cfa)
+    del x
+    rgb *= np.asarray(camera.white_balance, dtype=np.float64)
+    return srgb_encode(rgb @ camera.cam_to_srgb().T)  # srgb_encode clips to [0, 1]
+
+
+def demosaic_bilinear_sliced(x: np.ndarray, cfa: str) -> np.ndarray:
+    """:func:`retinexgs.data.camera_raw.demosaic_bilinear` bit for bit, in about a sixth of its passes.
+
+    That function correlates each channel's masked mosaic with a 3x3 kernel over the whole image, most terms
+    zero. Here each of the four CFA phases is a strided slice, and only the terms that fall on the channel's own
+    samples are summed, in the same (raster) order and with the same weights (powers of two: exact), so every
+    sum rounds as there; the zeros left out change no sum. The normalisation (the kernel weights of the samples
+    inside the image) is 1 away from the border, and dividing by 1 is exact, so only each phase's first and last
+    row and column are divided."""
+    x = np.asarray(x)
+    x = x if x.dtype == np.float32 else x.astype(np.float64)
+    quad = np.array([_CHANNEL[c] for c in cfa.upper()]).reshape(2, 2)
+    h, w = x.shape
+    p = np.pad(x, 1)
+    out = np.empty((h, w, 3), dtype=x.dtype)
+    for c, k in ((0, _K_RB), (1, _K_G), (2, _K_RB)):
+        for py in (0, 1):
+            for px in (0, 1):
+                nr, nc = (h - py + 1) // 2, (w - px + 1) // 2
+                if nr <= 0 or nc <= 0:
+                    continue
+                terms = [(i, j, x.dtype.type(k[i, j])) for i in range(3) for j in range(3)
+                         if k[i, j] and quad[(py + i + 1) % 2, (px + j + 1) % 2] == c]
+                num = None
+                for i, j, wgt in terms:
+                    term = wgt * p[py + i:py + i + 2 * nr - 1:2, px + j:px + j + 2 * nc - 1:2]
+                    num = term if num is None else np.add(num, term, out=num)
+                rows = np.arange(py, h, 2) - 1  # the top row / left column of each sample's 3x3 window
+                cols = np.arange(px, w, 2) - 1
+                edges = []  # from the undivided sums: a corner is in two edges, divided once
+                for r, q, sel in ((rows[:1, None], cols[None], np.s_[:1, :]),
+                                  (rows[-1:, None], cols[None], np.s_[-1:, :]),
+                                  (rows[:, None], cols[None, :1], np.s_[:, :1]),
+                                  (rows[:, None], cols[None, -1:], np.s_[:, -1:])):
+                    den = np.zeros(np.broadcast_shapes(r.shape, q.shape), dtype=x.dtype)
+                    for i, j, wgt in terms:  # sums of powers of two: exact in any order
+                        den += wgt * (((r + i >= 0) & (r + i < h)) & ((q + j >= 0) & (q + j < w)))
+                    edges.append((sel, num[sel] / den))
+                for sel, value in edges:
+                    num[sel] = value
+                out[py::2, px::2, c] = num
+    return out
+
+
+def process_reference(dn: np.ndarray, camera: RawCamera, black: float) -> np.ndarray:
+    """The plain definition of :func:`process`: the reference its fast path must equal bit for bit."""
     x = (dn.astype(np.float64) - black) / (camera.white_level - black)
     rgb = demosaic_bilinear(x, camera.cfa) * np.asarray(camera.white_balance, dtype=np.float64)
     return srgb_encode(rgb @ camera.cam_to_srgb().T)  # srgb_encode clips to [0, 1]

@@ -26,12 +26,15 @@ file's own JPEG tables (:class:`JpegCodec`) and reads the floor within about 25 
 from __future__ import annotations
 
 import contextlib
+import functools
+import hashlib
 import json
 import math
+import os
 import shutil
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Dict, Iterator, List, Optional, Tuple
+from typing import TYPE_CHECKING, Callable, Dict, Iterator, List, Optional, Sequence, Tuple, TypeVar
 
 import numpy as np
 
@@ -43,6 +46,8 @@ from retinexgs.formats import PLAIN_EXTENSIONS
 
 if TYPE_CHECKING:  # a type hint only: raw_sim is imported lazily where --raw uses it
     from retinexgs.data.raw_sim import RawCamera
+
+T, R = TypeVar("T"), TypeVar("R")
 
 
 @dataclass(frozen=True)
@@ -89,9 +94,14 @@ class SensorModel:
         return np.round(linear_to_srgb(self.capture(srgb, k_view, rng)) * 255.0).astype(np.uint8)
 
 
-# The noise ladder of issue 32: (label, full well, read noise), from clean to a phone's worst night photo.
+# The noise ladder of issue 32: (label, full well, read noise), from clean to a phone's worst night photo; 800e
+# (issue 64) is the harsher rung where a mid-grey pixel at k = 0.05 holds about 7 electrons against 6 of read noise.
 NOISE_LADDER: List[Tuple[str, Optional[float], float]] = [
-    ("clean", None, 0.0), ("8000e", 8000.0, 2.0), ("3000e", 3000.0, 3.0), ("1500e", 1500.0, 4.0), ("1000e", 1000.0, 6.0)]
+    ("clean", None, 0.0), ("8000e", 8000.0, 2.0), ("3000e", 3000.0, 3.0), ("1500e", 1500.0, 4.0),
+    ("1000e", 1000.0, 6.0), ("800e", 800.0, 6.0)]
+# The raw bit depth of a rung in ``bench quality --raw-ladder`` where it is not RawCamera's default (14 bit): 800e is a
+# small-sensor camera, 12 bit like most phones and compacts, so its DNGs also carry the coarser quantisation.
+LADDER_RAW_BITS: Dict[str, int] = {"800e": 12}
 
 
 @dataclass
@@ -135,7 +145,7 @@ def _scene_photos(src: Path, quality: int, raw: bool) -> Tuple[Path, List[Tuple[
 
 
 def darken_scene(src: Path, out: Path, model: SensorModel, seed: int = 0, progress: bool = True,
-                 raw: Optional["RawCamera"] = None) -> DarkenReport:
+                 raw: Optional["RawCamera"] = None, jobs: Optional[int] = None) -> DarkenReport:
     """Darken the normal-light photos of ``src`` into the new folder ``out``.
 
     ``src`` is a scene in LOM's layout (``high/`` photos with ``transforms_*.json``, ``split.json``,
@@ -145,10 +155,11 @@ def darken_scene(src: Path, out: Path, model: SensorModel, seed: int = 0, progre
     name, but for a type darken cannot write (HEIC, camera raw: :func:`_dark_name`, ``.jpg`` or ``.png``).
 
     ``raw`` (a :class:`retinexgs.data.raw_sim.RawCamera`): simulate the camera's raw files instead, see
-    :func:`_darken_raw`: ``out/raw/`` (DNGs) and ``out/jpeg/`` (the camera's JPEGs of the same photons)."""
+    :func:`_darken_raw`: ``out/raw/`` (DNGs) and ``out/jpeg/`` (the camera's JPEGs of the same photons), the
+    views spread over ``jobs`` worker processes (None: one per CPU core; the files do not depend on it)."""
     model.check()
     if raw is not None:
-        return _darken_raw(Path(src), Path(out), model, raw, seed, progress)
+        return _darken_raw(Path(src), Path(out), model, raw, seed, progress, jobs)
     src, out = Path(src), Path(out)
     folder, jobs = _darken_inputs(src, out, model.jpeg_quality, raw=False)
     rng = np.random.default_rng(seed)
@@ -237,7 +248,7 @@ def _rename_to_dng(scene: Path) -> None:
 
 
 def _darken_raw(src: Path, out: Path, model: SensorModel, camera: "RawCamera", seed: int,
-                progress: bool) -> DarkenReport:
+                progress: bool, n_jobs: Optional[int] = None) -> DarkenReport:
     """``darken --raw``: each normal-light photo becomes the raw file a camera writes at night and that
     camera's own JPEG of the same noisy mosaic (retinexgs/data/raw_sim.py has the pipeline):
 
@@ -248,7 +259,12 @@ def _darken_raw(src: Path, out: Path, model: SensorModel, camera: "RawCamera", s
     - ``sensor.json`` in ``out/`` and in each: the model, the camera (matrix, white balance, CFA, bits, black,
       white, NoiseProfile) and every view's exposure.
 
-    A plain folder of photos gives ``out/raw/NAME.dng`` and ``out/jpeg/NAME``."""
+    A plain folder of photos gives ``out/raw/NAME.dng`` and ``out/jpeg/NAME``.
+
+    Each view draws its exposure and noise from its own random stream (:func:`view_rng`, from ``seed`` and the
+    view's name), so the views run in ``n_jobs`` worker processes (None: one per CPU core) and the files are the
+    same for any number of them; a worker holds one view at a time (memory is bounded by the workers, not by
+    the views)."""
     from retinexgs.data import raw_sim
 
     camera.check()
@@ -260,12 +276,11 @@ def _darken_raw(src: Path, out: Path, model: SensorModel, camera: "RawCamera", s
         if other != photo:
             raise UserError(f"{other.name} and {photo.name} in {folder} would both become {_dng_name(photo.name)}; "
                             f"rename one of them")
-    rng = np.random.default_rng(seed)
+    workers = _worker_count(n_jobs, len(jobs))
     report = DarkenReport(out, len(jobs))
     check_writable_folder(out)
     made = not out.exists()
     raw_dir, jpeg_dir = out / "raw", out / "jpeg"
-    black = camera.black_level(model.full_well, model.read_noise)
     times: Dict[str, float] = {}
     with _dark_scene_writes(out, made):  # nothing half-made is left behind
         for d in (raw_dir, jpeg_dir):
@@ -274,26 +289,137 @@ def _darken_raw(src: Path, out: Path, model: SensorModel, camera: "RawCamera", s
                 _copy_scene(src, d)
         if folder != src:
             _rename_to_dng(raw_dir)
-        from tqdm import tqdm
-        for photo, rel in tqdm(jobs, desc="darken --raw", disable=not progress, dynamic_ncols=True):
-            k = model.view_exposure(rng)
-            dn = raw_sim.capture_mosaic(read_image_float(photo), model, camera, k, rng)
+        views = []
+        for photo, rel in jobs:
             rel_dng = Path(rel).with_name(_dng_name(photo.name)).as_posix()
-            (raw_dir / rel_dng).parent.mkdir(parents=True, exist_ok=True)
-            raw_sim.write_raw_view(raw_dir / rel_dng, dn, camera, model, k)
-            (jpeg_dir / rel).parent.mkdir(parents=True, exist_ok=True)
-            _write_dark_photo(jpeg_dir / rel, raw_sim.to_uint8(raw_sim.process(dn, camera, black)),
-                              model.jpeg_quality)
-            report.exposures[rel] = round(k, 6)
-            times[rel_dng] = camera.normal_time * k  # what the DNG's EXIF says (at camera.iso, f_number)
+            for target in (raw_dir / rel_dng, jpeg_dir / rel):
+                target.parent.mkdir(parents=True, exist_ok=True)
+            views.append(RawView(photo, rel, raw_dir / rel_dng, jpeg_dir / rel))
+        work = functools.partial(darken_raw_view, model=model, camera=camera, seed=seed)
+        for view, k in zip(views, map_views(work, views, workers, progress, "darken --raw")):
+            report.exposures[view.name] = round(k, 6)
+            times[Path(view.name).with_name(view.dng.name).as_posix()] = camera.normal_time * k  # the DNG's EXIF
         record = {"model": asdict(model), "camera": camera.record(model.full_well, model.read_noise),
-                  "seed": seed, "source": str(src.resolve()), "layout": {"raw": "raw/", "jpeg": "jpeg/"},
+                  "seed": seed, "rng": RNG_RECORD,
+                  "source": str(src.resolve()), "layout": {"raw": "raw/", "jpeg": "jpeg/"},
                   "view_exposures": report.exposures, "raw_exposure_times": times}
         text = json.dumps(record, indent=1)
         atomic_write_text(raw_dir / "sensor.json", text)
         atomic_write_text(jpeg_dir / "sensor.json", text)
         atomic_write_text(out / "sensor.json", text)  # last: its presence says the whole capture is written
     return report
+
+
+# ---- darken --raw's views, one random stream each, spread over worker processes --------------------------------
+
+RNG_RECORD = ("numpy default_rng(SeedSequence(seed, spawn_key=(view key,))) per view; view key = the first 8 bytes "
+              "of the SHA-256 of the view's relative name (low/NAME), big-endian; exposure first, then the noise")
+
+
+def view_rng(seed: int, name: str) -> np.random.Generator:
+    """The random stream of the view named ``name`` (its path in the dark scene, e.g. ``low/0001.jpg``): a child
+    of ``seed`` keyed by the name (:data:`RNG_RECORD`), so a view's exposure and noise depend neither on the
+    views before it nor on which worker draws them, and stay the same when views are added or removed."""
+    key = int.from_bytes(hashlib.sha256(name.encode("utf-8")).digest()[:8], "big")
+    return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(key,)))
+
+
+@dataclass(frozen=True)
+class RawView:
+    """One view of ``darken --raw``: the normal-light photo, its name in the scene and the two files it becomes."""
+
+    photo: Path
+    name: str   # the dark photo's path relative to the scene (``low/NAME``): its random stream's key
+    dng: Path
+    jpeg: Path
+
+
+def darken_raw_view(view: RawView, model: SensorModel, camera: "RawCamera", seed: int) -> float:
+    """Write one view's DNG and camera JPEG (retinexgs/data/raw_sim.py's pipeline) with its own random stream
+    (:func:`view_rng`); its exposure k_v. Runs in a worker process: everything it needs is in its arguments."""
+    from retinexgs.data import raw_sim
+
+    rng = view_rng(seed, view.name)
+    k = model.view_exposure(rng)
+    dn = raw_sim.capture_mosaic(read_image_float(view.photo), model, camera, k, rng)
+    raw_sim.write_raw_view(view.dng, dn, camera, model, k)
+    rgb = raw_sim.to_uint8(raw_sim.process(dn, camera, camera.black_level(model.full_well, model.read_noise)))
+    del dn
+    _write_dark_photo(view.jpeg, rgb, model.jpeg_quality)
+    return k
+
+
+def _worker_count(jobs: Optional[int], views: int) -> int:
+    """``--jobs`` checked (UserError below 1); None: one worker per CPU core; never more workers than views."""
+    if jobs is not None and jobs < 1:
+        raise UserError(f"--jobs must be at least 1 (worker processes), got {jobs}")
+    return max(1, min(jobs or os.cpu_count() or 1, views))
+
+
+@contextlib.contextmanager
+def _one_thread_per_worker() -> Iterator[None]:
+    """While worker processes start: numeric libraries in each use one thread (N workers each starting a thread
+    per core would oversubscribe the CPU). The parent's settings are restored after."""
+    names = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+    saved = {n: os.environ.get(n) for n in names}
+    os.environ.update({n: "1" for n in names})
+    try:
+        yield
+    finally:
+        for n, v in saved.items():
+            if v is None:
+                os.environ.pop(n, None)
+            else:
+                os.environ[n] = v
+
+
+def _worker_context():
+    """The multiprocessing context of :func:`map_views`: a fork server that imported this module (and with it
+    torch, which retinexgs.data loads) once, so that each worker starts in a fraction of a second instead of
+    importing torch itself; not a plain fork of the caller, which may hold threads (torch's, a progress bar's)
+    that a fork copies badly. Spawned workers where there is no fork server (Windows)."""
+    import multiprocessing
+
+    if "forkserver" not in multiprocessing.get_all_start_methods():
+        return multiprocessing.get_context("spawn")
+    ctx = multiprocessing.get_context("forkserver")
+    ctx.set_forkserver_preload(["retinexgs.data.sensor", "retinexgs.data.raw_sim"])
+    return ctx
+
+
+def map_views(fn: Callable[[T], R], items: Sequence[T], workers: int, progress: bool, desc: str) -> List[R]:
+    """``[fn(item) for item in items]``, in ``workers`` processes when more than one (:func:`_worker_context`).
+    Only the items and results cross between processes, so each worker holds one view at a time. On the first
+    failure the views not started are cancelled and the error is raised here (after the running ones end, so
+    nothing writes into a folder being removed); a worker that dies becomes a UserError naming --jobs."""
+    from tqdm import tqdm
+
+    with tqdm(total=len(items), desc=desc, disable=not progress, dynamic_ncols=True) as bar:
+        if workers <= 1 or len(items) <= 1:
+            results = []
+            for item in items:
+                results.append(fn(item))
+                bar.update()
+            return results
+        from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
+        from concurrent.futures.process import BrokenProcessPool
+
+        with _one_thread_per_worker():
+            pool = ProcessPoolExecutor(max_workers=workers, mp_context=_worker_context())
+            try:
+                futures = [pool.submit(fn, item) for item in items]  # in item order
+                pending = set(futures)
+                while pending:
+                    done, pending = wait(pending, return_when=FIRST_EXCEPTION)
+                    for f in done:
+                        f.result()  # the first failure is raised here
+                    bar.update(len(done))
+                return [f.result() for f in futures]
+            except BrokenProcessPool:
+                raise UserError(f"{desc}: a worker process stopped abruptly (killed, perhaps for memory: each holds "
+                                f"one view); run again with a smaller --jobs than {workers}") from None
+            finally:
+                pool.shutdown(wait=True, cancel_futures=True)
 
 
 @contextlib.contextmanager

@@ -30,11 +30,13 @@ Dropped photos (issue 62): the photos SfM did not register are named in one ``wa
 is kept (a lower ``min_registered``, e.g. ``--min-registered 0``, then uses it without running SfM again).
 
 Denoised previews (issue 62 item 3, issue 64 item 5): with a :class:`PreviewDenoise` (``sfm --denoise``, built by
-:mod:`retinexgs.commands.sfm_preview`, since the denoiser lives in a layer above this one) the previews of dark photos
-and raw files are denoised in linear light, under their noise model, before they are brightened: a raw file by its
-own noise (:func:`retinexgs.data.raw_noise.view_noise`), a photo by the capture's (``PreviewDenoise.photo_noise``).
-The recipe is part of the copies' cache key and of the cached model's signature (absent without a denoiser, so
-models cached before it still match).
+:mod:`retinexgs.train.sfm_preview`, since the denoiser lives in a layer above this one; ``train`` on a bare folder
+too, ``data.sfm_denoise``) the previews of dark photos and raw files are denoised in linear light, under their noise
+model, before they are brightened: a raw file by its own noise (:func:`retinexgs.data.raw_noise.view_noise`), a
+photo by the capture's (``PreviewDenoise.photo_noise``). The recipe is part of the copies' cache key and of the
+cached model's signature (absent without a denoiser, so models cached before it still match). ``denoise_cached``:
+a finished run read back (eval, render, export) cannot build the denoiser (it lives above this layer and the run
+layer), so it takes the cached model whichever recipe made it: the one its training made.
 """
 from __future__ import annotations
 
@@ -377,11 +379,19 @@ def default_sfm_dir(image_dir: Path) -> Path:
     return root / "retinexgs_sfm"
 
 
+def _without_denoise(signature: object) -> object:
+    """A cached model's signature without its preview denoiser's recipe (for ``run_sfm(denoise_cached=True)``)."""
+    if not isinstance(signature, dict) or not isinstance(signature.get("options"), dict):
+        return signature
+    return {**signature, "options": {k: v for k, v in signature["options"].items() if k != "denoise"}}
+
+
 def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *, matching: str = "auto",
             enhance: Union[str, bool] = "auto", camera_model: str = "SIMPLE_RADIAL", single_camera: bool = True,
             max_num_features: int = 8192, max_image_size: int = 3200, num_threads: int = -1, seed: int = 0,
             force: bool = False, progress: Optional[Progress] = _stderr_progress,
-            min_registered: float = MIN_REGISTERED_SHARE, denoise: Optional[PreviewDenoise] = None) -> SfmResult:
+            min_registered: float = MIN_REGISTERED_SHARE, denoise: Optional[PreviewDenoise] = None,
+            denoise_cached: bool = False) -> SfmResult:
     """Run SfM on the photos directly inside ``images``; the model goes to ``<out>/sparse/0``.
 
     ``matching`` is "auto", "exhaustive" or "sequential"; ``enhance`` is "auto" (dark folders only), True
@@ -390,7 +400,8 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
     ``out`` holds COLMAP files (database.db, sparse/) this function did not make, unless ``force`` (which also
     recomputes a cached model), and when fewer than ``min_registered`` (a share) of the photos are registered
     (the model is kept; the photos left out are named in a warning otherwise). ``denoise``: the previews of dark
-    photos and raw files are denoised before they are brightened (:class:`PreviewDenoise`).
+    photos and raw files are denoised before they are brightened (:class:`PreviewDenoise`); ``denoise_cached``:
+    a cached model matches whichever preview denoiser made it (a finished run reading its poses back).
     """
     say = progress or (lambda _msg: None)
     check_sfm_numbers(max_num_features, max_image_size, num_threads)
@@ -444,7 +455,8 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
             meta = json.loads(meta_path.read_text())
         except (OSError, json.JSONDecodeError):
             meta = None
-        if meta and meta.get("signature") == signature:
+        if meta and (meta.get("signature") == signature or
+                     (denoise_cached and _without_denoise(meta.get("signature")) == _without_denoise(signature))):
             say(f"using cached model {model_dir}")
             r = meta["result"]
             check_registration(image_dir, [p.name for p in paths], r["registered"], min_registered, model_dir)

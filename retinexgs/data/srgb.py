@@ -52,10 +52,3 @@ def linear_to_srgb_extended(x: Image) -> Image:
 def srgb_to_linear_extended(x: Image) -> Image:
     """The inverse of :func:`linear_to_srgb_extended` (no clip: negative values map to negative light)."""
     return _where(x <= _S_KNEE, x / _SLOPE, ((_floor(x, _S_KNEE) + _A) / _A1) ** _GAMMA)
-
-
-def linear_to_srgb_slope(x: Image) -> Image:
-    """d linear_to_srgb(x) / dx for linear light x ≥ 0 (no gradient needed): 12.92 on the linear segment,
-    (1.055 / 2.4)·x^(1/2.4 − 1) above it."""
-    steep = _A1 / _GAMMA * _floor(x, _L_KNEE) ** (1.0 / _GAMMA - 1.0)
-    return _where(x <= _L_KNEE, steep * 0.0 + _SLOPE, steep)  # both branches arrays of x's kind (torch or numpy)

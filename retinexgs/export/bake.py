@@ -89,11 +89,9 @@ def enhanced_colour(model: RetinexGSModel, R: Tensor, L: Tensor, gamma: Tensor,
     with the white balance ``balance`` (gains [3] or a 3×3 matrix; None: as trained) applied in linear light
     before the highlight shoulder and the sRGB curve, as ``render --white-balance`` applies it.
 
-    The model's tone map, except that the capture-noise filter (``black_filter``) is not applied: it filters an
-    image, and a chunk of Gaussians × directions is none (before, it would have smoothed neighbouring Gaussians'
-    colours into each other). Without that filter and without a balance: ``model.tone_map``'s colour, bit for bit."""
+    Without a balance: ``model.tone_map``'s colour, bit for bit."""
     tone = model.tone
-    light = tone.linear(R, L, model.illum_ref, gamma, model.tone_noise())
+    light = tone.linear(R, L, model.illum_ref, gamma)
     if light is not None:  # a tone with a linear form (exposure): the balance acts on it
         return linear_to_srgb(highlight_shoulder(white_balance(light, balance), tone.knee(model.shoulder)))
     colour = tone.map(R, L, model.illum_ref, gamma, model.enhancement.eps, model.shoulder)[0]
@@ -148,10 +146,10 @@ def baked_colour_text(model: RetinexGSModel, gamma: Tensor, directions: int, wb:
                       balance=None) -> str:
     """The PLY comment saying what :func:`bake_enhanced_sh` baked: the formula of the model's tone form
     (``model.enhancement.tone``, :mod:`retinexgs.model.tone`) with its numbers (g; for tone ``exposure`` the gain k
-    and the highlight knee, and whether R̂∘L̂ is read through the capture's black table), and with ``wb`` the
+    and the highlight knee), and with ``wb`` the
     white balance W in the formula and its numbers (:func:`retinexgs.model.white_balance.describe_balance`)."""
     g = torch.as_tensor(gamma, dtype=torch.float64).reshape(-1).cpu()
-    text = model.tone.describe(g, model.illum_ref, model.shoulder, model.tone_noise() is not None, balance is not None)
+    text = model.tone.describe(g, model.illum_ref, model.shoulder, balance is not None)
     if wb is not None:  # beside the exposure's numbers: the form given and W's numbers (or none: as trained)
         text += f"; W = {describe_balance(wb, balance)}" if balance is not None else f"; {describe_balance(wb, None)}"
     return text + f", clipped to [0,1] and baked into SH by least squares over {directions} directions"

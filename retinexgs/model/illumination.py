@@ -88,15 +88,11 @@ class IlluminationField(nn.Module):
         bound: positions are divided by this before encoding (see "Input scaling").
         init_value: initial output for every input (sigmoid bias = logit(init_value)).
         view_dependent: False holds the head's direction columns at zero (see the module docstring).
-        leak: the hidden layers' negative slope (0: ReLU). Why leaky: where every unit of the head is off (a dark
-            region pushes them there) the output is sigmoid(last bias), a floor shared with the whole scene, and no
-            gradient reaches the weights that could take it lower (fox-dark@1000 e⁻ RAW: 20–30 % of the Gaussians
-            sat at L̂ = 0.059 where the priors said 0.028; experiments/notes/2026-11-28-near-plane.md §6).
     """
 
     def __init__(self, pos_freqs: int = 10, dir_freqs: int = 4, hidden: int = 64, depth: int = 3,
                  dir_hidden: int = 32, bound: float = 2.0, init_value: float = 0.1,
-                 view_dependent: bool = True, leak: float = 0.0) -> None:
+                 view_dependent: bool = True) -> None:
         super().__init__()
         if depth < 1:
             raise ValueError("depth must be >= 1")
@@ -104,22 +100,16 @@ class IlluminationField(nn.Module):
             raise ValueError("init_value must be in (0, 1)")
         if bound <= 0:
             raise ValueError("bound must be > 0")
-        if not 0.0 <= leak < 1.0:
-            raise ValueError("leak must be in [0, 1)")
         self.pos_freqs, self.dir_freqs, self.bound = int(pos_freqs), int(dir_freqs), float(bound)
-        self.leak = float(leak)
-
-        def act() -> nn.Module:
-            return nn.LeakyReLU(self.leak, inplace=True) if self.leak > 0 else nn.ReLU(inplace=True)
 
         layers = []
         width = encoded_dim(3, self.pos_freqs)
         for _ in range(depth):
-            layers += [nn.Linear(width, hidden), act()]
+            layers += [nn.Linear(width, hidden), nn.ReLU(inplace=True)]
             width = hidden
         self.trunk = nn.Sequential(*layers)
         self.head = nn.Sequential(
-            nn.Linear(hidden + encoded_dim(3, self.dir_freqs), dir_hidden), act(),
+            nn.Linear(hidden + encoded_dim(3, self.dir_freqs), dir_hidden), nn.ReLU(inplace=True),
             nn.Linear(dir_hidden, 3))
         self.view_dependent = bool(view_dependent)
         # 1 on the feature columns of the head's first layer, 0 on the direction columns (all 1 when view
@@ -147,7 +137,7 @@ class IlluminationField(nn.Module):
         h = torch.cat([feat, positional_encoding(d, self.dir_freqs)], dim=-1)
         # The masked weight gets a zero gradient on the direction columns: Adam leaves them at zero.
         h = F.linear(h, self.head_weight(), self.head[0].bias)
-        h = F.leaky_relu(h, self.leak) if self.leak > 0 else F.relu(h)
+        h = F.relu(h)
         return torch.sigmoid(self.head[-1](h))
 
     def head_weight(self) -> torch.Tensor:

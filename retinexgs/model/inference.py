@@ -54,8 +54,6 @@ def fused_colors_unsupported(field: Optional[IlluminationField]) -> Optional[str
     """Why the fused colour kernel cannot evaluate ``field`` (None when it can)."""
     if field is None:
         return None
-    if getattr(field, "leak", 0.0) > 0:
-        return f"the kernel's hidden layers are ReLUs; model.illumination.leak {field.leak:g} runs the field in torch"
     pos_freqs, dir_freqs, hidden, depth, dir_hidden = illumination_shape(field)
     trunk = [m for m in field.trunk if isinstance(m, nn.Linear)]
     head = [m for m in field.head if isinstance(m, nn.Linear)]
@@ -162,7 +160,7 @@ class _EnhanceGraph:
         tone = self.model.tone
         exposed = tone.apply_exposure(g, self.exposure, self.model.illum_ref, self.log_ref)
         g = torch.where(self.use_fixed, self.fixed, torch.where(self.exposure == 1.0, g, exposed))
-        if tone.fusable(self.model.tone_noise()):
+        if tone.fusable():
             # One kernel for the tone (exposure's srgb(s(k·lin(R̂∘L̂))), csrc: exposure_tone): in torch the two
             # sRGB curves are ~20 elementwise kernels over the frame, and L_enh, which the frame does not show, as
             # many again.
@@ -170,7 +168,7 @@ class _EnhanceGraph:
             if self.balanced:
                 gain = balanced_gain(self.balance, gain)
             rgb = tone.fused(self.image, gain, self.model.shoulder)
-        else:  # a tone without a fused kernel (the gamma tones), or one read through a black table (debias_black)
+        else:  # a tone without a fused kernel (the gamma tones)
             rgb, _ = self.model.tone_map(R, L, g.reshape(-1))
         return torch.cat([rgb.reshape(-1), g.reshape(-1)])
 
@@ -327,10 +325,9 @@ class InferenceRenderer:
         return stream
 
     def can_balance(self) -> bool:
-        """Whether :meth:`render` applies a white balance itself: RetinexGS with a tone of one fused kernel read
-        without a black table (tone ``exposure``, the default). Elsewhere the caller balances the frame's light in
-        torch."""
-        return self.decomposed and self.model.tone.fusable(self.model.tone_noise())
+        """Whether :meth:`render` applies a white balance itself: RetinexGS with a tone of one fused kernel (tone
+        ``exposure``, the default). Elsewhere the caller balances the frame's light in torch."""
+        return self.decomposed and self.model.tone.fusable()
 
     def render(self, camera: Camera, exposure: Optional[float] = None, gamma: Optional[float] = None,
                degree: Optional[int] = None, balance: Optional[Tensor] = None) -> FrameMaps:

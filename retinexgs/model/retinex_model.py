@@ -31,7 +31,6 @@ from retinexgs.model.gaussians import GaussianModel, sh_colors
 from retinexgs.model.illumination import IlluminationField
 from retinexgs.model.near_plane import with_near
 from retinexgs.model.tones import Tone, get_tone
-from retinexgs.model.tones.curves import black_table
 from retinexgs.render import Camera, rasterize_gaussians
 
 
@@ -73,16 +72,9 @@ class RetinexGSModel(nn.Module):
             il = model_cfg.illumination
             self.illumination = IlluminationField(pos_freqs=il.pos_freqs, dir_freqs=il.dir_freqs, hidden=il.hidden,
                                                   depth=il.depth, dir_hidden=il.dir_hidden,
-                                                  init_value=il.init_value, view_dependent=il.view_dependent,
-                                                  leak=il.leak)
+                                                  init_value=il.init_value, view_dependent=il.view_dependent)
             self._set_enhancement(model_cfg.enhancement)
             self.register_buffer("illum_ref", torch.ones(()))  # L_ref; set by the trainer from the 2D priors
-            if model_cfg.enhancement.debias_black:
-                # model/tones/curves.black_table of the capture's noise, set by the trainer; until then lin itself.
-                self.register_buffer("black_table", black_table())
-                if model_cfg.enhancement.black_filter > 0:
-                    # model/tones/curves.smooth_record's spread: a, b of the render's residual noise, set by the trainer
-                    self.register_buffer("black_spread", torch.zeros(2, 3))
         # model.background "mean": uncovered pixels show [6] channel values (R̂ then L̂) that the trainer sets from
         # the training views' priors, instead of black; a buffer, so checkpoints carry it. RetinexGS's only: the
         # 3DGS baselines stay as published (black).
@@ -156,10 +148,6 @@ class RetinexGSModel(nn.Module):
         self.per_channel_gamma = bool(enh.per_channel)
         self.tone = enh.tone  # the registered Tone of the name (the ``tone`` property)
         self.shoulder = self.capture.knee(enh)  # the highlight knee of a tone with a shoulder (1: the clip)
-        # a tone that reads the black table: the clipped noise's mean out of R̂∘L̂ first (tones/curves.scene_linear)
-        self.debias_black = bool(enh.debias_black)
-        # with it, the radius of the filter that takes the render's residual noise out first (curves.smooth_record)
-        self.black_filter = int(enh.black_filter)
         self.enhancement = EnhancementNet(channels=3, gamma_range=tuple(enh.gamma_range), init_gamma=enh.init_gamma,
                                           per_view=enh.per_view)
 
@@ -209,25 +197,12 @@ class RetinexGSModel(nn.Module):
     def tone_map(self, R: Tensor, L: Tensor, gamma: Tensor) -> Tuple[Tensor, Tensor]:
         """(S_enh, L_enh) from R̂ [..., 3], the rendered L̂ [..., 3] and g ([1] or [3], broadcast over the last
         axis), in the model's tone form (``model.enhancement.tone``: :meth:`retinexgs.model.tones.Tone.map`)."""
-        noise = self.tone_noise()
-        spread = getattr(self, "black_spread", None) if noise is not None else None
-        return self.tone.map(R, L, self.illum_ref, gamma, self.enhancement.eps, self.shoulder, noise, spread,
-                             self.black_filter)
+        return self.tone.map(R, L, self.illum_ref, gamma, self.enhancement.eps, self.shoulder)
 
     def tone_linear(self, R: Tensor, L: Tensor, gamma: Tensor) -> Optional[Tensor]:
-        """The enhanced linear light before the highlight shoulder and the sRGB curve of :meth:`tone_map`'s image
-        (through the black table and its filter where the model has them), or None for a tone without a linear
-        form, whose light is lin(S_enh) (:meth:`retinexgs.model.tones.Tone.linear`)."""
-        noise = self.tone_noise()
-        spread = getattr(self, "black_spread", None) if noise is not None else None
-        return self.tone.linear(R, L, self.illum_ref, gamma, noise, spread, self.black_filter)
-
-    def tone_noise(self) -> Optional[Tensor]:
-        """The black table (:func:`retinexgs.model.tones.curves.black_table`) through which the tone reads the light
-        of R̂∘L̂ (``model.enhancement.debias_black``), or None: off, a tone that reads none, or a model without it."""
-        if not self.debias_black or not self.tone.reads_black_table:
-            return None
-        return getattr(self, "black_table", None)
+        """The enhanced linear light before the highlight shoulder and the sRGB curve of :meth:`tone_map`'s image,
+        or None for a tone without a linear form, whose light is lin(S_enh) (:meth:`retinexgs.model.tones.Tone.linear`)."""
+        return self.tone.linear(R, L, self.illum_ref, gamma)
 
     def predict_gamma(self, L_bchw: Tensor) -> Tensor:
         """The EnhancementNet's gamma for a normalised L̂/L_ref [1,3,H,W]: one per image (the paper's single g,

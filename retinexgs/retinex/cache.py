@@ -73,7 +73,8 @@ def read_image(path: PathLike, raw_denoise: bool = False, balance: Optional[Sequ
         raw = holds_unclipped(p)
         image = balance_photo(load_image_tensor(p, unclipped=raw), balance, unclipped=raw)
         return denoised_view(p, image, denoise.noise, denoise.method, raw, cache_root, denoise.params,
-                             content=prior_key(p, False, balance), hint=cache_hint)[0]
+                             content=prior_key(p, False, balance), hint=cache_hint, backend=denoise.backend,
+                             device=denoise.device)[0]
     if raw_denoise and holds_unclipped(p):
         return denoised_preview(balance_photo(load_image_tensor(p, unclipped=True), balance, unclipped=True))
     return balance_photo(load_image_tensor(p), balance)

@@ -9,6 +9,7 @@ import torch
 import yaml
 
 from retinexgs.data import Scene, load_scene
+from retinexgs.data.sfm import PreviewDenoise
 from retinexgs.data.photo_balance import estimate_photo_balance
 from retinexgs.errors import UserError
 from retinexgs.fileio import atomic_write_text
@@ -30,14 +31,21 @@ def pick_device(device: Optional[str]) -> str:
     return device
 
 
-def open_scene(path: Path, cfg: Config, cache_hint: str = "--set data.cache_dir=DIR") -> Scene:
+def open_scene(path: Path, cfg: Config, cache_hint: str = "--set data.cache_dir=DIR",
+               sfm_denoise: Optional[Callable[[Path], Optional[PreviewDenoise]]] = None) -> Scene:
     """Load the scene as a run's config says (reader, downscale, caches); train and decompose share it so
     that they read the same (undistorted, downscaled) images. ``cache_hint``: the caller's spelling of
-    ``data.cache_dir`` for the message when the scene folder is read-only."""
+    ``data.cache_dir`` for the message when the scene folder is read-only. ``sfm_denoise``: the previews'
+    denoiser of a bare folder's SfM (``data.sfm_denoise``, from
+    :func:`retinexgs.train.sfm_preview.scene_sfm_denoise`: train and decompose pass it); without it (a finished
+    run read back) a denoised run takes the SfM model its training cached, whichever recipe made it."""
     d = cfg.data
+    sfm_options = dict(min_registered=d.min_registered)
+    if sfm_denoise is None and d.sfm_denoise != "none":
+        sfm_options["denoise_cached"] = True
     scene = load_scene(path, reader=d.reader, downscale=d.downscale,
                        cache_dir=d.cache_dir and Path(d.cache_dir) / "scene", cache_hint=cache_hint,
-                       sfm_options=dict(min_registered=d.min_registered))
+                       sfm_options=sfm_options, sfm_denoise=sfm_denoise)
     if d.white_balance == "grey-edge":  # one balance for the capture, from its training photos (deterministic)
         gains = estimate_photo_balance([v.image_path for v in scene.train])
         for v in [*scene.train, *scene.test, *scene.val]:

@@ -10,9 +10,9 @@ answers for the density schedule, which the strategy owns. ``density.kind`` pick
 the checkpoint through ``state_dict``.
 """
 from retinexgs.strategy.base import STRATEGIES, Strategy, build_strategy, register
-from retinexgs.strategy.default import DefaultStrategy, noise_share
+from retinexgs.strategy.default import DefaultStrategy
 from retinexgs.strategy.mcmc import MCMCStrategy, relocation
 from retinexgs.strategy.ops import edit_gaussians, reset_opacity, resize_gaussians
 
 __all__ = ["STRATEGIES", "Strategy", "build_strategy", "register", "DefaultStrategy", "MCMCStrategy",
-           "noise_share", "relocation", "edit_gaussians", "resize_gaussians", "reset_opacity"]
+           "relocation", "edit_gaussians", "resize_gaussians", "reset_opacity"]

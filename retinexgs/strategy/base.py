@@ -57,10 +57,6 @@ class Strategy:
         """Whether the ranks must :meth:`reduce` this strategy's statistics before :meth:`step` at ``step``."""
         return False
 
-    def probes_noise_at(self, step: int) -> bool:
-        """Whether the trainer's noise probe (``density.noise_aware``) should feed :meth:`add_noise_probe` now."""
-        return False
-
     # ---- hooks ---------------------------------------------------------------------------------------------
     def extra_loss(self, model: GaussianModel) -> Optional[Tensor]:
         """A regulariser this strategy adds to every step's loss (weighted, differentiable), or None."""
@@ -68,9 +64,6 @@ class Strategy:
 
     def after_backward(self, out: RenderOutput, width: int, height: int) -> None:
         """One view's render after its backward (its 2D means' gradients are set)."""
-
-    def add_noise_probe(self, grad: Tensor, visible: Tensor, width: int, height: int) -> None:
-        """The gradient the capture's noise alone gives the 2D means of one view (``density.noise_aware``)."""
 
     def after_optimizer_step(self, model: GaussianModel, optimizer: torch.optim.Optimizer, step: int) -> None:
         """After every optimiser step (constraints or perturbations of the updated parameters)."""

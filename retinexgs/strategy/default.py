@@ -1,7 +1,6 @@
 """The default strategy: 3DGS's adaptive density control (Kerbl et al. 2023, §5.2): clone small and split large
-Gaussians with large view-space gradients, prune transparent or oversized ones, periodically reset opacities; with
-``density.noise_aware`` the gradient the capture's noise explains is discounted, and ``density.max_aniso`` caps
-needles after every optimiser step. Parameters and Adam moments change only through :mod:`retinexgs.strategy.ops`."""
+Gaussians with large view-space gradients, prune transparent or oversized ones, periodically reset opacities;
+``density.max_aniso`` caps needles after every optimiser step. Parameters and Adam moments change only through :mod:`retinexgs.strategy.ops`."""
 from __future__ import annotations
 
 import math
@@ -20,24 +19,9 @@ from retinexgs.strategy.ops import cap_anisotropy, edit_gaussians, reset_opacity
 
 
 # The per-Gaussian statistics summed over views (and over ranks before a densification), and the one kept as a
-# running maximum. ``grad_sq``, ``noise_sq`` and ``noise_count`` serve ``density.noise_aware`` (noise_share).
-SUMMED = ("grad_accum", "count", "grad_sq", "noise_sq", "noise_count")
+# running maximum.
+SUMMED = ("grad_accum", "count")
 MAXIMA = ("max_radius",)
-
-
-def noise_share(grad_sq: Tensor, count: Tensor, noise_sq: Tensor, noise_count: Tensor) -> Tensor:
-    """[N] the share of each Gaussian's view-space gradient energy that the capture's noise alone explains: the
-    mean squared gradient norm the noise probe measured (``noise_sq / noise_count``) over the mean squared norm of
-    the training gradients (``grad_sq / count``), clamped to [0, 1]; 0 where either was never seen.
-
-    Why: a training gradient is the scene's misfit plus the photo's noise, and independent parts add in energy,
-    E‖g‖² = ‖g_misfit‖² + E‖g_noise‖². A Gaussian whose gradient is mostly the noise's is densified to copy the
-    noise of the views it is seen in (speckle in every novel view); ``avg · √(1 − share)`` is the gradient the
-    noise does not explain, which is what densification should answer."""
-    m = grad_sq / count.clamp_min(1)
-    m_n = noise_sq / noise_count.clamp_min(1)
-    share = torch.where((count > 0) & (noise_count > 0) & (m > 0), m_n / m.clamp_min(1e-30), 0.0)
-    return share.clamp(0.0, 1.0)
 
 
 @register("default")
@@ -49,9 +33,6 @@ class DefaultStrategy(Strategy):
         super().__init__(cfg, scene_extent, schedule, seed)  # schedule: when to densify and reset, in steps
         self.grad_accum: Optional[Tensor] = None  # Σ over views of the NDC gradient norm (3DGS's statistic)
         self.count: Optional[Tensor] = None       # views that saw each Gaussian
-        self.grad_sq: Optional[Tensor] = None     # Σ of the squared norm
-        self.noise_sq: Optional[Tensor] = None    # Σ of the noise probe's squared norm (update_noise)
-        self.noise_count: Optional[Tensor] = None  # probed views that saw each Gaussian
         self.max_radius: Optional[Tensor] = None
         self._ndc_scale: Optional[tuple] = None  # ((width, height, device, dtype), [2] tensor)
 
@@ -62,10 +43,6 @@ class DefaultStrategy(Strategy):
         for key in SUMMED + MAXIMA:
             value = state.get(key)
             setattr(self, key, None if value is None else value.to(device))
-        if self.grad_accum is not None and (self.grad_sq is None or self.noise_sq is None):
-            # a checkpoint from before the squared statistics: they restart at this interval's remaining views
-            n, dev = self.grad_accum.shape[0], self.grad_accum.device
-            self.grad_sq, self.noise_sq, self.noise_count = (torch.zeros(n, device=dev) for _ in range(3))
 
     def _ensure(self, n: int, device: torch.device) -> None:
         if self.grad_accum is None or self.grad_accum.shape[0] != n:
@@ -90,27 +67,14 @@ class DefaultStrategy(Strategy):
         norm = self._ndc(grad, width, height).norm(dim=-1).float()
         # Masked arithmetic, not boolean indexing: indexing would sync with the GPU every step.
         self.grad_accum += torch.where(visible, norm, 0.0)
-        if self.cfg.noise_aware:  # only its rule reads the squares (the default step keeps its launches)
-            self.grad_sq += torch.where(visible, norm * norm, 0.0)
         self.count += visible
         # A culled Gaussian has radii (0, 0), so its max radius is 0 and leaves the running maximum as it is.
         torch.maximum(self.max_radius, out.radii.amax(dim=-1), out=self.max_radius)
 
-    def add_noise_probe(self, grad: Tensor, visible: Tensor, width: int, height: int) -> None:
-        """Add one view's noise probe: ``grad`` [N,2], the pixel-space gradient of the 2D means that the capture's
-        noise alone gives (:class:`retinexgs.train.noise.NoiseProbe`), ``visible`` [N] bool."""
-        self._ensure(grad.shape[0], grad.device)
-        norm = self._ndc(grad, width, height).norm(dim=-1).float()
-        self.noise_sq += torch.where(visible, norm * norm, 0.0)
-        self.noise_count += visible
-
     def densification_statistic(self) -> Tensor:
         """[N] what the threshold is compared with: the mean NDC gradient norm over the views that saw each
-        Gaussian (3DGS), times √(1 − the noise's share of its energy) with ``noise_aware`` (:func:`noise_share`)."""
-        avg = self.grad_accum / self.count.clamp_min(1)
-        if self.cfg.noise_aware and self.noise_sq is not None:
-            avg = avg * (1.0 - noise_share(self.grad_sq, self.count, self.noise_sq, self.noise_count)).sqrt()
-        return avg
+        Gaussian (3DGS)."""
+        return self.grad_accum / self.count.clamp_min(1)
 
     def step(self, step: int, model: GaussianModel, optimizer: torch.optim.Optimizer, image_size: int) -> str:
         """Run whatever the schedule asks for at ``step``; returns a short description ('' if nothing)."""
@@ -124,10 +88,6 @@ class DefaultStrategy(Strategy):
 
     def edits_at(self, step: int) -> bool:
         return self.schedule.densify_at(step) or self.schedule.reset_at(step)
-
-    def probes_noise_at(self, step: int) -> bool:
-        """The noise probe runs inside the densification window (its statistics serve densification alone)."""
-        return self.schedule.densify_start < step <= self.schedule.densify_stop
 
     def after_optimizer_step(self, model: GaussianModel, optimizer: Optional[torch.optim.Optimizer] = None,
                              step: int = 0) -> None:
@@ -170,13 +130,6 @@ class DefaultStrategy(Strategy):
         n = len(model)
         avg = self.densification_statistic()
         selected = avg >= c.grad_threshold
-        noise_note = ""
-        if c.noise_aware and self.noise_sq is not None and bool((self.noise_count > 0).any()):
-            seen = (self.count > 0) & (self.noise_count > 0)
-            share = noise_share(self.grad_sq, self.count, self.noise_sq, self.noise_count)[seen]
-            raw = self.grad_accum / self.count.clamp_min(1) >= c.grad_threshold
-            noise_note = (f" (noise: median share {float(share.median()):.2f}, "
-                          f"{int((raw & ~selected).sum())} held back)")
         room = max(0, int(c.max_gaussians) - n)
         if int(selected.sum()) > room:  # keep the largest gradients within the budget
             keep = avg.topk(room).indices if room > 0 else avg.new_zeros(0, dtype=torch.long)
@@ -212,5 +165,4 @@ class DefaultStrategy(Strategy):
         edit_gaussians(model, optimizer, lambda name, t, is_state: t[keep])
         for key in SUMMED + MAXIMA:  # the next interval starts afresh (_ensure: at the new Gaussian count)
             setattr(self, key, None)
-        return (f"densify +{int(clone.sum())} clone +{int(split.sum())} split -{int(prune.sum())} pruned"
-                + noise_note)
+        return f"densify +{int(clone.sum())} clone +{int(split.sum())} split -{int(prune.sum())} pruned"

@@ -1,7 +1,6 @@
 """The capture's noise as training uses it, measured once at set-up (or read from the checkpoint, so that a resume
-trains on the same figures): the photos' noise (:mod:`retinexgs.train.noise`) for the reconstruction's gain cap,
-the camera's clipped-noise response, the noise-aware densification probe and the tone's black table; on a
-camera-raw scene the raw views' noise (:mod:`retinexgs.data.raw_noise`) for the linear reconstruction."""
+trains on the same figures): the photos' noise (:mod:`retinexgs.train.noise`) for the reconstruction's gain cap
+and the camera's clipped-noise response; on a camera-raw scene the raw views' noise (:mod:`retinexgs.data.raw_noise`) for the linear reconstruction."""
 from __future__ import annotations
 
 import math
@@ -16,10 +15,10 @@ from retinexgs.data import Scene
 from retinexgs.data.capture import PHOTO, Capture
 from retinexgs.data.raw_noise import RawNoise
 from retinexgs.model.retinex_model import RetinexGSModel
-from retinexgs.model.tone import black_table, exposure_gain
+from retinexgs.model.tone import exposure_gain
 from retinexgs.config.schema import Config
 from retinexgs.train import losses
-from retinexgs.train.noise import CaptureNoise, NoiseProbe, measure_capture_noise, sigma_limit
+from retinexgs.train.noise import CaptureNoise, measure_capture_noise, sigma_limit
 
 
 @dataclass
@@ -30,15 +29,13 @@ class NoiseSetUp:
     capture_noise: Optional[CaptureNoise] = None            # the photos' noise (a, b)
     rec_gain_cap: Optional[Tensor] = None                   # the reconstruction's gain cap (loss.rec_noise_floor)
     camera_noise: Optional[Tuple[Tensor, Tensor]] = None     # the camera's (a, b) (loss.rec_camera_noise)
-    noise_probe: Optional[NoiseProbe] = None                # density.noise_aware's probe
     raw_noise: Optional[RawNoise] = None                    # the raw views' noise
     linear_target: Optional[losses.LinearTarget] = None     # the raw reconstruction in linear light
 
     def state_dict(self) -> Dict[str, object]:
         """The checkpoint's entries (a resume trains on the same figures)."""
         return {"capture_noise": self.capture_noise.state_dict() if self.capture_noise is not None else None,
-                "raw_noise": asdict(self.raw_noise) if self.raw_noise is not None else None,
-                "noise_probe_rng": self.noise_probe.generator.get_state() if self.noise_probe is not None else None}
+                "raw_noise": asdict(self.raw_noise) if self.raw_noise is not None else None}
 
 
 def set_up_noise(cfg: Config, scene: Scene, model: RetinexGSModel, state: Optional[Dict], device: torch.device,
@@ -55,13 +52,10 @@ def set_up_noise(cfg: Config, scene: Scene, model: RetinexGSModel, state: Option
 
 def _photo_noise(out: NoiseSetUp, cfg: Config, scene: Scene, model: RetinexGSModel, state: Optional[Dict],
                  device: torch.device, dist, log: Callable[[str], None]) -> None:
-    """Where ``loss.rec_noise_floor``, ``loss.rec_camera_noise``, ``density.noise_aware`` or
-    ``model.enhancement.debias_black`` uses it: the reconstruction's gain cap, the camera's (a, b) as device tensors
-    made once (the captured CUDA graphs read them) and the black table."""
+    """Where ``loss.rec_noise_floor`` or ``loss.rec_camera_noise`` uses it: the reconstruction's gain cap and the
+    camera's (a, b) as device tensors made once (the captured CUDA graphs read them)."""
     c = cfg.loss
-    noise_aware = bool(cfg.density.noise_aware)
-    debias = model.tone_noise() is not None
-    if not (c.rec_noise_floor or c.rec_camera_noise or noise_aware or debias):
+    if not (c.rec_noise_floor or c.rec_camera_noise):
         return
     saved = (state or {}).get("capture_noise")
     if saved:
@@ -71,7 +65,7 @@ def _photo_noise(out: NoiseSetUp, cfg: Config, scene: Scene, model: RetinexGSMod
         noise = measure_capture_noise([v.source_path if v.source_path is not None and Path(v.source_path).is_file()
                                        else v.image_path for v in scene.train],
                                       cfg.data.downscale, device, scale=c.rec_noise_scale,
-                                      through_codec=debias or c.rec_camera_noise)  # the users of (a, b)
+                                      through_codec=c.rec_camera_noise)  # the user of (a, b)
     if dist is not None and dist.enabled:  # rank 0's figures everywhere (each rank measured the same views)
         noise = dist.broadcast_object(noise, "the capture's noise")
     if noise is None:
@@ -88,18 +82,6 @@ def _photo_noise(out: NoiseSetUp, cfg: Config, scene: Scene, model: RetinexGSMod
         out.rec_gain_cap = torch.tensor(cap, dtype=torch.float32, device=device)
     if c.rec_camera_noise:
         out.camera_noise = noise.camera(device)
-    if debias:  # model.enhancement.debias_black: the tone reads R̂∘L̂'s light through the noise's black table
-        with torch.no_grad():
-            model.black_table.copy_(black_table(*noise.at_capture()))
-            if hasattr(model, "black_spread"):  # the render averages the training views' noise
-                spread = torch.tensor([noise.a, noise.b], dtype=torch.float32) / len(scene.train)
-                model.black_spread.copy_(spread)
-    if noise_aware:  # its own random stream, one per rank (each rank probes its own views)
-        rank = dist.rank if dist is not None and dist.enabled else 0
-        out.noise_probe = NoiseProbe(noise, device, 1_000_003 * (cfg.seed + 1) + rank)
-        probe_rng = (state or {}).get("noise_probe_rng")
-        if probe_rng is not None and not (dist is not None and dist.enabled):  # a resume draws on where it was
-            out.noise_probe.generator.set_state(probe_rng)
 
 
 def _raw_noise(out: NoiseSetUp, cfg: Config, scene: Scene, state: Optional[Dict], device: torch.device, dist,
@@ -134,8 +116,7 @@ def _raw_noise(out: NoiseSetUp, cfg: Config, scene: Scene, state: Optional[Dict]
         g = torch.tensor(balance, dtype=torch.float32, device=device).reshape(1, 3, 1, 1)
         a, b = a * g, b * g * g
     c = cfg.loss.raw
-    out.linear_target = losses.LinearTarget(mode, a, b, model_error=float(c.model_error),
-                                            unit=c.unit, prior_snr=float(c.prior_snr))
+    out.linear_target = losses.LinearTarget(mode, a, b, unit=c.unit, prior_snr=float(c.prior_snr))
     log(f"raw scene: reconstruction in linear light ({mode}); {noise.describe()}")
     if out.camera_noise is not None:
         log("loss.rec_camera_noise is not used on a raw scene (its values are not clipped at black)")

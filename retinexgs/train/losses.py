@@ -32,13 +32,13 @@ import torch.nn.functional as F
 
 from retinexgs.evaluate.metrics import cached_constant, check_bchw, gaussian_window, ssim
 from retinexgs.data.raw_noise import PREVIEW_RADIUS
-from retinexgs.data.srgb import linear_to_srgb_extended, linear_to_srgb_slope, srgb_to_linear_extended
+from retinexgs.data.srgb import linear_to_srgb_extended, srgb_to_linear_extended
 from retinexgs.model.tone import camera_mean, highlight_capped_mean, linear_to_srgb, srgb_to_linear
 from retinexgs.model.tones import Tone, get_tone
 from retinexgs.config.schema import Loss
 
 __all__ = [
-    "to_bchw", "gaussian_window", "ssim", "noise_variance", "robust_abs", "exposed", "camera_expectation", "l1_ssim",
+    "to_bchw", "gaussian_window", "ssim", "noise_variance", "exposed", "camera_expectation", "l1_ssim",
     "LinearTarget", "RELATIVE_EPS", "PRIOR_WINDOW", "prior_confidence", "linear_weights", "linear_reconstruction", "reconstruction_loss",
     "supervision_loss", "tv_loss", "edge_weights", "depth_smoothness_loss", "sh_sparsity_loss",
     "spatial_consistency_loss", "exposure_loss", "color_constancy_loss", "enhancement_loss",
@@ -56,20 +56,6 @@ def to_bchw(x: torch.Tensor) -> torch.Tensor:
     raise ValueError(f"expected [H,W,C] or [B,C,H,W], got shape {tuple(x.shape)}")
 
 
-
-
-def robust_abs(err: torch.Tensor, delta: float = 0.0) -> torch.Tensor:
-    """|err| (``delta`` = 0), or the Huber penalty scaled to L1's slope: err²/(2δ) below δ, |err| − δ/2 above.
-
-    Why: an L1 fit of many views of one point settles on their median, and the median of 8-bit values is itself
-    an 8-bit level. A dark capture's texture is often below one level (LOM's bike: most pixels at 2–8 of 255,
-    neighbouring pixels equal), and only the mean of the views, which the quadratic core estimates, resolves it.
-    Above δ the penalty is L1's again, as robust to outliers (floaters, misregistered views).
-    """
-    a = err.abs()
-    if delta <= 0:
-        return a
-    return torch.where(a < delta, a * a / (2.0 * delta), a - 0.5 * delta)
 
 
 # Immerkær's noise mask: the second difference along x times the second difference along y, so it is zero on
@@ -134,7 +120,6 @@ class LinearTarget(NamedTuple):
     a: torch.Tensor
     b: torch.Tensor
     gain: Optional[torch.Tensor] = None
-    model_error: float = 0.0
     unit: str = "plain"
     prior_snr: float = 0.0
 
@@ -152,19 +137,11 @@ def linear_weights(x: torch.Tensor, target: LinearTarget, gain: torch.Tensor, no
     - ``relative``: 1 / (gain·x + ε)², RawNeRF's weights (the variance taken as proportional to the signal²,
       a tone-mapped L2 in effect).
 
-    ``target.model_error`` τ > 0 (``noise`` only) adds the model's own error to the noise, taken as uniform where
-    the output is judged, on the display (sRGB) values of the exposed light: τ² / (s'(gain·x)·gain)² in linear
-    units, s' the sRGB curve's slope. Without noise the weights become the display's (a least squares on sRGB
-    values to first order); where the noise dominates they stay 1 / (a·x + b).
-
     Taken at the render rather than at the noisy target, so that a pixel's weight does not follow its noise."""
     with torch.no_grad():
         xs = x.clamp_min(0.0)
         if target.mode == "noise":
-            var = target.a * xs + target.b
-            if target.model_error > 0:
-                var = var + (target.model_error / (linear_to_srgb_slope(gain * xs) * gain)) ** 2
-            w = 1.0 / (var * gain ** 2)
+            w = 1.0 / ((target.a * xs + target.b) * gain ** 2)
         elif target.mode == "relative":
             w = 1.0 / (gain * xs + RELATIVE_EPS) ** 2
         else:
@@ -221,18 +198,18 @@ def linear_reconstruction(rec: torch.Tensor, S: torch.Tensor, target: LinearTarg
     return (w * scale * (g * (x - y)) ** 2).mean()
 
 
-def l1_ssim(x: torch.Tensor, y: torch.Tensor, lambda_ssim: float = 0.2, huber: float = 0.0,
+def l1_ssim(x: torch.Tensor, y: torch.Tensor, lambda_ssim: float = 0.2,
             ssim_xy: Optional[Tuple[torch.Tensor, torch.Tensor]] = None, ssim_noise: bool = False) -> torch.Tensor:
     """Ls(x, y) = (1−λ)·mean|x−y| + λ·(1 − SSIM(x, y)): 3DGS's photometric loss, SSIM with "same" padding.
 
-    ``y`` may have 1 channel where ``x`` has C (or vice versa): it is broadcast. ``huber`` > 0 replaces |x−y| by
-    :func:`robust_abs` with that δ. ``ssim_xy``: the pair the SSIM part compares, when it is not (x, y).
+    ``y`` may have 1 channel where ``x`` has C (or vice versa): it is broadcast. ``ssim_xy``: the pair the SSIM
+    part compares, when it is not (x, y).
     ``ssim_noise``: the SSIM's C2 is raised by its target's noise variance (:func:`noise_variance`).
     """
     check_bchw(x, y)
     if x.shape != y.shape:
         x, y = torch.broadcast_tensors(x, y)
-    l1 = robust_abs(x - y, huber).mean()
+    l1 = (x - y).abs().mean()
     if lambda_ssim == 0:
         return l1
     xs, ys = (x, y) if ssim_xy is None else torch.broadcast_tensors(*ssim_xy)
@@ -250,7 +227,7 @@ def _reconstruction_pairs(rec: torch.Tensor, S: torch.Tensor, gain: Optional[tor
     return ((rec_e, S_e) if l1_exposed else (rec, S)), (rec_e, S_e)
 
 
-def reconstruction_loss(rec: torch.Tensor, S: torch.Tensor, lambda_ssim: float = 0.2, huber: float = 0.0,
+def reconstruction_loss(rec: torch.Tensor, S: torch.Tensor, lambda_ssim: float = 0.2,
                         gain: Optional[torch.Tensor] = None, l1_exposed: bool = True,
                         ssim_noise: bool = False, camera: Optional[Tuple[torch.Tensor, torch.Tensor]] = None,
                         linear: Optional[LinearTarget] = None) -> torch.Tensor:
@@ -266,12 +243,12 @@ def reconstruction_loss(rec: torch.Tensor, S: torch.Tensor, lambda_ssim: float =
     if camera is not None:
         rec = camera_expectation(rec, *camera)
     (x, y), (xs, ys) = _reconstruction_pairs(rec, S, gain, l1_exposed)
-    return l1_ssim(x, y, lambda_ssim, huber, None if xs is x else (xs, ys), ssim_noise)
+    return l1_ssim(x, y, lambda_ssim, None if xs is x else (xs, ys), ssim_noise)
 
 
 def supervision_loss(R_hat: torch.Tensor, L_hat: torch.Tensor, R: torch.Tensor, L: torch.Tensor,
                      S: torch.Tensor, w_r: float = 0.5, w_l: float = 0.5, w_s: float = 1.0,
-                     lambda_ssim: float = 0.2, rec_huber: float = 0.0, rec_gain: Optional[torch.Tensor] = None,
+                     lambda_ssim: float = 0.2, rec_gain: Optional[torch.Tensor] = None,
                      rec_l1_exposed: bool = True, rec_ssim_noise: bool = False,
                      camera: Optional[Tuple[torch.Tensor, torch.Tensor]] = None,
                      linear: Optional[LinearTarget] = None) -> Tuple[torch.Tensor, Terms]:
@@ -281,7 +258,6 @@ def supervision_loss(R_hat: torch.Tensor, L_hat: torch.Tensor, R: torch.Tensor, 
         R_hat, L_hat: rendered reflectance and illumination maps [B,3,H,W] (L̂ may be [B,1,H,W]).
         R, L, S: the 2D decomposer's reflectance and illumination and the low-light input; L may have
             1 channel (broadcast against L̂).
-        rec_huber: δ of :func:`robust_abs` in the reconstruction term's L1 (0: L1, Eq. 4).
         rec_gain: when given, the reconstruction term's SSIM compares ``exposed(R̂∘L̂)`` with ``exposed(S)``
             (:func:`exposed`) instead of the dark values, and so does its L1 if ``rec_l1_exposed``.
         rec_ssim_noise: the reconstruction term's SSIM has its C2 raised by its target's noise variance
@@ -289,7 +265,7 @@ def supervision_loss(R_hat: torch.Tensor, L_hat: torch.Tensor, R: torch.Tensor, 
         camera: (a, b), the capture's noise: R̂∘L̂ is compared with S through :func:`camera_expectation` (the
             priors' terms are not: R and L are the decomposer's estimates, not photos).
         linear: a raw scene's :class:`LinearTarget`: the reconstruction term's L1 is replaced by
-            :func:`linear_reconstruction` (S is the view's unclipped encoding; ``camera`` and ``rec_huber`` do not
+            :func:`linear_reconstruction` (S is the view's unclipped encoding; ``camera`` does not
             apply) and its SSIM compares exposed values with S exposed unclipped.
 
     Returns:
@@ -315,7 +291,7 @@ def supervision_loss(R_hat: torch.Tensor, L_hat: torch.Tensor, R: torch.Tensor, 
     else:
         prior_r, prior_l = err[0].abs().mean(), err[1].abs().mean()
     l1 = torch.stack([prior_r, prior_l,
-                      robust_abs(err[2], rec_huber).mean() if lin_rec is None else lin_rec])
+                      err[2].abs().mean() if lin_rec is None else lin_rec])
     if lambda_ssim:
         if rec_s is not rec:
             x, y = torch.cat([x[:, :-sizes[2]], rec_s], dim=1), torch.cat([y[:, :-sizes[2]], target_s], dim=1)
@@ -470,13 +446,13 @@ def highlight_meter_applies(tone: Union[str, Tone], c: Loss) -> bool:
     return get_tone(tone).meter_applies and c.exp_on == "image" and c.exp_patch == 0
 
 
-def exposure_target(c: Loss, tone: Union[str, Tone], RL: torch.Tensor, shoulder: float, noise=None):
+def exposure_target(c: Loss, tone: Union[str, Tone], RL: torch.Tensor, shoulder: float):
     """L_exp's target E for the image whose R̂∘L̂ is ``RL`` [..., 3]: ``c.exposure_E``, capped by the highlight
     meter where :func:`highlight_meter_applies` (a 0-d tensor then, no gradient). Training and the 2D proxy both
-    meter through this. ``noise``: the capture's noise the tone takes out (``model.enhancement.debias_black``)."""
+    meter through this."""
     share = float(c.exp_highlight_share)
     if share > 0 and highlight_meter_applies(tone, c):
-        return highlight_capped_mean(RL, c.exposure_E, share, shoulder, noise)
+        return highlight_capped_mean(RL, c.exposure_E, share, shoulder)
     return c.exposure_E
 
 

@@ -6,9 +6,6 @@ does with it (issue 32; each a config switch with its reason in configs/default.
   noise reaches SSIM's own stabilising constant, σ = K2 = 0.03 on a [0, 1] range: above the cap the SSIM would
   ask the render to copy each view's noise, which a 3D model can only do by growing Gaussians for it (speckle in
   every novel view). On a clean capture (LOM: σ < 0.01 at the full gain) nothing changes.
-- ``density.noise_aware``: :class:`NoiseProbe` measures the view-space gradient that the photo's noise alone gives
-  each Gaussian through the reconstruction's SSIM, and densification answers only the rest of the gradient
-  (:func:`retinexgs.strategy.noise_share`).
 - ``loss.rec_camera_noise``: the render is compared with the photo through the camera's average response to it
   (:func:`retinexgs.train.losses.camera_expectation`) under the Poisson–Gaussian noise measured here, so the
   blacks of the output are not lifted by the positive mean of clipped noise.
@@ -22,7 +19,7 @@ at each gain of :data:`GAINS`; the capture's
 figures are the medians over the photos, divided by ``data.downscale`` (a d×d average divides white noise's σ by d).
 Through 8-bit JPEG the pixel-scale (a, b) sees 0.15–0.9 of the true σ, least near black
 (experiments/notes/2026-11-26-noise-estimate.md); the exposed σ on 2×2 averages sees 0.94–1.19 of it. Where (a, b)
-is used (``loss.rec_camera_noise``, ``model.enhancement.debias_black``), the (a, b) of JPEG files is fitted through
+is used (``loss.rec_camera_noise``), the (a, b) of JPEG files is fitted through
 their own JPEG (``through_codec``, :func:`retinexgs.data.sensor.estimate_noise_through_codec`; 512² crops, about
 2 s a photo on a CPU core), since the clipped noise's mean, which lifts the blacks, passes JPEG whole.
 """
@@ -43,8 +40,6 @@ from retinexgs.data.images import read_image_float
 from retinexgs.data.sensor import JpegCodec, estimate_noise, estimate_noise_through_codec
 from retinexgs.data.noise_model import PoissonGaussian
 from retinexgs.errors import UserError
-from retinexgs.evaluate.metrics import ssim
-from retinexgs.model.tone import linear_to_srgb, srgb_to_linear
 from retinexgs.train.losses import exposed, noise_variance
 
 MEASURED_VIEWS = 8
@@ -228,59 +223,6 @@ def measure_capture_noise(photos: Sequence[Path], downscale: float = 1.0, device
     return meter.result(downscale)
 
 
-class NoiseProbe:
-    """The gradient that a capture's noise alone gives the Gaussians (``density.noise_aware``).
-
-    On a probed step the render's R̂∘L̂ is taken as the clean photo, the capture's Poisson–Gaussian noise (a, b of
-    :class:`CaptureNoise`, in linear light, clipped at black and white) is drawn onto it, and the reconstruction's
-    SSIM part, w_s·λ·(1 − SSIM(exposed(R̂∘L̂), exposed(noisy))), at the training's gain, is back-propagated to the
-    2D means through the same render (the rasteriser's backward only). Its squared norms, beside the training
-    gradient's, give each Gaussian the share of its gradient energy that noise explains.
-
-    Only the SSIM part: its response grows with the exposed noise, which the gain cap bounds but does not remove;
-    the L1's gradient is the residual's sign, of one size whatever the noise, so a probe of it would call every
-    capture's gradient noise, a clean one's too. The noise is drawn from its own generator: the training's random
-    stream (split offsets, view order) is the same with the probe on or off."""
-
-    def __init__(self, noise: CaptureNoise, device: torch.device, seed: int, every: int = 2) -> None:
-        self.a, self.b = noise.camera(device)
-        self.every = int(every)
-        self.generator = torch.Generator(device=device)
-        self.generator.manual_seed(int(seed))
-
-    def due(self, step: int) -> bool:
-        """Whether ``step`` is probed (every ``every``-th step; the caller limits it to the densification window)."""
-        return step % self.every == 0
-
-    def noisy(self, clean: Tensor) -> Tensor:
-        """``clean`` [B,3,H,W] sRGB, as the capture's camera would record it: one draw of its noise."""
-        m = srgb_to_linear(clean.clamp(0.0, 1.0))
-        sigma = (self.a * m + self.b).clamp_min(0.0).sqrt()
-        n = torch.randn(m.shape, generator=self.generator, device=m.device, dtype=m.dtype)
-        return linear_to_srgb((m + sigma * n).clamp(0.0, 1.0))
-
-    def image_gradient(self, image: Tensor, gain: Optional[Tensor], lambda_ssim: float, w_s: float) -> Tensor:
-        """d(w_s·λ·(1 − SSIM))/d``image`` [H,W,6] (R̂ then L̂) against a noisy copy of the image's own R̂∘L̂; the
-        SSIM compares exposed images when ``gain`` is given (the training's, capped), else the dark values."""
-        x = image.detach().requires_grad_(True)
-        with torch.enable_grad():
-            rec = (x[..., :3] * x[..., 3:6]).permute(2, 0, 1).unsqueeze(0)
-            with torch.no_grad():
-                target = self.noisy(rec)
-            if gain is not None:
-                rec, target = exposed(rec, gain), exposed(target, gain)
-            loss = (w_s * lambda_ssim) * (1.0 - ssim(rec, target))
-            return torch.autograd.grad(loss, x)[0]
-
-    def means2d_gradient(self, out, gain: Optional[Tensor], lambda_ssim: float, w_s: float) -> Optional[Tensor]:
-        """[N,2] the noise's gradient of the render ``out``'s 2D means (its autograd graph is kept for the step's
-        own backward); None when the render has no gradient to the means."""
-        if not out.means2d.requires_grad or out.image.shape[-1] < 6:
-            return None
-        g = self.image_gradient(out.image, gain, lambda_ssim, w_s)
-        return torch.autograd.grad(out.image, out.means2d, grad_outputs=g, retain_graph=True)[0]
-
-
-__all__ = ["NoiseProbe", "CaptureNoise", "NoiseMeter", "measure_capture_noise", "exposed_noise_sigma", "centre_crop",
+__all__ = ["CaptureNoise", "NoiseMeter", "measure_capture_noise", "exposed_noise_sigma", "centre_crop",
            "check_not_black", "jpeg_codec", "GAINS",
            "SSIM_K2", "NOISE_SCALE", "MEASURED_VIEWS", "CROP", "sigma_limit"]

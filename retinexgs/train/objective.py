@@ -42,7 +42,7 @@ def enhancement_objective(model: RetinexGSModel, c: Loss, R_img: Tensor, L_img: 
         R_img, L_img = R_img.detach(), L_img.detach()
     out = model.enhance(R_img, L_img)
     light = to_bchw(out["L_enh"]) if c.exp_on == "illumination" else None
-    E = losses.exposure_target(c, model.tone, R_img * L_img, model.shoulder, model.tone_noise())
+    E = losses.exposure_target(c, model.tone, R_img * L_img, model.shoulder)
     total, terms = losses.enhancement_loss(
         to_bchw(out["rgb"]), S_b, c.w_spa, c.w_exp, c.w_col, E,
         illumination=light, exp_patch=c.exp_patch, exp_form=c.exp_form, spa_form=c.spa_form,
@@ -233,13 +233,12 @@ class RetinexObjective(PlainObjective):
             linear = linear._replace(gain=exposure_gain(ref, ref.new_ones(())))
         if R is not None:
             sup, sup_terms = losses.supervision_loss(R_hat, L_hat, to_bchw(R), to_bchw(L), S_b, c.w_r,
-                                                     c.w_l, c.w_s, c.lambda_ssim, c.rec_huber, gain,
-                                                     l1_exposed, c.rec_ssim_noise, camera_noise, linear)
+                                                     c.w_l, c.w_s, c.lambda_ssim, gain, l1_exposed,
+                                                     c.rec_ssim_noise, camera_noise, linear)
             terms.update(sup_terms)
         else:  # no 2D priors: only the reconstruction is supervised
-            terms["sup_rec"] = losses.reconstruction_loss(R_hat * L_hat, S_b, c.lambda_ssim, c.rec_huber,
-                                                          gain, l1_exposed, c.rec_ssim_noise, camera_noise,
-                                                          linear)
+            terms["sup_rec"] = losses.reconstruction_loss(R_hat * L_hat, S_b, c.lambda_ssim, gain, l1_exposed,
+                                                          c.rec_ssim_noise, camera_noise, linear)
             sup = c.w_s * terms["sup_rec"]
         terms["tv"] = losses.tv_loss(R_hat)
         total = sup + c.w_tv * terms["tv"]

@@ -23,6 +23,7 @@ from retinexgs.run.folder import write_run_config
 from retinexgs.run.folder import open_scene, pick_device
 from retinexgs.run.render import render_function
 from retinexgs.train.distributed import Distributed, gradient_params, init_from_env
+from retinexgs.train.sfm_preview import scene_sfm_denoise
 
 
 def _checkpoint_step(run_dir: Path) -> int:
@@ -93,15 +94,17 @@ def _train_run(dist: Distributed, scene_path: Optional[Path], run_dir: Path, con
         # Every rank has checked --out before rank 0 creates anything in it.
         dist.barrier("every rank's checks of the run folder")
         # Rank 0 reads the scene first: it fills the scene's caches (undistorted or downscaled photos, SfM).
+        # A bare folder's SfM denoises its previews by data.sfm_denoise (the rule of `retinexgs sfm --denoise`).
+        sfm_denoise = scene_sfm_denoise(cfg.data.sfm_denoise, lambda m: log(f"[sfm] {m}"))
         if dist.is_main:
-            scene = open_scene(Path(scene_path), cfg)
+            scene = open_scene(Path(scene_path), cfg, sfm_denoise=sfm_denoise)
         dist.barrier("rank 0's reading of the scene")
         if dist.enabled:  # ranks hand each other the decomposition's shards and the view store through the caches
             cache = dist.broadcast_object(str(scene_cache_root(scene.root, cfg.data.cache_dir)) if dist.is_main
                                           else None, "the scene's cache folder")
             dist.check_shared_folder(Path(cache), "the scene's cache folder")
         if not dist.is_main:
-            scene = open_scene(Path(scene_path), cfg)
+            scene = open_scene(Path(scene_path), cfg, sfm_denoise=sfm_denoise)
         log(scene.summary())
         if scene.train and scene.train[0].balance is not None:
             log(describe_photo_balance(scene.train[0].balance))

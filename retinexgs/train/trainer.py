@@ -31,6 +31,7 @@ from retinexgs.train.graphs import ChannelGraphs, LossGraphs
 from retinexgs.train.objective import build_objective, enhancement_objective  # noqa: F401 (re-exported)
 from retinexgs.train.stop import DeferredStop
 from retinexgs.train.view_setup import near_plane, prepare_views, scene_extent, view_statistics
+from retinexgs.train.resolution import ResolutionSchedule
 from retinexgs.train.views import TrainView
 
 
@@ -76,6 +77,7 @@ class Trainer:
             raise UserError(f"scene {scene.root} has no training views")
         self.method = cfg.method
         self.schedule = build_schedule(cfg)
+        self.resolution = ResolutionSchedule.from_config(cfg)  # train.resolution: coarse views early
         self.decomposed = self.method == "retinexgs"
         # The depth prior is RetinexGS's (the 3DGS baselines stay as published).
         self.depth_prior = self.decomposed and cfg.loss.w_depth > 0
@@ -153,19 +155,6 @@ class Trainer:
     def active_degree(self, step: int) -> int:
         return self.schedule.sh_degree_at(step)
 
-    def probe_noise(self, res: Dict[str, Tensor], view, step: int) -> None:
-        """``density.noise_aware``: on every probed step of the densification window, the gradient the capture's
-        noise alone gives this render's 2D means (:class:`NoiseProbe`) goes into the density statistics. Before
-        the step's backward, which frees the render's graph."""
-        probe = self.noise.noise_probe
-        if probe is None or not self.strategy.probes_noise_at(step) or not probe.due(step):
-            return
-        c = self.cfg.loss
-        with record_function("step/noise_probe"):
-            grad = probe.means2d_gradient(res["out"], self.objective.rec_gain(), c.lambda_ssim, c.w_s)
-            if grad is not None:
-                self.strategy.add_noise_probe(grad, res["out"].visible, view.camera.width, view.camera.height)
-
     def _log_graph_failures(self, failures: Dict) -> None:
         for key, why in failures.items():
             if key not in self._graph_failures_logged:
@@ -208,7 +197,6 @@ class Trainer:
         acc, per_view = None, []
         for view in views:
             res = self.render_view(view, step)
-            self.probe_noise(res, view, step)
             terms = (self.objective.backward_graphed(self.graphs, res, view, step, self._log_graph_failures)
                      if self.graphs is not None else None)
             if terms is None:
@@ -366,7 +354,8 @@ class Trainer:
                 self.dist.test_fault(self.step)
                 check = (self.step % self.cfg.log.every == 0 or self.step == end
                          or self.step % self.cfg.checkpoint.every == 0)
-                views = [self.views[i] for i in indices]
+                views = [self.resolution.view_at(self.views[i], i, self.step, cache=not self.streamed)
+                         for i in indices]
                 if self.step > first and self.strategy.edits_at(self.step):
                     if timed_from is None:
                         self._sync()

@@ -52,7 +52,9 @@ def denoise_spec(views: List[View], cfg: Config, device: str) -> Optional[Denois
     if model is None:
         raise UserError(f"decomposer.denoise={method}: the views' noise could not be measured (no flat area in any "
                         "view): set decomposer.denoise=none")
-    return DenoiseSpec(method, model)
+    # Where the views are decomposed (decomposer.device, else training's): the denoiser runs there too.
+    return DenoiseSpec(method, model, device=str(cfg.decomposer.device or device),
+                       backend=cfg.decomposer.denoise_backend)
 
 
 def decompose_views(views: List[View], cfg: Config, device: str, progress: bool, scene_root: Path,

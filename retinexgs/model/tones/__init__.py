@@ -23,7 +23,6 @@ from typing import Optional, Tuple, Union
 from torch import Tensor
 
 from retinexgs.model.tones.base import TONES, Tone, config_problem, get_tone, register
-from retinexgs.model.tones.curves import Noise
 # The built-in tones register on import, in this order (the order error messages list them in).
 from retinexgs.model.tones.illumination import IlluminationTone
 from retinexgs.model.tones.signal import SignalTone
@@ -34,11 +33,10 @@ __all__ = ["Tone", "TONES", "register", "get_tone", "config_problem", "tone_map"
 
 
 def tone_map(R: Tensor, L: Tensor, illum_ref: Tensor, gamma: Tensor, tone: Union[str, Tone], eps: float = 1e-3,
-             shoulder: float = 1.0, noise: Noise = None, spread: Optional[Tensor] = None,
-             radius: int = 0) -> Tuple[Tensor, Tensor]:
+             shoulder: float = 1.0) -> Tuple[Tensor, Tensor]:
     """(S_enh, L_enh) of the tone ``tone`` (a name or a :class:`Tone`): :meth:`Tone.map`. ValueError for a name
     that is not registered."""
-    return get_tone(tone).map(R, L, illum_ref, gamma, eps, shoulder, noise, spread, radius)
+    return get_tone(tone).map(R, L, illum_ref, gamma, eps, shoulder)
 
 
 def apply_exposure(gamma: Tensor, exposure, illum_ref: Tensor, tone: Union[str, Tone],

@@ -17,10 +17,6 @@ if TYPE_CHECKING:  # types only: the config sections are passed in by the loader
 
 __all__ = ["Tone", "TONES", "register", "get_tone", "config_problem"]
 
-# A black table [3, N] of the capture's noise (curves.black_table) or None: no correction.
-Noise = Optional[Tensor]
-
-
 class Tone:
     """One tone form of the enhancement. Subclasses set the class attributes and implement :meth:`map`; the
     defaults describe a tone with no linear form, no highlight shoulder, no fused kernel and the gamma scaled by
@@ -35,8 +31,6 @@ class Tone:
         meter_applies: ``loss.exp_highlight_share`` (the highlight-protecting exposure meter) caps the exposure
             target of this tone (the meter reads the light as a gain would expose it).
         needs_reference: the tone needs ``model.enhancement.ref_quantile`` (an L_ref below 1).
-        reads_black_table: ``model.enhancement.debias_black`` applies (the tone reads R̂∘L̂'s light through the
-            capture's black table); the config loader refuses it for the other tones, which would ignore it.
     """
 
     name: ClassVar[str] = ""
@@ -44,7 +38,6 @@ class Tone:
     fused_kernel: ClassVar[Optional[str]] = None
     meter_applies: ClassVar[bool] = False
     needs_reference: ClassVar[bool] = False
-    reads_black_table: ClassVar[bool] = False
 
     def __eq__(self, other: object) -> bool:
         # A tone compared with a name is a check this registry replaces (``model.tone == "exposure"`` would now be
@@ -59,16 +52,14 @@ class Tone:
     def __repr__(self) -> str:
         return f"<tone {self.name!r}>"
 
-    def map(self, R: Tensor, L: Tensor, illum_ref: Tensor, gamma: Tensor, eps: float = 1e-3, shoulder: float = 1.0,
-            noise: Noise = None, spread: Optional[Tensor] = None, radius: int = 0) -> Tuple[Tensor, Tensor]:
+    def map(self, R: Tensor, L: Tensor, illum_ref: Tensor, gamma: Tensor, eps: float = 1e-3,
+            shoulder: float = 1.0) -> Tuple[Tensor, Tensor]:
         """(S_enh, L_enh) for R̂ [..., 3] or [B,3,H,W], the rendered L̂ of the same layout, L_ref (a scalar
         tensor) and g (broadcastable against R̂). ``eps``: a floor under powers, so gradients stay finite at 0;
-        ``shoulder``: the highlight knee (tones with :meth:`knee`); ``noise``, ``spread``, ``radius``: the black
-        table and its filter (tones that :attr:`reads_black_table`)."""
+        ``shoulder``: the highlight knee (tones with :meth:`knee`)."""
         raise NotImplementedError(f"tone {self.name!r} has no map")
 
-    def linear(self, R: Tensor, L: Tensor, illum_ref: Tensor, gamma: Tensor, noise: Noise = None,
-               spread: Optional[Tensor] = None, radius: int = 0) -> Optional[Tensor]:
+    def linear(self, R: Tensor, L: Tensor, illum_ref: Tensor, gamma: Tensor) -> Optional[Tensor]:
         """The enhanced linear light before the highlight shoulder and the sRGB curve (what ``render --format exr``
         writes and a white balance acts on), or None: the tone clips before any linear form, and its light is
         lin(S_enh) (the gamma tones)."""
@@ -83,9 +74,9 @@ class Tone:
         gamma scaled. ``exposure``: a float or a tensor; ``log_ref``: log lin(L_ref) if the caller has it."""
         return gamma * exposure
 
-    def fusable(self, noise: Noise) -> bool:
-        """Whether a frame of this tone can be toned by :attr:`fused_kernel` (the kernel reads no black table)."""
-        return self.fused_kernel is not None and noise is None
+    def fusable(self) -> bool:
+        """Whether a frame of this tone can be toned by :attr:`fused_kernel`."""
+        return self.fused_kernel is not None
 
     def fused_gain(self, illum_ref: Tensor, gamma: Tensor, log_ref: Optional[Tensor] = None) -> Tensor:
         """The ``gain`` argument of :attr:`fused_kernel` for g (flattened, [1] or [3])."""
@@ -96,9 +87,9 @@ class Tone:
         from retinexgs.render._backend import kernels  # the compiled module, loaded on first use
         return getattr(kernels(), self.fused_kernel)(image, gain, shoulder)
 
-    def describe(self, gamma: Tensor, illum_ref: Tensor, shoulder: float, table: bool, balanced: bool) -> str:
+    def describe(self, gamma: Tensor, illum_ref: Tensor, shoulder: float, balanced: bool) -> str:
         """The PLY comment's formula of the baked colour with its numbers (g [C] float64 on the CPU, L_ref);
-        ``table``: R̂∘L̂ read through the black table; ``balanced``: a white balance W is applied."""
+        ``balanced``: a white balance W is applied."""
         form = f"srgb(W*lin({self.formula}))" if balanced else self.formula
         return f"colour: enhanced {form}, L_ref = {float(illum_ref):.4f}, g = ({_numbers(gamma, '.4f')})"
 
@@ -139,7 +130,7 @@ def get_tone(tone: Union[str, Tone]) -> Tone:
 
 def config_problem(enh: "Enhancement") -> Optional[str]:
     """What is wrong with a ``model.enhancement`` section's tone, in one line, or None: an unregistered name, a
-    tone that needs ``ref_quantile`` without one, ``debias_black`` on a tone that would ignore it. The config loader
+    tone that needs ``ref_quantile`` without one. The config loader
     checks it (the schema sits below the model and cannot see the registry)."""
     if enh.tone not in TONES:
         return f"model.enhancement.tone must be one of {', '.join(TONES)}, got {enh.tone!r}"
@@ -149,9 +140,6 @@ def config_problem(enh: "Enhancement") -> Optional[str]:
         others = " or ".join(repr(n) for n, t in TONES.items() if not t.needs_reference)
         return (f"model.enhancement.tone {tone.name!r} needs a ref_quantile (it is set relative to the scene's full "
                 f"light L_ref); null is only valid with {others}")
-    if enh.debias_black and not tone.reads_black_table:
-        readers = " or ".join(repr(n) for n, t in TONES.items() if t.reads_black_table)
-        return f"model.enhancement.debias_black needs tone {readers}, got tone {tone.name!r}"
     return None
 
 

@@ -9,9 +9,8 @@ role: at g = 1 the scene's full light L_ref maps to white (LR3M's L / max L, in 
 longer exposure (log k = −log lin(L_ref) / g), so the EnhancementNet and ``--gamma`` work unchanged; ``--exposure X``
 divides the light by X (k → k / X: 0.5 is one stop brighter) where the gamma tones scale g by X. A gamma curve on
 sRGB values instead lifts the shadows more than the mid-tones (it flattens the image); a gain keeps the scene's
-contrast as the longer exposure records it, up to the curve's clipping of highlights. With a black table
-(``model.enhancement.debias_black``) R̂∘L̂ is read as the photos' average record rather than as light
-(:func:`~retinexgs.model.tones.curves.scene_linear`). One fused kernel (csrc: ``exposure_tone``) renders a frame.
+contrast as the longer exposure records it, up to the curve's clipping of highlights. One fused kernel (csrc:
+``exposure_tone``) renders a frame.
 """
 from __future__ import annotations
 
@@ -20,9 +19,8 @@ from typing import Optional, Tuple
 import torch
 from torch import Tensor
 
-from retinexgs.model.tones.base import Noise, Tone, _numbers, register
-from retinexgs.model.tones.curves import (highlight_shoulder, linear_to_srgb, scene_linear, smooth_record,
-                                          srgb_to_linear)
+from retinexgs.model.tones.base import Tone, _numbers, register
+from retinexgs.model.tones.curves import highlight_shoulder, linear_to_srgb, srgb_to_linear
 
 __all__ = ["ExposureTone", "log_lin_ref", "exposure_gain", "exposure_linear"]
 
@@ -41,17 +39,13 @@ def exposure_gain(illum_ref: Tensor, gamma: Tensor, log_ref: Optional[Tensor] = 
     return torch.exp((-log_ref / gamma).clamp_max(40.0))
 
 
-def exposure_linear(R: Tensor, L: Tensor, illum_ref: Tensor, gamma: Tensor, noise: Noise = None,
-                    spread: Optional[Tensor] = None, radius: int = 0, k: Optional[Tensor] = None) -> Tensor:
-    """k · scene_linear(R̂∘L̂): the linear light of tone ``exposure`` before the highlight shoulder and the sRGB
+def exposure_linear(R: Tensor, L: Tensor, illum_ref: Tensor, gamma: Tensor, k: Optional[Tensor] = None) -> Tensor:
+    """k · lin(R̂∘L̂): the linear light of tone ``exposure`` before the highlight shoulder and the sRGB
     curve (arguments as in :meth:`ExposureTone.map`; ``k``: the gain already computed). On this scale 1.0 is what the
     PNG shows as white when the shoulder is off (the clip); ``render --format exr`` writes it, and the white
     balance (:func:`~retinexgs.model.tones.curves.white_balance`) acts on it."""
     k = exposure_gain(illum_ref, gamma) if k is None else k
-    RL = R * L
-    if noise is not None and spread is not None and radius > 0:
-        RL = smooth_record(RL, spread, radius)
-    return k * scene_linear(RL, noise)
+    return k * srgb_to_linear(R * L)
 
 
 @register
@@ -63,18 +57,15 @@ class ExposureTone(Tone):
     fused_kernel = "exposure_tone"
     meter_applies = True
     needs_reference = True
-    reads_black_table = True
 
-    def map(self, R: Tensor, L: Tensor, illum_ref: Tensor, gamma: Tensor, eps: float = 1e-3, shoulder: float = 1.0,
-            noise: Noise = None, spread: Optional[Tensor] = None, radius: int = 0) -> Tuple[Tensor, Tensor]:
+    def map(self, R: Tensor, L: Tensor, illum_ref: Tensor, gamma: Tensor, eps: float = 1e-3,
+            shoulder: float = 1.0) -> Tuple[Tensor, Tensor]:
         k = exposure_gain(illum_ref, gamma)
-        return (linear_to_srgb(highlight_shoulder(exposure_linear(R, L, illum_ref, gamma, noise, spread, radius, k),
-                                                  shoulder)),
+        return (linear_to_srgb(highlight_shoulder(exposure_linear(R, L, illum_ref, gamma, k), shoulder)),
                 linear_to_srgb(highlight_shoulder(k * srgb_to_linear(L), shoulder)))
 
-    def linear(self, R: Tensor, L: Tensor, illum_ref: Tensor, gamma: Tensor, noise: Noise = None,
-               spread: Optional[Tensor] = None, radius: int = 0) -> Optional[Tensor]:
-        return exposure_linear(R, L, illum_ref, gamma, noise, spread, radius)
+    def linear(self, R: Tensor, L: Tensor, illum_ref: Tensor, gamma: Tensor) -> Optional[Tensor]:
+        return exposure_linear(R, L, illum_ref, gamma)
 
     def knee(self, shoulder: float) -> float:
         return shoulder
@@ -92,13 +83,9 @@ class ExposureTone(Tone):
     def fused_gain(self, illum_ref: Tensor, gamma: Tensor, log_ref: Optional[Tensor] = None) -> Tensor:
         return exposure_gain(illum_ref, gamma, log_ref)
 
-    def describe(self, gamma: Tensor, illum_ref: Tensor, shoulder: float, table: bool, balanced: bool) -> str:
+    def describe(self, gamma: Tensor, illum_ref: Tensor, shoulder: float, balanced: bool) -> str:
         k = exposure_gain(illum_ref.detach().double().cpu(), gamma)
-        light = "black_table(R*L)" if table else "lin(R*L)"
-        light = f"W*k*{light}" if balanced else f"k*{light}"
+        light = "W*k*lin(R*L)" if balanced else "k*lin(R*L)"
         curve = f"shoulder({light}, {shoulder:g})" if shoulder < 1.0 else light
-        text = (f"colour: enhanced as a longer exposure, srgb({curve}) with k = lin(L_ref)^(-1/g) = "
+        return (f"colour: enhanced as a longer exposure, srgb({curve}) with k = lin(L_ref)^(-1/g) = "
                 f"({_numbers(k, '.4g')}), L_ref = {float(illum_ref):.4f}, g = ({_numbers(gamma, '.4f')})")
-        if table:
-            text += " (black_table: the capture's clipped noise taken out of R*L)"
-        return text

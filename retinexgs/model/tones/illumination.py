@@ -3,11 +3,11 @@ L_enh = ℓ^g, S_enh = clip(R̂ ∘ L_enh, 0, 1), ℓ = clip(L̂ / L_ref, 0, 1) 
 stays finite at 0)."""
 from __future__ import annotations
 
-from typing import Optional, Tuple
+from typing import Tuple
 
 from torch import Tensor
 
-from retinexgs.model.tones.base import Noise, Tone, register
+from retinexgs.model.tones.base import Tone, register
 
 __all__ = ["IlluminationTone"]
 
@@ -24,7 +24,7 @@ class IlluminationTone(Tone):
         """What multiplies the enhanced light: R̂ itself here."""
         return R
 
-    def map(self, R: Tensor, L: Tensor, illum_ref: Tensor, gamma: Tensor, eps: float = 1e-3, shoulder: float = 1.0,
-            noise: Noise = None, spread: Optional[Tensor] = None, radius: int = 0) -> Tuple[Tensor, Tensor]:
+    def map(self, R: Tensor, L: Tensor, illum_ref: Tensor, gamma: Tensor, eps: float = 1e-3,
+            shoulder: float = 1.0) -> Tuple[Tensor, Tensor]:
         light = (L / illum_ref.to(L)).clamp(0.0, 1.0).clamp_min(eps) ** gamma
         return (self.reflectance(R, gamma, eps) * light).clamp(0.0, 1.0), light

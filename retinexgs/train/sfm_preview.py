@@ -4,8 +4,9 @@
 features from. At night (a 1000 e⁻ capture, SNR near 1) the brightened noise buries the texture SIFT needs: SfM
 registered 2 of 25 of buu's raw night captures. Here the noise-aware denoiser of :mod:`retinexgs.retinex.denoise`
 (generalised Anscombe transform + ``chroma`` or ``nlm``) is put in front of the brightening. It lives in a layer
-above ``data``, and the photos' noise is measured by :mod:`retinexgs.train.noise`, so this module, on the commands
-layer, builds the :class:`retinexgs.data.sfm.PreviewDenoise` that ``run_sfm`` is handed.
+above ``data``, and the photos' noise is measured by :mod:`retinexgs.train.noise`, so this module, on the training
+layer, builds the :class:`retinexgs.data.sfm.PreviewDenoise` that ``run_sfm`` is handed: for ``retinexgs sfm`` and
+for the SfM that ``train`` runs on a bare folder (``data.sfm_denoise``, :func:`scene_sfm_denoise`).
 
 ``auto`` (the default) is ``chroma`` where the brightened previews are noisy (:data:`AUTO_MIN_SIGMA`) and a noise
 model can be measured (each raw file's own, or the capture's for other photos), ``none`` otherwise; a named method
@@ -17,11 +18,14 @@ import hashlib
 import json
 from dataclasses import asdict
 from pathlib import Path
-from typing import Callable, List, Optional, Sequence, Union
+from typing import TYPE_CHECKING, Callable, List, Optional, Sequence, Union
 
 import numpy as np
 
 from retinexgs.errors import UserError
+
+if TYPE_CHECKING:  # a type hint only: data.sfm is imported where a denoiser is built
+    from retinexgs.data.sfm import PreviewDenoise
 
 # The choices of ``--denoise``; ``auto``'s method where the noise can be measured (chroma: the luma by NLM, the
 # colour smoothed hard along its edges, the denoiser's default for raw views in training too).
@@ -156,3 +160,14 @@ def sfm_preview_denoise(images: Union[str, Path], method: str = "auto", enhance:
         raise UserError(f"--denoise {method}: the noise of the photos in {folder} could not be measured (no flat area, "
                         f"or all black): pass --denoise none or auto")
     return PreviewDenoise(f"{chosen}-{preview_recipe(chosen, noise)}", linear_denoiser(chosen), noise)
+
+
+def scene_sfm_denoise(method: str, say: Optional[Callable[[str], None]] = None
+                      ) -> Optional[Callable[[Path], Optional["PreviewDenoise"]]]:
+    """``data.sfm_denoise`` as :func:`retinexgs.data.load_scene` takes it: (the SfM photo folder) -> the
+    :class:`retinexgs.data.sfm.PreviewDenoise` of :func:`sfm_preview_denoise` (the rule of ``sfm --denoise``, with
+    the enhancement's ``auto``, as ``train`` runs SfM); None for ``none`` (the previews as before the key)."""
+    check_denoise(method)
+    if method == "none":
+        return None
+    return lambda images: sfm_preview_denoise(images, method, "auto", say)

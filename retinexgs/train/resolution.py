@@ -1,0 +1,166 @@
+"""A coarse-to-fine resolution schedule for training (``train.resolution``, issue 65): early steps train on
+area-downsampled views, late steps on the full-size ones. The early steps place and grow the Gaussians; the
+raster backward, the SSIM filter and the per-pixel losses of such a step cost ~1/k² of a full-size one.
+
+The config is a list of ``[until, downsample]`` pairs (``until``: a schedule point, a fraction of ``steps`` or an
+absolute step; ``downsample``: an integer k >= 1): step s trains at 1/k of the first pair whose ``until`` >= s,
+at full size after the last. ``[]`` (the default) trains at full size throughout, as before.
+
+A view downsampled by k (:func:`downscale_view`):
+
+- its maps (S, R, L, the baselines' target) are k × k area means (``avg_pool2d``, stride k). A side that k does
+  not divide is **cropped** at the right and bottom edge (at most k − 1 pixels, for those steps only), never
+  padded: padding would put pixels no camera saw into the loss, and a crop at the far edges leaves the pixel
+  grid's origin where it was, so the principal point stays exact (:func:`downscale_camera`);
+- its camera has fx, fy, cx, cy divided by k and the cropped size // k: with the pixel-centre convention of
+  :class:`~retinexgs.render.Camera` (pixel i covers [i, i + 1)), pooled pixel j covers full-size pixels
+  [jk, jk + k), so a point at u projects to u / k, inside the pooled pixel that holds its full-size pixel;
+- the depth prior's edge weights are rebuilt from the pooled R (lazily, by :meth:`TrainView.edge_weights` and
+  :meth:`TrainView.pack`, as for a full-size view).
+
+Preloaded views are pooled once per (view, downsample) and kept on the device while that stage lasts (at 1/k a
+view costs 1/k² of its full-size memory; a stage's copies are freed when the schedule leaves it). Streamed views
+live in reused slots valid for one step: they are pooled every step they are used (a few kernels), not kept.
+
+How the rest of training reads a downscaled step:
+
+- **Noise.** A k × k mean divides the per-pixel noise variance by k². The SSIM's noise term
+  (``loss.rec_ssim_noise``) is measured on the step's own (pooled) target: consistent as it is. The camera's
+  clipped-noise response (``loss.rec_camera_noise``) uses the capture's per-pixel noise, where the clip happens:
+  a mean of clipped pixels keeps that mean response (the same reasoning as for ``data.downscale``).
+  The gain cap (``loss.rec_noise_floor``) is measured at full size, where the noise is k times larger than in a
+  pooled view: the cap is lower than a pooled view needs, which is conservative (the exposed SSIM copies less
+  noise, never more). A raw scene's linear reconstruction: its default weights (``loss.raw.unit: plain``) are
+  normalised to mean 1, so a uniform 1/k² of the variance leaves them as they are; ``unit: sigma`` pulls 1/k as
+  hard as the pooled noise would allow (weaker: conservative); ``prior_snr`` describes the 2D priors' own window
+  of full-size pixels, whose noise is the full-size variance: right as it is.
+- **Density statistics.** The strategy converts the 2D means' pixel gradients to NDC (× width / 2, height / 2 of
+  the step's camera, which is the pooled one): the loss is a mean over pixels, so its gradient with respect to an
+  NDC position does not depend on the pixel count, and ``density.grad_threshold`` keeps its meaning. The
+  screen-size prune's running maximum of radii (pixels) mixes the stages' sizes; stages go coarse to fine (the
+  downsample never grows along the schedule), so a coarse radius compared with a finer image size prunes less,
+  never more.
+- **CUDA graphs.** The image losses' graphs are keyed by shape (:class:`~retinexgs.train.graphs.LossGraphs`):
+  each stage's size gets its own graph (a capture at the stage's first step), i.e. a few more graphs per view
+  size; past ``max_graphs`` shapes (mixed-size scenes with several stages) a size trains eagerly, with one line
+  in the log.
+"""
+from __future__ import annotations
+
+from typing import Dict, List, Optional, Sequence, Tuple
+
+import torch.nn.functional as F
+from torch import Tensor
+
+from retinexgs.config.schema import Config
+from retinexgs.errors import UserError
+from retinexgs.model.schedule import at_step
+from retinexgs.render import Camera
+from retinexgs.train.views import TrainView
+
+# The smallest side a pooled view may have: the SSIM window (11 px) and the noise estimate need a few pixels.
+MIN_SIDE = 16
+
+
+def pool_map(x: Tensor, k: int) -> Tensor:
+    """[H,W,C] -> [H // k, W // k, C]: k × k area means, the right and bottom edges cropped to multiples of k."""
+    if k == 1:
+        return x
+    H, W = x.shape[0] // k * k, x.shape[1] // k * k
+    y = F.avg_pool2d(x[:H, :W].permute(2, 0, 1).unsqueeze(0), k)
+    return y[0].permute(1, 2, 0).contiguous()
+
+
+def downscale_camera(camera: Camera, k: int) -> Camera:
+    """``camera`` for its image area-pooled by k (cropped to multiples of k at the right and bottom): focal
+    lengths and principal point / k (the pixel grid's origin stays put), size // k."""
+    if k == 1:
+        return camera
+    return Camera(camera.viewmat, camera.fx / k, camera.fy / k, camera.cx / k, camera.cy / k,
+                  camera.width // k, camera.height // k, camera.near, camera.far)
+
+
+def downscale_view(tv: TrainView, k: int) -> TrainView:
+    """``tv`` downsampled by k (module docstring): its camera and maps; packed targets and edge weights are
+    rebuilt from the pooled maps when the loss asks for them."""
+    if k == 1:
+        return tv
+    S = pool_map(tv.S, k)
+    R = pool_map(tv.R, k) if tv.R is not None else None
+    L = pool_map(tv.L, k) if tv.L is not None else None
+    if tv.target is None or tv.target is tv.S:
+        target = S if tv.target is not None else None
+    else:
+        target = pool_map(tv.target, k)
+    return TrainView(downscale_camera(tv.camera, k), S, R, L, target, center=tv.center)
+
+
+class ResolutionSchedule:
+    """``train.resolution`` resolved for a run of ``steps``: the downsample of each step and the views at it."""
+
+    def __init__(self, stages: Sequence[Tuple[int, int]], steps: int) -> None:
+        """``stages``: (until step, downsample k) pairs, in order: ``until`` strictly increasing, k not
+        increasing (coarse to fine). A UserError (one line) names the first that is not."""
+        self.steps = int(steps)
+        self.stages: List[Tuple[int, int]] = [(int(u), int(k)) for u, k in stages]
+        for (u0, k0), (u1, k1) in zip(self.stages, self.stages[1:]):
+            if u1 <= u0:
+                raise UserError(f"train.resolution: the steps must increase, got step {u1} after step {u0} (decimals "
+                                "are fractions of steps, integers are steps)")
+            if k1 > k0:
+                raise UserError(f"train.resolution: the downsample must not grow along the run (coarse to fine), "
+                                f"got {k1} after {k0}")
+        self._cache: Dict[int, TrainView] = {}  # view index -> pooled view, for the current downsample
+        self._cache_k = 1
+        self._checked: set = set()  # (view index, k) whose pooled size was checked
+
+    @classmethod
+    def from_config(cls, cfg: Config) -> "ResolutionSchedule":
+        """The schedule of ``cfg.train.resolution`` for ``cfg.steps``."""
+        return cls([(at_step(u, cfg.steps), k) for u, k in cfg.train.resolution], cfg.steps)
+
+    @property
+    def enabled(self) -> bool:
+        """Whether any step trains below full size."""
+        return any(k > 1 for _, k in self.stages)
+
+    def downsample_at(self, step: int) -> int:
+        """k of ``step`` (1-based): the first stage whose ``until`` >= step, else 1 (full size)."""
+        for until, k in self.stages:
+            if step <= until:
+                return k
+        return 1
+
+    def describe(self) -> str:
+        """One line for the training log."""
+        if not self.enabled:
+            return "resolution: full size throughout"
+        parts = [f"1/{k} until step {u}" if k > 1 else f"full size until step {u}" for u, k in self.stages]
+        return "resolution: " + ", ".join(parts) + ", full size after"
+
+    def view_at(self, tv: TrainView, index: int, step: int, cache: bool = True) -> TrainView:
+        """The view ``tv`` (view ``index`` of the run) as ``step`` trains on it: ``tv`` itself at full size,
+        else its downscaled twin, kept on the device for the stage's later steps where ``cache`` (preloaded
+        views; a streamed view's slot is reused, so it is pooled every time)."""
+        k = self.downsample_at(step)
+        if k != self._cache_k:  # a new stage: the previous one's pooled views are not needed again
+            self._cache.clear()
+            self._cache_k = k
+        if k == 1:
+            return tv
+        if (index, k) not in self._checked:
+            W, H = tv.camera.width // k, tv.camera.height // k
+            if min(W, H) < MIN_SIDE:
+                raise UserError(f"train.resolution: downsample {k} makes training view {index} "
+                                f"({tv.camera.width}x{tv.camera.height}) {W}x{H}, below {MIN_SIDE} px a side: "
+                                "use a smaller downsample")
+            self._checked.add((index, k))
+        pooled: Optional[TrainView] = self._cache.get(index) if cache else None
+        if pooled is None:
+            pooled = downscale_view(tv, k)
+            if cache:
+                self._cache[index] = pooled
+        return pooled
+
+
+__all__ = ["ResolutionSchedule", "downscale_view", "downscale_camera", "pool_map", "MIN_SIDE"]
