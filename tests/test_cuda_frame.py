@@ -71,11 +71,10 @@ def test_cuda_weights_on_the_wrong_device():
 CAM = make_camera(width=120, height=70, eye=(0.3, -0.2, -3.0))
 
 
-@pytest.mark.parametrize("per_channel", [False, True])
 @pytest.mark.parametrize("tone, shoulder", [("illumination", 1.0), ("exposure", 1.0), ("exposure", 0.5)])
 @pytest.mark.parametrize("background", ["black", "mean"])
-def test_renderer_on_cuda_equals_model_render(per_channel, tone, shoulder, background):
-    model = make_model(per_channel=per_channel, n=3000, tone=tone, background=background, shoulder=shoulder).cuda()
+def test_renderer_on_cuda_equals_model_render(tone, shoulder, background):
+    model = make_model(n=3000, tone=tone, background=background, shoulder=shoulder).cuda()
     assert model.has_background == (background == "mean")
     r = InferenceRenderer(model, 3)
     assert r.fused
@@ -173,8 +172,7 @@ def test_renderer_on_cuda_same_frame_without_tile_culling_or_side_stream():
             assert torch.equal(a, b)
 
 
-@pytest.mark.parametrize("per_channel", [False, True])
-def test_renderer_on_cuda_balances_in_its_graph_as_the_torch_path(per_channel):
+def test_renderer_on_cuda_balances_in_its_graph_as_the_torch_path():
     """A white balance (issue 53) inside the frame graph's tone kernel: eager, captured and replayed frames equal
     the torch path (model.render's light, balanced, then the shoulder and the sRGB curve); a changed balance is
     followed by the same graph; the unbalanced graph's frame is untouched. (Ran on an H200 2026-11-27 before the
@@ -183,7 +181,7 @@ def test_renderer_on_cuda_balances_in_its_graph_as_the_torch_path(per_channel):
     from retinexgs.model.tone import highlight_shoulder, linear_to_srgb, srgb_to_linear, white_balance
     from retinexgs.model.tone import exposure_gain
     from retinexgs.model.white_balance import temperature_matrix
-    model = make_model(per_channel=per_channel, n=3000, tone="exposure", shoulder=0.5).cuda()
+    model = make_model(n=3000, tone="exposure", shoulder=0.5).cuda()
     r = InferenceRenderer(model, 3)
     assert r.can_balance()
     for _ in range(3):  # eager, captured, replayed: later unbalanced frames replay the same graph

@@ -184,13 +184,13 @@ MODEL_CFG = {"sh_degree": 3, "sh_degree_every": 0.1, "init_opacity": 0.1, "max_i
              "near_fraction": 0.0, "near_in_training": True,
              "illumination": {"pos_freqs": 10, "dir_freqs": 4, "hidden": 64, "depth": 3, "dir_hidden": 32,
                               "init_value": 0.1, "view_dependent": True},
-             "enhancement": {"gamma_range": [0.1, 1.0], "init_gamma": 0.45, "per_channel": False,
-                             "per_view": True, "ref_quantile": 1.0, "raw": {"shoulder": None}}}
+             "enhancement": {"gamma_range": [0.1, 1.0], "init_gamma": 0.45, "per_view": True,
+                             "ref_quantile": 1.0, "raw": {"shoulder": None}}}
 
 
-def make_model(decomposed=True, per_channel=False, illumination=None, n=400, dtype=torch.float32,
+def make_model(decomposed=True, illumination=None, n=400, dtype=torch.float32,
                tone="illumination", background="black", shoulder=1.0):
-    enh = dict(MODEL_CFG["enhancement"], per_channel=per_channel, tone=tone, shoulder=shoulder)
+    enh = dict(MODEL_CFG["enhancement"], tone=tone, shoulder=shoulder)
     if tone == "exposure":  # the default's range and start
         enh.update(gamma_range=[0.25, 2.0], init_gamma=1.0)
     cfg = Model.model_validate(dict(MODEL_CFG, illumination=dict(MODEL_CFG["illumination"], **(illumination or {})),
@@ -215,10 +215,9 @@ CAM = make_camera(width=40, height=30, eye=(0.3, -0.2, -3.0))
 
 
 @pytest.mark.parametrize("exposure, gamma", [(None, None), (0.7, None), (None, 0.5), (1.3, 0.8)])
-@pytest.mark.parametrize("per_channel", [False, True])
 @pytest.mark.parametrize("tone, shoulder", [("illumination", 1.0), ("exposure", 1.0), ("exposure", 0.5)])
-def test_renderer_equals_model_render(exposure, gamma, per_channel, tone, shoulder):
-    model = make_model(per_channel=per_channel, tone=tone, shoulder=shoulder)
+def test_renderer_equals_model_render(exposure, gamma, tone, shoulder):
+    model = make_model(tone=tone, shoulder=shoulder)
     r = InferenceRenderer(model, 3, fused=True)
     assert r.fused
     res = r.render(CAM, exposure, gamma)

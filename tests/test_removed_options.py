@@ -18,7 +18,8 @@ from retinexgs.run.folder import read_run_config
 # A value each deleted option could have been set to on purpose (what its ablation used).
 NON_DEFAULT = {"model.illumination.leak": 0.01, "model.enhancement.debias_black": True,
                "model.enhancement.black_filter": 4, "loss.raw.model_error": 0.02, "density.noise_aware": True,
-               "loss.rec_huber": 0.0157}
+               "loss.rec_huber": 0.0157, "loss.rec_ssim_noise": True, "loss.rec_camera_noise": True,
+               "model.enhancement.per_channel": True}
 
 
 def _put(data: dict, dotted: str, value) -> None:
@@ -93,3 +94,31 @@ def test_a_format_0_or_1_run_goes_through_the_drop_too():
     one["loss"]["rec_raw_model_error"] = 0.02
     with pytest.raises(UserError, match=r"^one/config.yaml: loss.raw.model_error is 0.02: "):
         migrate_config(one, "one/config.yaml")
+
+
+def test_a_format_0_run_that_used_the_camera_s_noise_response_is_refused():
+    """loss.rec_camera_noise was a format-0 key (FORMAT_0_VALUES filled it for runs older than it): a format-0 run
+    that set it on is refused at format 3, one that lacks it is not given it back."""
+    old = plain(load_config())
+    old["loss"]["rec_camera_noise"] = True
+    with pytest.raises(UserError, match=r"^old/config.yaml: loss.rec_camera_noise is True: that option was removed"):
+        migrate_config(old, "old/config.yaml")
+    migrated, filled = migrate_config(plain(load_config()), "old/config.yaml")
+    assert "rec_camera_noise" not in migrated["loss"] and "loss.rec_camera_noise" not in filled
+
+
+def test_the_model_predicts_one_gamma_for_all_channels():
+    """model.enhancement.per_channel deleted: the EnhancementNet keeps its three outputs (checkpoints load as they
+    are) and the g every tone and renderer reads is their mean, the same in each channel."""
+    from retinexgs.model.retinex_model import RetinexGSModel
+    from test_fused_colors import make_gaussians
+
+    model = RetinexGSModel(make_gaussians(n=50), load_config().model, True)
+    torch.manual_seed(0)
+    with torch.no_grad():
+        model.enhancement.out.weight.normal_(0, 0.5)  # content-dependent, different per channel
+    L = torch.rand(1, 3, 24, 32)
+    with torch.no_grad():
+        raw, g = model.enhancement(L), model.predict_gamma(L)
+    assert raw.shape[1] == 3 and float(raw.std()) > 1e-3  # the net's channels differ ...
+    assert torch.allclose(g, raw.mean(dim=1, keepdim=True).expand_as(raw), rtol=0, atol=0)  # ... g is their mean

@@ -236,7 +236,6 @@ class Enhancement(Section):
     gamma_range: Annotated[List[Annotated[float, BeforeValidator(_yaml_number), Field(gt=0)]],
                            Field(min_length=2, max_length=2), Expect("a list [low, high] of two numbers > 0")]
     init_gamma: Num(gt=0)
-    per_channel: Bool
     per_view: Bool
     # a tone's name: checked against retinexgs.model.tones.TONES by the loader (CHOICES), with the rules each tone
     # sets (a reference, the black table), the registry being a layer above
@@ -299,11 +298,9 @@ class Loss(Section):
     enhance_from: Step
     enhance_trains_scene: Bool
     rec_domain: Choice("photo", "exposed", "exposed_ssim")
-    rec_ssim_noise: Bool
     rec_noise_floor: Bool
     rec_noise_share: Num(gt=0, le=0.9)
     rec_noise_scale: Int(1)
-    rec_camera_noise: Bool
     raw: LossRaw  # the camera-raw scenes' own keys
     w_depth: Num(ge=0)
     depth_edge: Num(ge=0)

@@ -6,9 +6,9 @@ what runs made before it did, a renamed or regrouped key, a checkpoint field tha
 :data:`FORMAT` by one and adds the migration from the previous format to :data:`CONFIG_MIGRATIONS` (and
 :data:`CHECKPOINT_MIGRATIONS` when checkpoints change). A new key whose default is what older runs did needs no
 step: whatever a recorded config lacks after its migrations is taken from ``configs/default.yaml``. A key deleted
-(an option that lost its ablation) is dropped by the next step where the run used its old default, and the run is
-refused in one line where it did not (this code cannot reproduce it). A format newer
-than this code knows is refused in one line (reading it as ours would silently be wrong). Format 0 is every run
+(an option that lost its ablation, or that no experiment ever measured) is dropped by the next step where the run
+used its old default, and the run is refused in one line where it did not (this code cannot reproduce it). A format
+newer than this code knows is refused in one line (reading it as ours would silently be wrong). Format 0 is every run
 written before formats existed (no ``format`` key)."""
 from __future__ import annotations
 
@@ -34,12 +34,13 @@ FORMAT = 3  # the format this code writes
 # model.enhancement.shoulder_raw (the same day), and its L_spa read the unclipped target until loss.spa_raw. A
 # folder posed by SfM was used whatever share of its photos SfM registered until data.min_registered, and the 2D
 # priors read the noisy views until decomposer.denoise.
-# The keys are named as format 1 named them (the raw ones move in config_1_to_2). density.noise_aware is gone (format
-# 3 deleted it): its format-0 value was its default, which is how every run without it trains.
+# The keys are named as format 1 named them (the raw ones move in config_1_to_2). density.noise_aware and
+# loss.rec_camera_noise are gone (format 3 deleted them): each one's format-0 value was its default, which is how
+# every run without it trains.
 FORMAT_0_VALUES: Dict[str, Any] = {
     "model.enhancement.tone": "illumination", "loss.w_depth": 0.0, "loss.rec_domain": "photo",
     "model.background": "black", "model.enhancement.shoulder": 1.0, "loss.rec_noise_floor": False,
-    "loss.rec_camera_noise": False, "loss.rec_noise_share": 0.5,
+    "loss.rec_noise_share": 0.5,
     "loss.rec_noise_scale": 1, "loss.exp_highlight_share": 0.0, "train.momentum_batch_scaling": "none",
     "density.last_event": 1.0, "loss.rec_raw": "photo", "decomposer.raw_denoise": False,
     "loss.rec_raw_unit": "plain", "loss.rec_raw_prior_snr": 0.0, "model.near_fraction": 0.0,
@@ -103,11 +104,13 @@ def config_1_to_2(cfg: RawConfig, filled: List[str]) -> RawConfig:
     return cfg
 
 
-# Format 2 -> 3 (issue 63): the options that only an ablation switched on and whose ablation lost, deleted with the
-# code that implemented them: dotted key -> the default every run had unless it set the option on purpose.
+# Format 2 -> 3 (issue 63): the options that only an ablation switched on and whose ablation lost, or that no
+# experiment ever measured (model.enhancement.per_channel), deleted with the code that implemented them: dotted
+# key -> the default every run had unless it set the option on purpose.
 REMOVED_2_TO_3: Dict[str, Any] = {
     "model.illumination.leak": 0.0, "model.enhancement.debias_black": False, "model.enhancement.black_filter": 0,
-    "loss.raw.model_error": 0.0, "density.noise_aware": False, "loss.rec_huber": 0.0}
+    "loss.raw.model_error": 0.0, "density.noise_aware": False, "loss.rec_huber": 0.0,
+    "loss.rec_ssim_noise": False, "loss.rec_camera_noise": False, "model.enhancement.per_channel": False}
 
 
 def _drop_removed(cfg: RawConfig, removed: Dict[str, Any]) -> None:
@@ -122,8 +125,9 @@ def _drop_removed(cfg: RawConfig, removed: Dict[str, Any]) -> None:
             continue
         value = node.pop(key)
         if isinstance(value, bool) != isinstance(default, bool) or value != default:
-            raise UserError(f"{dotted} is {value!r}: that option was removed from retinexgs (it lost its ablation), "
-                            "so this version cannot reproduce the run; use the retinexgs that made it")
+            raise UserError(f"{dotted} is {value!r}: that option was removed from retinexgs (it lost its ablation or "
+                            "was never measured), so this version cannot reproduce the run; use the retinexgs that "
+                            "made it")
 
 
 # Format 2 -> 3, keys added with a default that is not what older runs did (issue 64): a bare folder's SfM previews were

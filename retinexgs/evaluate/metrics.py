@@ -106,7 +106,7 @@ def _shifted_sums(x: torch.Tensor, size: int, sigma: float, pad: int) -> torch.T
 
 
 def ssim(x: torch.Tensor, y: torch.Tensor, window: int = 11, sigma: float = 1.5, padding: str = "same",
-         data_range: float = 1.0, reduction: str = "mean", c2_extra: Optional[torch.Tensor] = None) -> torch.Tensor:
+         data_range: float = 1.0, reduction: str = "mean") -> torch.Tensor:
     """Structural similarity (Wang et al. 2004) with a Gaussian window, per channel.
 
     SSIM = (2μxμy + C1)(2σxy + C2) / ((μx² + μy² + C1)(σx² + σy² + C2)),
@@ -120,9 +120,6 @@ def ssim(x: torch.Tensor, y: torch.Tensor, window: int = 11, sigma: float = 1.5,
                  or "valid" = no padding (the standard evaluation SSIM; needs H, W ≥ window).
         data_range: R, the dynamic range of the images (1 for [0,1]).
         reduction: "mean" (scalar over everything) or "none" (the SSIM map).
-        c2_extra: added to C2, broadcast against [B,C,1,1]. C2 sets the variance below which SSIM stops comparing
-            structure; raised by a noisy y's noise variance (:func:`noise_variance`), SSIM no longer asks x to
-            reproduce y's contrast at the noise's scale, which x could only do by fitting that very noise.
     """
     check_bchw(x, y)
     if x.shape != y.shape:
@@ -143,8 +140,6 @@ def ssim(x: torch.Tensor, y: torch.Tensor, window: int = 11, sigma: float = 1.5,
     sxx = exx - mx * mx
     syy = eyy - my * my
     sxy = exy - mx * my
-    if c2_extra is not None:
-        c2 = c2 + c2_extra
     s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
     if reduction == "none":
         return s

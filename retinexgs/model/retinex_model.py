@@ -143,9 +143,8 @@ class RetinexGSModel(nn.Module):
         return raised
 
     def _set_enhancement(self, enh: Enhancement) -> None:
-        """A fresh EnhancementNet, the gamma's layout and the tone form from a ``model.enhancement`` section
-        (its ``ref_quantile`` is the trainer's: it sets illum_ref)."""
-        self.per_channel_gamma = bool(enh.per_channel)
+        """A fresh EnhancementNet and the tone form from a ``model.enhancement`` section (its ``ref_quantile`` is
+        the trainer's: it sets illum_ref)."""
         self.tone = enh.tone  # the registered Tone of the name (the ``tone`` property)
         self.shoulder = self.capture.knee(enh)  # the highlight knee of a tone with a shoulder (1: the clip)
         self.enhancement = EnhancementNet(channels=3, gamma_range=tuple(enh.gamma_range), init_gamma=enh.init_gamma,
@@ -205,10 +204,11 @@ class RetinexGSModel(nn.Module):
         return self.tone.linear(R, L, self.illum_ref, gamma)
 
     def predict_gamma(self, L_bchw: Tensor) -> Tensor:
-        """The EnhancementNet's gamma for a normalised L̂/L_ref [1,3,H,W]: one per image (the paper's single g,
-        the default) or one per channel (``model.enhancement.per_channel``), as [1,C,1,1]."""
+        """The EnhancementNet's gamma for a normalised L̂/L_ref [1,3,H,W]: one per image (the paper's single g),
+        repeated per channel as [1,C,1,1]. The net keeps its C outputs and their mean is the g, so that its
+        parameters and the renderers' per-channel gamma input stay as every run has them."""
         g = self.enhancement(L_bchw)
-        return g if self.per_channel_gamma else g.mean(dim=1, keepdim=True).expand_as(g)
+        return g.mean(dim=1, keepdim=True).expand_as(g)
 
     def channels(self, center: Tensor, active_degree: int) -> Tensor:
         """The per-Gaussian channels a render of this model rasterizes from ``center`` (:func:`gaussian_channels`):

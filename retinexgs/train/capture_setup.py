@@ -1,12 +1,12 @@
 """The capture's noise as training uses it, measured once at set-up (or read from the checkpoint, so that a resume
-trains on the same figures): the photos' noise (:mod:`retinexgs.train.noise`) for the reconstruction's gain cap
-and the camera's clipped-noise response; on a camera-raw scene the raw views' noise (:mod:`retinexgs.data.raw_noise`) for the linear reconstruction."""
+trains on the same figures): the photos' noise (:mod:`retinexgs.train.noise`) for the reconstruction's gain cap;
+on a camera-raw scene the raw views' noise (:mod:`retinexgs.data.raw_noise`) for the linear reconstruction."""
 from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Callable, Dict, Optional, Tuple
+from typing import Callable, Dict, Optional
 
 import torch
 from torch import Tensor
@@ -28,7 +28,6 @@ class NoiseSetUp:
     capture: Capture = PHOTO                                # the views' kind (photo or camera raw)
     capture_noise: Optional[CaptureNoise] = None            # the photos' noise (a, b)
     rec_gain_cap: Optional[Tensor] = None                   # the reconstruction's gain cap (loss.rec_noise_floor)
-    camera_noise: Optional[Tuple[Tensor, Tensor]] = None     # the camera's (a, b) (loss.rec_camera_noise)
     raw_noise: Optional[RawNoise] = None                    # the raw views' noise
     linear_target: Optional[losses.LinearTarget] = None     # the raw reconstruction in linear light
 
@@ -52,10 +51,10 @@ def set_up_noise(cfg: Config, scene: Scene, model: RetinexGSModel, state: Option
 
 def _photo_noise(out: NoiseSetUp, cfg: Config, scene: Scene, model: RetinexGSModel, state: Optional[Dict],
                  device: torch.device, dist, log: Callable[[str], None]) -> None:
-    """Where ``loss.rec_noise_floor`` or ``loss.rec_camera_noise`` uses it: the reconstruction's gain cap and the
-    camera's (a, b) as device tensors made once (the captured CUDA graphs read them)."""
+    """Where ``loss.rec_noise_floor`` uses it: the reconstruction's gain cap as a device tensor made once (the
+    captured CUDA graphs read it)."""
     c = cfg.loss
-    if not (c.rec_noise_floor or c.rec_camera_noise):
+    if not c.rec_noise_floor:
         return
     saved = (state or {}).get("capture_noise")
     if saved:
@@ -64,8 +63,7 @@ def _photo_noise(out: NoiseSetUp, cfg: Config, scene: Scene, model: RetinexGSMod
         # The user's files where they still exist (undistorted copies hide part of the noise), else the copies.
         noise = measure_capture_noise([v.source_path if v.source_path is not None and Path(v.source_path).is_file()
                                        else v.image_path for v in scene.train],
-                                      cfg.data.downscale, device, scale=c.rec_noise_scale,
-                                      through_codec=c.rec_camera_noise)  # the user of (a, b)
+                                      cfg.data.downscale, device, scale=c.rec_noise_scale)
     if dist is not None and dist.enabled:  # rank 0's figures everywhere (each rank measured the same views)
         noise = dist.broadcast_object(noise, "the capture's noise")
     if noise is None:
@@ -78,19 +76,15 @@ def _photo_noise(out: NoiseSetUp, cfg: Config, scene: Scene, model: RetinexGSMod
         gain = float(exposure_gain(ref, ref.new_ones(())))
     log(noise.describe(limit, gain))
     cap = noise.gain_cap(limit)
-    if c.rec_noise_floor and c.rec_domain != "photo" and math.isfinite(cap):
+    if c.rec_domain != "photo" and math.isfinite(cap):
         out.rec_gain_cap = torch.tensor(cap, dtype=torch.float32, device=device)
-    if c.rec_camera_noise:
-        out.camera_noise = noise.camera(device)
 
 
 def _raw_noise(out: NoiseSetUp, cfg: Config, scene: Scene, state: Optional[Dict], device: torch.device, dist,
                log: Callable[[str], None]) -> None:
     """A camera raw scene (issue 52 stage 3b): unless ``loss.raw.mode`` is ``photo``, the reconstruction compares
     R̂∘L̂ with the views' unclipped values in linear light, weighted by the views' noise
-    (:class:`retinexgs.train.losses.LinearTarget`; the noise from the DNG NoiseProfile or the mosaic). The
-    camera's clipped-noise response (``loss.rec_camera_noise``) describes a JPEG's clip at black, which raw values
-    do not have: not used."""
+    (:class:`retinexgs.train.losses.LinearTarget`; the noise from the DNG NoiseProfile or the mosaic)."""
     mode = out.capture.linear_mode(cfg.loss)  # None: photos, or a raw scene compared as the photos it shows
     if mode is None:
         return
@@ -118,6 +112,3 @@ def _raw_noise(out: NoiseSetUp, cfg: Config, scene: Scene, state: Optional[Dict]
     c = cfg.loss.raw
     out.linear_target = losses.LinearTarget(mode, a, b, unit=c.unit, prior_snr=float(c.prior_snr))
     log(f"raw scene: reconstruction in linear light ({mode}); {noise.describe()}")
-    if out.camera_noise is not None:
-        log("loss.rec_camera_noise is not used on a raw scene (its values are not clipped at black)")
-        out.camera_noise = None

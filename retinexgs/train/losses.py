@@ -33,12 +33,12 @@ import torch.nn.functional as F
 from retinexgs.evaluate.metrics import cached_constant, check_bchw, gaussian_window, ssim
 from retinexgs.data.raw_noise import PREVIEW_RADIUS
 from retinexgs.data.srgb import linear_to_srgb_extended, srgb_to_linear_extended
-from retinexgs.model.tone import camera_mean, highlight_capped_mean, linear_to_srgb, srgb_to_linear
+from retinexgs.model.tone import highlight_capped_mean, linear_to_srgb, srgb_to_linear
 from retinexgs.model.tones import Tone, get_tone
 from retinexgs.config.schema import Loss
 
 __all__ = [
-    "to_bchw", "gaussian_window", "ssim", "noise_variance", "exposed", "camera_expectation", "l1_ssim",
+    "to_bchw", "gaussian_window", "ssim", "noise_variance", "exposed", "l1_ssim",
     "LinearTarget", "RELATIVE_EPS", "PRIOR_WINDOW", "prior_confidence", "linear_weights", "linear_reconstruction", "reconstruction_loss",
     "supervision_loss", "tv_loss", "edge_weights", "depth_smoothness_loss", "sh_sparsity_loss",
     "spatial_consistency_loss", "exposure_loss", "color_constancy_loss", "enhancement_loss",
@@ -98,13 +98,6 @@ def exposed(x: torch.Tensor, gain: torch.Tensor, extended: bool = False) -> torc
     if extended:
         return linear_to_srgb_extended(gain * srgb_to_linear_extended(x))
     return linear_to_srgb(gain * srgb_to_linear(x, clip=False), clip=False)
-
-
-def camera_expectation(x: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """What a camera records on average from sRGB-encoded light ``x`` [B,C,H,W] under the noise (``a``, ``b``
-    [1,C,1,1] or broadcastable): :func:`retinexgs.model.tone.camera_mean`. A render compared with the photo as it
-    is must lift its blacks to match; compared through this, it can keep the light."""
-    return camera_mean(x, a, b)
 
 
 class LinearTarget(NamedTuple):
@@ -199,12 +192,11 @@ def linear_reconstruction(rec: torch.Tensor, S: torch.Tensor, target: LinearTarg
 
 
 def l1_ssim(x: torch.Tensor, y: torch.Tensor, lambda_ssim: float = 0.2,
-            ssim_xy: Optional[Tuple[torch.Tensor, torch.Tensor]] = None, ssim_noise: bool = False) -> torch.Tensor:
+            ssim_xy: Optional[Tuple[torch.Tensor, torch.Tensor]] = None) -> torch.Tensor:
     """Ls(x, y) = (1−λ)·mean|x−y| + λ·(1 − SSIM(x, y)): 3DGS's photometric loss, SSIM with "same" padding.
 
     ``y`` may have 1 channel where ``x`` has C (or vice versa): it is broadcast. ``ssim_xy``: the pair the SSIM
     part compares, when it is not (x, y).
-    ``ssim_noise``: the SSIM's C2 is raised by its target's noise variance (:func:`noise_variance`).
     """
     check_bchw(x, y)
     if x.shape != y.shape:
@@ -213,8 +205,7 @@ def l1_ssim(x: torch.Tensor, y: torch.Tensor, lambda_ssim: float = 0.2,
     if lambda_ssim == 0:
         return l1
     xs, ys = (x, y) if ssim_xy is None else torch.broadcast_tensors(*ssim_xy)
-    noise = noise_variance(ys) if ssim_noise else None
-    return (1.0 - lambda_ssim) * l1 + lambda_ssim * (1.0 - ssim(xs, ys, c2_extra=noise))
+    return (1.0 - lambda_ssim) * l1 + lambda_ssim * (1.0 - ssim(xs, ys))
 
 
 def _reconstruction_pairs(rec: torch.Tensor, S: torch.Tensor, gain: Optional[torch.Tensor], l1_exposed: bool,
@@ -229,7 +220,6 @@ def _reconstruction_pairs(rec: torch.Tensor, S: torch.Tensor, gain: Optional[tor
 
 def reconstruction_loss(rec: torch.Tensor, S: torch.Tensor, lambda_ssim: float = 0.2,
                         gain: Optional[torch.Tensor] = None, l1_exposed: bool = True,
-                        ssim_noise: bool = False, camera: Optional[Tuple[torch.Tensor, torch.Tensor]] = None,
                         linear: Optional[LinearTarget] = None) -> torch.Tensor:
     """Ls(R̂∘L̂, S) alone (no 2D priors), with the options of :func:`supervision_loss`'s reconstruction term."""
     check_bchw(rec, S)
@@ -238,20 +228,15 @@ def reconstruction_loss(rec: torch.Tensor, S: torch.Tensor, lambda_ssim: float =
         lin = linear_reconstruction(rec, S, linear, gain)
         if lambda_ssim == 0:
             return lin
-        noise = noise_variance(ys) if ssim_noise else None
-        return (1.0 - lambda_ssim) * lin + lambda_ssim * (1.0 - ssim(xs, ys, c2_extra=noise))
-    if camera is not None:
-        rec = camera_expectation(rec, *camera)
+        return (1.0 - lambda_ssim) * lin + lambda_ssim * (1.0 - ssim(xs, ys))
     (x, y), (xs, ys) = _reconstruction_pairs(rec, S, gain, l1_exposed)
-    return l1_ssim(x, y, lambda_ssim, None if xs is x else (xs, ys), ssim_noise)
+    return l1_ssim(x, y, lambda_ssim, None if xs is x else (xs, ys))
 
 
 def supervision_loss(R_hat: torch.Tensor, L_hat: torch.Tensor, R: torch.Tensor, L: torch.Tensor,
                      S: torch.Tensor, w_r: float = 0.5, w_l: float = 0.5, w_s: float = 1.0,
                      lambda_ssim: float = 0.2, rec_gain: Optional[torch.Tensor] = None,
-                     rec_l1_exposed: bool = True, rec_ssim_noise: bool = False,
-                     camera: Optional[Tuple[torch.Tensor, torch.Tensor]] = None,
-                     linear: Optional[LinearTarget] = None) -> Tuple[torch.Tensor, Terms]:
+                     rec_l1_exposed: bool = True, linear: Optional[LinearTarget] = None) -> Tuple[torch.Tensor, Terms]:
     """L_sup of Eq. 4: w_r·Ls(R̂, R) + w_l·Ls(L̂, L) + w_s·Ls(R̂∘L̂, S).
 
     Args:
@@ -260,13 +245,9 @@ def supervision_loss(R_hat: torch.Tensor, L_hat: torch.Tensor, R: torch.Tensor, 
             1 channel (broadcast against L̂).
         rec_gain: when given, the reconstruction term's SSIM compares ``exposed(R̂∘L̂)`` with ``exposed(S)``
             (:func:`exposed`) instead of the dark values, and so does its L1 if ``rec_l1_exposed``.
-        rec_ssim_noise: the reconstruction term's SSIM has its C2 raised by its target's noise variance
-            (:func:`noise_variance`, ``ssim``'s ``c2_extra``); the priors' SSIM is unchanged.
-        camera: (a, b), the capture's noise: R̂∘L̂ is compared with S through :func:`camera_expectation` (the
-            priors' terms are not: R and L are the decomposer's estimates, not photos).
         linear: a raw scene's :class:`LinearTarget`: the reconstruction term's L1 is replaced by
-            :func:`linear_reconstruction` (S is the view's unclipped encoding; ``camera`` does not
-            apply) and its SSIM compares exposed values with S exposed unclipped.
+            :func:`linear_reconstruction` (S is the view's unclipped encoding) and its SSIM compares exposed
+            values with S exposed unclipped.
 
     Returns:
         (total, {"sup_r", "sup_l", "sup_rec"}) — the unweighted terms, for logging.
@@ -276,8 +257,6 @@ def supervision_loss(R_hat: torch.Tensor, L_hat: torch.Tensor, R: torch.Tensor, 
     # it is one set of kernels instead of three). Each pair is broadcast to a common channel count first.
     rec = R_hat * L_hat
     lin_rec = None if linear is None else linear_reconstruction(rec, S, linear, rec_gain)
-    if camera is not None and linear is None:
-        rec = camera_expectation(rec, *camera)
     (rec, target), (rec_s, target_s) = _reconstruction_pairs(rec, S, rec_gain, rec_l1_exposed and linear is None,
                                                              linear is not None)
     pairs = [torch.broadcast_tensors(a, b) for a, b in ((R_hat, R), (L_hat, L), (rec, target))]
@@ -295,14 +274,7 @@ def supervision_loss(R_hat: torch.Tensor, L_hat: torch.Tensor, R: torch.Tensor, 
     if lambda_ssim:
         if rec_s is not rec:
             x, y = torch.cat([x[:, :-sizes[2]], rec_s], dim=1), torch.cat([y[:, :-sizes[2]], target_s], dim=1)
-        noise = None
-        # Zero for the priors' channels: LR3M's R and L are already denoised. The estimate is a constant of the view,
-        # made again each step because the captured graph's static inputs are S, R and L; it is one 3×3 conv and a
-        # median per channel.
-        if rec_ssim_noise:
-            noise = torch.cat([y.new_zeros(y.shape[0], y.shape[1] - sizes[2], 1, 1),
-                               noise_variance(y[:, -sizes[2]:])], dim=1)
-        s = torch.stack([m.mean() for m in ssim(x, y, reduction="none", c2_extra=noise).split(sizes, dim=1)])
+        s = torch.stack([m.mean() for m in ssim(x, y, reduction="none").split(sizes, dim=1)])
         values = (1.0 - lambda_ssim) * l1 + lambda_ssim * (1.0 - s)
     else:
         values = l1

@@ -1,14 +1,11 @@
-"""The capture's sensor noise, measured from its own training photos at set-up, and the two things training
-does with it (issue 32; each a config switch with its reason in configs/default.yaml):
+"""The capture's sensor noise, measured from its own training photos at set-up, and what training does with it
+(issue 32; a config switch with its reason in configs/default.yaml):
 
 - ``loss.rec_noise_floor``: the reconstruction term's SSIM compares the render with the photo at an exposure
   (:func:`retinexgs.train.losses.exposed`, gain 1 / lin(L_ref)). That gain is capped where the exposed photos'
   noise reaches SSIM's own stabilising constant, σ = K2 = 0.03 on a [0, 1] range: above the cap the SSIM would
   ask the render to copy each view's noise, which a 3D model can only do by growing Gaussians for it (speckle in
   every novel view). On a clean capture (LOM: σ < 0.01 at the full gain) nothing changes.
-- ``loss.rec_camera_noise``: the render is compared with the photo through the camera's average response to it
-  (:func:`retinexgs.train.losses.camera_expectation`) under the Poisson–Gaussian noise measured here, so the
-  blacks of the output are not lifted by the positive mean of clipped noise.
 
 Measured on :data:`MEASURED_VIEWS` training photos spread over the capture, as the camera wrote them (the user's
 files, a central crop of at most :data:`CROP` pixels a side): undistortion and resizing interpolate between pixels,
@@ -19,9 +16,9 @@ at each gain of :data:`GAINS`; the capture's
 figures are the medians over the photos, divided by ``data.downscale`` (a d×d average divides white noise's σ by d).
 Through 8-bit JPEG the pixel-scale (a, b) sees 0.15–0.9 of the true σ, least near black
 (experiments/notes/2026-11-26-noise-estimate.md); the exposed σ on 2×2 averages sees 0.94–1.19 of it. Where (a, b)
-is used (``loss.rec_camera_noise``), the (a, b) of JPEG files is fitted through
-their own JPEG (``through_codec``, :func:`retinexgs.data.sensor.estimate_noise_through_codec`; 512² crops, about
-2 s a photo on a CPU core), since the clipped noise's mean, which lifts the blacks, passes JPEG whole.
+itself is reported (``retinexgs noise``), the (a, b) of JPEG files is fitted through their own JPEG
+(``through_codec``, :func:`retinexgs.data.sensor.estimate_noise_through_codec`; 512² crops, about 2 s a photo on a
+CPU core), since the clipped noise's mean, which lifts the blacks, passes JPEG whole.
 """
 from __future__ import annotations
 
@@ -87,17 +84,10 @@ class CaptureNoise(PoissonGaussian):
 
     def at_capture(self) -> Tuple[Tuple[float, ...], Tuple[float, ...]]:
         """(a, b) of the photos as the camera recorded them, before any downscale. The clip at black happens there,
-        pixel by pixel, and averaging keeps the clipped mean: the camera's mean record (the black table, the
-        camera expectation) is a function of this noise, not of the averaged images' smaller one."""
+        pixel by pixel, and averaging keeps the clipped mean: the camera's mean record (black's lift, which
+        ``retinexgs noise`` reports) is a function of this noise, not of the averaged images' smaller one."""
         d2 = float(self.downscale) ** 2
         return tuple(v * d2 for v in self.a), tuple(v * d2 for v in self.b)
-
-    def camera(self, device: torch.device) -> Tuple[Tensor, Tensor]:
-        """:meth:`at_capture`'s (a, b) as [1,3,1,1] float32 tensors on ``device``
-        (:func:`retinexgs.train.losses.camera_expectation`)."""
-        a, b = self.at_capture()
-        return (torch.tensor(a, dtype=torch.float32, device=device).reshape(1, 3, 1, 1),
-                torch.tensor(b, dtype=torch.float32, device=device).reshape(1, 3, 1, 1))
 
     def state_dict(self) -> Dict:
         return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}

@@ -227,18 +227,16 @@ class RetinexObjective(PlainObjective):
         terms: Dict[str, Tensor] = {}
         gain = self.rec_gain()
         l1_exposed = c.rec_domain == "exposed"
-        camera_noise = self.noise.camera_noise
         if linear is not None:  # at the scene's own exposure, not the noise floor's cap (LinearTarget)
             ref = self.model.illum_ref
             linear = linear._replace(gain=exposure_gain(ref, ref.new_ones(())))
         if R is not None:
             sup, sup_terms = losses.supervision_loss(R_hat, L_hat, to_bchw(R), to_bchw(L), S_b, c.w_r,
-                                                     c.w_l, c.w_s, c.lambda_ssim, gain, l1_exposed,
-                                                     c.rec_ssim_noise, camera_noise, linear)
+                                                     c.w_l, c.w_s, c.lambda_ssim, gain, l1_exposed, linear)
             terms.update(sup_terms)
         else:  # no 2D priors: only the reconstruction is supervised
             terms["sup_rec"] = losses.reconstruction_loss(R_hat * L_hat, S_b, c.lambda_ssim, gain, l1_exposed,
-                                                          c.rec_ssim_noise, camera_noise, linear)
+                                                          linear)
             sup = c.w_s * terms["sup_rec"]
         terms["tv"] = losses.tv_loss(R_hat)
         total = sup + c.w_tv * terms["tv"]

@@ -24,16 +24,13 @@ live in reused slots valid for one step: they are pooled every step they are use
 
 How the rest of training reads a downscaled step:
 
-- **Noise.** A k × k mean divides the per-pixel noise variance by k². The SSIM's noise term
-  (``loss.rec_ssim_noise``) is measured on the step's own (pooled) target: consistent as it is. The camera's
-  clipped-noise response (``loss.rec_camera_noise``) uses the capture's per-pixel noise, where the clip happens:
-  a mean of clipped pixels keeps that mean response (the same reasoning as for ``data.downscale``).
-  The gain cap (``loss.rec_noise_floor``) is measured at full size, where the noise is k times larger than in a
-  pooled view: the cap is lower than a pooled view needs, which is conservative (the exposed SSIM copies less
-  noise, never more). A raw scene's linear reconstruction: its default weights (``loss.raw.unit: plain``) are
-  normalised to mean 1, so a uniform 1/k² of the variance leaves them as they are; ``unit: sigma`` pulls 1/k as
-  hard as the pooled noise would allow (weaker: conservative); ``prior_snr`` describes the 2D priors' own window
-  of full-size pixels, whose noise is the full-size variance: right as it is.
+- **Noise.** A k × k mean divides the per-pixel noise variance by k². The gain cap (``loss.rec_noise_floor``) is
+  measured at full size, where the noise is k times larger than in a pooled view: the cap is lower than a pooled
+  view needs, which is conservative (the exposed SSIM copies less noise, never more). A raw scene's linear
+  reconstruction: its default weights (``loss.raw.unit: plain``) are normalised to mean 1, so a uniform 1/k² of the
+  variance leaves them as they are; ``unit: sigma`` pulls 1/k as hard as the pooled noise would allow (weaker:
+  conservative); ``prior_snr`` describes the 2D priors' own window of full-size pixels, whose noise is the
+  full-size variance: right as it is.
 - **Density statistics.** The strategy converts the 2D means' pixel gradients to NDC (× width / 2, height / 2 of
   the step's camera, which is the pooled one): the loss is a mean over pixels, so its gradient with respect to an
   NDC position does not depend on the pixel count, and ``density.grad_threshold`` keeps its meaning. The

@@ -14,7 +14,7 @@ Built in, with ℓ = clip(L̂ / L_ref, 0, 1) (L_ref: the scene's full light, a c
 A new tone is one module: subclass :class:`Tone`, set ``name`` and ``formula`` (and the attributes that differ
 from the defaults), implement ``map``, decorate with :func:`register`, and import the module here (or, for a
 tone outside the package, anywhere before the config is loaded): the config loader accepts its name from
-:data:`TONES`. The shared light and noise maths is in :mod:`.curves`.
+:data:`TONES`. The shared light maths is in :mod:`.curves`.
 """
 from __future__ import annotations
 

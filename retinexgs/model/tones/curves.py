@@ -1,6 +1,5 @@
-"""The light and noise maths the tones share (pure functions on tensors, with gradients): the highlight shoulder,
-the camera's clipped-noise response (``loss.rec_camera_noise``), the highlight-protecting meter and the white
-balance. The tones themselves live beside this module, one a module.
+"""The light maths the tones share (pure functions on tensors, with gradients): the highlight shoulder, the
+highlight-protecting meter and the white balance. The tones themselves live beside this module, one a module.
 
 ``shoulder`` a < 1 rolls the highlights off instead of clipping them, as a camera's tone curve does: linear light v
 passes unchanged up to a and above it follows a + (1 − a)(1 − e^(−(v − a)/(1 − a))), which leaves a with slope 1 and
@@ -10,19 +9,12 @@ from __future__ import annotations
 
 from typing import Optional
 
-import numpy as np
 import torch
 from torch import Tensor
 
 from retinexgs.data.srgb import linear_to_srgb, srgb_to_linear  # noqa: F401 (the tones' curves; re-exported)
 
-__all__ = ["srgb_to_linear", "linear_to_srgb", "highlight_shoulder", "camera_mean", "highlight_capped_mean",
-           "white_balance"]
-
-# Gauss–Hermite rule (probabilists'): E[f(Z)] ≈ Σ w_i f(z_i) for Z ~ N(0, 1). Eight nodes put the clipped,
-# sRGB-encoded mean within 0.001 of a Monte Carlo mean at every level of fountain-dark's sensor (1500 e⁻, 4 e⁻).
-_GH_Z, _GH_W = np.polynomial.hermite_e.hermegauss(8)
-_GH = tuple(zip(_GH_Z.tolist(), (_GH_W / _GH_W.sum()).tolist()))
+__all__ = ["srgb_to_linear", "linear_to_srgb", "highlight_shoulder", "highlight_capped_mean", "white_balance"]
 
 
 def highlight_shoulder(v: Tensor, knee: float) -> Tensor:
@@ -34,23 +26,6 @@ def highlight_shoulder(v: Tensor, knee: float) -> Tensor:
     span = 1.0 - knee
     rolled = knee + span * (1.0 - torch.exp(-(v - knee).clamp_min(0.0) / span))
     return torch.where(v > knee, rolled, v)
-
-
-def camera_mean(x: Tensor, a: Tensor, b: Tensor) -> Tensor:
-    """What a camera records on average from sRGB-encoded light ``x``: E[srgb(max(0, lin(x) + n))], n ~ N(0,
-    a·lin(x) + b) per channel (``a``, ``b`` broadcastable against ``x``: the capture's noise in linear light), by an
-    8-node Gauss–Hermite rule.
-
-    Why: a sensor's noise is clipped at black, so a dark photo's values average above the light that made them
-    (about 0.4σ at black), and the sRGB curve's bend lowers the mid-tones' average a little. Equals ``x`` where
-    the noise is 0 (to the encoding's precision)."""
-    m = srgb_to_linear(x, clip=False)
-    sigma = (a * m + b).clamp_min(1e-12).sqrt()
-    out = None
-    for z, w in _GH:
-        term = w * linear_to_srgb(m + z * sigma, clip=False)
-        out = term if out is None else out + term
-    return out
 
 
 def highlight_capped_mean(RL: Tensor, target: float, share: float, shoulder: float = 1.0) -> Tensor:
