@@ -15,7 +15,7 @@ from retinexgs.model.schedule import Schedule
 from retinexgs.render import RenderOutput
 from retinexgs.render.rotation import quat_to_rotmat
 from retinexgs.strategy.base import Strategy, register
-from retinexgs.strategy.ops import cap_anisotropy, edit_gaussians, reset_opacity
+from retinexgs.strategy.ops import cap_anisotropy, edit_gaussians, mask_indices, reset_opacity
 
 
 # The per-Gaussian statistics summed over views (and over ranks before a densification), and the one kept as a
@@ -117,39 +117,45 @@ class DefaultStrategy(Strategy):
 
         sums = all_reduce_sum(flat(SUMMED, 1.0 if has else 0.0))
         maxima = all_reduce_max(flat(MAXIMA, float(image_size)))
-        anyone = float(sums[-1]) > 0
+        anyone, biggest = torch.stack([sums[-1], maxima[-1]]).tolist()  # one host read for both
+        anyone = anyone > 0
         for keys, values in ((SUMMED, sums), (MAXIMA, maxima)):
             for i, key in enumerate(keys):
                 setattr(self, key, values[i * n:(i + 1) * n] if anyone else None)
-        return int(maxima[-1])
+        return int(biggest)
 
     @torch.no_grad()
     def densify_and_prune(self, step: int, model: GaussianModel, optimizer: torch.optim.Optimizer,
                           image_size: int) -> str:
+        """Clone, split and prune (3DGS) with two host reads in all (issue 65: every read stalls the GPU queue):
+        the clone and split counts together, then the kept indices. Everything else is decided on the device."""
         c = self.cfg
         n = len(model)
         avg = self.densification_statistic()
         selected = avg >= c.grad_threshold
         room = max(0, int(c.max_gaussians) - n)
-        if int(selected.sum()) > room:  # keep the largest gradients within the budget
-            keep = avg.topk(room).indices if room > 0 else avg.new_zeros(0, dtype=torch.long)
-            selected = torch.zeros_like(selected)
-            selected[keep] = True
+        if room < n:  # over budget only if more than ``room`` are selected: keep the largest gradients then
+            capped = torch.zeros_like(selected)
+            if room > 0:
+                capped[avg.topk(room).indices] = True
+            selected = torch.where(selected.sum() > room, capped, selected)
         scales = model.scales
         big = scales.max(-1).values > c.percent_dense * self.extent
         clone, split = selected & ~big, selected & big
+        n_clone, n_split = torch.stack([clone.sum(), split.sum()]).tolist()  # host read 1
         params = model.tensors()
-        new: Dict[str, Tensor] = {k: v.detach()[clone] for k, v in params.items()}
+        clone_idx = mask_indices(clone, n_clone)
+        new: Dict[str, Tensor] = {k: v.detach().index_select(0, clone_idx) for k, v in params.items()}
         # Split: two samples drawn from the Gaussian, each 1.6x smaller.
-        idx = split.nonzero().squeeze(-1).repeat(2)
-        if idx.numel():
+        idx = mask_indices(split, n_split).repeat(2)
+        if n_split:
             R = quat_to_rotmat(params["quats"].detach()[idx])
             offs = (R @ (torch.randn(idx.numel(), 3, 1, device=R.device) * scales[idx].unsqueeze(-1))).squeeze(-1)
             split_new = {k: v.detach()[idx] for k, v in params.items()}
             split_new["means"] = split_new["means"] + offs
             split_new["log_scales"] = split_new["log_scales"] - math.log(1.6)
             new = {k: torch.cat([new[k], split_new[k]]) for k in new}
-        n_new = new["means"].shape[0]
+        n_new = n_clone + 2 * n_split
         edit_gaussians(model, optimizer, lambda name, t, is_state: torch.cat(
             [t, torch.zeros_like(new[name]) if is_state else new[name].to(t)]))
         # Prune: the split originals, transparent Gaussians, and (after the first reset) oversized ones.
@@ -159,10 +165,11 @@ class DefaultStrategy(Strategy):
             radius = torch.cat([self.max_radius, torch.zeros(n_new, device=split.device)])
             prune |= radius > c.max_screen_fraction * image_size
             prune |= model.scales.max(-1).values > 0.1 * self.extent
-        if bool(prune.all()):  # never prune everything
-            prune[model.opacities.argmax()] = False
-        keep = ~prune
-        edit_gaussians(model, optimizer, lambda name, t, is_state: t[keep])
+        # Never prune everything: where all would go, the most opaque stays (decided on the device).
+        opaque = model.opacities.argmax().unsqueeze(0)  # an index tensor, not a Python int (that is a read)
+        prune.index_put_((opaque,), prune[opaque] & ~prune.all())
+        keep = (~prune).nonzero().squeeze(-1)  # host read 2
+        edit_gaussians(model, optimizer, lambda name, t, is_state: t.index_select(0, keep))
         for key in SUMMED + MAXIMA:  # the next interval starts afresh (_ensure: at the new Gaussian count)
             setattr(self, key, None)
-        return f"densify +{int(clone.sum())} clone +{int(split.sum())} split -{int(prune.sum())} pruned"
+        return f"densify +{n_clone} clone +{n_split} split -{n + n_new - keep.numel()} pruned"

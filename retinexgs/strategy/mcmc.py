@@ -23,7 +23,7 @@ from retinexgs.model.gaussians import GaussianModel
 from retinexgs.model.schedule import Schedule
 from retinexgs.render.rotation import quat_to_rotmat
 from retinexgs.strategy.base import Strategy, register
-from retinexgs.strategy.ops import cap_anisotropy, edit_gaussians
+from retinexgs.strategy.ops import cap_anisotropy, edit_gaussians, mask_indices
 
 N_MAX = 51  # the most copies one Gaussian becomes in one event (the binomial sum's table)
 
@@ -110,7 +110,10 @@ class MCMCStrategy(Strategy):
         """Turn each Gaussian in ``sources`` (with repeats) into its share of copies: its own opacity and scale
         per eq. 9, then copied onto ``targets`` (dead slots) or appended (None). Adam's moments restart on all."""
         n = len(model)
-        counts = torch.bincount(sources, minlength=n)
+        # bincount, but without its host reads of the sources' range (two syncs on CUDA); 1-D scatter_add_ is
+        # deterministic.
+        counts = torch.zeros(n, dtype=torch.long, device=sources.device).scatter_add_(0, sources,
+                                                                                      torch.ones_like(sources))
         o_new, s_new = relocation(model.opacities[sources], model.scales[sources], counts[sources] + 1)
         o_new = o_new.clamp(self.cfg.mcmc.min_opacity, 1.0 - 1e-6)
         changed = {"opacity_logits": torch.logit(o_new)[:, None].to(model.opacity_logits.dtype),
@@ -133,12 +136,12 @@ class MCMCStrategy(Strategy):
     def _relocate(self, model: GaussianModel, optimizer: torch.optim.Optimizer) -> int:
         o = model.opacities.reshape(-1)
         dead = o <= self.cfg.mcmc.min_opacity
-        n_dead = int(dead.sum())
+        n_dead = int(dead.sum())  # the one host read of a relocation: the index sets follow from it
         if n_dead == 0 or n_dead == o.numel():
             return 0
-        alive = (~dead).nonzero().squeeze(-1)
+        alive = mask_indices(~dead, o.numel() - n_dead)
         sources = alive[self._sample(o[alive], n_dead)]
-        self._split(model, optimizer, sources, dead.nonzero().squeeze(-1))
+        self._split(model, optimizer, sources, mask_indices(dead, n_dead))
         return n_dead
 
     def _grow(self, model: GaussianModel, optimizer: torch.optim.Optimizer) -> int:

@@ -32,6 +32,21 @@ def edit_gaussians(model: nn.Module, optimizer: torch.optim.Optimizer,
         setattr(model, name, new)
 
 
+def mask_indices(mask: Tensor, count: int) -> Tensor:
+    """The indices [count] where the 1-D ``mask`` is True, ascending (what ``mask.nonzero().squeeze(-1)`` gives),
+    given their ``count`` read beforehand (e.g. with other counts in one ``.tolist()``). Why: ``nonzero`` or a
+    mask index must read the count from the device, one host sync each; this is a stable partition instead,
+    every size known on the host."""
+    n = mask.shape[0]
+    order = torch.arange(n, device=mask.device)
+    before = torch.cumsum(mask, 0) - mask.long()  # Trues before each position
+    # True i goes to its rank among the Trues, False i after all of them (count + its rank among the Falses).
+    dest = torch.where(mask, before, count + order - before)
+    out = torch.empty_like(order)
+    out[dest] = order  # an integer index (a permutation): no read on the host
+    return out[:count]
+
+
 def resize_gaussians(model: nn.Module, optimizer: torch.optim.Optimizer, n: int) -> None:
     """Give every Gaussian parameter and moment ``n`` rows of zeros (a rank about to receive rank 0's Gaussians)."""
     edit_gaussians(model, optimizer, lambda name, t, is_state: t.new_zeros((n,) + tuple(t.shape[1:])))
