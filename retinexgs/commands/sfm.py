@@ -33,6 +33,11 @@ def register(subparsers) -> None:
                    help="denoise the brightened previews of dark photos and raw files first, under their measured "
                         "noise (at night the brightened noise buries the features): auto (default) = chroma where "
                         "the brightened previews' noise is high (σ > 0.08) and can be measured, none otherwise")
+    p.add_argument("--night", choices=["auto", "on", "off"], default="auto",
+                   help="SIFT and mapper settings for night previews (no upsampled octave, pooled descriptors, "
+                        "30 inliers at 8 degrees to start a model, 10 within 4 px to add a photo, two-view points kept: "
+                        "night pairs hold 30-50 inliers): auto (default) "
+                        "= where the previews are denoised; off = COLMAP's own")
     p.add_argument("--camera-model", default="SIMPLE_RADIAL",
                    help="COLMAP camera model: SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL (default), RADIAL, OPENCV "
                         "or FULL_OPENCV")
@@ -57,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
     images = args.images if args.video is None else _frames_from_video(args.video, say)
     enhance = {"auto": "auto", "on": True, "off": False}[args.enhance]
     denoise = sfm_preview_denoise(images, args.denoise, enhance, say)
-    result = run_sfm(images, args.out, matching=args.matching, enhance=enhance, denoise=denoise,
+    result = run_sfm(images, args.out, matching=args.matching, enhance=enhance, denoise=denoise, night=args.night,
                      camera_model=args.camera_model, max_num_features=args.max_features,
                      num_threads=args.threads, force=args.force,
                      min_registered=MIN_REGISTERED_SHARE if args.min_registered is None else args.min_registered,

@@ -37,6 +37,10 @@ photo by the capture's (``PreviewDenoise.photo_noise``). The recipe is part of t
 cached model's signature (absent without a denoiser, so models cached before it still match). ``denoise_cached``:
 a finished run read back (eval, render, export) cannot build the denoiser (it lives above this layer and the run
 layer), so it takes the cached model whichever recipe made it: the one its training made.
+
+Night settings (issue 64 item 5, ``sfm --night``): with denoised previews (``night`` "auto") SIFT and the mapper take
+:data:`NIGHT_SIFT`, :data:`NIGHT_MAPPER` and :data:`NIGHT_TRIANGULATION` (why: beside them); they are part of the
+cached model's signature only when used.
 """
 from __future__ import annotations
 
@@ -78,6 +82,22 @@ STALE_TMP_SECONDS = 24 * 3600
 MIN_REGISTERED_SHARE = 0.5
 # Dropped photos named in the warning / error before "... (N more)".
 SHOWN_NAMES = 20
+# Night settings (issue 64 item 5; experiments/notes/2026-11-28-sfm-night.md), used where the previews are noisy
+# enough to be denoised (``night`` "auto": a PreviewDenoise is given, under ``--denoise auto`` σ > 0.08). SIFT:
+# no upsampled first octave (on a denoised night preview it holds the denoiser's blotches and the noise left, not
+# the scene's detail) and domain-size pooling (descriptors pooled over scales: steadier under the noise left).
+# Mapper: a night pair verifies 30-50 inliers (castlep30-dark at 1000 e-: 47 at most), under COLMAP's 100 for the
+# initial pair and 30 for the next views, so neither was met; only neighbouring photos match at night, so the initial
+# pair's least triangulation angle is halved (16 -> 8 degrees: wider pairs share no matches). A photo is posed from
+# 10 inliers (COLMAP: 30) but only within 4 px, the tolerance COLMAP itself puts on the initial pair and on every
+# point (its 12 px let 10 loose matches pose fox-dark's views 0072-0085 a third of the scene away). Triangulation keeps
+# two-view tracks: with few matches a pair, points seen by two photos only are most of the model, and the next photo
+# is posed on them. Poses measured against the scenes' own (the note): median centre error 1-7 % of their extent.
+NIGHT_SIFT = {"first_octave": 0, "domain_size_pooling": True}
+NIGHT_MAPPER = {"init_min_num_inliers": 30, "init_min_tri_angle": 8.0, "abs_pose_min_num_inliers": 10,
+                "abs_pose_max_error": 4.0}
+NIGHT_TRIANGULATION = {"ignore_two_view_tracks": False}
+NIGHT_CHOICES = ("auto", "on", "off")
 
 
 @dataclass(frozen=True)
@@ -192,6 +212,30 @@ def check_raw_sizes(raws: List[Path], where: Path) -> None:
         raise UserError(f"{where} holds raw photos of different sizes: {pa.name} is {a[0]}x{a[1]}, {pb.name} "
                         f"{b[0]}x{b[1]}; one scene is one sensor format (SfM would pose only one size's photos): "
                         f"shoot one format (no crop modes) or train them as separate scenes")
+
+
+def check_night(night: Union[str, bool]) -> str:
+    """``night`` ("auto", "on", "off", or a bool) as one of :data:`NIGHT_CHOICES`, else UserError (one line)."""
+    value = {True: "on", False: "off"}.get(night, night) if isinstance(night, bool) else night
+    if value not in NIGHT_CHOICES:
+        raise UserError(f"--night must be one of {', '.join(NIGHT_CHOICES)} (default auto: on where SfM's previews "
+                        f"are denoised), got {night!r}")
+    return value
+
+
+def night_settings(night: Union[str, bool], denoise: Optional[PreviewDenoise]) -> Optional[dict]:
+    """The night settings SfM applies ({"sift": ..., "mapper": ..., "triangulation": ...}), or None for COLMAP's own:
+    ``night`` "on", or "auto" with previews denoised (``denoise`` given: they are night-noisy)."""
+    value = check_night(night)
+    if value == "on" or (value == "auto" and denoise is not None):
+        return {"sift": dict(NIGHT_SIFT), "mapper": dict(NIGHT_MAPPER), "triangulation": dict(NIGHT_TRIANGULATION)}
+    return None
+
+
+def _apply(target, settings: dict) -> None:
+    """Set each of ``settings`` on a pycolmap options object ``target``."""
+    for key, value in settings.items():
+        setattr(target, key, value)
 
 
 def _raw_preview(src: Path, denoise: Optional[PreviewDenoise] = None) -> "np.ndarray":
@@ -380,10 +424,11 @@ def default_sfm_dir(image_dir: Path) -> Path:
 
 
 def _without_denoise(signature: object) -> object:
-    """A cached model's signature without its preview denoiser's recipe (for ``run_sfm(denoise_cached=True)``)."""
+    """A cached model's signature without its preview denoiser's recipe and the night settings that go with it (for
+    ``run_sfm(denoise_cached=True)``)."""
     if not isinstance(signature, dict) or not isinstance(signature.get("options"), dict):
         return signature
-    return {**signature, "options": {k: v for k, v in signature["options"].items() if k != "denoise"}}
+    return {**signature, "options": {k: v for k, v in signature["options"].items() if k not in ("denoise", "night")}}
 
 
 def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *, matching: str = "auto",
@@ -391,7 +436,7 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
             max_num_features: int = 8192, max_image_size: int = 3200, num_threads: int = -1, seed: int = 0,
             force: bool = False, progress: Optional[Progress] = _stderr_progress,
             min_registered: float = MIN_REGISTERED_SHARE, denoise: Optional[PreviewDenoise] = None,
-            denoise_cached: bool = False) -> SfmResult:
+            denoise_cached: bool = False, night: Union[str, bool] = "auto") -> SfmResult:
     """Run SfM on the photos directly inside ``images``; the model goes to ``<out>/sparse/0``.
 
     ``matching`` is "auto", "exhaustive" or "sequential"; ``enhance`` is "auto" (dark folders only), True
@@ -401,11 +446,14 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
     recomputes a cached model), and when fewer than ``min_registered`` (a share) of the photos are registered
     (the model is kept; the photos left out are named in a warning otherwise). ``denoise``: the previews of dark
     photos and raw files are denoised before they are brightened (:class:`PreviewDenoise`); ``denoise_cached``:
-    a cached model matches whichever preview denoiser made it (a finished run reading its poses back).
+    a cached model matches whichever preview denoiser made it (a finished run reading its poses back). ``night``:
+    "auto" (the night settings, :data:`NIGHT_SIFT`, :data:`NIGHT_MAPPER`, :data:`NIGHT_TRIANGULATION`, where
+    ``denoise`` is given), "on" or "off" (:func:`night_settings`).
     """
     say = progress or (lambda _msg: None)
     check_sfm_numbers(max_num_features, max_image_size, num_threads)
     min_registered = check_min_registered(min_registered)
+    night_opts = night_settings(night, denoise)
     image_dir = Path(images)
     if image_dir.exists() and not image_dir.is_dir():
         raise UserError(f"image folder {image_dir} is a file, not a folder: pass the folder that holds the photos")
@@ -447,6 +495,8 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
                    max_image_size=max_image_size, seed=seed)
     if denoise is not None:  # only then: a model cached without a denoiser keeps its signature
         options["denoise"] = denoise.recipe
+    if night_opts is not None:  # likewise: models cached with COLMAP's own settings keep their signature
+        options["night"] = night_opts
     signature = dict(options=options, images=[[p.name, list(sizes[p.name]), digests[p.name]] for p in paths])
     meta_path = out_dir / META_NAME
     model_dir = out_dir / "sparse" / "0"
@@ -553,6 +603,8 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
         ext.num_threads = num_threads
         ext.max_image_size = max_image_size
         ext.sift.max_num_features = max_num_features
+        if night_opts is not None:
+            _apply(ext.sift, night_opts["sift"])
         reader = pycolmap.ImageReaderOptions()
         reader.camera_model = camera_model
         mode = pycolmap.CameraMode.SINGLE if (single_camera and same_size) else pycolmap.CameraMode.AUTO
@@ -582,6 +634,9 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
         popt.num_threads = num_threads
         popt.random_seed = seed
         popt.min_model_size = min(popt.min_model_size, max(2, len(paths) // 2))
+        if night_opts is not None:
+            _apply(popt.mapper, night_opts["mapper"])
+            _apply(popt.triangulation, night_opts["triangulation"])
         count, model_no = [0], [0]
 
         # COLMAP calls these for every model it builds: a second model starts a new count (counting across

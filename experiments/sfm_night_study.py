@@ -1,0 +1,104 @@
+"""SfM on a bare night folder, scored against the scene's own poses (issue 64 item 5; notes/2026-11-28-sfm-night.md).
+
+Runs ``run_sfm`` (``--denoise auto``, 2 threads, ``--min-registered 0``) on FOLDER, then aligns the registered camera
+centres to the scene's transforms_{train,val,test}.json centres (Umeyama similarity, matched by file stem) and prints
+one ``RESULT {json}`` line: registered / photos, points, and the median and largest centre error relative to the
+scene's extent (the RMS distance of its camera centres from their mean). ``--night`` picks the night settings
+(default off: today's code before them); ``H10_OPTS`` (JSON: {"sift": {...}, "mapper": {...}, "tri": {...},
+"pipeline": {...}}) overrides pycolmap options on top, for the study's variants.
+
+    python experiments/sfm_night_study.py FOLDER SCENE OUT [--night auto|on|off]
+"""
+import json, os, sys, time
+from pathlib import Path
+import numpy as np
+import pycolmap
+
+OPTS = json.loads(os.environ.get("H10_OPTS", "{}"))
+
+def _set(obj, d):
+    for k, v in d.items():
+        cur = getattr(obj, k)
+        if hasattr(cur, "__members__") or type(cur).__name__ in ("Normalization",):
+            v = getattr(type(cur), v)
+        setattr(obj, k, v)
+
+_ext, _mex, _map = pycolmap.extract_features, pycolmap.match_exhaustive, pycolmap.incremental_mapping
+def ext(*a, extraction_options=None, **k):
+    _set(extraction_options.sift, OPTS.get("sift", {})); return _ext(*a, extraction_options=extraction_options, **k)
+def mex(*a, matching_options=None, **k):
+    _set(matching_options.sift, OPTS.get("match", {}))
+    for kk, v in OPTS.get("matchopt", {}).items(): setattr(matching_options, kk, v)
+    return _mex(*a, matching_options=matching_options, **k)
+def mp(*a, options=None, **k):
+    _set(options.mapper, OPTS.get("mapper", {})); _set(options, OPTS.get("pipeline", {})); _set(options.triangulation, OPTS.get("tri", {}))
+    return _map(*a, options=options, **k)
+if OPTS:  # only a variant replaces the stages
+    pycolmap.extract_features, pycolmap.match_exhaustive, pycolmap.incremental_mapping = ext, mex, mp
+
+from retinexgs.data.sfm import run_sfm
+from retinexgs.train.sfm_preview import sfm_preview_denoise
+
+def gt_centres(scene):
+    c = {}
+    for part in ("train", "val", "test"):
+        f = Path(scene) / f"transforms_{part}.json"
+        if f.is_file():
+            for fr in json.loads(f.read_text())["frames"]:
+                m = np.array(fr["transform_matrix"], float)
+                c[Path(fr["file_path"]).stem] = m[:3, 3]
+    return c
+
+def umeyama(src, dst):
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    xs, xd = src - mu_s, dst - mu_d
+    cov = xd.T @ xs / len(src)
+    U, S, Vt = np.linalg.svd(cov)
+    D = np.eye(3); D[2, 2] = np.sign(np.linalg.det(U @ Vt))
+    R = U @ D @ Vt
+    s = np.trace(np.diag(S) @ D) / (xs ** 2).sum(1).mean()
+    t = mu_d - s * R @ mu_s
+    return s, R, t
+
+def main(folder, scene, out):
+    t0 = time.time()
+    den = sfm_preview_denoise(folder, "auto", "auto", None)
+    from retinexgs.errors import UserError
+    Path(out, "enhanced").mkdir(parents=True, exist_ok=True)  # keep the previews across failed runs
+    try:
+        r = run_sfm(folder, out, denoise=den, num_threads=2, min_registered=0, force=True, night=os.environ.get("H10_NIGHT", "off"))
+    except UserError as e:
+        print("RESULT", json.dumps(dict(folder=str(folder), reg=0, n=len(os.listdir(folder)), err=str(e)[:80], sec=round(time.time()-t0,1), opts=OPTS)), flush=True)
+        return
+    rec = pycolmap.Reconstruction(str(r.model_dir))
+    gt = gt_centres(scene)
+    names, est, ref = [], [], []
+    for i in rec.reg_image_ids():
+        im = rec.images[i]
+        st = Path(im.name).stem
+        if st in gt:
+            names.append(st); est.append(im.projection_center()); ref.append(gt[st])
+    est, ref = np.array(est), np.array(ref)
+    allgt = np.array(list(gt.values()))
+    extent = np.sqrt(((allgt - allgt.mean(0)) ** 2).sum(1).mean())  # RMS radius of the GT camera centres
+    if len(est) >= 3:
+        s, R, t = umeyama(est, ref)
+        err = np.linalg.norm((s * (R @ est.T)).T + t - ref, axis=1) / extent
+        med, mx = float(np.median(err)), float(err.max())
+    else:
+        med = mx = float("nan")
+    res = dict(folder=str(folder), reg=r.num_registered, n=r.num_images, points=r.num_points,
+               med_err=med, max_err=mx, sec=round(time.time() - t0, 1), opts=OPTS)
+    print("RESULT", json.dumps(res), flush=True)
+
+if __name__ == "__main__":
+    import argparse
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("folder", help="bare folder of photos (no poses)")
+    ap.add_argument("scene", help="the scene folder with transforms_*.json (the reference poses)")
+    ap.add_argument("out", help="SfM output folder")
+    ap.add_argument("--night", default="off", choices=["auto", "on", "off"])
+    args = ap.parse_args()
+    os.environ["H10_NIGHT"] = args.night
+    main(args.folder, args.scene, args.out)
