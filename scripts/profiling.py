@@ -251,28 +251,35 @@ def count_calls(module, names, when=None) -> Dict[str, int]:
     return calls
 
 
-def count_ops(args: argparse.Namespace) -> None:
-    """Operators per training step as the backends see them (CPU or GPU)."""
-    from retinexgs.render import _backend
+def _warm_trainer(args: argparse.Namespace, tmp: str):
+    """A Trainer on ``args.scene`` (default: a small synthetic scene made in ``tmp``) after ``args.steps`` steps,
+    with its run folder in ``tmp``; the enhancement losses start halfway so that the profiled steps include them."""
     from retinexgs.run.config import load_config
     from retinexgs.run.folder import open_scene
     from retinexgs.train.trainer import Trainer
 
     device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
-    cuda = device.startswith("cuda")
+    scene_path = args.scene
+    if scene_path is None:
+        from retinexgs.demo.synthetic import make_demo_scene
+        scene_path = make_demo_scene(Path(tmp) / "scene", n_train=6, n_test=1, width=96, height=72, n_points=4000)
+    cfg = load_config(args.config, [f"loss.enhance_from={args.steps // 2}"] + args.overrides)
+    scene = open_scene(scene_path, cfg)
+    run = Path(tmp) / "run"
+    run.mkdir()
+    extra = {"emulate_graphs": True} if args.emulate_graphs else {}
+    tr = Trainer(cfg, scene, run, device, progress=False, log=lambda s: None, **extra)
+    tr.train(stop_after=args.steps)
+    return tr, device
+
+
+def count_ops(args: argparse.Namespace) -> None:
+    """Operators per training step as the backends see them (CPU or GPU)."""
+    from retinexgs.render import _backend
+
     with tempfile.TemporaryDirectory() as tmp:
-        scene_path = args.scene
-        if scene_path is None:
-            from retinexgs.demo.synthetic import make_demo_scene
-            scene_path = make_demo_scene(Path(tmp) / "scene", n_train=6, n_test=1, width=96, height=72,
-                                         n_points=4000)
-        cfg = load_config(args.config, [f"loss.enhance_from={args.steps // 2}"] + args.overrides)
-        scene = open_scene(scene_path, cfg)
-        run = Path(tmp) / "run"
-        run.mkdir()
-        extra = {"emulate_graphs": True} if args.emulate_graphs else {}  # (older trainers lack the argument)
-        tr = Trainer(cfg, scene, run, device, progress=False, log=lambda s: None, **extra)
-        tr.train(stop_after=args.steps)
+        tr, device = _warm_trainer(args, tmp)
+        cuda = device.startswith("cuda")
         k = _backend.kernels()
         kernel_calls = count_calls(k, [n for n in dir(k) if not n.startswith("_") and callable(getattr(k, n))])
         graph_calls = count_calls(torch.cuda.CUDAGraph, ["replay"]) if cuda else {}
@@ -297,7 +304,7 @@ def count_ops(args: argparse.Namespace) -> None:
         graphed = sum(v for k, v in counter.phases.items() if k.endswith("_graph"))
         print(f"steps {first}..{tr.step} on {device}, {len(tr.model.gaussians)} Gaussians, "
               f"config {args.config or ['default']} {args.overrides}, "
-              f"cuda_graphs={cfg.train.cuda_graphs}")
+              f"cuda_graphs={tr.cfg.train.cuda_graphs}")
         print(f"aten ops per step (all):          {sum(counter.ops.values()) / n:8.1f}")
         print(f"kernel ops per step (no views):   {sum(kernel_ops.values()) / n - optim / n:8.1f}"
               f"  (+ {optim / n:.1f} in the optimiser step: one fused kernel per group on the GPU)")
@@ -348,25 +355,10 @@ rasterizer's pair count, read by the extension itself, is one a render). Exits 1
 def find_syncs(args: argparse.Namespace) -> int:
     """Host reads per training step by call site (CPU or GPU); 1 if an ordinary step made any."""
     from retinexgs.bench.syncs import SyncFinder
-    from retinexgs.run.config import load_config
-    from retinexgs.run.folder import open_scene
-    from retinexgs.train.trainer import Trainer
 
-    device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
-    cuda = device.startswith("cuda")
     with tempfile.TemporaryDirectory() as tmp:
-        scene_path = args.scene
-        if scene_path is None:
-            from retinexgs.demo.synthetic import make_demo_scene
-            scene_path = make_demo_scene(Path(tmp) / "scene", n_train=6, n_test=1, width=96, height=72,
-                                         n_points=4000)
-        cfg = load_config(args.config, [f"loss.enhance_from={args.steps // 2}"] + args.overrides)
-        scene = open_scene(scene_path, cfg)
-        run = Path(tmp) / "run"
-        run.mkdir()
-        extra = {"emulate_graphs": True} if args.emulate_graphs else {}
-        tr = Trainer(cfg, scene, run, device, progress=False, log=lambda s: None, **extra)
-        tr.train(stop_after=args.steps)
+        tr, device = _warm_trainer(args, tmp)
+        cuda = device.startswith("cuda")
         # On CUDA nothing is ignored: the trainer's Adam is fused there (no step-count reads).
         finder = SyncFinder(cuda_warn=cuda, ignore_via=() if cuda else ("torch/optim/",), cuda_profile=cuda)
         unwatch = finder.watch_trainer(tr)
