@@ -212,18 +212,18 @@ def test_raw_ladder_makes_a_raw_and_a_jpeg_column_per_level_once_and_spreads_run
 
 def test_black_table_reads_the_black_lift_and_skips_older_runs(tmp_path):
     scenes = [tmp_path / "s1"]
-    jobs = quality.plan(scenes, ["default", "ablations/debias_black"], [0, 1, 2], tmp_path / "runs")
+    jobs = quality.plan(scenes, ["default", "ablations/noise_blind"], [0, 1, 2], tmp_path / "runs")
     for j in jobs:
         _fake_run(j, 20.0, 0.5)
-        if j.config == "ablations/debias_black" and j.seed == 2:
+        if j.config == "ablations/noise_blind" and j.seed == 2:
             continue  # evaluated before the key existed: left out of the mean
         m = json.loads(j.metrics_path.read_text())
         m["mean"].update(black_lift=0.01 * (j.seed + 1) * (4.0 if j.config == "default" else 1.0), low_black_lift=-0.002)
         j.metrics_path.write_text(json.dumps(m))
-    md = quality.black_table(jobs, ["default", "ablations/debias_black"])
+    md = quality.black_table(jobs, ["default", "ablations/noise_blind"])
     assert "| low input | -0.0020 |" in md
     assert "| `default` | 0.0800 ± 0.0400 |" in md
-    assert f"| `ablations/debias_black` | 0.0150 ± {0.01 * math.sqrt(0.5):.4f} |" in md
+    assert f"| `ablations/noise_blind` | 0.0150 ± {0.01 * math.sqrt(0.5):.4f} |" in md
     assert "Black lift" in md
 
 
@@ -287,3 +287,28 @@ def test_raw_ladder_800e_rung_has_its_stated_noise_and_bit_depth(tmp_path):
     assert a == pytest.approx(1 / 800, rel=0.12), (a, means, variances)
     assert b0 == pytest.approx((6 / 800) ** 2 + 1 / (12 * span ** 2), rel=0.25), b0
     assert max(means) > 0.1  # the bright bands are well above the read noise: the slope is measured
+
+
+def test_raw_ladder_makes_a_level_drawn_by_older_random_streams_again(tmp_path):
+    """A raw ladder level darkened before the per-view random streams (its sensor.json has no ``rng``; the same
+    model and bit depth, other noise) is made again rather than reused, so every machine's level holds the same
+    captures; one that records today's streams is reused."""
+    import json
+
+    from PIL import Image
+
+    src = tmp_path / "flat"
+    (src / "high").mkdir(parents=True)
+    Image.fromarray(np.full((24, 32, 3), 128, dtype=np.uint8)).save(src / "high" / "0000.png")
+    ladder = tmp_path / "ladder"
+    out = quality.raw_ladder_scenes([src], ladder, exposure=0.5, levels=["1000e"])
+    records = [p / "sensor.json" for p in out]
+    made = [r.stat().st_mtime_ns for r in records]
+    assert quality.raw_ladder_scenes([src], ladder, exposure=0.5, levels=["1000e"]) == out
+    assert [r.stat().st_mtime_ns for r in records] == made  # today's streams: reused
+    for r in records:  # as the single-stream darken wrote it
+        data = json.loads(r.read_text())
+        del data["rng"]
+        r.write_text(json.dumps(data))
+    quality.raw_ladder_scenes([src], ladder, exposure=0.5, levels=["1000e"])
+    assert all("rng" in json.loads(r.read_text()) for r in records)  # made again, by today's streams

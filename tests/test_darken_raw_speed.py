@@ -162,3 +162,17 @@ def test_a_killed_worker_gets_one_line():
     with pytest.raises(UserError, match="worker process stopped abruptly.*smaller --jobs than 2"):
         map_views(os._exit, [3, 3], 2, False, "darken --raw")
     assert map_views(abs, [-1, 2, -3], 2, False, "x") == [1, 2, 3]  # results in item order
+
+
+def test_bench_darken_bad_options_get_one_line(tmp_path, capsys):
+    """A --photo that does not exist, or --jobs 0, is one usage line (exit 2), not a traceback, and leaves no
+    temporary folder."""
+    from retinexgs.bench.darken import main
+
+    for extra, message in ((["--photo", str(tmp_path / "missing.jpg")], "no such file"),
+                           (["--views", "2", "--jobs", "0"], "--jobs must be at least 1")):
+        with pytest.raises(SystemExit) as e:
+            main(["--width", "32", "--height", "24", "--tmp", str(tmp_path), *extra])
+        err = capsys.readouterr().err
+        assert e.value.code == 2 and message in err and "Traceback" not in err, (extra, err)
+        assert list(tmp_path.iterdir()) == []

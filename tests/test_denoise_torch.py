@@ -86,6 +86,20 @@ def test_the_recipe_names_torch_and_keeps_opencvs_keys():
     assert DenoiseSpec("chroma", NOISE).recipe == denoise_key("chroma", NOISE)
 
 
+def test_runs_recorded_before_the_backend_keep_opencvs_priors():
+    """A run of format 2 (before decomposer.denoise_backend) had its priors denoised by OpenCV: it reads ``opencv``,
+    so a resume on a CUDA device finds the priors it trained on instead of recomputing them with torch's NLM; a
+    backend it recorded is kept, and a run of today's format without the key gets today's default."""
+    from retinexgs.config.versions import FORMAT, migrate_config
+
+    old, filled = migrate_config({"format": 2, "decomposer": {"denoise": "chroma"}}, "old/config.yaml")
+    assert old["decomposer"]["denoise_backend"] == "opencv" and "decomposer.denoise_backend" in filled
+    kept, _ = migrate_config({"format": 2, "decomposer": {"denoise_backend": "torch"}}, "old/config.yaml")
+    assert kept["decomposer"]["denoise_backend"] == "torch"
+    new, _ = migrate_config({"format": FORMAT, "decomposer": {"denoise": "chroma"}}, "new/config.yaml")
+    assert new["decomposer"]["denoise_backend"] == "auto"
+
+
 def test_a_view_denoised_by_torch_is_cached_apart(tmp_path):
     clean = synthetic_photo(48, 64, seed=4)
     image = dark_capture(clean, W, R, seed=4).clamp(0, 1) ** (1 / 2.2)

@@ -15,7 +15,7 @@ from retinexgs.train.trainer import Trainer
 from scenes import needs_cuda
 
 # Every part of the ordinary step at work in a few steps: densification statistics (and events to report apart),
-# the noise probe, the enhancement losses, an SH degree step, logging checks.
+# the enhancement losses, an SH degree step, logging checks.
 STEPS = ["steps=100", "log.every=10", "log.tensorboard=false", "model.sh_degree=1", "model.sh_degree_every=12",
          "model.max_init_points=300", "loss.enhance_from=4", "density.start=8", "density.stop=60",
          "density.every=7", "checkpoint.every=1000", "decomposer.method=lime"]

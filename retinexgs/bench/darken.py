@@ -88,6 +88,10 @@ def main(argv: Optional[List[str]] = None) -> int:
     args = ap.parse_args(argv)
     if args.width < 22 or args.height < 22 or args.views < 0:
         ap.error("--width and --height must be at least 22 (a DNG's least side) and --views at least 0")
+    if args.jobs is not None and args.jobs < 1:
+        ap.error(f"--jobs must be at least 1 (worker processes), got {args.jobs}")
+    if args.photo is not None and not args.photo.is_file():  # before the temporary folder: one line, no traceback
+        ap.error(f"--photo {args.photo}: no such file")
     model, camera = SensorModel(), raw_sim.RawCamera()
     work = Path(tempfile.mkdtemp(prefix="bench-darken-", dir=args.tmp))
     try:

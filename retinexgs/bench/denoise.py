@@ -25,6 +25,7 @@ from typing import Dict, List, Optional, Tuple
 import torch
 
 from retinexgs.data.srgb import linear_to_srgb, srgb_to_linear
+from retinexgs.fileio import atomic_write_text
 from retinexgs.retinex.denoise import METHODS, denoise_linear, noise_model
 
 EXPOSURE = 0.05  # the dark captures' share of the light (retinexgs.data.sensor's default)
@@ -133,7 +134,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         info = {"size": [h, w], "method": args.method, "full_well": args.full_well, "read_noise": args.read_noise,
                 "device": str(dev), "gpu": torch.cuda.get_device_name(dev) if dev.type == "cuda" else None,
                 "cpu_threads": torch.get_num_threads(), "host": platform.node(), "rows": rows}
-        args.json.write_text(json.dumps(info, indent=1))
+        atomic_write_text(args.json, json.dumps(info, indent=1), "--json")  # never a half-written file
     return 0
 
 

@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from retinexgs.data.scene import scene_label
-from retinexgs.data.sensor import LADDER_RAW_BITS, NOISE_LADDER, SensorModel, darken_scene
+from retinexgs.data.sensor import LADDER_RAW_BITS, NOISE_LADDER, RNG_RECORD, SensorModel, darken_scene
 from retinexgs.errors import UserError
 from retinexgs.fileio import atomic_write, atomic_write_text
 from retinexgs.run.checkpoint import latest_checkpoint
@@ -373,10 +373,11 @@ def ladder_camera(label: str) -> "RawCamera":
 
 
 def _ladder_record(path: Path) -> Optional[dict]:
-    """{"model", "bits"} of a raw ladder level's sensor.json (what decides whether it is reused); None if unreadable."""
+    """{"model", "bits", "rng"} of a raw ladder level's sensor.json (what decides whether it is reused: the random
+    streams' scheme too, since a level drawn by an older one holds other noise); None if unreadable."""
     try:
         data = json.loads(path.read_text())
-        return {"model": data["model"], "bits": data["camera"]["bits"]}
+        return {"model": data["model"], "bits": data["camera"]["bits"], "rng": data.get("rng")}
     except (OSError, ValueError, KeyError, TypeError):
         return None
 
@@ -385,7 +386,7 @@ def raw_ladder_scenes(scenes: Sequence[Path], root: Path, exposure: float, level
     """Every scene captured by the raw simulator (``darken --raw``, :func:`ladder_camera`) at each of ``levels``
     of the noise ladder: ``root/SCENE@LEVEL-raw`` (the DNGs) beside ``root/SCENE@LEVEL-jpeg`` (the camera's JPEGs
     of the same noisy mosaics), so that the two paths train on the same photons (issue 52). Made once: a level
-    whose sensor.json records the same model and bit depth is reused."""
+    whose sensor.json records the same model, bit depth and random streams is reused."""
     known = {label: (fw, rn) for label, fw, rn in NOISE_LADDER}
     bad = [lv for lv in levels if lv not in known]
     if bad:
@@ -401,7 +402,7 @@ def raw_ladder_scenes(scenes: Sequence[Path], root: Path, exposure: float, level
             base = root / f"{scene_label(Path(scene)).replace('/', '-')}@{label}"
             pair = [base.with_name(base.name + "-raw"), base.with_name(base.name + "-jpeg")]
             done = [p / "sensor.json" for p in pair]
-            want = json.loads(json.dumps({"model": asdict(model), "bits": camera.bits}))
+            want = json.loads(json.dumps({"model": asdict(model), "bits": camera.bits, "rng": RNG_RECORD}))
             if all(d.is_file() and _ladder_record(d) == want for d in done):
                 out.extend(pair)
                 continue

@@ -238,7 +238,7 @@ class Enhancement(Section):
     init_gamma: Num(gt=0)
     per_view: Bool
     # a tone's name: checked against retinexgs.model.tones.TONES by the loader (CHOICES), with the rules each tone
-    # sets (a reference, the black table), the registry being a layer above
+    # sets (a reference), the registry being a layer above
     tone: Annotated[str, Expect("the name of a registered tone")]
     ref_quantile: Annotated[Optional[Annotated[float, BeforeValidator(_yaml_number), Field(gt=0, le=1)]],
                             Expect("a quantile in (0, 1] (1 = the maximum) or null (no normalisation)")]

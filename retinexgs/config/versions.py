@@ -64,6 +64,16 @@ def _set_missing(cfg: RawConfig, values: Dict[str, Any], filled: List[str]) -> N
                 filled.append(dotted)
 
 
+def _section_of(cfg: RawConfig, dotted: str) -> Tuple[Any, str]:
+    """(the section holding a dotted key, or None where a section on the way is missing or not a mapping; the
+    key's own name): the read-only walk of the migrations that move or drop keys."""
+    *sections, key = dotted.split(".")
+    node: Any = cfg
+    for name in sections:
+        node = node.get(name) if isinstance(node, dict) else None
+    return node, key
+
+
 def config_0_to_1(cfg: RawConfig, filled: List[str]) -> RawConfig:
     """Format 0 -> 1: the values runs had before the keys of :data:`FORMAT_0_VALUES` existed."""
     _set_missing(cfg, FORMAT_0_VALUES, filled)
@@ -85,10 +95,7 @@ def config_1_to_2(cfg: RawConfig, filled: List[str]) -> RawConfig:
     there is kept: the new key was written on purpose). A format-0 run gets the format-0 values first
     (:data:`FORMAT_0_VALUES`, by their format-1 names), then this move."""
     for old, new in RAW_KEYS_1_TO_2.items():
-        *old_sections, old_key = old.split(".")
-        node = cfg
-        for name in old_sections:
-            node = node.get(name) if isinstance(node, dict) else None
+        node, old_key = _section_of(cfg, old)
         if not isinstance(node, dict) or old_key not in node:
             continue
         value = node.pop(old_key)
@@ -117,10 +124,7 @@ def _drop_removed(cfg: RawConfig, removed: Dict[str, Any]) -> None:
     """Take each dotted key of ``removed`` out of ``cfg``; UserError (one line, naming the key and its value)
     where the recorded value is not the old default: the run used an option this code no longer has."""
     for dotted, default in removed.items():
-        *sections, key = dotted.split(".")
-        node: Any = cfg
-        for name in sections:
-            node = node.get(name) if isinstance(node, dict) else None
+        node, key = _section_of(cfg, dotted)
         if not isinstance(node, dict) or key not in node:
             continue
         value = node.pop(key)
@@ -131,8 +135,10 @@ def _drop_removed(cfg: RawConfig, removed: Dict[str, Any]) -> None:
 
 
 # Format 2 -> 3, keys added with a default that is not what older runs did (issue 64): a bare folder's SfM previews were
-# not denoised before data.sfm_denoise, and SfM runs again on --resume when the cached model's recipe differs.
-ADDED_2_TO_3: Dict[str, Any] = {"data.sfm_denoise": "none"}
+# not denoised before data.sfm_denoise, and SfM runs again on --resume when the cached model's recipe differs. The 2D
+# priors' denoiser ran OpenCV's NLM before decomposer.denoise_backend, whose auto picks torch's on CUDA: its output
+# differs by a few levels and keys the priors' cache apart, so a resumed run would train on recomputed priors.
+ADDED_2_TO_3: Dict[str, Any] = {"data.sfm_denoise": "none", "decomposer.denoise_backend": "opencv"}
 
 
 def config_2_to_3(cfg: RawConfig, filled: List[str]) -> RawConfig:

@@ -1,8 +1,8 @@
 """The one noise protocol of a capture's views: Poisson–Gaussian noise, ``var(y) = a·y + b`` per channel (R, G, B) of
 the values training reads. A camera-raw scene's :class:`retinexgs.data.raw_noise.RawNoise` (the DNG NoiseProfile or
 the mosaic's estimate) and a photo scene's :class:`retinexgs.train.noise.CaptureNoise` (measured on the photos'
-flat patches) both are one: the denoiser (:mod:`retinexgs.retinex.denoise`), the linear reconstruction's weights
-and the tone's black table read any noise model through this interface."""
+flat patches) both are one: the denoiser (:mod:`retinexgs.retinex.denoise`) and the linear reconstruction's weights
+read any noise model through this interface."""
 from __future__ import annotations
 
 from typing import Tuple, Union

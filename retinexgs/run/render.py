@@ -35,8 +35,8 @@ def view_camera(view: View) -> Camera:
 
 def enhanced_linear(model: RetinexGSModel, cfg: Config, res: Dict) -> Tensor:
     """The linear light (Rec.709 primaries) [H,W,3] that a render's enhanced image ``res["rgb"]`` encodes: for a
-    RetinexGS run whose tone has a linear form (``exposure``: k·lin(R̂∘L̂), through the capture's black table where
-    the model has one; :meth:`~retinexgs.model.RetinexGSModel.tone_linear`) that light before the highlight
+    RetinexGS run whose tone has a linear form (``exposure``: k·lin(R̂∘L̂);
+    :meth:`~retinexgs.model.RetinexGSModel.tone_linear`) that light before the highlight
     shoulder and the sRGB curve, so it exceeds 1 where the PNG clips or rolls off; otherwise (the gamma tones, the
     baselines) lin(rgb), in [0, 1]. On both scales 1.0 is the PNG's white (with the shoulder off)."""
     if cfg.method == "retinexgs" and "R" in res and "gamma" in res:
