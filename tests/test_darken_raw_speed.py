@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from retinexgs.data import raw_sim
-from retinexgs.data.camera_raw import demosaic_bilinear
+from retinexgs.data.camera_raw import demosaic_bilinear, demosaic_bilinear_reference
 from retinexgs.data.images import write_image_atomic
 from retinexgs.data.raw_sim import CFA_PATTERNS, RawCamera
 from retinexgs.data.sensor import SensorModel, darken_scene, srgb_to_linear, view_rng
@@ -33,9 +33,12 @@ def test_sliced_demosaic_equals_the_correlation_demosaic_bit_for_bit():
         for cfa in CFA_PATTERNS:
             for dtype in (np.float64, np.float32):
                 x = rng.standard_normal((h, w)).astype(dtype)
-                want, got = demosaic_bilinear(x, cfa), raw_sim.demosaic_bilinear_sliced(x, cfa)
+                want, got = demosaic_bilinear_reference(x, cfa), demosaic_bilinear(x, cfa)
                 assert got.dtype == want.dtype
                 assert np.array_equal(got, want, equal_nan=True), (h, w, cfa, dtype)
+                # the raw reader's form of the CFA: [2, 2] channel indices
+                quad = np.array([{"R": 0, "G": 1, "B": 2}[c] for c in cfa]).reshape(2, 2)
+                assert np.array_equal(demosaic_bilinear(x, quad), want, equal_nan=True), (h, w, cfa, dtype)
 
 
 def test_linear_light_through_the_code_table_equals_the_curve():

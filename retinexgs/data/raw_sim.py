@@ -37,7 +37,8 @@ from typing import Dict, Optional, Tuple
 
 import numpy as np
 
-from retinexgs.data.camera_raw import _K_G, _K_RB, XYZ_FROM_SRGB, demosaic_bilinear, srgb_encode
+from retinexgs.data.camera_raw import (CFA_CHANNEL, XYZ_FROM_SRGB, demosaic_bilinear, demosaic_bilinear_reference,
+                                       srgb_encode)
 from retinexgs.data.srgb import srgb_to_linear
 from retinexgs.data.dng import MIN_SIDE, write_dng
 from retinexgs.errors import UserError
@@ -48,7 +49,6 @@ CANON_KISS_X4_XYZ_TO_CAM: Tuple[Tuple[float, float, float], ...] = (
 CFA_PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
 _BLACK_BASE = {12: 128, 14: 512}  # DN: typical blacks of 12- and 14-bit sensors (Sony/Nikon-like)
 _BLACK_SIGMAS = 6.0  # the black sits at least this many read-noise sigmas above 0 DN: the noise is not clipped
-_CHANNEL = {"R": 0, "G": 1, "B": 2}
 
 
 @dataclass(frozen=True)
@@ -110,7 +110,7 @@ class RawCamera:
 
     def cfa_indices(self) -> np.ndarray:
         """[2, 2] channel index (0 R, 1 G, 2 B) of each position of the top-left quad."""
-        return np.array([_CHANNEL[c] for c in self.cfa]).reshape(2, 2)
+        return np.array([CFA_CHANNEL[c] for c in self.cfa]).reshape(2, 2)
 
     def as_shot_neutral(self) -> Tuple[float, float, float]:
         """The DNG's AsShotNeutral: the camera RGB of a neutral, 1 / white balance."""
@@ -149,7 +149,7 @@ def unprocess(srgb: np.ndarray, camera: RawCamera, cast: Tuple[float, float, flo
 
 def mosaic(rgb: np.ndarray, cfa: str) -> np.ndarray:
     """[H, W]: each pixel's own CFA channel of ``rgb`` [H, W, 3] (the pattern read from the top-left pixel)."""
-    idx = np.array([_CHANNEL[c] for c in cfa]).reshape(2, 2)
+    idx = np.array([CFA_CHANNEL[c] for c in cfa]).reshape(2, 2)
     h, w = rgb.shape[:2]
     chan = np.tile(idx, ((h + 1) // 2, (w + 1) // 2))[:h, :w]
     return np.take_along_axis(rgb, chan[..., None], axis=-1)[..., 0]
@@ -246,62 +246,18 @@ def process(dn: np.ndarray, camera: RawCamera, black: float) -> np.ndarray:
     """float32 [H, W, 3] sRGB in [0, 1]: the camera's ISP of a raw DN mosaic: normalise (not clipped), bilinear
     demosaic, white balance, camera -> sRGB matrix, clip to [0, 1], sRGB curve. No brightening: the JPEG is as
     dark as the exposure made it, like the JPEG ``darken``. :func:`process_reference` bit for bit, with the
-    demosaic of :func:`demosaic_bilinear_sliced`."""
+    demosaic of :func:`~retinexgs.data.camera_raw.demosaic_bilinear`."""
     x = (dn.astype(np.float64) - black) / (camera.white_level - black)
-    rgb = demosaic_bilinear_sliced(x, camera.cfa)
+    rgb = demosaic_bilinear(x, camera.cfa)
     del x
     rgb *= np.asarray(camera.white_balance, dtype=np.float64)
     return srgb_encode(rgb @ camera.cam_to_srgb().T)  # srgb_encode clips to [0, 1]
 
 
-def demosaic_bilinear_sliced(x: np.ndarray, cfa: str) -> np.ndarray:
-    """:func:`retinexgs.data.camera_raw.demosaic_bilinear` bit for bit, in about a sixth of its passes.
-
-    That function correlates each channel's masked mosaic with a 3x3 kernel over the whole image, most terms
-    zero. Here each of the four CFA phases is a strided slice, and only the terms that fall on the channel's own
-    samples are summed, in the same (raster) order and with the same weights (powers of two: exact), so every
-    sum rounds as there; the zeros left out change no sum. The normalisation (the kernel weights of the samples
-    inside the image) is 1 away from the border, and dividing by 1 is exact, so only each phase's first and last
-    row and column are divided."""
-    x = np.asarray(x)
-    x = x if x.dtype == np.float32 else x.astype(np.float64)
-    quad = np.array([_CHANNEL[c] for c in cfa.upper()]).reshape(2, 2)
-    h, w = x.shape
-    p = np.pad(x, 1)
-    out = np.empty((h, w, 3), dtype=x.dtype)
-    for c, k in ((0, _K_RB), (1, _K_G), (2, _K_RB)):
-        for py in (0, 1):
-            for px in (0, 1):
-                nr, nc = (h - py + 1) // 2, (w - px + 1) // 2
-                if nr <= 0 or nc <= 0:
-                    continue
-                terms = [(i, j, x.dtype.type(k[i, j])) for i in range(3) for j in range(3)
-                         if k[i, j] and quad[(py + i + 1) % 2, (px + j + 1) % 2] == c]
-                num = None
-                for i, j, wgt in terms:
-                    term = wgt * p[py + i:py + i + 2 * nr - 1:2, px + j:px + j + 2 * nc - 1:2]
-                    num = term if num is None else np.add(num, term, out=num)
-                rows = np.arange(py, h, 2) - 1  # the top row / left column of each sample's 3x3 window
-                cols = np.arange(px, w, 2) - 1
-                edges = []  # from the undivided sums: a corner is in two edges, divided once
-                for r, q, sel in ((rows[:1, None], cols[None], np.s_[:1, :]),
-                                  (rows[-1:, None], cols[None], np.s_[-1:, :]),
-                                  (rows[:, None], cols[None, :1], np.s_[:, :1]),
-                                  (rows[:, None], cols[None, -1:], np.s_[:, -1:])):
-                    den = np.zeros(np.broadcast_shapes(r.shape, q.shape), dtype=x.dtype)
-                    for i, j, wgt in terms:  # sums of powers of two: exact in any order
-                        den += wgt * (((r + i >= 0) & (r + i < h)) & ((q + j >= 0) & (q + j < w)))
-                    edges.append((sel, num[sel] / den))
-                for sel, value in edges:
-                    num[sel] = value
-                out[py::2, px::2, c] = num
-    return out
-
-
 def process_reference(dn: np.ndarray, camera: RawCamera, black: float) -> np.ndarray:
     """The plain definition of :func:`process`: the reference its fast path must equal bit for bit."""
     x = (dn.astype(np.float64) - black) / (camera.white_level - black)
-    rgb = demosaic_bilinear(x, camera.cfa) * np.asarray(camera.white_balance, dtype=np.float64)
+    rgb = demosaic_bilinear_reference(x, camera.cfa) * np.asarray(camera.white_balance, dtype=np.float64)
     return srgb_encode(rgb @ camera.cam_to_srgb().T)  # srgb_encode clips to [0, 1]
 
 
