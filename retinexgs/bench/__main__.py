@@ -98,5 +98,15 @@ def main(argv: Optional[List[str]] = None, prog: str = PROG) -> int:
     return int(module.main(argv[1:]) or 0)
 
 
+def _run_from_shell() -> int:
+    """``python -m retinexgs.bench``: a user error is one line and exit code 2, as from ``retinexgs bench``."""
+    from retinexgs.errors import UserError
+    try:
+        return main()
+    except UserError as exc:
+        print(f"{PROG}: error: {exc}", file=sys.stderr)
+        return 2
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(_run_from_shell())
