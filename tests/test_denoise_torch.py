@@ -136,8 +136,8 @@ def test_bad_inputs_are_one_line_errors():
     with pytest.raises(UserError) as e:
         noise_model(((0.0,) * 3, (1e-5,) * 3))
     assert "no shot noise" in _one_line(e)
-    with pytest.raises(UserError) as e:
-        denoise_linear(torch.rand(8, 8, 3), NOISE, "nlm", backend="torch")
+    with pytest.raises(UserError) as e:  # nlm_torch itself refuses an image smaller than its windows
+        nlm_torch(torch.rand(8, 8), 1.0, 7, 21)
     assert "too small for non-local means" in _one_line(e)
     with pytest.raises(UserError) as e:
         load_config(overrides=["decomposer.denoise_backend=cuda"])
@@ -152,3 +152,13 @@ def test_the_bench_times_both_side_by_side(tmp_path, capsys):
     rows = json.loads(out.read_text())["rows"]
     assert [r["implementation"] for r in rows] == ["opencv (cpu)", "torch (cpu)"]
     assert all(r["seconds"] > 0 and r["psnr"] > 10 for r in rows)
+
+
+def test_a_thumbnail_is_denoised_through_opencv_where_torch_cannot_reflect_it():
+    """A view with a side within torch's reflected border: the torch backend hands it to OpenCV's NLM (the same
+    formula) rather than refusing a tiny view on a GPU."""
+    x = torch.rand(8, 12, 3, generator=torch.Generator().manual_seed(3)) * 0.05
+    got = denoise_linear(x, NOISE, "nlm", backend="torch")
+    want = denoise_linear(x, NOISE, "nlm", backend="opencv")
+    assert got.shape == x.shape and torch.isfinite(got).all()
+    assert torch.equal(got, want)

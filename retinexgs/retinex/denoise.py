@@ -331,8 +331,9 @@ def denoise_linear(lin: torch.Tensor, noise: NoiseModel, method: str, params: Op
 
 def _nlm_any(x: torch.Tensor, h: float, p: DenoiseParams, impl: str) -> torch.Tensor:
     """NLM of one channel ``x`` [H,W] with unit noise σ at strength ``h``·σ, by ``impl`` (torch or opencv), returned
-    on ``x``'s device and dtype."""
-    if impl == "torch":
+    on ``x``'s device and dtype. An image too small for torch's reflected borders (a side of at most
+    search/2 + patch/2 pixels) goes to OpenCV's, which handles it: a thumbnail costs nothing on the CPU."""
+    if impl == "torch" and min(x.shape) > (p.search | 1) // 2 + (p.patch | 1) // 2:
         return nlm_torch(x.float(), h, p.patch, p.search).to(x)
     return torch.from_numpy(_nlm(x.cpu().numpy().astype(np.float32), h, p)).to(x)
 
