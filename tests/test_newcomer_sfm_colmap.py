@@ -41,17 +41,23 @@ def _photos(folder: Path, names=NAMES) -> Path:
     return folder
 
 
-def _reconstruction(names: List[str], params=(30.0, 20.0, 15.0, 0.01), n_points=5):
-    """A registered pycolmap model of ``names`` (one SIMPLE_RADIAL camera, cameras on a line)."""
+def _reconstruction(names: List[str], params=(30.0, 20.0, 15.0, 0.01), n_points=5, observed=False):
+    """A registered pycolmap model of ``names`` (one SIMPLE_RADIAL camera, cameras on a line); ``observed``: every
+    point seen by every photo, as in a real model (SfM's night guard drops photos that share too few points)."""
     rec = pycolmap.Reconstruction()
     rec.add_camera_with_trivial_rig(pycolmap.Camera(model="SIMPLE_RADIAL", width=W, height=H, params=list(params),
                                                     camera_id=1))
+    keypoints = np.full((n_points if observed else 0, 2), 4.0)
     for i, n in enumerate(names):
         w2c = np.hstack([np.eye(3), np.array([[-0.3 * i], [0.0], [0.0]])])
-        rec.add_image_with_trivial_frame(pycolmap.Image(name=n, camera_id=1, image_id=i + 1), pycolmap.Rigid3d(w2c))
+        rec.add_image_with_trivial_frame(pycolmap.Image(name=n, keypoints=keypoints, camera_id=1, image_id=i + 1),
+                                         pycolmap.Rigid3d(w2c))
     rng = np.random.default_rng(0)
-    for p in rng.uniform(-1, 1, (n_points, 3)) + [0, 0, 4]:
-        rec.add_point3D(p, pycolmap.Track(), np.array([10, 20, 30], np.uint8))
+    for k, p in enumerate(rng.uniform(-1, 1, (n_points, 3)) + [0, 0, 4]):
+        track = pycolmap.Track()
+        for i in range(len(names) if observed else 0):
+            track.add_element(i + 1, k)
+        rec.add_point3D(p, track, np.array([10, 20, 30], np.uint8))
     return rec
 
 
@@ -84,7 +90,7 @@ class FakeColmap:
         self.calls.append(("map", Path(image_dir)))
         for step in self.script:
             (initial_image_pair_callback if step == "i" else next_image_callback)()
-        return {0: _reconstruction(self.names)}
+        return {0: _reconstruction(self.names, n_points=20, observed=True)}
 
 
 @pytest.fixture

@@ -119,9 +119,14 @@ def _reconstruction(names, size):
     for i, n in enumerate(names):
         c = np.array([0.3 * i, 0.1 * (i % 2), 0.05 * i])
         w2c = np.hstack([np.eye(3), -c.reshape(3, 1)])
-        rec.add_image_with_trivial_frame(pycolmap.Image(name=n, camera_id=1, image_id=i + 1), pycolmap.Rigid3d(w2c))
-    for p in np.random.default_rng(0).uniform(-1, 1, (20, 3)) + [0, 0, 4]:
-        rec.add_point3D(p, pycolmap.Track(), np.array([10, 20, 30], np.uint8))
+        rec.add_image_with_trivial_frame(pycolmap.Image(name=n, keypoints=np.full((20, 2), 8.0), camera_id=1,
+                                                        image_id=i + 1), pycolmap.Rigid3d(w2c))
+    # every point seen by every photo, as in a real model (the night guard drops photos sharing too few points)
+    for k, p in enumerate(np.random.default_rng(0).uniform(-1, 1, (20, 3)) + [0, 0, 4]):
+        track = pycolmap.Track()
+        for i in range(len(names)):
+            track.add_element(i + 1, k)
+        rec.add_point3D(p, track, np.array([10, 20, 30], np.uint8))
     return rec
 
 

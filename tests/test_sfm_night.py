@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from retinexgs.data.sfm import (META_NAME, NIGHT_MAPPER, NIGHT_SIFT, NIGHT_TRIANGULATION, PreviewDenoise, check_night,
-                                night_settings, run_sfm)
+from retinexgs.data.sfm import (META_NAME, NIGHT_GUARD, NIGHT_MAPPER, NIGHT_SIFT, NIGHT_TRIANGULATION, PreviewDenoise,
+                                check_night, drop_loose_views, loose_views, night_settings, run_sfm)
 from retinexgs.data.srgb import linear_to_srgb
 from retinexgs.errors import UserError
 from scenes import run_cli
@@ -56,14 +56,8 @@ class Recorder:
 
     def incremental_mapping(self, db, image_dir, out, options=None, **kwargs):
         self.mapper, self.tri = options.mapper, options.triangulation
-        rec = pycolmap.Reconstruction()
-        rec.add_camera_with_trivial_rig(pycolmap.Camera(model="PINHOLE", width=W, height=H,
-                                                        params=[80.0, 80.0, W / 2, H / 2], camera_id=1))
-        for i, n in enumerate(self.names):
-            w2c = np.hstack([np.eye(3), -np.array([[0.3 * i], [0.0], [0.0]])])
-            rec.add_image_with_trivial_frame(pycolmap.Image(name=n, camera_id=1, image_id=i + 1),
-                                             pycolmap.Rigid3d(w2c))
-        return {0: rec}
+        # neighbouring photos share 40 points (the night guard keeps them)
+        return {0: _model(self.names, {(i, i + 1): 40 for i in range(len(self.names) - 1)})}
 
 
 @pytest.fixture
@@ -82,7 +76,8 @@ def _stand_in_denoise() -> PreviewDenoise:
 def test_night_settings_follow_the_denoised_previews():
     assert night_settings("auto", None) is None and night_settings("off", _stand_in_denoise()) is None
     on = night_settings("auto", _stand_in_denoise())
-    assert on == {"sift": NIGHT_SIFT, "mapper": NIGHT_MAPPER, "triangulation": NIGHT_TRIANGULATION}
+    assert on == {"sift": NIGHT_SIFT, "mapper": NIGHT_MAPPER, "triangulation": NIGHT_TRIANGULATION,
+                  "guard": NIGHT_GUARD}
     assert on == night_settings("on", None)
     assert night_settings(True, None) == on and night_settings(False, _stand_in_denoise()) is None
     # every key is a real option of the installed pycolmap (a misspelt one would be a new Python attribute or fail)
@@ -108,7 +103,8 @@ def test_run_sfm_applies_the_night_settings_where_previews_are_denoised(tmp_path
     for key, value in NIGHT_TRIANGULATION.items():
         assert getattr(rec.tri, key) == value, key
     options = json.loads((tmp_path / "a" / META_NAME).read_text())["signature"]["options"]
-    assert options["night"] == {"sift": NIGHT_SIFT, "mapper": NIGHT_MAPPER, "triangulation": NIGHT_TRIANGULATION}
+    assert options["night"] == {"sift": NIGHT_SIFT, "mapper": NIGHT_MAPPER, "triangulation": NIGHT_TRIANGULATION,
+                                "guard": NIGHT_GUARD}
 
     run_sfm(photos, tmp_path / "b", denoise=_stand_in_denoise(), night="off", progress=None)
     default_sift, default_mapper = pycolmap.SiftExtractionOptions(), pycolmap.IncrementalMapperOptions()
@@ -148,3 +144,100 @@ def test_a_finished_run_reads_back_a_model_made_with_the_night_settings(tmp_path
     run_sfm(photos, tmp_path / "a", denoise=_stand_in_denoise(), progress=None)
     again = run_sfm(photos, tmp_path / "a", denoise=None, denoise_cached=True, progress=None)
     assert again.cached
+
+
+def _model(names, shared) -> "pycolmap.Reconstruction":
+    """A model of the photos ``names`` in a row; ``shared[(a, b)]``: how many 3D points photos a and b both see
+    (each such point is seen by those two photos only)."""
+    rec = pycolmap.Reconstruction()
+    rec.add_camera_with_trivial_rig(pycolmap.Camera(model="PINHOLE", width=W, height=H,
+                                                    params=[80.0, 80.0, W / 2, H / 2], camera_id=1))
+    rng = np.random.default_rng(0)
+    per_image = {i: [] for i in range(len(names))}
+    points = []
+    for (a, b), k in shared.items():
+        for _ in range(k):
+            points.append(((a, len(per_image[a])), (b, len(per_image[b]))))
+            per_image[a].append(rng.uniform(0, W, 2))
+            per_image[b].append(rng.uniform(0, W, 2))
+    for i, n in enumerate(names):
+        w2c = np.hstack([np.eye(3), -np.array([[0.3 * i], [0.0], [0.0]])])
+        kp = np.array(per_image[i], float).reshape(-1, 2)
+        rec.add_image_with_trivial_frame(pycolmap.Image(name=n, keypoints=kp, camera_id=1, image_id=i + 1),
+                                         pycolmap.Rigid3d(w2c))
+    for els in points:
+        track = pycolmap.Track()
+        for i, idx in els:
+            track.add_element(i + 1, idx)
+        rec.add_point3D(rng.uniform(-1, 1, 3) + [0, 0, 5], track)
+    return rec
+
+
+# photos a, b, c share plenty; d shares 12 points with c and 5 with b: fewer than 15 with any one photo
+LOOSE = {("a.png", "b.png"): 40, ("b.png", "c.png"): 40, ("a.png", "c.png"): 20}
+
+
+def _loose_model(names=("a.png", "b.png", "c.png", "d.png"), d_c=12, d_b=5):
+    pairs = {(names.index(x), names.index(y)): k for (x, y), k in LOOSE.items()}
+    pairs.update({(3, 2): d_c, (3, 1): d_b})
+    return _model(list(names), pairs)
+
+
+def test_a_view_sharing_few_points_with_every_other_is_dropped():
+    min_shared = NIGHT_GUARD["min_shared_points"]
+    rec = _loose_model()
+    assert loose_views(rec, min_shared) == [4]
+    assert drop_loose_views(rec, min_shared) == ["d.png"]
+    assert sorted(rec.images[i].name for i in rec.reg_image_ids()) == ["a.png", "b.png", "c.png"]
+    assert rec.num_images() == 3 and rec.num_points3D() == 100  # d's points (seen by one photo now) are gone
+    assert loose_views(rec, min_shared) == [] and drop_loose_views(rec, min_shared) == []
+    # at the floor (15 points shared with c) a view is kept
+    kept = _loose_model(d_c=min_shared)
+    assert drop_loose_views(kept, min_shared) == [] and kept.num_reg_images() == 4
+    # two photos on loose matches only: nothing is left
+    pair = _model(["a.png", "b.png"], {(0, 1): 5})
+    assert drop_loose_views(pair, min_shared) == ["a.png", "b.png"] and pair.num_reg_images() == 0
+
+
+class LooseMapper(Recorder):
+    """The stand-in SfM whose model holds one photo (d.png) posed on loose matches."""
+
+    def incremental_mapping(self, db, image_dir, out, options=None, **kwargs):
+        self.mapper, self.tri = options.mapper, options.triangulation
+        return {0: _loose_model(tuple(self.names))}
+
+
+def test_run_sfm_drops_views_posed_on_loose_matches_at_night(tmp_path, monkeypatch, capsys):
+    import retinexgs.data.sfm as sfm_module
+    from retinexgs.data.colmap import read_model
+
+    monkeypatch.setattr(sfm_module, "_pycolmap", LooseMapper)
+    photos = tmp_path / "night"
+    for i, n in enumerate("abcd"):
+        _photo(photos / f"{n}.png", i, scale=0.03, noise=0.002)
+    said = []
+    r = run_sfm(photos, tmp_path / "a", denoise=_stand_in_denoise(), progress=said.append, min_registered=0.5)
+    assert r.registered == ["a.png", "b.png", "c.png"]
+    assert sorted(im.name for im in read_model(r.model_dir).images.values()) == ["a.png", "b.png", "c.png"]
+    assert any(line.startswith("dropped 1 photo posed on loose matches") and line.endswith(": d.png")
+               for line in said), said
+    assert "not registered, left out of the scene: d.png" in capsys.readouterr().err
+    # COLMAP's own settings (a well-lit folder, or --night off): no guard, the model as the mapper made it
+    r = run_sfm(photos, tmp_path / "b", denoise=_stand_in_denoise(), night="off", progress=None)
+    assert r.registered == ["a.png", "b.png", "c.png", "d.png"]
+
+
+def test_a_model_of_loose_views_only_is_no_model(tmp_path, monkeypatch):
+    import retinexgs.data.sfm as sfm_module
+
+    class PairMapper(Recorder):
+        def incremental_mapping(self, db, image_dir, out, options=None, **kwargs):
+            return {0: _model(self.names, {(0, 1): 5})}
+
+    monkeypatch.setattr(sfm_module, "_pycolmap", PairMapper)
+    photos = tmp_path / "night"
+    for i in range(2):
+        _photo(photos / f"p{i}.png", i, scale=0.03, noise=0.002)
+    with pytest.raises(UserError, match="share too few points with one another"):
+        run_sfm(photos, tmp_path / "a", denoise=_stand_in_denoise(), progress=None, min_registered=0)
+    assert not (tmp_path / "a" / "sparse" / "0").exists()

@@ -39,8 +39,9 @@ a finished run read back (eval, render, export) cannot build the denoiser (it li
 layer), so it takes the cached model whichever recipe made it: the one its training made.
 
 Night settings (issue 64 item 5, ``sfm --night``): with denoised previews (``night`` "auto") SIFT and the mapper take
-:data:`NIGHT_SIFT`, :data:`NIGHT_MAPPER` and :data:`NIGHT_TRIANGULATION` (why: beside them); they are part of the
-cached model's signature only when used.
+:data:`NIGHT_SIFT`, :data:`NIGHT_MAPPER` and :data:`NIGHT_TRIANGULATION` (why: beside them), and photos posed on
+loose matches are dropped from the model (:data:`NIGHT_GUARD`, named as not registered); they are part of the cached
+model's signature only when used.
 """
 from __future__ import annotations
 
@@ -97,6 +98,12 @@ NIGHT_SIFT = {"first_octave": 0, "domain_size_pooling": True}
 NIGHT_MAPPER = {"init_min_num_inliers": 30, "init_min_tri_angle": 8.0, "abs_pose_min_num_inliers": 10,
                 "abs_pose_max_error": 4.0}
 NIGHT_TRIANGULATION = {"ignore_two_view_tracks": False}
+# Loose-view guard, part of the night settings (the note's section 4): a photo posed from 10 loose inliers can land far
+# from where it was taken, and a misplaced view is worse than a missing one (training would fit it). castlep30-dark's
+# JPEGs at 1000 e-: views 0023 and 0024 posed 62 % and 79 % of the scene's extent away shared 13 and 8 points with
+# their best neighbour; every other view of the six night folders measured shared 17 or more with one. A registered
+# photo sharing fewer than ``min_shared_points`` 3D points with every other registered photo is dropped from the model.
+NIGHT_GUARD = {"min_shared_points": 15}
 NIGHT_CHOICES = ("auto", "on", "off")
 
 
@@ -224,12 +231,41 @@ def check_night(night: Union[str, bool]) -> str:
 
 
 def night_settings(night: Union[str, bool], denoise: Optional[PreviewDenoise]) -> Optional[dict]:
-    """The night settings SfM applies ({"sift": ..., "mapper": ..., "triangulation": ...}), or None for COLMAP's own:
+    """The night settings SfM applies ({"sift": ..., "mapper": ..., "triangulation": ..., "guard": ...}), or None for
+    COLMAP's own (and no guard):
     ``night`` "on", or "auto" with previews denoised (``denoise`` given: they are night-noisy)."""
     value = check_night(night)
     if value == "on" or (value == "auto" and denoise is not None):
-        return {"sift": dict(NIGHT_SIFT), "mapper": dict(NIGHT_MAPPER), "triangulation": dict(NIGHT_TRIANGULATION)}
+        return {"sift": dict(NIGHT_SIFT), "mapper": dict(NIGHT_MAPPER), "triangulation": dict(NIGHT_TRIANGULATION),
+                "guard": dict(NIGHT_GUARD)}
     return None
+
+
+def loose_views(rec, min_shared_points: int) -> List[int]:
+    """The registered image ids of ``rec`` (a pycolmap Reconstruction) that share fewer than ``min_shared_points`` 3D
+    points with every other registered image (posed on loose matches; :data:`NIGHT_GUARD`)."""
+    reg = set(rec.reg_image_ids())
+    shared: dict = {i: {} for i in reg}
+    for point in rec.points3D.values():
+        seen = sorted({el.image_id for el in point.track.elements} & reg)
+        for a in seen:
+            for b in seen:
+                if a != b:
+                    shared[a][b] = shared[a].get(b, 0) + 1
+    return sorted(i for i in reg if max(shared[i].values(), default=0) < min_shared_points)
+
+
+def drop_loose_views(rec, min_shared_points: int) -> List[str]:
+    """Deregister the :func:`loose_views` of ``rec`` (their observations go, and the points left on fewer than two
+    photos) and remove them from it; returns their names, sorted. Dropping one leaves the counts between the others
+    unchanged (their shared points keep two photos or more), so one pass finds them all."""
+    loose = loose_views(rec, min_shared_points)
+    names = sorted(rec.images[i].name for i in loose)
+    for frame_id in sorted({rec.images[i].frame_id for i in loose}):
+        rec.deregister_frame(frame_id)
+    if loose:
+        rec.tear_down()  # the deregistered images leave the model files too
+    return names
 
 
 def _apply(target, settings: dict) -> None:
@@ -662,7 +698,20 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
         if not models:
             raise UserError(f"SfM could not build a model from the {len(paths)} photos in {image_dir} "
                             f"(too few matching features); try brighter or more overlapping photos")
-        best = max(models.values(), key=lambda r: r.num_reg_images())
+        loose: dict = {}
+        if night_opts is not None and "guard" in night_opts:  # before choosing: the largest model once guarded
+            loose = {k: drop_loose_views(r, night_opts["guard"]["min_shared_points"]) for k, r in models.items()}
+        best_key = max(models, key=lambda k: models[k].num_reg_images())
+        best = models[best_key]
+        if loose.get(best_key):
+            n_loose = len(loose[best_key])
+            say(f"dropped {n_loose} photo{'s' if n_loose > 1 else ''} posed on loose matches (sharing fewer than "
+                f"{night_opts['guard']['min_shared_points']} points with any other photo): "
+                f"{_listed(loose[best_key])}")
+        if best.num_reg_images() < 2:
+            raise UserError(f"SfM could not build a model from the {len(paths)} photos in {image_dir}: the photos "
+                            f"it posed share too few points with one another to be trusted; try brighter or more "
+                            f"overlapping photos")
         (tmp / "sparse" / "0").mkdir(parents=True)
         best.write_binary(str(tmp / "sparse" / "0"))
         registered = sorted(best.images[i].name for i in best.reg_image_ids())
