@@ -501,6 +501,19 @@ def _time_step(step, cuda: bool, repeats: int) -> Tuple[float, Optional[float]]:
     return wall, max(us / 5 * 1e-6, 1e-9)
 
 
+def _compare_and_time(name, step, ref, t_ref, cuda: bool, repeats: int, row):
+    """One row of the ssim mode: ``step()`` -> (output, gradient) compared with the first row's (``ref``; this one
+    becomes it when None) and timed; returns the (reference, reference time) for the next rows."""
+    out, gx = step()
+    if ref is None:
+        ref = (out.detach(), gx.detach())
+    err = max((out - ref[0]).abs().max().item(), (gx - ref[1]).abs().max().item())
+    t = _time_step(step, cuda, repeats)
+    t_ref = t_ref or t
+    row(name, t, t_ref, err)
+    return ref, t_ref
+
+
 def time_ssim(args: argparse.Namespace) -> None:
     """SSIM's Gaussian filter (the five moments' channels of one training view), forward + backward: ours
     (retinexgs.evaluate.metrics.gaussian_filter) against the 2-D depthwise reference and candidates; per variant
@@ -539,13 +552,7 @@ def time_ssim(args: argparse.Namespace) -> None:
             (gx,) = torch.autograd.grad(out, x, grad)
             return out, gx
 
-        out, gx = step()
-        if ref is None:
-            ref = (out.detach(), gx.detach())
-        err = max((out - ref[0]).abs().max().item(), (gx - ref[1]).abs().max().item())
-        t = _time_step(step, cuda, args.repeats)
-        t_ref = t_ref or t
-        row(name, t, t_ref, err)
+        ref, t_ref = _compare_and_time(name, step, ref, t_ref, cuda, args.repeats, row)
 
     if shape[1] % 5 == 0 and args.padding == "same" and args.window == 11:
         c = shape[1] // 5
@@ -560,13 +567,7 @@ def time_ssim(args: argparse.Namespace) -> None:
                 (gx,) = torch.autograd.grad(out, x)
                 return out, gx
 
-            out, gx = step()
-            if ref is None:
-                ref = (out.detach(), gx.detach())
-            err = max((out - ref[0]).abs().max().item(), (gx - ref[1]).abs().max().item())
-            t = _time_step(step, cuda, args.repeats)
-            t_ref = t_ref or t
-            row(name, t, t_ref, err)
+            ref, t_ref = _compare_and_time(name, step, ref, t_ref, cuda, args.repeats, row)
         # A constant of the view that training makes again each step (issue 65: candidates beyond the filter).
         from retinexgs.train.losses import noise_variance
         t = _time_step(lambda: noise_variance(y), cuda, args.repeats)

@@ -91,6 +91,17 @@ def test_night_settings_follow_the_denoised_previews():
             check_night(bad)
 
 
+def _assert_colmaps_own_settings(rec) -> None:
+    """The options the stand-in pycolmap was given are COLMAP's defaults for every key the night settings change."""
+    default_sift, default_mapper = pycolmap.SiftExtractionOptions(), pycolmap.IncrementalMapperOptions()
+    for key in NIGHT_SIFT:
+        assert getattr(rec.sift, key) == getattr(default_sift, key), key
+    for key in NIGHT_MAPPER:
+        assert getattr(rec.mapper, key) == getattr(default_mapper, key), key
+    for key in NIGHT_TRIANGULATION:
+        assert getattr(rec.tri, key) == getattr(pycolmap.IncrementalTriangulatorOptions(), key), key
+
+
 def test_run_sfm_applies_the_night_settings_where_previews_are_denoised(tmp_path, rec):
     photos = tmp_path / "night"
     for i in range(3):
@@ -107,13 +118,7 @@ def test_run_sfm_applies_the_night_settings_where_previews_are_denoised(tmp_path
                                 "guard": NIGHT_GUARD}
 
     run_sfm(photos, tmp_path / "b", denoise=_stand_in_denoise(), night="off", progress=None)
-    default_sift, default_mapper = pycolmap.SiftExtractionOptions(), pycolmap.IncrementalMapperOptions()
-    for key in NIGHT_SIFT:
-        assert getattr(rec.sift, key) == getattr(default_sift, key), key
-    for key in NIGHT_MAPPER:
-        assert getattr(rec.mapper, key) == getattr(default_mapper, key), key
-    for key in NIGHT_TRIANGULATION:
-        assert getattr(rec.tri, key) == getattr(pycolmap.IncrementalTriangulatorOptions(), key), key
+    _assert_colmaps_own_settings(rec)
     assert "night" not in json.loads((tmp_path / "b" / META_NAME).read_text())["signature"]["options"]
 
 
@@ -123,13 +128,7 @@ def test_a_bright_folder_keeps_colmaps_settings_and_its_cached_model(tmp_path, c
         _photo(photos / f"p{i}.png", i, scale=0.8, noise=0.0)
     code, outp, err = run_cli(["sfm", "--images", photos, "--out", tmp_path / "proj"], capsys)
     assert code == 0 and "registered views: 3/3" in outp, err
-    default_sift, default_mapper = pycolmap.SiftExtractionOptions(), pycolmap.IncrementalMapperOptions()
-    for key in NIGHT_SIFT:
-        assert getattr(rec.sift, key) == getattr(default_sift, key), key
-    for key in NIGHT_MAPPER:
-        assert getattr(rec.mapper, key) == getattr(default_mapper, key), key
-    for key in NIGHT_TRIANGULATION:
-        assert getattr(rec.tri, key) == getattr(pycolmap.IncrementalTriangulatorOptions(), key), key
+    _assert_colmaps_own_settings(rec)
     assert "night" not in json.loads((tmp_path / "proj" / META_NAME).read_text())["signature"]["options"]
     # --night on forces them (and keys the cache: SfM runs again)
     code, outp, err = run_cli(["sfm", "--images", photos, "--out", tmp_path / "proj", "--night", "on"], capsys)
