@@ -18,7 +18,8 @@
 # On a machine still warm, a second call reuses the build (build/), the wheels, the scene copy (/tmp/data) and
 # finished runs (RUNS, /tmp/runs). Environment: OUT (default ./gpu_out), DATA (.data), WHL (.whl), RUNS (quality's
 # runs; give each mode run side by side its own, so that their groups' logs and noise ladders do not collide),
-# TORCH_CUDA_ARCH_LIST (9.0: H100/H200), MAX_JOBS (16), SKIP_SETUP (1: no wheel install or build, for modes run side by
+# KEEP_BUILD (1: the CUDA build comes back under $OUT/cbuild; copied to .cbuild and carried, a later call on a fresh
+# machine reuses it while csrc/, setup.py, the arch list and torch are unchanged), TORCH_CUDA_ARCH_LIST (9.0: H100/H200), MAX_JOBS (16), SKIP_SETUP (1: no wheel install or build, for modes run side by
 # side on one machine, one per GPU with CUDA_VISIBLE_DEVICES and each its own OUT, after one `build`: they would race). Every option below may also be given as the upper-case
 # environment variable (--fps-run X = FPS_RUN=X).
 #
@@ -83,6 +84,20 @@
 #       /tmp/scale). E.g. run(command="bash scripts/device.sh scale --gpus 1,2,4 --views-seen 2000 --decompose none",
 #       kind="nvidia-h100-x4", carry=[".whl"]). Where retinexgs/bench/scale.py is missing it exits 2.
 #       -> scale.md (the table, the memory estimate), scale.json (every figure), runs.tgz (metrics, configs, logs)
+#   bigraw [ARGS...]  the 12 MP raw night scene end to end (issue 65), `python -m retinexgs.bench bigraw ARGS` (its
+#       --help): the demo's large scene (default 40 + 4 views at 4000x3000, generated on the GPU into
+#       /tmp/retinexgs-scale while the extension builds, not timed, reused on a warm machine), `darken --raw` once
+#       (timed, --jobs: one per core), then each row of --configs trains the DNGs in turn from cold caches, decode +
+#       denoise + LR3M inside the timed training. --configs "ROW|ROW|...": a ROW is a config name and/or KEY=VALUE
+#       overrides separated by spaces, e.g. --configs "default steps=3000|train.resolution=[[0.8,4],[0.95,2]]|
+#       data.downscale=2" (the last: the same views at half size). --steps N: every row's but a row's own steps=;
+#       --set KEY=VALUE: every row. Options of this script: --limit S (560: the running training gets SIGINT about
+#       S - 40 s after the call began, later rows are not run; the tables keep what finished, and the same command on
+#       the warm machine reads finished rows back and runs the rest). Tables and runs go to --out (default
+#       /tmp/bigraw). E.g. run(command="bash scripts/device.sh bigraw --steps 10000 --configs
+#       'train.resolution=[[0.8,4],[0.95,2]]|data.downscale=2'", carry=[".whl"]).
+#       -> bigraw.md (the table), bigraw.json (every figure), runs.tgz (metrics, configs, logs; no checkpoints,
+#          renders, caches or photos)
 #   build  the set-up alone (wheels, build, GPU and torch versions); -> nothing but logs.tgz
 #   compile  every csrc/cuda/*.cu through nvcc for sm_89 and sm_90, without torch, a GPU or the set-up (what CI
 #       runs where nvcc exists): a syntax or type error in a kernel fails here.
@@ -145,11 +160,24 @@ setup_build() {  # the CUDA extension (setup_env first)
     has_cuda_build || die "SKIP_SETUP=1 but no CUDA build here: run \`bash scripts/device.sh build\` first"
     echo "build: skipped (SKIP_SETUP=1)"; return
   fi
+  local stamp; stamp=$(build_stamp)
+  if [ -f .cbuild/stamp ] && [ "$(cat .cbuild/stamp)" = "$stamp" ] && compgen -G ".cbuild/_C*.so" > /dev/null; then
+    cp .cbuild/_C*.so retinexgs/  # a build of these very sources, carried back from an earlier call
+    has_cuda_build && { echo "build: reused from .cbuild (sources unchanged)"; return; }
+  fi
   python3 setup.py build_ext --inplace > "$LOGS/build.log" 2>&1 \
     || { grep -E "error" -A3 "$LOGS/build.log" | head -40; tail -20 "$LOGS/build.log"; cp "$LOGS/build.log" "$OUT/";
          die "build failed (build.log)"; }
   has_cuda_build || die "retinexgs._C was built without its CUDA kernels (see build.log in logs.tgz)"
   echo "build: $(( SECONDS - t )) s (TORCH_CUDA_ARCH_LIST=$TORCH_CUDA_ARCH_LIST)"
+  if [ "${KEEP_BUILD:-0}" = 1 ]; then  # the build back under $OUT/cbuild: copy it to .cbuild and carry it next time
+    mkdir -p "$OUT/cbuild" && cp retinexgs/_C*.so "$OUT/cbuild/" && echo "$stamp" > "$OUT/cbuild/stamp"
+  fi
+}
+# What a build depends on: the kernel sources, setup.py, the arch list, torch's and Python's versions.
+build_stamp() {
+  { find csrc -type f | LC_ALL=C sort | xargs sha256sum; sha256sum setup.py; echo "$TORCH_CUDA_ARCH_LIST";
+    python3 -c "import sys, torch; print(torch.__version__, sys.version_info[:2])"; } | sha256sum | cut -c1-16
 }
 
 # Copy the scenes to /tmp/data (missing files only: a warm machine keeps the earlier copy).
@@ -548,6 +576,47 @@ mode_scale() {
   finish "$rc"
 }
 
+# ----------------------------------------------------------------------------------------------------- bigraw
+mode_bigraw() {
+  [ -f retinexgs/bench/bigraw.py ] || { echo "device.sh bigraw: retinexgs.bench.bigraw is not in this build" >&2; exit 2; }
+  LIMIT=${LIMIT:-560}
+  # Every argument goes to the benchmark but --limit (this script's); without --out the tables go to /tmp/bigraw.
+  local args=() out=/tmp/bigraw have_out=0 a next=
+  for a in "$@"; do
+    case $next in
+      limit) LIMIT=$a; next=; continue ;;
+      out) out=$a; next= ;;
+    esac
+    case $a in
+      --limit) next=limit; continue ;;
+      --limit=*) LIMIT=${a#*=}; continue ;;
+      --out) next=out; have_out=1 ;;
+      --out=*) out=${a#*=}; have_out=1 ;;
+    esac
+    args+=("$a")
+  done
+  [ -n "$next" ] && die "--$next needs a value"
+  [ $have_out = 1 ] || args+=(--out "$out")
+  setup_env
+  # The scene is generated (on the GPU) while the extension builds: it needs neither the build nor the wheels.
+  timeout "$LIMIT" python3 -m retinexgs.bench bigraw "${args[@]}" --generate-only > "$LOGS/generate.log" 2>&1 &
+  local gen=$!
+  setup_build; need_train_wheels
+  wait $gen || { tail -20 "$LOGS/generate.log"; die "the scene's generation failed (generate.log in logs.tgz)"; }
+  grep -E "^scene:|views/s" "$LOGS/generate.log" | tail -2
+  # The benchmark's own --limit stops a training cleanly (SIGINT, 30 s grace) 40 s before this script's: the
+  # tables and the copy below still get done; timeout is the backstop.
+  local left=$(( LIMIT - $(elapsed) )) rc
+  [ "$left" -gt 60 ] || die "no time left under --limit $LIMIT"
+  timeout "$left" python3 -m retinexgs.bench bigraw "${args[@]}" --limit $(( left - 40 )) 2>&1 | tee "$LOGS/bigraw.log"
+  rc=${PIPESTATUS[0]}
+  [ "$rc" = 124 ] && echo "device.sh bigraw: killed at --limit $LIMIT s; the tables hold the rows that finished"
+  cp "$out/bigraw.md" "$out/bigraw.json" "$OUT/" 2> /dev/null
+  cp "$out/darken.log" "$LOGS/" 2> /dev/null
+  tar czf "$OUT/runs.tgz" --exclude='*.pt' --exclude='renders' --exclude='caches' --exclude='dark' -C "$out" . 2> /dev/null
+  finish "$rc"
+}
+
 # ---------------------------------------------------------------------------------------------------- compile
 mode_compile() {
   command -v nvcc > /dev/null || die "nvcc not found"
@@ -565,7 +634,7 @@ mode_compile() {
 
 MODE=${1:-help}; shift || true
 case $MODE in
-  quality | train | speed | tests | scale | compile | bench) "mode_$MODE" "$@" ;;
+  quality | train | speed | tests | scale | bigraw | compile | bench) "mode_$MODE" "$@" ;;
   build) parse "" "$@"; setup; finish 0 ;;
   help | -h | --help) usage ;;
   *) usage >&2; echo >&2; die "unknown mode $MODE" ;;

@@ -235,9 +235,10 @@ def test_a_capture_whose_noise_cannot_be_measured_is_one_line(night, tmp_path, c
     assert len(lines) == 1 and "decomposer.denoise=nlm" in lines[0] and "could not be measured" in lines[0], err
 
 
-@pytest.mark.parametrize("kind,want", [("raw", "chroma"), ("jpeg", None)])
-def test_auto_denoises_a_raw_scene_and_leaves_photos_as_they_are(night, kind, want):
-    """decomposer.denoise=auto (the default): chroma on camera raw views (a measured noise model), nothing on photos;
+@pytest.mark.parametrize("kind,want", [("raw", "chroma"), ("jpeg", "chroma")])
+def test_auto_denoises_a_raw_scene_and_night_noisy_photos(night, kind, want):
+    """decomposer.denoise=auto (the default): chroma on camera raw views (a measured noise model) and on photos as
+    noisy as a night capture (decomposer.denoise_photo_sigma), nothing on quieter photos;
     a raw scene with no flat area to measure on falls back to the noisy views instead of stopping."""
     from retinexgs.data import load_scene
     from retinexgs.train import view_setup
@@ -245,6 +246,13 @@ def test_auto_denoises_a_raw_scene_and_leaves_photos_as_they_are(night, kind, wa
     scene = load_scene(night / kind)
     spec = view_setup.denoise_spec(scene.train, load_config(), "cpu")
     assert (spec.method if spec is not None else None) == want
+    sources = [v.user_path for v in scene.train]
+    sigma = view_setup.previews_noise_sigma(sources, raw=False)
+    assert (sigma > 0.08) == (kind == "jpeg") or kind == "raw"  # the night JPEGs are above the default gate
+    for gate, photo_want in (("null", None), (f"{sigma * 1.5:.4f}", None), (f"{sigma / 1.5:.4f}", "chroma")):
+        spec = view_setup.denoise_spec(scene.train, load_config(overrides=[f"decomposer.denoise_photo_sigma={gate}"]),
+                                       "cpu")
+        assert (spec.method if spec is not None else None) == (want if kind == "raw" else photo_want), gate
     if kind == "raw":
         import unittest.mock as mock
         from retinexgs.data import capture  # the raw capture measures its noise (retinexgs/data/capture.py)

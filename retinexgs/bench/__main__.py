@@ -11,7 +11,7 @@ from retinexgs.openmp import bound_openmp_spinning
 
 BENCHES = {"raster": "retinexgs.bench.raster", "lr3m": "retinexgs.bench.lr3m", "fps": "retinexgs.bench.fps",
            "quality": "retinexgs.bench.quality", "scale": "retinexgs.bench.scale",
-           "denoise": "retinexgs.bench.denoise",
+           "denoise": "retinexgs.bench.denoise", "bigraw": "retinexgs.bench.bigraw",
            "proxy": "retinexgs.train.benchmarks.proxy", "retone": "retinexgs.train.benchmarks.retone",
            "train-speed": "retinexgs.train.benchmarks.speed", "darken": "retinexgs.bench.darken"}
 
@@ -30,6 +30,8 @@ def _load(name: str):
         from retinexgs.bench import quality as module
     elif name == "scale":
         from retinexgs.bench import scale as module
+    elif name == "bigraw":
+        from retinexgs.bench import bigraw as module
     elif name == "darken":
         from retinexgs.bench import darken as module
     elif name == "denoise":
@@ -86,7 +88,7 @@ def main(argv: Optional[List[str]] = None, prog: str = PROG) -> int:
               "(--help lists what each measures)", file=sys.stderr)
         return 2
     name = argv[0]
-    if name in ("quality", "proxy", "retone", "scale"):  # trainings in child processes (scale: the scene's writer)
+    if name in ("quality", "proxy", "retone", "scale", "bigraw"):  # trainings in child processes (scale: the scene's writer)
         bound_openmp_spinning()  # before torch loads; these often share the CPU with trainings (docs/benchmarks.md)
     try:
         module = _load(name)

@@ -382,6 +382,15 @@ def _ladder_record(path: Path) -> Optional[dict]:
         return None
 
 
+def ladder_paths(text: str) -> List[str]:
+    """The paths of ``--ladder-paths`` (a comma list of raw and jpeg), UserError (one line) on anything else."""
+    paths = [v for v in text.split(",") if v]
+    bad = [v for v in paths if v not in ("raw", "jpeg")]
+    if bad or not paths:
+        raise UserError(f"--ladder-paths must be raw, jpeg or raw,jpeg, got {text!r}")
+    return paths
+
+
 def raw_ladder_scenes(scenes: Sequence[Path], root: Path, exposure: float, levels: Sequence[str]) -> List[Path]:
     """Every scene captured by the raw simulator (``darken --raw``, :func:`ladder_camera`) at each of ``levels``
     of the noise ladder: ``root/SCENE@LEVEL-raw`` (the DNGs) beside ``root/SCENE@LEVEL-jpeg`` (the camera's JPEGs
@@ -445,6 +454,9 @@ def main(argv: Sequence[str]) -> int:
                          "clean,1500e,1000e,800e; 800e's DNGs are 12 bit, the others 14): columns SCENE@LEVEL-raw "
                          "(DNGs) and SCENE@LEVEL-jpeg (the camera's JPEGs of the same captures); the dark scenes go "
                          "to RUNS/ladder/")
+    ap.add_argument("--ladder-paths", default="raw,jpeg", metavar="PATHS",
+                    help="with --raw-ladder: which of each capture's two paths to train, raw, jpeg or raw,jpeg "
+                         "(default both)")
     args = ap.parse_args(list(argv))
     for s in args.scenes:
         if not s.is_dir():
@@ -458,8 +470,10 @@ def main(argv: Sequence[str]) -> int:
             return 2
     if args.raw_ladder:
         try:
-            args.scenes = raw_ladder_scenes(args.scenes, args.runs / "ladder", args.ladder_exposure,
-                                            [v for v in args.raw_ladder.split(",") if v])
+            paths = ladder_paths(args.ladder_paths)
+            args.scenes = [s for s in raw_ladder_scenes(args.scenes, args.runs / "ladder", args.ladder_exposure,
+                                                        [v for v in args.raw_ladder.split(",") if v])
+                           if s.name.rsplit("-", 1)[-1] in paths]
         except UserError as exc:
             print(f"--raw-ladder: {exc}", file=sys.stderr)
             return 2

@@ -203,6 +203,9 @@ class Decomposer(Section):
     device: OptStr
     raw: DecomposerRaw
     denoise: Choice("auto", "none", "nlm", "chroma")  # the 2D priors' photo through a denoiser (retinex/denoise.py)
+    # auto denoises photos whose brightened previews' noise σ exceeds this (null: photos never)
+    denoise_photo_sigma: Annotated[Optional[Annotated[float, BeforeValidator(_yaml_number), Field(gt=0)]],
+                                   Expect("a noise σ > 0 or null (photos never denoised by auto)")]
     denoise_backend: Choice("auto", "torch", "opencv")  # who runs its non-local means (auto: torch on CUDA)
 
     @field_validator("params", mode="after")
@@ -298,6 +301,8 @@ class Loss(Section):
     enhance_from: Step
     enhance_trains_scene: Bool
     rec_domain: Choice("photo", "exposed", "exposed_ssim")
+    # what the reconstruction's SSIM compares R̂∘L̂ with: the view S, or its priors' product R∘L (a denoised view's)
+    rec_ssim_target: Choice("view", "priors")
     rec_noise_floor: Bool
     rec_noise_share: Num(gt=0, le=0.9)
     rec_noise_scale: Int(1)

@@ -17,6 +17,7 @@ from retinexgs.retinex.denoise import DenoiseSpec, noise_model
 from retinexgs.run.render import view_camera
 from retinexgs.config.schema import Config
 from retinexgs.train.noise import measure_capture_noise
+from retinexgs.train.sfm_preview import previews_noise_sigma
 from retinexgs.train.streamed_views import StreamedViews
 from retinexgs.train.view_store import (ViewStore, check_store_space, store_fingerprint, store_path, store_tag,
                                         store_size_estimate)
@@ -30,6 +31,13 @@ def scene_extent(scene: Scene) -> float:
     return float(1.1 * (centers - centers.mean(0)).norm(dim=-1).max().clamp_min(1e-3))
 
 
+def noisy_photos(paths: Sequence[Path], sigma: Optional[float]) -> bool:
+    """Whether photos ``paths`` are night-noisy: their brightened previews' noise σ
+    (:func:`~retinexgs.train.sfm_preview.previews_noise_sigma`, the gate of SfM's denoiser) above ``sigma``
+    (``decomposer.denoise_photo_sigma``; None: never)."""
+    return bool(paths) and sigma is not None and previews_noise_sigma(paths, raw=False) > sigma
+
+
 def denoise_spec(views: List[View], cfg: Config, device: str) -> Optional[DenoiseSpec]:
     """What ``decomposer.denoise`` reads the views through (None when ``none``): the method and the views' noise in
     the light of the images decomposed, as training measures it: a raw scene's :class:`RawNoise` (DNG NoiseProfile
@@ -37,12 +45,12 @@ def denoise_spec(views: List[View], cfg: Config, device: str) -> Optional[Denois
     ``data.downscale`` and the white balance applied. UserError (one line) when it cannot be measured."""
     capture = capture_of_files([v.user_path for v in views])
     method = auto = cfg.decomposer.denoise
-    if auto == "auto":  # the capture's choice (raw: chroma; photos: none, not yet measured)
-        method = capture.auto_denoise()
-    if method == "none" or not views:
-        return None
     sources = [v.source_path if v.source_path is not None and Path(v.source_path).is_file() else v.image_path
                for v in views]
+    if auto == "auto":  # the capture's choice (raw: chroma; photos: chroma where they are night-noisy)
+        method = capture.auto_denoise(lambda: noisy_photos(sources, cfg.decomposer.denoise_photo_sigma))
+    if method == "none" or not views:
+        return None
     noise = capture.noise(sources, lambda paths: measure_capture_noise(paths, cfg.data.downscale,
                                                                        torch.device(device)))
     model = None if noise is None else noise_model(noise, views[0].balance,
