@@ -161,8 +161,9 @@ setup_build() {  # the CUDA extension (setup_env first)
     echo "build: skipped (SKIP_SETUP=1)"; return
   fi
   local stamp; stamp=$(build_stamp)
-  if [ -f .cbuild/stamp ] && [ "$(cat .cbuild/stamp)" = "$stamp" ] && compgen -G ".cbuild/_C*.so" > /dev/null; then
-    cp .cbuild/_C*.so retinexgs/  # a build of these very sources, carried back from an earlier call
+  if [ -f .cbuild/stamp ] && [ "$(cat .cbuild/stamp)" = "$stamp" ] && compgen -G ".cbuild/_C*.so.gz" > /dev/null; then
+    local gz; for gz in .cbuild/_C*.so.gz; do gunzip -c "$gz" > "retinexgs/$(basename "${gz%.gz}")"; done
+    # (a build of these very sources, carried back from an earlier call)
     has_cuda_build && { echo "build: reused from .cbuild (sources unchanged)"; return; }
   fi
   python3 setup.py build_ext --inplace > "$LOGS/build.log" 2>&1 \
@@ -171,7 +172,11 @@ setup_build() {  # the CUDA extension (setup_env first)
   has_cuda_build || die "retinexgs._C was built without its CUDA kernels (see build.log in logs.tgz)"
   echo "build: $(( SECONDS - t )) s (TORCH_CUDA_ARCH_LIST=$TORCH_CUDA_ARCH_LIST)"
   if [ "${KEEP_BUILD:-0}" = 1 ]; then  # the build back under $OUT/cbuild: copy it to .cbuild and carry it next time
-    mkdir -p "$OUT/cbuild" && cp retinexgs/_C*.so "$OUT/cbuild/" && echo "$stamp" > "$OUT/cbuild/stamp"
+    mkdir -p "$OUT/cbuild" && echo "$stamp" > "$OUT/cbuild/stamp"  # gzipped: a file comes back only up to 16 MiB
+    local so; for so in retinexgs/_C*.so; do  # without its debug sections: smaller, the same code
+      strip -g -o /tmp/cbuild.so "$so" 2> /dev/null || cp "$so" /tmp/cbuild.so
+      gzip -9 -c /tmp/cbuild.so > "$OUT/cbuild/$(basename "$so").gz"
+    done
   fi
 }
 # What a build depends on: the kernel sources, setup.py, the arch list, torch's and Python's versions.

@@ -12,10 +12,10 @@ host RSS and PSNR / SSIM, one row per config.
 2. ``retinexgs darken --raw --data SCENE --out OUT/dark --jobs N`` (timed): OUT/dark/raw holds the DNGs. Done once
    per call and reused by a later call on the same scene and jobs (``OUT/dark.json`` records it; --fresh redoes it).
 3. Every row of ``--configs`` trains OUT/dark/raw in turn with ``python -m retinexgs train``, each from cold caches
-   (``data.cache_dir`` = OUT/caches/RUN, emptied first), so that the raw decode, the denoising and the LR3M priors happen
-   inside the training, as a user's first run does: the training's ``time_to_first_step`` (from the process's
-   start to the end of step 1) holds them. A row SPEC is whitespace-separated tokens: at most one config name
-   (no ``=``; default ``default``) and KEY=VALUE overrides, e.g.
+   (``data.cache_dir`` = OUT/caches/RUN, emptied first and removed after), so that the raw decode, the denoising and
+   the LR3M priors happen inside the training, as a user's first run does: the training's ``time_to_first_step``
+   (from the process's start to the end of step 1) holds them. A row SPEC is whitespace-separated tokens: at most
+   one config name (no ``=``; default ``default``) and KEY=VALUE overrides, e.g.
    ``--configs "default|train.resolution=[[0.8,4],[0.95,2]]|data.downscale=2"`` (the last: the same views at half
    size, for the PSNR comparison). ``--steps N`` sets every row's steps but a row's own ``steps=``.
 
@@ -243,7 +243,7 @@ def darken(scene: Path, out: Path, jobs: int, deadline: Optional[float], env: Di
         print("\n".join(f"    | {line}" for line in tail), file=sys.stderr)
         raise UserError(f"darken --raw {'was cut off at --limit' if cut else f'failed (exit {rc})'}; "
                         f"see {out / 'darken.log'}")
-    done = {"key": key, "seconds": round(wall, 1), "jobs": jobs, "command": cmd[1:]}
+    done = {"key": key, "seconds": round(wall, 1), "jobs": jobs, "command": cmd[1:], "made": time.time()}
     atomic_write_text(record, json.dumps(done, indent=1))
     print(f"darken: {wall:.1f} s with {jobs} jobs", flush=True)
     return dict(done, reused=False)
@@ -337,11 +337,13 @@ def _run(args: argparse.Namespace, rows: List[Dict], device: str) -> int:
         cache = args.out / "caches" / name  # not inside the run folder: train wants that one empty
         cmd = train_command(data, run, cache, device, spec, args.steps, args.set)
         row: Dict = {"label": spec["label"], "run": str(run), "command": shlex.join(cmd[1:]),
+                     "dark_made": report["darken"].get("made"),  # a row stands only for the DNGs it trained on
                      "planned_steps": next((int(s.split("=", 1)[1]) for s in reversed(cmd) if s.startswith("steps=")
                                             and s.split("=", 1)[1].isdigit()), None)}
         saved = _read_json(run.parent / f"{name}.row.json")
         if (not args.fresh and isinstance(saved, dict) and saved.get("command") == row["command"]
-                and saved.get("status") == "ok" and _metrics(run) is not None):
+                and saved.get("dark_made") == row["dark_made"] and saved.get("status") == "ok"
+                and _metrics(run) is not None):
             print(f"row {i + 1} `{spec['label']}`: reused the finished run {run}", flush=True)
             table_rows[i] = dict(saved, total_seconds=None if saved.get("wall_seconds") is None
                                  else round(darken_s + saved["wall_seconds"], 1))
@@ -364,7 +366,8 @@ def _run(args: argparse.Namespace, rows: List[Dict], device: str) -> int:
             row["status"] = "ok"
         elif cut:
             steps, secs = _progress(run)
-            row.update(steps=steps, train_seconds=secs, steps_per_second=steps / secs if steps and secs else None)
+            row.update(steps=steps, train_seconds=secs, steps_per_second=steps / secs if steps and secs else None,
+                       total_seconds=None)
             row["status"] = f"cut off at --limit {args.limit:g} s"
         else:
             failed = True
