@@ -11,6 +11,7 @@ from PIL import Image
 from retinexgs.bench import quality
 from retinexgs.train.benchmarks import proxy
 from retinexgs.run.config import load_config
+from retinexgs.errors import UserError
 
 
 def test_parse_seeds():
@@ -312,3 +313,26 @@ def test_raw_ladder_makes_a_level_drawn_by_older_random_streams_again(tmp_path):
         r.write_text(json.dumps(data))
     quality.raw_ladder_scenes([src], ladder, exposure=0.5, levels=["1000e"])
     assert all("rng" in json.loads(r.read_text()) for r in records)  # made again, by today's streams
+
+
+def test_ladder_paths_pick_the_raw_or_the_jpeg_column(tmp_path, monkeypatch, capsys):
+    """--ladder-paths raw (or jpeg) trains one of each capture's two folders; anything else is one line."""
+    made = [tmp_path / "ladder" / "s@1000e-raw", tmp_path / "ladder" / "s@1000e-jpeg"]
+    monkeypatch.setattr(quality, "raw_ladder_scenes", lambda *a, **k: list(made))
+    planned = []
+    monkeypatch.setattr(quality, "plan", lambda scenes, *a, **k: planned.append(list(scenes)) or [])
+    src = tmp_path / "s"
+    src.mkdir()
+    for paths, want in (("raw", made[:1]), ("jpeg", made[1:]), ("raw,jpeg", made)):
+        planned.clear()
+        quality.main(["--scenes", str(src), "--raw-ladder", "1000e", "--ladder-paths", paths, "--no-train",
+                      "--runs", str(tmp_path / "runs")])
+        assert planned == [want], paths
+    assert quality.ladder_paths("jpeg,raw") == ["jpeg", "raw"]
+    for bad in ("dng", "", "raw,tiff"):
+        with pytest.raises(UserError, match="--ladder-paths must be raw, jpeg or raw,jpeg"):
+            quality.ladder_paths(bad)
+    capsys.readouterr()
+    assert quality.main(["--scenes", str(src), "--raw-ladder", "1000e", "--ladder-paths", "nef", "--no-train"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--ladder-paths must be" in err[0]

@@ -301,8 +301,6 @@ class Loss(Section):
     enhance_from: Step
     enhance_trains_scene: Bool
     rec_domain: Choice("photo", "exposed", "exposed_ssim")
-    # what the reconstruction's SSIM compares R̂∘L̂ with: the view S, or its priors' product R∘L (a denoised view's)
-    rec_ssim_target: Choice("view", "priors")
     rec_noise_floor: Bool
     rec_noise_share: Num(gt=0, le=0.9)
     rec_noise_scale: Int(1)

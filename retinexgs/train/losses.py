@@ -236,8 +236,7 @@ def reconstruction_loss(rec: torch.Tensor, S: torch.Tensor, lambda_ssim: float =
 def supervision_loss(R_hat: torch.Tensor, L_hat: torch.Tensor, R: torch.Tensor, L: torch.Tensor,
                      S: torch.Tensor, w_r: float = 0.5, w_l: float = 0.5, w_s: float = 1.0,
                      lambda_ssim: float = 0.2, rec_gain: Optional[torch.Tensor] = None,
-                     rec_l1_exposed: bool = True, linear: Optional[LinearTarget] = None,
-                     ssim_target: Optional[torch.Tensor] = None) -> Tuple[torch.Tensor, Terms]:
+                     rec_l1_exposed: bool = True, linear: Optional[LinearTarget] = None) -> Tuple[torch.Tensor, Terms]:
     """L_sup of Eq. 4: w_r·Ls(R̂, R) + w_l·Ls(L̂, L) + w_s·Ls(R̂∘L̂, S).
 
     Args:
@@ -249,8 +248,6 @@ def supervision_loss(R_hat: torch.Tensor, L_hat: torch.Tensor, R: torch.Tensor, 
         linear: a raw scene's :class:`LinearTarget`: the reconstruction term's L1 is replaced by
             :func:`linear_reconstruction` (S is the view's unclipped encoding) and its SSIM compares exposed
             values with S exposed unclipped.
-        ssim_target: what the reconstruction term's SSIM compares R̂∘L̂ with instead of S (``loss.rec_ssim_target:
-            priors``: R∘L, the denoised view as the decomposer holds it), exposed as S would be; its L1 keeps S.
 
     Returns:
         (total, {"sup_r", "sup_l", "sup_rec"}) — the unweighted terms, for logging.
@@ -262,8 +259,6 @@ def supervision_loss(R_hat: torch.Tensor, L_hat: torch.Tensor, R: torch.Tensor, 
     lin_rec = None if linear is None else linear_reconstruction(rec, S, linear, rec_gain)
     (rec, target), (rec_s, target_s) = _reconstruction_pairs(rec, S, rec_gain, rec_l1_exposed and linear is None,
                                                              linear is not None)
-    if ssim_target is not None:  # the SSIM's other side only: the L1 stays on the unbiased view
-        _, (rec_s, target_s) = _reconstruction_pairs(R_hat * L_hat, ssim_target, rec_gain, False, linear is not None)
     pairs = [torch.broadcast_tensors(a, b) for a, b in ((R_hat, R), (L_hat, L), (rec, target))]
     sizes = [a.shape[1] for a, _ in pairs]
     x = torch.cat([a for a, _ in pairs], dim=1)

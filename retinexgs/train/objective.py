@@ -231,10 +231,8 @@ class RetinexObjective(PlainObjective):
             ref = self.model.illum_ref
             linear = linear._replace(gain=exposure_gain(ref, ref.new_ones(())))
         if R is not None:
-            R_b, L_b = to_bchw(R), to_bchw(L)
-            ssim_target = R_b * L_b if c.rec_ssim_target == "priors" else None
-            sup, sup_terms = losses.supervision_loss(R_hat, L_hat, R_b, L_b, S_b, c.w_r, c.w_l, c.w_s,
-                                                     c.lambda_ssim, gain, l1_exposed, linear, ssim_target)
+            sup, sup_terms = losses.supervision_loss(R_hat, L_hat, to_bchw(R), to_bchw(L), S_b, c.w_r,
+                                                     c.w_l, c.w_s, c.lambda_ssim, gain, l1_exposed, linear)
             terms.update(sup_terms)
         else:  # no 2D priors: only the reconstruction is supervised
             terms["sup_rec"] = losses.reconstruction_loss(R_hat * L_hat, S_b, c.lambda_ssim, gain, l1_exposed,
