@@ -56,9 +56,7 @@ def test_the_two_capture_kinds_answer_alike_what_callers_ask():
     assert torch.equal(RAW.spa_input(t, extended), t)
     assert PHOTO.linear_mode(cfg.loss) is None and RAW.linear_mode(cfg.loss) == "noise"
     assert RAW.linear_mode(load_config(["ablations/raw_photo"]).loss) is None  # raw compared as the photo shown
-    asked = []
-    assert (PHOTO.auto_denoise(lambda: False), RAW.auto_denoise(lambda: asked.append(1))) == ("none", "chroma")
-    assert PHOTO.auto_denoise(lambda: True) == "chroma" and not asked  # a raw capture needs no measurement
+    assert (PHOTO.auto_denoise(), RAW.auto_denoise()) == ("none", "chroma")
     assert PHOTO.preview_denoise(cfg.decomposer) is False and RAW.preview_denoise(cfg.decomposer) is True
     assert RAW.preview_denoise(load_config(["paper"]).decomposer) is False
     assert (PHOTO.noise_downscale(2.0), RAW.noise_downscale(2.0)) == (1.0, 2.0)

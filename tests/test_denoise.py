@@ -235,24 +235,27 @@ def test_a_capture_whose_noise_cannot_be_measured_is_one_line(night, tmp_path, c
     assert len(lines) == 1 and "decomposer.denoise=nlm" in lines[0] and "could not be measured" in lines[0], err
 
 
-@pytest.mark.parametrize("kind,want", [("raw", "chroma"), ("jpeg", "chroma")])
-def test_auto_denoises_a_raw_scene_and_night_noisy_photos(night, kind, want):
-    """decomposer.denoise=auto (the default): chroma on camera raw views (a measured noise model) and on photos as
-    noisy as a night capture (decomposer.denoise_photo_sigma), nothing on quieter photos;
+@pytest.mark.parametrize("kind,want", [("raw", "chroma"), ("jpeg", None)])
+def test_auto_denoises_a_raw_scene_and_leaves_photos_as_they_are(night, kind, want):
+    """decomposer.denoise=auto (the default): chroma on camera raw views (a measured noise model), nothing on photos,
+    with a one-line note where the photos are as noisy as a night capture (the camera JPEGs of this 2000 e- capture);
     a raw scene with no flat area to measure on falls back to the noisy views instead of stopping."""
     from retinexgs.data import load_scene
     from retinexgs.train import view_setup
 
     scene = load_scene(night / kind)
-    spec = view_setup.denoise_spec(scene.train, load_config(), "cpu")
+    notes = []
+    spec = view_setup.denoise_spec(scene.train, load_config(), "cpu", note=notes.append)
     assert (spec.method if spec is not None else None) == want
-    sources = [v.user_path for v in scene.train]
-    sigma = view_setup.previews_noise_sigma(sources, raw=False)
-    assert (sigma > 0.08) == (kind == "jpeg") or kind == "raw"  # the night JPEGs are above the default gate
-    for gate, photo_want in (("null", None), (f"{sigma * 1.5:.4f}", None), (f"{sigma / 1.5:.4f}", "chroma")):
-        spec = view_setup.denoise_spec(scene.train, load_config(overrides=[f"decomposer.denoise_photo_sigma={gate}"]),
-                                       "cpu")
-        assert (spec.method if spec is not None else None) == (want if kind == "raw" else photo_want), gate
+    if kind == "jpeg":
+        assert len(notes) == 1 and "--set decomposer.denoise=chroma" in notes[0] and "\n" not in notes[0]
+        quiet = []
+        with pytest.MonkeyPatch.context() as m:  # quieter photos: no note
+            m.setattr(view_setup, "previews_noise_sigma", lambda *a, **k: view_setup.AUTO_MIN_SIGMA / 2)
+            view_setup.denoise_spec(scene.train, load_config(), "cpu", note=quiet.append)
+        assert quiet == []
+    else:
+        assert notes == []
     if kind == "raw":
         import unittest.mock as mock
         from retinexgs.data import capture  # the raw capture measures its noise (retinexgs/data/capture.py)
@@ -260,3 +263,50 @@ def test_auto_denoises_a_raw_scene_and_night_noisy_photos(night, kind, want):
             assert view_setup.denoise_spec(scene.train, load_config(), "cpu") is None
             with pytest.raises(UserError):
                 view_setup.denoise_spec(scene.train, load_config(overrides=["decomposer.denoise=chroma"]), "cpu")
+
+
+@pytest.mark.parametrize("kind,sets", [("raw", []), ("jpeg", ["decomposer.denoise=chroma"])])
+def test_decompose_fills_the_entries_train_reads_through_the_denoiser(night, tmp_path, kind, sets):
+    """`retinexgs decompose` reads the views through the denoiser train uses (decomposer.denoise: auto on the raw
+    views, chroma asked for on the JPEGs): its entries are the ones train then finds, none computed again."""
+    import shutil
+
+    from retinexgs.cli import main
+    from retinexgs.data import load_scene
+    from retinexgs.retinex.cache import iter_decompositions, scene_cache_root
+    from retinexgs.train import view_setup
+
+    scene = tmp_path / kind
+    shutil.copytree(night / kind, scene)
+    assert main(["decompose", "--data", str(scene), "--device", "cpu", "--quiet",
+                 *[a for v in sets for a in ("--set", v)]]) == 0
+    denoised = list((scene / "retinex_cache" / "denoised").rglob("*.npz"))
+    assert len(denoised) == 3 and all(p.parent.name.startswith("chroma-") for p in denoised)
+    train = load_scene(scene).train
+    cfg = load_config(overrides=sets)
+    report = {}
+    for _ in iter_decompositions([v.image_path for v in train], "lr3m", None, scene_cache_root(scene, None), "cpu",
+                                 progress=False, report=report, raw_denoise=cfg.decomposer.raw.preview_denoise,
+                                 balance=train[0].balance, denoise=view_setup.denoise_spec(train, cfg, "cpu")):
+        pass
+    assert (report["computed"], report["reused"]) == (0, 3)
+
+
+def test_each_rank_decomposes_its_share_through_the_trainer_s_denoiser(night, monkeypatch):
+    """With --gpus N every rank fills its share of the cache before training: through the same denoiser (same
+    recipe) the trainer then reads the entries with, not the plain views (which the trainer would not use)."""
+    from retinexgs.data import load_scene
+    from retinexgs.train import distributed, view_setup
+
+    scene = load_scene(night / "raw")
+    cfg = load_config()
+    seen = []
+    monkeypatch.setattr(distributed, "decompose_images", lambda paths, *a, **k: seen.append((list(paths), k)))
+    ranks = distributed.Distributed()
+    ranks.rank, ranks.world = 1, 2
+    monkeypatch.setattr(ranks, "barrier", lambda what: None)
+    ranks.decompose_shard(scene, cfg, "cpu", progress=False)
+    (paths, kwargs), = seen
+    assert paths == [v.image_path for v in scene.train[1::2]]
+    want = view_setup.denoise_spec(scene.train, cfg, "cpu")
+    assert want is not None and kwargs["denoise"].recipe == want.recipe

@@ -76,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
     """Entry point of ``retinexgs decompose``."""
     from retinexgs.data.images import read_image  # lazy: --help stays fast
     from retinexgs.retinex.base import available_methods  # lazy: --help stays fast
-    from retinexgs.retinex.cache import (decompose_images, prune_unused, scene_cache_root,  # lazy: --help stays fast
+    from retinexgs.retinex.cache import (decompose_images, prune_unused, resolve_device, scene_cache_root,  # lazy: --help stays fast
                                          unused_note)
     from retinexgs.run.config import load_config  # lazy: --help stays fast
 
@@ -105,6 +105,7 @@ def run(args: argparse.Namespace) -> int:
     hint = "--cache DIR (or --set data.cache_dir=DIR)"
     balance = None  # data.white_balance: the scene's views carry it (open_scene)
     names = None  # the user's photos, named in errors where paths are the loader's undistorted/downscaled copies
+    train_views = None  # the scene's training views as train opens them (where it has poses)
     if _has_poses(scene, cfg.data.cache_dir):
         # Decompose exactly the images train will read: undistorted and downscaled copies where the scene
         # needs them, so that train finds every entry in the cache.
@@ -114,6 +115,7 @@ def run(args: argparse.Namespace) -> int:
         # the SfM model train uses (data.sfm_denoise names its previews' recipe, part of the cache key)
         train = open_scene(scene, cfg, cache_hint=hint, sfm_denoise=scene_sfm_denoise(cfg.data.sfm_denoise)).train
         paths, balance = [v.image_path for v in train], (train[0].balance if train else None)
+        train_views = train
         names = [v.source_path or v.image_path for v in train]
     else:
         if cfg.data.downscale != 1:
@@ -123,10 +125,15 @@ def run(args: argparse.Namespace) -> int:
         print(f"note: {scene} has no camera poses yet; train will run SfM and decompose the undistorted copies it "
               "makes, which these entries do not cover", file=sys.stderr)
     cache_root = scene_cache_root(scene, cfg.data.cache_dir)
+    denoise = None
+    if train_views is not None:  # the denoiser train reads the views through (decomposer.denoise), keying its entries
+        from retinexgs.train.view_setup import denoise_spec
+
+        denoise = denoise_spec(train_views, cfg, str(resolve_device(args.device)))
     _, report = decompose_images(paths, dcfg.method, dict(dcfg.params) or None, cache_root,
                                  args.device, keep=False, preview=args.preview, progress=not args.quiet,
                                  cache_hint=hint, sweep=True, announce=False, raw_denoise=dcfg.raw.preview_denoise,
-                                 balance=balance, names=names)
+                                 balance=balance, names=names, denoise=denoise)
     n = report["swept"]
     swept = f", {n} old-format entr{'y' if n == 1 else 'ies'} deleted" if n else ""
     print(f"{len(paths)} view(s) decomposed with {dcfg.method}: {report['computed']} computed, "

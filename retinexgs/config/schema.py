@@ -203,9 +203,6 @@ class Decomposer(Section):
     device: OptStr
     raw: DecomposerRaw
     denoise: Choice("auto", "none", "nlm", "chroma")  # the 2D priors' photo through a denoiser (retinex/denoise.py)
-    # auto denoises photos whose brightened previews' noise σ exceeds this (null: photos never)
-    denoise_photo_sigma: Annotated[Optional[Annotated[float, BeforeValidator(_yaml_number), Field(gt=0)]],
-                                   Expect("a noise σ > 0 or null (photos never denoised by auto)")]
     denoise_backend: Choice("auto", "torch", "opencv")  # who runs its non-local means (auto: torch on CUDA)
 
     @field_validator("params", mode="after")

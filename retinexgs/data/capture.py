@@ -60,9 +60,8 @@ class Capture:
         """The ``data.downscale`` still to apply to :meth:`noise`'s model (1 where it was measured at that size)."""
         raise NotImplementedError
 
-    def auto_denoise(self, noisy: Callable[[], bool]) -> str:
-        """The denoiser ``decomposer.denoise: auto`` means for this capture; ``noisy()`` says whether its photos
-        are as noisy as a night capture (measured only where the capture asks)."""
+    def auto_denoise(self) -> str:
+        """The denoiser ``decomposer.denoise: auto`` means for this capture."""
         raise NotImplementedError
 
     def preview_denoise(self, dcfg: Decomposer) -> bool:
@@ -101,9 +100,8 @@ class PhotoCapture(Capture):
     def noise_downscale(self, downscale: float) -> float:
         return 1.0  # the photos' noise is measured at the training resolution
 
-    def auto_denoise(self, noisy: Callable[[], bool]) -> str:
-        # a night JPEG's views are as noisy as a raw capture's; a clean photo would only lose texture (issue 64)
-        return "chroma" if noisy() else "none"
+    def auto_denoise(self) -> str:
+        return "none"  # not measured on photos yet
 
     def preview_denoise(self, dcfg: Decomposer) -> bool:
         return False
@@ -141,7 +139,7 @@ class RawCapture(Capture):
     def noise_downscale(self, downscale: float) -> float:
         return float(downscale)  # measured on the full-size files
 
-    def auto_denoise(self, noisy: Callable[[], bool]) -> str:
+    def auto_denoise(self) -> str:
         return "chroma"  # +0.02..+0.21 SSIM on the raw ladder at 1000 e- (issue 64)
 
     def preview_denoise(self, dcfg: Decomposer) -> bool:

@@ -400,11 +400,17 @@ class Distributed:
         needed = cfg.method in ("retinexgs", "pre") and dcfg.method != "none"
         mine = scene.train[self.rank::self.world] if needed else []
         if mine:
+            from retinexgs.train.view_setup import denoise_spec  # the trainer's own choice of denoiser
+
+            # The entries the trainer reads: under decomposer.denoise, the denoised views' (keyed by its recipe,
+            # which every rank measures from the same views), else the plain ones.
+            spec = denoise_spec(scene.train, cfg, device)
             decompose_images([v.image_path for v in mine], dcfg.method, dict(dcfg.params) or None,
                              cache_dir=scene_cache_root(scene.root, cfg.data.cache_dir),
                              device=dcfg.device or device, keep=False, progress=progress and self.is_main,
                              cache_hint="--set data.cache_dir=DIR", sweep=False, raw_denoise=dcfg.raw.preview_denoise,
-                             balance=mine[0].balance, names=[v.source_path or v.image_path for v in mine])
+                             balance=mine[0].balance, names=[v.source_path or v.image_path for v in mine],
+                             denoise=spec)
         self.barrier("every rank's share of the decomposition")
 
     def training_stats(self, batch: int, views: int, seconds: float, time_to_first_step: Optional[float],

@@ -17,7 +17,7 @@ from retinexgs.retinex.denoise import DenoiseSpec, noise_model
 from retinexgs.run.render import view_camera
 from retinexgs.config.schema import Config
 from retinexgs.train.noise import measure_capture_noise
-from retinexgs.train.sfm_preview import previews_noise_sigma
+from retinexgs.train.sfm_preview import AUTO_MIN_SIGMA, previews_noise_sigma
 from retinexgs.train.streamed_views import StreamedViews
 from retinexgs.train.view_store import (ViewStore, check_store_space, store_fingerprint, store_path, store_tag,
                                         store_size_estimate)
@@ -31,31 +31,43 @@ def scene_extent(scene: Scene) -> float:
     return float(1.1 * (centers - centers.mean(0)).norm(dim=-1).max().clamp_min(1e-3))
 
 
-def noisy_photos(paths: Sequence[Path], sigma: Optional[float]) -> bool:
-    """Whether photos ``paths`` are night-noisy: their brightened previews' noise σ
-    (:func:`~retinexgs.train.sfm_preview.previews_noise_sigma`, the gate of SfM's denoiser) above ``sigma``
-    (``decomposer.denoise_photo_sigma``; None: never)."""
-    return bool(paths) and sigma is not None and previews_noise_sigma(paths, raw=False) > sigma
+# The note that suggests the denoiser for photos as noisy as a night capture: their brightened previews' σ above SfM's
+# gate (AUTO_MIN_SIGMA). Not applied by itself: the ladder's camera JPEGs at 1000 e- (σ 0.12-0.16) gained +0.12 to +0.34
+# SSIM with it, but the demo scene (σ 0.115) lost 0.3 dB and 0.023 SSIM (experiments/notes/2026-11-29-night-ladder-gpu.md).
+NIGHT_PHOTO_NOTE = ("note: these photos are as noisy as a night capture (previews' noise σ {sigma:.3f} > {gate:g}): "
+                    "--set decomposer.denoise=chroma decomposes them after a denoiser (night JPEGs: +0.12 to +0.34 "
+                    "SSIM, docs/benchmarks.md)")
 
 
-def denoise_spec(views: List[View], cfg: Config, device: str) -> Optional[DenoiseSpec]:
+def denoise_spec(views: List[View], cfg: Config, device: str,
+                 note: Optional[Callable[[str], None]] = None) -> Optional[DenoiseSpec]:
     """What ``decomposer.denoise`` reads the views through (None when ``none``): the method and the views' noise in
     the light of the images decomposed, as training measures it: a raw scene's :class:`RawNoise` (DNG NoiseProfile
     or the mosaic's estimate), a photo scene's :class:`CaptureNoise` (already at the training resolution);
-    ``data.downscale`` and the white balance applied. UserError (one line) when it cannot be measured."""
+    ``data.downscale`` and the white balance applied. UserError (one line) when it cannot be measured. ``note``:
+    where ``auto`` leaves photos as they are, it is told (one line) when they are as noisy as a night capture."""
     capture = capture_of_files([v.user_path for v in views])
     method = auto = cfg.decomposer.denoise
     sources = [v.source_path if v.source_path is not None and Path(v.source_path).is_file() else v.image_path
                for v in views]
-    if auto == "auto":  # the capture's choice (raw: chroma; photos: chroma where they are night-noisy)
-        method = capture.auto_denoise(lambda: noisy_photos(sources, cfg.decomposer.denoise_photo_sigma))
+    if auto == "auto":  # the capture's choice (raw: chroma; photos: none, see NIGHT_PHOTO_NOTE)
+        method = capture.auto_denoise()
+        if method == "none" and note is not None and sources:
+            sigma = previews_noise_sigma(sources, raw=False)
+            if sigma > AUTO_MIN_SIGMA:
+                note(NIGHT_PHOTO_NOTE.format(sigma=sigma, gate=AUTO_MIN_SIGMA))
     if method == "none" or not views:
         return None
     noise = capture.noise(sources, lambda paths: measure_capture_noise(paths, cfg.data.downscale,
                                                                        torch.device(device)))
-    model = None if noise is None else noise_model(noise, views[0].balance,
-                                                   capture.noise_downscale(float(cfg.data.downscale)))
-    if model is None and auto == "auto":  # nothing flat to measure the noise on: the noisy views, as before
+    try:
+        model = None if noise is None else noise_model(noise, views[0].balance,
+                                                       capture.noise_downscale(float(cfg.data.downscale)))
+    except UserError:
+        if auto != "auto":  # a named denoiser the measured noise cannot drive: its own one-line reason
+            raise
+        model = None
+    if model is None and auto == "auto":  # nothing flat to measure the noise on (or no shot noise read): as before
         return None
     if model is None:
         raise UserError(f"decomposer.denoise={method}: the views' noise could not be measured (no flat area in any "
@@ -116,13 +128,15 @@ def prepare_views(cfg: Config, scene: Scene, device: torch.device, depth_prior: 
     # What set-up needs from every view (the illumination reference, the mean background): RetinexGS's.
     stats = ViewStatistics(cfg.model.enhancement.ref_quantile) if method == "retinexgs" else None
     priors: Optional[Iterator] = None
+    spec = None
     if needs_priors:
         log(f"2D priors: {cfg.decomposer.method} on {len(train)} views (cached per scene)")
+        spec = denoise_spec(train, cfg, str(dev), note=log)
     if not streamed:
         log(f"views: preloaded on the device ({gib(preload)} for {len(train)} views; streamed above "
                  f"train.views_on_device_gb={tcfg.views_on_device_gb:g})")
         if needs_priors:
-            priors = decompose_views(train, cfg, str(dev), progress, scene.root)
+            priors = decompose_views(train, cfg, str(dev), progress, scene.root, spec)
         views: List[TrainView] = []
         for i, v in enumerate(train):
             S = v.load_target().to(dev)
@@ -141,7 +155,6 @@ def prepare_views(cfg: Config, scene: Scene, device: torch.device, depth_prior: 
         return views, streamed, stats
     root = scene_cache_root(scene.root, cfg.data.cache_dir)
     dcfg = cfg.decomposer
-    spec = denoise_spec(train, cfg, str(dev)) if needs_priors else None
     tag = store_tag(entry_dir(root, dcfg.method, dict(dcfg.params) or None).name if needs_priors else "none",
                     needs_priors and scene.capture.preview_denoise(dcfg) and spec is None,
                     train[0].balance if train else None)
