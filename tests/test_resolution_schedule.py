@@ -196,3 +196,39 @@ def test_the_default_trains_bit_identically_to_the_loop_without_a_schedule(scene
     for name in pa:
         assert torch.equal(pa[name], pb[name]), name
     assert not torch.equal(pa["gaussians.means"], pc["gaussians.means"])  # the comparison sees a change
+
+
+def test_streamed_coarse_stages_keep_their_pooled_views_where_they_fit(scene_dir, tmp_path):
+    """Streamed views: a coarse stage whose pooled views fit train.views_on_device_gb fetches each full-size view
+    once a stage, not every step; the training is bit-identical to pooling every step (budget 0)."""
+    from retinexgs.train.streamed_views import StreamedViews
+
+    def trained(name, budget):
+        tr = trainer_for(scene_dir, tmp_path / name, ["steps=24", "train.resolution=[[0.25, 4], [0.5, 2]]",
+                                                      "train.stream_views=always",
+                                                      f"train.views_on_device_gb={budget}"])
+        fetched = []
+        get = StreamedViews.get
+
+        def counting(views, i, prefetch=True):
+            fetched.append((tr.step, int(i)))
+            return get(views, i, prefetch)
+
+        with pytest.MonkeyPatch.context() as m:
+            m.setattr(StreamedViews, "get", counting)
+            tr.train()
+        return tr, fetched
+
+    kept, fetched_kept = trained("kept", 2)
+    pooled, fetched_pooled = trained("pooled", 0)
+    assert kept.streamed and pooled.streamed
+    assert kept.resolution.keeps_streamed(4) and kept.resolution.keeps_streamed(2)
+    assert not pooled.resolution.keeps_streamed(4)
+    stage = lambda fetched, lo, hi: [i for s, i in fetched if lo <= s <= hi]  # noqa: E731
+    for lo, hi in ((1, 6), (7, 12)):  # the coarse stages: each of the 3 views fetched once when kept
+        assert sorted(stage(fetched_kept, lo, hi)) == sorted(set(stage(fetched_pooled, lo, hi)))
+        assert len(stage(fetched_pooled, lo, hi)) == 6  # every step when not
+    assert len(stage(fetched_kept, 13, 24)) == len(stage(fetched_pooled, 13, 24)) == 12  # full size: every step
+    pk, pp = dict(kept.model.named_parameters()), dict(pooled.model.named_parameters())
+    for name in pk:
+        assert torch.equal(pk[name], pp[name]), name

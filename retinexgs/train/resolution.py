@@ -20,7 +20,10 @@ A view downsampled by k (:func:`downscale_view`):
 
 Preloaded views are pooled once per (view, downsample) and kept on the device while that stage lasts (at 1/k a
 view costs 1/k² of its full-size memory; a stage's copies are freed when the schedule leaves it). Streamed views
-live in reused slots valid for one step: they are pooled every step they are used (a few kernels), not kept.
+live in reused slots valid for one step; a stage whose pooled views all fit ``train.views_on_device_gb`` (the budget
+the full-size views did not fit) keeps their pooled copies too, so that each view crosses to the device once a stage
+instead of every step (a 12 MP view is ~130 MB a step, the pooled one at 1/4 ~8 MB once); a stage they do not fit
+pools every step its view is used (a few kernels), keeping nothing.
 
 How the rest of training reads a downscaled step:
 
@@ -44,7 +47,7 @@ How the rest of training reads a downscaled step:
 """
 from __future__ import annotations
 
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import Callable, Dict, List, Optional, Sequence, Tuple, Union
 
 import torch.nn.functional as F
 from torch import Tensor
@@ -109,12 +112,22 @@ class ResolutionSchedule:
                                 f"got {k1} after {k0}")
         self._cache: Dict[int, TrainView] = {}  # view index -> pooled view, for the current downsample
         self._cache_k = 1
+        self._keep_streamed: Dict[int, bool] = {}  # downsample -> whether a streamed run keeps its pooled views
         self._checked: set = set()  # (view index, k) whose pooled size was checked
 
     @classmethod
     def from_config(cls, cfg: Config) -> "ResolutionSchedule":
         """The schedule of ``cfg.train.resolution`` for ``cfg.steps``."""
         return cls([(at_step(u, cfg.steps), k) for u, k in cfg.train.resolution], cfg.steps)
+
+    def plan_streamed(self, pixels: int, bytes_per_pixel: int, budget_gb: float) -> None:
+        """For streamed views of ``pixels`` in all: keep a stage's pooled views on the device where they fit
+        ``budget_gb`` (10^9 bytes, ``train.views_on_device_gb``) at ``bytes_per_pixel`` (a preloaded view's)."""
+        self._keep_streamed = {k: pixels / (k * k) * bytes_per_pixel <= budget_gb * 1e9 for _, k in self.stages if k > 1}
+
+    def keeps_streamed(self, k: int) -> bool:
+        """Whether a streamed run keeps the pooled views of downsample ``k`` (:meth:`plan_streamed`)."""
+        return self._keep_streamed.get(k, False)
 
     @property
     def enabled(self) -> bool:
@@ -135,27 +148,31 @@ class ResolutionSchedule:
         parts = [f"1/{k} until step {u}" if k > 1 else f"full size until step {u}" for u, k in self.stages]
         return "resolution: " + ", ".join(parts) + ", full size after"
 
-    def view_at(self, tv: TrainView, index: int, step: int, cache: bool = True) -> TrainView:
-        """The view ``tv`` (view ``index`` of the run) as ``step`` trains on it: ``tv`` itself at full size,
-        else its downscaled twin, kept on the device for the stage's later steps where ``cache`` (preloaded
-        views; a streamed view's slot is reused, so it is pooled every time)."""
+    def view_at(self, tv: Union[TrainView, Callable[[], TrainView]], index: int, step: int,
+                cache: bool = True) -> TrainView:
+        """The view ``tv`` (view ``index`` of the run; or a function that fetches it, called only when it is
+        needed) as ``step`` trains on it: the view itself at full size, else its downscaled twin, kept on the device
+        for the stage's later steps where ``cache`` (preloaded views) or :meth:`keeps_streamed` (streamed views
+        whose pooled copies fit the device budget); otherwise pooled every time (a streamed view's slot is reused)."""
         k = self.downsample_at(step)
         if k != self._cache_k:  # a new stage: the previous one's pooled views are not needed again
             self._cache.clear()
             self._cache_k = k
         if k == 1:
-            return tv
-        if (index, k) not in self._checked:
-            W, H = tv.camera.width // k, tv.camera.height // k
-            if min(W, H) < MIN_SIDE:
-                raise UserError(f"train.resolution: downsample {k} makes training view {index} "
-                                f"({tv.camera.width}x{tv.camera.height}) {W}x{H}, below {MIN_SIDE} px a side: "
-                                "use a smaller downsample")
-            self._checked.add((index, k))
-        pooled: Optional[TrainView] = self._cache.get(index) if cache else None
+            return tv() if callable(tv) else tv
+        keep = cache or self.keeps_streamed(k)
+        pooled: Optional[TrainView] = self._cache.get(index) if keep else None
         if pooled is None:
-            pooled = downscale_view(tv, k)
-            if cache:
+            full = tv() if callable(tv) else tv
+            if (index, k) not in self._checked:
+                W, H = full.camera.width // k, full.camera.height // k
+                if min(W, H) < MIN_SIDE:
+                    raise UserError(f"train.resolution: downsample {k} makes training view {index} "
+                                    f"({full.camera.width}x{full.camera.height}) {W}x{H}, below {MIN_SIDE} px a "
+                                    "side: use a smaller downsample")
+                self._checked.add((index, k))
+            pooled = downscale_view(full, k)
+            if keep:
                 self._cache[index] = pooled
         return pooled
 

@@ -32,7 +32,7 @@ from retinexgs.train.objective import build_objective, enhancement_objective  # 
 from retinexgs.train.stop import DeferredStop
 from retinexgs.train.view_setup import near_plane, prepare_views, scene_extent, view_statistics
 from retinexgs.train.resolution import ResolutionSchedule
-from retinexgs.train.views import TrainView
+from retinexgs.train.views import TrainView, preload_bytes_per_pixel
 
 
 def open_tensorboard(cfg: Config, run: Path, log: Callable[[str], None]):
@@ -87,6 +87,11 @@ class Trainer:
         self.order: List[int] = []  # the rest of this epoch's view order (saved, so resume continues it)
         self.views, self.streamed, self._stats = prepare_views(cfg, scene, self.device, self.depth_prior, dist,
                                                                progress, log, self._upcoming_views)
+        if self.streamed:  # a coarse stage keeps its pooled views where they fit the budget the full-size ones did not
+            priors = self.method in ("retinexgs", "pre") and cfg.decomposer.method != "none"
+            self.resolution.plan_streamed(sum(v.width * v.height for v in scene.train),
+                                          preload_bytes_per_pixel(self.method, priors, self.depth_prior),
+                                          cfg.train.views_on_device_gb)
         self.extent = scene_extent(scene)
         self.step = 0
         state = None
@@ -354,8 +359,8 @@ class Trainer:
                 self.dist.test_fault(self.step)
                 check = (self.step % self.cfg.log.every == 0 or self.step == end
                          or self.step % self.cfg.checkpoint.every == 0)
-                views = [self.resolution.view_at(self.views[i], i, self.step, cache=not self.streamed)
-                         for i in indices]
+                views = [self.resolution.view_at((lambda i=i: self.views[i]) if self.streamed else self.views[i], i,
+                                                 self.step, cache=not self.streamed) for i in indices]
                 if self.step > first and self.strategy.edits_at(self.step):
                     if timed_from is None:
                         self._sync()
