@@ -31,12 +31,12 @@ from __future__ import annotations
 
 import contextlib
 from pathlib import Path
-from typing import Iterator, List, Tuple
+from typing import Callable, Iterator, List, Tuple
 
 import numpy as np
 import torch
 
-from retinexgs.data.camera_raw import GPR_ADVICE, GPR_EXTENSIONS, is_raw_path
+from retinexgs.data.camera_raw import GPR_ADVICE, GPR_EXTENSIONS, is_raw_path, read_view_linear
 from retinexgs.errors import UserError
 from retinexgs.fileio import atomic_write
 # The one list of readable types (retinexgs/formats.py, light enough for --help texts), re-exported here.
@@ -263,6 +263,27 @@ def read_image_float(path: Path, unclipped: bool = False) -> np.ndarray:
     except Exception as exc:
         raise UserError(f"cannot read image {path}: {exc}") from None
     return rgb.astype(np.float32) / 255.0
+
+
+def read_image_for_part(path: Path, part: Callable[[np.ndarray], np.ndarray]) -> Tuple[np.ndarray, bool]:
+    """(image, whether any value of the whole image is above 0) for a reader that uses only ``part`` of
+    :func:`read_image_float`'s image (``part``: the slicing of an [H,W,3] array it applies, e.g. a centre crop). A
+    camera raw file's view is sRGB-encoded only in ``part`` (per value: the same bits as the whole view's; ~1 s less
+    a 12 MP view) and returned as that part, a view with the whole image's strides (numpy's sums follow the memory
+    layout: a reduction over it gives the same figures to the last bit); another image is returned whole (decoded
+    whole anyway; a reader may crop it otherwise, e.g. on its JPEG block grid)."""
+    path = Path(path)
+    if not is_raw_path(path):
+        image = read_image_float(path)
+        return image, bool(np.any(image > 0))
+    from retinexgs.data.srgb import linear_to_srgb
+
+    rgb = read_view_linear(path)
+    lit = bool(np.any(rgb > 0))  # the view is above 0 exactly where its light is (the curve: 0 -> 0, increasing)
+    whole = np.empty_like(rgb)  # only the part is written (and its pages touched)
+    out = part(whole)
+    out[...] = linear_to_srgb(np.ascontiguousarray(part(rgb)))  # contiguous: numpy's vector loops, as the whole
+    return out, lit
 
 
 def read_image(path: Path) -> np.ndarray:
