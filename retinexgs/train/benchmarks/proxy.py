@@ -26,6 +26,7 @@ from retinexgs.evaluate.metrics import psnr, ssim_metric
 from retinexgs.model.tone import tone_map
 from retinexgs.train import losses
 from retinexgs.run.folder import open_scene
+from retinexgs.train.sfm_preview import scene_sfm_denoise
 from retinexgs.retinex import decompose
 from retinexgs.config.schema import Config
 from retinexgs.run.config import load_config
@@ -100,7 +101,7 @@ def texture_split(R: torch.Tensor, L: torch.Tensor) -> float:
 def _views(scene_dir: Path, n: int, cfg: Config) -> List[Tuple[torch.Tensor, torch.Tensor]]:
     """(dark image, normal-light image) of ``n`` evenly spaced paired training views."""
 
-    scene = open_scene(scene_dir, cfg)
+    scene = open_scene(scene_dir, cfg, sfm_denoise=scene_sfm_denoise(cfg.data.sfm_denoise))  # as train opens it
     paired = [v for v in scene.train if v.paired_path is not None] or [v for v in scene.test if v.paired_path]
     if not paired:
         raise SystemExit(f"{scene_dir}: no view has a normal-light pair; the proxy needs them for scoring")

@@ -41,6 +41,7 @@ from retinexgs.model.retinex_model import RetinexGSModel
 from retinexgs.train import losses
 from retinexgs.run.config import load_config
 from retinexgs.run.folder import open_scene
+from retinexgs.train.sfm_preview import scene_sfm_denoise
 from retinexgs.train.trainer import Trainer
 from retinexgs.errors import UserError
 
@@ -202,7 +203,9 @@ def trainer_step(scene_path: Path, config: List[str], device: torch.device, run_
     key=value items (e.g. ``train.stream_views=always``)."""
 
     cfg = load_config(config, list(overrides or []))
-    tr = Trainer(cfg, open_scene(scene_path, cfg), run_dir, str(device), progress=False, log=lambda s: None)
+    # The scene as train opens it (a bare night folder's SfM through data.sfm_denoise's previews)
+    scene = open_scene(scene_path, cfg, sfm_denoise=scene_sfm_denoise(cfg.data.sfm_denoise))
+    tr = Trainer(cfg, scene, run_dir, str(device), progress=False, log=lambda s: None)
 
     def step() -> None:  # the body of Trainer.train's loop, without its logging and checkpoints
         if not tr.order:
