@@ -535,6 +535,17 @@ mode_tests() {
   finish $rc
 }
 
+# The large scene of `python -m retinexgs.bench BENCH ARGS` generated (on the GPU) while the extension builds: it
+# needs neither the build nor the wheels. Then the build and the training wheels are ready too.
+generate_while_building() {
+  local bench=$1; shift
+  timeout "$LIMIT" python3 -m retinexgs.bench "$bench" "$@" --generate-only > "$LOGS/generate.log" 2>&1 &
+  local gen=$!
+  setup_build; need_train_wheels
+  wait $gen || { tail -20 "$LOGS/generate.log"; die "the scene's generation failed (generate.log in logs.tgz)"; }
+  grep -E "^scene:|views/s" "$LOGS/generate.log" | tail -2
+}
+
 # ------------------------------------------------------------------------------------------------------ scale
 mode_scale() {
   if [ ! -f retinexgs/bench/scale.py ] && [ ! -f retinexgs/bench/scale/__init__.py ]; then
@@ -565,12 +576,7 @@ mode_scale() {
   [ $have_out = 1 ] || args+=(--out "$out")
   setup_env
   [ $stage = 1 ] && stage_data
-  # The scene is generated (on the GPU) while the extension builds: it needs neither the build nor the wheels.
-  timeout "$LIMIT" python3 -m retinexgs.bench scale "${args[@]}" --generate-only > "$LOGS/generate.log" 2>&1 &
-  local gen=$!
-  setup_build; need_train_wheels
-  wait $gen || { tail -20 "$LOGS/generate.log"; die "the scene's generation failed (generate.log in logs.tgz)"; }
-  grep -E "^scene:|views/s" "$LOGS/generate.log" | tail -2
+  generate_while_building scale "${args[@]}"
   local left=$(( LIMIT - $(elapsed) )) rc
   [ "$left" -gt 0 ] || die "no time left under --limit $LIMIT"
   timeout "$left" python3 -m retinexgs.bench scale "${args[@]}" 2>&1 | tee "$LOGS/scale.log"
@@ -603,12 +609,7 @@ mode_bigraw() {
   [ -n "$next" ] && die "--$next needs a value"
   [ $have_out = 1 ] || args+=(--out "$out")
   setup_env
-  # The scene is generated (on the GPU) while the extension builds: it needs neither the build nor the wheels.
-  timeout "$LIMIT" python3 -m retinexgs.bench bigraw "${args[@]}" --generate-only > "$LOGS/generate.log" 2>&1 &
-  local gen=$!
-  setup_build; need_train_wheels
-  wait $gen || { tail -20 "$LOGS/generate.log"; die "the scene's generation failed (generate.log in logs.tgz)"; }
-  grep -E "^scene:|views/s" "$LOGS/generate.log" | tail -2
+  generate_while_building bigraw "${args[@]}"
   # The benchmark's own --limit stops a training cleanly (SIGINT, 30 s grace) 40 s before this script's: the
   # tables and the copy below still get done; timeout is the backstop.
   local left=$(( LIMIT - $(elapsed) )) rc
