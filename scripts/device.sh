@@ -535,6 +535,34 @@ mode_tests() {
   finish $rc
 }
 
+# The arguments of a large-scene bench mode (scale, bigraw): every one goes to the benchmark but --limit (this
+# script's); --scene NAME not an existing path is a scene under .data (staged to /tmp/data); without --out the tables
+# go to DEFAULT_OUT (generated scenes stay in /tmp). Usage: bench_args DEFAULT_OUT ARG...; sets BARGS (the
+# benchmark's arguments), BOUT (its --out) and BSTAGE (1: stage_data is needed).
+bench_args() {
+  BOUT=$1; shift
+  BARGS=() BSTAGE=0
+  local have_out=0 a next=
+  for a in "$@"; do
+    case $next in
+      limit) LIMIT=$a; next=; continue ;;
+      scene) [[ $a == /* ]] || [ -e "$a" ] || { a=/tmp/data/$a; BSTAGE=1; }; next= ;;
+      out) BOUT=$a; next= ;;
+    esac
+    case $a in
+      --limit) next=limit; continue ;;
+      --limit=*) LIMIT=${a#*=}; continue ;;
+      --scene) next=scene ;;
+      --scene=*) a=${a#*=}; [[ $a == /* ]] || [ -e "$a" ] || { a=/tmp/data/$a; BSTAGE=1; }; a=--scene=$a ;;
+      --out) next=out; have_out=1 ;;
+      --out=*) BOUT=${a#*=}; have_out=1 ;;
+    esac
+    BARGS+=("$a")
+  done
+  [ -n "$next" ] && die "--$next needs a value"
+  [ $have_out = 1 ] || BARGS+=(--out "$BOUT")
+}
+
 # The large scene of `python -m retinexgs.bench BENCH ARGS` generated (on the GPU) while the extension builds: it
 # needs neither the build nor the wheels. Then the build and the training wheels are ready too.
 generate_while_building() {
@@ -553,29 +581,10 @@ mode_scale() {
     exit 2
   fi
   LIMIT=${LIMIT:-560}
-  # Every argument goes to the benchmark but --limit (this script's); --scene NAME not an existing path is a scene
-  # under .data (staged to /tmp/data); without --out the tables go to /tmp/scale; generated scenes stay in /tmp.
-  local args=() out=/tmp/scale have_out=0 stage=0 a next=
-  for a in "$@"; do
-    case $next in
-      limit) LIMIT=$a; next=; continue ;;
-      scene) [[ $a == /* ]] || [ -e "$a" ] || { a=/tmp/data/$a; stage=1; }; next= ;;
-      out) out=$a; next= ;;
-    esac
-    case $a in
-      --limit) next=limit; continue ;;
-      --limit=*) LIMIT=${a#*=}; continue ;;
-      --scene) next=scene ;;
-      --scene=*) a=${a#*=}; [[ $a == /* ]] || [ -e "$a" ] || { a=/tmp/data/$a; stage=1; }; a=--scene=$a ;;
-      --out) next=out; have_out=1 ;;
-      --out=*) out=${a#*=}; have_out=1 ;;
-    esac
-    args+=("$a")
-  done
-  [ -n "$next" ] && die "--$next needs a value"
-  [ $have_out = 1 ] || args+=(--out "$out")
+  bench_args /tmp/scale "$@"
+  local args=("${BARGS[@]}") out=$BOUT
   setup_env
-  [ $stage = 1 ] && stage_data
+  [ "$BSTAGE" = 1 ] && stage_data
   generate_while_building scale "${args[@]}"
   local left=$(( LIMIT - $(elapsed) )) rc
   [ "$left" -gt 0 ] || die "no time left under --limit $LIMIT"
@@ -591,24 +600,10 @@ mode_scale() {
 mode_bigraw() {
   [ -f retinexgs/bench/bigraw.py ] || { echo "device.sh bigraw: retinexgs.bench.bigraw is not in this build" >&2; exit 2; }
   LIMIT=${LIMIT:-560}
-  # Every argument goes to the benchmark but --limit (this script's); without --out the tables go to /tmp/bigraw.
-  local args=() out=/tmp/bigraw have_out=0 a next=
-  for a in "$@"; do
-    case $next in
-      limit) LIMIT=$a; next=; continue ;;
-      out) out=$a; next= ;;
-    esac
-    case $a in
-      --limit) next=limit; continue ;;
-      --limit=*) LIMIT=${a#*=}; continue ;;
-      --out) next=out; have_out=1 ;;
-      --out=*) out=${a#*=}; have_out=1 ;;
-    esac
-    args+=("$a")
-  done
-  [ -n "$next" ] && die "--$next needs a value"
-  [ $have_out = 1 ] || args+=(--out "$out")
+  bench_args /tmp/bigraw "$@"
+  local args=("${BARGS[@]}") out=$BOUT
   setup_env
+  [ "$BSTAGE" = 1 ] && stage_data
   generate_while_building bigraw "${args[@]}"
   # The benchmark's own --limit stops a training cleanly (SIGINT, 30 s grace) 40 s before this script's: the
   # tables and the copy below still get done; timeout is the backstop.
