@@ -78,15 +78,13 @@ def denoise_spec(views: List[View], cfg: Config, device: str,
 
 
 def decompose_views(views: List[View], cfg: Config, device: str, progress: bool, scene_root: Path,
-                    denoise: Optional[DenoiseSpec] = None) -> Iterator:
+                    denoise: Optional[DenoiseSpec]) -> Iterator:
     """(R, L) per view, one view at a time, from the per-scene cache (computed and written where missing;
     ``retinexgs decompose`` fills the same cache, see :func:`retinexgs.retinex.cache.scene_cache_root`). Run it
-    to its end: the cache's sweep of other photos' entries follows the last view. ``denoise``: the
-    :func:`denoise_spec` already made (else made here when ``decomposer.denoise`` asks for it)."""
+    to its end: the cache's sweep of other photos' entries follows the last view. ``denoise``: the views'
+    :func:`denoise_spec` (None: the views as they are)."""
 
     dcfg = cfg.decomposer
-    if denoise is None:
-        denoise = denoise_spec(views, cfg, device)
     return iter_decompositions([v.image_path for v in views], dcfg.method, dict(dcfg.params) or None,
                                cache_dir=scene_cache_root(scene_root, cfg.data.cache_dir),
                                device=dcfg.device or device, progress=progress,
