@@ -563,11 +563,17 @@ bench_args() {
   [ $have_out = 1 ] || BARGS+=(--out "$BOUT")
 }
 
-# The large scene of `python -m retinexgs.bench BENCH ARGS` generated (on the GPU) while the extension builds: it
-# needs neither the build nor the wheels. Then the build and the training wheels are ready too.
-generate_while_building() {
-  local bench=$1; shift
-  timeout "$LIMIT" python3 -m retinexgs.bench "$bench" "$@" --generate-only > "$LOGS/generate.log" 2>&1 &
+# The set-up of a large-scene bench mode: its arguments (bench_args; LIMIT defaults to 560 s), the environment, the
+# scenes where --scene names one under .data, then the large scene of `python -m retinexgs.bench BENCH ARGS`
+# generated (on the GPU) while the extension builds (it needs neither the build nor the wheels); the build and the
+# training wheels are ready after it. Usage: large_scene_setup BENCH DEFAULT_OUT ARG...; sets BARGS and BOUT.
+large_scene_setup() {
+  local bench=$1 default_out=$2; shift 2
+  LIMIT=${LIMIT:-560}
+  bench_args "$default_out" "$@"
+  setup_env
+  [ "$BSTAGE" = 1 ] && stage_data
+  timeout "$LIMIT" python3 -m retinexgs.bench "$bench" "${BARGS[@]}" --generate-only > "$LOGS/generate.log" 2>&1 &
   local gen=$!
   setup_build; need_train_wheels
   wait $gen || { tail -20 "$LOGS/generate.log"; die "the scene's generation failed (generate.log in logs.tgz)"; }
@@ -580,12 +586,8 @@ mode_scale() {
     echo "device.sh scale: the large-scene benchmark (retinexgs.bench.scale) is not available in this build" >&2
     exit 2
   fi
-  LIMIT=${LIMIT:-560}
-  bench_args /tmp/scale "$@"
+  large_scene_setup scale /tmp/scale "$@"
   local args=("${BARGS[@]}") out=$BOUT
-  setup_env
-  [ "$BSTAGE" = 1 ] && stage_data
-  generate_while_building scale "${args[@]}"
   local left=$(( LIMIT - $(elapsed) )) rc
   [ "$left" -gt 0 ] || die "no time left under --limit $LIMIT"
   timeout "$left" python3 -m retinexgs.bench scale "${args[@]}" 2>&1 | tee "$LOGS/scale.log"
@@ -599,12 +601,8 @@ mode_scale() {
 # ----------------------------------------------------------------------------------------------------- bigraw
 mode_bigraw() {
   [ -f retinexgs/bench/bigraw.py ] || { echo "device.sh bigraw: retinexgs.bench.bigraw is not in this build" >&2; exit 2; }
-  LIMIT=${LIMIT:-560}
-  bench_args /tmp/bigraw "$@"
+  large_scene_setup bigraw /tmp/bigraw "$@"
   local args=("${BARGS[@]}") out=$BOUT
-  setup_env
-  [ "$BSTAGE" = 1 ] && stage_data
-  generate_while_building bigraw "${args[@]}"
   # The benchmark's own --limit stops a training cleanly (SIGINT, 30 s grace) 40 s before this script's: the
   # tables and the copy below still get done; timeout is the backstop.
   local left=$(( LIMIT - $(elapsed) )) rc
