@@ -2,6 +2,7 @@
 end to end (generate, darken --raw, a training of the DNGs with its priors inside), the second call reading the
 finished row back, the limit's clean cut-off, the row syntax, and bad options as one line."""
 import json
+import re
 import sys
 import time
 from pathlib import Path
@@ -69,6 +70,8 @@ def test_a_training_past_the_limit_is_stopped_and_its_progress_read(tmp_path):
     rc, wall, rss, cut = bigraw.run_until([sys.executable, "-c", script], tmp_path / "log", time.monotonic() + 1.5)
     assert cut and rc == 130 and wall < 20 and time.monotonic() - t0 < 20
     assert "checkpoint" in (tmp_path / "log").read_text()
+    lines = (tmp_path / "log").read_text().splitlines()
+    assert any(re.fullmatch(r"\[ +\d+\.\d s\] checkpoint", line) for line in lines), lines
     assert bigraw._progress(tmp_path) == (40, 2.0)
     rc, _, _, cut = bigraw.run_until([sys.executable, "-c", "pass"], tmp_path / "log2", None)
     assert rc == 0 and not cut
@@ -112,3 +115,10 @@ def test_a_scene_without_high_or_a_foreign_dark_folder_is_refused(tmp_path, caps
     assert bigraw.main(["--scene", str(tmp_path / "bare"), "--device", "cpu", "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "no high/ folder" in err[0], err
+
+
+def test_a_progress_bar_keeps_its_last_redraw_and_every_line_its_time(tmp_path):
+    script = ("import sys\nsys.stdout.write('start\\n 10%\\r 50%\\r100%\\nend')\n")
+    rc, _, _, _ = bigraw.run_until([sys.executable, "-c", script], tmp_path / "log", None)
+    lines = (tmp_path / "log").read_text().splitlines()
+    assert rc == 0 and [line.split("] ", 1)[1] for line in lines] == ["start", "100%", "end"], lines

@@ -36,6 +36,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Tuple
@@ -103,11 +104,15 @@ def run_until(cmd: Sequence[str], log: Path, deadline: Optional[float],
               env: Optional[Dict[str, str]] = None) -> Tuple[int, float, float, bool]:
     """Run ``cmd`` (output in ``log``) until it ends or ``deadline`` (time.monotonic()): (exit status, wall
     seconds, the largest RSS of its process tree in GB from wait4, cut off). At the deadline it gets SIGINT (a
-    training writes its checkpoint), then SIGKILL after :data:`GRACE_SECONDS`."""
+    training writes its checkpoint), then SIGKILL after :data:`GRACE_SECONDS`. Each line of the log starts with
+    the seconds since the start at which it was written (where a run's set-up spends its time); of a progress
+    bar's redraws (``\\r``) only the last before a newline is kept."""
     t0 = time.monotonic()
     cut = False
     with open(log, "w") as f:
-        p = subprocess.Popen(list(cmd), stdout=f, stderr=subprocess.STDOUT, env=env)
+        p = subprocess.Popen(list(cmd), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env)
+        reader = threading.Thread(target=_stamp_lines, args=(p.stdout, f, t0), daemon=True)
+        reader.start()
         try:
             while True:
                 pid, status, usage = os.wait4(p.pid, os.WNOHANG)
@@ -126,8 +131,30 @@ def run_until(cmd: Sequence[str], log: Path, deadline: Optional[float],
             p.kill()
             p.wait()
             raise
+        finally:
+            reader.join(timeout=5)  # a grandchild may hold the pipe open: the log is complete enough then
         p.returncode = os.waitstatus_to_exitcode(status)
     return p.returncode, time.monotonic() - t0, usage.ru_maxrss * 1024 / GB, cut
+
+
+def _stamp_lines(stream, out, t0: float) -> None:
+    """Copy ``stream`` (bytes) to the text file ``out`` line by line, each line prefixed with ``[  12.3 s]``."""
+    pending = b""
+    for chunk in iter(lambda: stream.read1(65536), b""):
+        pending += chunk
+        *lines, pending = pending.split(b"\n")
+        for line in lines:
+            _stamp(out, line, t0)
+        out.flush()
+    if pending:
+        _stamp(out, pending, t0)
+        out.flush()
+
+
+def _stamp(out, line: bytes, t0: float) -> None:
+    redraws = [part for part in line.split(b"\r") if part.strip()]  # a progress bar's last redraw
+    text = redraws[-1].decode(errors="replace").rstrip() if redraws else ""
+    out.write(f"[{time.monotonic() - t0:7.1f} s] {text}\n")
 
 
 def _progress(run: Path) -> Tuple[Optional[int], Optional[float]]:
