@@ -3,6 +3,7 @@ end to end (generate, darken --raw, a training of the DNGs with its priors insid
 finished row back, the limit's clean cut-off, the row syntax, and bad options as one line."""
 import json
 import re
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -122,3 +123,18 @@ def test_a_progress_bar_keeps_its_last_redraw_and_every_line_its_time(tmp_path):
     rc, _, _, _ = bigraw.run_until([sys.executable, "-c", script], tmp_path / "log", None)
     lines = (tmp_path / "log").read_text().splitlines()
     assert rc == 0 and [line.split("] ", 1)[1] for line in lines] == ["start", "100%", "end"], lines
+
+
+def test_a_capped_training_runs_under_the_cap_module(tmp_path):
+    rows = bigraw.parse_configs("default")
+    cmd = bigraw.train_command(tmp_path / "d", tmp_path / "r", tmp_path / "c", "cuda", rows[0], 100, [], 24.0)
+    assert cmd[1:5] == ["-m", "retinexgs.bench.capped", "24", "train"]
+    assert bigraw.main(["--gpu-memory-gb", "0"]) == 2
+
+
+@pytest.mark.parametrize("args, message", [
+    (["x", "train"], "GB must be a number"), (["24"], "usage"),
+])
+def test_the_cap_module_refuses_bad_arguments_in_one_line(args, message):
+    r = subprocess.run([sys.executable, "-m", "retinexgs.bench.capped", *args], capture_output=True, text=True)
+    assert r.returncode != 0 and message in r.stderr and len(r.stderr.strip().splitlines()) == 1

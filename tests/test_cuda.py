@@ -119,3 +119,19 @@ def test_cuda_rejects_too_many_channels():
         rasterize_gaussians(*args, cam)
     with pytest.raises(ValueError, match="at most 64"):
         rasterize_gaussians(*args[:4], args[4][:, :64], cam, render_depth=True)
+
+
+def test_the_evaluation_figures_on_the_gpu_are_the_cpus():
+    """eval scores a test view on the render's device (float64 there): every figure within float64 rounding of
+    the CPU's, on a view whose sides are not multiples of anything."""
+    from retinexgs.evaluate import metrics as M
+
+    g = torch.Generator().manual_seed(3)
+    gt = torch.rand(83, 121, 3, generator=g, dtype=torch.float64)
+    x = (gt * 0.7 + 0.1 * torch.rand(83, 121, 3, generator=g, dtype=torch.float64)).clamp(0, 1).float()
+    light = torch.rand(83, 121, 3, generator=g, dtype=torch.float64) * 1.5
+    for f in (M.psnr, M.ssim_metric, M.colour_error, M.black_lift):
+        assert f(x.cuda(), gt.cuda()) == pytest.approx(f(x, gt), rel=1e-9, abs=1e-12), f.__name__
+    assert torch.allclose(M.gt_mean_align(x.cuda(), gt.cuda()).cpu(), M.gt_mean_align(x, gt), atol=1e-12)
+    gpu, cpu = M.colour_split(light.cuda(), gt.cuda(), 0.8), M.colour_split(light, gt, 0.8)
+    assert gpu == pytest.approx(cpu, rel=1e-9, abs=1e-12)

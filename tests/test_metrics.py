@@ -328,3 +328,29 @@ def test_float64_filter_by_shifted_sums_is_the_depthwise_convolution(pad):
     (ga,) = torch.autograd.grad(out, x, g)
     (gb,) = torch.autograd.grad(ref, x, g)
     torch.testing.assert_close(ga, gb, rtol=1e-13, atol=1e-15)
+
+
+def test_a_contact_sheet_shrinks_its_panels_and_keeps_the_figures_full_size(tmp_path):
+    """eval.sheet_max_side: each panel shrunk by the smallest whole factor that fits (block means), the PNG that
+    much narrower; PSNR / SSIM are those of the full-size images, the same as with no shrinking."""
+    from PIL import Image
+
+    from retinexgs.evaluate.evaluate import LABEL_ROWS, evaluate, shrink_panel
+    from retinexgs.run.config import load_config
+
+    assert load_config([]).eval.sheet_max_side == 1920
+    img = torch.arange(7 * 9 * 3, dtype=torch.float32).reshape(7, 9, 3)
+    assert torch.equal(shrink_panel(img, 9), img)
+    small = shrink_panel(img, 4)  # 9 / 4 -> factor 3: 7x9 -> 2x3, the partial last row dropped
+    assert small.shape == (2, 3, 3)
+    assert small[1, 2].tolist() == img[3:6, 6:9].reshape(-1, 3).mean(0).tolist()
+    assert shrink_panel(img[..., :1], 9).shape == (7, 9, 3)  # a grey map shown as RGB
+    scene = _eval_scene(tmp_path, 48, 40)
+    render = lambda view: {"rgb": (view.paired_image.float() * 0.8).clamp(0, 1)}  # noqa: E731
+    full = evaluate(render, scene, tmp_path / "full", use_lpips=False, log=lambda s: None)
+    shrunk = evaluate(render, scene, tmp_path / "shrunk", use_lpips=False, log=lambda s: None, sheet_max_side=20)
+    assert shrunk["mean"] == full["mean"]
+    name = sorted((tmp_path / "full" / "renders" / "test").glob("*.png"))[0].name
+    w_full, h_full = Image.open(tmp_path / "full" / "renders" / "test" / name).size
+    w, h = Image.open(tmp_path / "shrunk" / "renders" / "test" / name).size
+    assert (w_full, h_full) == (3 * 48, 40 + LABEL_ROWS) and (w, h) == (3 * 16, 13 + LABEL_ROWS)

@@ -640,8 +640,9 @@ def test_a_big_photo_is_solved_whole_only_where_its_working_set_fits_the_free_me
     free = {"bytes": 10 * 2000 * lr3m_mod.WHOLE_BYTES_PER_PIXEL}
     monkeypatch.setattr(lr3m_mod, "free_memory_bytes", lambda device: free["bytes"])
     assert lr3m_mod.solve_whole(1000, 1, cpu, p)  # not above tile_pixels
-    assert lr3m_mod.solve_whole(2000, 5, cpu, p)  # 5 photos = half of the free memory
-    assert not lr3m_mod.solve_whole(2000, 6, cpu, p)
+    assert p.tile_memory_share == 0.75  # a 24 GB card solves a 12 MP photo whole
+    assert lr3m_mod.solve_whole(2000, 7, cpu, p)  # 7 photos: 70 % of the free memory
+    assert not lr3m_mod.solve_whole(2000, 8, cpu, p)  # 80 %
     assert not lr3m_mod.solve_whole(2000, 1, cpu, dataclasses.replace(p, tile_memory_share=0.0))
     free["bytes"] = None
     assert not lr3m_mod.solve_whole(2000, 1, cpu, p)
@@ -663,3 +664,20 @@ def test_free_memory_is_read_on_this_host(monkeypatch):
     assert one > 0
     monkeypatch.setenv("LOCAL_WORLD_SIZE", "4")
     assert free_memory_bytes(torch.device("cpu")) <= one // 2  # shared among the host's ranks
+
+
+def test_free_gpu_memory_stays_within_the_process_cap(monkeypatch):
+    """On CUDA: the driver's free memory plus the allocator's unused blocks, but no more than the per-process memory
+    fraction leaves (bench bigraw --gpu-memory-gb: a 24 GB card's share of a larger one); faked driver figures."""
+    from retinexgs.retinex.lr3m import free_memory_bytes
+    GB = 2**30
+    monkeypatch.setattr(torch.cuda, "mem_get_info", lambda device=None: (100 * GB, 140 * GB))
+    monkeypatch.setattr(torch.cuda, "memory_reserved", lambda device=None: 10 * GB)
+    monkeypatch.setattr(torch.cuda, "memory_allocated", lambda device=None: 4 * GB)
+    fraction = {"value": 1.0}
+    monkeypatch.setattr(torch.cuda, "get_per_process_memory_fraction", lambda device=None: fraction["value"])
+    assert free_memory_bytes(torch.device("cuda", 0)) == 106 * GB
+    fraction["value"] = 24 / 140
+    assert free_memory_bytes(torch.device("cuda", 0)) == 20 * GB
+    monkeypatch.setattr(torch.cuda, "memory_allocated", lambda device=None: 30 * GB)
+    assert free_memory_bytes(torch.device("cuda", 0)) == 0

@@ -85,10 +85,11 @@ def run_name(index: int, label: str) -> str:
 
 
 def train_command(data: Path, run: Path, cache: Path, device: str, row: Dict, steps: Optional[int],
-                  sets: Sequence[str]) -> List[str]:
+                  sets: Sequence[str], gpu_memory_gb: Optional[float] = None) -> List[str]:
     """The training of one row: its caches in ``cache`` (emptied before it runs: cold), --steps unless the row
-    sets its own."""
-    cmd = [sys.executable, "-m", "retinexgs", "train", "--data", str(data), "--out", str(run), "--device", device,
+    sets its own; under ``gpu_memory_gb`` (:mod:`retinexgs.bench.capped`) where given."""
+    launch = ["retinexgs"] if gpu_memory_gb is None else ["retinexgs.bench.capped", f"{gpu_memory_gb:g}"]
+    cmd = [sys.executable, "-m", *launch, "train", "--data", str(data), "--out", str(run), "--device", device,
            "--quiet", "--set", f"data.cache_dir={cache}"]
     if row["config"] != "default":
         cmd += ["--config", row["config"]]
@@ -232,7 +233,9 @@ def write_report(out: Path, report: Dict, rows: List[Dict]) -> str:
     d = report.get("darken") or {}
     head = (f"## 12 MP raw night scene (issue 65): {report['scene']['path']} "
             f"({report['scene'].get('train_views')} training views at {report['scene'].get('width')}x"
-            f"{report['scene'].get('height')}), device {report['device']}\n\n"
+            f"{report['scene'].get('height')}), device {report['device']}"
+            + (f", each training capped at {report['gpu_memory_gb']:g} GB of GPU memory" if report.get("gpu_memory_gb")
+               else "") + "\n\n"
             f"darken --raw: {_num(d.get('seconds'), '.1f')} s with {d.get('jobs')} jobs"
             + (" (reused from an earlier call)" if d.get("reused") else "") + "\n")
     md = head + "\n" + table(rows)
@@ -310,6 +313,8 @@ def main(argv: Sequence[str]) -> int:
                     help="seconds from the start after which the running training is stopped (SIGINT) and the rest "
                          "not run; the tables keep what finished")
     ap.add_argument("--device", default="auto", help="cuda, cpu or auto (generation and trainings)")
+    ap.add_argument("--gpu-memory-gb", type=float, default=None,
+                    help="cap each training's GPU memory at this many GB (2^30), as a smaller card (24: a 4090)")
     ap.add_argument("--out", type=Path, default=Path("runs/bigraw"), help="bigraw.md, bigraw.json, dark/, runs/")
     ap.add_argument("--fresh", action="store_true", help="darken and train again what an earlier call finished")
     ap.add_argument("--generate-only", action="store_true",
@@ -321,6 +326,8 @@ def main(argv: Sequence[str]) -> int:
             raise ValueError(f"--steps {args.steps}: must be >= 1")
         if args.jobs is not None and args.jobs < 1:
             raise ValueError(f"--jobs {args.jobs}: must be >= 1")
+        if args.gpu_memory_gb is not None and args.gpu_memory_gb <= 0:
+            raise ValueError(f"--gpu-memory-gb {args.gpu_memory_gb:g}: must be > 0")
         if args.limit is not None and args.limit <= 0:
             raise ValueError(f"--limit {args.limit:g}: must be > 0 seconds")
         if args.scene is None and (args.views < 1 or args.test_views < 1 or args.width < 2 or args.height < 2):
@@ -350,7 +357,7 @@ def _run(args: argparse.Namespace, rows: List[Dict], device: str) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     jobs = args.jobs or os.cpu_count() or 1
     report: Dict = {"scene": scene_info, "device": device, "configs": args.configs, "sets": list(args.set),
-                    "steps": args.steps, "limit": args.limit, "darken": None}
+                    "steps": args.steps, "limit": args.limit, "gpu_memory_gb": args.gpu_memory_gb, "darken": None}
     table_rows: List[Dict] = [dict(label=r["label"], status="not run") for r in rows]
     write_report(args.out, report, table_rows)
     report["darken"] = darken(scene, args.out, jobs, deadline, env, args.fresh)
@@ -362,7 +369,7 @@ def _run(args: argparse.Namespace, rows: List[Dict], device: str) -> int:
         name = run_name(i + 1, spec["label"])
         run = args.out / "runs" / name
         cache = args.out / "caches" / name  # not inside the run folder: train wants that one empty
-        cmd = train_command(data, run, cache, device, spec, args.steps, args.set)
+        cmd = train_command(data, run, cache, device, spec, args.steps, args.set, args.gpu_memory_gb)
         row: Dict = {"label": spec["label"], "run": str(run), "command": shlex.join(cmd[1:]),
                      "dark_made": report["darken"].get("made"),  # a row stands only for the DNGs it trained on
                      "planned_steps": next((int(s.split("=", 1)[1]) for s in reversed(cmd) if s.startswith("steps=")

@@ -365,6 +365,7 @@ class Checkpoint(Section):
 
 class Eval(Section):
     lpips: Bool  # on by default: LOM papers report LPIPS beside PSNR/SSIM, and the port needs no download
+    sheet_max_side: Int(64)  # the contact sheets' panels shrunk to fit: a sheet is for looking
 
 
 class Train(Section):

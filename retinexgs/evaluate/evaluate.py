@@ -71,7 +71,7 @@ PANEL_LABELS = ["dark input", "output", "R (reflectance)", "L (illumination)", "
 
 def evaluate(render_fn: Callable, scene: Scene, out_dir: Path, use_lpips: bool = True,
              log: Callable[[str], None] = print, extra: Optional[Dict] = None, shard: Tuple[int, int] = (0, 1),
-             gather: Optional[Callable[[Any], List[Any]]] = None) -> Optional[Dict]:
+             gather: Optional[Callable[[Any], List[Any]]] = None, sheet_max_side: int = 1920) -> Optional[Dict]:
     """Render every test view with ``render_fn(view) -> dict`` (key ``rgb``, optional ``R``, ``L``), compare
     with its paired normal-light image, write ``out_dir/renders/test/*.png`` and ``out_dir/metrics.json``.
 
@@ -79,6 +79,8 @@ def evaluate(render_fn: Callable, scene: Scene, out_dir: Path, use_lpips: bool =
     ``shard`` = (rank, ranks) with ``gather`` (every rank's object, in rank order, on every rank): this
     process renders and scores the test views ``i % ranks == rank`` (writing their PNGs); the rows are gathered
     into the test views' order, and rank 0 alone writes metrics.json (the same file as one process writes).
+    ``sheet_max_side`` (``eval.sheet_max_side``): the PNGs' panels are shrunk by a whole factor (area mean) until
+    each side fits it; the figures are always of the full-size images.
     """
     rank, ranks = shard
     views = [v for v in scene.test if v.paired_path is not None]
@@ -99,9 +101,12 @@ def evaluate(render_fn: Callable, scene: Scene, out_dir: Path, use_lpips: bool =
     for view in views[rank::ranks]:
         with torch.no_grad():
             res = render_fn(view)
-        gt = view.paired_image
-        low = view.image
-        rgb = res["rgb"].float().cpu()
+        # The figures on the render's device (metrics.py keeps its float64 there): on a GPU a 12 MP view's took
+        # ~25 s on the host's cores.
+        dev = res["rgb"].device
+        gt = torch.as_tensor(view.paired_image).to(dev)
+        low = torch.as_tensor(view.image).to(dev)
+        rgb = res["rgb"].float()
         aligned = gt_mean_align(rgb, gt)  # beside the plain figures: all but the exposure level (metrics.py)
         row = {"view": view.name, "psnr": psnr(rgb, gt), "ssim": ssim_metric(rgb, gt),
                "low_psnr": psnr(low, gt), "low_ssim": ssim_metric(low, gt),
@@ -109,10 +114,10 @@ def evaluate(render_fn: Callable, scene: Scene, out_dir: Path, use_lpips: bool =
                "delta_e_gt_mean": colour_error(rgb, gt), "low_delta_e_gt_mean": colour_error(low, gt),
                "black_lift": black_lift(rgb, gt), "low_black_lift": black_lift(low, gt)}
         # issue 64's colour speckle and blotches, on the render's device (its FFTs are the slow part on a CPU)
-        row["chroma_noise"], row["low_chroma_noise"] = chroma_noises([res["rgb"], low], gt, device=res["rgb"].device)
+        row["chroma_noise"], row["low_chroma_noise"] = chroma_noises([res["rgb"], low], gt, device=dev)
         band_top = min(band_top, chroma_band_px(gt.shape[0], gt.shape[1])[1])
         if "rgb_linear" in res:  # the colour error split: the light alone, and what the tone alone costs the truth
-            row.update(colour_split(res["rgb_linear"].double().cpu(), gt, res["knee"]))
+            row.update(colour_split(res["rgb_linear"].double(), gt, res["knee"]))
         if use_lpips and not lpips_reason and min(gt.shape[:2]) < LPIPS_MIN_SIZE:
             lpips_reason = f"the test images ({gt.shape[1]}x{gt.shape[0]}) are smaller than LPIPS's " \
                            f"{LPIPS_MIN_SIZE}x{LPIPS_MIN_SIZE} pixels"
@@ -120,7 +125,7 @@ def evaluate(render_fn: Callable, scene: Scene, out_dir: Path, use_lpips: bool =
             # As psnr / ssim: the output, its GT-mean alignment and the dark input, each against the truth, in one
             # batch on the render's device. The output clipped to [0, 1] (the network's range), as its PNG holds it.
             row["lpips"], row["lpips_gt_mean"], row["low_lpips"] = lpips_metrics(
-                [rgb.clamp(0.0, 1.0), aligned, low], gt, device=res["rgb"].device)
+                [rgb.clamp(0.0, 1.0), aligned, low], gt, device=dev)
         rows.append(row)
         panels = [low, rgb]
         labels = PANEL_LABELS[:2]
@@ -131,9 +136,8 @@ def evaluate(render_fn: Callable, scene: Scene, out_dir: Path, use_lpips: bool =
             labels = PANEL_LABELS[:4]
         panels.append(gt)
         labels = labels + PANEL_LABELS[4:]
-        save_png(torch.cat([p.float().cpu()[..., :3] if p.shape[-1] >= 3 else p.float().cpu().expand(
-            *p.shape[:-1], 3) for p in panels], dim=1), out_dir / "renders" / "test" / f"{Path(view.name).stem}.png",
-            labels)
+        save_png(torch.cat([shrink_panel(p, sheet_max_side) for p in panels], dim=1),
+                 out_dir / "renders" / "test" / f"{Path(view.name).stem}.png", labels)
         # One test view's images at a time: a big capture's test set is not kept in memory.
         view.release_images()
         del panels, low, gt, rgb, aligned
@@ -173,8 +177,22 @@ def evaluate(render_fn: Callable, scene: Scene, out_dir: Path, use_lpips: bool =
     return metrics
 
 
+def shrink_panel(img: torch.Tensor, max_side: int) -> torch.Tensor:
+    """One contact-sheet panel on the CPU as [H,W,3] float: an [H,W,C] image (C = 1 is repeated) shrunk by the
+    smallest whole factor that brings both sides to ``max_side`` or less (the mean of each factor × factor block;
+    edge rows and columns past a whole block dropped). A 12 MP view's five panels would make a 60 MP PNG that takes
+    seconds to write and is too large to look at; `retinexgs render` writes full-size images."""
+    x = img.detach().float()[..., :3]
+    if x.shape[-1] == 1:
+        x = x.expand(*x.shape[:-1], 3)
+    k = -(-max(x.shape[0], x.shape[1]) // max(int(max_side), 1))
+    if k > 1:
+        x = torch.nn.functional.avg_pool2d(x.permute(2, 0, 1)[None], k)[0].permute(1, 2, 0)
+    return x.cpu()
+
+
 def eval_run(run_dir: Path, device: Optional[str] = None, log: Callable[[str], None] = print) -> Optional[Dict]:
     """Re-evaluate a saved run (rewrites metrics.json and renders/test)."""
     cfg, scene, model, step = load_run(run_dir, device)
     return evaluate(render_function(model, cfg, active_sh_degree(cfg, step), linear=True), scene, Path(run_dir),
-                    cfg.eval.lpips, log)
+                    cfg.eval.lpips, log, sheet_max_side=cfg.eval.sheet_max_side)

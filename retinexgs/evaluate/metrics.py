@@ -79,7 +79,7 @@ def gaussian_filter_weights(c: int, size: int, sigma: float, dtype: torch.dtype,
 
 def gaussian_filter(x: torch.Tensor, size: int, sigma: float, pad: int) -> torch.Tensor:
     """Separable depthwise Gaussian filter of [B,C,H,W] with zero padding ``pad``."""
-    if x.dtype == torch.float64 and x.device.type == "cpu":
+    if x.dtype == torch.float64:
         return _shifted_sums(x, size, sigma, pad)
     c = x.shape[1]
     wx, wy = gaussian_filter_weights(c, size, sigma, x.dtype, x.device)
@@ -88,9 +88,9 @@ def gaussian_filter(x: torch.Tensor, size: int, sigma: float, pad: int) -> torch
 
 
 def _shifted_sums(x: torch.Tensor, size: int, sigma: float, pad: int) -> torch.Tensor:
-    """:func:`gaussian_filter` as weighted sums of shifted slices, for float64 on the CPU (the evaluation's
-    SSIM), where depthwise conv2d has no fast kernel: 1.2 s against 4.5 s for 15 channels at 1920x1080 on one
-    thread (2026-11-26), the same values (tests/test_metrics.py)."""
+    """:func:`gaussian_filter` as weighted sums of shifted slices, for float64 (the evaluation's SSIM), where
+    depthwise conv2d has no fast kernel: 1.2 s against 4.5 s for 15 channels at 1920x1080 on one CPU thread
+    (2026-11-26), the same values (tests/test_metrics.py); on a GPU 22 elementwise passes."""
     if pad:
         x = F.pad(x, (pad, pad, pad, pad))
     g = gaussian_window(size, sigma, torch.float64).tolist()
@@ -157,7 +157,9 @@ def _as_pair(x: ImageLike, y: ImageLike) -> Tuple[torch.Tensor, torch.Tensor]:
         x, y = x[..., None], y[..., None]
     if x.dim() != 3:
         raise ValueError(f"expected [H,W,3] or [H,W] images, got shape {tuple(x.shape)}")
-    return x.to("cpu", torch.float64), y.to("cpu", torch.float64)
+    # float64 on x's device: a test view's figures on the GPU that rendered it (a 12 MP view's took ~25 s on
+    # the host's cores), on the CPU otherwise; the same values to float64 rounding.
+    return x.to(torch.float64), y.to(x.device, torch.float64)
 
 
 def psnr(x: ImageLike, y: ImageLike) -> float:
@@ -193,7 +195,7 @@ def gt_mean_align(x: ImageLike, y: ImageLike) -> torch.Tensor:
     a, b = _as_pair(x, y)
     if a.shape[-1] not in (1, 3):
         raise ValueError(f"gt_mean_align needs RGB or grey images, got {a.shape[-1]} channels")
-    w = torch.tensor(_GREY if a.shape[-1] == 3 else (1.0,), dtype=torch.float64)
+    w = torch.tensor(_GREY if a.shape[-1] == 3 else (1.0,), dtype=torch.float64, device=a.device)
     ma, mb = float((a * w).sum(-1).mean()), float((b * w).sum(-1).mean())
     if not (math.isfinite(ma) and math.isfinite(mb)):
         raise ValueError("gt_mean_align: the images hold non-finite values")
@@ -216,6 +218,7 @@ def mean_colour_lab(x: ImageLike) -> Tuple[float, float, float]:
 
 def _lab_of_linear(lin: torch.Tensor) -> Tuple[float, float, float]:
     """CIELAB (D65) of one linear Rec.709 RGB colour [3] (float64)."""
+    lin = lin.cpu()  # three numbers
     xyz = torch.tensor(_RGB_TO_XYZ, dtype=torch.float64) @ lin / torch.tensor(_D65, dtype=torch.float64)
     f = torch.where(xyz > (6 / 29) ** 3, xyz.clamp_min(0) ** (1 / 3), xyz / (3 * (6 / 29) ** 2) + 4 / 29)
     return float(116 * f[1] - 16), float(500 * (f[0] - f[1])), float(200 * (f[1] - f[2]))
@@ -258,7 +261,7 @@ def _mean_colours(light: ImageLike, y: ImageLike, name: str) -> Tuple[torch.Tens
 
 
 def _ratio(mine: torch.Tensor, truth: torch.Tensor) -> float:
-    lum = torch.tensor(_RGB_TO_XYZ[1], dtype=torch.float64)
+    lum = torch.tensor(_RGB_TO_XYZ[1], dtype=torch.float64, device=mine.device)
     ya, yb = float(mine @ lum), float(truth @ lum)
     return ya / yb if yb > 0.0 else 0.0
 

@@ -168,6 +168,7 @@ def _train_and_evaluate(trainer: Trainer, cfg: Config, scene: Scene, run_dir: Pa
     stats["gaussians"] = len(trainer.model.gaussians)
     return evaluate(render_function(trainer.model, cfg, trainer.active_degree(cfg.steps), linear=True), scene, run_dir,
                     cfg.eval.lpips, log, extra={"train": stats}, shard=(dist.rank, dist.world),
+                    sheet_max_side=cfg.eval.sheet_max_side,
                     gather=(lambda rows: dist.gather_objects(rows, "the evaluation's rows")) if dist.enabled else None)
 
 

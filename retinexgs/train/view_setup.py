@@ -150,6 +150,7 @@ def prepare_views(cfg: Config, scene: Scene, device: torch.device, depth_prior: 
             views.append(tv)
         for _ in priors or ():  # the cache's sweep runs once the last view has gone by
             pass
+        release_set_up_memory(dev)
         return views, streamed, stats
     root = scene_cache_root(scene.root, cfg.data.cache_dir)
     dcfg = cfg.decomposer
@@ -177,6 +178,7 @@ def prepare_views(cfg: Config, scene: Scene, device: torch.device, depth_prior: 
         items = stream_set_up(train, priors, dev, stats)
         store = ViewStore.build(path, fingerprint, needs_priors, items, "--set data.cache_dir=DIR")
         fresh = stats
+        release_set_up_memory(dev)
     else:
         log(f"views: streamed from the view store {path} ({gib(store.nbytes)})")
     if shared and dist.rank == 0:
@@ -189,6 +191,14 @@ def prepare_views(cfg: Config, scene: Scene, device: torch.device, depth_prior: 
              (f"; the store held in {'pinned ' if dev.type == 'cuda' else ''}host memory ({gib(views.resident_bytes)}"
               f" <= train.views_pinned_gb={tcfg.views_pinned_gb:g})" if views.resident_bytes else ""))
     return views, streamed, fresh
+
+
+def release_set_up_memory(device: torch.device) -> None:
+    """Hand the cached blocks of the set-up's GPU work back to the driver before the first step. LR3M solves a 12 MP
+    photo whole in ~15 GB where they fit; kept by torch's caching allocator, they stay reserved beside training's own
+    blocks (the 12 MP raw scene peaked at 32.5 GB reserved for 17.8 GB allocated), which a 24 GB card lacks."""
+    if torch.device(device).type == "cuda":
+        torch.cuda.empty_cache()
 
 
 def view_statistics(cfg: Config, views: Sequence[TrainView], gathered: Optional[ViewStatistics]) -> ViewStatistics:
