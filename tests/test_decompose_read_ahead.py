@@ -60,3 +60,72 @@ def test_a_bad_photo_fails_when_its_turn_comes(tmp_path, monkeypatch):
             done.append(hit)
     assert len(done) == 3  # the three before it were decomposed and yielded first
     assert len(list((tmp_path / "c").rglob("*.npz"))) == 3
+
+
+def test_entries_written_behind_are_on_disk_and_the_same_photo_twice_in_a_row_is_reused(tmp_path):
+    """The entries are written on a thread while the next photo is decomposed (cache._WriteBehind): when the
+    iteration ends every entry is on disk, and a photo repeated at once waits for its entry instead of being
+    decomposed again."""
+    paths = _photos(tmp_path / "low", 3)
+    report = {}
+    got = [(r.clone(), l.clone()) for r, l in cache.iter_decompositions(
+        [paths[0], paths[0], paths[1], paths[2]], "lime", None, tmp_path / "c", "cpu", progress=False,
+        report=report)]
+    assert (report["computed"], report["reused"]) == (3, 1)
+    assert all(Path(f).is_file() for f in report["files"])
+    assert torch.equal(got[0][0], got[1][0]) and torch.equal(got[0][1], got[1][1])
+
+
+def test_a_failed_entry_write_is_raised_by_the_iteration(tmp_path, monkeypatch):
+    paths = _photos(tmp_path / "low", 3)
+
+    def fail(path, *a, **k):
+        raise UserError(f"cannot write the cache folder {path.parent}: No space left on device")
+
+    monkeypatch.setattr(cache, "save_entry", fail)
+    with pytest.raises(UserError, match="No space left"):
+        list(cache.iter_decompositions(paths, "lime", None, tmp_path / "c", "cpu", progress=False))
+
+
+def test_produced_ahead_keeps_order_values_and_errors():
+    assert list(cache.produced_ahead(iter(range(50)), depth=2)) == list(range(50))
+
+    def items():
+        yield 1
+        yield 2
+        raise UserError("photo 3 is unreadable")
+
+    got = []
+    with pytest.raises(UserError, match="photo 3"):
+        for x in cache.produced_ahead(items()):
+            got.append(x)
+    assert got == [1, 2]  # the error where its item would have come
+
+
+def test_produced_ahead_closed_early_stops_its_thread_and_closes_the_source():
+    import threading
+    import time
+
+    made, closed = [], []
+
+    def items():
+        try:
+            for i in range(1000):
+                made.append(i)
+                yield i
+        finally:
+            closed.append(threading.current_thread().name)
+
+    it = cache.produced_ahead(items(), depth=1, name="test-ahead")
+    assert next(it) == 0
+    it.close()
+    for _ in range(100):
+        if closed:
+            break
+        time.sleep(0.05)
+    assert closed == ["test-ahead"] and len(made) <= 3  # one given, at most one queued and one being made
+    for _ in range(100):  # the thread ends right after closing its source
+        if not [t for t in threading.enumerate() if t.name == "test-ahead"]:
+            break
+        time.sleep(0.05)
+    assert not [t for t in threading.enumerate() if t.name == "test-ahead"]

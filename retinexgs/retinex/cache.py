@@ -485,6 +485,7 @@ def iter_decompositions(image_paths: Sequence[PathLike], method: str = "lr3m", p
         return digest, read_image(p, raw_denoise, balance, denoise, root, cache_hint)
 
     ahead = _ReadAhead(prepare, paths, READ_AHEAD)
+    writer = _WriteBehind()  # an entry is written while the next photo is decomposed
     try:
         for n, p in enumerate(iterator):
             if not p.is_file():
@@ -493,6 +494,8 @@ def iter_decompositions(image_paths: Sequence[PathLike], method: str = "lr3m", p
             hashes.append(digest)
             meta = _source_meta(p, dec.cache_key(), dec.name, digest)
             target = by_hash.get(digest, folder / _entry_name(p, digest))  # any name: a renamed photo too
+            if writer.pending == digest:  # the same photo twice in a row: its entry is being written
+                writer.wait()
             hit = load_entry(target, meta)
             if hit is None:
                 target = folder / _entry_name(p, digest)
@@ -505,7 +508,7 @@ def iter_decompositions(image_paths: Sequence[PathLike], method: str = "lr3m", p
                     raise UserError(f"cannot decompose {shown.get(p, p)}: {exc}") from None
                 del image
                 r, l = r.to("cpu", torch.float32), l.to("cpu", torch.float32)
-                save_entry(target, r, l, {**meta, "source": p.name}, cache_hint)
+                writer.submit(digest, save_entry, target, r, l, {**meta, "source": p.name}, cache_hint)
                 by_hash[digest] = target
                 # What later runs will load is the float16 copy: return exactly that.
                 hit = (r.half().float(), l.half().float())
@@ -514,6 +517,7 @@ def iter_decompositions(image_paths: Sequence[PathLike], method: str = "lr3m", p
             else:
                 report["reused"] += 1
             if preview:
+                writer.wait()  # the preview's freshness is read from its entry's file
                 pv = folder / "preview" / f"{target.stem}.png"
                 if not pv.is_file() or pv.stat().st_mtime_ns < target.stat().st_mtime_ns:
                     _save_preview(pv, hit[0], hit[1], 2.2, cache_hint)
@@ -521,7 +525,9 @@ def iter_decompositions(image_paths: Sequence[PathLike], method: str = "lr3m", p
             image = None
             yield hit
             hit = None  # the caller's reference is the only one left
+        writer.wait()  # the last entry on disk (or its error raised) before the sweep and the end
     finally:
+        writer.close()
         ahead.close()
         if bar is not None:
             bar.close()
@@ -537,6 +543,85 @@ def iter_decompositions(image_paths: Sequence[PathLike], method: str = "lr3m", p
 # Photos read ahead of the one being decomposed (threads: decoding, numpy and the denoiser release the GIL). Few:
 # each is a full-size float image in host memory (a 12 MP one 144 MB) and may hold the GPU denoiser's buffers.
 READ_AHEAD = max(1, min(3, (os.cpu_count() or 1) - 1))
+
+
+class _WriteBehind:
+    """One write at a time on a thread: :meth:`submit` first waits for the previous write (so one entry's maps at most
+    are held for it) and raises its error, if any; :meth:`wait` waits for the last. A 12 MP entry (96 MB, fsynced)
+    takes ~0.5-0.9 s of host time, which the next photo's decomposition now covers."""
+
+    def __init__(self) -> None:
+        from concurrent.futures import ThreadPoolExecutor
+
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="retinexgs-decompose-write")
+        self._job = None
+        self.pending: Optional[str] = None  # the key of the write in flight
+
+    def submit(self, key: str, fn, *args) -> None:
+        self.wait()
+        self._job, self.pending = self._pool.submit(fn, *args), key
+
+    def wait(self) -> None:
+        job, self._job, self.pending = self._job, None, None
+        if job is not None:
+            job.result()
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=True)  # an entry being written is finished (atomically) or never appears
+
+
+def produced_ahead(items: Iterable[Any], depth: int = 1, name: str = "retinexgs-decompose-ahead") -> Iterator[Any]:
+    """``items`` in order, produced on a thread up to ``depth`` items ahead of the consumer: the next view's
+    decomposition (the GPU's work) runs while the caller stores this one (the host's). The values, their order and
+    the errors are those of iterating ``items`` here; an error is raised where its item would have come. Closing
+    early (an error of the caller, or Ctrl-C) stops the thread after the item it is making; it is not waited for."""
+    import queue
+    import threading
+
+    q: "queue.Queue" = queue.Queue(maxsize=max(1, int(depth)))
+    stop = threading.Event()
+
+    def put(entry) -> bool:
+        while not stop.is_set():
+            try:
+                q.put(entry, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def produce() -> None:
+        it = iter(items)
+        try:
+            for x in it:
+                if not put(("item", x)):
+                    return
+            put(("done", None))
+        except BaseException as exc:  # handed to the consumer, raised there
+            put(("error", exc))
+        finally:
+            close = getattr(it, "close", None)
+            if close is not None:
+                close()  # a generator's own clean-up (its threads, its progress bar) in its own thread
+
+    thread = threading.Thread(target=produce, name=name, daemon=True)
+    thread.start()
+    finished = False
+    try:
+        while True:
+            kind, x = q.get()
+            if kind == "item":
+                yield x
+            elif kind == "done":
+                finished = True
+                return
+            else:
+                finished = True
+                raise x
+    finally:
+        stop.set()
+        if finished:
+            thread.join()
 
 
 class _ReadAhead:

@@ -12,7 +12,7 @@ from retinexgs.data import Scene, View
 from retinexgs.errors import UserError
 from retinexgs.model.near_plane import MIN_POINTS, content_depth
 from retinexgs.data.capture import capture_of_files
-from retinexgs.retinex.cache import entry_dir, iter_decompositions, scene_cache_root
+from retinexgs.retinex.cache import entry_dir, iter_decompositions, produced_ahead, scene_cache_root
 from retinexgs.retinex.denoise import DenoiseSpec, noise_model
 from retinexgs.run.render import view_camera
 from retinexgs.config.schema import Config
@@ -85,13 +85,15 @@ def decompose_views(views: List[View], cfg: Config, device: str, progress: bool,
     :func:`denoise_spec` (None: the views as they are)."""
 
     dcfg = cfg.decomposer
-    return iter_decompositions([v.image_path for v in views], dcfg.method, dict(dcfg.params) or None,
-                               cache_dir=scene_cache_root(scene_root, cfg.data.cache_dir),
-                               device=dcfg.device or device, progress=progress,
-                               cache_hint="--set data.cache_dir=DIR", sweep=True, scene=str(scene_root),
-                               raw_denoise=dcfg.raw.preview_denoise, balance=views[0].balance if views else None,
-                               names=[v.source_path or v.image_path for v in views],  # errors name the user's photo
-                               denoise=denoise)
+    priors = iter_decompositions([v.image_path for v in views], dcfg.method, dict(dcfg.params) or None,
+                                 cache_dir=scene_cache_root(scene_root, cfg.data.cache_dir),
+                                 device=dcfg.device or device, progress=progress,
+                                 cache_hint="--set data.cache_dir=DIR", sweep=True, scene=str(scene_root),
+                                 raw_denoise=dcfg.raw.preview_denoise, balance=views[0].balance if views else None,
+                                 names=[v.source_path or v.image_path for v in views],  # errors name the user's photo
+                                 denoise=denoise)
+    # A view ahead on a thread: the next photo's LR3M (a 12 MP one ~2 s on the GPU) while this one's maps are stored.
+    return produced_ahead(priors)
 
 
 def prepare_views(cfg: Config, scene: Scene, device: torch.device, depth_prior: bool, dist, progress: bool,
