@@ -138,3 +138,14 @@ def test_a_capped_training_runs_under_the_cap_module(tmp_path):
 def test_the_cap_module_refuses_bad_arguments_in_one_line(args, message):
     r = subprocess.run([sys.executable, "-m", "retinexgs.bench.capped", *args], capture_output=True, text=True)
     assert r.returncode != 0 and message in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_rows_side_by_side_each_train_and_the_table_says_so(tmp_path, capsys):
+    out = tmp_path / "out"
+    argv = TINY + ["--scenes-dir", str(tmp_path / "scenes"), "--out", str(out), "--configs", "default|steps=3",
+                   "--side-by-side"]
+    assert bigraw.main(argv) == 0, capsys.readouterr().err
+    report = json.loads((out / "bigraw.json").read_text())
+    assert report["side_by_side"] is True
+    assert [(r["status"], r["steps"]) for r in report["rows"]] == [("ok", 5), ("ok", 3)]
+    assert "side by side" in (out / "bigraw.md").read_text()

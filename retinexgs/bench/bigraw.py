@@ -235,7 +235,9 @@ def write_report(out: Path, report: Dict, rows: List[Dict]) -> str:
             f"({report['scene'].get('train_views')} training views at {report['scene'].get('width')}x"
             f"{report['scene'].get('height')}), device {report['device']}"
             + (f", each training capped at {report['gpu_memory_gb']:g} GB of GPU memory" if report.get("gpu_memory_gb")
-               else "") + "\n\n"
+               else "")
+            + ("; the rows trained side by side on it: their times are not a training's alone" if
+               report.get("side_by_side") else "") + "\n\n"
             f"darken --raw: {_num(d.get('seconds'), '.1f')} s with {d.get('jobs')} jobs"
             + (" (reused from an earlier call)" if d.get("reused") else "") + "\n")
     md = head + "\n" + table(rows)
@@ -313,6 +315,9 @@ def main(argv: Sequence[str]) -> int:
                     help="seconds from the start after which the running training is stopped (SIGINT) and the rest "
                          "not run; the tables keep what finished")
     ap.add_argument("--device", default="auto", help="cuda, cpu or auto (generation and trainings)")
+    ap.add_argument("--side-by-side", action="store_true",
+                    help="train every row at once on the one device (a PSNR comparison that one after another would "
+                         "not fit the time; the times are then shared, not a training's alone)")
     ap.add_argument("--gpu-memory-gb", type=float, default=None,
                     help="cap each training's GPU memory at this many GB (2^30), as a smaller card (24: a 4090)")
     ap.add_argument("--out", type=Path, default=Path("runs/bigraw"), help="bigraw.md, bigraw.json, dark/, runs/")
@@ -357,15 +362,18 @@ def _run(args: argparse.Namespace, rows: List[Dict], device: str) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     jobs = args.jobs or os.cpu_count() or 1
     report: Dict = {"scene": scene_info, "device": device, "configs": args.configs, "sets": list(args.set),
-                    "steps": args.steps, "limit": args.limit, "gpu_memory_gb": args.gpu_memory_gb, "darken": None}
+                    "steps": args.steps, "limit": args.limit, "gpu_memory_gb": args.gpu_memory_gb,
+                    "side_by_side": bool(args.side_by_side and len(rows) > 1), "darken": None}
     table_rows: List[Dict] = [dict(label=r["label"], status="not run") for r in rows]
     write_report(args.out, report, table_rows)
     report["darken"] = darken(scene, args.out, jobs, deadline, env, args.fresh)
     darken_s = report["darken"]["seconds"]
     data = args.out / "dark" / "raw"
     write_report(args.out, report, table_rows)
-    failed = False
-    for i, spec in enumerate(rows):
+    lock = threading.Lock()  # rows side by side write the report one at a time
+
+    def run_row(i: int, spec: Dict) -> bool:
+        """Train row ``i`` (or reuse its finished run); its entry of ``table_rows``; False where it failed."""
         name = run_name(i + 1, spec["label"])
         run = args.out / "runs" / name
         cache = args.out / "caches" / name  # not inside the run folder: train wants that one empty
@@ -379,13 +387,14 @@ def _run(args: argparse.Namespace, rows: List[Dict], device: str) -> int:
                 and saved.get("dark_made") == row["dark_made"] and saved.get("status") == "ok"
                 and _metrics(run) is not None):
             print(f"row {i + 1} `{spec['label']}`: reused the finished run {run}", flush=True)
-            table_rows[i] = dict(saved, total_seconds=None if saved.get("wall_seconds") is None
-                                 else round(darken_s + saved["wall_seconds"], 1))
-            write_report(args.out, report, table_rows)
-            continue
+            with lock:
+                table_rows[i] = dict(saved, total_seconds=None if saved.get("wall_seconds") is None
+                                     else round(darken_s + saved["wall_seconds"], 1))
+                write_report(args.out, report, table_rows)
+            return True
         if deadline is not None and time.monotonic() >= deadline:
             table_rows[i] = dict(row, status=f"not run: --limit {args.limit:g} s reached")
-            continue
+            return True
         (run.parent / f"{name}.row.json").unlink(missing_ok=True)
         for made in (run, cache):  # this benchmark's own run and caches of an earlier call
             if made.exists():
@@ -396,6 +405,7 @@ def _run(args: argparse.Namespace, rows: List[Dict], device: str) -> int:
         rc, wall, rss, cut = run_until(cmd, log, deadline, env)
         m = _metrics(run) if rc == 0 and not cut else None
         row.update(summarize(m, wall, rss, darken_s))
+        ok = True
         if m is not None:
             row["status"] = "ok"
         elif cut:
@@ -404,17 +414,28 @@ def _run(args: argparse.Namespace, rows: List[Dict], device: str) -> int:
                        total_seconds=None)
             row["status"] = f"cut off at --limit {args.limit:g} s"
         else:
-            failed = True
+            ok = False
             row["status"] = f"failed (exit {rc}, {log.name})"
             tail = log.read_text(errors="replace").splitlines()[-10:]
             print("\n".join(f"    | {line}" for line in tail), file=sys.stderr, flush=True)
         shutil.rmtree(cache, ignore_errors=True)  # a 12 MP row's caches are GBs; the next row makes its own
-        table_rows[i] = row
         if row["status"] == "ok":
             atomic_write_text(run.parent / f"{name}.row.json", json.dumps(row, indent=1))
-        print(f"  {row['status']} in {wall:.0f} s: first step {_num(row.get('time_to_first_step'), '.1f')} s, "
-              f"{_num(row.get('steps_per_second'), '.2f')} steps/s, PSNR {_num(row.get('psnr'), '.2f')}", flush=True)
-        write_report(args.out, report, table_rows)
+        print(f"  row {i + 1} {row['status']} in {wall:.0f} s: first step "
+              f"{_num(row.get('time_to_first_step'), '.1f')} s, {_num(row.get('steps_per_second'), '.2f')} steps/s, "
+              f"PSNR {_num(row.get('psnr'), '.2f')}", flush=True)
+        with lock:
+            table_rows[i] = row
+            write_report(args.out, report, table_rows)
+        return ok
+
+    if args.side_by_side and len(rows) > 1:  # every row at once on the one device: PSNR, not times
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(max_workers=len(rows)) as pool:
+            failed = not all(pool.map(lambda a: run_row(*a), list(enumerate(rows))))
+    else:
+        failed = not all([run_row(i, spec) for i, spec in enumerate(rows)])
     report["total_seconds"] = round(time.monotonic() - t0, 1)
     md = write_report(args.out, report, table_rows)
     print(md)
