@@ -129,3 +129,38 @@ def test_produced_ahead_closed_early_stops_its_thread_and_closes_the_source():
             break
         time.sleep(0.05)
     assert not [t for t in threading.enumerate() if t.name == "test-ahead"]
+
+
+def test_ctrl_c_while_the_thread_is_inside_torch_exits_cleanly(tmp_path):
+    """The producer is waited for when its consumer stops: a thread left inside torch at the interpreter's exit
+    aborted the process ("terminate called without an active exception") on a Ctrl-C during the set-up."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    script = tmp_path / "child.py"
+    script.write_text(
+        "import sys, torch\n"
+        "from retinexgs.retinex.cache import produced_ahead\n"
+        "torch.set_num_threads(1)\n"
+        "def items():\n"
+        "    while True:\n"
+        "        a = torch.rand(300, 300)\n"
+        "        for _ in range(200):\n"
+        "            a = torch.tanh(a @ a)\n"
+        "        yield a\n"
+        "print('ready', flush=True)\n"
+        "try:\n"
+        "    for x in produced_ahead(items()):\n"
+        "        pass\n"
+        "except KeyboardInterrupt:\n"
+        "    print('interrupted', flush=True)\n"
+        "    sys.exit(130)\n")
+    p = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert p.stdout.readline().strip() == "ready"
+    time.sleep(1.0)
+    p.send_signal(signal.SIGINT)
+    out, err = p.communicate(timeout=60)
+    assert p.returncode == 130 and "interrupted" in out, (p.returncode, out, err)
+    assert "terminate called" not in err and "Abort" not in err, err

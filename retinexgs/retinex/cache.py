@@ -574,7 +574,9 @@ def produced_ahead(items: Iterable[Any], depth: int = 1, name: str = "retinexgs-
     """``items`` in order, produced on a thread up to ``depth`` items ahead of the consumer: the next view's
     decomposition (the GPU's work) runs while the caller stores this one (the host's). The values, their order and
     the errors are those of iterating ``items`` here; an error is raised where its item would have come. Closing
-    early (an error of the caller, or Ctrl-C) stops the thread after the item it is making; it is not waited for."""
+    early (an error of the caller, or Ctrl-C) stops the thread after the item it is making, and waits for that: a
+    thread left inside torch when the interpreter exits aborts the process. So use it where an item takes seconds
+    (a decomposition on the GPU), not minutes (a 12 MP photo's on the CPU)."""
     import queue
     import threading
 
@@ -604,24 +606,20 @@ def produced_ahead(items: Iterable[Any], depth: int = 1, name: str = "retinexgs-
             if close is not None:
                 close()  # a generator's own clean-up (its threads, its progress bar) in its own thread
 
-    thread = threading.Thread(target=produce, name=name, daemon=True)
+    thread = threading.Thread(target=produce, name=name)
     thread.start()
-    finished = False
     try:
         while True:
             kind, x = q.get()
             if kind == "item":
                 yield x
             elif kind == "done":
-                finished = True
                 return
             else:
-                finished = True
                 raise x
     finally:
         stop.set()
-        if finished:
-            thread.join()
+        thread.join()
 
 
 class _ReadAhead:

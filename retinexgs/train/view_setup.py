@@ -92,8 +92,10 @@ def decompose_views(views: List[View], cfg: Config, device: str, progress: bool,
                                  raw_denoise=dcfg.raw.preview_denoise, balance=views[0].balance if views else None,
                                  names=[v.source_path or v.image_path for v in views],  # errors name the user's photo
                                  denoise=denoise)
-    # A view ahead on a thread: the next photo's LR3M (a 12 MP one ~2 s on the GPU) while this one's maps are stored.
-    return produced_ahead(priors)
+    # On a GPU, a view ahead on a thread: the next photo's LR3M (a 12 MP one ~2 s) while this one's maps are stored.
+    # On the CPU the decomposition has every core already, and one photo may take minutes (a Ctrl-C waits for it).
+    on_gpu = torch.device(dcfg.device or device).type == "cuda"
+    return produced_ahead(priors) if on_gpu else priors
 
 
 def prepare_views(cfg: Config, scene: Scene, device: torch.device, depth_prior: bool, dist, progress: bool,
