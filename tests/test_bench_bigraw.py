@@ -31,6 +31,7 @@ def test_end_to_end_writes_its_table_and_reuses_finished_rows(tmp_path, capsys):
     assert not (out / "dark" / "raw" / "retinex_cache").exists() and not (out / "caches" / "1-default").exists()
     assert "data.cache_dir=" in row["command"] and "steps=5" in row["command"]
     assert row["time_to_first_step"] > 0 and row["steps_per_second"] > 0 and row["host_rss_gb"] > 0
+    assert 0 < row["views_set_up_seconds"] < row["time_to_first_step"]  # metrics.json's train.views_set_up_seconds
     # a finished row is tied to the darkening it trained on (a new darkening retrains it)
     assert row["dark_made"] == json.loads((out / "dark.json").read_text())["made"] is not None
     assert row["psnr"] is not None and row["psnr_gt_mean"] is not None

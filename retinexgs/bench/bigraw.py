@@ -181,6 +181,7 @@ def summarize(metrics: Optional[Dict], wall: float, rss_gb: float, darken_second
     mean = dict((metrics or {}).get("mean") or {})
     row: Dict = {"steps": t.get("steps"), "train_seconds": t.get("train_seconds"),
                  "time_to_first_step": t.get("time_to_first_step"), "wall_seconds": round(wall, 1),
+                 "views_set_up_seconds": t.get("views_set_up_seconds"),
                  "peak_gpu_allocated_gb": t.get("peak_gpu_memory_gb"),
                  "peak_gpu_reserved_gb": t.get("peak_gpu_memory_reserved_gb"),
                  "gaussians": t.get("gaussians"), "psnr": mean.get("psnr"), "ssim": mean.get("ssim"),
@@ -201,7 +202,8 @@ def _num(v, fmt: str) -> str:
 COLUMNS = (("config", lambda r: f"`{r['label']}`"), ("status", lambda r: r.get("status", "?")),
            ("steps", lambda r: _num(r.get("steps"), "d") if r.get("steps") is not None
             else f"{r.get('planned_steps') or 'config'} planned"),
-           ("time to first step (s)", lambda r: _num(r.get("time_to_first_step"), ".1f")),
+           ("time to first step (s)", lambda r: _num(r.get("time_to_first_step"), ".1f")
+            + (f" (views {r['views_set_up_seconds']:.1f})" if r.get("views_set_up_seconds") is not None else "")),
            ("steps/s", lambda r: _num(r.get("steps_per_second"), ".2f")),
            ("training (s)", lambda r: _num(r.get("train_seconds"), ".1f")),
            ("run wall (s)", lambda r: _num(r.get("wall_seconds"), ".0f")),
@@ -222,7 +224,8 @@ def table(rows: Sequence[Dict]) -> str:
     lines += ["| " + " | ".join(fn(r) for _, fn in COLUMNS) + " |" for r in rows]
     return "\n".join(lines) + (
         "\n\ntime to first step: from the training process's start to the end of step 1 (imports, raw decode, "
-        "denoising, LR3M priors, set-up; cold caches); steps/s: steps / training time (the steps alone); run wall: "
+        "denoising, LR3M priors, set-up; cold caches), in brackets the views' set-up alone (photos, priors, view "
+        "store); steps/s: steps / training time (the steps alone); run wall: "
         "the whole training process (evaluation included); darken + run: the darkening's wall time plus the run's "
         "(end to end as a user, the scene's generation not counted); peak GPU: torch's max allocated / reserved "
         "(– on the CPU, or where the training does not record it); (w): host RSS measured here (wait4), not "

@@ -154,6 +154,8 @@ def _train_and_evaluate(trainer: Trainer, cfg: Config, scene: Scene, run_dir: Pa
             stats["peak_gpu_memory_gb"] = round(torch.cuda.max_memory_allocated() / 2**30, 3)
             # what the caching allocator held at its peak: what a smaller card must have (issue 65's 24 GB goal)
             stats["peak_gpu_memory_reserved_gb"] = round(torch.cuda.max_memory_reserved() / 2**30, 3)
+        # the views' set-up of this session (photos, priors, view store): most of time_to_first_step on a big capture
+        stats["views_set_up_seconds"] = round(trainer.views_set_up_seconds, 1)
         # The large-scene benchmark's figures (ranks 1 for a plain run), gathered from every rank.
         stats.update(dist.training_stats(trainer.batch_size, trainer.session_views, values["seconds"],
                                          trainer.time_to_first_step, gradient_params(trainer.optimizer),

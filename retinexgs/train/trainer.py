@@ -85,8 +85,11 @@ class Trainer:
         random.seed(cfg.seed)
         self._setup_dist = dist
         self.order: List[int] = []  # the rest of this epoch's view order (saved, so resume continues it)
+        t_views = time.time()
         self.views, self.streamed, self._stats = prepare_views(cfg, scene, self.device, self.depth_prior, dist,
                                                                progress, log, self._upcoming_views)
+        # the views' set-up (photos read, priors decomposed or loaded, a view store written): metrics.json's figure
+        self.views_set_up_seconds = time.time() - t_views
         if self.streamed:  # a coarse stage keeps its pooled views where they fit the budget the full-size ones did not
             priors = self.method in ("retinexgs", "pre") and cfg.decomposer.method != "none"
             self.resolution.plan_streamed(sum(v.width * v.height for v in scene.train),
