@@ -81,7 +81,7 @@ def test_load_config_returns_typed_validated_data():
     ("model.enhancement.gamma_range=[0.1]", "model.enhancement.gamma_range must be a list [low, high]"),
     ("density.prune_opacity=2", "density.prune_opacity must be a number 0..1, got 2"),
     ("checkpoint.keep=0", "checkpoint.keep must be an integer >= 1, got 0"),
-    ("eval=null", "eval must be a mapping with the keys lpips, got None"),
+    ("eval=null", "eval must be a mapping with the keys lpips, sheet_max_side, got None"),
 ])
 def test_bad_values_name_the_source_key_value_and_type(setting, expect):
     with pytest.raises(UserError) as info:
