@@ -91,7 +91,9 @@
 #       denoise + LR3M inside the timed training. --configs "ROW|ROW|...": a ROW is a config name and/or KEY=VALUE
 #       overrides separated by spaces, e.g. --configs "default steps=3000|train.resolution=[[0.8,4],[0.95,2]]|
 #       data.downscale=2" (the last: the same views at half size). --steps N: every row's but a row's own steps=;
-#       --set KEY=VALUE: every row. Options of this script: --limit S (560: the running training gets SIGINT about
+#       --set KEY=VALUE: every row; --gpu-memory-gb G: each training under a G GB cap (24: a 4090's memory);
+#       --side-by-side: every row at once (a PSNR comparison; times shared). Each run's log line carries its second.
+#       Options of this script: --limit S (560: the running training gets SIGINT about
 #       S - 40 s after the call began, later rows are not run; the tables keep what finished, and the same command on
 #       the warm machine reads finished rows back and runs the rest). Tables and runs go to --out (default
 #       /tmp/bigraw). E.g. run(command="bash scripts/device.sh bigraw --steps 10000 --configs
