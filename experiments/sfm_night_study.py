@@ -3,7 +3,9 @@
 Runs ``run_sfm`` (``--denoise auto``, 2 threads, ``--min-registered 0``) on FOLDER, then aligns the registered camera
 centres to the scene's transforms_{train,val,test}.json centres (Umeyama similarity, matched by file stem) and prints
 one ``RESULT {json}`` line: registered / photos, points, and the median and largest centre error relative to the
-scene's extent (the RMS distance of its camera centres from their mean). ``--night`` picks the night settings
+scene's extent (the RMS distance of its camera centres from their mean); where the night settings' agreement check
+(NIGHT_AGREE) ran, ``check`` holds the same figures for its strict, loose and second loose models, their agreement and
+the decision (the note's section 5). ``--night`` picks the night settings
 (default off: today's code before them); ``H10_OPTS`` (JSON: {"sift": {...}, "mapper": {...}, "tri": {...},
 "pipeline": {...}}) overrides pycolmap options on top, for the study's variants.
 
@@ -60,15 +62,47 @@ def umeyama(src, dst):
     t = mu_d - s * R @ mu_s
     return s, R, t
 
+def truth_error(centres, gt, extent):
+    """{"reg", "med", "max"}: camera centres ({name: centre}) against the scene's, after a similarity."""
+    names = [n for n in centres if Path(n).stem in gt]
+    if len(names) < 3:
+        return dict(reg=len(centres), med=None, max=None)
+    est = np.array([centres[n] for n in names]); ref = np.array([gt[Path(n).stem] for n in names])
+    s, R, t = umeyama(est, ref)
+    e = np.linalg.norm((s * (R @ est.T)).T + t - ref, axis=1) / extent
+    return dict(reg=len(centres), med=round(float(np.median(e)), 4), max=round(float(e.max()), 4))
+
+def record_check(scene, check):
+    """Wrap the agreement check's two decisions so that ``check`` records each model's truth error."""
+    import retinexgs.data.sfm as S
+    gt = gt_centres(scene)
+    allgt = np.array(list(gt.values())); extent = np.sqrt(((allgt - allgt.mean(0)) ** 2).sum(1).mean())
+    choose, confirm = S.choose_agreeing, S.confirm_added
+    def choose_rec(strict, loose, n, agree):
+        use, why = choose(strict, loose, n, agree)
+        check.update(strict=truth_error(strict or {}, gt, extent), loose=loose and truth_error(loose, gt, extent),
+                     agree=loose and S.centre_agreement(strict or {}, loose, agree["min_shared_photos"]),
+                     used="loose" if use else "strict", why=why)
+        return use, why
+    def confirm_rec(strict, loose, again, n, agree):
+        use, why = confirm(strict, loose, again, n, agree)
+        check.update(again=again and truth_error(again, gt, extent),
+                     agree_again=S.centre_agreement(loose, again or {}, agree["min_shared_photos"]),
+                     used="loose" if use else "strict", why=why)
+        return use, why
+    S.choose_agreeing, S.confirm_added = choose_rec, confirm_rec
+
 def main(folder, scene, out):
     t0 = time.time()
+    check = {}
+    record_check(scene, check)
     den = sfm_preview_denoise(folder, "auto", "auto", None)
     from retinexgs.errors import UserError
     Path(out, "enhanced").mkdir(parents=True, exist_ok=True)  # keep the previews across failed runs
     try:
         r = run_sfm(folder, out, denoise=den, num_threads=2, min_registered=0, force=True, night=os.environ.get("H10_NIGHT", "off"))
     except UserError as e:
-        print("RESULT", json.dumps(dict(folder=str(folder), reg=0, n=len(os.listdir(folder)), err=str(e)[:80], sec=round(time.time()-t0,1), opts=OPTS)), flush=True)
+        print("RESULT", json.dumps(dict(folder=str(folder), reg=0, n=len(os.listdir(folder)), err=str(e)[:80], sec=round(time.time()-t0,1), opts=OPTS, check=check)), flush=True)
         return
     rec = pycolmap.Reconstruction(str(r.model_dir))
     gt = gt_centres(scene)
@@ -88,7 +122,7 @@ def main(folder, scene, out):
     else:
         med = mx = float("nan")
     res = dict(folder=str(folder), reg=r.num_registered, n=r.num_images, points=r.num_points,
-               med_err=med, max_err=mx, sec=round(time.time() - t0, 1), opts=OPTS)
+               med_err=med, max_err=mx, sec=round(time.time() - t0, 1), opts=OPTS, check=check)
     print("RESULT", json.dumps(res), flush=True)
 
 if __name__ == "__main__":

@@ -7,13 +7,15 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 import pytest
 from PIL import Image
 
-from retinexgs.data.sfm import (META_NAME, NIGHT_GUARD, NIGHT_MAPPER, NIGHT_SIFT, NIGHT_TRIANGULATION, PreviewDenoise,
-                                check_night, drop_loose_views, loose_views, night_settings, run_sfm)
+from retinexgs.data.sfm import (META_NAME, NIGHT_AGREE, NIGHT_GUARD, NIGHT_MAPPER, NIGHT_SIFT, NIGHT_TRIANGULATION,
+                                PreviewDenoise, centre_agreement, check_night, choose_agreeing, confirm_added,
+                                drop_loose_views, loose_views, night_settings, run_sfm, similarity_fit)
 from retinexgs.data.srgb import linear_to_srgb
 from retinexgs.errors import UserError
 from scenes import run_cli
@@ -77,7 +79,7 @@ def test_night_settings_follow_the_denoised_previews():
     assert night_settings("auto", None) is None and night_settings("off", _stand_in_denoise()) is None
     on = night_settings("auto", _stand_in_denoise())
     assert on == {"sift": NIGHT_SIFT, "mapper": NIGHT_MAPPER, "triangulation": NIGHT_TRIANGULATION,
-                  "guard": NIGHT_GUARD}
+                  "guard": NIGHT_GUARD, "agree": NIGHT_AGREE}
     assert on == night_settings("on", None)
     assert night_settings(True, None) == on and night_settings(False, _stand_in_denoise()) is None
     # every key is a real option of the installed pycolmap (a misspelt one would be a new Python attribute or fail)
@@ -115,7 +117,7 @@ def test_run_sfm_applies_the_night_settings_where_previews_are_denoised(tmp_path
         assert getattr(rec.tri, key) == value, key
     options = json.loads((tmp_path / "a" / META_NAME).read_text())["signature"]["options"]
     assert options["night"] == {"sift": NIGHT_SIFT, "mapper": NIGHT_MAPPER, "triangulation": NIGHT_TRIANGULATION,
-                                "guard": NIGHT_GUARD}
+                                "guard": NIGHT_GUARD, "agree": NIGHT_AGREE}
 
     run_sfm(photos, tmp_path / "b", denoise=_stand_in_denoise(), night="off", progress=None)
     _assert_colmaps_own_settings(rec)
@@ -240,3 +242,213 @@ def test_a_model_of_loose_views_only_is_no_model(tmp_path, monkeypatch):
     with pytest.raises(UserError, match="share too few points with one another"):
         run_sfm(photos, tmp_path / "a", denoise=_stand_in_denoise(), progress=None, min_registered=0)
     assert not (tmp_path / "a" / "sparse" / "0").exists()
+
+
+# --- agreeing models (NIGHT_AGREE): a model from looser matches is used only where it reproduces the strict one ---
+
+def _ring(n: int = 8, seed: int = 0) -> dict:
+    """Camera centres of ``n`` photos on a wavy ring (radius 1), as a capture walking round an object takes them."""
+    angles = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    pts = np.stack([np.cos(angles), np.sin(angles), 0.2 * np.sin(3 * angles)], 1)
+    return {f"p{i}.png": p for i, p in enumerate(pts)}
+
+
+def _moved(centres: dict, scale: float = 2.5, seed: int = 1) -> dict:
+    """``centres`` under a similarity (rotation, translation, ``scale``): the same layout in another frame."""
+    rng = np.random.default_rng(seed)
+    q, _ = np.linalg.qr(rng.standard_normal((3, 3)))
+    rot = q if np.linalg.det(q) > 0 else -q
+    t = rng.standard_normal(3) * 4
+    return {n: scale * rot @ c + t for n, c in centres.items()}
+
+
+def test_similarity_fit_recovers_a_similarity_and_never_a_mirror():
+    strict = _ring()
+    a = np.array(list(_moved(strict).values()))
+    b = np.array(list(strict.values()))
+    s, rot, t = similarity_fit(a, b)
+    assert np.allclose((s * (rot @ a.T)).T + t, b, atol=1e-9) and np.isclose(np.linalg.det(rot), 1.0)
+    mirror = a * np.array([1.0, 1.0, -1.0])  # the same centres reflected: no rotation maps it back
+    s, rot, t = similarity_fit(mirror, b)
+    assert np.isclose(np.linalg.det(rot), 1.0)
+    assert np.abs((s * (rot @ mirror.T)).T + t - b).max() > 0.1
+
+
+def test_an_agreeing_model_is_used_and_one_wrong_as_a_whole_is_not():
+    strict = {n: c for n, c in _ring(10).items() if n not in ("p8.png", "p9.png")}
+    # the loose model: the same layout in its own frame, a little noise, and two more photos
+    rng = np.random.default_rng(2)
+    loose = {n: c + rng.normal(0, 0.01, 3) for n, c in _ring(10).items()}
+    loose = _moved({n: c for n, c in loose.items()})
+    fit = centre_agreement(strict, loose, NIGHT_AGREE["min_shared_photos"])
+    assert fit["shared"] == 8 and fit["median"] < 0.03 and fit["max"] < 0.06
+    use, why = choose_agreeing(strict, loose, 10, NIGHT_AGREE)
+    assert use and why.startswith("the looser matcher's model (0.9, 10/10 photos; strict: 8) agrees"), why
+    # bent as a whole: half the ring folded over (each view still next to its neighbours, as in castlep30-dark JPEG)
+    bent = {n: (c if c[1] >= 0 else c * np.array([1.0, -0.2, 1.0]) + np.array([0.0, 0.0, -1.2 * c[1]]))
+            for n, c in _ring(10).items()}
+    fit = centre_agreement(strict, _moved(bent), NIGHT_AGREE["min_shared_photos"])
+    assert fit["median"] > NIGHT_AGREE["max_median_error"] and fit["max"] > NIGHT_AGREE["max_error"]
+    use, why = choose_agreeing(strict, _moved(bent), 10, NIGHT_AGREE)
+    assert not use and why.startswith("kept the strict model (8/10 photos; looser matcher 0.9: 10), the models "
+                                      "disagree"), why
+    # a mirror image of the strict layout is another layout
+    mirror = {n: c * np.array([1.0, -1.0, 1.0]) for n, c in _ring(10).items()}
+    assert not choose_agreeing(strict, mirror, 10, NIGHT_AGREE)[0]
+    # one view far off, the rest in place: the largest error rejects it
+    one_off = dict(_ring(10))
+    one_off["p3.png"] = one_off["p3.png"] + np.array([0.0, 0.0, 0.6])
+    fit = centre_agreement(strict, one_off, NIGHT_AGREE["min_shared_photos"])
+    assert fit["median"] <= NIGHT_AGREE["max_median_error"] < NIGHT_AGREE["max_error"] < fit["max"]
+    assert not choose_agreeing(strict, one_off, 10, NIGHT_AGREE)[0]
+
+
+def test_too_few_shared_photos_or_no_more_photos_keep_the_strict_model():
+    ring = _ring(10)
+    strict = {n: ring[n] for n in ("p0.png", "p1.png")}  # two centres fix no rotation about their axis
+    assert centre_agreement(strict, ring, NIGHT_AGREE["min_shared_photos"]) is None
+    use, why = choose_agreeing(strict, ring, 10, NIGHT_AGREE)
+    assert not use and "cannot be checked" in why
+    # a floor above 3 is kept too
+    strict = {n: ring[n] for n in ("p0.png", "p1.png", "p2.png", "p3.png")}
+    assert centre_agreement(strict, ring, 4) is not None and centre_agreement(strict, ring, 5) is None
+    # coincident strict centres: no layout to compare
+    assert centre_agreement({n: np.zeros(3) for n in ring}, ring, 3) is None
+    # a loose model posing no more photos, or none
+    assert not choose_agreeing(ring, dict(ring), 10, NIGHT_AGREE)[0]
+    use, why = choose_agreeing(ring, None, 11, NIGHT_AGREE)
+    assert not use and "built none" in why
+
+
+def _posed_model(centres: dict) -> "pycolmap.Reconstruction":
+    """A model of the photos ``centres`` ({name: camera centre}) that every night guard keeps (each pair of
+    neighbours shares 40 points)."""
+    names = list(centres)
+    rec = _model(names, {(i, i + 1): 40 for i in range(len(names) - 1)})
+    for i in rec.reg_image_ids():
+        c = np.asarray(centres[rec.images[i].name], float)
+        # camera centre c: world-to-camera translation -c (identity rotation; the trivial rig is the camera)
+        rec.frames[rec.images[i].frame_id].rig_from_world = pycolmap.Rigid3d(np.hstack([np.eye(3), -c.reshape(3, 1)]))
+    assert all(np.allclose(rec.images[i].projection_center(), centres[rec.images[i].name]) for i in rec.reg_image_ids())
+    return rec
+
+
+class PairOfModels(Recorder):
+    """The stand-in SfM: the strict matcher's model poses ``strict`` photos, the looser one (SIFT ratio above 0.8)
+    ``loose``; records the match ratios it was handed."""
+
+    strict: dict = {}
+    loose: dict = {}
+    again: Optional[dict] = None  # the loose model of a second mapping (another seed); None: ``loose`` again
+
+    def __init__(self):
+        super().__init__()
+        self.ratios, self.seeds = [], []
+
+    def match_exhaustive(self, db, matching_options=None, **kwargs):
+        self.ratios.append(matching_options.sift.max_ratio)
+        Path(db).write_bytes(f"matched at {matching_options.sift.max_ratio}".encode())
+
+    def incremental_mapping(self, db, image_dir, out, options=None, **kwargs):
+        self.mapper, self.tri = options.mapper, options.triangulation
+        self.seeds.append(options.random_seed)
+        centres = self.strict
+        if b"0.9" in Path(db).read_bytes():
+            centres = self.again if self.again is not None and options.random_seed != self.seeds[0] else self.loose
+        return {0: _posed_model(centres)} if centres else {}
+
+
+def _pair_run(tmp_path, monkeypatch, strict: dict, loose: dict, night: str = "auto", again: Optional[dict] = None):
+    import retinexgs.data.sfm as sfm_module
+
+    fake = type("Pair", (PairOfModels,), {"strict": strict, "loose": loose, "again": again})()
+    monkeypatch.setattr(sfm_module, "_pycolmap", lambda: fake)
+    photos = tmp_path / "night"
+    if not photos.is_dir():
+        for i in range(10):
+            _photo(photos / f"p{i}.png", i, scale=0.03, noise=0.002)
+    said = []
+    r = run_sfm(photos, tmp_path / f"out-{len(list(tmp_path.iterdir()))}", denoise=_stand_in_denoise(),
+                progress=said.append, min_registered=0, night=night)
+    return r, fake, said
+
+
+def test_run_sfm_uses_the_looser_model_only_where_it_agrees(tmp_path, monkeypatch):
+    ring = _ring(10)
+    strict = {n: ring[n] for n in list(ring)[:7]}
+    # agreeing: the looser model (the same layout in its own frame) poses all 10
+    r, fake, said = _pair_run(tmp_path, monkeypatch, strict, _moved(ring))
+    assert fake.ratios == [0.8, NIGHT_AGREE["loose_max_ratio"]] and fake.seeds == [0, 0, 1]
+    assert r.num_registered == 10
+    assert any(s.startswith("night check: used the looser matcher's model") for s in said), said
+    assert (r.model_dir.parent.parent / "database.db").read_bytes() == b"matched at 0.9"
+    # bent as a whole: the strict model stays (and its database)
+    bent = {n: (c if c[1] >= 0 else c * np.array([1.0, -0.2, 1.0]) + np.array([0.0, 0.0, -1.2 * c[1]]))
+            for n, c in ring.items()}
+    r, fake, said = _pair_run(tmp_path, monkeypatch, strict, _moved(bent))
+    assert r.num_registered == 7 and sorted(r.registered) == sorted(strict)
+    assert any(s.startswith("night check: kept the strict model (7/10 photos; looser matcher 0.9: 10)")
+               for s in said), said
+    assert (r.model_dir.parent.parent / "database.db").read_bytes() == b"matched at 0.8"
+
+
+def test_run_sfm_tries_no_looser_model_when_none_is_needed_or_checkable(tmp_path, monkeypatch):
+    ring = _ring(10)
+    # every photo posed: no second matching
+    r, fake, said = _pair_run(tmp_path, monkeypatch, ring, ring)
+    assert fake.ratios == [0.8] and r.num_registered == 10 and not any("night check" in s for s in said)
+    # two photos posed: nothing to check a looser model against
+    two = {n: ring[n] for n in ("p0.png", "p1.png")}
+    r, fake, said = _pair_run(tmp_path, monkeypatch, two, ring)
+    assert fake.ratios == [0.8] and r.num_registered == 2
+    assert any(s.startswith("night check: kept the strict model (2/10 photos): too few photos") for s in said)
+    # COLMAP's own settings (--night off): one matching, no check
+    r, fake, said = _pair_run(tmp_path, monkeypatch, {n: ring[n] for n in list(ring)[:7]}, ring, night="off")
+    assert fake.ratios == [0.8] and r.num_registered == 7 and not any("night check" in s for s in said)
+
+
+def test_a_model_cached_by_the_night_settings_before_the_check_is_made_again(tmp_path, rec):
+    """The agreement check is part of the night settings' signature: a model cached without it (the settings of
+    the note's section 4) is not reused, one cached with it is."""
+    photos = tmp_path / "night"
+    for i in range(3):
+        _photo(photos / f"p{i}.png", i, scale=0.03, noise=0.002)
+    run_sfm(photos, tmp_path / "a", denoise=_stand_in_denoise(), progress=None)
+    assert run_sfm(photos, tmp_path / "a", denoise=_stand_in_denoise(), progress=None).cached
+    meta_path = tmp_path / "a" / META_NAME
+    meta = json.loads(meta_path.read_text())
+    del meta["signature"]["options"]["night"]["agree"]
+    meta_path.write_text(json.dumps(meta))
+    assert not run_sfm(photos, tmp_path / "a", denoise=_stand_in_denoise(), progress=None).cached
+    assert json.loads(meta_path.read_text())["signature"]["options"]["night"]["agree"] == NIGHT_AGREE
+
+
+def test_the_photos_a_looser_model_adds_must_be_posed_alike_by_a_second_mapping(tmp_path, monkeypatch):
+    """An arc of added photos attached on weak links agrees with nothing in the strict model (it has no poses for
+    them): a second mapping of the same loose matches must pose them again, where the first did."""
+    ring = _ring(10)
+    strict = {n: ring[n] for n in list(ring)[:7]}
+    # the second mapping puts the three added photos elsewhere (an arc attached another way), the rest alike
+    elsewhere = {n: (c + np.array([0.0, 0.0, 0.8]) if n not in strict else c) for n, c in ring.items()}
+    r, fake, said = _pair_run(tmp_path, monkeypatch, strict, _moved(ring), again=_moved(elsewhere, seed=5))
+    assert fake.seeds == [0, 0, 1] and r.num_registered == 7
+    assert any(s.startswith("night check: kept the strict model (7/10 photos; looser matcher 0.9: 10), the looser "
+                            "matches' mappings disagree") for s in said), said
+    assert (r.model_dir.parent.parent / "database.db").read_bytes() == b"matched at 0.8"
+    # the second mapping leaves an added photo out: not confirmed
+    r, fake, said = _pair_run(tmp_path, monkeypatch, strict, ring, again={n: ring[n] for n in list(ring)[:9]})
+    assert r.num_registered == 7
+    assert any("did not pose 1 of the 3 photos it adds (p9.png)" in s for s in said), said
+    # posed alike (in its own frame, a little apart): used
+    rng = np.random.default_rng(3)
+    alike = _moved({n: c + rng.normal(0, 0.01, 3) for n, c in ring.items()}, seed=7)
+    r, fake, said = _pair_run(tmp_path, monkeypatch, strict, ring, again=alike)
+    assert r.num_registered == 10 and any(s.startswith("night check: used the looser matcher's model (10/10 photos; "
+                                                       "strict: 7)") for s in said), said
+
+
+def test_confirm_added_needs_a_second_model():
+    ring = _ring(10)
+    strict = {n: ring[n] for n in list(ring)[:7]}
+    use, why = confirm_added(strict, ring, None, 10, NIGHT_AGREE)
+    assert not use and "did not pose 3 of the 3 photos it adds" in why

@@ -40,8 +40,10 @@ layer), so it takes the cached model whichever recipe made it: the one its train
 
 Night settings (issue 64 item 5, ``sfm --night``): with denoised previews (``night`` "auto") SIFT and the mapper take
 :data:`NIGHT_SIFT`, :data:`NIGHT_MAPPER` and :data:`NIGHT_TRIANGULATION` (why: beside them), and photos posed on
-loose matches are dropped from the model (:data:`NIGHT_GUARD`, named as not registered); they are part of the cached
-model's signature only when used.
+loose matches are dropped from the model (:data:`NIGHT_GUARD`, named as not registered), and where that model leaves
+photos out a second one is built from looser matches and used only if its camera centres agree with the first's
+(:data:`NIGHT_AGREE`, one ``night check:`` line says which and why); they are part of the cached model's signature only
+when used.
 """
 from __future__ import annotations
 
@@ -104,6 +106,23 @@ NIGHT_TRIANGULATION = {"ignore_two_view_tracks": False}
 # their best neighbour; every other view of the six night folders measured shared 17 or more with one. A registered
 # photo sharing fewer than ``min_shared_points`` 3D points with every other registered photo is dropped from the model.
 NIGHT_GUARD = {"min_shared_points": 15}
+# Agreeing models, part of the night settings (the note's section 5): SIFT's match ratio 0.9 (COLMAP's 0.8) keeps the
+# matches that register the photos the strict matcher leaves out (fountain-dark 10-11/11, fox-dark JPEG 50/50), but at
+# night it also built models wrong as a whole (castlep30-dark JPEG, median centre error 62-68 % of the extent), which
+# NIGHT_GUARD, a per-view test, cannot see. So where the strict model leaves photos out, a second model is built from
+# the looser matches and used only where it reproduces the strict model's camera layout on the photos both posed: the
+# best similarity (rotation, translation, scale; no mirror) maps its centres to the strict model's within
+# ``max_median_error`` (median) and ``max_error`` (largest) of the strict model's extent there (the RMS distance of
+# those centres from their mean), and it poses more photos. The bounds: a model judged right in the note is up to
+# about 10 % (median) off the scene's own poses (1-11 %), and the strict model is no better than the loose one, so two
+# right models can differ by twice that (20 %; the wrong ones were 62-68 % off); a view 30 % off is misplaced in any
+# model. Fewer than ``min_shared_photos`` shared photos cannot be checked (two centres fix no rotation about their
+# axis): the strict model stays. The photos the loose model adds have no strict pose to compare with (fox-dark JPEG:
+# a loose model agreeing with the strict one to 0.9 % on its 38 photos posed the 12 it added 36-42 % off, as one arc
+# on weak links), so they are checked by a second mapping of the same loose matches from another seed: it must pose
+# every added photo again and agree with the first within the same bounds (an arc attached by chance is attached
+# elsewhere by another run), else the strict model stays.
+NIGHT_AGREE = {"loose_max_ratio": 0.9, "min_shared_photos": 3, "max_median_error": 0.20, "max_error": 0.30}
 NIGHT_CHOICES = ("auto", "on", "off")
 
 
@@ -231,14 +250,98 @@ def check_night(night: Union[str, bool]) -> str:
 
 
 def night_settings(night: Union[str, bool], denoise: Optional[PreviewDenoise]) -> Optional[dict]:
-    """The night settings SfM applies ({"sift": ..., "mapper": ..., "triangulation": ..., "guard": ...}), or None for
-    COLMAP's own (and no guard):
+    """The night settings SfM applies ({"sift": ..., "mapper": ..., "triangulation": ..., "guard": ..., "agree": ...}),
+    or None for COLMAP's own (no guard, one model):
     ``night`` "on", or "auto" with previews denoised (``denoise`` given: they are night-noisy)."""
     value = check_night(night)
     if value == "on" or (value == "auto" and denoise is not None):
         return {"sift": dict(NIGHT_SIFT), "mapper": dict(NIGHT_MAPPER), "triangulation": dict(NIGHT_TRIANGULATION),
-                "guard": dict(NIGHT_GUARD)}
+                "guard": dict(NIGHT_GUARD), "agree": dict(NIGHT_AGREE)}
     return None
+
+
+def similarity_fit(src: "np.ndarray", dst: "np.ndarray") -> Tuple[float, "np.ndarray", "np.ndarray"]:
+    """The similarity (scale s, rotation R, translation t; no reflection) that best maps points ``src`` [N,3] onto
+    ``dst`` [N,3] in least squares (Umeyama 1991): ``dst ~ s * R @ src + t``. Degenerate input gives s = 0."""
+    src, dst = np.asarray(src, float), np.asarray(dst, float)
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    xs, xd = src - mu_s, dst - mu_d
+    u, sv, vt = np.linalg.svd(xd.T @ xs / len(src))
+    d = np.eye(3)
+    d[2, 2] = 1.0 if np.linalg.det(u @ vt) >= 0 else -1.0  # a mirror image is not the same layout
+    rot = u @ d @ vt
+    var = float((xs ** 2).sum(1).mean())
+    scale = float(np.trace(np.diag(sv) @ d) / var) if var > 0 else 0.0
+    return scale, rot, mu_d - scale * rot @ mu_s
+
+
+def centre_agreement(strict: dict, loose: dict, min_shared_photos: int) -> Optional[dict]:
+    """How well camera centres ``loose`` ({photo name: centre [3]}) reproduce ``strict``'s on the photos both hold,
+    after :func:`similarity_fit`: {"shared": n, "median": m, "max": x}, the distances relative to the strict
+    centres' extent (RMS distance from their mean); None when fewer than ``min_shared_photos`` are shared or the
+    strict centres (or the loose ones) coincide (no layout to compare)."""
+    names = sorted(set(strict) & set(loose))
+    if len(names) < max(3, min_shared_photos):
+        return None
+    a = np.array([loose[n] for n in names], float)
+    b = np.array([strict[n] for n in names], float)
+    extent = float(np.sqrt(((b - b.mean(0)) ** 2).sum(1).mean()))
+    scale, rot, t = similarity_fit(a, b)
+    if not extent > 1e-12 or not scale > 0:
+        return None
+    err = np.linalg.norm((scale * (rot @ a.T)).T + t - b, axis=1) / extent
+    return {"shared": len(names), "median": float(np.median(err)), "max": float(err.max())}
+
+
+def confirm_added(strict: dict, loose: dict, again: Optional[dict], num_photos: int, agree: dict) -> Tuple[bool, str]:
+    """Whether a second mapping ``again`` ({name: centre}; None: no model) of the looser matches confirms the photos
+    the loose model adds to the strict one (:data:`NIGHT_AGREE`): it poses each of them and its centres agree with
+    ``loose``'s on the photos both posed; and the one line that says which model is used and why."""
+    k, m = len(strict), len(loose)
+    added = sorted(set(loose) - set(strict))
+    keep = f"kept the strict model ({k}/{num_photos} photos; looser matcher {agree['loose_max_ratio']:g}: {m})"
+    missing = [n for n in added if n not in (again or {})]
+    if missing:
+        return False, (f"{keep}: a second mapping of the looser matches did not pose {len(missing)} of the "
+                       f"{len(added)} photos it adds ({_listed(missing)})")
+    fit = centre_agreement(loose, again, agree["min_shared_photos"])
+    if fit is None:
+        return False, f"{keep}: a second mapping of the looser matches cannot be compared with the first"
+    how = (f"a second mapping of the looser matches puts the {fit['shared']} photos both posed {fit['median']:.1%} "
+           f"(median) and {fit['max']:.1%} (largest) of the extent from the first")
+    if fit["median"] <= agree["max_median_error"] and fit["max"] <= agree["max_error"]:
+        return True, (f"used the looser matcher's model ({m}/{num_photos} photos; strict: {k}): it agrees with the "
+                      f"strict model on the photos both posed, and {how}")
+    return False, f"{keep}, the looser matches' mappings disagree: {how}"
+
+
+def model_centres(rec) -> dict:
+    """{photo name: camera centre} of the registered images of ``rec`` (a pycolmap Reconstruction)."""
+    return {rec.images[i].name: np.asarray(rec.images[i].projection_center(), float) for i in rec.reg_image_ids()}
+
+
+def choose_agreeing(strict: Optional[dict], loose: Optional[dict], num_photos: int, agree: dict) -> Tuple[bool, str]:
+    """Whether to use the looser matcher's model (:data:`NIGHT_AGREE`) given the camera centres of the strict and
+    the loose model ({name: centre}; None: no model), and the one line that says which and why."""
+    k = len(strict or {})
+    ratio = agree["loose_max_ratio"]
+    if not loose:
+        return False, f"kept the strict model ({k}/{num_photos} photos): the looser matcher ({ratio:g}) built none"
+    m = len(loose)
+    if m <= k:
+        return False, (f"kept the strict model ({k}/{num_photos} photos): the looser matcher's ({ratio:g}) posed no "
+                       f"more ({m})")
+    fit = centre_agreement(strict or {}, loose, agree["min_shared_photos"])
+    if fit is None:
+        return False, (f"kept the strict model ({k}/{num_photos} photos): the looser matcher's model ({ratio:g}, "
+                       f"{m} photos) cannot be checked against it (fewer than "
+                       f"{max(3, agree['min_shared_photos'])} distinct photos posed by both)")
+    how = (f"on the {fit['shared']} photos both posed its camera centres are {fit['median']:.1%} (median) and "
+           f"{fit['max']:.1%} (largest) of the extent from the strict model's")
+    if fit["median"] <= agree["max_median_error"] and fit["max"] <= agree["max_error"]:
+        return True, f"the looser matcher's model ({ratio:g}, {m}/{num_photos} photos; strict: {k}) agrees: {how}"
+    return False, (f"kept the strict model ({k}/{num_photos} photos; looser matcher {ratio:g}: {m}), the models "
+                   f"disagree: {how} (bounds {agree['max_median_error']:.0%} / {agree['max_error']:.0%})")
 
 
 def loose_views(rec, min_shared_points: int) -> List[int]:
@@ -483,8 +586,8 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
     (the model is kept; the photos left out are named in a warning otherwise). ``denoise``: the previews of dark
     photos and raw files are denoised before they are brightened (:class:`PreviewDenoise`); ``denoise_cached``:
     a cached model matches whichever preview denoiser made it (a finished run reading its poses back). ``night``:
-    "auto" (the night settings, :data:`NIGHT_SIFT`, :data:`NIGHT_MAPPER`, :data:`NIGHT_TRIANGULATION`, where
-    ``denoise`` is given), "on" or "off" (:func:`night_settings`).
+    "auto" (the night settings, :data:`NIGHT_SIFT`, :data:`NIGHT_MAPPER`, :data:`NIGHT_TRIANGULATION`,
+    :data:`NIGHT_GUARD`, :data:`NIGHT_AGREE`, where ``denoise`` is given), "on" or "off" (:func:`night_settings`).
     """
     say = progress or (lambda _msg: None)
     check_sfm_numbers(max_num_features, max_image_size, num_threads)
@@ -648,20 +751,30 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
                                   extraction_options=ext, device=pycolmap.Device.cpu)
         stages["extract"] = time.perf_counter() - t
         say(f"extracted features in {stages['extract']:.1f} s")
+        agree = night_opts.get("agree") if night_opts is not None else None
+        db_loose = tmp / "database-loose.db"
+        if agree is not None:  # the same features for a second model from looser matches (NIGHT_AGREE), if needed
+            shutil.copyfile(db, db_loose)
+
+        def match(database: Path, max_ratio: Optional[float] = None) -> None:
+            mopt = pycolmap.FeatureMatchingOptions()
+            mopt.num_threads = num_threads
+            if max_ratio is not None:
+                mopt.sift.max_ratio = max_ratio
+            # pycolmap reports nothing while it matches (tens of seconds at 50 photos): say how much work it is
+            if matching == "exhaustive":
+                say(f"matching {len(paths) * (len(paths) - 1) // 2} photo pairs (exhaustive)...")
+                pycolmap.match_exhaustive(database, matching_options=mopt, device=pycolmap.Device.cpu)
+            else:
+                pair = pycolmap.SequentialPairingOptions()
+                pair.overlap = SEQUENTIAL_OVERLAP
+                n_pairs = sequential_pair_count(len(paths), pair.overlap, bool(pair.quadratic_overlap))
+                say(f"matching {n_pairs} photo pairs (sequential)...")
+                pycolmap.match_sequential(database, matching_options=mopt, pairing_options=pair,
+                                          device=pycolmap.Device.cpu)
 
         t = time.perf_counter()
-        mopt = pycolmap.FeatureMatchingOptions()
-        mopt.num_threads = num_threads
-        # pycolmap reports nothing while it matches (tens of seconds at 50 photos): say how much work it is
-        if matching == "exhaustive":
-            say(f"matching {len(paths) * (len(paths) - 1) // 2} photo pairs (exhaustive)...")
-            pycolmap.match_exhaustive(db, matching_options=mopt, device=pycolmap.Device.cpu)
-        else:
-            pair = pycolmap.SequentialPairingOptions()
-            pair.overlap = SEQUENTIAL_OVERLAP
-            n_pairs = sequential_pair_count(len(paths), pair.overlap, bool(pair.quadratic_overlap))
-            say(f"matching {n_pairs} photo pairs (sequential)...")
-            pycolmap.match_sequential(db, matching_options=mopt, pairing_options=pair, device=pycolmap.Device.cpu)
+        match(db)
         stages["match"] = time.perf_counter() - t
         say(f"matched in {stages['match']:.1f} s")
 
@@ -688,26 +801,58 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
             label = f" model {model_no[0]}," if model_no[0] > 1 else ""
             say(f"mapping:{label} {min(count[0], len(paths))}/{len(paths)} photos")
 
-        say("incremental mapping")
-        # point colours from the originals, or from the copies where COLMAP cannot read the originals (raw, HEIC)
-        models = pycolmap.incremental_mapping(db, feature_dir if unreadable else image_dir, tmp / "models",
-                                              options=popt,
-                                              initial_image_pair_callback=initial_pair,
-                                              next_image_callback=next_image)
+        def mapped(database: Path, models_dir: Path, map_seed: int = seed):
+            """The largest model the mapper builds from ``database`` (after the night guard), or None."""
+            count[0], model_no[0] = 0, 0
+            popt.random_seed = map_seed
+            say("incremental mapping")
+            # point colours from the originals, or from the copies where COLMAP cannot read the originals (raw, HEIC)
+            models = pycolmap.incremental_mapping(database, feature_dir if unreadable else image_dir, models_dir,
+                                                  options=popt,
+                                                  initial_image_pair_callback=initial_pair,
+                                                  next_image_callback=next_image)
+            if not models:
+                return None
+            loose: dict = {}
+            if night_opts is not None and "guard" in night_opts:  # before choosing: the largest model once guarded
+                loose = {k: drop_loose_views(r, night_opts["guard"]["min_shared_points"]) for k, r in models.items()}
+            best_key = max(models, key=lambda k: models[k].num_reg_images())
+            if loose.get(best_key):
+                n_loose = len(loose[best_key])
+                say(f"dropped {n_loose} photo{'s' if n_loose > 1 else ''} posed on loose matches (sharing fewer "
+                    f"than {night_opts['guard']['min_shared_points']} points with any other photo): "
+                    f"{_listed(loose[best_key])}")
+            return models[best_key]
+
+        best = mapped(db, tmp / "models")
         stages["map"] = time.perf_counter() - t
-        if not models:
+        if best is None:
             raise UserError(f"SfM could not build a model from the {len(paths)} photos in {image_dir} "
                             f"(too few matching features); try brighter or more overlapping photos")
-        loose: dict = {}
-        if night_opts is not None and "guard" in night_opts:  # before choosing: the largest model once guarded
-            loose = {k: drop_loose_views(r, night_opts["guard"]["min_shared_points"]) for k, r in models.items()}
-        best_key = max(models, key=lambda k: models[k].num_reg_images())
-        best = models[best_key]
-        if loose.get(best_key):
-            n_loose = len(loose[best_key])
-            say(f"dropped {n_loose} photo{'s' if n_loose > 1 else ''} posed on loose matches (sharing fewer than "
-                f"{night_opts['guard']['min_shared_points']} points with any other photo): "
-                f"{_listed(loose[best_key])}")
+        db_used = db
+        if agree is not None and best.num_reg_images() < len(paths):
+            k = best.num_reg_images()
+            if k < max(3, agree["min_shared_photos"]):
+                say(f"night check: kept the strict model ({k}/{len(paths)} photos): too few photos to check a "
+                    f"model from looser matches against (fewer than {max(3, agree['min_shared_photos'])})")
+            else:
+                say(f"the strict model posed {k}/{len(paths)} photos: matching again with SIFT's match ratio "
+                    f"{agree['loose_max_ratio']:g} for a second model, used only if it agrees")
+                t = time.perf_counter()
+                match(db_loose, agree["loose_max_ratio"])
+                other = mapped(db_loose, tmp / "models-loose")
+                strict_c = model_centres(best)
+                loose_c = model_centres(other) if other is not None else None
+                use, why = choose_agreeing(strict_c, loose_c, len(paths), agree)
+                if use:  # the photos it adds: confirmed by another mapping of the same matches
+                    say(f"{why}; mapping the looser matches again (seed {seed + 1}) to check the photos it adds")
+                    again = mapped(db_loose, tmp / "models-loose-2", seed + 1)
+                    use, why = confirm_added(strict_c, loose_c, model_centres(again) if again is not None else None,
+                                             len(paths), agree)
+                stages["loose"] = time.perf_counter() - t
+                say(f"night check: {why}")
+                if use:
+                    best, db_used = other, db_loose
         if best.num_reg_images() < 2:
             raise UserError(f"SfM could not build a model from the {len(paths)} photos in {image_dir}: the photos "
                             f"it posed share too few points with one another to be trusted; try brighter or more "
@@ -727,7 +872,7 @@ def run_sfm(images: Union[str, Path], out: Optional[Union[str, Path]] = None, *,
             trash = tmp / "old_model"
             os.replace(model_dir, trash)
         os.replace(tmp / "sparse" / "0", model_dir)
-        os.replace(db, out_dir / "database.db")
+        os.replace(db_used, out_dir / "database.db")
         result = dict(registered=registered, num_points=num_points, seconds=seconds, enhanced=do_enhance,
                       stage_seconds=stages)
         meta_tmp = tmp / "meta.json"
