@@ -593,7 +593,12 @@ def produced_ahead(items: Iterable[Any], depth: int = 1, name: str = "retinexgs-
                 continue
         return False
 
+    # a new thread starts on CUDA device 0: it takes this one's (a rank's own GPU under torchrun)
+    cuda_device = torch.cuda.current_device() if torch.cuda.is_available() and torch.cuda.is_initialized() else None
+
     def produce() -> None:
+        if cuda_device is not None:
+            torch.cuda.set_device(cuda_device)
         it = iter(items)
         try:
             for x in it:
