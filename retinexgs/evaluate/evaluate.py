@@ -104,8 +104,8 @@ def evaluate(render_fn: Callable, scene: Scene, out_dir: Path, use_lpips: bool =
         # The figures on the render's device (metrics.py keeps its float64 there): on a GPU a 12 MP view's took
         # ~25 s on the host's cores.
         dev = res["rgb"].device
-        gt = torch.as_tensor(view.paired_image).to(dev)
-        low = torch.as_tensor(view.image).to(dev)
+        gt = view.paired_image.to(dev)
+        low = view.image.to(dev)
         rgb = res["rgb"].float()
         aligned = gt_mean_align(rgb, gt)  # beside the plain figures: all but the exposure level (metrics.py)
         row = {"view": view.name, "psnr": psnr(rgb, gt), "ssim": ssim_metric(rgb, gt),

@@ -431,8 +431,8 @@ def iter_decompositions(image_paths: Sequence[PathLike], method: str = "lr3m", p
     """(R [H,W,3], L [H,W,1]) float32 CPU tensors for each image in turn, from the cache or computed and
     written to it (on a thread, while the next image is decomposed: each entry is on disk before the next image's
     maps are yielded): the caller holds one image's priors at a time, and an interrupted run keeps every entry
-    computed so far (a write in flight is finished when the iteration is closed). The values are the cache's float16 ones (a freshly computed entry is
-    rounded as it is stored). ``report`` (a dict, filled as it goes): ``folder``, ``computed``, ``reused``,
+    computed so far (a write in flight is finished when the iteration is closed). The values are the cache's
+    float16 ones (a freshly computed entry is rounded as it is stored). ``report`` (a dict, filled as it goes): ``folder``, ``computed``, ``reused``,
     ``swept``, ``unused``, ``unused_bytes`` and ``files``, as :func:`decompose_images` returns it; the sweep
     (``sweep=True``) runs once the last image has been yielded and the caller asks for the next, and with
     ``announce`` prints :func:`unused_note` (naming ``scene`` in its command) on stderr when there are unused

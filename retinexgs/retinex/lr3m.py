@@ -93,7 +93,9 @@ class LR3MParams:
     # A photo above tile_pixels is still solved whole where its working set fits this share of the memory free on
     # its device (tiles cost 1.5x the time on the CPU, 2.5x on an H100); 0: always tiles above tile_pixels. 0.75
     # (0.5 until 2026-11-29): a 24 GB card (~23 GiB free) solves a 12 MP photo whole (15.6 GiB budgeted, 14.9
-    # measured), 2.0 s instead of 5.5 on tiles, and a quarter of the free memory stays spare.
+    # measured), 2.0 s instead of 5.5 on tiles on an H100, and a quarter of the free memory stays spare. An H200
+    # capped at 24 GB wrote the 12 MP raw scene's 40 views in 109 s, as uncapped (tiles would add ~140 s):
+    # experiments/notes/2026-11-29-12mp-and-seeds.md.
     tile_memory_share: float = 0.75
 
     # Added after caches existed: at these values they are left out of the cache key, so that a cache written
