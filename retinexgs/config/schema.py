@@ -343,7 +343,6 @@ class Density(Section):
     max_screen_fraction: Num(gt=0)
     max_gaussians: Int(1)
     max_aniso: Annotated[float, BeforeValidator(_yaml_number), Expect("0 (no cap) or a ratio >= 1")]
-    prune_single_view: Bool  # retinexgs/strategy/views_seen.py: Gaussians one training view alone sees go
     mcmc: MCMC
 
     @model_validator(mode="after")

@@ -62,9 +62,8 @@ class Strategy:
         """A regulariser this strategy adds to every step's loss (weighted, differentiable), or None."""
         return None
 
-    def after_backward(self, out: RenderOutput, width: int, height: int, view: int) -> None:
-        """One view's render after its backward (its 2D means' gradients are set); ``view``: its index in the
-        training set (-1: not known, e.g. a bare :meth:`Trainer.train_step` call: per-view statistics skip it)."""
+    def after_backward(self, out: RenderOutput, width: int, height: int) -> None:
+        """One view's render after its backward (its 2D means' gradients are set)."""
 
     def after_optimizer_step(self, model: GaussianModel, optimizer: torch.optim.Optimizer, step: int) -> None:
         """After every optimiser step (constraints or perturbations of the updated parameters)."""

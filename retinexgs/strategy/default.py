@@ -1,8 +1,6 @@
 """The default strategy: 3DGS's adaptive density control (Kerbl et al. 2023, §5.2): clone small and split large
 Gaussians with large view-space gradients, prune transparent or oversized ones, periodically reset opacities;
-``density.max_aniso`` caps needles after every optimiser step; ``density.prune_single_view`` prunes the Gaussians
-one training view alone sees (:mod:`retinexgs.strategy.views_seen`). Parameters and Adam moments change only
-through :mod:`retinexgs.strategy.ops`."""
+``density.max_aniso`` caps needles after every optimiser step. Parameters and Adam moments change only through :mod:`retinexgs.strategy.ops`."""
 from __future__ import annotations
 
 import math
@@ -18,7 +16,6 @@ from retinexgs.render import RenderOutput
 from retinexgs.render.rotation import quat_to_rotmat
 from retinexgs.strategy.base import Strategy, register
 from retinexgs.strategy.ops import cap_anisotropy, edit_gaussians, mask_indices, reset_opacity
-from retinexgs.strategy.views_seen import ViewsSeen
 
 
 # The per-Gaussian statistics summed over views (and over ranks before a densification), and the one kept as a
@@ -38,16 +35,14 @@ class DefaultStrategy(Strategy):
         self.count: Optional[Tensor] = None       # views that saw each Gaussian
         self.max_radius: Optional[Tensor] = None
         self._ndc_scale: Optional[tuple] = None  # ((width, height, device, dtype), [2] tensor)
-        self.views_seen = ViewsSeen(cfg, schedule)  # density.prune_single_view (kept across densifications)
 
     def state_dict(self) -> Dict[str, Optional[Tensor]]:
-        return {**{key: getattr(self, key) for key in SUMMED + MAXIMA}, **self.views_seen.state_dict()}
+        return {key: getattr(self, key) for key in SUMMED + MAXIMA}
 
     def load_state_dict(self, state: Dict[str, Optional[Tensor]], device: torch.device) -> None:
         for key in SUMMED + MAXIMA:
             value = state.get(key)
             setattr(self, key, None if value is None else value.to(device))
-        self.views_seen.load_state_dict(state, device)
 
     def _ensure(self, n: int, device: torch.device) -> None:
         if self.grad_accum is None or self.grad_accum.shape[0] != n:
@@ -62,9 +57,8 @@ class DefaultStrategy(Strategy):
             self._ndc_scale = (key, torch.tensor([width / 2.0, height / 2.0], device=grad.device, dtype=grad.dtype))
         return grad.detach() * self._ndc_scale[1]
 
-    def after_backward(self, out: RenderOutput, width: int, height: int, view: int) -> None:
-        """Add one view's statistics (call after backward, before the optimizer step); ``view``: its index in the
-        training set."""
+    def after_backward(self, out: RenderOutput, width: int, height: int) -> None:
+        """Add one view's statistics (call after backward, before the optimizer step)."""
         grad = out.means2d.grad
         if grad is None:
             return
@@ -76,7 +70,6 @@ class DefaultStrategy(Strategy):
         self.count += visible
         # A culled Gaussian has radii (0, 0), so its max radius is 0 and leaves the running maximum as it is.
         torch.maximum(self.max_radius, out.radii.amax(dim=-1), out=self.max_radius)
-        self.views_seen.add(visible, view)
 
     def densification_statistic(self) -> Tensor:
         """[N] what the threshold is compared with: the mean NDC gradient norm over the views that saw each
@@ -88,15 +81,13 @@ class DefaultStrategy(Strategy):
         did = ""
         if self.schedule.densify_at(step) and self.grad_accum is not None:
             did = self.densify_and_prune(step, model, optimizer, image_size)
-        elif self.views_seen.final_at(step) and len(model):
-            did = self.prune_single_view(model, optimizer)
         if self.schedule.reset_at(step):
             reset_opacity(model, optimizer)
             did += " opacity reset"
         return did.strip()
 
     def edits_at(self, step: int) -> bool:
-        return self.schedule.densify_at(step) or self.schedule.reset_at(step) or self.views_seen.decides_at(step)
+        return self.schedule.densify_at(step) or self.schedule.reset_at(step)
 
     def after_optimizer_step(self, model: GaussianModel, optimizer: Optional[torch.optim.Optimizer] = None,
                              step: int = 0) -> None:
@@ -107,9 +98,8 @@ class DefaultStrategy(Strategy):
         cap_anisotropy(model, float(self.cfg.max_aniso))
 
     def will_edit(self, step: int) -> bool:
-        """Whether :meth:`step` densifies or prunes single-view Gaussians at ``step`` (the ranks must first
-        :meth:`reduce` the statistics)."""
-        return self.schedule.densify_at(step) or self.views_seen.decides_at(step)
+        """Whether :meth:`step` densifies at ``step`` (the ranks must first :meth:`reduce` the statistics)."""
+        return self.schedule.densify_at(step)
 
     def reduce(self, all_reduce_sum: Callable[[Tensor], Tensor], all_reduce_max: Callable[[Tensor], Tensor],
                n: int, image_size: int, device: torch.device) -> int:
@@ -132,38 +122,17 @@ class DefaultStrategy(Strategy):
         for keys, values in ((SUMMED, sums), (MAXIMA, maxima)):
             for i, key in enumerate(keys):
                 setattr(self, key, values[i * n:(i + 1) * n] if anyone else None)
-        self.views_seen.reduce(all_reduce_sum, all_reduce_max, n, device)
         return int(biggest)
-
-    @torch.no_grad()
-    def prune_single_view(self, model: GaussianModel, optimizer: torch.optim.Optimizer) -> str:
-        """The final decision of ``density.prune_single_view`` (after the densification window): prune the
-        Gaussians one view alone saw with enough evidence; one host read (the kept indices)."""
-        n = len(model)
-        single = self.views_seen.single_view(n, model.means.device)
-        keep = (~single).nonzero().squeeze(-1)  # host read
-        if keep.numel() == 0:  # never prune everything: the most opaque stays
-            keep = model.opacities.argmax().reshape(1)
-        edit_gaussians(model, optimizer, lambda name, t, is_state: t.index_select(0, keep), rows=keep,
-                       stats=[self.views_seen])
-        for key in SUMMED + MAXIMA:  # the densification statistics, unused from here on, restart anyway
-            setattr(self, key, None)
-        return f"single-view prune -{n - keep.numel()} (seen by one view in >= {self.views_seen.min_hits} hits)"
 
     @torch.no_grad()
     def densify_and_prune(self, step: int, model: GaussianModel, optimizer: torch.optim.Optimizer,
                           image_size: int) -> str:
         """Clone, split and prune (3DGS) with two host reads in all (issue 65: every read stalls the GPU queue):
-        the clone and split counts together (with the single-view count), then the kept indices. Everything else
-        is decided on the device."""
+        the clone and split counts together, then the kept indices. Everything else is decided on the device."""
         c = self.cfg
         n = len(model)
         avg = self.densification_statistic()
         selected = avg >= c.grad_threshold
-        seen = self.views_seen
-        single = seen.single_view(n, avg.device) if seen.enabled else None
-        if single is not None:  # a Gaussian about to be pruned as seen by one view is neither cloned nor split
-            selected &= ~single
         room = max(0, int(c.max_gaussians) - n)
         if room < n:  # over budget only if more than ``room`` are selected: keep the largest gradients then
             capped = torch.zeros_like(selected)
@@ -173,8 +142,7 @@ class DefaultStrategy(Strategy):
         scales = model.scales
         big = scales.max(-1).values > c.percent_dense * self.extent
         clone, split = selected & ~big, selected & big
-        counts = [clone.sum(), split.sum()] + ([single.sum()] if single is not None else [])
-        n_clone, n_split, *n_single = torch.stack(counts).tolist()  # host read 1
+        n_clone, n_split = torch.stack([clone.sum(), split.sum()]).tolist()  # host read 1
         params = model.tensors()
         clone_idx = mask_indices(clone, n_clone)
         new: Dict[str, Tensor] = {k: v.detach().index_select(0, clone_idx) for k, v in params.items()}
@@ -188,15 +156,10 @@ class DefaultStrategy(Strategy):
             split_new["log_scales"] = split_new["log_scales"] - math.log(1.6)
             new = {k: torch.cat([new[k], split_new[k]]) for k in new}
         n_new = n_clone + 2 * n_split
-        # The clones and split children inherit the statistics of the Gaussian they copy (views_seen: why).
-        rows = torch.cat([torch.arange(n, device=clone_idx.device), clone_idx, idx]) if seen.enabled else None
         edit_gaussians(model, optimizer, lambda name, t, is_state: torch.cat(
-            [t, torch.zeros_like(new[name]) if is_state else new[name].to(t)]),
-            rows=rows, stats=[seen] if seen.enabled else ())
-        # Prune: the split originals, transparent Gaussians, (after the first reset) oversized ones, and
-        # (density.prune_single_view) those one view alone saw.
-        prune = torch.cat([split if single is None else split | single,
-                           torch.zeros(n_new, dtype=torch.bool, device=split.device)])
+            [t, torch.zeros_like(new[name]) if is_state else new[name].to(t)]))
+        # Prune: the split originals, transparent Gaussians, and (after the first reset) oversized ones.
+        prune = torch.cat([split, torch.zeros(n_new, dtype=torch.bool, device=split.device)])
         prune |= model.opacities < c.prune_opacity
         if self.schedule.prune_large_at(step):
             radius = torch.cat([self.max_radius, torch.zeros(n_new, device=split.device)])
@@ -206,10 +169,7 @@ class DefaultStrategy(Strategy):
         opaque = model.opacities.argmax().unsqueeze(0)  # an index tensor, not a Python int (that is a read)
         prune.index_put_((opaque,), prune[opaque] & ~prune.all())
         keep = (~prune).nonzero().squeeze(-1)  # host read 2
-        edit_gaussians(model, optimizer, lambda name, t, is_state: t.index_select(0, keep),
-                       rows=keep if seen.enabled else None, stats=[seen] if seen.enabled else ())
+        edit_gaussians(model, optimizer, lambda name, t, is_state: t.index_select(0, keep))
         for key in SUMMED + MAXIMA:  # the next interval starts afresh (_ensure: at the new Gaussian count)
             setattr(self, key, None)
-        note = f"densify +{n_clone} clone +{n_split} split -{n + n_new - keep.numel()} pruned"
-        # the single-view ones among the pruned (all of them go, but where everything would: the most opaque stays)
-        return note + (f" ({int(n_single[0])} single-view)" if n_single else "")
+        return f"densify +{n_clone} clone +{n_split} split -{n + n_new - keep.numel()} pruned"

@@ -8,14 +8,12 @@ Gaussians are samples of the scene, moved by noise and never cloned or pruned by
   becomes N copies keeps the rendered look of the one it was (the paper's eq. 9): opacity 1 − (1 − o)^(1/N), its
   scale shrunk by o / Σᵢ Σₖ C(i−1, k) (−1)ᵏ oₙ^(k+1) / √(k+1).
 - Opacity and scale regularisers (L1 on both) make unneeded Gaussians fade, to be relocated.
-- ``density.prune_single_view``: a Gaussian one training view alone saw (:mod:`retinexgs.strategy.views_seen`)
-  is relocated like a dead one, at the density steps and once more at the final decision.
 There are no opacity resets. Why a second strategy: issue 63 (and issue 64's floaters that fit one view's noise):
 noise-driven exploration instead of gradient thresholds that a noisy capture's gradients trip.
 """
 from __future__ import annotations
 
-from typing import Callable, Dict, Optional, Tuple
+from typing import Dict, Optional, Tuple
 
 import torch
 from torch import Tensor
@@ -23,11 +21,9 @@ from torch import Tensor
 from retinexgs.config.schema import Density
 from retinexgs.model.gaussians import GaussianModel
 from retinexgs.model.schedule import Schedule
-from retinexgs.render import RenderOutput
 from retinexgs.render.rotation import quat_to_rotmat
 from retinexgs.strategy.base import Strategy, register
 from retinexgs.strategy.ops import cap_anisotropy, edit_gaussians, mask_indices
-from retinexgs.strategy.views_seen import ViewsSeen
 
 N_MAX = 51  # the most copies one Gaussian becomes in one event (the binomial sum's table)
 
@@ -61,7 +57,6 @@ class MCMCStrategy(Strategy):
         super().__init__(cfg, scene_extent, schedule, seed)
         self.generator: Optional[torch.Generator] = None
         self._saved_rng: Optional[Tensor] = None
-        self.views_seen = ViewsSeen(cfg, schedule)  # density.prune_single_view
 
     def _rng(self, device: torch.device) -> torch.Generator:
         # Its own stream, seeded alike on every rank (the ranks' Gaussians must move alike between broadcasts).
@@ -73,20 +68,7 @@ class MCMCStrategy(Strategy):
         return self.generator
 
     def edits_at(self, step: int) -> bool:
-        return self.schedule.densify_at(step) or self.views_seen.decides_at(step)
-
-    def will_edit(self, step: int) -> bool:
-        """Only the single-view statistics cross ranks (MCMC's own moves are drawn alike on every rank)."""
-        return self.views_seen.decides_at(step)
-
-    def reduce(self, all_reduce_sum: Callable[[Tensor], Tensor], all_reduce_max: Callable[[Tensor], Tensor],
-               n: int, image_size: int, device: torch.device) -> int:
-        self.views_seen.reduce(all_reduce_sum, all_reduce_max, n, device)
-        return image_size
-
-    def after_backward(self, out: RenderOutput, width: int, height: int, view: int) -> None:
-        """Only ``density.prune_single_view``'s statistics: which views saw each Gaussian."""
-        self.views_seen.add(out.visible, view)
+        return self.schedule.densify_at(step)
 
     def extra_loss(self, model: GaussianModel) -> Optional[Tensor]:
         m = self.cfg.mcmc
@@ -111,17 +93,11 @@ class MCMCStrategy(Strategy):
         model.means.add_(step_ * (gate * (lr * self.cfg.mcmc.noise_lr))[:, None])
 
     def step(self, step: int, model: GaussianModel, optimizer: torch.optim.Optimizer, image_size: int) -> str:
-        if len(model) == 0:
+        if not self.schedule.densify_at(step) or len(model) == 0:
             return ""
-        if self.views_seen.final_at(step):  # the final decision: the single-view ones alone move
-            moved, single = self._relocate(model, optimizer, dead=False)
-            return f"mcmc: {moved} relocated ({single} single-view)"
-        if not self.schedule.densify_at(step):
-            return ""
-        moved, single = self._relocate(model, optimizer)
+        moved = self._relocate(model, optimizer)
         added = self._grow(model, optimizer)
-        note = f"mcmc: {moved} relocated, +{added} added"
-        return note + (f" ({single} single-view)" if self.views_seen.enabled else "")
+        return f"mcmc: {moved} relocated, +{added} added"
 
     # ---- the moves -------------------------------------------------------------------------------------------
     def _sample(self, weights: Tensor, k: int) -> Tensor:
@@ -143,12 +119,6 @@ class MCMCStrategy(Strategy):
         changed = {"opacity_logits": torch.logit(o_new)[:, None].to(model.opacity_logits.dtype),
                    "log_scales": s_new.clamp_min(1e-12).log().to(model.log_scales.dtype)}
         fresh = sources if targets is None else torch.cat([sources, targets])
-        # The copies inherit the statistics of the Gaussian they copy (views_seen says why).
-        rows = torch.arange(n, device=sources.device)
-        if targets is None:
-            rows = torch.cat([rows, sources])
-        else:
-            rows[targets] = sources
 
         def edit(name: str, t: Tensor, is_state: bool) -> Tensor:
             t = t.clone()
@@ -161,30 +131,18 @@ class MCMCStrategy(Strategy):
                 return t
             return torch.cat([t, torch.zeros_like(t[sources]) if is_state else t[sources]])
 
-        seen = self.views_seen
-        edit_gaussians(model, optimizer, edit, rows=rows if seen.enabled else None,
-                       stats=[seen] if seen.enabled else ())
+        edit_gaussians(model, optimizer, edit)
 
-    def _relocate(self, model: GaussianModel, optimizer: torch.optim.Optimizer,
-                  dead: bool = True) -> Tuple[int, int]:
-        """Move the dead Gaussians (``dead``) and, with ``density.prune_single_view``, those one view alone saw onto
-        live ones; returns (how many moved, how many of them for being single-view)."""
+    def _relocate(self, model: GaussianModel, optimizer: torch.optim.Optimizer) -> int:
         o = model.opacities.reshape(-1)
-        gone = o <= self.cfg.mcmc.min_opacity if dead else torch.zeros_like(o, dtype=torch.bool)
-        n_single = 0
-        if self.views_seen.enabled:
-            single = self.views_seen.single_view(o.numel(), o.device) & ~gone
-            gone = gone | single
-            # the one host read of a relocation (both counts): the index sets follow from it
-            n_gone, n_single = torch.stack([gone.sum(), single.sum()]).tolist()
-        else:
-            n_gone = int(gone.sum())  # the one host read of a relocation: the index sets follow from it
-        if n_gone == 0 or n_gone == o.numel():
-            return 0, 0
-        alive = mask_indices(~gone, o.numel() - n_gone)
-        sources = alive[self._sample(o[alive], n_gone)]
-        self._split(model, optimizer, sources, mask_indices(gone, n_gone))
-        return n_gone, n_single
+        dead = o <= self.cfg.mcmc.min_opacity
+        n_dead = int(dead.sum())  # the one host read of a relocation: the index sets follow from it
+        if n_dead == 0 or n_dead == o.numel():
+            return 0
+        alive = mask_indices(~dead, o.numel() - n_dead)
+        sources = alive[self._sample(o[alive], n_dead)]
+        self._split(model, optimizer, sources, mask_indices(dead, n_dead))
+        return n_dead
 
     def _grow(self, model: GaussianModel, optimizer: torch.optim.Optimizer) -> int:
         n = len(model)
@@ -197,11 +155,9 @@ class MCMCStrategy(Strategy):
 
     # ---- checkpoint ----------------------------------------------------------------------------------------
     def state_dict(self) -> Dict[str, object]:
-        return {"rng": self.generator.get_state() if self.generator is not None else self._saved_rng,
-                **self.views_seen.state_dict()}
+        return {"rng": self.generator.get_state() if self.generator is not None else self._saved_rng}
 
     def load_state_dict(self, state: Dict[str, object], device: torch.device) -> None:
         rng = state.get("rng")
         self._saved_rng = rng if isinstance(rng, Tensor) else None
         self.generator = None
-        self.views_seen.load_state_dict(state, device)

@@ -4,7 +4,7 @@ to the new one, so Adam's moments always match the Gaussians they belong to."""
 from __future__ import annotations
 
 import math
-from typing import Callable, Optional, Protocol, Sequence
+from typing import Callable
 
 import torch
 from torch import Tensor, nn
@@ -12,23 +12,10 @@ from torch import Tensor, nn
 from retinexgs.model.gaussians import PARAM_NAMES, GaussianModel
 
 
-class PerGaussian(Protocol):
-    """Per-Gaussian statistics a strategy keeps across edits (e.g. :class:`retinexgs.strategy.views_seen.ViewsSeen`):
-    they follow every index edit through :func:`edit_gaussians`'s ``rows``."""
-
-    def gather(self, rows: Tensor) -> None: ...
-
-
 def edit_gaussians(model: nn.Module, optimizer: torch.optim.Optimizer,
-                   edit: Callable[[str, Tensor, bool], Tensor], rows: Optional[Tensor] = None,
-                   stats: Sequence[PerGaussian] = ()) -> None:
+                   edit: Callable[[str, Tensor, bool], Tensor]) -> None:
     """Replace every Gaussian parameter by ``edit(name, tensor, is_state)`` and its Adam moments likewise
-    (``is_state`` True for ``exp_avg`` / ``exp_avg_sq``); the optimiser's state follows the new tensors.
-    ``rows`` [N'] (an edit that changes which Gaussian is where): the old Gaussian each new one continues or copies;
-    every one of ``stats`` follows it in the same call, so statistics and parameters cannot go out of step (a
-    ``rows`` whose length is not the new count raises at once: its size is known on the host, no device read)."""
-    if stats and rows is None:
-        raise ValueError("edit_gaussians: per-Gaussian statistics need the rows the edit maps them from")
+    (``is_state`` True for ``exp_avg`` / ``exp_avg_sq``); the optimiser's state follows the new tensors."""
     for group in optimizer.param_groups:
         name = group.get("name")
         if name not in PARAM_NAMES:
@@ -43,10 +30,6 @@ def edit_gaussians(model: nn.Module, optimizer: torch.optim.Optimizer,
             optimizer.state[new] = state
         group["params"][0] = new
         setattr(model, name, new)
-        if rows is not None and rows.shape[0] != new.shape[0]:
-            raise ValueError(f"edit_gaussians: {rows.shape[0]} rows for {new.shape[0]} Gaussians after the edit")
-    for holder in stats:
-        holder.gather(rows)
 
 
 def mask_indices(mask: Tensor, count: int) -> Tensor:

@@ -12,10 +12,8 @@ crosses ranks, and when (docs/architecture.md, "Several GPUs"):
   (``illum_ref`` and the mean background are computed from every view);
 - each step: the gradients (one flat buffer per dtype); on logging steps the loss values (the batch's mean);
 - before a densification: the density statistics (sums of the 2D-gradient norms and visibility counts, maxima
-  of the screen radii and of the image size; with ``density.prune_single_view`` which views saw each Gaussian:
-  hits summed, multi-view OR-ed, two ranks' different lone views made multi-view); after any density event
-  (densify, prune, opacity reset) rank 0's Gaussians and their Adam moments are broadcast, after every rank
-  compared its own with rank 0's;
+  of the screen radii and of the image size); after any density event (densify, prune, opacity reset) rank 0's
+  Gaussians and their Adam moments are broadcast, after every rank compared its own with rank 0's;
 - at the end: per-rank statistics and a fingerprint of the parameters (gathered by rank 0), the evaluation's
   per-view rows (each rank renders its share of the test views).
 

@@ -186,29 +186,24 @@ class Trainer:
                                      center=tv.center, colors=colors, depth=self.depth_prior,
                                      near=self.cfg.model.near_in_training)
 
-    def train_step(self, step: int, tv, check: bool = True,
-                   indices: Optional[List[int]] = None) -> Dict[str, float]:
+    def train_step(self, step: int, tv, check: bool = True) -> Dict[str, float]:
         """One optimisation step on view ``tv`` (or on this rank's list of the step's views: each is rendered
-        and back-propagated in turn, the gradients summed); ``indices``: the views' indices in the training set
-        (what the strategy's per-view statistics need; None: not known, -1 each). With ``check`` (and always
-        before densification or an opacity reset) the loss terms and parameters of every step since the last
-        check are checked for NaN/inf (:class:`TrainingDiverged`) and this step's loss values (the mean over the
-        step's views) are returned; otherwise nothing is read back from the device (the step never waits for the
-        GPU, except for binning's pair count) and the result holds only a density event, if any. A batch of B > 1 views
+        and back-propagated in turn, the gradients summed). With ``check`` (and always before densification or
+        an opacity reset) the loss terms and parameters of every step since the last check are checked for
+        NaN/inf (:class:`TrainingDiverged`) and this step's loss values (the mean over the step's views) are
+        returned; otherwise nothing is read back from the device (the step never waits for the GPU, except for
+        binning's pair count) and the result holds only a density event, if any. A batch of B > 1 views
         (``batch_size``: ranks × ``train.views_per_rank``) steps on the mean gradient over the B views: one
         all-reduce of the gradients across the ranks after the backward, before the optimiser step; the
         density statistics are summed over the ranks before a densification, and rank 0's Gaussians broadcast
         after any density event (:mod:`retinexgs.train.distributed`)."""
         views = list(tv) if isinstance(tv, (list, tuple)) else [tv]
-        indices = list(indices) if indices is not None else [-1] * len(views)
-        if len(indices) != len(views):
-            raise ValueError(f"train_step: {len(indices)} view indices for {len(views)} views")
         for group in self.optimizer.param_groups:
             if group["name"] == "means":
                 group["lr"] = self._means_lr(step) * self.lr_scale
         several = len(views) > 1
         acc, per_view = None, []
-        for view, index in zip(views, indices):
+        for view in views:
             res = self.render_view(view, step)
             terms = (self.objective.backward_graphed(self.graphs, res, view, step, self._log_graph_failures)
                      if self.graphs is not None else None)
@@ -224,7 +219,7 @@ class Trainer:
                 with record_function("step/watch"):
                     self.divergence.watch(terms, step)
             with record_function("step/density"):
-                self.strategy.after_backward(res["out"], view.camera.width, view.camera.height, index)
+                self.strategy.after_backward(res["out"], view.camera.width, view.camera.height)
             del res
         if several:
             for p, g in zip(gradient_params(self.optimizer), acc):
@@ -374,8 +369,7 @@ class Trainer:
                         self._sync()
                         timed_from = (time.time(), self.step)
                     timed_through = self.step + 1
-                values = self.train_step(self.step, views[0] if len(views) == 1 else views, check=check,
-                                         indices=indices)
+                values = self.train_step(self.step, views[0] if len(views) == 1 else views, check=check)
                 if self.step == first:
                     self._sync()
                     self.time_to_first_step = time.time() - process_start_time()

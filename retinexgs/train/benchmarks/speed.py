@@ -212,8 +212,7 @@ def trainer_step(scene_path: Path, config: List[str], device: torch.device, run_
             tr.order = list(range(len(tr.views)))
             random.shuffle(tr.order)
         tr.step += 1
-        i = tr.order.pop()
-        tr.train_step(tr.step, tr.views[i], indices=[i])
+        tr.train_step(tr.step, tr.views[tr.order.pop()])
 
     step.trainer = tr  # type: ignore[attr-defined]
     return step
