@@ -4,8 +4,8 @@ Runs ``run_sfm`` (``--denoise auto``, 2 threads, ``--min-registered 0``) on FOLD
 centres to the scene's transforms_{train,val,test}.json centres (Umeyama similarity, matched by file stem) and prints
 one ``RESULT {json}`` line: registered / photos, points, and the median and largest centre error relative to the
 scene's extent (the RMS distance of its camera centres from their mean); where the night settings' agreement check
-(NIGHT_AGREE) ran, ``check`` holds the same figures for its strict, loose and second loose models, their agreement and
-the decision (the note's section 5). ``--night`` picks the night settings
+(NIGHT_AGREE) ran, ``check`` holds the same figures for its strict model and each loose mapping, their agreement and
+the decision (the note's sections 5-6). ``--night`` picks the night settings
 (default off: today's code before them); ``H10_OPTS`` (JSON: {"sift": {...}, "mapper": {...}, "tri": {...},
 "pipeline": {...}}) overrides pycolmap options on top, for the study's variants.
 
@@ -73,24 +73,25 @@ def truth_error(centres, gt, extent):
     return dict(reg=len(centres), med=round(float(np.median(e)), 4), max=round(float(e.max()), 4))
 
 def record_check(scene, check):
-    """Wrap the agreement check's two decisions so that ``check`` records each model's truth error."""
+    """Wrap the agreement check's decision (choose_consensus) so that ``check`` records each model's truth error."""
     import retinexgs.data.sfm as S
     gt = gt_centres(scene)
     allgt = np.array(list(gt.values())); extent = np.sqrt(((allgt - allgt.mean(0)) ** 2).sum(1).mean())
-    choose, confirm = S.choose_agreeing, S.confirm_added
-    def choose_rec(strict, loose, n, agree):
-        use, why = choose(strict, loose, n, agree)
-        check.update(strict=truth_error(strict or {}, gt, extent), loose=loose and truth_error(loose, gt, extent),
-                     agree=loose and S.centre_agreement(strict or {}, loose, agree["min_shared_photos"]),
-                     used="loose" if use else "strict", why=why)
-        return use, why
-    def confirm_rec(strict, loose, again, n, agree):
-        use, why = confirm(strict, loose, again, n, agree)
-        check.update(again=again and truth_error(again, gt, extent),
-                     agree_again=S.centre_agreement(loose, again or {}, agree["min_shared_photos"]),
-                     used="loose" if use else "strict", why=why)
-        return use, why
-    S.choose_agreeing, S.confirm_added = choose_rec, confirm_rec
+    consensus = S.choose_consensus
+    def rnd(fit):
+        return fit and {k: (round(v, 4) if isinstance(v, float) else v) for k, v in fit.items()}
+    def consensus_rec(strict, mappings, n, agree):
+        chosen, why, info = consensus(strict, mappings, n, agree)
+        ms = agree["min_shared_photos"]
+        check.update(strict=truth_error(strict or {}, gt, extent),
+                     mappings=[dict(truth=m and truth_error(m, gt, extent), agree=rnd(x["strict"]),
+                                    candidate=x["candidate"], supporters=x["supporters"],
+                                    pairs={j: rnd(S.centre_agreement(m, o, ms)) for j, o in enumerate(mappings)
+                                           if m and o and j != i})
+                               for i, (m, x) in enumerate(zip(mappings, info))],
+                     used="strict" if chosen is None else f"loose{chosen + 1}", why=why)
+        return chosen, why, info
+    S.choose_consensus = consensus_rec
 
 def main(folder, scene, out):
     t0 = time.time()
