@@ -272,3 +272,13 @@ def test_a_crop_below_the_smallest_side_is_refused_before_training_in_one_line(s
     assert "\n" not in str(err.value) and "below 16 px" in str(err.value)
     with pytest.raises(UserError, match=r"to 36x32, below 40 px"):  # a patched L_exp needs a whole patch
         _crop_trainer(scene_dir, tmp_path / "run3", ["steps=3", "loss.exp_patch=40"])
+
+
+def test_views_that_train_whole_are_not_checked_against_the_smallest_side():
+    # crops off, or a view with no more pixels than a crop: trained whole, so a view below 16 px a side is fine
+    # (the downscaled 16x12 views of tests/test_bad_inputs_data_export.py failed here before)
+    for sets in ([], ["train.crop_pixels=1000"]):
+        policy = CropPolicy.from_config(load_config([], sets), [(16, 12), (12, 10)], [1, 2])
+        assert not policy.crops(16, 12)
+    with pytest.raises(UserError, match=r"train.crop_pixels: 100 pixels crop training view 0 \(16x12\)"):
+        CropPolicy.from_config(load_config([], ["train.crop_pixels=100"]), [(16, 12)])

@@ -136,8 +136,13 @@ class CropPolicy:
         policy = cls(cfg.train.crop_pixels, cfg.seed, max(MIN_SIDE, cfg.loss.exp_patch))
         for index, (W, H) in enumerate(sizes):
             for k in sorted(set(downsamples) | {1}):
-                policy.size_for(W // k, H // k, index)
+                if policy.crops(W // k, H // k):  # a view trained whole is not cropped: nothing to check
+                    policy.size_for(W // k, H // k, index)
         return policy
+
+    def crops(self, width: int, height: int) -> bool:
+        """Whether a view of ``width`` × ``height`` trains on crops (crops on, and more pixels than a crop)."""
+        return self.enabled and width * height > self.pixels
 
     @property
     def enabled(self) -> bool:
@@ -167,7 +172,7 @@ class CropPolicy:
         """What ``step`` trains on of view ``index`` (``tv``, after train.resolution): ``tv`` itself where it has
         at most ``pixels`` pixels (or crops are off), else its crop."""
         W, H = tv.camera.width, tv.camera.height
-        if not self.enabled or W * H <= self.pixels:
+        if not self.crops(W, H):
             return tv
         w, h = self.size_for(W, H, index)
         x0, y0 = self.corner(W, H, w, h, step, index)
