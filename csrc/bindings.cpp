@@ -93,8 +93,7 @@ void check_image(int width, int height) {
 
 template <typename T>
 rgs::Camera<T> make_camera(const std::vector<double>& viewmat, double fx, double fy, double cx, double cy,
-                           int width, int height, double near_plane, double far_plane,
-                           const std::vector<double>& frame) {
+                           int width, int height, double near_plane, double far_plane) {
     RGS_CHECK_VALUE(viewmat.size() == 16, "viewmat must have 16 entries, got ", viewmat.size());
     for (double v : viewmat) RGS_CHECK_VALUE(std::isfinite(v), "viewmat must be finite");
     RGS_CHECK_VALUE(std::isfinite(fx) && std::isfinite(fy) && fx > 0 && fy > 0,
@@ -103,10 +102,6 @@ rgs::Camera<T> make_camera(const std::vector<double>& viewmat, double fx, double
     RGS_CHECK_VALUE(near_plane > 0 && far_plane > near_plane, "need 0 < near < far, got ", near_plane, ", ",
                       far_plane);
     check_image(width, height);
-    // frame: (x0, y0, x1, y1) of the whole image a window is cut from (rgs::Camera); empty: the image itself
-    RGS_CHECK_VALUE(frame.empty() || frame.size() == 4, "frame must have 4 entries (x0, y0, x1, y1), got ",
-                    frame.size());
-    for (double v : frame) RGS_CHECK_VALUE(std::isfinite(v), "frame must be finite");
     rgs::Camera<T> cam;
     for (int i = 0; i < 16; ++i) cam.viewmat[i] = T(viewmat[i]);
     cam.fx = T(fx);
@@ -117,10 +112,6 @@ rgs::Camera<T> make_camera(const std::vector<double>& viewmat, double fx, double
     cam.height = height;
     cam.near_plane = T(near_plane);
     cam.far_plane = T(far_plane);
-    cam.frame_x0 = T(frame.empty() ? 0.0 : frame[0]);
-    cam.frame_y0 = T(frame.empty() ? 0.0 : frame[1]);
-    cam.frame_x1 = T(frame.empty() ? double(width) : frame[2]);
-    cam.frame_y1 = T(frame.empty() ? double(height) : frame[3]);
     return cam;
 }
 
@@ -179,8 +170,8 @@ Tensor rgs_bin_gaussians_cuda(const Tensor& means2d, const Tensor& radii, const 
 // without it the 5th output is None. The caller reads the flag where it synchronises anyway.
 std::tuple<Tensor, Tensor, Tensor, Tensor, Tensor> project_forward(
     Tensor means, Tensor quats, Tensor scales, Tensor opacities, std::vector<double> viewmat, double fx, double fy,
-    double cx, double cy, int width, int height, double near_plane, double far_plane, std::vector<double> frame,
-    bool check_finite, std::optional<Tensor> colors_opt, std::optional<Tensor> background_opt) {
+    double cx, double cy, int width, int height, double near_plane, double far_plane, bool check_finite,
+    std::optional<Tensor> colors_opt, std::optional<Tensor> background_opt) {
     check_float(means, "means");
     const int64_t N = means.size(0);
     check_tensor(means, "means", {N, 3}, means);
@@ -209,7 +200,7 @@ std::tuple<Tensor, Tensor, Tensor, Tensor, Tensor> project_forward(
     if (check_finite) flag = torch::zeros({1}, opts.dtype(torch::kInt32));
     RGS_DEVICE_GUARD(means);
     AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project_forward", [&] {
-        auto cam = make_camera<scalar_t>(viewmat, fx, fy, cx, cy, width, height, near_plane, far_plane, frame);
+        auto cam = make_camera<scalar_t>(viewmat, fx, fy, cx, cy, width, height, near_plane, far_plane);
         rgs::FiniteCheck<scalar_t> check;
         if (check_finite) {
             check.flag = flag.data_ptr<int32_t>();
@@ -240,8 +231,7 @@ std::tuple<Tensor, Tensor, Tensor, Tensor, Tensor> project_forward(
 std::tuple<Tensor, Tensor, Tensor> project_backward(Tensor means, Tensor quats, Tensor scales,
                                                     std::vector<double> viewmat, double fx, double fy, double cx,
                                                     double cy, int width, int height, double near_plane,
-                                                    double far_plane, std::vector<double> frame, Tensor radii,
-                                                    Tensor v_means2d,
+                                                    double far_plane, Tensor radii, Tensor v_means2d,
                                                     Tensor v_depths, Tensor v_conics) {
     check_float(means, "means");
     const int64_t N = means.size(0);
@@ -259,7 +249,7 @@ std::tuple<Tensor, Tensor, Tensor> project_backward(Tensor means, Tensor quats, 
     Tensor v_scales = torch::empty_like(scales);
     RGS_DEVICE_GUARD(means);
     AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project_backward", [&] {
-        auto cam = make_camera<scalar_t>(viewmat, fx, fy, cx, cy, width, height, near_plane, far_plane, frame);
+        auto cam = make_camera<scalar_t>(viewmat, fx, fy, cx, cy, width, height, near_plane, far_plane);
         if (means.is_cuda()) {
 #ifdef RGS_WITH_CUDA
             rgs::project_backward_cuda<scalar_t>(
@@ -629,8 +619,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("project_forward", &project_forward, pybind11::arg("means"), pybind11::arg("quats"), pybind11::arg("scales"),
           pybind11::arg("opacities"), pybind11::arg("viewmat"), pybind11::arg("fx"), pybind11::arg("fy"),
           pybind11::arg("cx"), pybind11::arg("cy"), pybind11::arg("width"), pybind11::arg("height"),
-          pybind11::arg("near_plane"), pybind11::arg("far_plane"), pybind11::arg("frame") = std::vector<double>(),
-          pybind11::arg("check_finite") = false,
+          pybind11::arg("near_plane"), pybind11::arg("far_plane"), pybind11::arg("check_finite") = false,
           pybind11::arg("colors") = pybind11::none(), pybind11::arg("background") = pybind11::none());
     m.def("project_backward", &project_backward);
     m.def("bin_gaussians", &bin_gaussians, pybind11::arg("means2d"), pybind11::arg("radii"), pybind11::arg("depths"),

@@ -380,7 +380,6 @@ class Train(Section):
     resolution: Annotated[List[Tuple[Step, Annotated[StrictInt, Field(ge=1, le=64)]]], BeforeValidator(_pairs),
                           Expect("a list of [until, downsample] pairs: until a fraction of steps 0..1 or a step, "
                                  "downsample an integer 1..64, e.g. [[0.2, 4], [0.5, 2]]; [] for full size")]
-    crop_pixels: Int(0)  # a step trains on a full-resolution crop of at most this many pixels (retinexgs.train.crop)
 
 
 class ConfigSchema(Section):

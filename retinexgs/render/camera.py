@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import List, Optional, Tuple
+from typing import List
 
 import torch
 
@@ -17,10 +17,6 @@ class Camera:
         fx, fy, cx, cy: intrinsics in pixels; the centre of pixel (i, j) is at (i + 0.5, j + 0.5).
         width, height: image size in pixels.
         near, far: depth range; Gaussians whose centre lies outside it are culled.
-        frame: (x0, y0, x1, y1), the pixel rectangle of the whole image this one is a window of (a training
-            crop, :mod:`retinexgs.train.crop`), in this image's pixel coordinates; None: the image itself. The
-            projection's guard band (where the EWA Jacobian stops following a Gaussian far off-screen) is measured
-            on the frame, so a window renders exactly what the whole image renders there.
     """
 
     viewmat: torch.Tensor
@@ -32,7 +28,6 @@ class Camera:
     height: int
     near: float = 0.01
     far: float = 1e10
-    frame: Optional[Tuple[float, float, float, float]] = None
     _flat: List[float] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -59,26 +54,13 @@ class Camera:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
                 raise ValueError(f"camera {name} must be a positive integer, got {value!r}")
-        if self.frame is not None:
-            box = tuple(float(v) for v in self.frame)
-            if len(box) != 4 or not all(math.isfinite(v) for v in box) or not (box[0] < box[2] and box[1] < box[3]):
-                raise ValueError(f"camera frame must be 4 finite numbers (x0, y0, x1, y1), x0 < x1, y0 < y1, "
-                                 f"got {self.frame!r}")
-            object.__setattr__(self, "frame", box)
         if not 0 < self.near < self.far:
             raise ValueError(f"camera needs 0 < near < far, got near={self.near}, far={self.far}")
 
     @property
     def kernel_args(self) -> tuple:
-        """(viewmat as 16 floats, fx, fy, cx, cy, width, height, near, far, frame: 4 floats or [] for the image
-        itself) for ``retinexgs._C``."""
-        return (self._flat, self.fx, self.fy, self.cx, self.cy, self.width, self.height, self.near, self.far,
-                [] if self.frame is None else list(self.frame))
-
-    @property
-    def frame_box(self) -> Tuple[float, float, float, float]:
-        """(x0, y0, x1, y1) of the whole image in this camera's pixels: ``frame``, or the image itself."""
-        return self.frame if self.frame is not None else (0.0, 0.0, float(self.width), float(self.height))
+        """(viewmat as 16 floats, fx, fy, cx, cy, width, height, near, far) for ``retinexgs._C``."""
+        return (self._flat, self.fx, self.fy, self.cx, self.cy, self.width, self.height, self.near, self.far)
 
     @property
     def center(self) -> torch.Tensor:

@@ -37,9 +37,8 @@ def project_reference(means: Tensor, quats: Tensor, scales: Tensor, opacities: T
     sigma_cam = W @ (M @ M.transpose(-1, -2)) @ W.T
     fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
     zs = torch.where(z.abs() > 1e-12, z, torch.ones_like(z))  # culled anyway; avoids inf in the graph
-    x0, y0, x1, y1 = camera.frame_box  # the guard band is the whole frame's (a crop's: its view's)
-    u = torch.clamp(x / zs, -GUARD * (cx - x0) / fx, GUARD * (x1 - cx) / fx)
-    v = torch.clamp(y / zs, -GUARD * (cy - y0) / fy, GUARD * (y1 - cy) / fy)
+    u = torch.clamp(x / zs, -GUARD * cx / fx, GUARD * (camera.width - cx) / fx)
+    v = torch.clamp(y / zs, -GUARD * cy / fy, GUARD * (camera.height - cy) / fy)
     zero = torch.zeros_like(z)
     J = torch.stack([fx / zs, zero, -fx * u / zs, zero, fy / zs, -fy * v / zs], -1).reshape(-1, 2, 3)
     cov = J @ sigma_cam @ J.transpose(-1, -2) + LOW_PASS * torch.eye(2, dtype=means.dtype, device=means.device)

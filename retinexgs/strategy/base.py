@@ -62,10 +62,8 @@ class Strategy:
         """A regulariser this strategy adds to every step's loss (weighted, differentiable), or None."""
         return None
 
-    def after_backward(self, out: RenderOutput, width: int, height: int, pixel_share: float = 1.0) -> None:
-        """One view's render after its backward (its 2D means' gradients are set). ``width``, ``height``: the whole
-        view's; ``pixel_share``: the share of its pixels the step rendered (a crop, :mod:`retinexgs.train.crop`:
-        the per-pixel mean loss made its pixel gradients 1 / share times the whole view's)."""
+    def after_backward(self, out: RenderOutput, width: int, height: int) -> None:
+        """One view's render after its backward (its 2D means' gradients are set)."""
 
     def after_optimizer_step(self, model: GaussianModel, optimizer: torch.optim.Optimizer, step: int) -> None:
         """After every optimiser step (constraints or perturbations of the updated parameters)."""

@@ -49,26 +49,22 @@ class DefaultStrategy(Strategy):
             for key in SUMMED + MAXIMA:
                 setattr(self, key, torch.zeros(n, device=device))
 
-    def _ndc(self, grad: Tensor, width: int, height: int, pixel_share: float = 1.0) -> Tensor:
-        """Pixel gradients [N,2] -> NDC gradients of the whole ``width`` × ``height`` view, the unit 3DGS's
-        threshold is defined in, × ``pixel_share`` (a crop's: its mean loss over share × the view's pixels scaled
-        the gradients by 1 / share). The scale is cached on the device: a tensor built from numbers every step is a
-        host->device copy (a view size has one crop size, so one share)."""
-        key = (width, height, pixel_share, grad.device, grad.dtype)
+    def _ndc(self, grad: Tensor, width: int, height: int) -> Tensor:
+        """Pixel gradients [N,2] -> NDC gradients, the unit 3DGS's threshold is defined in (the scale is cached on
+        the device: a tensor built from numbers every step is a host->device copy)."""
+        key = (width, height, grad.device, grad.dtype)
         if self._ndc_scale is None or self._ndc_scale[0] != key:
-            self._ndc_scale = (key, torch.tensor([width / 2.0 * pixel_share, height / 2.0 * pixel_share],
-                                                 device=grad.device, dtype=grad.dtype))
+            self._ndc_scale = (key, torch.tensor([width / 2.0, height / 2.0], device=grad.device, dtype=grad.dtype))
         return grad.detach() * self._ndc_scale[1]
 
-    def after_backward(self, out: RenderOutput, width: int, height: int, pixel_share: float = 1.0) -> None:
-        """Add one view's statistics (call after backward, before the optimizer step); ``width``, ``height``: the
-        whole view's, ``pixel_share``: the share of its pixels rendered (:meth:`Strategy.after_backward`)."""
+    def after_backward(self, out: RenderOutput, width: int, height: int) -> None:
+        """Add one view's statistics (call after backward, before the optimizer step)."""
         grad = out.means2d.grad
         if grad is None:
             return
         self._ensure(grad.shape[0], grad.device)
         visible = out.visible
-        norm = self._ndc(grad, width, height, pixel_share).norm(dim=-1).float()
+        norm = self._ndc(grad, width, height).norm(dim=-1).float()
         # Masked arithmetic, not boolean indexing: indexing would sync with the GPU every step.
         self.grad_accum += torch.where(visible, norm, 0.0)
         self.count += visible

@@ -32,7 +32,6 @@ from retinexgs.train.objective import build_objective, enhancement_objective  # 
 from retinexgs.train.stop import DeferredStop
 from retinexgs.train.view_setup import near_plane, prepare_views, scene_extent, view_statistics
 from retinexgs.train.resolution import ResolutionSchedule
-from retinexgs.train.crop import CropPolicy
 from retinexgs.train.views import TrainView, preload_bytes_per_pixel
 
 
@@ -97,11 +96,6 @@ class Trainer:
                                           preload_bytes_per_pixel(self.method, priors, self.depth_prior),
                                           cfg.train.views_on_device_gb)
         self.extent = scene_extent(scene)
-        # train.crop_pixels: large views train on full-resolution crops (every size checked now, before any step)
-        self.crop = CropPolicy.from_config(cfg, [(v.width, v.height) for v in scene.train],
-                                           [k for _, k in self.resolution.stages])
-        if self.crop.enabled:
-            log(self.crop.describe())
         self.step = 0
         state = None
         if resume:
@@ -225,7 +219,7 @@ class Trainer:
                 with record_function("step/watch"):
                     self.divergence.watch(terms, step)
             with record_function("step/density"):
-                self.strategy.after_backward(res["out"], *view.size, pixel_share=view.pixel_share)
+                self.strategy.after_backward(res["out"], view.camera.width, view.camera.height)
             del res
         if several:
             for p, g in zip(gradient_params(self.optimizer), acc):
@@ -242,7 +236,7 @@ class Trainer:
         if check or self.strategy.edits_at(step):
             with record_function("step/check"):
                 values = self.dist.mean_values(self.check_finite(step), step)
-        size = max(max(v.size) for v in views)  # the whole views' (a crop's radii are in the view's pixels)
+        size = max(max(v.camera.width, v.camera.height) for v in views)
         if self.dist.enabled and self.strategy.will_edit(step):
             size = self.dist.reduce_strategy(self.strategy, len(self.model.gaussians), size, step)
         event = self.strategy.step(step, self.model.gaussians, self.optimizer, size)
@@ -368,10 +362,8 @@ class Trainer:
                 self.dist.test_fault(self.step)
                 check = (self.step % self.cfg.log.every == 0 or self.step == end
                          or self.step % self.cfg.checkpoint.every == 0)
-                views = [self.crop.view_at(self.resolution.view_at((lambda i=i: self.views[i]) if self.streamed
-                                                                   else self.views[i], i, self.step,
-                                                                   cache=not self.streamed), i, self.step)
-                         for i in indices]
+                views = [self.resolution.view_at((lambda i=i: self.views[i]) if self.streamed else self.views[i], i,
+                                                 self.step, cache=not self.streamed) for i in indices]
                 if self.step > first and self.strategy.edits_at(self.step):
                     if timed_from is None:
                         self._sync()

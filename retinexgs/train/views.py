@@ -57,20 +57,6 @@ class TrainView:
     center: Optional[Tensor] = None  # [3] the camera centre on the device (the renderer's view directions)
     packed: Optional[Tensor] = None  # [H,W,K] the loss's targets in one tensor (the CUDA graphs' input)
     edges: Optional[Tuple[Tensor, Tensor]] = None  # ([1,1,H,W-1], [1,1,H-1,W]) the depth prior's edge weights
-    # A crop of a larger view (retinexgs.train.crop): that view's (width, height), which the density statistics
-    # and the screen-size prune measure in; None: the view is whole.
-    whole_size: Optional[Tuple[int, int]] = None
-
-    @property
-    def size(self) -> Tuple[int, int]:
-        """(width, height) of the whole view: the camera's, or the view a crop was cut from."""
-        return self.whole_size if self.whole_size is not None else (self.camera.width, self.camera.height)
-
-    @property
-    def pixel_share(self) -> float:
-        """The share of the whole view's pixels this view trains on (1 for a whole view)."""
-        W, H = self.size
-        return self.camera.width * self.camera.height / (W * H)
 
     def edge_weights(self, edge: float) -> Tuple[Tensor, Tensor]:
         """:func:`losses.edge_weights` of the view's reflectance prior R (of S without priors), built once."""

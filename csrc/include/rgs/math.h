@@ -197,8 +197,7 @@ RGS_HD void covariance_3d_vjp(const Mat3<T>& R, const T* s, const Mat3<T>& v_sig
 // ---------------------------------------------------------------------------------------------
 // EWA projection (3DGS eq. 5, EWA eq. 31): Σ' = J W Σ Wᵀ Jᵀ + 0.3 I, with J the Jacobian of the
 // perspective map at the camera-space mean. x/z and y/z are clamped to a guard band 1.3x the image
-// half-extent (measured from the principal point; of the whole frame for a window, Camera::frame_*) so
-// Gaussians far off-screen do not explode.
+// half-extent (measured from the principal point) so Gaussians far off-screen do not explode.
 // ---------------------------------------------------------------------------------------------
 template <typename T>
 struct Jacobian {
@@ -208,10 +207,10 @@ struct Jacobian {
 
 template <typename T>
 RGS_HD Jacobian<T> perspective_jacobian(const Camera<T>& cam, const Vec3<T>& p) {
-    const T lim_xn = T(kGuardBand) * (cam.cx - cam.frame_x0) / cam.fx;
-    const T lim_xp = T(kGuardBand) * (cam.frame_x1 - cam.cx) / cam.fx;
-    const T lim_yn = T(kGuardBand) * (cam.cy - cam.frame_y0) / cam.fy;
-    const T lim_yp = T(kGuardBand) * (cam.frame_y1 - cam.cy) / cam.fy;
+    const T lim_xn = T(kGuardBand) * cam.cx / cam.fx;
+    const T lim_xp = T(kGuardBand) * (T(cam.width) - cam.cx) / cam.fx;
+    const T lim_yn = T(kGuardBand) * cam.cy / cam.fy;
+    const T lim_yp = T(kGuardBand) * (T(cam.height) - cam.cy) / cam.fy;
     const T rz = T(1) / p.z;
     T u = p.x * rz, v = p.y * rz;
     Jacobian<T> J;

@@ -22,21 +22,17 @@ constexpr double kAlphaMax = 0.99;          // 3DGS: alpha = min(0.99, o * G)
 constexpr double kAlphaMin = 1.0 / 255.0;   // contributions below this are skipped
 constexpr double kTransmittanceMin = 1e-4;  // a pixel stops once T would fall below this
 constexpr double kLowPass = 0.3;            // EWA anti-aliasing: +0.3 on the 2D covariance diagonal
-constexpr double kGuardBand = 1.3;          // J clamps x/z, y/z to 1.3x the frame's half-extent
+constexpr double kGuardBand = 1.3;          // J clamps x/z, y/z to 1.3x the image's half-extent
 constexpr int kMaxShCoeffs = 16;            // SH degree <= 3
 
 // Pinhole camera. viewmat is world-to-camera, row-major 4x4, OpenCV axes (x right, y down, z forward).
 // Pixel (i, j) has its centre at (i + 0.5, j + 0.5) in the coordinates that (cx, cy) use.
-// frame_*: the pixel rectangle of the whole image this one is a window of (a training crop), in this image's
-// pixel coordinates; (0, 0, width, height) for a whole image. The guard band is measured on the frame, so a
-// window renders what the whole image renders there.
 template <typename T>
 struct Camera {
     T viewmat[16];
     T fx, fy, cx, cy;
     int width, height;
     T near_plane, far_plane;
-    T frame_x0, frame_y0, frame_x1, frame_y1;
 };
 
 // The render call's finiteness check, folded into the projection so that it costs no pass of its own: the
