@@ -612,6 +612,90 @@ Tensor exposure_tone(Tensor image, Tensor gain, double shoulder) {
     return out;
 }
 
+// The training loss's fused SSIM (rgs/ssim.h). x, y: [..., H, W] of one dtype and device (every leading index a
+// plane); window: the 1-D taps (odd count <= 15, any dtype, read on the host). Returns (S map, partials [3, ...] or
+// an empty tensor when partials is false).
+template <typename T>
+rgs::SsimWindow<T> ssim_window(const Tensor& window, double c1, double c2) {
+    RGS_CHECK_VALUE(window.dim() == 1 && window.size(0) % 2 == 1 && window.size(0) <= 2 * rgs::kSsimMaxRadius + 1,
+                    "window must be 1-D with an odd number of taps <= ", 2 * rgs::kSsimMaxRadius + 1, ", got shape ",
+                    window.sizes());
+    Tensor taps = window.detach().to(torch::kCPU, torch::kFloat64).contiguous();
+    rgs::SsimWindow<T> win{};
+    win.radius = int(taps.size(0) / 2);
+    for (int64_t i = 0; i < taps.size(0); ++i) win.w[i] = T(taps.data_ptr<double>()[i]);
+    win.c1 = T(c1), win.c2 = T(c2);
+    return win;
+}
+
+void check_ssim_images(const Tensor& x, const Tensor& y) {
+    check_float(x, "x");
+    RGS_CHECK_VALUE(x.dim() >= 2, "x must be [..., H, W], got shape ", x.sizes());
+    RGS_CHECK_VALUE(y.sizes() == x.sizes(), "y has shape ", y.sizes(), ", x has ", x.sizes());
+    RGS_CHECK_TYPE(y.scalar_type() == x.scalar_type(), "y must have dtype ", x.scalar_type(), ", got ",
+                   y.scalar_type());
+    RGS_CHECK_VALUE(y.device() == x.device(), "y must be on ", x.device(), ", got ", y.device());
+}
+
+std::tuple<Tensor, Tensor> ssim_forward(Tensor x, Tensor y, Tensor window, double c1, double c2, bool partials) {
+    check_ssim_images(x, y);
+    x = x.contiguous(), y = y.contiguous();
+    const int H = int(x.size(-2)), W = int(x.size(-1));
+    const int64_t planes = H * int64_t(W) == 0 ? 0 : x.numel() / (H * int64_t(W));
+    Tensor s = torch::empty_like(x);
+    std::vector<int64_t> dshape{3};
+    for (int64_t v : x.sizes()) dshape.push_back(v);
+    Tensor d = partials ? torch::empty(dshape, x.options()) : torch::empty({0}, x.options());
+    RGS_DEVICE_GUARD(x);
+    AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "ssim_forward", [&] {
+        const auto win = ssim_window<scalar_t>(window, c1, c2);
+        scalar_t* dp = partials ? d.data_ptr<scalar_t>() : nullptr;
+        if (x.is_cuda()) {
+#ifdef RGS_WITH_CUDA
+            rgs::ssim_forward_cuda<scalar_t>(planes, H, W, x.data_ptr<scalar_t>(), y.data_ptr<scalar_t>(), win,
+                                             s.data_ptr<scalar_t>(), dp, RGS_CUDA_STREAM(x));
+#else
+            no_cuda();
+#endif
+        } else {
+            rgs::ssim_forward_cpu<scalar_t>(planes, H, W, x.data_ptr<scalar_t>(), y.data_ptr<scalar_t>(), win,
+                                            s.data_ptr<scalar_t>(), dp, num_threads());
+        }
+    });
+    return {s, d};
+}
+
+Tensor ssim_backward(Tensor grad, Tensor x, Tensor y, Tensor partials, Tensor window) {
+    check_ssim_images(x, y);
+    check_ssim_images(grad, x);
+    RGS_CHECK_VALUE(partials.dim() == x.dim() + 1 && partials.size(0) == 3 && partials.numel() == 3 * x.numel(),
+                    "partials must be [3, ...] of x's shape, got shape ", partials.sizes());
+    RGS_CHECK_TYPE(partials.scalar_type() == x.scalar_type(), "partials must have dtype ", x.scalar_type());
+    RGS_CHECK_VALUE(partials.device() == x.device(), "partials must be on ", x.device());
+    grad = grad.contiguous(), x = x.contiguous(), y = y.contiguous(), partials = partials.contiguous();
+    const int H = int(x.size(-2)), W = int(x.size(-1));
+    const int64_t planes = H * int64_t(W) == 0 ? 0 : x.numel() / (H * int64_t(W));
+    Tensor dx = torch::empty_like(x);
+    RGS_DEVICE_GUARD(x);
+    AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "ssim_backward", [&] {
+        const auto win = ssim_window<scalar_t>(window, 0.0, 0.0);
+        if (x.is_cuda()) {
+#ifdef RGS_WITH_CUDA
+            rgs::ssim_backward_cuda<scalar_t>(planes, H, W, grad.data_ptr<scalar_t>(), x.data_ptr<scalar_t>(),
+                                              y.data_ptr<scalar_t>(), partials.data_ptr<scalar_t>(), win,
+                                              dx.data_ptr<scalar_t>(), RGS_CUDA_STREAM(x));
+#else
+            no_cuda();
+#endif
+        } else {
+            rgs::ssim_backward_cpu<scalar_t>(planes, H, W, grad.data_ptr<scalar_t>(), x.data_ptr<scalar_t>(),
+                                             y.data_ptr<scalar_t>(), partials.data_ptr<scalar_t>(), win,
+                                             dx.data_ptr<scalar_t>(), num_threads());
+        }
+    });
+    return dx;
+}
+
 }  // namespace
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
@@ -635,6 +719,10 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
           pybind11::arg("bound") = 1.0, pybind11::arg("weights") = pybind11::none());
     m.def("exposure_tone", &exposure_tone, pybind11::arg("image"), pybind11::arg("gain"),
           pybind11::arg("shoulder") = 1.0);
+    m.def("ssim_forward", &ssim_forward, pybind11::arg("x"), pybind11::arg("y"), pybind11::arg("window"),
+          pybind11::arg("c1"), pybind11::arg("c2"), pybind11::arg("partials"));
+    m.def("ssim_backward", &ssim_backward, pybind11::arg("grad"), pybind11::arg("x"), pybind11::arg("y"),
+          pybind11::arg("partials"), pybind11::arg("window"));
     m.attr("max_illum_width") = rgs::kMaxIllumWidth;
     m.attr("max_illum_freqs") = rgs::kMaxIllumFreqs;
     m.def("set_num_threads", [](int n) { g_num_threads = n; },

@@ -24,7 +24,8 @@ Modes (each one's ``--help`` says more):
   made them and by the step's kind; the ordinary step should make none. On CUDA also torch's sync debug warnings.
 - ``lr3m`` (GPU): times LR3M variants on one image; prints the fastest setting as ``--set`` overrides.
 - ``ssim`` (CPU or GPU): SSIM's Gaussian filter, forward + backward, ours vs the 2-D depthwise reference and
-  candidates (channels as a batch, banded matrix products whole or in tiles, sums of shifted slices): time, ratio and largest difference.
+  candidates (channels as a batch, banded matrix products whole or in tiles, sums of shifted slices): time, ratio and largest difference;
+  then the training SSIM itself: the five moments in one call, the torch twin (x's and y's split) and the fused kernels.
 
 ``scripts/device.sh speed`` runs the GPU modes on the device machine (its stages profile, fprofile, rprofile, lr3m).
 """
@@ -561,7 +562,9 @@ def time_ssim(args: argparse.Namespace) -> None:
         x = x0[:, :c].clone().requires_grad_(True)
         y = x0[:, c:2 * c].clone()
         ref = t_ref = None
-        for name, fn in {"one-call": _ssim_one_call, "ours": lambda a, b: ssim(a, b)}.items():
+        from retinexgs.train.losses import ssim_map
+        for name, fn in {"one-call": _ssim_one_call, "torch-split": lambda a, b: ssim(a, b),
+                         "fused": lambda a, b: ssim_map(a, b).mean()}.items():
             def step(fn=fn):
                 out = fn(x, y)
                 (gx,) = torch.autograd.grad(out, x)

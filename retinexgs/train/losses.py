@@ -35,10 +35,11 @@ from retinexgs.data.raw_noise import PREVIEW_RADIUS
 from retinexgs.data.srgb import linear_to_srgb_extended, srgb_to_linear_extended
 from retinexgs.model.tone import highlight_capped_mean, linear_to_srgb, srgb_to_linear
 from retinexgs.model.tones import Tone, get_tone
+from retinexgs.render.ssim import fused_ssim_map
 from retinexgs.config.schema import Loss
 
 __all__ = [
-    "to_bchw", "gaussian_window", "ssim", "noise_variance", "exposed", "l1_ssim",
+    "to_bchw", "gaussian_window", "ssim", "ssim_map", "noise_variance", "exposed", "l1_ssim",
     "LinearTarget", "RELATIVE_EPS", "PRIOR_WINDOW", "prior_confidence", "linear_weights", "linear_reconstruction", "reconstruction_loss",
     "supervision_loss", "tv_loss", "edge_weights", "depth_smoothness_loss", "sh_sparsity_loss",
     "spatial_consistency_loss", "exposure_loss", "color_constancy_loss", "enhancement_loss",
@@ -57,6 +58,22 @@ def to_bchw(x: torch.Tensor) -> torch.Tensor:
 
 
 
+# The training SSIM's window and constants: 3DGS's (11 taps, σ = 1.5, data range 1), as metrics.ssim's defaults.
+SSIM_WINDOW, SSIM_SIGMA = 11, 1.5
+SSIM_C1, SSIM_C2 = 0.01 ** 2, 0.03 ** 2
+
+
+def ssim_map(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """The SSIM map of ``x`` against ``y`` ([B,C,H,W], one shape) with "same" padding: the training losses' SSIM.
+
+    On the fused kernels (:func:`retinexgs.render.ssim.fused_ssim_map`, one pass each way) where ``y`` is a target
+    (no gradient); otherwise on :func:`ssim`, its torch twin (the values agree to rounding)."""
+    if y.requires_grad:
+        return ssim(x, y, window=SSIM_WINDOW, sigma=SSIM_SIGMA, reduction="none")
+    taps = cached_constant(("ssim_taps", SSIM_WINDOW, SSIM_SIGMA),
+                           lambda: gaussian_window(SSIM_WINDOW, SSIM_SIGMA, dtype=torch.float64))
+    check_bchw(x, y)
+    return fused_ssim_map(x, y, taps, SSIM_C1, SSIM_C2)
 
 # Immerkær's noise mask: the second difference along x times the second difference along y, so it is zero on
 # anything at most linear along one axis (planes, ramps, x², y², xy) and on a smooth image responds mostly to
@@ -205,7 +222,7 @@ def l1_ssim(x: torch.Tensor, y: torch.Tensor, lambda_ssim: float = 0.2,
     if lambda_ssim == 0:
         return l1
     xs, ys = (x, y) if ssim_xy is None else torch.broadcast_tensors(*ssim_xy)
-    return (1.0 - lambda_ssim) * l1 + lambda_ssim * (1.0 - ssim(xs, ys))
+    return (1.0 - lambda_ssim) * l1 + lambda_ssim * (1.0 - ssim_map(xs, ys).mean())
 
 
 def _reconstruction_pairs(rec: torch.Tensor, S: torch.Tensor, gain: Optional[torch.Tensor], l1_exposed: bool,
@@ -228,7 +245,7 @@ def reconstruction_loss(rec: torch.Tensor, S: torch.Tensor, lambda_ssim: float =
         lin = linear_reconstruction(rec, S, linear, gain)
         if lambda_ssim == 0:
             return lin
-        return (1.0 - lambda_ssim) * lin + lambda_ssim * (1.0 - ssim(xs, ys))
+        return (1.0 - lambda_ssim) * lin + lambda_ssim * (1.0 - ssim_map(xs, ys).mean())
     (x, y), (xs, ys) = _reconstruction_pairs(rec, S, gain, l1_exposed)
     return l1_ssim(x, y, lambda_ssim, None if xs is x else (xs, ys))
 
@@ -274,7 +291,7 @@ def supervision_loss(R_hat: torch.Tensor, L_hat: torch.Tensor, R: torch.Tensor, 
     if lambda_ssim:
         if rec_s is not rec:
             x, y = torch.cat([x[:, :-sizes[2]], rec_s], dim=1), torch.cat([y[:, :-sizes[2]], target_s], dim=1)
-        s = torch.stack([m.mean() for m in ssim(x, y, reduction="none").split(sizes, dim=1)])
+        s = torch.stack([m.mean() for m in ssim_map(x, y).split(sizes, dim=1)])
         values = (1.0 - lambda_ssim) * l1 + lambda_ssim * (1.0 - s)
     else:
         values = l1

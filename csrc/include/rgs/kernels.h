@@ -5,6 +5,7 @@
 #pragma once
 #include <cstdint>
 
+#include "rgs/ssim.h"
 #include "rgs/types.h"
 
 namespace rgs {
@@ -130,6 +131,28 @@ void exposure_tone_cpu(int64_t P,         // pixels
                        const T* gain,     // [G]
                        double knee,       // the shoulder's knee in linear light (>= 1: none, the clip)
                        T* out,            // [P, 3] out
+                       int num_threads);
+
+// ---- the training loss's fused SSIM (rgs/ssim.h) ------------------------------------------------
+// s = SSIM map of x against y per plane (zero padding, the window win); with d != nullptr also the partials
+// dS/dmx, dS/dexx, dS/dexy that ssim_backward reads.
+template <typename T>
+void ssim_forward_cpu(int64_t planes,            // images x channels
+                      int H, int W,
+                      const T* x, const T* y,    // [planes, H, W] each
+                      const SsimWindow<T>& win,
+                      T* s,                      // [planes, H, W] out
+                      T* d,                      // [3, planes, H, W] out, or nullptr
+                      int num_threads);
+
+// dx = dLoss/dx from grad = dLoss/dS and the forward's partials d (y gets no gradient: it is the target).
+template <typename T>
+void ssim_backward_cpu(int64_t planes, int H, int W,
+                       const T* grad,            // [planes, H, W]
+                       const T* x, const T* y,   // [planes, H, W] each
+                       const T* d,               // [3, planes, H, W]
+                       const SsimWindow<T>& win,
+                       T* dx,                    // [planes, H, W] out
                        int num_threads);
 
 }  // namespace rgs

@@ -6,6 +6,7 @@
 #include <cstddef>
 #include <cstdint>
 
+#include "rgs/ssim.h"
 #include "rgs/types.h"
 
 namespace rgs {
@@ -77,5 +78,15 @@ void gaussian_colors_cuda(int64_t N, int degree, int rest, const T* means, const
 // Same as exposure_tone_cpu; gain in device memory (the frame graph computes it on the GPU).
 template <typename T>
 void exposure_tone_cuda(int64_t P, int C, int G, const T* image, const T* gain, double knee, T* out, void* stream);
+
+// Same as ssim_forward_cpu / ssim_backward_cpu: one block per 16x16 tile of a plane, the tile and the window's
+// halo staged in shared memory.
+template <typename T>
+void ssim_forward_cuda(int64_t planes, int H, int W, const T* x, const T* y, const SsimWindow<T>& win, T* s, T* d,
+                       void* stream);
+
+template <typename T>
+void ssim_backward_cuda(int64_t planes, int H, int W, const T* grad, const T* x, const T* y, const T* d,
+                        const SsimWindow<T>& win, T* dx, void* stream);
 
 }  // namespace rgs
