@@ -32,13 +32,15 @@ def both(shape, dtype, taps, sigma, seed=0):
 def test_cuda_matches_cpu_float64(shape, taps, sigma):
     (s_cpu, dx_cpu), (s_gpu, dx_gpu) = both(shape, torch.float64, taps, sigma)
     torch.testing.assert_close(s_gpu, s_cpu, rtol=0, atol=1e-12)
-    torch.testing.assert_close(dx_gpu, dx_cpu, rtol=1e-10, atol=1e-12)
+    # to rounding of the largest gradient (a 1-tap window's reach 1/c2 ~ 1e3): the sums run in another order
+    torch.testing.assert_close(dx_gpu, dx_cpu, rtol=1e-10, atol=1e-13 * float(dx_cpu.abs().max()))
 
 
 def test_cuda_matches_cpu_float32():
     (s_cpu, dx_cpu), (s_gpu, dx_gpu) = both((1, 9, 360, 640), torch.float32, 11, 1.5)
     torch.testing.assert_close(s_gpu, s_cpu, rtol=0, atol=1e-5)
-    torch.testing.assert_close(dx_gpu, dx_cpu, rtol=1e-4, atol=1e-7)
+    # float32 moments cancel (sxx = exx - mx²): agreement to ~1e-6 of the largest gradient, not per element
+    torch.testing.assert_close(dx_gpu, dx_cpu, rtol=1e-4, atol=1e-5 * float(dx_cpu.abs().max()))
 
 
 def test_more_planes_than_one_launch_takes():
