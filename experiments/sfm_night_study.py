@@ -9,7 +9,9 @@ the decision (the note's sections 5-6). ``--night`` picks the night settings
 (default off: today's code before them); ``H10_OPTS`` (JSON: {"sift": {...}, "mapper": {...}, "tri": {...},
 "pipeline": {...}}) overrides pycolmap options on top, for the study's variants.
 
-    python experiments/sfm_night_study.py FOLDER SCENE OUT [--night auto|on|off]
+``--seed`` is run_sfm's seed (the mapper's; the loose mappings use seed, seed + 1).
+
+    python experiments/sfm_night_study.py FOLDER SCENE OUT [--night auto|on|off] [--seed N]
 """
 import json, os, sys, time
 from pathlib import Path
@@ -101,7 +103,8 @@ def main(folder, scene, out):
     from retinexgs.errors import UserError
     Path(out, "enhanced").mkdir(parents=True, exist_ok=True)  # keep the previews across failed runs
     try:
-        r = run_sfm(folder, out, denoise=den, num_threads=2, min_registered=0, force=True, night=os.environ.get("H10_NIGHT", "off"))
+        r = run_sfm(folder, out, denoise=den, num_threads=2, min_registered=0, force=True, night=os.environ.get("H10_NIGHT", "off"),
+                    seed=int(os.environ.get("H10_SEED", "0")))
     except UserError as e:
         print("RESULT", json.dumps(dict(folder=str(folder), reg=0, n=len(os.listdir(folder)), err=str(e)[:80], sec=round(time.time()-t0,1), opts=OPTS, check=check)), flush=True)
         return
@@ -122,7 +125,7 @@ def main(folder, scene, out):
         med, mx = float(np.median(err)), float(err.max())
     else:
         med = mx = float("nan")
-    res = dict(folder=str(folder), reg=r.num_registered, n=r.num_images, points=r.num_points,
+    res = dict(folder=str(folder), seed=int(os.environ.get("H10_SEED", "0")), reg=r.num_registered, n=r.num_images, points=r.num_points,
                med_err=med, max_err=mx, sec=round(time.time() - t0, 1), opts=OPTS, check=check)
     print("RESULT", json.dumps(res), flush=True)
 
@@ -134,6 +137,8 @@ if __name__ == "__main__":
     ap.add_argument("scene", help="the scene folder with transforms_*.json (the reference poses)")
     ap.add_argument("out", help="SfM output folder")
     ap.add_argument("--night", default="off", choices=["auto", "on", "off"])
+    ap.add_argument("--seed", type=int, default=0, help="run_sfm's seed (the mapper's)")
     args = ap.parse_args()
     os.environ["H10_NIGHT"] = args.night
+    os.environ["H10_SEED"] = str(args.seed)
     main(args.folder, args.scene, args.out)

@@ -52,62 +52,61 @@ void filter_strip(int H, int W, int r0, int r1, const SsimWindow<T>& win, At at,
     }
 }
 
+// Calls task(p, r0, r1, buf) for every strip [r0, r1) of kStripRows rows of every plane p, in parallel; buf is the
+// calling thread's scratch buffer, reused across its strips.
+template <typename T, typename Task>
+void for_each_strip(int64_t planes, int H, int num_threads, Task task) {
+    const int64_t strips = (H + kStripRows - 1) / kStripRows;
+#pragma omp parallel num_threads(num_threads)
+    {
+        std::vector<T> buf;
+#pragma omp for schedule(dynamic)
+        for (int64_t t = 0; t < planes * strips; ++t) {
+            const int r0 = int(t % strips) * kStripRows;
+            task(t / strips, r0, std::min(H, r0 + kStripRows), buf);
+        }
+    }
+}
+
 }  // namespace
 
 template <typename T>
 void ssim_forward_cpu(int64_t planes, int H, int W, const T* x, const T* y, const SsimWindow<T>& win, T* s, T* d,
                       int num_threads) {
-    const int64_t HW = int64_t(H) * W, strips = (H + kStripRows - 1) / kStripRows;
-#pragma omp parallel num_threads(num_threads)
-    {
-        std::vector<T> buf;
-#pragma omp for schedule(dynamic)
-        for (int64_t task = 0; task < planes * strips; ++task) {
-            const int64_t p = task / strips;
-            const int r0 = int(task % strips) * kStripRows, r1 = std::min(H, r0 + kStripRows);
-            const T* xp = x + p * HW;
-            const T* yp = y + p * HW;
-            filter_strip<5, T>(
-                H, W, r0, r1, win, [&](int r, int c, T* v) { ssim_products(xp[r * W + c], yp[r * W + c], v); },
-                [&](int r, int c, const T* m) {
-                    const int64_t i = p * HW + int64_t(r) * W + c;
-                    T dd[3];
-                    s[i] = ssim_from_moments(m[0], m[1], m[2], m[3], m[4], win.c1, win.c2, d ? dd : nullptr);
-                    if (d) {
-                        const int64_t n = planes * HW;
-                        d[i] = dd[0], d[n + i] = dd[1], d[2 * n + i] = dd[2];
-                    }
-                },
-                buf);
-        }
-    }
+    const int64_t HW = int64_t(H) * W, n = planes * HW;
+    for_each_strip<T>(planes, H, num_threads, [&](int64_t p, int r0, int r1, std::vector<T>& buf) {
+        const T* xp = x + p * HW;
+        const T* yp = y + p * HW;
+        filter_strip<5, T>(
+            H, W, r0, r1, win, [&](int r, int c, T* v) { ssim_products(xp[r * W + c], yp[r * W + c], v); },
+            [&](int r, int c, const T* m) {
+                const int64_t i = p * HW + int64_t(r) * W + c;
+                T dd[3];
+                s[i] = ssim_from_moments(m[0], m[1], m[2], m[3], m[4], win.c1, win.c2, d ? dd : nullptr);
+                if (d) d[i] = dd[0], d[n + i] = dd[1], d[2 * n + i] = dd[2];
+            },
+            buf);
+    });
 }
 
 template <typename T>
 void ssim_backward_cpu(int64_t planes, int H, int W, const T* grad, const T* x, const T* y, const T* d,
                        const SsimWindow<T>& win, T* dx, int num_threads) {
-    const int64_t HW = int64_t(H) * W, strips = (H + kStripRows - 1) / kStripRows, n = planes * HW;
-#pragma omp parallel num_threads(num_threads)
-    {
-        std::vector<T> buf;
-#pragma omp for schedule(dynamic)
-        for (int64_t task = 0; task < planes * strips; ++task) {
-            const int64_t p = task / strips;
-            const int r0 = int(task % strips) * kStripRows, r1 = std::min(H, r0 + kStripRows);
-            filter_strip<3, T>(
-                H, W, r0, r1, win,
-                [&](int r, int c, T* v) {
-                    const int64_t i = p * HW + int64_t(r) * W + c;
-                    const T g = grad[i];
-                    v[0] = g * d[i], v[1] = g * d[n + i], v[2] = g * d[2 * n + i];
-                },
-                [&](int r, int c, const T* f) {
-                    const int64_t i = p * HW + int64_t(r) * W + c;
-                    dx[i] = ssim_grad_x(x[i], y[i], f[0], f[1], f[2]);
-                },
-                buf);
-        }
-    }
+    const int64_t HW = int64_t(H) * W, n = planes * HW;
+    for_each_strip<T>(planes, H, num_threads, [&](int64_t p, int r0, int r1, std::vector<T>& buf) {
+        filter_strip<3, T>(
+            H, W, r0, r1, win,
+            [&](int r, int c, T* v) {
+                const int64_t i = p * HW + int64_t(r) * W + c;
+                const T g = grad[i];
+                v[0] = g * d[i], v[1] = g * d[n + i], v[2] = g * d[2 * n + i];
+            },
+            [&](int r, int c, const T* f) {
+                const int64_t i = p * HW + int64_t(r) * W + c;
+                dx[i] = ssim_grad_x(x[i], y[i], f[0], f[1], f[2]);
+            },
+            buf);
+    });
 }
 
 template void ssim_forward_cpu<float>(int64_t, int, int, const float*, const float*, const SsimWindow<float>&, float*,
