@@ -204,6 +204,10 @@ class Decomposer(Section):
     raw: DecomposerRaw
     denoise: Choice("auto", "none", "nlm", "chroma")  # the 2D priors' photo through a denoiser (retinex/denoise.py)
     denoise_backend: Choice("auto", "torch", "opencv")  # who runs its non-local means (auto: torch on CUDA)
+    # steps (or fractions of the run) after which the priors are made again from the views re-denoised with the
+    # model's render as the pilot (retinexgs/train/redenoise.py)
+    redenoise_at: Annotated[List[Step], Expect("a list of steps (integers) or fractions of the run (decimals 0..1), "
+                                               "e.g. [0.3, 0.6]; [] for never")]
 
     @field_validator("params", mode="after")
     @classmethod

@@ -30,7 +30,8 @@ from retinexgs.errors import UserError
 
 __all__ = ["METHODS", "BACKENDS", "resolve_backend", "nlm_torch", "DenoiseParams",
            "DenoiseSpec", "NoiseModel", "noise_model", "gat_forward",
-           "gat_inverse", "measured_sigma", "denoise_linear", "denoise_view_image", "denoise_key", "denoised_view",
+           "gat_inverse", "pilot_wiener", "measured_sigma", "denoise_linear", "denoise_view_image", "denoise_key",
+           "denoised_view",
            "DENOISE_VERSION", "DENOISED_DIRNAME"]
 
 METHODS = ("none", "nlm", "chroma")
@@ -350,6 +351,52 @@ def _filter(ycc: torch.Tensor, method: str, p: DenoiseParams, floor: float, impl
         r = int(max(1, min(round(p.radius * w / 640.0), (min(h, w) - 1) // 2)))
         chroma = torch.cat([_guided(luma[None], c[None], r, p.eps * s * s) for c, s in zip(ycc[1:], sig[1:])])
     return torch.cat([luma[None], chroma])
+
+
+def _dct_matrix(n: int, like: torch.Tensor) -> torch.Tensor:
+    """The orthonormal DCT-II matrix [n, n] (rows: frequencies): unit white noise stays unit white noise."""
+    k = torch.arange(n, dtype=torch.float64)[:, None]
+    i = torch.arange(n, dtype=torch.float64)[None, :]
+    d = torch.cos(math.pi * (2 * i + 1) * k / (2 * n)) * math.sqrt(2.0 / n)
+    d[0] /= math.sqrt(2.0)
+    return d.to(like)
+
+
+def pilot_wiener(lin: torch.Tensor, pilot: torch.Tensor, noise: NoiseModel, block: int = 8) -> torch.Tensor:
+    """The noisy light ``lin`` [H,W,3] (unclipped allowed) filtered with Wiener gains taken from ``pilot`` [H,W,3], a
+    cleaner estimate of the same light (issue 64 item 1: the 3D model's render of the view; BM3D's second stage
+    takes its gains from a pilot the same way). Both go through the generalised Anscombe transform of ``noise``
+    (unit noise) and the orthonormal luma/chroma split; per block×block DCT block (blocks every block/2 pixels,
+    overlaps averaged) each coefficient Z of the view is kept as Z·P²/(P² + 1), P the pilot's: what the pilot says
+    is signal survives, what it says is noise goes; then the unbiased inverse. Float64 inside; the result in
+    ``lin``'s dtype and device."""
+    if lin.dim() != 3 or lin.shape[-1] != 3 or pilot.shape != lin.shape:
+        raise UserError(f"pilot_wiener needs two [H,W,3] images of one shape, got {list(lin.shape)} and "
+                        f"{list(pilot.shape)}")
+    if block < 2 or block % 2:
+        raise UserError(f"pilot_wiener's block must be an even number >= 2, got {block}")
+    a, b = noise.a, noise.b
+    ycc = _YCC.to(lin.device)
+
+    def stabilised(x: torch.Tensor) -> torch.Tensor:  # [3,H,W] unit-noise luma/chroma
+        return torch.einsum("ij,hwj->ihw", ycc, gat_forward(x.double(), a, b))
+
+    z, p = stabilised(lin), stabilised(pilot.to(lin.device))
+    h, w = z.shape[-2:]
+    step = block // 2
+    ph, pw = ((step - (n - block) % step) % step if n >= block else block - n for n in (h, w))
+    if ph or pw:  # whole blocks: mirror the last rows and columns (replicate where the image is too small)
+        mode = "reflect" if ph < h and pw < w else "replicate"
+        z, p = (F.pad(t[None], (0, pw, 0, ph), mode=mode)[0] for t in (z, p))
+    size = z.shape[-2:]
+    dct = _dct_matrix(block, z)
+    basis = torch.kron(dct, dct)  # the 2-D DCT of a row-major flattened block
+    Z = basis @ F.unfold(z[:, None], block, stride=step)  # [3, block², blocks]
+    P = basis @ F.unfold(p[:, None], block, stride=step)
+    kept = basis.t() @ (Z * (P * P / (P * P + 1.0)))
+    out = F.fold(kept, size, block, stride=step) / F.fold(torch.ones_like(kept), size, block, stride=step)
+    out = torch.einsum("ji,jhw->hwi", ycc, out[:, 0, :h, :w])
+    return gat_inverse(out, a, b).to(lin.dtype)
 
 
 def denoise_view_image(image: torch.Tensor, noise: NoiseModel, method: str, unclipped: bool,

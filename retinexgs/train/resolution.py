@@ -148,6 +148,10 @@ class ResolutionSchedule:
         parts = [f"1/{k} until step {u}" if k > 1 else f"full size until step {u}" for u, k in self.stages]
         return "resolution: " + ", ".join(parts) + ", full size after"
 
+    def forget_views(self) -> None:
+        """Drop the pooled views kept for the current stage (their full-size views changed)."""
+        self._cache.clear()
+
     def view_at(self, tv: Union[TrainView, Callable[[], TrainView]], index: int, step: int,
                 cache: bool = True) -> TrainView:
         """The view ``tv`` (view ``index`` of the run; or a function that fetches it, called only when it is

@@ -31,6 +31,7 @@ from retinexgs.train.graphs import ChannelGraphs, LossGraphs
 from retinexgs.train.objective import build_objective, enhancement_objective  # noqa: F401 (re-exported)
 from retinexgs.train.stop import DeferredStop
 from retinexgs.train.view_setup import near_plane, prepare_views, scene_extent, view_statistics
+from retinexgs.train.redenoise import Redenoise
 from retinexgs.train.resolution import ResolutionSchedule
 from retinexgs.train.views import TrainView, preload_bytes_per_pixel
 
@@ -95,6 +96,7 @@ class Trainer:
             self.resolution.plan_streamed(sum(v.width * v.height for v in scene.train),
                                           preload_bytes_per_pixel(self.method, priors, self.depth_prior),
                                           cfg.train.views_on_device_gb)
+        self.redenoise = Redenoise.for_run(cfg, scene, self.streamed, str(self.device))  # decomposer.redenoise_at
         self.extent = scene_extent(scene)
         self.step = 0
         state = None
@@ -346,6 +348,8 @@ class Trainer:
         values: Dict[str, float] = {}
         t0 = self._session_start = time.time()
         first = self.step + 1
+        if self.redenoise is not None and self.redenoise.due(self.step, resumed_from=first):
+            self._redenoise()  # a resumed run read its views fresh: their priors as the run had them then
         # What the steady step rate excludes (the scale benchmark's figures): the session's first step (warm-up,
         # graph captures) and each density event with the step after it (its re-captures), timed between syncs.
         self.first_step_seconds, self.event_seconds, self.event_steps = None, 0.0, 0
@@ -379,6 +383,8 @@ class Trainer:
                     self.event_seconds += time.time() - timed_from[0]
                     self.event_steps += self.step - timed_from[1] + 1
                     timed_from = None
+                if self.redenoise is not None and self.redenoise.due(self.step):
+                    self._redenoise()
                 event = values.pop("event", None)
                 agree = values.pop("ranks_agree", None)
                 if event and log_file is not None:
@@ -409,6 +415,13 @@ class Trainer:
         values["total_seconds"] = self.train_seconds()
         self.seconds_before, self._session_start = values["total_seconds"], None
         return values
+
+    def _redenoise(self) -> None:
+        """The views' priors made again from the views re-denoised with the model's render as the pilot."""
+        degree = self.active_degree(self.step)
+        self.redenoise.run(self.views, lambda tv: self.model.render(tv.camera, degree, validate=False, enhance=False,
+                                                                    center=tv.center)["S_rec"], self.cfg)
+        self.resolution.forget_views()  # pooled copies hold the old priors
 
     def _sync(self) -> None:
         if self.device.type == "cuda":

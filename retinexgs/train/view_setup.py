@@ -13,7 +13,7 @@ from retinexgs.errors import UserError
 from retinexgs.model.near_plane import MIN_POINTS, content_depth
 from retinexgs.data.capture import capture_of_files
 from retinexgs.retinex.cache import entry_dir, iter_decompositions, produced_ahead, scene_cache_root
-from retinexgs.retinex.denoise import DenoiseSpec, noise_model
+from retinexgs.retinex.denoise import DenoiseSpec, NoiseModel, noise_model
 from retinexgs.run.render import view_camera
 from retinexgs.config.schema import Config
 from retinexgs.train.noise import measure_capture_noise
@@ -58,11 +58,9 @@ def denoise_spec(views: List[View], cfg: Config, device: str,
                 note(NIGHT_PHOTO_NOTE.format(sigma=sigma, gate=AUTO_MIN_SIGMA))
     if method == "none" or not views:
         return None
-    noise = capture.noise(sources, lambda paths: measure_capture_noise(paths, cfg.data.downscale,
-                                                                       torch.device(device)))
+    noise = _measured_noise(views, cfg, device)
     try:
-        model = None if noise is None else noise_model(noise, views[0].balance,
-                                                       capture.noise_downscale(float(cfg.data.downscale)))
+        model = None if noise is None else _noise_model(noise, views, cfg)
     except UserError:
         if auto != "auto":  # a named denoiser the measured noise cannot drive: its own one-line reason
             raise
@@ -75,6 +73,27 @@ def denoise_spec(views: List[View], cfg: Config, device: str,
     # Where the views are decomposed (decomposer.device, else training's): the denoiser runs there too.
     return DenoiseSpec(method, model, device=str(cfg.decomposer.device or device),
                        backend=cfg.decomposer.denoise_backend)
+
+
+def _measured_noise(views: List[View], cfg: Config, device: str):
+    """The views' measured noise (a raw scene's :class:`RawNoise`, a photo scene's :class:`CaptureNoise`) or None."""
+    capture = capture_of_files([v.user_path for v in views])
+    sources = [v.source_path if v.source_path is not None and Path(v.source_path).is_file() else v.image_path
+               for v in views]
+    return capture.noise(sources, lambda paths: measure_capture_noise(paths, cfg.data.downscale, torch.device(device)))
+
+
+def _noise_model(noise, views: List[View], cfg: Config) -> NoiseModel:
+    """``noise`` in the light training reads: ``data.downscale`` and the white balance applied."""
+    capture = capture_of_files([v.user_path for v in views])
+    return noise_model(noise, views[0].balance, capture.noise_downscale(float(cfg.data.downscale)))
+
+
+def views_noise(views: List[View], cfg: Config, device: str) -> Optional[NoiseModel]:
+    """The views' Poisson–Gaussian noise in the light training reads, or None where nothing could be measured;
+    UserError (one line) when what was measured cannot be used."""
+    noise = _measured_noise(views, cfg, device)
+    return None if noise is None else _noise_model(noise, views, cfg)
 
 
 def decompose_views(views: List[View], cfg: Config, device: str, progress: bool, scene_root: Path,
