@@ -9,7 +9,9 @@ the decision (the note's sections 5-6). ``--night`` picks the night settings
 (default off: today's code before them); ``H10_OPTS`` (JSON: {"sift": {...}, "mapper": {...}, "tri": {...},
 "pipeline": {...}}) overrides pycolmap options on top, for the study's variants.
 
-``--seed`` is run_sfm's seed (the mapper's; the loose mappings use seed, seed + 1).
+``H10_BIN=2`` (section 7) makes each raw preview from the 2x2 means of its linear light, the denoiser's noise model
+divided by 4, at half size; with ``H10_UP=1`` the preview is resized back to the photo's size. ``--seed`` is
+run_sfm's seed (the mapper's; the loose mappings use seed, seed + 1).
 
     python experiments/sfm_night_study.py FOLDER SCENE OUT [--night auto|on|off] [--seed N]
 """
@@ -41,6 +43,28 @@ if OPTS:  # only a variant replaces the stages
     pycolmap.extract_features, pycolmap.match_exhaustive, pycolmap.incremental_mapping = ext, mex, mp
 
 from retinexgs.data.sfm import run_sfm
+
+UP = os.environ.get("H10_UP") == "1"  # with BIN: the binned preview resized back to the photo's size
+BIN = int(os.environ.get("H10_BIN", "1"))  # the study's variant (section 7): raw previews binned BIN x BIN first
+if BIN > 1:
+    import retinexgs.data.sfm as _S
+
+    def _binned_preview(src, denoise=None):
+        from retinexgs.data.camera_raw import _demosaiced_srgb_linear, read_raw
+        from retinexgs.data.raw_noise import view_noise
+        photo = read_raw(src)
+        lin = _demosaiced_srgb_linear(photo)
+        h, w = lin.shape[0] // BIN * BIN, lin.shape[1] // BIN * BIN
+        lin = lin[:h, :w].reshape(h // BIN, BIN, w // BIN, BIN, 3).mean((1, 3))
+        a, b, _s, _n = view_noise(photo)
+        if denoise is not None and a is not None and b is not None and np.any(a > 0):
+            lin = denoise.apply(lin, np.asarray(a) / BIN ** 2, np.asarray(b) / BIN ** 2)  # a mean of BIN^2 pixels
+        out = _S._bright_preview(lin, percentile=99.0, target=0.9)
+        if UP:  # variant a2: back to the photo's size (SIFT at full size, no intrinsics to scale)
+            import cv2
+            out = cv2.resize(out, (out.shape[1] * BIN, out.shape[0] * BIN), interpolation=cv2.INTER_LINEAR)
+        return out
+    _S._raw_preview = _binned_preview
 from retinexgs.train.sfm_preview import sfm_preview_denoise
 
 def gt_centres(scene):
@@ -125,7 +149,7 @@ def main(folder, scene, out):
         med, mx = float(np.median(err)), float(err.max())
     else:
         med = mx = float("nan")
-    res = dict(folder=str(folder), seed=int(os.environ.get("H10_SEED", "0")), reg=r.num_registered, n=r.num_images, points=r.num_points,
+    res = dict(folder=str(folder), bin=BIN, up=UP, seed=int(os.environ.get("H10_SEED", "0")), reg=r.num_registered, n=r.num_images, points=r.num_points,
                med_err=med, max_err=mx, sec=round(time.time() - t0, 1), opts=OPTS, check=check)
     print("RESULT", json.dumps(res), flush=True)
 
