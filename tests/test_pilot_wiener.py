@@ -49,9 +49,23 @@ def test_any_size_and_float32(shape):
     assert mse(out.double(), clean) < mse(noisy, clean)
 
 
+def test_the_chroma_of_another_estimate_is_kept():
+    """``chroma``: the luma filtered with the pilot's gains, the chroma that of the estimate given (a render's colour
+    blotches would pass the chroma gains). A pilot with a wrong colour cast then leaves the colour alone."""
+    clean, noisy = scene(seed=2)
+    tinted = clean * torch.tensor([1.6, 1.0, 0.5], dtype=torch.float64)  # same structure, a strong cast
+    cast = pilot_wiener(noisy, tinted, NOISE)
+    kept = pilot_wiener(noisy, tinted, NOISE, chroma=clean)
+    ratio = lambda x: float(x[..., 0].mean() / x[..., 2].mean())  # noqa: E731
+    assert abs(ratio(kept) - ratio(clean)) < abs(ratio(cast) - ratio(clean))
+    assert abs(ratio(kept) - ratio(clean)) < 0.1 * ratio(clean)
+
+
 def test_bad_inputs_are_one_line_errors():
     clean, noisy = scene()
     with pytest.raises(UserError, match="two \\[H,W,3\\] images"):
         pilot_wiener(noisy, clean[:10], NOISE)
     with pytest.raises(UserError, match="even number"):
         pilot_wiener(noisy, clean, NOISE, block=7)
+    with pytest.raises(UserError, match="chroma must have the view's shape"):
+        pilot_wiener(noisy, clean, NOISE, chroma=clean[:10])

@@ -38,8 +38,10 @@ def test_steps_resolve_fractions_and_drop_the_ends():
         load_config(["demo"], ["decomposer.redenoise_at=[fast]"])
 
 
-def test_the_priors_are_replaced_at_the_step_and_training_goes_on(scene_dir, tmp_path):
-    tr = trainer_for(scene_dir, tmp_path / "run", ["decomposer.redenoise_at=[3]"])
+@pytest.mark.parametrize("chroma", ["pilot", "denoiser"])
+def test_the_priors_are_replaced_at_the_step_and_training_goes_on(scene_dir, tmp_path, chroma):
+    tr = trainer_for(scene_dir, tmp_path / "run", ["decomposer.redenoise_at=[3]",
+                                                   f"decomposer.redenoise_chroma={chroma}"])
     before = priors(tr)
     tr.train(stop_after=2)
     assert all(torch.equal(R, v.R) for (R, _), v in zip(before, tr.views))  # not yet
@@ -75,3 +77,15 @@ def test_a_resumed_run_re_denoises_what_it_had_re_denoised(scene_dir, tmp_path):
 def test_where_it_cannot_run_one_line_says_why(scene_dir, tmp_path, overrides, match):
     with pytest.raises(UserError, match=match):
         trainer_for(scene_dir, tmp_path / "run", ["decomposer.redenoise_at=[3]"] + overrides)
+
+
+def test_the_chroma_choice_changes_the_priors(scene_dir, tmp_path):
+    """``decomposer.redenoise_chroma``: the same run re-denoised with the render's chroma gains or with the single-view
+    denoiser's chroma ends with other priors (the luma filtering alike)."""
+    out = []
+    for chroma in ("pilot", "denoiser"):
+        tr = trainer_for(scene_dir, tmp_path / chroma, ["decomposer.redenoise_at=[2]",
+                                                        f"decomposer.redenoise_chroma={chroma}"])
+        tr.train(stop_after=2)
+        out.append(priors(tr))
+    assert any(not torch.equal(a[0], b[0]) for a, b in zip(*out))

@@ -208,6 +208,7 @@ class Decomposer(Section):
     # model's render as the pilot (retinexgs/train/redenoise.py)
     redenoise_at: Annotated[List[Step], Expect("a list of steps (integers) or fractions of the run (decimals 0..1), "
                                                "e.g. [0.3, 0.6]; [] for never")]
+    redenoise_chroma: Choice("pilot", "denoiser")  # whose chroma the re-denoised view keeps (the render's gains or the single-view denoiser's)
 
     @field_validator("params", mode="after")
     @classmethod

@@ -362,14 +362,16 @@ def _dct_matrix(n: int, like: torch.Tensor) -> torch.Tensor:
     return d.to(like)
 
 
-def pilot_wiener(lin: torch.Tensor, pilot: torch.Tensor, noise: NoiseModel, block: int = 8) -> torch.Tensor:
+def pilot_wiener(lin: torch.Tensor, pilot: torch.Tensor, noise: NoiseModel, block: int = 8,
+                 chroma: Optional[torch.Tensor] = None) -> torch.Tensor:
     """The noisy light ``lin`` [H,W,3] (unclipped allowed) filtered with Wiener gains taken from ``pilot`` [H,W,3], a
     cleaner estimate of the same light (issue 64 item 1: the 3D model's render of the view; BM3D's second stage
     takes its gains from a pilot the same way). Both go through the generalised Anscombe transform of ``noise``
     (unit noise) and the orthonormal luma/chroma split; per block×block DCT block (blocks every block/2 pixels,
     overlaps averaged) each coefficient Z of the view is kept as Z·P²/(P² + 1), P the pilot's: what the pilot says
     is signal survives, what it says is noise goes; then the unbiased inverse. Float64 inside; the result in
-    ``lin``'s dtype and device."""
+    ``lin``'s dtype and device. ``chroma``: another estimate of the same light [H,W,3] whose chroma is kept instead
+    of the filtered one (a single-view denoiser's: a render's colour blotches pass the chroma gains)."""
     if lin.dim() != 3 or lin.shape[-1] != 3 or pilot.shape != lin.shape:
         raise UserError(f"pilot_wiener needs two [H,W,3] images of one shape, got {list(lin.shape)} and "
                         f"{list(pilot.shape)}")
@@ -395,7 +397,13 @@ def pilot_wiener(lin: torch.Tensor, pilot: torch.Tensor, noise: NoiseModel, bloc
     P = basis @ F.unfold(p[:, None], block, stride=step)
     kept = basis.t() @ (Z * (P * P / (P * P + 1.0)))
     out = F.fold(kept, size, block, stride=step) / F.fold(torch.ones_like(kept), size, block, stride=step)
-    out = torch.einsum("ji,jhw->hwi", ycc, out[:, 0, :h, :w])
+    out = out[:, 0, :h, :w]
+    if chroma is not None:
+        if chroma.shape != lin.shape:
+            raise UserError(f"pilot_wiener's chroma must have the view's shape {list(lin.shape)}, got "
+                            f"{list(chroma.shape)}")
+        out = torch.cat([out[:1], stabilised(chroma.to(lin.device))[1:]])
+    out = torch.einsum("ji,jhw->hwi", ycc, out)
     return gat_inverse(out, a, b).to(lin.dtype)
 
 
