@@ -30,19 +30,10 @@ import torch
 
 from retinexgs.data.srgb import linear_to_srgb, srgb_to_linear, srgb_to_linear_extended
 from retinexgs.evaluate.metrics import chroma_noise, gt_mean_align, psnr, ssim_metric
-from retinexgs.retinex.denoise import _YCC, denoise_linear, gat_forward, gat_inverse, pilot_wiener
+from retinexgs.retinex.denoise import denoise_linear, pilot_wiener
 from retinexgs.run.folder import load_run
 from retinexgs.run.render import active_sh_degree, render_function
 from retinexgs.train.view_setup import denoise_spec
-
-
-def stabilised_ycc(lin: torch.Tensor, a, b) -> torch.Tensor:
-    """[3,H,W] orthonormal luma/chroma of the GAT of ``lin`` [H,W,3] (unit noise per channel)."""
-    return torch.einsum("ij,hwj->ihw", _YCC.to(lin), gat_forward(lin, a, b))
-
-
-def from_stabilised_ycc(ycc: torch.Tensor, a, b) -> torch.Tensor:
-    return gat_inverse(torch.einsum("ji,jhw->hwi", _YCC.to(ycc), ycc), a, b)
 
 
 def exposed_srgb(lin: torch.Tensor) -> torch.Tensor:
@@ -67,7 +58,6 @@ def main(argv: List[str]) -> int:
     if spec is None:
         print("the run's views have no denoiser or no measurable noise: pass --method chroma", file=sys.stderr)
         return 2
-    a, b = spec.noise.a, spec.noise.b
     render = render_function(model, cfg, active_sh_degree(cfg, step))
     rows: Dict[str, List[tuple]] = {}
     for view in list(scene.train)[:args.views]:
@@ -79,9 +69,8 @@ def main(argv: List[str]) -> int:
         pilot = srgb_to_linear(render(view)["S_rec"].clamp(0, 1)).float()
         today = denoise_linear(y, spec.noise, spec.method, backend=spec.backend).float().to(device)
         wiener = pilot_wiener(y, pilot, spec.noise, args.block)
-        wz, zt = (stabilised_ycc(x.double(), a, b) for x in (wiener, today))
         cands = {"noisy": y, "today": today, "render": pilot, "wiener": wiener,
-                 "wiener-luma": from_stabilised_ycc(torch.cat([wz[:1], zt[1:]]), a, b).float()}
+                 "wiener-luma": pilot_wiener(y, pilot, spec.noise, args.block, chroma=today)}
         for name, lin in cands.items():
             img = gt_mean_align(exposed_srgb(lin.cpu()), truth).float()
             rows.setdefault(name, []).append((psnr(img, truth), ssim_metric(img, truth), chroma_noise(img, truth)))

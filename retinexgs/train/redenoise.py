@@ -30,9 +30,9 @@ def redenoise_steps(cfg: Config) -> List[int]:
     return sorted({s for s in (at_step(v, cfg.steps) for v in cfg.decomposer.redenoise_at) if 0 < s < cfg.steps})
 
 
-def check_redenoise(cfg: Config, streamed: bool, noise_known: bool) -> None:
+def check_redenoise(cfg: Config, streamed: bool) -> None:
     """UserError (one line) where ``decomposer.redenoise_at`` cannot run: it replaces 2D priors (RetinexGS with a
-    decomposer), of views held on the device (not streamed), and needs the views' noise."""
+    decomposer) of views held on the device (not streamed)."""
     if not redenoise_steps(cfg):
         return
     if cfg.method != "retinexgs" or cfg.decomposer.method == "none":
@@ -41,9 +41,6 @@ def check_redenoise(cfg: Config, streamed: bool, noise_known: bool) -> None:
     if streamed:
         raise UserError("decomposer.redenoise_at replaces the views' priors on the device: the views are streamed "
                         "here, set train.stream_views=never (or drop decomposer.redenoise_at)")
-    if not noise_known:
-        raise UserError("decomposer.redenoise_at needs the views' noise, which could not be measured (no flat area "
-                        "in any view): drop decomposer.redenoise_at")
 
 
 def redenoise_priors(views: Sequence[TrainView], render: Callable[[TrainView], Tensor], noise: NoiseModel,
@@ -80,9 +77,11 @@ class Redenoise:
         steps = redenoise_steps(cfg)
         if not steps:
             return None
-        check_redenoise(cfg, streamed, True)
+        check_redenoise(cfg, streamed)
         noise = views_noise(list(scene.train), cfg, device)
-        check_redenoise(cfg, streamed, noise is not None)
+        if noise is None:
+            raise UserError("decomposer.redenoise_at needs the views' noise, which could not be measured (no flat "
+                            "area in any view): drop decomposer.redenoise_at")
         return cls(steps, noise, scene.capture.unclipped)
 
     def due(self, step: int, resumed_from: Optional[int] = None) -> bool:
