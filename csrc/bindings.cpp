@@ -7,6 +7,7 @@
 #include <type_traits>
 #include <string>
 #include <tuple>
+#include <utility>
 #include <vector>
 
 #include "rgs/gaussian_colors.h"
@@ -612,6 +613,41 @@ Tensor exposure_tone(Tensor image, Tensor gain, double shoulder) {
     return out;
 }
 
+// Densification's screen-space statistics of one view, added in place (rgs/screen_stats.h): grad2d [N, 2] the
+// projected centres' pixel gradients (float32/64), radii [N, 2] int32, (sx, sy) = (W / 2, H / 2); grad_accum,
+// count, max_radius: [N] float32, contiguous, on grad2d's device.
+void screen_stats(Tensor grad2d, Tensor radii, double sx, double sy, Tensor grad_accum, Tensor count,
+                  Tensor max_radius) {
+    check_float(grad2d, "grad2d");
+    RGS_CHECK_VALUE(grad2d.dim() == 2 && grad2d.size(1) == 2, "grad2d must be [N, 2], got shape ", grad2d.sizes());
+    const int64_t N = grad2d.size(0);
+    check_index(radii, "radii", {N, 2}, grad2d);
+    for (const auto& [t, name] : {std::pair<const Tensor&, const char*>{grad_accum, "grad_accum"},
+                                  {count, "count"}, {max_radius, "max_radius"}}) {
+        RGS_CHECK_TYPE(t.scalar_type() == torch::kFloat32, name, " must be float32, got ", t.scalar_type());
+        RGS_CHECK_VALUE(t.device() == grad2d.device(), name, " must be on ", grad2d.device(), ", got ", t.device());
+        RGS_CHECK_VALUE(t.dim() == 1 && t.size(0) == N, name, " must be [", N, "], got shape ", t.sizes());
+        RGS_CHECK_VALUE(t.is_contiguous(), name, " must be contiguous (it is updated in place)");
+    }
+    grad2d = grad2d.contiguous(), radii = radii.contiguous();
+    RGS_DEVICE_GUARD(grad2d);
+    AT_DISPATCH_FLOATING_TYPES(grad2d.scalar_type(), "screen_stats", [&] {
+        if (grad2d.is_cuda()) {
+#ifdef RGS_WITH_CUDA
+            rgs::screen_stats_cuda<scalar_t>(N, grad2d.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(), sx, sy,
+                                             grad_accum.data_ptr<float>(), count.data_ptr<float>(),
+                                             max_radius.data_ptr<float>(), RGS_CUDA_STREAM(grad2d));
+#else
+            no_cuda();
+#endif
+        } else {
+            rgs::screen_stats_cpu<scalar_t>(N, grad2d.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(), sx, sy,
+                                            grad_accum.data_ptr<float>(), count.data_ptr<float>(),
+                                            max_radius.data_ptr<float>(), num_threads());
+        }
+    });
+}
+
 // The training loss's fused SSIM (rgs/ssim.h). x, y: [..., H, W] of one dtype and device (every leading index a
 // plane); window: the 1-D taps (odd count <= 15, any dtype, read on the host). Returns (S map, partials [3, ...] or
 // an empty tensor when partials is false).
@@ -719,6 +755,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
           pybind11::arg("bound") = 1.0, pybind11::arg("weights") = pybind11::none());
     m.def("exposure_tone", &exposure_tone, pybind11::arg("image"), pybind11::arg("gain"),
           pybind11::arg("shoulder") = 1.0);
+    m.def("screen_stats", &screen_stats, pybind11::arg("grad2d"), pybind11::arg("radii"), pybind11::arg("sx"),
+          pybind11::arg("sy"), pybind11::arg("grad_accum"), pybind11::arg("count"), pybind11::arg("max_radius"));
     m.def("ssim_forward", &ssim_forward, pybind11::arg("x"), pybind11::arg("y"), pybind11::arg("window"),
           pybind11::arg("c1"), pybind11::arg("c2"), pybind11::arg("partials"));
     m.def("ssim_backward", &ssim_backward, pybind11::arg("grad"), pybind11::arg("x"), pybind11::arg("y"),

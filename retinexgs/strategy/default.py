@@ -14,6 +14,7 @@ from retinexgs.model.gaussians import GaussianModel
 from retinexgs.model.schedule import Schedule
 from retinexgs.render import RenderOutput
 from retinexgs.render.rotation import quat_to_rotmat
+from retinexgs.render.screen_stats import screen_stats
 from retinexgs.strategy.base import Strategy, register
 from retinexgs.strategy.ops import cap_anisotropy, edit_gaussians, mask_indices, reset_opacity
 
@@ -34,7 +35,6 @@ class DefaultStrategy(Strategy):
         self.grad_accum: Optional[Tensor] = None  # Σ over views of the NDC gradient norm (3DGS's statistic)
         self.count: Optional[Tensor] = None       # views that saw each Gaussian
         self.max_radius: Optional[Tensor] = None
-        self._ndc_scale: Optional[tuple] = None  # ((width, height, device, dtype), [2] tensor)
 
     def state_dict(self) -> Dict[str, Optional[Tensor]]:
         return {key: getattr(self, key) for key in SUMMED + MAXIMA}
@@ -42,34 +42,22 @@ class DefaultStrategy(Strategy):
     def load_state_dict(self, state: Dict[str, Optional[Tensor]], device: torch.device) -> None:
         for key in SUMMED + MAXIMA:
             value = state.get(key)
-            setattr(self, key, None if value is None else value.to(device))
+            # float32 and contiguous: the fused statistics kernel adds to them in place
+            setattr(self, key, None if value is None else value.to(device, torch.float32).contiguous())
 
     def _ensure(self, n: int, device: torch.device) -> None:
         if self.grad_accum is None or self.grad_accum.shape[0] != n:
             for key in SUMMED + MAXIMA:
-                setattr(self, key, torch.zeros(n, device=device))
-
-    def _ndc(self, grad: Tensor, width: int, height: int) -> Tensor:
-        """Pixel gradients [N,2] -> NDC gradients, the unit 3DGS's threshold is defined in (the scale is cached on
-        the device: a tensor built from numbers every step is a host->device copy)."""
-        key = (width, height, grad.device, grad.dtype)
-        if self._ndc_scale is None or self._ndc_scale[0] != key:
-            self._ndc_scale = (key, torch.tensor([width / 2.0, height / 2.0], device=grad.device, dtype=grad.dtype))
-        return grad.detach() * self._ndc_scale[1]
+                setattr(self, key, torch.zeros(n, device=device, dtype=torch.float32))
 
     def after_backward(self, out: RenderOutput, width: int, height: int) -> None:
-        """Add one view's statistics (call after backward, before the optimizer step)."""
+        """Add one view's statistics (call after backward, before the optimizer step): one fused kernel,
+        no host sync (:func:`retinexgs.render.screen_stats.screen_stats`)."""
         grad = out.means2d.grad
         if grad is None:
             return
         self._ensure(grad.shape[0], grad.device)
-        visible = out.visible
-        norm = self._ndc(grad, width, height).norm(dim=-1).float()
-        # Masked arithmetic, not boolean indexing: indexing would sync with the GPU every step.
-        self.grad_accum += torch.where(visible, norm, 0.0)
-        self.count += visible
-        # A culled Gaussian has radii (0, 0), so its max radius is 0 and leaves the running maximum as it is.
-        torch.maximum(self.max_radius, out.radii.amax(dim=-1), out=self.max_radius)
+        screen_stats(grad, out.radii, width, height, self.grad_accum, self.count, self.max_radius)
 
     def densification_statistic(self) -> Tensor:
         """[N] what the threshold is compared with: the mean NDC gradient norm over the views that saw each
@@ -112,7 +100,7 @@ class DefaultStrategy(Strategy):
         def flat(keys, extra: float) -> Tensor:
             parts = [getattr(self, k).float() if has and getattr(self, k) is not None else None for k in keys]
             device = dev if dev is not None else torch.device("cpu")
-            parts = [p if p is not None else torch.zeros(n, device=device) for p in parts]
+            parts = [p if p is not None else torch.zeros(n, device=device, dtype=torch.float32) for p in parts]
             return torch.cat(parts + [torch.tensor([extra], device=device)])
 
         sums = all_reduce_sum(flat(SUMMED, 1.0 if has else 0.0))
@@ -162,7 +150,7 @@ class DefaultStrategy(Strategy):
         prune = torch.cat([split, torch.zeros(n_new, dtype=torch.bool, device=split.device)])
         prune |= model.opacities < c.prune_opacity
         if self.schedule.prune_large_at(step):
-            radius = torch.cat([self.max_radius, torch.zeros(n_new, device=split.device)])
+            radius = torch.cat([self.max_radius, torch.zeros(n_new, device=split.device, dtype=torch.float32)])
             prune |= radius > c.max_screen_fraction * image_size
             prune |= model.scales.max(-1).values > 0.1 * self.extent
         # Never prune everything: where all would go, the most opaque stays (decided on the device).

@@ -121,6 +121,12 @@ void gaussian_colors_cpu(int64_t N, int degree,
                          T* colors,                 // [N, 3 or 6] out
                          int num_threads);
 
+// ---- densification's screen-space statistics (rgs/screen_stats.h) --------------------------------
+// Adds one view's statistics in place: grad_accum, count (where both radii > 0) and max_radius, all float32.
+template <typename T>
+void screen_stats_cpu(int64_t N, const T* grad2d, const int32_t* radii, double sx, double sy, float* grad_accum,
+                      float* count, float* max_radius, int num_threads);
+
 // ---- the enhancement's exposure tone (inference) ------------------------------------------------
 // out = srgb(s(gain · lin(R̂ ∘ L̂))) per channel, s the highlight shoulder (rgs/tone.h).
 template <typename T>

@@ -79,6 +79,11 @@ void gaussian_colors_cuda(int64_t N, int degree, int rest, const T* means, const
 template <typename T>
 void exposure_tone_cuda(int64_t P, int C, int G, const T* image, const T* gain, double knee, T* out, void* stream);
 
+// Same as screen_stats_cpu: one thread per Gaussian.
+template <typename T>
+void screen_stats_cuda(int64_t N, const T* grad2d, const int32_t* radii, double sx, double sy, float* grad_accum,
+                       float* count, float* max_radius, void* stream);
+
 // Same as ssim_forward_cpu / ssim_backward_cpu: one block per 16x16 tile of a plane, the tile and the window's
 // halo staged in shared memory.
 template <typename T>
