@@ -63,7 +63,8 @@
 #                  whole (tile_pixels=1e9) and as the default decides: time and peak GPU memory, no metrics
 #       export     `retinexgs export` and `retinexgs render --maps enhanced,R,L` of the run, timed
 #       ab         A/B training time against another checkout --old DIR (a plain copy, e.g. `git archive REV |
-#                  tar x -C .ab_old`, carried): old, new, old, new... (--repeats 2) on one card, so that a
+#                  tar x -C .ab_old`, carried; its .cbuild, a copy of the LPIPS weights and a build of the same
+#                  kernel sources are reused): old, new, old, new... (--repeats 2) on one card, so that a
 #                  speed change is compared on the same card (cards of one kind differ by a few per cent)
 #       Options: --scene fox-dark, --seeds "0" (e.g. "0 1 2"), --config NAME, --set KEY=VALUE, --run RUN,
 #       --vs gsplat (its kernels JIT-build, ~80 s, started beside our build), --fps-runs 1, --raster-runs 1,
@@ -489,8 +490,19 @@ print('gsplat ready')" > "$LOGS/gsplat_build.log" 2>&1; echo "gsplat JIT: exit $
     local old new=$PWD i side dir
     old=$(cd "$OLD" && pwd)
     t=$SECONDS
-    (cd "$old" && python3 setup.py build_ext --inplace > "$LOGS/build_old.log" 2>&1) || die "the --old build failed"
-    echo "old build: $(( SECONDS - t )) s"
+    # The LPIPS weights (9 MB) need not travel twice: the old copy reads the new one's where it has none.
+    [ -d "$old/retinexgs/evaluate/weights" ] || cp -r retinexgs/evaluate/weights "$old/retinexgs/evaluate/"
+    local gz reused=0 ostamp; ostamp=$(cd "$old" && build_stamp)
+    if [ -f "$old/.cbuild/stamp" ] && [ "$(cat "$old/.cbuild/stamp")" = "$ostamp" ]; then  # its own build, carried
+      for gz in "$old"/.cbuild/_C*.so.gz; do gunzip -c "$gz" > "$old/retinexgs/$(basename "${gz%.gz}")"; done
+      reused=1
+    elif [ "$ostamp" = "$(build_stamp)" ]; then  # the same kernel sources as the new side: its build
+      cp retinexgs/_C*.so "$old/retinexgs/"; reused=1
+    fi
+    if [ $reused = 0 ]; then
+      (cd "$old" && python3 setup.py build_ext --inplace > "$LOGS/build_old.log" 2>&1) || die "the --old build failed"
+    fi
+    echo "old build: $(( SECONDS - t )) s$([ $reused = 1 ] && echo ' (reused)')"
     for i in $(seq "$REPEATS"); do
       for side in old new; do
         dir=$old; [ $side = new ] && dir=$new
