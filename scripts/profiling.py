@@ -196,14 +196,18 @@ def _op_name(func) -> str:
     return parts[1] if parts[0] == "aten" and len(parts) > 1 else str(func)
 
 
-def _op_counter():
+def _op_counter(min_numel: int = 0):
     """A TorchDispatchMode that counts every operator reaching a backend, by name and by the trainer's phase
-    (built on first use: the dispatch-mode import is private torch API, needed by ``ops`` alone)."""
+    (built on first use: the dispatch-mode import is private torch API, needed by ``ops`` alone); with
+    ``min_numel``, also the bytes of the operators whose largest tensor has at least that many elements (the
+    per-pixel traffic: inputs and outputs, the project's own kernels not included)."""
     from torch.utils._python_dispatch import TorchDispatchMode
 
     class OpCounter(TorchDispatchMode):
-        def __init__(self) -> None:
+        def __init__(self, min_numel: int = 0) -> None:
             super().__init__()
+            # with min_numel: the bytes each (phase, op) reads and writes in tensors of >= min_numel elements
+            self.min_numel, self.traffic = min_numel, collections.Counter()
             self.ops: collections.Counter = collections.Counter()
             self.phases: collections.Counter = collections.Counter()
             self.d2h = 0
@@ -231,9 +235,15 @@ def _op_counter():
                     dst = kwargs.get("device")
                     if args[0].is_cuda and (dst is not None and torch.device(dst).type == "cpu"):
                         self.d2h += 1
-            return func(*args, **kwargs)
+            out = func(*args, **kwargs)
+            if self.min_numel and name not in METADATA and not name.startswith("profiler."):
+                tensors = [t for t in torch.utils._pytree.tree_leaves((args, kwargs, out))
+                           if isinstance(t, torch.Tensor)]
+                if max((t.numel() for t in tensors), default=0) >= self.min_numel:
+                    self.traffic[(phase, name)] += sum(t.numel() * t.element_size() for t in tensors)
+            return out
 
-    return OpCounter()
+    return OpCounter(min_numel)
 
 
 def count_calls(module, names, when=None) -> Dict[str, int]:
@@ -263,7 +273,9 @@ def _warm_trainer(args: argparse.Namespace, tmp: str):
     scene_path = args.scene
     if scene_path is None:
         from retinexgs.demo.synthetic import make_demo_scene
-        scene_path = make_demo_scene(Path(tmp) / "scene", n_train=6, n_test=1, width=96, height=72, n_points=4000)
+        width, height = (int(v) for v in getattr(args, "size", "96x72").split("x"))
+        scene_path = make_demo_scene(Path(tmp) / "scene", n_train=6, n_test=1, width=width, height=height,
+                                     n_points=4000)
     cfg = load_config(args.config, [f"loss.enhance_from={args.steps // 2}"] + args.overrides)
     scene = open_scene(scene_path, cfg)
     run = Path(tmp) / "run"
@@ -286,7 +298,8 @@ def count_ops(args: argparse.Namespace) -> None:
         graph_calls = count_calls(torch.cuda.CUDAGraph, ["replay"]) if cuda else {}
         # Reads of tensor values by the host (a sync on the GPU) and tensors built from host numbers (a
         # host->device copy on the GPU), whatever the device.
-        counter = _op_counter()
+        pixels = max(v.camera.width * v.camera.height for v in tr.views) if args.traffic else 0
+        counter = _op_counter(pixels)
         # (the CPU's non-fused Adam reads each parameter's step count with .item(): not counted)
         outside_optim = lambda: not any(p.startswith("Optimizer.step") for p in counter._stack)  # noqa: E731
         host_reads = count_calls(torch.Tensor, ["tolist", "item"], outside_optim)
@@ -332,6 +345,16 @@ def count_ops(args: argparse.Namespace) -> None:
                   f"{sync / n:.2f} synchronizes")
             copies = {k: v for k, v in names.items() if k.startswith("Memcpy")}  # by direction (DtoD: no sync)
             print("  copies per step: " + (", ".join(f"{k} {v / n:.2f}" for k, v in sorted(copies.items())) or "none"))
+        if pixels:
+            total = sum(counter.traffic.values()) / n / pixels
+            print(f"\nper-pixel traffic (torch ops on tensors of >= {pixels} elements, the largest view; bytes read "
+                  f"and written per pixel per step, the project's kernels apart): {total:.0f} B/px")
+            phases: collections.Counter = collections.Counter()
+            for (phase, _), b in counter.traffic.items():
+                phases[phase] += b
+            print("  by phase: " + ", ".join(f"{p[5:]} {b / n / pixels:.0f}" for p, b in phases.most_common()))
+            for (phase, name), b in counter.traffic.most_common(args.top):
+                print(f"  {b / n / pixels:8.1f} B/px  {phase[5:]:<14} {name}")
         rows = sorted(kernel_ops.items(), key=lambda kv: -kv[1])[: args.top]
         print(f"\ntop {len(rows)} kernel ops per step (optimiser included):")
         for name, count in rows:
@@ -618,6 +641,10 @@ def main(argv: List[str] | None = None) -> int:
     p.add_argument("--emulate-graphs", action="store_true",
                    help="CPU: run the CUDA-graph path of the step eagerly (its ops show as the phases "
                         "loss_graph and channel_graph, which are 3 graph launches on the GPU)")
+    p.add_argument("--size", default="96x72", help="the synthetic scene's views, WxH (default 96x72)")
+    p.add_argument("--traffic", action="store_true",
+                   help="also the per-pixel traffic: bytes per pixel per step of the torch ops on tensors of at "
+                        "least the largest view's pixel count, by phase and op (memory-bound at 12 MP)")
     p.set_defaults(fn=count_ops)
 
     p = sub.add_parser("syncs", help="host reads of tensor values per training step, by call site (CPU or GPU)",
