@@ -111,7 +111,8 @@ def rasterize_gaussians(
                                             camera.width, camera.height)
     depth = None
     if render_depth:
-        image, depth = image[..., :-1], image[..., -1:]
+        # split, not two slices: its backward is one concatenation, each slice's a zero-filled full-size tensor
+        image, depth = image.split([image.shape[-1] - 1, 1], dim=-1)
     if background is not None:
         image = image + (1.0 - alpha) * background
     return RenderOutput(image, alpha, depth, means2d, radii, int(gauss_ids.shape[0]))

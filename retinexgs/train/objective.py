@@ -130,10 +130,10 @@ class PlainObjective:
         S, R, L = unpack_targets(packed, self.decomposed, self.depth_prior)
         if not self.depth_prior:
             return self.image_loss(image, S, R, L, enhance)
-        C = image.shape[-1] - 2
-        total, terms = self.image_loss(image[..., :C], S, R, L, enhance)
-        terms["depth"] = losses.depth_smoothness_loss(to_bchw(image[..., C:C + 1]), to_bchw(image[..., C + 1:]),
-                                                      *unpack_edges(packed))
+        # split, not slices: its backward is one concatenation, a slice's a zero-filled full-size gradient each
+        rendered, depth, alpha = image.split([image.shape[-1] - 2, 1, 1], dim=-1)
+        total, terms = self.image_loss(rendered, S, R, L, enhance)
+        terms["depth"] = losses.depth_smoothness_loss(to_bchw(depth), to_bchw(alpha), *unpack_edges(packed))
         return torch.add(total, terms["depth"], alpha=self.cfg.loss.w_depth), terms
 
     def graph_input(self, res: Dict[str, Tensor]) -> Tensor:
@@ -219,7 +219,7 @@ class RetinexObjective(PlainObjective):
         """All but L_SH; ``S`` is the low-light view, ``R``/``L`` its 2D priors or None; ``enhance``: the
         enhancement losses are on."""
         c = self.cfg.loss
-        R_img, L_img = image[..., :3], image[..., 3:6]
+        R_img, L_img = image.split(3, dim=-1)[:2]  # (split: one concatenation backward, see graphed_loss)
         R_hat, L_hat, S_b = to_bchw(R_img), to_bchw(L_img), to_bchw(S)
         linear = self.noise.linear_target
         if linear is None:  # compared as photos (loss.raw.mode photo on a raw scene: the raw view clipped)
