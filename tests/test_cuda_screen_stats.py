@@ -5,20 +5,10 @@ import torch
 
 from retinexgs.render import has_cuda
 from retinexgs.render.screen_stats import screen_stats
+from test_screen_stats import case  # culled, half-culled and seen Gaussians, accumulators with sums
 
 pytestmark = pytest.mark.skipif(not (torch.cuda.is_available() and has_cuda()),
                                 reason="needs a CUDA GPU and retinexgs built with its CUDA kernels")
-
-
-def case(n, dtype=torch.float32, seed=0, device="cpu"):
-    """As tests/test_screen_stats.py: culled, half-culled and seen Gaussians, accumulators holding earlier sums."""
-    g = torch.Generator().manual_seed(seed)
-    grad = (torch.randn(n, 2, generator=g, dtype=torch.float64) * 1e-3).to(dtype)
-    radii = torch.randint(0, 40, (n, 2), generator=g, dtype=torch.int32)
-    radii[::5] = 0
-    radii[1::7, 0] = 0
-    acc = [torch.rand(n, generator=g) * k for k in (1e-2, 5.0, 30.0)]
-    return [t.to(device) for t in (grad, radii, *acc)]
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
