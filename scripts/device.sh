@@ -512,6 +512,19 @@ print('gsplat ready')" > "$LOGS/gsplat_build.log" 2>&1; echo "gsplat JIT: exit $
         metrics "$side-$i" "/tmp/ab/$side-$i" | tee -a "$OUT/ab.txt"
       done
     done
+    # Each side's median training time and their ratio (the spread of one card is the figure to beat).
+    python3 - "$OUT/ab.txt" << 'EOF2' | tee -a "$OUT/ab.txt"
+import re, statistics, sys
+t = {"old": [], "new": []}
+for line in open(sys.argv[1]):
+    m = re.match(r"(old|new)-\d+: train ([\d.]+) s", line)
+    if m:
+        t[m[1]].append(float(m[2]))
+if t["old"] and t["new"]:
+    o, n = statistics.median(t["old"]), statistics.median(t["new"])
+    print(f"median: old {o:.1f} s ({min(t['old']):.1f}-{max(t['old']):.1f}, n={len(t['old'])}), "
+          f"new {n:.1f} s ({min(t['new']):.1f}-{max(t['new']):.1f}, n={len(t['new'])}), new/old {n / o:.3f}")
+EOF2
   fi
   finish 0
 }
