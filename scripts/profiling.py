@@ -36,6 +36,7 @@ import collections
 import sys
 import tempfile
 import time
+import traceback
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
@@ -196,18 +197,29 @@ def _op_name(func) -> str:
     return parts[1] if parts[0] == "aten" and len(parts) > 1 else str(func)
 
 
-def _op_counter(min_numel: int = 0):
+def _call_site() -> str:
+    """The innermost retinexgs frame on the Python stack ("?" where there is none: the autograd engine's backward
+    of an eager step; a graphed loss's backward shows as its ``_step``)."""
+    for frame in reversed(traceback.extract_stack()[:-2]):
+        if "/retinexgs/" in frame.filename:
+            return f"{frame.filename.split('/retinexgs/')[1]}:{frame.lineno} {frame.name}"
+    return "?"
+
+
+def _op_counter(min_numel: int = 0, sites: bool = False):
     """A TorchDispatchMode that counts every operator reaching a backend, by name and by the trainer's phase
     (built on first use: the dispatch-mode import is private torch API, needed by ``ops`` alone); with
     ``min_numel``, also the bytes of the operators whose largest tensor has at least that many elements (the
-    per-pixel traffic: inputs and outputs, the project's own kernels not included)."""
+    per-pixel traffic: inputs and outputs, the project's own kernels not included), by phase or, with ``sites``,
+    by the retinexgs line that called the operator."""
     from torch.utils._python_dispatch import TorchDispatchMode
 
     class OpCounter(TorchDispatchMode):
-        def __init__(self, min_numel: int = 0) -> None:
+        def __init__(self) -> None:
             super().__init__()
-            # with min_numel: the bytes each (phase, op) reads and writes in tensors of >= min_numel elements
-            self.min_numel, self.traffic = min_numel, collections.Counter()
+            # with min_numel: the bytes each (phase or call site, op) reads and writes in tensors of >= min_numel
+            # elements
+            self.traffic: collections.Counter = collections.Counter()
             self.ops: collections.Counter = collections.Counter()
             self.phases: collections.Counter = collections.Counter()
             self.d2h = 0
@@ -236,14 +248,15 @@ def _op_counter(min_numel: int = 0):
                     if args[0].is_cuda and (dst is not None and torch.device(dst).type == "cpu"):
                         self.d2h += 1
             out = func(*args, **kwargs)
-            if self.min_numel and name not in METADATA and not name.startswith("profiler."):
+            if min_numel and name not in METADATA and not name.startswith("profiler."):
                 tensors = [t for t in torch.utils._pytree.tree_leaves((args, kwargs, out))
                            if isinstance(t, torch.Tensor)]
-                if max((t.numel() for t in tensors), default=0) >= self.min_numel:
-                    self.traffic[(phase, name)] += sum(t.numel() * t.element_size() for t in tensors)
+                if max((t.numel() for t in tensors), default=0) >= min_numel:
+                    where = _call_site() if sites else phase
+                    self.traffic[(where, name)] += sum(t.numel() * t.element_size() for t in tensors)
             return out
 
-    return OpCounter(min_numel)
+    return OpCounter()
 
 
 def count_calls(module, names, when=None) -> Dict[str, int]:
@@ -299,7 +312,7 @@ def count_ops(args: argparse.Namespace) -> None:
         # Reads of tensor values by the host (a sync on the GPU) and tensors built from host numbers (a
         # host->device copy on the GPU), whatever the device.
         pixels = max(v.camera.width * v.camera.height for v in tr.views) if args.traffic else 0
-        counter = _op_counter(pixels)
+        counter = _op_counter(pixels, sites=args.traffic == "sites")
         # (the CPU's non-fused Adam reads each parameter's step count with .item(): not counted)
         outside_optim = lambda: not any(p.startswith("Optimizer.step") for p in counter._stack)  # noqa: E731
         host_reads = count_calls(torch.Tensor, ["tolist", "item"], outside_optim)
@@ -349,12 +362,13 @@ def count_ops(args: argparse.Namespace) -> None:
             total = sum(counter.traffic.values()) / n / pixels
             print(f"\nper-pixel traffic (torch ops on tensors of >= {pixels} elements, the largest view; bytes read "
                   f"and written per pixel per step, the project's kernels apart): {total:.0f} B/px")
-            phases: collections.Counter = collections.Counter()
-            for (phase, _), b in counter.traffic.items():
-                phases[phase] += b
-            print("  by phase: " + ", ".join(f"{p[5:]} {b / n / pixels:.0f}" for p, b in phases.most_common()))
-            for (phase, name), b in counter.traffic.most_common(args.top):
-                print(f"  {b / n / pixels:8.1f} B/px  {phase[5:]:<14} {name}")
+            groups: collections.Counter = collections.Counter()
+            for (where, _), b in counter.traffic.items():
+                groups[where.replace("step/", "")] += b
+            print(f"  by {'call site' if args.traffic == 'sites' else 'phase'}: "
+                  + ", ".join(f"{g} {b / n / pixels:.0f}" for g, b in groups.most_common(args.top)))
+            for (where, name), b in counter.traffic.most_common(args.top):
+                print(f"  {b / n / pixels:8.1f} B/px  {name:<18} {where.replace('step/', '')}")
         rows = sorted(kernel_ops.items(), key=lambda kv: -kv[1])[: args.top]
         print(f"\ntop {len(rows)} kernel ops per step (optimiser included):")
         for name, count in rows:
@@ -642,9 +656,10 @@ def main(argv: List[str] | None = None) -> int:
                    help="CPU: run the CUDA-graph path of the step eagerly (its ops show as the phases "
                         "loss_graph and channel_graph, which are 3 graph launches on the GPU)")
     p.add_argument("--size", default="96x72", help="the synthetic scene's views, WxH (default 96x72)")
-    p.add_argument("--traffic", action="store_true",
+    p.add_argument("--traffic", nargs="?", const="phases", choices=("phases", "sites"), default=None,
                    help="also the per-pixel traffic: bytes per pixel per step of the torch ops on tensors of at "
-                        "least the largest view's pixel count, by phase and op (memory-bound at 12 MP)")
+                        "least the largest view's pixel count (a 12 MP step is memory-bound), by phase and op, "
+                        "or by the retinexgs line that called each op (--traffic sites)")
     p.set_defaults(fn=count_ops)
 
     p = sub.add_parser("syncs", help="host reads of tensor values per training step, by call site (CPU or GPU)",
