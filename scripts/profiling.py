@@ -275,6 +275,17 @@ def count_calls(module, names, when=None) -> Dict[str, int]:
     return calls
 
 
+def _size(text: str) -> Tuple[int, int]:
+    """'640x480' -> (640, 480); argparse's one-line error on anything else."""
+    try:
+        width, height = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, e.g. 640x480, got {text!r}") from None
+    if width < 8 or height < 8:
+        raise argparse.ArgumentTypeError(f"views of at least 8x8 pixels, got {text!r}")
+    return width, height
+
+
 def _warm_trainer(args: argparse.Namespace, tmp: str):
     """A Trainer on ``args.scene`` (default: a small synthetic scene made in ``tmp``) after ``args.steps`` steps,
     with its run folder in ``tmp``; the enhancement losses start halfway so that the profiled steps include them."""
@@ -286,7 +297,7 @@ def _warm_trainer(args: argparse.Namespace, tmp: str):
     scene_path = args.scene
     if scene_path is None:
         from retinexgs.demo.synthetic import make_demo_scene
-        width, height = (int(v) for v in getattr(args, "size", "96x72").split("x"))
+        width, height = getattr(args, "size", (96, 72))
         scene_path = make_demo_scene(Path(tmp) / "scene", n_train=6, n_test=1, width=width, height=height,
                                      n_points=4000)
     cfg = load_config(args.config, [f"loss.enhance_from={args.steps // 2}"] + args.overrides)
@@ -655,7 +666,7 @@ def main(argv: List[str] | None = None) -> int:
     p.add_argument("--emulate-graphs", action="store_true",
                    help="CPU: run the CUDA-graph path of the step eagerly (its ops show as the phases "
                         "loss_graph and channel_graph, which are 3 graph launches on the GPU)")
-    p.add_argument("--size", default="96x72", help="the synthetic scene's views, WxH (default 96x72)")
+    p.add_argument("--size", type=_size, default=(96, 72), help="the synthetic scene's views, WxH (default 96x72)")
     p.add_argument("--traffic", nargs="?", const="phases", choices=("phases", "sites"), default=None,
                    help="also the per-pixel traffic: bytes per pixel per step of the torch ops on tensors of at "
                         "least the largest view's pixel count (a 12 MP step is memory-bound), by phase and op, "
