@@ -613,6 +613,74 @@ Tensor exposure_tone(Tensor image, Tensor gain, double shoulder) {
     return out;
 }
 
+// Training's tone curve (rgs/tone_curve.h): y = srgb_o(s(gain · lin_i(x))) elementwise over a contiguous x of any
+// shape, gain [C] on x's device, element i taking gain[(i / inner) % C]; knee the shoulder's (>= 1: none); forms
+// rgs::CurveForm (0 clip, 1 open, 2 extended; the output's also 3: linear). The backward returns grad_x and the
+// per-element gain gradient, each only where asked (an empty tensor otherwise); the caller sums the latter per
+// channel.
+static void check_tone_curve(const Tensor& x, const Tensor& gain, int64_t C, int64_t inner, int form_in,
+                             int form_out) {
+    check_float(x, "x");
+    check_tensor(gain, "gain", {C}, x);
+    RGS_CHECK_VALUE(C >= 1 && inner >= 1, "tone_curve needs C >= 1 and inner >= 1, got ", C, " and ", inner);
+    RGS_CHECK_VALUE(C == 1 || x.numel() % (C * inner) == 0, "x's ", x.numel(),
+                    " elements are not a multiple of C * inner = ", C * inner);
+    RGS_CHECK_VALUE(form_in >= 0 && form_in <= 2 && form_out >= 0 && form_out <= 3,
+                    "tone_curve forms must be 0 (clip), 1 (open) or 2 (extended), the output's also 3 (linear), got ",
+                    form_in, " and ", form_out);
+}
+
+Tensor tone_curve_forward(Tensor x, Tensor gain, int64_t C, int64_t inner, double knee, int form_in, int form_out) {
+    check_tone_curve(x, gain, C, inner, form_in, form_out);
+    x = x.contiguous(), gain = gain.contiguous();
+    Tensor y = torch::empty_like(x);
+    const int64_t n = x.numel();
+    RGS_DEVICE_GUARD(x);
+    AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "tone_curve_forward", [&] {
+        if (x.is_cuda()) {
+#ifdef RGS_WITH_CUDA
+            rgs::tone_curve_forward_cuda<scalar_t>(n, x.data_ptr<scalar_t>(), gain.data_ptr<scalar_t>(), C, inner, knee,
+                                                   form_in, form_out, y.data_ptr<scalar_t>(), RGS_CUDA_STREAM(x));
+#else
+            no_cuda();
+#endif
+        } else {
+            rgs::tone_curve_forward_cpu<scalar_t>(n, x.data_ptr<scalar_t>(), gain.data_ptr<scalar_t>(), C, inner, knee,
+                                                  form_in, form_out, y.data_ptr<scalar_t>(), num_threads());
+        }
+    });
+    return y;
+}
+
+std::tuple<Tensor, Tensor> tone_curve_backward(Tensor x, Tensor gain, Tensor grad_out, int64_t C, int64_t inner,
+                                               double knee, int form_in, int form_out, bool need_x, bool need_gain) {
+    check_tone_curve(x, gain, C, inner, form_in, form_out);
+    check_tensor(grad_out, "grad_out", std::vector<int64_t>(x.sizes().begin(), x.sizes().end()), x);
+    x = x.contiguous(), gain = gain.contiguous(), grad_out = grad_out.contiguous();
+    Tensor grad_x = need_x ? torch::empty_like(x) : torch::empty({0}, x.options());
+    Tensor grad_k = need_gain ? torch::empty_like(x) : torch::empty({0}, x.options());
+    const int64_t n = x.numel();
+    RGS_DEVICE_GUARD(x);
+    AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "tone_curve_backward", [&] {
+        scalar_t* gx = need_x ? grad_x.data_ptr<scalar_t>() : nullptr;
+        scalar_t* gk = need_gain ? grad_k.data_ptr<scalar_t>() : nullptr;
+        if (x.is_cuda()) {
+#ifdef RGS_WITH_CUDA
+            rgs::tone_curve_backward_cuda<scalar_t>(n, x.data_ptr<scalar_t>(), gain.data_ptr<scalar_t>(), C, inner,
+                                                    knee, form_in, form_out, grad_out.data_ptr<scalar_t>(), gx, gk,
+                                                    RGS_CUDA_STREAM(x));
+#else
+            no_cuda();
+#endif
+        } else {
+            rgs::tone_curve_backward_cpu<scalar_t>(n, x.data_ptr<scalar_t>(), gain.data_ptr<scalar_t>(), C, inner,
+                                                   knee, form_in, form_out, grad_out.data_ptr<scalar_t>(), gx, gk,
+                                                   num_threads());
+        }
+    });
+    return {grad_x, grad_k};
+}
+
 // Densification's screen-space statistics of one view, added in place (rgs/screen_stats.h): grad2d [N, 2] the
 // projected centres' pixel gradients (float32/64), radii [N, 2] int32, (sx, sy) = (W / 2, H / 2); grad_accum,
 // count, max_radius: [N] float32, contiguous, on grad2d's device.
@@ -755,6 +823,11 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
           pybind11::arg("bound") = 1.0, pybind11::arg("weights") = pybind11::none());
     m.def("exposure_tone", &exposure_tone, pybind11::arg("image"), pybind11::arg("gain"),
           pybind11::arg("shoulder") = 1.0);
+    m.def("tone_curve_forward", &tone_curve_forward, pybind11::arg("x"), pybind11::arg("gain"), pybind11::arg("C"),
+          pybind11::arg("inner"), pybind11::arg("knee"), pybind11::arg("form_in"), pybind11::arg("form_out"));
+    m.def("tone_curve_backward", &tone_curve_backward, pybind11::arg("x"), pybind11::arg("gain"),
+          pybind11::arg("grad_out"), pybind11::arg("C"), pybind11::arg("inner"), pybind11::arg("knee"),
+          pybind11::arg("form_in"), pybind11::arg("form_out"), pybind11::arg("need_x"), pybind11::arg("need_gain"));
     m.def("screen_stats", &screen_stats, pybind11::arg("grad2d"), pybind11::arg("radii"), pybind11::arg("sx"),
           pybind11::arg("sy"), pybind11::arg("grad_accum"), pybind11::arg("count"), pybind11::arg("max_radius"));
     m.def("ssim_forward", &ssim_forward, pybind11::arg("x"), pybind11::arg("y"), pybind11::arg("window"),

@@ -310,10 +310,21 @@ def _warm_trainer(args: argparse.Namespace, tmp: str):
     return tr, device
 
 
+def _fused_curves_everywhere() -> None:
+    """The tone curve through its kernel on the CPU too (it runs there only on the GPU): the CPU census then counts
+    the operators the GPU runs. Every module that imported ``tone_curve`` by name is pointed at the kernel."""
+    from retinexgs.model.tones import exposure, fused_curve
+    from retinexgs.train import losses
+    for module in (fused_curve, exposure, losses):
+        module.tone_curve = fused_curve.tone_curve_kernel
+
+
 def count_ops(args: argparse.Namespace) -> None:
     """Operators per training step as the backends see them (CPU or GPU)."""
     from retinexgs.render import _backend
 
+    if args.fused_curves:
+        _fused_curves_everywhere()
     with tempfile.TemporaryDirectory() as tmp:
         tr, device = _warm_trainer(args, tmp)
         cuda = device.startswith("cuda")
@@ -667,6 +678,8 @@ def main(argv: List[str] | None = None) -> int:
                    help="CPU: run the CUDA-graph path of the step eagerly (its ops show as the phases "
                         "loss_graph and channel_graph, which are 3 graph launches on the GPU)")
     p.add_argument("--size", type=_size, default=(96, 72), help="the synthetic scene's views, WxH (default 96x72)")
+    p.add_argument("--fused-curves", action="store_true",
+                   help="CPU: run the tone curve through its fused kernel, as the GPU does (fused_curve.py)")
     p.add_argument("--traffic", nargs="?", const="phases", choices=("phases", "sites"), default=None,
                    help="also the per-pixel traffic: bytes per pixel per step of the torch ops on tensors of at "
                         "least the largest view's pixel count (a 12 MP step is memory-bound), by phase and op, "

@@ -32,8 +32,8 @@ import torch.nn.functional as F
 
 from retinexgs.evaluate.metrics import cached_constant, check_bchw, gaussian_window, ssim
 from retinexgs.data.raw_noise import PREVIEW_RADIUS
-from retinexgs.data.srgb import linear_to_srgb_extended, srgb_to_linear_extended
-from retinexgs.model.tone import highlight_capped_mean, linear_to_srgb, srgb_to_linear
+from retinexgs.model.tone import highlight_capped_mean
+from retinexgs.model.tones.fused_curve import to_linear, tone_curve
 from retinexgs.model.tones import Tone, get_tone
 from retinexgs.render.ssim import fused_ssim_map
 from retinexgs.config.schema import Loss
@@ -112,9 +112,8 @@ def exposed(x: torch.Tensor, gain: torch.Tensor, extended: bool = False) -> torc
     ``extended``: ``x`` is a raw view's unclipped encoding (:func:`retinexgs.data.srgb.linear_to_srgb_extended`),
     negative values kept along the curve's linear segment.
     """
-    if extended:
-        return linear_to_srgb_extended(gain * srgb_to_linear_extended(x))
-    return linear_to_srgb(gain * srgb_to_linear(x, clip=False), clip=False)
+    form = "extended" if extended else "open"
+    return tone_curve(x, gain, 1.0, form, form)  # one kernel each way (fused_curve)
 
 
 class LinearTarget(NamedTuple):
@@ -170,7 +169,7 @@ def prior_confidence(S: torch.Tensor, target: LinearTarget) -> torch.Tensor:
     black, the clip lifts and tints it, so the prior says nothing of the light there. The weight is
     min over channels of clamp(m / (k·σ_m), 0, 1)."""
     with torch.no_grad():
-        y = srgb_to_linear_extended(S)
+        y = to_linear(S, "extended")
         r = PRIOR_WINDOW // 2
         m = F.avg_pool2d(F.pad(y, (r, r, r, r), mode="replicate"), PRIOR_WINDOW, 1)
         sigma = ((target.a * m.clamp_min(0.0) + target.b) / PRIOR_WINDOW ** 2).clamp_min(1e-20).sqrt()
@@ -189,8 +188,7 @@ def linear_reconstruction(rec: torch.Tensor, S: torch.Tensor, target: LinearTarg
     the units the enhanced image is judged in, so the term's size is comparable to the other terms' (the target's
     own ``gain`` where it has one)."""
     check_bchw(rec, S)
-    x = srgb_to_linear(rec, clip=False)
-    y = srgb_to_linear_extended(S)
+    x, y = to_linear(rec, "open"), to_linear(S, "extended")
     gain = target.gain if target.gain is not None else gain
     g = rec.new_ones(()) if gain is None else gain
     if target.unit == "plain":

@@ -161,4 +161,15 @@ void ssim_backward_cpu(int64_t planes, int H, int W,
                        T* dx,                    // [planes, H, W] out
                        int num_threads);
 
+// ---- training's tone curve (rgs/tone_curve.h) ---------------------------------------------------
+// y[i] = srgb_o(s(gain[c] · lin_i(x[i]))), c = (i / inner) % C (C = 1: one gain); forms: rgs::CurveForm.
+template <typename T>
+void tone_curve_forward_cpu(int64_t n, const T* x, const T* gain, int64_t C, int64_t inner, double knee, int form_in,
+                            int form_out, T* y, int num_threads);
+
+// grad_x[i] = grad_out[i]·dy/dx (if grad_x is not null), grad_k[i] = grad_out[i]·dy/dk per element (if not null).
+template <typename T>
+void tone_curve_backward_cpu(int64_t n, const T* x, const T* gain, int64_t C, int64_t inner, double knee, int form_in,
+                             int form_out, const T* grad_out, T* grad_x, T* grad_k, int num_threads);
+
 }  // namespace rgs

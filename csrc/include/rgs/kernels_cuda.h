@@ -94,4 +94,12 @@ template <typename T>
 void ssim_backward_cuda(int64_t planes, int H, int W, const T* grad, const T* x, const T* y, const T* d,
                         const SsimWindow<T>& win, T* dx, void* stream);
 
+// Same as tone_curve_forward_cpu / tone_curve_backward_cpu: one thread per element; gain in device memory.
+template <typename T>
+void tone_curve_forward_cuda(int64_t n, const T* x, const T* gain, int64_t C, int64_t inner, double knee, int form_in,
+                             int form_out, T* y, void* stream);
+template <typename T>
+void tone_curve_backward_cuda(int64_t n, const T* x, const T* gain, int64_t C, int64_t inner, double knee,
+                              int form_in, int form_out, const T* grad_out, T* grad_x, T* grad_k, void* stream);
+
 }  // namespace rgs
