@@ -139,23 +139,28 @@ void* scratch_alloc(size_t bytes, void* ctx) {
     return s->buffers.back().data_ptr();
 }
 
+// capacity < 0: M read back to the host (one sync), gauss_ids [M]. capacity >= 0: no sync; gauss_ids [capacity],
+// M written into count (int64 [1]) on the device.
 template <typename scalar_t>
 Tensor rgs_bin_gaussians_cuda(const Tensor& means2d, const Tensor& radii, const scalar_t* conics,
                               const scalar_t* opacities, const Tensor& depths, rgs::TileGrid grid,
-                              Tensor& tile_ranges) {
+                              Tensor& tile_ranges, int64_t capacity, int64_t* count) {
     const int64_t N = means2d.size(0);
     TorchScratch scratch{{}, means2d.device()};
     const rgs::DeviceAllocator alloc{scratch_alloc, &scratch};
     auto stream = RGS_CUDA_STREAM(means2d);
     Tensor offsets = torch::empty({N > 0 ? N : 1}, means2d.options().dtype(torch::kInt64));
-    const int64_t M = rgs::count_tile_pairs_cuda<scalar_t>(N, means2d.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(),
-                                                           conics, opacities, grid, offsets.data_ptr<int64_t>(),
-                                                           alloc, stream);
+    const bool sync_free = capacity >= 0;
+    int64_t M = rgs::count_tile_pairs_cuda<scalar_t>(N, means2d.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(),
+                                                     conics, opacities, grid, offsets.data_ptr<int64_t>(), alloc,
+                                                     stream, sync_free ? count : nullptr);
+    if (sync_free) M = capacity;  // checked against int32 by the caller
     RGS_CHECK_VALUE(M < (int64_t(1) << 31), "too many tile/Gaussian pairs (", M, ") for int32 indices");
     Tensor gauss_ids = torch::empty({M}, means2d.options().dtype(torch::kInt32));
     rgs::bin_tile_pairs_cuda<scalar_t>(N, means2d.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(), conics, opacities,
                                        depths.data_ptr<scalar_t>(), grid, offsets.data_ptr<int64_t>(), M,
-                                       gauss_ids.data_ptr<int32_t>(), tile_ranges.data_ptr<int32_t>(), alloc, stream);
+                                       sync_free ? count : nullptr, gauss_ids.data_ptr<int32_t>(),
+                                       tile_ranges.data_ptr<int32_t>(), alloc, stream);
     return gauss_ids;
 }
 #endif
@@ -275,8 +280,12 @@ std::tuple<Tensor, Tensor, Tensor> project_backward(Tensor means, Tensor quats, 
 // ---- tile binning ------------------------------------------------------------------------------
 // conics [N, 3] and opacities [N] (both or neither): a Gaussian pairs only with the tiles of its rectangle that it
 // can reach (rgs::TileReach); they must be the ones the compositing gets, or it could miss a pair.
+// capacity >= 0 (with count, int64 [1] on the same device): no host sync on the GPU; gauss_ids [capacity], the pair
+// count M written into count; pairs at offsets >= capacity dropped (the highest-index Gaussians'), ranges cover
+// min(M, capacity) pairs, the ids past them are -1. The CPU computes the same (M on the host: it pays no sync).
 std::tuple<Tensor, Tensor> bin_gaussians(Tensor means2d, Tensor radii, Tensor depths, int width, int height,
-                                         std::optional<Tensor> conics_opt, std::optional<Tensor> opacities_opt) {
+                                         std::optional<Tensor> conics_opt, std::optional<Tensor> opacities_opt,
+                                         int64_t capacity, std::optional<Tensor> count_opt) {
     check_float(means2d, "means2d");
     check_image(width, height);
     const int64_t N = means2d.size(0);
@@ -292,6 +301,16 @@ std::tuple<Tensor, Tensor> bin_gaussians(Tensor means2d, Tensor radii, Tensor de
         check_tensor(*opacities_opt, "opacities", {N}, means2d);
         conics = conics_opt->contiguous(), opacities = opacities_opt->contiguous();
     }
+    const bool sync_free = capacity >= 0;
+    RGS_CHECK_VALUE(!sync_free || count_opt.has_value(), "bin_gaussians with a capacity needs count");
+    RGS_CHECK_VALUE(capacity < (int64_t(1) << 31), "capacity ", capacity, " is too large for int32 indices");
+    Tensor count;
+    if (sync_free) {
+        count = *count_opt;
+        RGS_CHECK_TYPE(count.scalar_type() == torch::kInt64, "count must be int64, got ", count.scalar_type());
+        RGS_CHECK_VALUE(count.device() == means2d.device(), "count must be on ", means2d.device());
+        RGS_CHECK_VALUE(count.numel() == 1 && count.is_contiguous(), "count must be a contiguous [1] tensor");
+    }
     means2d = means2d.contiguous(), radii = radii.contiguous(), depths = depths.contiguous();
     const rgs::TileGrid grid = rgs::make_tile_grid(width, height);
     auto iopts = means2d.options().dtype(torch::kInt32);
@@ -304,7 +323,8 @@ std::tuple<Tensor, Tensor> bin_gaussians(Tensor means2d, Tensor radii, Tensor de
         if (means2d.is_cuda()) {
 #ifdef RGS_WITH_CUDA
             gauss_ids = rgs_bin_gaussians_cuda<scalar_t>(means2d, radii, conics_p, opacities_p, depths, grid,
-                                                         tile_ranges);
+                                                         tile_ranges, capacity,
+                                                         sync_free ? count.data_ptr<int64_t>() : nullptr);
 #else
             no_cuda();
 #endif
@@ -313,13 +333,19 @@ std::tuple<Tensor, Tensor> bin_gaussians(Tensor means2d, Tensor radii, Tensor de
             const int64_t M = rgs::count_tile_pairs_cpu<scalar_t>(N, means2d.data_ptr<scalar_t>(),
                                                                   radii.data_ptr<int32_t>(), conics_p, opacities_p,
                                                                   grid, offsets.data_ptr<int64_t>(), num_threads());
-            RGS_CHECK_VALUE(M < (int64_t(1) << 31), "too many tile/Gaussian pairs (", M, ") for int32 indices");
-            gauss_ids = torch::empty({M}, iopts);
+            RGS_CHECK_VALUE(sync_free || M < (int64_t(1) << 31), "too many tile/Gaussian pairs (", M,
+                            ") for int32 indices");
+            const int64_t stored = sync_free ? std::min(M, capacity) : M;
+            gauss_ids = torch::empty({sync_free ? capacity : M}, iopts);
             rgs::bin_tile_pairs_cpu<scalar_t>(N, means2d.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(), conics_p,
                                               opacities_p, depths.data_ptr<scalar_t>(), grid,
-                                              offsets.data_ptr<int64_t>(), M,
+                                              offsets.data_ptr<int64_t>(), stored,
                                               gauss_ids.data_ptr<int32_t>(), tile_ranges.data_ptr<int32_t>(),
                                               num_threads());
+            if (sync_free) {
+                gauss_ids.narrow(0, stored, capacity - stored).fill_(-1);  // padding, as the GPU writes it
+                count.fill_(M);
+            }
         }
     });
     return {gauss_ids, tile_ranges};
@@ -812,7 +838,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("project_backward", &project_backward);
     m.def("bin_gaussians", &bin_gaussians, pybind11::arg("means2d"), pybind11::arg("radii"), pybind11::arg("depths"),
           pybind11::arg("width"), pybind11::arg("height"), pybind11::arg("conics") = pybind11::none(),
-          pybind11::arg("opacities") = pybind11::none());
+          pybind11::arg("opacities") = pybind11::none(), pybind11::arg("capacity") = -1,
+          pybind11::arg("count") = pybind11::none());
     m.def("rasterize_forward", &rasterize_forward);
     m.def("rasterize_backward", &rasterize_backward);
     m.def("sh_forward", &sh_forward);

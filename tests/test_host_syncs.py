@@ -1,7 +1,8 @@
 """The training step reads nothing back from the device (issue 65): retinexgs.bench.syncs.SyncFinder counts the
 host reads of tensor values (.item(), bool(t), .tolist(), a mask index, nonzero ...) per step, on the CPU too, and
-an ordinary step (not the first, a logging, checkpoint or density step) must make none. On CUDA the one sync left
-is the rasterizer's pair count, made by the extension itself."""
+an ordinary step (not the first, a logging, checkpoint or density step) must make none. On CUDA binning's pair
+count is read a render late (retinexgs.render.pair_budget, train.pair_margin): the extension waits for it only in
+a render the budget bins synced (re-measuring after a density event or an overflow)."""
 import inspect
 
 import pytest
@@ -111,11 +112,16 @@ def test_a_read_added_to_the_step_is_found(scene_dir, tmp_path, one_thread, monk
 
 
 @needs_cuda
-def test_an_ordinary_cuda_step_syncs_only_for_the_binning(scene_dir, tmp_path):
+def test_an_ordinary_cuda_step_syncs_only_for_a_synced_binning(scene_dir, tmp_path):
     tr = trained(scene_dir, tmp_path / "run", "cuda")
+    synced = tr.pairs.synced
     finder = counted_steps(tr, 30, cuda_warn=True, ignore_via=(), cuda_profile=True)
+    synced = tr.pairs.synced - synced  # renders of the counted steps binned with the synced path
     n, counts = finder.by_kind()["ordinary"]
-    reads = {k: v for k, v in counts.items() if k[0] != "cuda-runtime"}
+    # the pair budget's late read of a count copied a render ago (its event long passed): allowed
+    reads = {k: v for k, v in counts.items() if k[0] != "cuda-runtime" and "pair_budget.py" not in k[1]}
     assert n >= 12 and not reads, reads
-    # the extension's pair count: one cudaStreamSynchronize a render, nothing else
-    assert {k: v for k, v in counts.items() if k[0] == "cuda-runtime"} == {("cuda-runtime", "cudaStreamSynchronize"): n}
+    runtime = {k[1]: v for k, v in counts.items() if k[0] == "cuda-runtime"}
+    assert set(runtime) <= {"cudaStreamSynchronize", "cudaEventSynchronize"}, runtime
+    # the extension's pair count only in a synced binning, and most ordinary steps bin without one
+    assert runtime.get("cudaStreamSynchronize", 0) <= synced and runtime.get("cudaStreamSynchronize", 0) < n

@@ -38,8 +38,9 @@ void bin_tile_pairs_cpu(int64_t N, const T* means2d, const int32_t* radii, const
         const bool cull = conics != nullptr;
         const TileReach reach = cull ? TileReach::make(means2d + 2 * i, conics + 3 * i, opacities[i]) : TileReach{};
         int64_t k = offsets[i];
-        for (int ty = r.y0; ty < r.y1; ++ty)
-            for (int tx = r.x0; tx < r.x1; ++tx) {
+        // k < M: M below the total (a capacity) drops the pairs at offsets >= M, as on the GPU.
+        for (int ty = r.y0; ty < r.y1 && k < M; ++ty)
+            for (int tx = r.x0; tx < r.x1 && k < M; ++tx) {
                 if (cull && !reach.hits(tx, ty)) continue;
                 pair_tile[k] = ty * grid.tiles_x + tx;
                 pair_gauss[k] = int32_t(i);

@@ -6,8 +6,8 @@ rather than of the GPU. On the CPU nothing waits, but the same calls are made: :
 torch (while it is entered) and counts each call by the project line that made it, per training step, with the
 step's kind (:meth:`SyncFinder.watch_trainer`): the ordinary step should make none. On CUDA it can also turn on
 ``torch.cuda.set_sync_debug_mode("warn")`` and count torch's own sync warnings by line (what the wrapped calls
-cannot see: a sync inside an operator). The rasterizer's pair count, read by the compiled extension itself, is
-seen by neither (it is the one sync a step needs).
+cannot see: a sync inside an operator). The rasterizer's pair count, read by the compiled extension itself in a
+synced binning, is seen by neither (training reads it a render late instead: retinexgs.render.pair_budget).
 
     python scripts/profiling.py syncs [SCENE] [--device cpu|cuda] [--steps 300] [--profile 100]
 """

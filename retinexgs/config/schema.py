@@ -20,8 +20,8 @@ from __future__ import annotations
 import re
 from typing import Annotated, Any, Dict, List, Literal, Optional, Tuple, Union
 
-from pydantic import (BaseModel, BeforeValidator, ConfigDict, Field, StrictInt, ValidationError, ValidationInfo,
-                      field_validator, model_validator)
+from pydantic import (AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, StrictInt, ValidationError,
+                      ValidationInfo, field_validator, model_validator)
 
 
 class Expect:
@@ -38,6 +38,13 @@ def _yaml_number(value: Any) -> Any:
     """PyYAML reads ``1e-4`` (no dot) as a string: accept a string that spells a number as that number."""
     if isinstance(value, str) and _NUMBER.match(value):
         return float(value)
+    return value
+
+
+def _zero_or_at_least_one(value: float) -> float:
+    """``train.pair_margin``: a buffer below the counts it is sized from would overflow every step."""
+    if 0 < value < 1:
+        raise ValueError("must be 0 or >= 1")
     return value
 
 
@@ -381,6 +388,9 @@ class Train(Section):
     stream_views: Choice("auto", "always", "never")
     views_on_device_gb: Num(ge=0)
     views_pinned_gb: Num(ge=0)
+    # binning without a host sync (issue 65): the pair buffer is this × the recent pair counts; 0: synced, exact
+    pair_margin: Annotated[float, BeforeValidator(_yaml_number), Field(ge=0, allow_inf_nan=False),
+                           AfterValidator(_zero_or_at_least_one), Expect("0 (synced binning) or a number >= 1")]
     # [[until, downsample], ...] (retinexgs.train.resolution); YAML lists become the tuples strict mode wants
     resolution: Annotated[List[Tuple[Step, Annotated[StrictInt, Field(ge=1, le=64)]]], BeforeValidator(_pairs),
                           Expect("a list of [until, downsample] pairs: until a fraction of steps 0..1 or a step, "

@@ -32,6 +32,7 @@ from retinexgs.model.illumination import IlluminationField
 from retinexgs.model.near_plane import with_near
 from retinexgs.model.tones import Tone, get_tone
 from retinexgs.render import Camera, rasterize_gaussians
+from retinexgs.render.pair_budget import PairBudget
 
 
 def gaussian_channels(means: Tensor, sh_dc: Tensor, sh_rest: Tensor, center: Tensor, degree: int,
@@ -223,7 +224,7 @@ class RetinexGSModel(nn.Module):
     def render(self, camera: Camera, active_degree: int, exposure: Optional[float] = None,
                gamma: Optional[float] = None, validate: bool = True, enhance: bool = True,
                center: Optional[Tensor] = None, colors: Optional[Tensor] = None, depth: bool = False,
-               near: bool = True) -> Dict[str, Tensor]:
+               near: bool = True, pairs: Optional[PairBudget] = None) -> Dict[str, Tensor]:
         """Render one view. Returns ``out`` (RenderOutput) and [H,W,3] maps: ``rgb`` (the model's output
         image: S_enh, or the plain render for baselines), and for RetinexGS ``R``, ``L``, ``S_rec``, ``gamma``.
 
@@ -235,7 +236,8 @@ class RetinexGSModel(nn.Module):
         ``colors``: the per-Gaussian channels already evaluated (:func:`gaussian_channels`; the trainer's
         CUDA graph of them), else they are evaluated here. ``depth``: ``out`` also holds the alpha-weighted depth.
         ``near``: draw with the scene's near plane (:meth:`camera_for`); False draws as the camera says (training,
-        unless ``model.near_in_training``).
+        unless ``model.near_in_training``). ``pairs``: bin without a host sync, the pair buffer sized by this
+        :class:`PairBudget` (the trainer's; needs ``validate=False``).
         """
         g = self.gaussians
         if near:
@@ -244,7 +246,8 @@ class RetinexGSModel(nn.Module):
             center = (camera.center if center is None else center).to(g.means)
             colors = self.channels(center, active_degree)
         out = rasterize_gaussians(g.means, g.quats, g.scales, g.opacities, colors, camera, validate=validate,
-                                  render_depth=depth, background=self.background if self.has_background else None)
+                                  render_depth=depth, background=self.background if self.has_background else None,
+                                  pairs=pairs)
         if not self.decomposed:
             return {"out": out, "rgb": out.image}
         R, L = out.image[..., :3], out.image[..., 3:6]

@@ -42,19 +42,30 @@ class ProjectGaussians(torch.autograd.Function):
 
 
 def bin_gaussians(means2d: Tensor, radii: Tensor, depths: Tensor, width: int, height: int,
-                  conics: Optional[Tensor] = None, opacities: Optional[Tensor] = None) -> Tuple[Tensor, Tensor]:
+                  conics: Optional[Tensor] = None, opacities: Optional[Tensor] = None,
+                  capacity: Optional[int] = None, count: Optional[Tensor] = None) -> Tuple[Tensor, Tensor]:
     """Tile binning (not differentiable): the Gaussian index of every (tile, Gaussian) pair, ordered by tile
     then depth, [M] int32; and each tile's [begin, end) range into it, [tiles, 2] int32.
 
     A Gaussian pairs with the tiles of its bounding rectangle (from ``radii``); given ``conics`` [N, 3] and
     ``opacities`` [N] too (the ones the compositing will get), only with those where it can reach alpha >= 1/255
-    at some pixel centre. The others would composite nothing: same image and gradients, fewer pairs."""
+    at some pixel centre. The others would composite nothing: same image and gradients, fewer pairs.
+
+    ``capacity`` (with ``count``, an int64 [1] tensor on the same device): binning without a host sync on the
+    GPU. The ids are [capacity] long; M is written into ``count`` on the device; if M > capacity the pairs at
+    offsets >= capacity (the highest-index Gaussians') are dropped; the ranges cover the min(M, capacity) stored
+    pairs and the ids past them are -1 (:class:`retinexgs.render.pair_budget.PairBudget` picks the capacity)."""
     if (conics is None) != (opacities is None):
         raise ValueError("pass both conics and opacities to bin_gaussians, or neither")
-    if conics is None:
-        return kernels().bin_gaussians(means2d.detach(), radii, depths.detach(), width, height)
-    return kernels().bin_gaussians(means2d.detach(), radii, depths.detach(), width, height, conics.detach(),
-                                   opacities.detach())
+    if (capacity is None) != (count is None):
+        raise ValueError("pass both capacity and count to bin_gaussians, or neither")
+    if capacity is not None and not 0 <= capacity < 2 ** 31:
+        raise ValueError(f"capacity must be in 0..2**31-1 (int32 pair indices), got {capacity}")
+    cull = () if conics is None else (conics.detach(), opacities.detach())
+    if capacity is None:
+        return kernels().bin_gaussians(means2d.detach(), radii, depths.detach(), width, height, *cull)
+    return kernels().bin_gaussians(means2d.detach(), radii, depths.detach(), width, height, *(cull or (None, None)),
+                                   capacity, count)
 
 
 class RasterizeGaussians(torch.autograd.Function):

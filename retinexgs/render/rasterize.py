@@ -9,6 +9,7 @@ from torch import Tensor
 
 from retinexgs.render.camera import Camera
 from retinexgs.render.functions import ProjectGaussians, RasterizeGaussians, SphericalHarmonics, bin_gaussians
+from retinexgs.render.pair_budget import PairBudget
 from retinexgs.render.validate import check_gaussians, check_tensor, gaussian_tensors, raise_if_not_finite
 
 MAX_CUDA_CHANNELS = 64  # rgs::kMaxCudaChannels: register-resident accumulators of the CUDA compositing
@@ -26,7 +27,8 @@ class RenderOutput:
             used by densification (kept with ``retain_grad`` when it requires grad).
         radii: [N, 2] int32 pixel half extents; 0 marks Gaussians culled in this view.
         num_pairs: number of (tile, Gaussian) pairs rasterized: the tiles of each Gaussian's rectangle where it
-            can reach alpha >= 1/255 (tile culling).
+            can reach alpha >= 1/255 (tile culling); None when binned without a host sync (``pairs``), where
+            the count stays on the device.
     """
 
     image: Tensor
@@ -34,7 +36,7 @@ class RenderOutput:
     depth: Optional[Tensor]
     means2d: Tensor
     radii: Tensor
-    num_pairs: int
+    num_pairs: Optional[int]
 
     @property
     def visible(self) -> Tensor:
@@ -53,6 +55,7 @@ def rasterize_gaussians(
     background: Optional[Tensor] = None,
     render_depth: bool = False,
     validate: bool = True,
+    pairs: Optional[PairBudget] = None,
 ) -> RenderOutput:
     """Render N 3D Gaussians with C-channel colours from one camera, differentiably.
 
@@ -76,6 +79,9 @@ def rasterize_gaussians(
             binning's own host sync, so the check costs no pass and no sync of its own; a loop that checks its
             parameters itself (the trainer does, every step) passes False.
             Shapes, dtypes and devices are always checked.
+        pairs: a :class:`~retinexgs.render.pair_budget.PairBudget` (a training loop's): bin without a host sync
+            into a pair buffer it sizes (the GPU then never waits for the host in a render); needs
+            ``validate=False``, whose verdict is read after the synced binning.
 
     Returns:
         A :class:`RenderOutput` with ``image`` [H, W, C], ``alpha`` [H, W, 1], ``depth`` [H, W, 1] or None,
@@ -84,6 +90,8 @@ def rasterize_gaussians(
     # The finiteness check rides on the projection, which reads every Gaussian anyway (no pass of its own), and
     # its verdict is read after binning, which waits for the GPU for its pair count: no extra sync either. The
     # projection culls non-finite Gaussians, so binning is safe on such input.
+    if pairs is not None and validate:
+        raise ValueError("rasterize_gaussians: pairs (binning without a host sync) needs validate=False")
     check_gaussians(means, quats, scales, opacities, colors, camera, background, finite=False)
     means2d, depths, conics, radii, nonfinite = ProjectGaussians.apply(
         means, quats, scales, opacities, camera, validate, colors.detach() if validate else None,
@@ -97,7 +105,20 @@ def rasterize_gaussians(
     if means2d.requires_grad:
         means2d.retain_grad()
     # conics and opacities: pairs only with the tiles each Gaussian can reach (the compositing gets the same ones).
-    gauss_ids, tile_ranges = bin_gaussians(means2d, radii, depths, camera.width, camera.height, conics, opacities)
+    size = (camera.width, camera.height)
+    capacity = pairs.plan(means.shape[0], means.device, size) if pairs is not None else None
+    if capacity is None:
+        gauss_ids, tile_ranges = bin_gaussians(means2d, radii, depths, camera.width, camera.height, conics,
+                                               opacities)
+        num_pairs: Optional[int] = int(gauss_ids.shape[0])
+        if pairs is not None:
+            pairs.observe_synced(num_pairs)
+    else:
+        count = torch.empty(1, dtype=torch.int64, device=means.device)
+        gauss_ids, tile_ranges = bin_gaussians(means2d, radii, depths, camera.width, camera.height, conics,
+                                               opacities, capacity=capacity, count=count)
+        pairs.observe(count, capacity)
+        num_pairs = None  # on the device only: reading it would be the sync this path avoids
     if validate:
         if copied is not None:
             copied.synchronize()  # done already: binning has waited for the stream
@@ -115,7 +136,7 @@ def rasterize_gaussians(
         image, depth = image.split([image.shape[-1] - 1, 1], dim=-1)
     if background is not None:
         image = image + (1.0 - alpha) * background
-    return RenderOutput(image, alpha, depth, means2d, radii, int(gauss_ids.shape[0]))
+    return RenderOutput(image, alpha, depth, means2d, radii, num_pairs)
 
 
 def spherical_harmonics(degree: int, dirs: Tensor, coeffs: Tensor) -> Tensor:

@@ -20,6 +20,7 @@ from retinexgs.fileio import is_out_of_space, out_of_space_error
 from retinexgs.model.gaussians import GaussianModel
 from retinexgs.model.retinex_model import RetinexGSModel
 from retinexgs.model.schedule import build_schedule
+from retinexgs.render.pair_budget import PairBudget
 from retinexgs.run.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
 from retinexgs.config.schema import Config
 from retinexgs.strategy import build_strategy
@@ -147,6 +148,7 @@ class Trainer:
             self.order = list(state["order"])
             self.strategy.load_state_dict(state["density"], self.device)
         self.divergence = DivergenceWatch(self.model, self.run, self.step)
+        self.pairs = PairBudget(self.cfg.train.pair_margin)  # train.pair_margin: binning without a host sync
         # The image losses as CUDA graphs (train.cuda_graphs; CUDA only, eager elsewhere).
         self.graphs: Optional[LossGraphs] = None
         self.channel_graphs: Optional[ChannelGraphs] = None
@@ -186,15 +188,15 @@ class Trainer:
                                  "until the Gaussians change")
             return self.model.render(tv.camera, self.active_degree(step), validate=False, enhance=False,
                                      center=tv.center, colors=colors, depth=self.depth_prior,
-                                     near=self.cfg.model.near_in_training)
+                                     near=self.cfg.model.near_in_training, pairs=self.pairs)
 
     def train_step(self, step: int, tv, check: bool = True) -> Dict[str, float]:
         """One optimisation step on view ``tv`` (or on this rank's list of the step's views: each is rendered
         and back-propagated in turn, the gradients summed). With ``check`` (and always before densification or
         an opacity reset) the loss terms and parameters of every step since the last check are checked for
         NaN/inf (:class:`TrainingDiverged`) and this step's loss values (the mean over the step's views) are
-        returned; otherwise nothing is read back from the device (the step never waits for the GPU, except for
-        binning's pair count) and the result holds only a density event, if any. A batch of B > 1 views
+        returned; otherwise nothing is read back from the device (the step never waits for the GPU; binning's pair
+        count is read a step late, ``train.pair_margin``) and the result holds only a density event, if any. A batch of B > 1 views
         (``batch_size``: ranks × ``train.views_per_rank``) steps on the mean gradient over the B views: one
         all-reduce of the gradients across the ranks after the backward, before the optimiser step; the
         density statistics are summed over the ranks before a densification, and rank 0's Gaussians broadcast
@@ -410,6 +412,8 @@ class Trainer:
         bar.close()
         if writer:
             writer.close()
+        if main and (dropped := self.pairs.summary()):  # renders whose sync-free binning overflowed
+            self.log(dropped)
         values["seconds"] = time.time() - t0
         self.session_views = (self.step - first + 1) * self.batch_size  # this session's views, all ranks
         values["total_seconds"] = self.train_seconds()

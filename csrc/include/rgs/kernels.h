@@ -50,6 +50,7 @@ int64_t count_tile_pairs_cpu(int64_t N,
                              int num_threads);
 
 // Fills the pairs ordered by tile, then depth, then Gaussian index (conics/opacities as for the count).
+// M below offsets[N] (a capacity) keeps only the pairs at offsets < M: the highest-index Gaussians' are dropped.
 template <typename T>
 void bin_tile_pairs_cpu(int64_t N, const T* means2d, const int32_t* radii,
                         const T* conics,     // [N, 3] or null
@@ -57,7 +58,7 @@ void bin_tile_pairs_cpu(int64_t N, const T* means2d, const int32_t* radii,
                         const T* depths,     // [N]
                         TileGrid grid,
                         const int64_t* offsets,  // [N + 1] from count_tile_pairs_cpu
-                        int64_t M,
+                        int64_t M,               // pairs to store: offsets[N], or less to drop the rest
                         int32_t* gauss_ids,      // [M] out, Gaussian index of each pair
                         int32_t* tile_ranges,    // [tiles, 2] out, [begin, end) of each tile's pairs
                         int num_threads);

@@ -32,21 +32,25 @@ void project_backward_cuda(int64_t N, const T* means, const T* quats, const T* s
 // Counts each Gaussian's tile pairs into offsets [N] as an inclusive prefix sum and returns the total M
 // (one device-to-host copy: the only synchronisation of a render). With conics and opacities (both, or both
 // null), only the tiles of its rectangle that a Gaussian can reach (rgs::TileReach, the CPU's test).
+// With device_count set, M is written there on the device instead and -1 returned: no host sync.
 template <typename T>
 int64_t count_tile_pairs_cuda(int64_t N, const T* means2d, const int32_t* radii,
                               const T* conics,     // [N, 3] or null
                               const T* opacities,  // [N] or null
                               TileGrid grid,
                               int64_t* offsets,  // [N] out, inclusive prefix sum
-                              DeviceAllocator alloc, void* stream);
+                              DeviceAllocator alloc, void* stream,
+                              int64_t* device_count);  // [1] out, or null: return M (synchronises)
 
 // Writes 64-bit (tile << 32 | float depth bits) keys, radix-sorts them with the Gaussian indices (stable, so ties
-// keep index order), and fills the tile ranges.
+// keep index order), and fills the tile ranges. Without device_count, M is the exact pair count. With it
+// (from count_tile_pairs_cuda), M is a capacity: pairs at offsets >= M are dropped, and gauss_ids past
+// min(count, M) hold -1 (padding keys sort after every tile; no tile range covers them).
 template <typename T>
 void bin_tile_pairs_cuda(int64_t N, const T* means2d, const int32_t* radii, const T* conics, const T* opacities,
                          const T* depths, TileGrid grid,
-                         const int64_t* offsets, int64_t M, int32_t* gauss_ids, int32_t* tile_ranges,
-                         DeviceAllocator alloc, void* stream);
+                         const int64_t* offsets, int64_t M, const int64_t* device_count, int32_t* gauss_ids,
+                         int32_t* tile_ranges, DeviceAllocator alloc, void* stream);
 
 template <typename T>
 void rasterize_forward_cuda(int64_t N, int C, int width, int height, const T* means2d, const T* conics,
