@@ -31,7 +31,7 @@ def grads(fn, x, gain, seed=1):
     x = x.clone().requires_grad_(True)
     gain = gain.clone().requires_grad_(True)
     y = fn(x, gain)
-    w = torch.rand(y.shape, generator=torch.Generator().manual_seed(seed), dtype=y.dtype)
+    w = torch.rand(y.shape, generator=torch.Generator().manual_seed(seed), dtype=y.dtype).to(y.device)
     gx, gg = torch.autograd.grad((y * w).sum(), (x, gain))
     return y.detach(), gx, gg
 
