@@ -363,8 +363,9 @@ def count_ops(args: argparse.Namespace) -> None:
         print("  by phase: " + ", ".join(f"{p[5:]} {c / n:.1f}" for p, c in sorted(counter.phases.items())))
         print(f"retinexgs._C calls per step:      {sum(kernel_calls.values()) / n:8.1f}  "
               + ", ".join(f"{k} {v / n:.1f}" for k, v in sorted(kernel_calls.items())))
-        print(f"host syncs per step: {counter.syncs / n:.2f} item/bool/int (optimiser apart), "
-              f"{counter.d2h / n:.2f} device->host copies (+ 1 for binning's pair count on CUDA)")
+        print(f"host syncs per step: {counter.syncs / n:.2f} item/bool/int (optimiser apart; on CUDA 1 of them is "
+              f"binning's pair count, read a render late from pinned host memory: no wait), "
+              f"{counter.d2h / n:.2f} device->host copies")
         host = {**{f"Tensor.{k}": v for k, v in host_reads.items()},
                 **{f"torch.{k}": v for k, v in host_tensors.items()}}
         print("host reads / tensors from host numbers per step: "
@@ -408,7 +409,8 @@ indexing are counted by the project line that called them, per step of each kind
 first, check (logging / checkpoint), density (densify, prune, opacity reset), after_event (graph re-captures).
 On CUDA torch's sync debug mode ("warn") also counts the syncs torch sees inside operators (cuda-sync), and
 torch.profiler counts the CUDA runtime's synchronize calls of each step whoever made them (cuda-runtime: the
-rasterizer's pair count, read by the extension itself, is one a render). Exits 1 if an ordinary step read.
+rasterizer's pair count, read by the extension itself, is one a render where binning re-measures its buffer;
+training's other renders read it a render late, train.pair_margin). Exits 1 if an ordinary step read.
 """
 
 
