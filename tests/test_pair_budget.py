@@ -256,7 +256,7 @@ def test_training_renders_through_the_budget_and_logs_the_overflows(tmp_path):
     scene = make_demo_scene(tmp_path / "demo", n_train=3, n_test=1, width=32, height=24, n_points=200)
     cfg = load_config([], ["steps=12", "log.every=6", "log.tensorboard=false", "model.max_init_points=200",
                            "checkpoint.every=1000", "decomposer.method=lime", "density.start=1000",
-                           "train.pair_margin=2"])
+                           "density.reset_opacity_every=0", "train.pair_margin=2"])
     lines = []
     (tmp_path / "run").mkdir()
     tr = Trainer(cfg, load_scene(scene), tmp_path / "run", "cpu", progress=False, log=lines.append)
@@ -274,3 +274,25 @@ def test_training_renders_through_the_budget_and_logs_the_overflows(tmp_path):
     assert tr.pairs.synced == 2  # the first render, and the one after the overflow
     assert reads.started == 10 and reads.finished == 10  # the last one finished for the end-of-run line
     assert sum("1 of 12 renders dropped tile pairs" in line for line in lines) == 1
+
+
+def test_a_density_event_makes_the_next_render_re_measure(tmp_path):
+    """A density event may move Gaussians without changing their count (MCMC's relocation, an opacity reset): the
+    trainer resets its budget, so the render after it bins synced."""
+    from retinexgs.data import load_scene
+    from retinexgs.demo.synthetic import make_demo_scene
+    from retinexgs.run.config import load_config
+    from retinexgs.train.trainer import Trainer
+
+    scene = make_demo_scene(tmp_path / "demo", n_train=3, n_test=1, width=32, height=24, n_points=200)
+    cfg = load_config([], ["steps=8", "log.every=8", "log.tensorboard=false", "model.max_init_points=200",
+                           "checkpoint.every=1000", "decomposer.method=lime", "density.start=1000",
+                           "density.reset_opacity_every=0"])
+    (tmp_path / "run").mkdir()
+    tr = Trainer(cfg, load_scene(scene), tmp_path / "run", "cpu", progress=False, log=lambda line: None)
+    tr.pairs = PairBudget(1.5, reader=LateReads())
+    real = tr.strategy.step
+    tr.strategy.step = lambda step, *a: "relocated 0" if step == 4 else real(step, *a)
+    tr.train()
+    assert tr.pairs.steps == 8 and tr.pairs.overflows == 0
+    assert tr.pairs.synced == 2  # the first render, and the one after the event

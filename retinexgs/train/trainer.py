@@ -246,6 +246,7 @@ class Trainer:
         event = self.strategy.step(step, self.model.gaussians, self.optimizer, size)
         if event:
             values["event"] = event  # type: ignore[assignment]
+            self.pairs.reset()  # relocated or reset Gaussians (N may be unchanged): the next binning re-measures
             if self.dist.enabled:
                 values["ranks_agree"] = self.dist.sync_gaussians(self.model.gaussians, self.optimizer, step)
         return values
