@@ -21,55 +21,72 @@ namespace rgs {
 
 enum CurveForm : int { kClip = 0, kOpen = 1, kExtended = 2, kLinear = 3 };
 
-// x limited as `form` says, and d(limited)/dx (0 or 1).
+// Each curve below returns its value and, where `grad` is not null, writes its derivative there (null: the value
+// alone, as the forward and the inference tone ask, with no derivative's pow computed).
+
+// x limited as `form` says; d(limited)/dx is 0 or 1.
 template <typename T>
 RGS_HD T curve_limit(T x, int form, T* grad) {
-    if (form == kExtended) { *grad = T(1); return x; }
-    if (x < T(0)) { *grad = T(0); return T(0); }
-    if (form == kClip && x > T(1)) { *grad = T(0); return T(1); }
-    *grad = T(1);
-    return x;  // NaN stays NaN (both comparisons false), as torch.clamp
+    T g = T(1);
+    if (form != kExtended) {
+        if (x < T(0)) x = T(0), g = T(0);
+        else if (form == kClip && x > T(1)) x = T(1), g = T(0);  // NaN stays NaN (both false), as torch.clamp
+    }
+    if (grad) *grad = g;
+    return x;
 }
 
-// sRGB -> linear light and its derivative (srgb.py srgb_to_linear; the knee's value takes the linear branch).
+// sRGB -> linear light (srgb.py srgb_to_linear; the knee's value takes the linear branch).
 template <typename T>
 RGS_HD T curve_to_linear(T x, int form, T* grad) {
     T dlim;
     x = curve_limit(x, form, &dlim);
-    if (x <= T(0.04045)) { *grad = dlim / T(12.92); return x / T(12.92); }
+    if (x <= T(0.04045)) {
+        if (grad) *grad = dlim / T(12.92);
+        return x / T(12.92);
+    }
     const T base = (x + T(0.055)) / T(1.055);
-    *grad = dlim * T(2.4) / T(1.055) * pow(base, T(1.4));
+    if (grad) *grad = dlim * T(2.4) / T(1.055) * pow(base, T(1.4));
     return pow(base, T(2.4));
 }
 
-// Linear light -> sRGB and its derivative (srgb.py linear_to_srgb).
+// Linear light -> sRGB (srgb.py linear_to_srgb), or v itself for the output form kLinear.
 template <typename T>
 RGS_HD T curve_to_srgb(T v, int form, T* grad) {
-    if (form == kLinear) { *grad = T(1); return v; }
+    if (form == kLinear) {
+        if (grad) *grad = T(1);
+        return v;
+    }
     T dlim;
     v = curve_limit(v, form, &dlim);
-    if (v <= T(0.0031308)) { *grad = dlim * T(12.92); return T(12.92) * v; }
+    if (v <= T(0.0031308)) {
+        if (grad) *grad = dlim * T(12.92);
+        return T(12.92) * v;
+    }
     const T root = pow(v, T(1.0 / 2.4));
-    *grad = dlim * T(1.055 / 2.4) * root / v;  // d/dv 1.055·v^(1/2.4) = 1.055/2.4 · v^(1/2.4 − 1)
+    if (grad) *grad = dlim * T(1.055 / 2.4) * root / v;  // d/dv 1.055·v^(1/2.4) = 1.055/2.4 · v^(1/2.4 − 1)
     return T(1.055) * root - T(0.055);
 }
 
-// The highlight shoulder (tone.h highlight_shoulder, curves.py) and its derivative e^(−(v − knee)/(1 − knee)).
+// The highlight shoulder (curves.py highlight_shoulder): above the knee v rolls off towards white,
+// knee + (1 − knee)(1 − e^(−(v − knee)/(1 − knee))), slope 1 at the knee; knee >= 1: v unchanged.
 template <typename T>
 RGS_HD T curve_shoulder(T v, T knee, T* grad) {
-    if (knee >= T(1) || !(v > knee)) { *grad = T(1); return v; }
+    if (knee >= T(1) || !(v > knee)) {
+        if (grad) *grad = T(1);
+        return v;
+    }
     const T span = T(1) - knee;
     const T e = exp(-(v - knee) / span);
-    *grad = e;
+    if (grad) *grad = e;
     return knee + span * (T(1) - e);
 }
 
 // y = srgb_o(s(k · lin_i(x))).
 template <typename T>
 RGS_HD T tone_curve(T x, T k, T knee, int form_in, int form_out) {
-    T d;
-    const T lin = curve_to_linear(x, form_in, &d);
-    return curve_to_srgb(curve_shoulder(k * lin, knee, &d), form_out, &d);
+    return curve_to_srgb(curve_shoulder(k * curve_to_linear(x, form_in, (T*)nullptr), knee, (T*)nullptr), form_out,
+                         (T*)nullptr);
 }
 
 // dy/dx and dy/dk of tone_curve at (x, k).
