@@ -42,6 +42,8 @@ from typing import Dict, List, Optional, Tuple
 
 import torch
 
+from retinexgs.bench.args import image_size
+
 
 # ---------------------------------------------------------------------------------------------------- train
 def profile_train(args: argparse.Namespace) -> None:
@@ -273,17 +275,6 @@ def count_calls(module, names, when=None) -> Dict[str, int]:
 
         setattr(module, name, wrapped)
     return calls
-
-
-def _size(text: str) -> Tuple[int, int]:
-    """'640x480' -> (640, 480); argparse's one-line error on anything else."""
-    try:
-        width, height = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, e.g. 640x480, got {text!r}") from None
-    if width < 8 or height < 8:
-        raise argparse.ArgumentTypeError(f"views of at least 8x8 pixels, got {text!r}")
-    return width, height
 
 
 def _warm_trainer(args: argparse.Namespace, tmp: str):
@@ -679,7 +670,8 @@ def main(argv: List[str] | None = None) -> int:
     p.add_argument("--emulate-graphs", action="store_true",
                    help="CPU: run the CUDA-graph path of the step eagerly (its ops show as the phases "
                         "loss_graph and channel_graph, which are 3 graph launches on the GPU)")
-    p.add_argument("--size", type=_size, default=(96, 72), help="the synthetic scene's views, WxH (default 96x72)")
+    p.add_argument("--size", type=image_size("WxH", "640x480"), default=(96, 72),
+                   help="the synthetic scene's views, WxH (default 96x72)")
     p.add_argument("--fused-curves", action="store_true",
                    help="CPU: run the tone curve through its fused kernel, as the GPU does (fused_curve.py)")
     p.add_argument("--traffic", nargs="?", const="phases", choices=("phases", "sites"), default=None,

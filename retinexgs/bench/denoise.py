@@ -24,6 +24,7 @@ from typing import Dict, List, Optional, Tuple
 
 import torch
 
+from retinexgs.bench.args import image_size
 from retinexgs.data.srgb import linear_to_srgb, srgb_to_linear
 from retinexgs.fileio import atomic_write_text
 from retinexgs.retinex.denoise import METHODS, denoise_linear, noise_model
@@ -77,22 +78,13 @@ def _time(fn, dev: torch.device, repeat: int) -> Tuple[List[float], torch.Tensor
     return seconds, out
 
 
-def _size(text: str) -> Tuple[int, int]:
-    try:
-        h, w = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected HxW, e.g. 3000x4000, got {text!r}") from None
-    if h < 32 or w < 32:
-        raise argparse.ArgumentTypeError(f"a size of at least 32x32 is needed, got {text!r}")
-    return h, w
-
-
 def main(argv: Optional[List[str]] = None) -> int:
     """Parse the options, time both implementations, print the table; the exit code."""
     ap = argparse.ArgumentParser(prog="python -m retinexgs.bench denoise", description=__doc__.split("\n\n")[0])
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu",
                     help="where torch's NLM runs (default: cuda when present)")
-    ap.add_argument("--size", type=_size, default=(3000, 4000), help="HxW of the photo (default 3000x4000, 12 MP)")
+    ap.add_argument("--size", type=image_size("HxW", "3000x4000", minimum=32), default=(3000, 4000),
+                    help="HxW of the photo (default 3000x4000, 12 MP)")
     ap.add_argument("--method", default="chroma", choices=[m for m in METHODS if m != "none"],
                     help="decomposer.denoise's method (default chroma, what auto picks on raw scenes)")
     ap.add_argument("--full-well", type=float, default=1000.0, help="electrons at raw 1 (default 1000)")

@@ -24,6 +24,7 @@ from typing import Dict, List, Optional
 
 import torch
 
+from retinexgs.bench.args import image_size
 from retinexgs.retinex import enhance_for_viewing, get_decomposer
 from retinexgs.retinex.cache import IMAGE_EXTENSIONS, read_image, resolve_device
 from retinexgs.evaluate.metrics import psnr, ssim_metric as ssim
@@ -44,16 +45,6 @@ def _pairs(scene: Path, limit: int) -> List[tuple]:
 def _sync(dev: torch.device) -> None:
     if dev.type == "cuda":
         torch.cuda.synchronize(dev)
-
-
-def _size(text: str) -> tuple:
-    try:
-        h, w = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected HxW, e.g. 3000x4000, got {text!r}") from None
-    if h < 8 or w < 8:
-        raise argparse.ArgumentTypeError(f"a size of at least 8x8 is needed, got {text!r}")
-    return h, w
 
 
 def _resize(img: torch.Tensor, size) -> torch.Tensor:
@@ -106,7 +97,7 @@ def main(argv=None) -> int:
     ap.add_argument("--methods", default="lr3m,lime", help="comma-separated methods")
     ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0 = leave as is)")
     ap.add_argument("--json", default=None, help="also write the results to this JSON file")
-    ap.add_argument("--resize", type=_size, default=None, metavar="HxW",
+    ap.add_argument("--resize", type=image_size("HxW", "3000x4000"), default=None, metavar="HxW",
                     help="decompose the photos resized to HxW (a memory and time probe for big photos)")
     ap.add_argument("--param", type=_param, action="append", default=[], metavar="KEY=VALUE",
                     help="a decomposer parameter for every method, e.g. tile_pixels=1000000000 (a 12 MP photo whole)")
