@@ -10,6 +10,7 @@
 #include <utility>
 #include <vector>
 
+#include "rgs/adam.h"
 #include "rgs/gaussian_colors.h"
 #include "rgs/kernels.h"
 #include "rgs/tone.h"
@@ -639,6 +640,54 @@ Tensor exposure_tone(Tensor image, Tensor gain, double shoulder) {
     return out;
 }
 
+// Adam's step (rgs/adam.h) over every given parameter tensor at once: param, exp_avg and exp_avg_sq updated in
+// place; per tensor its group's beta1, beta2, eps and the step's step_size = lr / (1 - beta1^t), bc2_sqrt =
+// sqrt(1 - beta2^t). One dtype and one device for all; each tensor contiguous and of its parameter's size.
+void adam_step(std::vector<Tensor> params, std::vector<Tensor> grads, std::vector<Tensor> exp_avgs,
+               std::vector<Tensor> exp_avg_sqs, std::vector<double> beta1, std::vector<double> beta2,
+               std::vector<double> eps, std::vector<double> step_size, std::vector<double> bc2_sqrt) {
+    const size_t n = params.size();
+    RGS_CHECK_VALUE(grads.size() == n && exp_avgs.size() == n && exp_avg_sqs.size() == n && beta1.size() == n &&
+                        beta2.size() == n && eps.size() == n && step_size.size() == n && bc2_sqrt.size() == n,
+                    "adam_step needs one grad, exp_avg, exp_avg_sq, beta1, beta2, eps, step_size and bc2_sqrt per "
+                    "param (", n, " params)");
+    if (n == 0) return;
+    const Tensor& first = params[0];
+    RGS_CHECK_TYPE(first.scalar_type() == torch::kFloat32 || first.scalar_type() == torch::kFloat64,
+                   "adam_step needs float32 or float64 tensors, got ", first.scalar_type());
+    for (size_t k = 0; k < n; ++k) {
+        for (const Tensor* t : {&params[k], &grads[k], &exp_avgs[k], &exp_avg_sqs[k]}) {
+            RGS_CHECK_TYPE(t->scalar_type() == first.scalar_type(), "adam_step: tensor ", k, " has dtype ",
+                           t->scalar_type(), ", the first param ", first.scalar_type());
+            RGS_CHECK_VALUE(t->device() == first.device(), "adam_step: tensor ", k, " is on ", t->device(),
+                            ", the first param on ", first.device());
+            RGS_CHECK_VALUE(t->is_contiguous(), "adam_step: tensor ", k, " is not contiguous");
+            RGS_CHECK_VALUE(t->numel() == params[k].numel(), "adam_step: tensor ", k, " has ", t->numel(),
+                            " elements, its param ", params[k].numel());
+        }
+        RGS_CHECK_VALUE(bc2_sqrt[k] > 0.0, "adam_step: bc2_sqrt must be > 0, got ", bc2_sqrt[k]);
+    }
+    RGS_DEVICE_GUARD(first);
+    AT_DISPATCH_FLOATING_TYPES(first.scalar_type(), "adam_step", [&] {
+        std::vector<rgs::AdamTensor<scalar_t>> list(n);
+        for (size_t k = 0; k < n; ++k)
+            list[k] = rgs::AdamTensor<scalar_t>{params[k].data_ptr<scalar_t>(), grads[k].data_ptr<scalar_t>(),
+                                                exp_avgs[k].data_ptr<scalar_t>(), exp_avg_sqs[k].data_ptr<scalar_t>(),
+                                                params[k].numel(), scalar_t(beta1[k]), scalar_t(beta2[k]),
+                                                scalar_t(1.0 - beta1[k]), scalar_t(1.0 - beta2[k]),
+                                                scalar_t(eps[k]), scalar_t(step_size[k]), scalar_t(bc2_sqrt[k])};
+        if (first.is_cuda()) {
+#ifdef RGS_WITH_CUDA
+            rgs::adam_step_cuda<scalar_t>(list.data(), int(n), RGS_CUDA_STREAM(first));
+#else
+            no_cuda();
+#endif
+        } else {
+            rgs::adam_step_cpu<scalar_t>(list.data(), int(n), num_threads());
+        }
+    });
+}
+
 // Training's tone curve (rgs/tone_curve.h): y = srgb_o(s(gain · lin_i(x))) elementwise over a contiguous x of any
 // shape, gain [C] on x's device, element i taking gain[(i / inner) % C]; knee the shoulder's (>= 1: none); forms
 // rgs::CurveForm (0 clip, 1 open, 2 extended; the output's also 3: linear). The backward returns grad_x and the
@@ -855,6 +904,9 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("tone_curve_backward", &tone_curve_backward, pybind11::arg("x"), pybind11::arg("gain"),
           pybind11::arg("grad_out"), pybind11::arg("C"), pybind11::arg("inner"), pybind11::arg("knee"),
           pybind11::arg("form_in"), pybind11::arg("form_out"), pybind11::arg("need_x"), pybind11::arg("need_gain"));
+    m.def("adam_step", &adam_step, pybind11::arg("params"), pybind11::arg("grads"), pybind11::arg("exp_avgs"),
+          pybind11::arg("exp_avg_sqs"), pybind11::arg("beta1"), pybind11::arg("beta2"), pybind11::arg("eps"),
+          pybind11::arg("step_size"), pybind11::arg("bc2_sqrt"));
     m.def("screen_stats", &screen_stats, pybind11::arg("grad2d"), pybind11::arg("radii"), pybind11::arg("sx"),
           pybind11::arg("sy"), pybind11::arg("grad_accum"), pybind11::arg("count"), pybind11::arg("max_radius"));
     m.def("ssim_forward", &ssim_forward, pybind11::arg("x"), pybind11::arg("y"), pybind11::arg("window"),

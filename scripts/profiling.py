@@ -82,6 +82,8 @@ def profile_train(args: argparse.Namespace) -> None:
                                        or "none") + "; synchronize calls per step: "
               + f"{sum(e.count for e in table if 'Synchronize' in e.key) / args.profile:.2f}")
         print(table.table(sort_by="cuda_time_total", row_limit=25))
+        # The kernels by their own GPU time (what a fused or faster kernel would save), most first.
+        print(table.table(sort_by="self_cuda_time_total", row_limit=args.rows))
         print(table.table(sort_by="cpu_time_total", row_limit=20))
 
 
@@ -641,6 +643,7 @@ def main(argv: List[str] | None = None) -> int:
     p.add_argument("scene", type=Path)
     p.add_argument("--steps", type=int, default=300, help="warm-up steps before the profile (default 300)")
     p.add_argument("--profile", type=int, default=30, help="profiled steps (default 30)")
+    p.add_argument("--rows", type=int, default=40, help="rows of the kernels-by-own-GPU-time table (default 40)")
     p.add_argument("--config", action="append", default=[])
     p.add_argument("--set", action="append", default=[], dest="overrides",
                    help="config override, e.g. train.cuda_graphs=false")

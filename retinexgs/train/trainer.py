@@ -27,6 +27,7 @@ from retinexgs.strategy import build_strategy
 from retinexgs.train.capture_setup import set_up_noise
 from retinexgs.train.distributed import (Distributed, adam_betas_for_batch, gradient_params, lr_batch_factor,
                                          process_start_time, take_gradients)
+from retinexgs.train.adam import adam_for
 from retinexgs.train.divergence import DivergenceWatch, TrainingDiverged  # noqa: F401 (re-exported)
 from retinexgs.train.graphs import ChannelGraphs, LossGraphs
 from retinexgs.train.objective import build_objective, enhancement_objective  # noqa: F401 (re-exported)
@@ -131,8 +132,8 @@ class Trainer:
         self.noise = set_up_noise(self.cfg, self.scene, self.model, state, self.device, self._setup_dist, self.log)
         groups = self.model.param_groups(self.cfg.lr, self.extent)
         rates = {group["name"]: group["lr"] for group in groups}
-        # Fused Adam on the GPU: one kernel per parameter group instead of a dozen (the step is launch-bound).
-        self.optimizer = torch.optim.Adam(groups, eps=1e-15, fused=self.device.type == "cuda")
+        # One Adam kernel for every group on the GPU (train/adam.py: torch's fused Adam launches once per group).
+        self.optimizer = adam_for(self.device, groups, eps=1e-15)
         self.strategy = build_strategy(self.cfg.density, self.extent, self.schedule, self.cfg.seed)
         self.objective = build_objective(self.cfg, self.model, self.schedule, self.strategy, self.noise)
         if state is not None:

@@ -173,4 +173,10 @@ template <typename T>
 void tone_curve_backward_cpu(int64_t n, const T* x, const T* gain, int64_t C, int64_t inner, double knee, int form_in,
                              int form_out, const T* grad_out, T* grad_x, T* grad_k, int num_threads);
 
+// ---- Adam's step (rgs/adam.h) -------------------------------------------------------------------------
+template <typename T>
+struct AdamTensor;
+template <typename T>
+void adam_step_cpu(const AdamTensor<T>* tensors, int count, int num_threads);
+
 }  // namespace rgs

@@ -106,4 +106,10 @@ template <typename T>
 void tone_curve_backward_cuda(int64_t n, const T* x, const T* gain, int64_t C, int64_t inner, double knee,
                               int form_in, int form_out, const T* grad_out, T* grad_x, T* grad_k, void* stream);
 
+// Same as adam_step_cpu: kAdamBatch tensors a launch, one thread per element.
+template <typename T>
+struct AdamTensor;
+template <typename T>
+void adam_step_cuda(const AdamTensor<T>* tensors, int count, void* stream);
+
 }  // namespace rgs
