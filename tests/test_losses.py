@@ -287,6 +287,23 @@ def test_enhancement_loss_weights_and_grad():
     assert torch.isfinite(enh.grad).all() and enh.grad.abs().sum() > 0
 
 
+def test_enhancement_loss_zero_weight_term_logged_not_differentiated():
+    """A term of weight 0 (the default's L_col) is still computed for the log, without a graph: the sum and the
+    gradient are exactly those of the weighted terms alone."""
+    orig = 0.05 * _rand(1, 3, 32, 32, seed=15)
+    enh = (orig * 8).requires_grad_()
+    total, terms = Lo.enhancement_loss(enh, orig, w_col=0.0)
+    assert terms["col"].grad_fn is None and float(terms["col"]) > 0
+    assert float(terms["col"]) == float(Lo.color_constancy_loss(enh.detach()))
+    assert torch.equal(total, 0.1 * terms["spa"] + 1.0 * terms["exp"])
+    (g,) = torch.autograd.grad(total, enh)
+    ref = enh.detach().clone().requires_grad_()
+    (g_ref,) = torch.autograd.grad(0.1 * Lo.spatial_consistency_loss(ref, orig) + Lo.exposure_loss(ref, 0.6), ref)
+    assert torch.equal(g, g_ref)
+    total0, terms0 = Lo.enhancement_loss(enh, orig, w_spa=0.0, w_exp=0.0, w_col=0.0)
+    assert float(total0) == 0.0 and set(terms0) == {"spa", "exp", "col"}
+
+
 def test_to_bchw():
     x = _rand(5, 7, 3)
     y = Lo.to_bchw(x)

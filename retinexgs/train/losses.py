@@ -484,10 +484,17 @@ def enhancement_loss(enh: torch.Tensor, orig: torch.Tensor, w_spa: float = 0.1, 
     Returns:
         (w_spa·L_spa + w_exp·L_exp + w_col·L_col, {"spa", "exp", "col"}) — unweighted terms.
     """
-    terms = {
-        "spa": spatial_consistency_loss(enh, orig, form=spa_form, scale_invariant=scale_invariant),
-        "exp": exposure_loss(enh if illumination is None else illumination, E, exp_patch, exp_form),
-        "col": color_constancy_loss(enh, color_mode, scale_invariant=scale_invariant),
+    parts = {
+        "spa": (w_spa, lambda: spatial_consistency_loss(enh, orig, form=spa_form, scale_invariant=scale_invariant)),
+        "exp": (w_exp, lambda: exposure_loss(enh if illumination is None else illumination, E, exp_patch, exp_form)),
+        "col": (w_col, lambda: color_constancy_loss(enh, color_mode, scale_invariant=scale_invariant)),
     }
-    total = w_spa * terms["spa"] + w_exp * terms["exp"] + w_col * terms["col"]
-    return total, terms
+    terms, total = {}, None
+    for name, (weight, term) in parts.items():
+        if weight == 0:  # logged, not differentiated: its backward would only add zeros (~15 kernels a step)
+            with torch.no_grad():
+                terms[name] = term()
+            continue
+        terms[name] = term()
+        total = weight * terms[name] if total is None else total + weight * terms[name]
+    return (enh.new_zeros(()) if total is None else total), terms

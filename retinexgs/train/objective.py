@@ -19,7 +19,7 @@ from torch.profiler import record_function
 
 from retinexgs.model.retinex_model import RetinexGSModel
 from retinexgs.model.schedule import Schedule
-from retinexgs.model.tone import exposure_gain
+from retinexgs.model.tones.exposure import reference_gain
 from retinexgs.config.schema import Config, Loss
 from retinexgs.strategy import Strategy
 from retinexgs.train import losses
@@ -209,8 +209,7 @@ class RetinexObjective(PlainObjective):
         g = 1, 1 / lin(L_ref), a constant of the scene, capped where the photos' noise asks (train/noise.py)."""
         if self.cfg.loss.rec_domain == "photo":
             return None
-        ref = self.model.illum_ref
-        gain = exposure_gain(ref, ref.new_ones(()))
+        gain = reference_gain(self.model.illum_ref)
         cap = self.noise.rec_gain_cap
         return gain if cap is None else torch.minimum(gain, cap)
 
@@ -228,8 +227,7 @@ class RetinexObjective(PlainObjective):
         gain = self.rec_gain()
         l1_exposed = c.rec_domain == "exposed"
         if linear is not None:  # at the scene's own exposure, not the noise floor's cap (LinearTarget)
-            ref = self.model.illum_ref
-            linear = linear._replace(gain=exposure_gain(ref, ref.new_ones(())))
+            linear = linear._replace(gain=reference_gain(self.model.illum_ref))
         if R is not None:
             sup, sup_terms = losses.supervision_loss(R_hat, L_hat, to_bchw(R), to_bchw(L), S_b, c.w_r,
                                                      c.w_l, c.w_s, c.lambda_ssim, gain, l1_exposed, linear)

@@ -14,6 +14,7 @@ contrast as the longer exposure records it, up to the curve's clipping of highli
 """
 from __future__ import annotations
 
+import weakref
 from typing import Optional, Tuple
 
 import torch
@@ -23,12 +24,46 @@ from retinexgs.model.tones.base import Tone, _numbers, register
 from retinexgs.model.tones.curves import srgb_to_linear
 from retinexgs.model.tones.fused_curve import tone_curve
 
-__all__ = ["ExposureTone", "log_lin_ref", "exposure_gain", "exposure_linear"]
+__all__ = ["ExposureTone", "log_lin_ref", "exposure_gain", "reference_gain", "exposure_linear"]
+
+
+# Values derived from a reference tensor L_ref, by (id, name): (a weak reference to it, its version, dtype, device,
+# the value). L_ref is a constant of the scene (a buffer set once from the 2D priors): log lin(L_ref) took ~12 scalar
+# kernels at each of the 2–3 calls a training step, inside the loss graph (issue 65). An in-place change of the
+# buffer bumps its version: computed anew. Keyed by identity: a tensor's == is elementwise (and a host sync).
+_DERIVED: dict = {}
+_RETIRED: list = []  # replaced values, kept alive: a CUDA graph captured before the change still reads their memory
+
+
+def _derived(illum_ref: Tensor, name: str, like: Tensor, compute) -> Tensor:
+    """``compute()`` once per (L_ref tensor, ``name``, version, ``like``'s dtype and device); a reference with a
+    gradient is not cached."""
+    if illum_ref.requires_grad:
+        return compute()
+    key = (illum_ref._version, like.dtype, like.device)
+    hit = _DERIVED.get((id(illum_ref), name))
+    if hit is None or hit[0]() is not illum_ref or hit[1] != key:
+        for stale in [k for k, v in _DERIVED.items() if v[0]() is None]:  # references gone: their ids may recur
+            _RETIRED.append(_DERIVED.pop(stale)[2])
+        if hit is not None:
+            _RETIRED.append(hit[2])
+        hit = (weakref.ref(illum_ref), key, compute())
+        _DERIVED[(id(illum_ref), name)] = hit
+    return hit[2]
 
 
 def log_lin_ref(illum_ref: Tensor, like: Tensor) -> Tensor:
-    """log lin(L_ref), kept below 0 (L_ref < 1: a dark scene's light), in ``like``'s dtype and device."""
-    return torch.log(srgb_to_linear(illum_ref.to(like)).clamp_min(1e-6)).clamp_max(-1e-6)
+    """log lin(L_ref), kept below 0 (L_ref < 1: a dark scene's light), in ``like``'s dtype and device; computed once
+    per reference (and its version, dtype and device) where it has no gradient."""
+    return _derived(illum_ref, "log_lin_ref", like,
+                    lambda: torch.log(srgb_to_linear(illum_ref.to(like)).clamp_min(1e-6)).clamp_max(-1e-6))
+
+
+def reference_gain(illum_ref: Tensor) -> Tensor:
+    """The gain at g = 1, 1 / lin(L_ref) (:func:`exposure_gain`), in L_ref's dtype and device: the exposure that maps
+    the scene's full light to white, a constant of the scene (computed once, as :func:`log_lin_ref`)."""
+    return _derived(illum_ref, "reference_gain", illum_ref,
+                    lambda: exposure_gain(illum_ref, illum_ref.new_ones(())))
 
 
 def exposure_gain(illum_ref: Tensor, gamma: Tensor, log_ref: Optional[Tensor] = None) -> Tensor:
