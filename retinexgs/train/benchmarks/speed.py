@@ -37,6 +37,7 @@ import torch
 from retinexgs.demo.splats import orbit_camera, random_scene
 from retinexgs.render import Camera, rasterize_gaussians
 from retinexgs.model.gaussians import GaussianModel
+from retinexgs.train.adam import adam_for
 from retinexgs.model.retinex_model import RetinexGSModel
 from retinexgs.train import losses
 from retinexgs.run.config import load_config
@@ -174,7 +175,7 @@ def synthetic_step(n: int, width: int, height: int, device: torch.device, raster
     R_t, L_t = (torch.rand(1, 3, height, width, generator=g).to(device) for _ in range(2))
     L_t = L_t[:, :1]
     S_t = R_t * L_t
-    opt = torch.optim.Adam(model.parameters(), lr=1e-3, eps=1e-15, fused=device.type == "cuda")
+    opt = adam_for(device, [{"params": list(model.parameters()), "lr": 1e-3}], eps=1e-15)  # the trainer's Adam
     c = cfg.loss
     gm = model.gaussians
     center = cam.center.to(device)
