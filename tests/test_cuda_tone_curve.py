@@ -55,3 +55,15 @@ def test_cuda_last_axis_gain_and_graph_capture():
     torch.testing.assert_close(out["y"].cpu(), y_ref, rtol=1e-5, atol=1e-5)
     torch.testing.assert_close(out["grads"][0].cpu(), gx, rtol=1e-5, atol=1e-5)
     torch.testing.assert_close(out["grads"][1].cpu(), gg, rtol=1e-4, atol=1e-3)
+
+
+def test_cuda_meter_matches_cpu():
+    """The exposure meter (highlight_capped_mean) on the GPU, through the fused curves, against the CPU's torch path."""
+    from retinexgs.model.tones.curves import highlight_capped_mean
+    g = torch.Generator().manual_seed(8)
+    RL = torch.rand(300, 400, 3, generator=g) ** 2
+    RL[:20] = 1.0
+    for knee in (1.0, 0.8):
+        cpu = highlight_capped_mean(RL, 0.5, 0.05, knee)
+        gpu = highlight_capped_mean(RL.cuda(), 0.5, 0.05, knee)
+        assert abs(float(cpu) - float(gpu)) < 1e-5

@@ -178,3 +178,20 @@ def test_exposed_and_linear_light_are_the_torch_curves():
                                linear_to_srgb_extended(gain * srgb_to_linear_extended(x)), rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(to_linear(x, "open"), srgb_to_linear(x, clip=False), rtol=1e-12, atol=1e-15)
     torch.testing.assert_close(to_linear(x, "extended"), srgb_to_linear_extended(x), rtol=1e-12, atol=1e-15)
+
+
+def test_meter_through_the_kernel_matches_the_torch_path(monkeypatch):
+    """highlight_capped_mean takes the fused curves where tone_curve does (the GPU): the same target as its torch
+    path (the CPU's), to float32 rounding, with and without the shoulder and where the cap acts or not."""
+    from retinexgs.model.tones import fused_curve
+    from retinexgs.model.tones.curves import highlight_capped_mean
+    g = torch.Generator().manual_seed(7)
+    RL = torch.rand(40, 50, 3, generator=g) * torch.tensor([1.0, 0.8, 0.6]) ** 2
+    RL[:3] = 1.0  # a blown-out band: the cap acts
+    cases = [(0.5, 0.05, 1.0), (0.5, 0.05, 0.8), (0.2, 0.3, 0.8)]
+    torch_path = [highlight_capped_mean(RL, *c) for c in cases]
+    monkeypatch.setattr(fused_curve, "runs_fused", lambda x: True)
+    kernel_path = [highlight_capped_mean(RL, *c) for c in cases]
+    for a, b in zip(torch_path, kernel_path):
+        assert abs(float(a) - float(b)) < 1e-6
+    assert float(torch_path[0]) < 0.5  # the cap acted on this image (else the test compares two constants)

@@ -35,12 +35,21 @@ def highlight_capped_mean(RL: Tensor, target: float, share: float, shoulder: flo
     A camera's highlight-protecting meter: expose for the average unless more than ``share`` of the frame would
     blow out. The scale of R̂∘L̂ drops out (the exposure is found from its own quantile), so the result depends only
     on the image's light distribution. A 0-d tensor, no gradient; a sort (no host sync: graph-capturable)."""
+    # The curves as one kernel each (fused_curve, which imports this module: hence here); on the CPU its twin gives
+    # lin bit for bit and the division below keeps CPU training as it was. On the GPU the meter's ~20 torch passes
+    # over the image were ~15 % of a step's traffic (issue 65).
+    from retinexgs.model.tones import fused_curve
+
     with torch.no_grad():
-        lin = srgb_to_linear(RL.detach().float())
+        RL = RL.detach().float()
+        lin = fused_curve.to_linear(RL, "clip")
         peak = lin.amax(-1).flatten()
         rank = min(peak.numel() - 1, max(0, int(round((1.0 - share) * (peak.numel() - 1)))))
         white = torch.sort(peak).values[rank].clamp_min(1e-8)
-        capped = linear_to_srgb(highlight_shoulder(lin / white, shoulder)).mean()
+        if fused_curve.runs_fused(RL):
+            capped = fused_curve.tone_curve(RL, white.reciprocal(), shoulder, "clip", "clip").mean()
+        else:
+            capped = linear_to_srgb(highlight_shoulder(lin / white, shoulder)).mean()
         return capped.clamp(max=float(target))
 
 

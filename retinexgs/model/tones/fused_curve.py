@@ -25,7 +25,7 @@ from retinexgs.data.srgb import linear_to_srgb, linear_to_srgb_extended, srgb_to
 from retinexgs.model.tones.curves import highlight_shoulder
 from retinexgs.render._backend import kernels
 
-__all__ = ["FORMS", "tone_curve", "tone_curve_kernel", "tone_curve_reference", "to_linear"]
+__all__ = ["FORMS", "tone_curve", "tone_curve_kernel", "tone_curve_reference", "to_linear", "runs_fused"]
 
 FORMS = {"clip": 0, "open": 1, "extended": 2, "linear": 3}
 
@@ -84,9 +84,15 @@ def tone_curve(x: Tensor, gain: Tensor, knee: float = 1.0, form_in: str = "clip"
     (:func:`tone_curve_kernel`); on the CPU the twin, whose vectorised torch operators beat the kernel's scalar
     loop there (0.11–0.16 s against 0.21–0.40 s forward + backward at 1024×768×3 on 2 cores, 2026-11-29) and which
     keeps CPU training exactly as it was."""
-    if x.is_cuda:
+    if runs_fused(x):
         return tone_curve_kernel(x, gain, knee, form_in, form_out)
     return tone_curve_reference(x, gain, knee, form_in, form_out)
+
+
+def runs_fused(x: Tensor) -> bool:
+    """Whether :func:`tone_curve` takes the kernel for ``x`` (on the GPU; ``scripts/profiling.py ops --fused-curves``
+    sets it true everywhere, so that a CPU census counts what the GPU runs)."""
+    return x.is_cuda
 
 
 def tone_curve_kernel(x: Tensor, gain: Tensor, knee: float = 1.0, form_in: str = "clip",
