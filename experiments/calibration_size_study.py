@@ -32,6 +32,19 @@ def median_sigma(x: torch.Tensor, scale: int = 4) -> float:
     return float(c.abs().median() / (0.6745 * 6.0)) * scale
 
 
+def pca_sigma(x: torch.Tensor, scale: int = 4, patch: int = 5) -> float:
+    """σ at ``scale``×``scale`` averages as the square root of the smallest eigenvalue of the covariance of all
+    ``patch``×``patch`` patches (Liu, Tanaka & Okutomi 2013 without their weak-texture selection): texture lives in a
+    few principal directions of the patches, white noise in all of them alike."""
+    if min(x.shape) < 3 * scale:
+        scale = 1
+    y = F.avg_pool2d(x[None, None], scale)[0, 0] if scale > 1 else x
+    cols = F.unfold(y[None, None], patch)[0].T  # [patches, patch²]
+    cols = cols - cols.mean(0, keepdim=True)
+    cov = cols.T @ cols / max(1, cols.shape[0] - 1)
+    return float(torch.linalg.eigvalsh(cov)[0].clamp_min(0).sqrt()) * scale
+
+
 def main() -> None:
     p = argparse.ArgumentParser()
     p.add_argument("photos", nargs="+")
@@ -57,12 +70,15 @@ def main() -> None:
                 ycc = torch.einsum("ij,hwj->ihw", _YCC.to(d), d)
                 clean = torch.einsum("ij,hwj->ihw", _YCC.to(d), gat_forward(small, a, b))
                 rows.append([_measured_sigma(c) for c in ycc] + [_measured_sigma(c) for c in clean]
-                            + [median_sigma(c) for c in ycc] + [median_sigma(c) for c in clean])
+                            + [median_sigma(c) for c in ycc] + [median_sigma(c) for c in clean]
+                            + [pca_sigma(c) for c in ycc] + [pca_sigma(c) for c in clean])
         m = np.array(rows)
         print("RESULT " + json.dumps({"width": width, "noisy_luma_chroma": m[:, :3].mean(0).round(3).tolist(),
                                       "clean_luma_chroma": m[:, 3:6].mean(0).round(3).tolist(),
                                       "median_noisy": m[:, 6:9].mean(0).round(3).tolist(),
-                                      "median_clean": m[:, 9:].mean(0).round(3).tolist(), "n": len(rows)}))
+                                      "median_clean": m[:, 9:12].mean(0).round(3).tolist(),
+                                      "pca_noisy": m[:, 12:15].mean(0).round(3).tolist(),
+                                      "pca_clean": m[:, 15:].mean(0).round(3).tolist(), "n": len(rows)}))
 
 
 if __name__ == "__main__":
