@@ -98,7 +98,7 @@ def test_reads_a_fused_adam_checkpoint():
     ours = GroupAdam(groups, eps=1e-15)
     ours.load_state_dict(saved)
     assert all(not g["fused"] and not g["foreach"] for g in ours.param_groups)
-    assert all(s["step"].device.type == "cpu" and float(s["step"]) == 2.0 for s in ours.state.values())
+    assert all(type(s["step"]) is float and s["step"] == 2.0 for s in ours.state.values())
     mirror = [nn.Parameter(p.detach().clone()) for p in params]
     ref2 = torch.optim.Adam([{**g, "params": mirror[i:j]} for g, (i, j) in
                              zip(groups, [(0, 1), (1, 2), (2, 5)])], eps=1e-15, foreach=False)
@@ -153,6 +153,27 @@ def test_kernel_errors_are_one_line():
     with pytest.raises(ValueError, match="bc2_sqrt"):
         k.adam_step([p], [g], [p.clone()], [p.clone()], [0.9], [0.999], [1e-8], [1e-3], [0.0])
     k.adam_step([], [], [], [], [], [], [], [], [])  # nothing to do: no error
+
+
+def test_state_dict_reads_back_into_torch_adam():
+    """GroupAdam's state dict (host numbers for the step counts) loads into torch's Adam (the CPU's, e.g. a GPU run
+    resumed on a CPU), which turns them into tensors, and both go on alike."""
+    params, groups = _groups(torch.float64)
+    ours = GroupAdam(groups, eps=1e-15)
+    for step in range(2):
+        _grads(params, step)
+        ours.step()
+    mirror = [nn.Parameter(p.detach().clone()) for p in params]
+    ref = torch.optim.Adam([{**g, "params": mirror[i:j]} for g, (i, j) in zip(groups, [(0, 1), (1, 2), (2, 5)])],
+                           eps=1e-15, foreach=False)
+    ref.load_state_dict(copy.deepcopy(ours.state_dict()))
+    assert all(torch.is_tensor(s["step"]) and float(s["step"]) == 2.0 for s in ref.state.values())
+    _grads(params, 2)
+    _grads(mirror, 2)
+    ours.step()
+    ref.step()
+    for a, b in zip(params, mirror):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
 
 
 def test_adam_for_picks_by_device():

@@ -22,22 +22,24 @@ from retinexgs.render._backend import kernels
 class GroupAdam(torch.optim.Adam):
     """``torch.optim.Adam(params, lr, betas, eps)`` whose step is one :func:`retinexgs._C.adam_step` call.
 
-    Each parameter's step count lives on the host (a float tensor on the CPU, as torch's unfused Adam keeps it), so
-    the bias corrections are host numbers passed to the kernel: a step reads nothing back from the device. Weight
+    Each parameter's step count is a Python float in its state (torch's Adam keeps a tensor; its ``__setstate__``
+    turns a number back into one, so either optimiser reads the other's state dict), so the bias corrections are host
+    numbers passed to the kernel: a step reads nothing back from the device, and costs no tensor operation on the
+    host (a 0-d CPU tensor's ``+= 1`` and ``float()`` were most of the step's Python time). Weight
     decay, AMSGrad, maximize and sparse or complex gradients are refused (ValueError), as the kernel has none."""
 
     def __init__(self, params: Iterable, lr: float = 1e-3, betas=(0.9, 0.999), eps: float = 1e-8) -> None:
         super().__init__(params, lr=lr, betas=betas, eps=eps, foreach=False, fused=False)
 
     def load_state_dict(self, state_dict: Dict) -> None:
-        """torch's, then the step counts moved to the host (a checkpoint of torch's fused Adam keeps them on the
-        device: read once here, not at every step) and the groups' fused/foreach flags cleared."""
+        """torch's, then the step counts as host numbers (a checkpoint of torch's fused Adam keeps them on the device:
+        read once here, not at every step) and the groups' fused/foreach flags cleared."""
         super().load_state_dict(state_dict)
         for group in self.param_groups:
             group["fused"], group["foreach"], group["capturable"] = False, False, False
         for state in self.state.values():
             if "step" in state:
-                state["step"] = torch.tensor(float(state["step"]), dtype=torch.float32)
+                state["step"] = float(state["step"])
 
     @torch.no_grad()
     def step(self, closure=None):
@@ -60,11 +62,10 @@ class GroupAdam(torch.optim.Adam):
                     raise ValueError("GroupAdam takes dense real gradients only")
                 state = self.state[p]
                 if len(state) == 0:
-                    state["step"] = torch.tensor(0.0, dtype=torch.float32)
+                    state["step"] = 0.0
                     state["exp_avg"] = torch.zeros_like(p, memory_format=torch.preserve_format)
                     state["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format)
-                state["step"] += 1
-                t = float(state["step"])
+                t = state["step"] = float(state["step"]) + 1.0
                 grad = p.grad if p.grad.is_contiguous() else p.grad.contiguous()
                 row = batches.setdefault((p.device, p.dtype), [[] for _ in range(9)])
                 for column, value in zip(row, (p, grad, state["exp_avg"], state["exp_avg_sq"], float(beta1),
