@@ -70,13 +70,13 @@ class SyncFinder:
 
     A call site is the innermost frame outside torch and this module (``file:line (function)``, the path relative
     to the current directory), followed by ``via torch/...`` when torch's own Python code made the read (e.g.
-    ``via torch/optim/adam.py``: the CPU's non-fused Adam reads its step count; the fused Adam on CUDA does not).
+    ``via torch/optim/adam.py``: the CPU's Adam reads its step count; the trainer's on CUDA, train/adam.py, does not).
     A read made inside another counted read (``repr`` of a tensor calling ``.item()``) counts once.
 
     ``cuda_warn``: also run with ``torch.cuda.set_sync_debug_mode("warn")`` and count torch's sync warnings
     by site, under the name ``cuda-sync``. ``ignore_via``: reads made through these torch folders are counted
-    apart (:attr:`ignored`), in no step: by default the CPU's non-fused Adam's (``torch/optim/``), which
-    the trainer's fused Adam on CUDA does not make. ``cuda_profile``: also count the CUDA runtime's synchronize
+    apart (:attr:`ignored`), in no step: by default the CPU's Adam's (``torch/optim/``), which
+    the trainer's Adam on CUDA (train/adam.py: host step counts) does not make. ``cuda_profile``: also count the CUDA runtime's synchronize
     calls of each step (torch.profiler), whoever made them (the extension's binning included), under the name
     ``cuda-runtime`` with the runtime call's name as the site."""
 

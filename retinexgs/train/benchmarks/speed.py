@@ -7,7 +7,7 @@ for our rasterizer and for gsplat's in the same step, side by side.
 Synthetic sweep (the default): random Gaussians (:mod:`retinexgs.demo.splats`) with the default config's
 illumination MLP and SH degree 3, one camera, random targets for R, L and S. One step is what the trainer does
 before the enhancement losses start: per-Gaussian SH colours and illumination MLP, one 6-channel rasterization,
-the supervision (L1 + SSIM of R̂, L̂ and R̂∘L̂), TV and SH losses, backward, fused Adam. The gsplat step is the
+the supervision (L1 + SSIM of R̂, L̂ and R̂∘L̂), TV and SH losses, backward, the trainer's Adam. The gsplat step is the
 same step with ``gsplat.rasterization`` in place of ours (same colours, same loss), so the ratio is the
 rasterizer's share; no density control in either.
 
