@@ -1,4 +1,5 @@
-"""How the denoiser's calibrated noise estimate depends on the photo's size (issue 64; notes/2026-11-29-adam-one-launch.md §5).
+"""How the denoiser's calibrated noise estimate depends on the photo's size (issue 64;
+notes/2026-11-29-adam-one-launch.md §5).
 
 A clean photo (a normal-light view: its own noise is far below what is added) is resized to a width W (area
 averaging), darkened by ``--scale`` in linear light, given Poisson-Gaussian noise of a known model (var = a·y + b), and

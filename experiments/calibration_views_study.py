@@ -1,4 +1,5 @@
-"""One view against its truth through the denoiser with three calibrations (issue 64; notes/2026-11-29-adam-one-launch.md §6).
+"""One view against its truth through the denoiser with three calibrations (issue 64;
+notes/2026-11-29-adam-one-launch.md §6).
 
 For each scene folder (a night capture with ``high/`` truth: the raw ladder's RAW and camera-JPEG captures, the demo
 scene), the views' noise is measured as training measures it (``denoise_spec`` with ``decomposer.denoise=chroma``),

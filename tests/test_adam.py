@@ -26,7 +26,8 @@ def _grads(params, step, skip=()):
     g = torch.Generator().manual_seed(100 + step)
     for i, p in enumerate(params):
         # a wide range of magnitudes (the eps matters for the smallest), a missing gradient for ``skip``
-        p.grad = None if i in skip else (torch.randn(p.shape, generator=g, dtype=p.dtype) * 10.0 ** (i - 3)).to(p.device)
+        grad = torch.randn(p.shape, generator=g, dtype=p.dtype) * 10.0 ** (i - 3)
+        p.grad = None if i in skip else grad.to(p.device)
 
 
 def _run(opt_cls, dtype, steps=6, skip_at=None, lr_change=None, **kw):
