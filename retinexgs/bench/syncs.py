@@ -78,8 +78,7 @@ class SyncFinder:
     apart (:attr:`ignored`), in no step: by default the CPU's Adam's (``torch/optim/``), which the trainer's
     Adam on CUDA (train/adam.py: host step counts) does not make. ``cuda_profile``: also count the CUDA runtime's
     synchronize calls of each step (torch.profiler), whoever made them (the extension's binning included), under the
-    name
-    ``cuda-runtime`` with the runtime call's name as the site."""
+    name ``cuda-runtime`` with the runtime call's name as the site."""
 
     def __init__(self, cuda_warn: bool = False, ignore_via: Tuple[str, ...] = ("torch/optim/",),
                  cuda_profile: bool = False) -> None:
