@@ -59,7 +59,7 @@ def test_cuda_last_axis_gain_and_graph_capture():
 
 def test_cuda_meter_matches_cpu():
     """The exposure meter (highlight_capped_mean) on the GPU, through the fused curves, against the CPU's torch path."""
-    from retinexgs.model.tones.curves import highlight_capped_mean
+    from retinexgs.model.tones.meter import highlight_capped_mean
     g = torch.Generator().manual_seed(8)
     RL = torch.rand(300, 400, 3, generator=g) ** 2
     RL[:20] = 1.0

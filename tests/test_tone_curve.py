@@ -184,7 +184,7 @@ def test_meter_through_the_kernel_matches_the_torch_path(monkeypatch):
     """highlight_capped_mean takes the fused curves where tone_curve does (the GPU): the same target as its torch
     path (the CPU's), to float32 rounding, with and without the shoulder and where the cap acts or not."""
     from retinexgs.model.tones import fused_curve
-    from retinexgs.model.tones.curves import highlight_capped_mean
+    from retinexgs.model.tones.meter import highlight_capped_mean
     g = torch.Generator().manual_seed(7)
     RL = torch.rand(40, 50, 3, generator=g) * torch.tensor([1.0, 0.8, 0.6]) ** 2
     RL[:3] = 1.0  # a blown-out band: the cap acts
