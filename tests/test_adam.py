@@ -41,6 +41,26 @@ def _run(opt_cls, dtype, steps=6, skip_at=None, lr_change=None, **kw):
     return params, opt
 
 
+_SPANS = [(0, 1), (1, 2), (2, 5)]  # _groups' parameters, group by group
+
+
+def _mirror(params, groups):
+    """Copies of ``params`` and the same groups over them: another optimiser's own tensors."""
+    mirror = [nn.Parameter(p.detach().clone()) for p in params]
+    return mirror, [{**g, "params": mirror[i:j]} for g, (i, j) in zip(groups, _SPANS)]
+
+
+def _steps_alike(params, opt, mirror, other, steps, tol=1e-12):
+    """The same gradients to both, a step of each, and the parameters equal afterwards (to ``tol``)."""
+    for step in steps:
+        _grads(params, step)
+        _grads(mirror, step)
+        opt.step()
+        other.step()
+    for a, b in zip(params, mirror):
+        torch.testing.assert_close(a, b, rtol=tol, atol=tol)
+
+
 @pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-12), (torch.float32, 2e-6)])
 def test_matches_torch_adam(dtype, tol):
     ours, opt = _run(GroupAdam, dtype, skip_at=2, lr_change=3)
@@ -70,19 +90,10 @@ def test_state_dict_round_trip_and_resume():
     for step in range(3):
         _grads(params, step)
         opt.step()
-    saved = copy.deepcopy(opt.state_dict())
-    clone = [nn.Parameter(p.detach().clone()) for p in params]
-    groups2 = [{"params": clone[:1], "lr": 1.6e-4, "name": "means"}, {"params": clone[1:2], "lr": 2.5e-3,
-               "name": "sh_dc"}, {"params": clone[2:], "lr": 1e-3, "name": "mlp"}]
+    clone, groups2 = _mirror(params, groups)
     opt2 = GroupAdam(groups2, eps=1e-15)
-    opt2.load_state_dict(saved)
-    for step in range(3, 6):
-        _grads(params, step)
-        _grads(clone, step)
-        opt.step()
-        opt2.step()
-    for a, b in zip(params, clone):
-        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    opt2.load_state_dict(copy.deepcopy(opt.state_dict()))
+    _steps_alike(params, opt, clone, opt2, range(3, 6), tol=0.0)  # the same optimiser: bit for bit
 
 
 def test_reads_a_fused_adam_checkpoint():
@@ -100,16 +111,10 @@ def test_reads_a_fused_adam_checkpoint():
     ours.load_state_dict(saved)
     assert all(not g["fused"] and not g["foreach"] for g in ours.param_groups)
     assert all(type(s["step"]) is float and s["step"] == 2.0 for s in ours.state.values())
-    mirror = [nn.Parameter(p.detach().clone()) for p in params]
-    ref2 = torch.optim.Adam([{**g, "params": mirror[i:j]} for g, (i, j) in
-                             zip(groups, [(0, 1), (1, 2), (2, 5)])], eps=1e-15, foreach=False)
+    mirror, mirror_groups = _mirror(params, groups)
+    ref2 = torch.optim.Adam(mirror_groups, eps=1e-15, foreach=False)
     ref2.load_state_dict(ref.state_dict())
-    _grads(params, 2)
-    _grads(mirror, 2)
-    ours.step()
-    ref2.step()
-    for a, b in zip(params, mirror):
-        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
+    _steps_alike(params, ours, mirror, ref2, [2])
 
 
 def test_strategy_edit_follows():
@@ -164,17 +169,11 @@ def test_state_dict_reads_back_into_torch_adam():
     for step in range(2):
         _grads(params, step)
         ours.step()
-    mirror = [nn.Parameter(p.detach().clone()) for p in params]
-    ref = torch.optim.Adam([{**g, "params": mirror[i:j]} for g, (i, j) in zip(groups, [(0, 1), (1, 2), (2, 5)])],
-                           eps=1e-15, foreach=False)
+    mirror, mirror_groups = _mirror(params, groups)
+    ref = torch.optim.Adam(mirror_groups, eps=1e-15, foreach=False)
     ref.load_state_dict(copy.deepcopy(ours.state_dict()))
     assert all(torch.is_tensor(s["step"]) and float(s["step"]) == 2.0 for s in ref.state.values())
-    _grads(params, 2)
-    _grads(mirror, 2)
-    ours.step()
-    ref.step()
-    for a, b in zip(params, mirror):
-        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
+    _steps_alike(params, ours, mirror, ref, [2])
 
 
 def test_adam_for_picks_by_device():
