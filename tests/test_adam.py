@@ -50,6 +50,14 @@ def _mirror(params, groups):
     return mirror, [{**g, "params": mirror[i:j]} for g, (i, j) in zip(groups, _SPANS)]
 
 
+def _stepped(opt, params, n):
+    """``opt`` after ``n`` steps on :func:`_grads`' gradients."""
+    for step in range(n):
+        _grads(params, step)
+        opt.step()
+    return opt
+
+
 def _steps_alike(params, opt, mirror, other, steps, tol=1e-12):
     """The same gradients to both, a step of each, and the parameters equal afterwards (to ``tol``)."""
     for step in steps:
@@ -86,10 +94,7 @@ def test_moves_the_parameters():
 def test_state_dict_round_trip_and_resume():
     """Three steps, a state dict, a fresh optimiser loading it, three more: the same as six in one go."""
     params, groups = _groups(torch.float64)
-    opt = GroupAdam(groups, eps=1e-15)
-    for step in range(3):
-        _grads(params, step)
-        opt.step()
+    opt = _stepped(GroupAdam(groups, eps=1e-15), params, 3)
     clone, groups2 = _mirror(params, groups)
     opt2 = GroupAdam(groups2, eps=1e-15)
     opt2.load_state_dict(copy.deepcopy(opt.state_dict()))
@@ -100,10 +105,7 @@ def test_reads_a_fused_adam_checkpoint():
     """A checkpoint written by torch's Adam (fused on the GPU: flags set, device step tensors) loads; its step counts
     come to the host and the run goes on as torch's Adam would."""
     params, groups = _groups(torch.float64)
-    ref = torch.optim.Adam(groups, eps=1e-15, foreach=False)
-    for step in range(2):
-        _grads(params, step)
-        ref.step()
+    ref = _stepped(torch.optim.Adam(groups, eps=1e-15, foreach=False), params, 2)
     saved = copy.deepcopy(ref.state_dict())
     for group in saved["param_groups"]:
         group["fused"] = True  # as a GPU run saved it
@@ -165,10 +167,7 @@ def test_state_dict_reads_back_into_torch_adam():
     """GroupAdam's state dict (host numbers for the step counts) loads into torch's Adam (the CPU's, e.g. a GPU run
     resumed on a CPU), which turns them into tensors, and both go on alike."""
     params, groups = _groups(torch.float64)
-    ours = GroupAdam(groups, eps=1e-15)
-    for step in range(2):
-        _grads(params, step)
-        ours.step()
+    ours = _stepped(GroupAdam(groups, eps=1e-15), params, 2)
     mirror, mirror_groups = _mirror(params, groups)
     ref = torch.optim.Adam(mirror_groups, eps=1e-15, foreach=False)
     ref.load_state_dict(copy.deepcopy(ours.state_dict()))
