@@ -138,12 +138,15 @@ def test_strategy_edit_follows():
 
 
 def test_refuses_what_it_lacks():
-    p = nn.Parameter(torch.randn(4))
-    opt = GroupAdam([p])
-    opt.param_groups[0]["weight_decay"] = 0.1
-    p.grad = torch.ones(4)
+    """Refused with one line, and before anything changes: the group before the refused one is not stepped."""
+    p, q = nn.Parameter(torch.randn(4)), nn.Parameter(torch.randn(4))
+    opt = GroupAdam([{"params": [p]}, {"params": [q]}])
+    opt.param_groups[1]["weight_decay"] = 0.1
+    p.grad, q.grad = torch.ones(4), torch.ones(4)
+    before = p.detach().clone()
     with pytest.raises(ValueError, match="weight decay"):
         opt.step()
+    assert torch.equal(p.detach(), before) and len(opt.state[p]) == 0
 
 
 def test_kernel_errors_are_one_line():

@@ -49,17 +49,19 @@ class GroupAdam(torch.optim.Adam):
         if closure is not None:
             with torch.enable_grad():
                 loss = closure()
-        batches: Dict[tuple, List[list]] = {}
+        # Everything refused before anything changes: a refusal leaves no group half stepped.
         for group in self.param_groups:
             if group["weight_decay"] or group["amsgrad"] or group["maximize"]:
                 raise ValueError("GroupAdam has no weight decay, AMSGrad or maximize: use torch.optim.Adam")
+            if any(p.grad is not None and (p.grad.is_sparse or p.is_complex()) for p in group["params"]):
+                raise ValueError("GroupAdam takes dense real gradients only")
+        batches: Dict[tuple, List[list]] = {}
+        for group in self.param_groups:
             beta1, beta2 = group["betas"]
             lr = float(group["lr"])
             for p in group["params"]:
                 if p.grad is None:
                     continue
-                if p.grad.is_sparse or p.is_complex():
-                    raise ValueError("GroupAdam takes dense real gradients only")
                 state = self.state[p]
                 if len(state) == 0:
                     state["step"] = 0.0
