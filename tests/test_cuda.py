@@ -35,7 +35,7 @@ SCENES = {
 }
 
 
-@pytest.mark.parametrize("C", [1, 2, 3, 6, 7, 33, 64])  # + depth: CMAX 2, 4, 4, 8, 8 (full), 64, 64
+@pytest.mark.parametrize("C", [1, 2, 3, 6, 7, 33, 64])  # + depth: CMAX 2, 3, 4, 8, 8 (full), 64, 64
 @pytest.mark.parametrize("scene", sorted(SCENES))
 def test_cuda_matches_cpu_float32(C, scene):
     args, cam = SCENES[scene](C)
