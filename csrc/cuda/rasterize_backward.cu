@@ -1,7 +1,6 @@
 // Back-to-front gradient of the compositing on the GPU: one block per tile, one thread per pixel, walking the
 // tile's Gaussians from the last contributor back and recovering T_i = T_{i+1} / (1 - α_i). Each Gaussian's
-// per-pixel gradients are summed across the warp with shuffles before one atomicAdd per warp and component; up to
-// 16 components (C ≤ 8) are folded together (warp_sum16) and stored by as many lanes at once.
+// per-pixel gradients are summed across the warp with shuffles before one atomicAdd per warp.
 #include "common.cuh"
 #include "rgs/kernels_cuda.h"
 #include "rgs/math.h"
@@ -105,48 +104,26 @@ rasterize_backward_kernel(int C, int width, int height, TileGrid grid,
                 pixel_alpha_vjp(pa, conic, o, v_alpha, v_xy, v_cn, v_o);
                 T_run = Ti;
             }
-            if constexpr (6 + CMAX <= 16) {
-                // The 6 + C sums folded together (16 shuffles), then one atomic from each of 6 + C lanes at once.
-                T v16[16];
-                v16[0] = v_xy[0];
-                v16[1] = v_xy[1];
-                v16[2] = v_cn[0];
-                v16[3] = v_cn[1];
-                v16[4] = v_cn[2];
-                v16[5] = v_o;
+            // Sum over the warp, then one atomic per component.
+            v_xy[0] = warp_sum(v_xy[0]);
+            v_xy[1] = warp_sum(v_xy[1]);
+            v_cn[0] = warp_sum(v_cn[0]);
+            v_cn[1] = warp_sum(v_cn[1]);
+            v_cn[2] = warp_sum(v_cn[2]);
+            v_o = warp_sum(v_o);
 #pragma unroll
-                for (int c = 0; c < 10; ++c) v16[6 + c] = c < CMAX ? v_col[c < CMAX ? c : 0] : T(0);
-                const T sum = warp_sum16(v16, lane);
-                const int slot = (lane >> 1) & 15;
-                if (!(lane & 1) && slot < 6 + C) {
-                    T* dst = slot < 2   ? v_means2d + 2 * g + slot
-                             : slot < 5 ? v_conics + 3 * g + (slot - 2)
-                             : slot < 6 ? v_opacities + g
-                                        : v_colors + int64_t(g) * C + (slot - 6);
-                    atomicAdd(dst, sum);
-                }
-            } else {
-                // Sum over the warp, then one atomic per component.
-                v_xy[0] = warp_sum(v_xy[0]);
-                v_xy[1] = warp_sum(v_xy[1]);
-                v_cn[0] = warp_sum(v_cn[0]);
-                v_cn[1] = warp_sum(v_cn[1]);
-                v_cn[2] = warp_sum(v_cn[2]);
-                v_o = warp_sum(v_o);
+            for (int c = 0; c < CMAX; ++c)
+                if (c < C) v_col[c] = warp_sum(v_col[c]);
+            if (lane == 0) {
+                atomicAdd(v_means2d + 2 * g, v_xy[0]);
+                atomicAdd(v_means2d + 2 * g + 1, v_xy[1]);
+                atomicAdd(v_conics + 3 * g, v_cn[0]);
+                atomicAdd(v_conics + 3 * g + 1, v_cn[1]);
+                atomicAdd(v_conics + 3 * g + 2, v_cn[2]);
+                atomicAdd(v_opacities + g, v_o);
 #pragma unroll
                 for (int c = 0; c < CMAX; ++c)
-                    if (c < C) v_col[c] = warp_sum(v_col[c]);
-                if (lane == 0) {
-                    atomicAdd(v_means2d + 2 * g, v_xy[0]);
-                    atomicAdd(v_means2d + 2 * g + 1, v_xy[1]);
-                    atomicAdd(v_conics + 3 * g, v_cn[0]);
-                    atomicAdd(v_conics + 3 * g + 1, v_cn[1]);
-                    atomicAdd(v_conics + 3 * g + 2, v_cn[2]);
-                    atomicAdd(v_opacities + g, v_o);
-#pragma unroll
-                    for (int c = 0; c < CMAX; ++c)
-                        if (c < C) atomicAdd(v_colors + int64_t(g) * C + c, v_col[c]);
-                }
+                    if (c < C) atomicAdd(v_colors + int64_t(g) * C + c, v_col[c]);
             }
         }
     }
