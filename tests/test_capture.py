@@ -13,7 +13,7 @@ import torch
 import yaml
 
 from retinexgs.config import FORMAT
-from retinexgs.data.capture import PHOTO, RAW, Capture, PhotoCapture, RawCapture, capture_of_files
+from retinexgs.data.capture import PHOTO, PHOTO_BLOTCH_MIN, RAW, Capture, PhotoCapture, RawCapture, capture_of_files
 from retinexgs.demo.synthetic import make_demo_scene
 from retinexgs.run.config import load_config
 from scenes import TINY_RUN, run_cli
@@ -57,6 +57,10 @@ def test_the_two_capture_kinds_answer_alike_what_callers_ask():
     assert PHOTO.linear_mode(cfg.loss) is None and RAW.linear_mode(cfg.loss) == "noise"
     assert RAW.linear_mode(load_config(["ablations/raw_photo"]).loss) is None  # raw compared as the photo shown
     assert (PHOTO.auto_denoise(), RAW.auto_denoise()) == ("none", "chroma")
+    # photos: the denoiser where their colour noise is blotchy (measured only when asked); raw: always
+    assert PHOTO.auto_denoise(lambda: 2 * PHOTO_BLOTCH_MIN) == "chroma"
+    assert PHOTO.auto_denoise(lambda: PHOTO_BLOTCH_MIN / 2) == "none"
+    assert RAW.auto_denoise(lambda: PHOTO_BLOTCH_MIN / 2) == "chroma"
     assert PHOTO.preview_denoise(cfg.decomposer) is False and RAW.preview_denoise(cfg.decomposer) is True
     assert RAW.preview_denoise(load_config(["paper"]).decomposer) is False
     assert (PHOTO.noise_downscale(2.0), RAW.noise_downscale(2.0)) == (1.0, 2.0)

@@ -235,27 +235,34 @@ def test_a_capture_whose_noise_cannot_be_measured_is_one_line(night, tmp_path, c
     assert len(lines) == 1 and "decomposer.denoise=nlm" in lines[0] and "could not be measured" in lines[0], err
 
 
-@pytest.mark.parametrize("kind,want", [("raw", "chroma"), ("jpeg", None)])
-def test_auto_denoises_a_raw_scene_and_leaves_photos_as_they_are(night, kind, want):
-    """decomposer.denoise=auto (the default): chroma on camera raw views (a measured noise model), nothing on photos,
-    with a one-line note where the photos are as noisy as a night capture (the camera JPEGs of this 2000 e- capture);
-    a raw scene with no flat area to measure on falls back to the noisy views instead of stopping."""
+@pytest.mark.parametrize("kind,blotch,want", [("raw", None, "chroma"), ("jpeg", 2.0, "chroma"), ("jpeg", 0.5, None)])
+def test_auto_denoises_raw_scenes_and_photos_with_blotchy_colour_noise(night, kind, blotch, want):
+    """decomposer.denoise=auto (the default): chroma on camera raw views (a measured noise model, the photos' blotches
+    not even read), and on photos whose previews' colour noise on 4×4-pixel averages is above PHOTO_BLOTCH_MIN
+    (said in one line), nothing on the others; a raw scene with no flat area to measure on falls back to the noisy
+    views instead of stopping."""
     from retinexgs.data import load_scene
+    from retinexgs.data.capture import PHOTO_BLOTCH_MIN
     from retinexgs.train import view_setup
 
     scene = load_scene(night / kind)
-    notes = []
-    spec = view_setup.denoise_spec(scene.train, load_config(), "cpu", note=notes.append)
+    notes, read = [], []
+
+    def blotches(paths, downscale=1.0):
+        read.append((len(paths), downscale))
+        return blotch * PHOTO_BLOTCH_MIN
+
+    with pytest.MonkeyPatch.context() as m:
+        m.setattr(view_setup, "previews_chroma_blotch", blotches)
+        spec = view_setup.denoise_spec(scene.train, load_config(overrides=["data.downscale=2"]), "cpu",
+                                       note=notes.append)
     assert (spec.method if spec is not None else None) == want
     if kind == "jpeg":
-        assert len(notes) == 1 and "--set decomposer.denoise=chroma" in notes[0] and "\n" not in notes[0]
-        quiet = []
-        with pytest.MonkeyPatch.context() as m:  # quieter photos: no note
-            m.setattr(view_setup, "previews_noise_sigma", lambda *a, **k: view_setup.AUTO_MIN_SIGMA / 2)
-            view_setup.denoise_spec(scene.train, load_config(), "cpu", note=quiet.append)
-        assert quiet == []
+        assert read == [(len(scene.train), 2.0)]  # the views' own photos, at training's size
+        assert len(notes) == (1 if want else 0)
+        assert all("decomposer.denoise=none" in n and "\n" not in n for n in notes)
     else:
-        assert notes == []
+        assert read == [] and notes == []
     if kind == "raw":
         import unittest.mock as mock
         from retinexgs.data import capture  # the raw capture measures its noise (retinexgs/data/capture.py)

@@ -310,3 +310,26 @@ def test_runs_recorded_before_sfm_denoise_read_none():
     assert kept["data"]["sfm_denoise"] == "nlm"
     new, _ = migrate_config({"format": FORMAT, "data": {"reader": "auto"}}, "new/config.yaml")
     assert new["data"]["sfm_denoise"] == "auto"
+
+
+def test_chroma_blotches_read_correlated_colour_noise_not_white_noise():
+    """bright_chroma_blotch (what decomposer.denoise: auto reads on photos): colour noise of one per-pixel σ reads
+    4× lower as white pixel noise than as 4×4-pixel blotches, across PHOTO_BLOTCH_MIN; luma noise alone reads
+    nothing; at data.downscale 2 the same blotches are 2×2 pixels of the view and read half as high."""
+    from retinexgs.data.capture import PHOTO_BLOTCH_MIN
+    from retinexgs.train.sfm_preview import bright_chroma_blotch
+
+    rng = np.random.default_rng(0)
+    h, w, s = 192, 256, 0.1
+    grey = np.full((h, w, 3), 0.5, np.float32)
+    white = grey + rng.normal(0, s, (h, w, 3)).astype(np.float32)
+    coarse = rng.normal(0, s, (h // 4, w // 4, 3)).astype(np.float32)
+    blotchy = grey + np.repeat(np.repeat(coarse, 4, axis=0), 4, axis=1)
+    luma_only = grey + np.repeat(np.repeat(coarse[..., :1], 4, axis=0), 4, axis=1)  # the same in every channel
+    b_white, b_blotchy = bright_chroma_blotch(white), bright_chroma_blotch(blotchy)
+    assert b_white < PHOTO_BLOTCH_MIN < b_blotchy
+    assert b_blotchy == pytest.approx(s, rel=0.15) and b_white == pytest.approx(s / 4, rel=0.15)
+    assert bright_chroma_blotch(luma_only) < 1e-6
+    assert bright_chroma_blotch(blotchy, downscale=2) == pytest.approx(b_blotchy / 2, rel=0.15)
+    as_uint8 = np.clip(np.round(blotchy * 255), 0, 255).astype(np.uint8)
+    assert bright_chroma_blotch(as_uint8) == pytest.approx(b_blotchy, rel=0.05)

@@ -18,6 +18,14 @@ from retinexgs.data.sensor import JpegCodec
 
 # the photo path's noise measurement (retinexgs.train.noise.measure_capture_noise), passed in: it lives in train/
 PhotoNoise = Callable[[Sequence[Path]], object]
+# the photos' colour blotches (retinexgs.train.sfm_preview.previews_chroma_blotch of the views' files), passed in
+ChromaBlotch = Callable[[], float]
+# ``decomposer.denoise: auto`` denoises photos whose brightened previews' colour noise on 4×4-pixel averages has a σ
+# above this (sRGB in [0, 1]): the simulated camera JPEGs of the raw ladder read 0.061-0.123 (1500-800 e-) and trained
+# +0.04 to +0.35 SSIM with the denoiser; the photo scenes it cost read 0.039 (the demo: white pixel noise, 4x less
+# in such averages) and 0.027 (strecha fountain-dark: -0.34 dB GT-mean, -0.020 SSIM over 3 seeds); LOM, fox-dark
+# and castlep30-dark 0.004-0.010 (experiments/notes/2026-11-29-photo-chroma-blotch.md).
+PHOTO_BLOTCH_MIN = 0.05
 
 
 class Capture:
@@ -60,8 +68,9 @@ class Capture:
         """The ``data.downscale`` still to apply to :meth:`noise`'s model (1 where it was measured at that size)."""
         raise NotImplementedError
 
-    def auto_denoise(self) -> str:
-        """The denoiser ``decomposer.denoise: auto`` means for this capture."""
+    def auto_denoise(self, blotch: Optional[ChromaBlotch] = None) -> str:
+        """The denoiser ``decomposer.denoise: auto`` means for this capture; ``blotch``: the photos' colour blotches,
+        measured when asked (a photo capture's choice depends on it; without it photos are left as they are)."""
         raise NotImplementedError
 
     def preview_denoise(self, dcfg: Decomposer) -> bool:
@@ -100,8 +109,10 @@ class PhotoCapture(Capture):
     def noise_downscale(self, downscale: float) -> float:
         return 1.0  # the photos' noise is measured at the training resolution
 
-    def auto_denoise(self) -> str:
-        return "none"  # not measured on photos yet
+    def auto_denoise(self, blotch: Optional[ChromaBlotch] = None) -> str:
+        # Colour noise correlated over several pixels survives both the Gaussians' spatial average and the views'
+        # average as blotches; white pixel noise does not, and the denoiser then costs detail (PHOTO_BLOTCH_MIN).
+        return "chroma" if blotch is not None and blotch() > PHOTO_BLOTCH_MIN else "none"
 
     def preview_denoise(self, dcfg: Decomposer) -> bool:
         return False
@@ -139,7 +150,7 @@ class RawCapture(Capture):
     def noise_downscale(self, downscale: float) -> float:
         return float(downscale)  # measured on the full-size files
 
-    def auto_denoise(self) -> str:
+    def auto_denoise(self, blotch: Optional[ChromaBlotch] = None) -> str:
         return "chroma"  # +0.02..+0.21 SSIM on the raw ladder at 1000 e- (issue 64)
 
     def preview_denoise(self, dcfg: Decomposer) -> bool:

@@ -11,13 +11,13 @@ import torch
 from retinexgs.data import Scene, View
 from retinexgs.errors import UserError
 from retinexgs.model.near_plane import MIN_POINTS, content_depth
-from retinexgs.data.capture import capture_of_files
+from retinexgs.data.capture import PHOTO_BLOTCH_MIN, capture_of_files
 from retinexgs.retinex.cache import entry_dir, iter_decompositions, produced_ahead, scene_cache_root
 from retinexgs.retinex.denoise import DenoiseSpec, NoiseModel, noise_model
 from retinexgs.run.render import view_camera
 from retinexgs.config.schema import Config
 from retinexgs.train.noise import measure_capture_noise
-from retinexgs.train.sfm_preview import AUTO_MIN_SIGMA, previews_noise_sigma
+from retinexgs.train.sfm_preview import previews_chroma_blotch
 from retinexgs.train.streamed_views import StreamedViews
 from retinexgs.train.view_store import (ViewStore, check_store_space, store_fingerprint, store_path, store_tag,
                                         store_size_estimate)
@@ -31,12 +31,10 @@ def scene_extent(scene: Scene) -> float:
     return float(1.1 * (centers - centers.mean(0)).norm(dim=-1).max().clamp_min(1e-3))
 
 
-# The note that suggests the denoiser for photos as noisy as a night capture: their brightened previews' σ above SfM's
-# gate (AUTO_MIN_SIGMA). Not applied by itself: the ladder's camera JPEGs at 1000 e- (σ 0.12-0.16) gained +0.12 to +0.34
-# SSIM with it, but the demo scene (σ 0.115) lost 0.3 dB and 0.023 SSIM (experiments/notes/2026-11-29-night-ladder-gpu.md).
-NIGHT_PHOTO_NOTE = ("note: these photos are as noisy as a night capture (previews' noise σ {sigma:.3f} > {gate:g}): "
-                    "--set decomposer.denoise=chroma decomposes them after a denoiser (night JPEGs: +0.12 to +0.34 "
-                    "SSIM, docs/benchmarks.md)")
+# The line that says photos go through the denoiser by ``auto`` (PhotoCapture.auto_denoise: blotchy colour noise).
+BLOTCH_NOTE = ("note: these photos' colour noise is blotchy (σ {blotch:.3f} on 4x4-pixel averages > {gate:g}): they are "
+               "decomposed after the chroma denoiser (night camera JPEGs: +0.04 to +0.35 SSIM; "
+               "--set decomposer.denoise=none turns it off)")
 
 
 def denoise_spec(views: List[View], cfg: Config, device: str,
@@ -45,17 +43,21 @@ def denoise_spec(views: List[View], cfg: Config, device: str,
     the light of the images decomposed, as training measures it: a raw scene's :class:`RawNoise` (DNG NoiseProfile
     or the mosaic's estimate), a photo scene's :class:`CaptureNoise` (already at the training resolution);
     ``data.downscale`` and the white balance applied. UserError (one line) when it cannot be measured. ``note``:
-    where ``auto`` leaves photos as they are, it is told (one line) when they are as noisy as a night capture."""
+    where ``auto`` denoises photos (their colour noise is blotchy), it is told so (one line)."""
     capture = capture_of_files([v.user_path for v in views])
     method = auto = cfg.decomposer.denoise
     sources = [v.source_path if v.source_path is not None and Path(v.source_path).is_file() else v.image_path
                for v in views]
-    if auto == "auto":  # the capture's choice (raw: chroma; photos: none, see NIGHT_PHOTO_NOTE)
-        method = capture.auto_denoise()
-        if method == "none" and note is not None and sources:
-            sigma = previews_noise_sigma(sources, raw=False)
-            if sigma > AUTO_MIN_SIGMA:
-                note(NIGHT_PHOTO_NOTE.format(sigma=sigma, gate=AUTO_MIN_SIGMA))
+    if auto == "auto":  # the capture's choice (raw: chroma; photos: chroma where their colour noise is blotchy)
+        measured: List[float] = []
+
+        def blotch() -> float:
+            measured.append(previews_chroma_blotch(sources, float(cfg.data.downscale)) if sources else 0.0)
+            return measured[-1]
+
+        method = capture.auto_denoise(blotch)
+        if method != "none" and measured and note is not None:
+            note(BLOTCH_NOTE.format(blotch=measured[-1], gate=PHOTO_BLOTCH_MIN))
     if method == "none" or not views:
         return None
     noise = _measured_noise(views, cfg, device)
