@@ -315,12 +315,13 @@ def test_runs_recorded_before_sfm_denoise_read_none():
 def test_chroma_blotches_read_correlated_colour_noise_not_white_noise():
     """bright_chroma_blotch (what decomposer.denoise: auto reads on photos): colour noise of one per-pixel σ reads
     4× lower as white pixel noise than as 4×4-pixel blotches, across PHOTO_BLOTCH_MIN; luma noise alone reads
-    nothing; at data.downscale 2 the same blotches are 2×2 pixels of the view and read half as high."""
+    nothing; at data.downscale 2 the same blotches are 2×2 pixels of the view and read half as high; a view smaller
+    than BLOTCH_MIN_SIDE is not read (its texture cannot be told from noise)."""
     from retinexgs.data.capture import PHOTO_BLOTCH_MIN
-    from retinexgs.train.sfm_preview import bright_chroma_blotch
+    from retinexgs.train.sfm_preview import BLOTCH_MIN_SIDE, bright_chroma_blotch
 
     rng = np.random.default_rng(0)
-    h, w, s = 192, 256, 0.1
+    h, w, s = 2 * BLOTCH_MIN_SIDE, 2 * BLOTCH_MIN_SIDE + 64, 0.1
     grey = np.full((h, w, 3), 0.5, np.float32)
     white = grey + rng.normal(0, s, (h, w, 3)).astype(np.float32)
     coarse = rng.normal(0, s, (h // 4, w // 4, 3)).astype(np.float32)
@@ -331,5 +332,7 @@ def test_chroma_blotches_read_correlated_colour_noise_not_white_noise():
     assert b_blotchy == pytest.approx(s, rel=0.15) and b_white == pytest.approx(s / 4, rel=0.15)
     assert bright_chroma_blotch(luma_only) < 1e-6
     assert bright_chroma_blotch(blotchy, downscale=2) == pytest.approx(b_blotchy / 2, rel=0.15)
+    assert bright_chroma_blotch(blotchy, downscale=3) == 0.0  # 170 px of view: too small to read
+    assert bright_chroma_blotch(blotchy[:BLOTCH_MIN_SIDE - 1]) == 0.0
     as_uint8 = np.clip(np.round(blotchy * 255), 0, 255).astype(np.uint8)
     assert bright_chroma_blotch(as_uint8) == pytest.approx(b_blotchy, rel=0.05)
