@@ -48,16 +48,13 @@ def denoise_spec(views: List[View], cfg: Config, device: str,
     method = auto = cfg.decomposer.denoise
     sources = [v.source_path if v.source_path is not None and Path(v.source_path).is_file() else v.image_path
                for v in views]
+    measured: List[float] = []  # the photos' blotches, where auto read them
     if auto == "auto":  # the capture's choice (raw: chroma; photos: chroma where their colour noise is blotchy)
-        measured: List[float] = []
-
         def blotch() -> float:
             measured.append(previews_chroma_blotch(sources, float(cfg.data.downscale)) if sources else 0.0)
             return measured[-1]
 
         method = capture.auto_denoise(blotch)
-        if method != "none" and measured and note is not None:
-            note(BLOTCH_NOTE.format(blotch=measured[-1], gate=PHOTO_BLOTCH_MIN))
     if method == "none" or not views:
         return None
     noise = _measured_noise(views, cfg, device)
@@ -69,6 +66,8 @@ def denoise_spec(views: List[View], cfg: Config, device: str,
         model = None
     if model is None and auto == "auto":  # nothing flat to measure the noise on (or no shot noise read): as before
         return None
+    if auto == "auto" and measured and note is not None:  # photos denoised by auto's own reading: said once
+        note(BLOTCH_NOTE.format(blotch=measured[-1], gate=PHOTO_BLOTCH_MIN))
     if model is None:
         raise UserError(f"decomposer.denoise={method}: the views' noise could not be measured (no flat area in any "
                         "view): set decomposer.denoise=none")
