@@ -318,7 +318,7 @@ def test_chroma_blotches_read_correlated_colour_noise_not_white_noise():
     nothing; at data.downscale 2 the same blotches are 2×2 pixels of the view and read half as high; a view smaller
     than BLOTCH_MIN_SIDE is not read (its texture cannot be told from noise)."""
     from retinexgs.data.capture import PHOTO_BLOTCH_MIN
-    from retinexgs.train.sfm_preview import BLOTCH_MIN_SIDE, bright_chroma_blotch
+    from retinexgs.train.colour_blotches import BLOTCH_MIN_SIDE, bright_chroma_blotch
 
     rng = np.random.default_rng(0)
     h, w, s = 2 * BLOTCH_MIN_SIDE, 2 * BLOTCH_MIN_SIDE + 64, 0.1

@@ -18,12 +18,12 @@ from retinexgs.data.sensor import JpegCodec
 
 # the photo path's noise measurement (retinexgs.train.noise.measure_capture_noise), passed in: it lives in train/
 PhotoNoise = Callable[[Sequence[Path]], object]
-# the photos' colour blotches (retinexgs.train.sfm_preview.previews_chroma_blotch of the views' files), passed in
+# the photos' colour blotches (retinexgs.train.colour_blotches.previews_chroma_blotch of the views' files), passed in
 ChromaBlotch = Callable[[], float]
 # ``decomposer.denoise: auto`` denoises photos whose brightened previews' colour noise on 4×4-pixel averages has a σ
 # above this (sRGB in [0, 1]): the simulated camera JPEGs of the raw ladder read 0.061-0.123 (1500-800 e-) and trained
 # +0.04 to +0.35 SSIM with the denoiser; the photo scenes it cost read 0.039 (the demo: white pixel noise, 4x less in
-# such averages; its 72 px views are also below what is read at all, sfm_preview.BLOTCH_MIN_SIDE) and 0.027 (strecha
+# such averages; its 72 px views are also below what is read at all, colour_blotches.BLOTCH_MIN_SIDE) and 0.027 (strecha
 # fountain-dark: -0.34 dB GT-mean, -0.020 SSIM over 3 seeds); LOM, fox-dark and castlep30-dark 0.004-0.010
 # (experiments/notes/2026-11-29-photo-chroma-blotch.md).
 PHOTO_BLOTCH_MIN = 0.05

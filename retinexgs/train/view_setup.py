@@ -17,7 +17,7 @@ from retinexgs.retinex.denoise import DenoiseSpec, NoiseModel, noise_model
 from retinexgs.run.render import view_camera
 from retinexgs.config.schema import Config
 from retinexgs.train.noise import measure_capture_noise
-from retinexgs.train.sfm_preview import previews_chroma_blotch
+from retinexgs.train.colour_blotches import previews_chroma_blotch
 from retinexgs.train.streamed_views import StreamedViews
 from retinexgs.train.view_store import (ViewStore, check_store_space, store_fingerprint, store_path, store_tag,
                                         store_size_estimate)
