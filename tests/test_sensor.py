@@ -116,6 +116,9 @@ def test_noise_command_prints_the_estimate(tmp_path, capsys):
     # the demo's noise reaches SSIM's constant: training caps the exposed SSIM's gain (train/noise.py)
     assert "training (loss.rec_noise_floor): the exposed SSIM's gain is capped at" in out
     assert "loss.rec_noise_share 0.5;" in out  # the default config's share
+    # 96x72 photos are too small to tell colour blotches from texture: decomposed as they are
+    assert "training (decomposer.denoise: auto): photos under 256 px are not read" in out
+    assert "decomposed as they are" in out
 
 
 def _printed_cap(out):

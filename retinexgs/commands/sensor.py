@@ -140,7 +140,22 @@ def _noise(args: argparse.Namespace) -> int:
              else "measured as they are (not JPEG)"))
     _print_model(cap.a, cap.b, photos[len(photos) // 2], lift_b=cap.at_capture()[1])
     _print_cap(cap.gain_cap(limit), limit, share)
+    _print_blotches(photos)
     return 0
+
+
+def _print_blotches(photos) -> None:
+    """What ``decomposer.denoise: auto`` reads on these photos and decides (PhotoCapture.auto_denoise)."""
+    from retinexgs.data.capture import PHOTO, PHOTO_BLOTCH_MIN  # lazy: --help stays fast
+    from retinexgs.train.colour_blotches import BLOTCH_MIN_SIDE, previews_chroma_blotch  # lazy (torch)
+
+    blotch = previews_chroma_blotch(photos)
+    chosen = PHOTO.auto_denoise(lambda: blotch)
+    how = ("decomposed after the chroma denoiser" if chosen != "none" else "decomposed as they are")
+    print("  training (decomposer.denoise: auto): " + (
+        f"photos under {BLOTCH_MIN_SIDE} px are not read for colour blotches, {how}" if blotch == 0.0 else
+        f"colour noise σ {blotch:.3f} on 4x4-pixel averages ({'above' if chosen != 'none' else 'at most'} "
+        f"{PHOTO_BLOTCH_MIN:g}): {how}") + " (at full resolution)")
 
 
 def _print_model(a, b, median_photo: Path, lift_b=None) -> None:
