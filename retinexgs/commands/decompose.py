@@ -129,7 +129,8 @@ def run(args: argparse.Namespace) -> int:
     if train_views is not None:  # the denoiser train reads the views through (decomposer.denoise), keying its entries
         from retinexgs.train.view_setup import denoise_spec
 
-        denoise = denoise_spec(train_views, cfg, str(resolve_device(args.device)))
+        denoise = denoise_spec(train_views, cfg, str(resolve_device(args.device)),
+                               note=lambda line: print(line, file=sys.stderr))  # auto's choice on photos, as train says it
     _, report = decompose_images(paths, dcfg.method, dict(dcfg.params) or None, cache_root,
                                  args.device, keep=False, preview=args.preview, progress=not args.quiet,
                                  cache_hint=hint, sweep=True, announce=False, raw_denoise=dcfg.raw.preview_denoise,
