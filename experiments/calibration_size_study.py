@@ -19,7 +19,7 @@ import torch.nn.functional as F
 
 from retinexgs.data.images import read_image_float
 from retinexgs.data.srgb import srgb_to_linear
-from retinexgs.retinex.denoise import _YCC, _measured_sigma, gat_forward
+from retinexgs.retinex.denoise import YCC, _measured_sigma, gat_forward
 
 
 def median_sigma(x: torch.Tensor, scale: int = 4) -> float:
@@ -68,8 +68,8 @@ def main() -> None:
                 noisy = small + torch.randn(small.shape, generator=g, dtype=torch.float64) * (
                     args.a * small.clamp_min(0) + args.b).sqrt()
                 d = gat_forward(noisy, a, b)
-                ycc = torch.einsum("ij,hwj->ihw", _YCC.to(d), d)
-                clean = torch.einsum("ij,hwj->ihw", _YCC.to(d), gat_forward(small, a, b))
+                ycc = torch.einsum("ij,hwj->ihw", YCC.to(d), d)
+                clean = torch.einsum("ij,hwj->ihw", YCC.to(d), gat_forward(small, a, b))
                 rows.append([_measured_sigma(c) for c in ycc] + [_measured_sigma(c) for c in clean]
                             + [median_sigma(c) for c in ycc] + [median_sigma(c) for c in clean]
                             + [pca_sigma(c) for c in ycc] + [pca_sigma(c) for c in clean])

@@ -45,7 +45,7 @@ DENOISED_DIRNAME = "denoised"
 
 # Orthonormal luma/chroma basis of the stabilised RGB: rows (R+G+B)/√3, (R−B)/√2, (R−2G+B)/√6. Orthonormal, so each
 # output keeps unit noise variance when the channels' noise is independent and of unit variance (after the GAT).
-_YCC = torch.tensor([[1 / math.sqrt(3), 1 / math.sqrt(3), 1 / math.sqrt(3)],
+YCC = torch.tensor([[1 / math.sqrt(3), 1 / math.sqrt(3), 1 / math.sqrt(3)],
                      [1 / math.sqrt(2), 0.0, -1 / math.sqrt(2)],
                      [1 / math.sqrt(6), -2 / math.sqrt(6), 1 / math.sqrt(6)]], dtype=torch.float64)
 
@@ -324,9 +324,9 @@ def denoise_linear(lin: torch.Tensor, noise: NoiseModel, method: str, params: Op
     p = params or DenoiseParams()
     x = lin.to(dev).double()
     d = gat_forward(x, noise.a, noise.b)                       # unit noise per channel
-    ycc = torch.einsum("ij,hwj->ihw", _YCC.to(d.device), d)    # [3,H,W]: luma, two chroma, unit noise each
+    ycc = torch.einsum("ij,hwj->ihw", YCC.to(d.device), d)    # [3,H,W]: luma, two chroma, unit noise each
     out_ycc = _filter(ycc, method, p, 1.0, impl)
-    out = torch.einsum("ij,ihw->hwj", _YCC.to(d.device), out_ycc)  # orthonormal: its inverse is its transpose
+    out = torch.einsum("ij,ihw->hwj", YCC.to(d.device), out_ycc)  # orthonormal: its inverse is its transpose
     return gat_inverse(out, noise.a, noise.b).to(lin.dtype)
 
 
@@ -378,7 +378,7 @@ def pilot_wiener(lin: torch.Tensor, pilot: torch.Tensor, noise: NoiseModel, bloc
     if block < 2 or block % 2:
         raise UserError(f"pilot_wiener's block must be an even number >= 2, got {block}")
     a, b = noise.a, noise.b
-    ycc = _YCC.to(lin.device)
+    ycc = YCC.to(lin.device)
 
     def stabilised(x: torch.Tensor) -> torch.Tensor:  # [3,H,W] unit-noise luma/chroma
         return torch.einsum("ij,hwj->ihw", ycc, gat_forward(x.double(), a, b))

@@ -15,12 +15,13 @@ from pathlib import Path
 from typing import Sequence
 
 import numpy as np
+import torch
 
-PROBE_PHOTOS = 5  # photos read, spread evenly over the set
+from retinexgs.retinex.denoise import YCC, measured_sigma
+from retinexgs.train.sfm_preview import PROBE_PHOTOS, probed
 
-# The opponent chroma of sRGB: (R − B)/√2 and (R − 2G + B)/√6 (orthonormal, so white noise keeps its σ).
-_CHROMA = np.array([[1 / np.sqrt(2), 0.0, -1 / np.sqrt(2)], [1 / np.sqrt(6), -2 / np.sqrt(6), 1 / np.sqrt(6)]],
-                   np.float32)
+# The opponent chroma the denoiser filters, (R − B)/√2 and (R − 2G + B)/√6 (orthonormal: white noise keeps its σ).
+_CHROMA = YCC[1:].numpy().astype(np.float32)
 BLOTCH_SCALE = 4  # pixels a side of the averages the colour blotches are read on
 # A view whose shorter side has fewer pixels than this is not read (blotches 0): its 4×4 averages are too few and too
 # coarse for the scene's texture to be told from noise (texture's share of the estimate grows as a photo shrinks:
@@ -34,10 +35,6 @@ def bright_chroma_blotch(rgb: np.ndarray, downscale: float = 1.0) -> float:
     component, their mean. White pixel noise falls 4× in such averages; colour noise correlated over several pixels
     (a night camera JPEG's blotches: the demosaicing and the colour matrix before the codec) stays. 0 for a view
     smaller than :data:`BLOTCH_MIN_SIDE` on its shorter side."""
-    import torch
-
-    from retinexgs.retinex.denoise import measured_sigma
-
     d = max(1, int(round(downscale)))
     if min(rgb.shape[:2]) < BLOTCH_MIN_SIDE * d:
         return 0.0
@@ -55,7 +52,7 @@ def previews_chroma_blotch(paths: Sequence[Path], downscale: float = 1.0, photos
     from retinexgs.data.enhance import auto_exposure
     from retinexgs.data.images import read_image
 
-    chosen = list(paths)[::max(1, len(paths) // photos)][:photos]
+    chosen = probed(paths, photos)
     if not chosen:
         return 0.0
     return float(np.median([bright_chroma_blotch(auto_exposure(read_image(p)), downscale) for p in chosen]))

@@ -109,10 +109,14 @@ def _bright_sigma(path: Path, raw: bool) -> float:
     return measured_sigma(torch.from_numpy(luma).double(), SIGMA_SCALE)
 
 
+def probed(paths: Sequence[Path], photos: int = PROBE_PHOTOS) -> List[Path]:
+    """Up to ``photos`` of ``paths``, spread evenly: the photos a capture-wide reading looks at."""
+    return list(paths)[::max(1, len(paths) // photos)][:photos]
+
+
 def previews_noise_sigma(paths: Sequence[Path], raw: bool, photos: int = PROBE_PHOTOS) -> float:
     """The median of :func:`_bright_sigma` over up to ``photos`` of ``paths``, spread evenly."""
-    chosen = list(paths)[::max(1, len(paths) // photos)][:photos]
-    return float(np.median([_bright_sigma(p, raw) for p in chosen]))
+    return float(np.median([_bright_sigma(p, raw) for p in probed(paths, photos)]))
 
 
 def sfm_preview_denoise(images: Union[str, Path], method: str = "auto", enhance: Union[str, bool] = "auto",
