@@ -3,6 +3,7 @@
 #include <ATen/Parallel.h>
 #include <torch/extension.h>
 
+#include <algorithm>
 #include <cstdio>
 #include <type_traits>
 #include <string>
@@ -756,6 +757,125 @@ std::tuple<Tensor, Tensor> tone_curve_backward(Tensor x, Tensor gain, Tensor gra
     return {grad_x, grad_k};
 }
 
+// The training loss's supervision, L_TV and depth prior in one pass each way (rgs/supervision.h). image [H, W, 6|8],
+// packed [H, W, 7|9] (8 and 9 together: the depth prior), one float dtype and device; the gains [1], noise a, b [3]
+// and confidence [H, W] optional, on that device. Returns (x9, y9 [9, H, W], partials [rows, kSums]).
+struct SupervisionInputs {
+    Tensor image, packed;
+    std::optional<Tensor> ssim_gain, lin_gain, noise_a, noise_b, conf;
+};
+
+template <typename T>
+rgs::SupervisionArgs<T> supervision_args(const SupervisionInputs& in, int rec_form, int s_form, double relative_eps,
+                                         double min_alpha, double depth_eps) {
+    auto ptr = [](const std::optional<Tensor>& t) { return t ? t->data_ptr<T>() : (const T*)nullptr; };
+    rgs::SupervisionArgs<T> a;
+    a.H = int(in.image.size(0)), a.W = int(in.image.size(1));
+    a.ci = int(in.image.size(2)), a.k = int(in.packed.size(2));
+    a.rec_form = rec_form, a.s_form = s_form;
+    a.ssim_gain = ptr(in.ssim_gain), a.lin_gain = ptr(in.lin_gain);
+    a.noise_a = ptr(in.noise_a), a.noise_b = ptr(in.noise_b), a.conf = ptr(in.conf);
+    a.relative_eps = T(relative_eps), a.min_alpha = T(min_alpha), a.depth_eps = T(depth_eps);
+    return a;
+}
+
+static SupervisionInputs check_supervision(Tensor image, Tensor packed, std::optional<Tensor> ssim_gain,
+                                           std::optional<Tensor> lin_gain, std::optional<Tensor> noise_a,
+                                           std::optional<Tensor> noise_b, std::optional<Tensor> conf, int rec_form,
+                                           int s_form) {
+    check_float(image, "image");
+    RGS_CHECK_VALUE(image.dim() == 3 && (image.size(2) == 6 || image.size(2) == 8),
+                    "image must be [H, W, 6] or [H, W, 8], got shape ", image.sizes());
+    const int64_t H = image.size(0), W = image.size(1);
+    const int64_t k = image.size(2) == 8 ? 9 : 7;
+    check_tensor(packed, "packed", {H, W, k}, image);
+    RGS_CHECK_VALUE(rec_form >= rgs::kRecPlain && rec_form <= rgs::kRecRelative, "rec_form must be 0-3, got ", rec_form);
+    RGS_CHECK_VALUE(s_form == rgs::kOpen || s_form == rgs::kExtended, "s_form must be 1 (open) or 2 (extended), got ",
+                    s_form);
+    RGS_CHECK_VALUE(rec_form == rgs::kRecPlain || lin_gain, "rec_form ", rec_form, " needs lin_gain");
+    RGS_CHECK_VALUE(rec_form != rgs::kRecNoise || (noise_a && noise_b), "rec_form 2 (noise) needs noise_a and noise_b");
+    SupervisionInputs in{image.contiguous(), packed.contiguous(), ssim_gain, lin_gain, noise_a, noise_b, conf};
+    for (auto [t, name, n] : {std::tuple<std::optional<Tensor>*, const char*, int64_t>{&in.ssim_gain, "ssim_gain", 1},
+                              {&in.lin_gain, "lin_gain", 1}, {&in.noise_a, "noise_a", 3}, {&in.noise_b, "noise_b", 3}}) {
+        if (*t) {
+            check_tensor(**t, name, {n}, image);
+            *t = (*t)->contiguous();
+        }
+    }
+    if (in.conf) {
+        check_tensor(*in.conf, "conf", {H, W}, image);
+        in.conf = in.conf->contiguous();
+    }
+    return in;
+}
+
+std::tuple<Tensor, Tensor, Tensor> supervision_forward(Tensor image, Tensor packed, std::optional<Tensor> ssim_gain,
+                                                       std::optional<Tensor> lin_gain, std::optional<Tensor> noise_a,
+                                                       std::optional<Tensor> noise_b, std::optional<Tensor> conf,
+                                                       int rec_form, int s_form, double relative_eps, double min_alpha,
+                                                       double depth_eps) {
+    const auto in = check_supervision(image, packed, ssim_gain, lin_gain, noise_a, noise_b, conf, rec_form, s_form);
+    const int64_t H = image.size(0), W = image.size(1);
+    Tensor x9 = torch::empty({9, H, W}, image.options());
+    Tensor y9 = torch::empty({9, H, W}, image.options());
+    Tensor partials;
+    RGS_DEVICE_GUARD(image);
+    AT_DISPATCH_FLOATING_TYPES(image.scalar_type(), "supervision_forward", [&] {
+        const auto a = supervision_args<scalar_t>(in, rec_form, s_form, relative_eps, min_alpha, depth_eps);
+        if (image.is_cuda()) {
+#ifdef RGS_WITH_CUDA
+            partials = torch::empty({rgs::supervision_rows_cuda(H * W), int64_t(rgs::kSums)}, image.options());
+            rgs::supervision_forward_cuda<scalar_t>(a, in.image.data_ptr<scalar_t>(), in.packed.data_ptr<scalar_t>(),
+                                                    x9.data_ptr<scalar_t>(), y9.data_ptr<scalar_t>(),
+                                                    partials.data_ptr<scalar_t>(), RGS_CUDA_STREAM(image));
+#else
+            no_cuda();
+#endif
+        } else {
+            const int rows = int(std::max<int64_t>(1, std::min<int64_t>(H * W / 4096, 256)));
+            partials = torch::empty({rows, int64_t(rgs::kSums)}, image.options());
+            rgs::supervision_forward_cpu<scalar_t>(a, in.image.data_ptr<scalar_t>(), in.packed.data_ptr<scalar_t>(),
+                                                   x9.data_ptr<scalar_t>(), y9.data_ptr<scalar_t>(),
+                                                   partials.data_ptr<scalar_t>(), rows, num_threads());
+        }
+    });
+    return {x9, y9, partials};
+}
+
+Tensor supervision_backward(Tensor image, Tensor packed, std::optional<Tensor> ssim_gain, std::optional<Tensor> lin_gain,
+                            std::optional<Tensor> noise_a, std::optional<Tensor> noise_b, std::optional<Tensor> conf,
+                            std::optional<Tensor> g_x9, Tensor g_sums, int rec_form, int s_form, double relative_eps,
+                            double min_alpha, double depth_eps) {
+    const auto in = check_supervision(image, packed, ssim_gain, lin_gain, noise_a, noise_b, conf, rec_form, s_form);
+    const int64_t H = image.size(0), W = image.size(1);
+    check_tensor(g_sums, "g_sums", {int64_t(rgs::kSums)}, image);
+    g_sums = g_sums.contiguous();
+    if (g_x9) {
+        check_tensor(*g_x9, "g_x9", {9, H, W}, image);
+        g_x9 = g_x9->contiguous();
+    }
+    Tensor grad = torch::empty_like(in.image);
+    RGS_DEVICE_GUARD(image);
+    AT_DISPATCH_FLOATING_TYPES(image.scalar_type(), "supervision_backward", [&] {
+        const auto a = supervision_args<scalar_t>(in, rec_form, s_form, relative_eps, min_alpha, depth_eps);
+        const scalar_t* gx = g_x9 ? g_x9->data_ptr<scalar_t>() : nullptr;
+        if (image.is_cuda()) {
+#ifdef RGS_WITH_CUDA
+            rgs::supervision_backward_cuda<scalar_t>(a, in.image.data_ptr<scalar_t>(), in.packed.data_ptr<scalar_t>(),
+                                                     gx, g_sums.data_ptr<scalar_t>(), grad.data_ptr<scalar_t>(),
+                                                     RGS_CUDA_STREAM(image));
+#else
+            no_cuda();
+#endif
+        } else {
+            rgs::supervision_backward_cpu<scalar_t>(a, in.image.data_ptr<scalar_t>(), in.packed.data_ptr<scalar_t>(), gx,
+                                                    g_sums.data_ptr<scalar_t>(), grad.data_ptr<scalar_t>(),
+                                                    num_threads());
+        }
+    });
+    return grad;
+}
+
 // Densification's screen-space statistics of one view, added in place (rgs/screen_stats.h): grad2d [N, 2] the
 // projected centres' pixel gradients (float32/64), radii [N, 2] int32, (sx, sy) = (W / 2, H / 2); grad_accum,
 // count, max_radius: [N] float32, contiguous, on grad2d's device.
@@ -913,6 +1033,15 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
           pybind11::arg("c1"), pybind11::arg("c2"), pybind11::arg("partials"));
     m.def("ssim_backward", &ssim_backward, pybind11::arg("grad"), pybind11::arg("x"), pybind11::arg("y"),
           pybind11::arg("partials"), pybind11::arg("window"));
+    m.def("supervision_forward", &supervision_forward, pybind11::arg("image"), pybind11::arg("packed"),
+          pybind11::arg("ssim_gain"), pybind11::arg("lin_gain"), pybind11::arg("noise_a"), pybind11::arg("noise_b"),
+          pybind11::arg("conf"), pybind11::arg("rec_form"), pybind11::arg("s_form"), pybind11::arg("relative_eps"),
+          pybind11::arg("min_alpha"), pybind11::arg("depth_eps"));
+    m.def("supervision_backward", &supervision_backward, pybind11::arg("image"), pybind11::arg("packed"),
+          pybind11::arg("ssim_gain"), pybind11::arg("lin_gain"), pybind11::arg("noise_a"), pybind11::arg("noise_b"),
+          pybind11::arg("conf"), pybind11::arg("g_x9"), pybind11::arg("g_sums"), pybind11::arg("rec_form"),
+          pybind11::arg("s_form"), pybind11::arg("relative_eps"), pybind11::arg("min_alpha"),
+          pybind11::arg("depth_eps"));
     m.attr("max_illum_width") = rgs::kMaxIllumWidth;
     m.attr("max_illum_freqs") = rgs::kMaxIllumFreqs;
     m.def("set_num_threads", [](int n) { g_num_threads = n; },

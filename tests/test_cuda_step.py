@@ -122,6 +122,22 @@ def test_graphed_path_matches_eager_on_cpu(scene_dir, tmp_path, name, one_thread
     assert len(tr.graphs) == 0  # nothing captured on the CPU
 
 
+@pytest.mark.parametrize("name,fuses", [("default", True), ("paper", True), ("ablations/rec_exposed", True),
+                                        ("ablations/rec_photo", True), ("ablations/no_depth", True),
+                                        ("ablations/no_priors", False)])
+def test_fused_supervision_matches_eager_on_cpu(scene_dir, tmp_path, name, fuses, one_thread, monkeypatch):
+    """The graphed loss through the fused supervision pass (what the GPU runs: retinexgs/train/fused_loss.py, forced
+    here with the CPU kernel) against the eager torch step: the same terms, in the log's order, and gradients."""
+    from retinexgs.model.tones import fused_curve
+    from retinexgs.train import fused_loss
+    monkeypatch.setattr(fused_curve, "runs_fused", lambda x: True)
+    calls = []
+    real = fused_loss.supervision_terms
+    monkeypatch.setattr(fused_loss, "supervision_terms", lambda *a, **k: calls.append(1) or real(*a, **k))
+    check_config(scene_dir, tmp_path, name, "cpu", emulate=True)
+    assert bool(calls) == fuses
+
+
 def test_graphed_training_loop_matches_eager_on_cpu(scene_dir, tmp_path, one_thread):
     """The whole loop (checks every few steps, densification, the enhancement switch, the SH degree growing)
     through the graphed path's plumbing ends where the eager loop ends, to accumulation-order noise."""

@@ -22,7 +22,8 @@ from retinexgs.model.schedule import Schedule
 from retinexgs.model.tones.exposure import reference_gain
 from retinexgs.config.schema import Config, Loss
 from retinexgs.strategy import Strategy
-from retinexgs.train import losses
+from retinexgs.model.tones import fused_curve
+from retinexgs.train import fused_loss, losses
 from retinexgs.train.capture_setup import NoiseSetUp
 from retinexgs.train.graphs import LossGraphs
 from retinexgs.train.losses import to_bchw
@@ -213,6 +214,23 @@ class RetinexObjective(PlainObjective):
         cap = self.noise.rec_gain_cap
         return gain if cap is None else torch.minimum(gain, cap)
 
+    def _rec_targets(self) -> Tuple[Optional[Tensor], Optional[losses.LinearTarget]]:
+        """(the reconstruction's gain, a raw scene's linear target at the scene's own exposure, or None)."""
+        linear = self.noise.linear_target
+        if linear is not None:  # at the scene's own exposure, not the noise floor's cap (LinearTarget)
+            linear = linear._replace(gain=reference_gain(self.model.illum_ref))
+        return self.rec_gain(), linear
+
+    def _add_enhancement(self, total: Tensor, terms: Dict[str, Tensor], image: Tensor, S_b: Tensor) -> Tensor:
+        """``total`` + L_enhance of the render ``image`` [H,W,6+] against the view ``S_b`` [1,3,H,W] (its terms into
+        ``terms``)."""
+        R_img, L_img = image.split(3, dim=-1)[:2]
+        # loss.raw.spa photo: L_spa's input is a raw view as the photo it shows (its mean undragged by the noise)
+        S_spa = self.capture.spa_input(S_b, self.cfg.loss)
+        enh, enh_terms = enhancement_objective(self.model, self.cfg.loss, R_img, L_img, S_spa)
+        terms.update(enh_terms)
+        return total + enh
+
     def image_loss(self, image: Tensor, S: Tensor, R: Optional[Tensor], L: Optional[Tensor],
                    enhance: bool) -> Tuple[Tensor, Dict[str, Tensor]]:
         """All but L_SH; ``S`` is the low-light view, ``R``/``L`` its 2D priors or None; ``enhance``: the
@@ -220,14 +238,11 @@ class RetinexObjective(PlainObjective):
         c = self.cfg.loss
         R_img, L_img = image.split(3, dim=-1)[:2]  # (split: one concatenation backward, see graphed_loss)
         R_hat, L_hat, S_b = to_bchw(R_img), to_bchw(L_img), to_bchw(S)
-        linear = self.noise.linear_target
+        gain, linear = self._rec_targets()
         if linear is None:  # compared as photos (loss.raw.mode photo on a raw scene: the raw view clipped)
             S_b = self.capture.as_photo(S_b)
         terms: Dict[str, Tensor] = {}
-        gain = self.rec_gain()
         l1_exposed = c.rec_domain == "exposed"
-        if linear is not None:  # at the scene's own exposure, not the noise floor's cap (LinearTarget)
-            linear = linear._replace(gain=reference_gain(self.model.illum_ref))
         if R is not None:
             sup, sup_terms = losses.supervision_loss(R_hat, L_hat, to_bchw(R), to_bchw(L), S_b, c.w_r,
                                                      c.w_l, c.w_s, c.lambda_ssim, gain, l1_exposed, linear)
@@ -239,11 +254,28 @@ class RetinexObjective(PlainObjective):
         terms["tv"] = losses.tv_loss(R_hat)
         total = sup + c.w_tv * terms["tv"]
         if enhance:
-            # loss.raw.spa photo: L_spa's input is a raw view as the photo it shows (its mean undragged by the noise)
-            S_spa = self.capture.spa_input(S_b, c)
-            enh, enh_terms = enhancement_objective(self.model, c, R_img, L_img, S_spa)
-            terms.update(enh_terms)
-            total = total + enh
+            total = self._add_enhancement(total, terms, image, S_b)
+        return total, terms
+
+    def graphed_loss(self, image: Tensor, packed: Tensor, enhance: bool) -> Tuple[Tensor, Dict[str, Tensor]]:
+        """The captured loss; on the GPU its supervision, L_TV and depth prior as one kernel each way
+        (:mod:`retinexgs.train.fused_loss`, the same values as the torch terms) where the configuration allows."""
+        c = self.cfg.loss
+        gain, linear = self._rec_targets()
+        sup = None
+        if (fused_curve.runs_fused(image) and packed.shape[-1] in (7, 9) and image.shape[-1] == packed.shape[-1] - 1
+                and (linear is not None or not self.capture.unclipped)):  # as_photo is the identity on photos
+            sup = fused_loss.plan(gain, c.rec_domain == "exposed", linear, image)
+        if sup is None:
+            return super().graphed_loss(image, packed, enhance)
+        total, terms = fused_loss.supervision_terms(image, packed, sup, (c.w_r, c.w_l, c.w_s), c.lambda_ssim, linear)
+        depth = terms.pop("depth", None)
+        total = total + c.w_tv * terms["tv"]
+        if enhance:
+            total = self._add_enhancement(total, terms, image, to_bchw(packed[..., :3]))
+        if depth is not None:
+            terms["depth"] = depth
+            total = torch.add(total, depth, alpha=c.w_depth)
         return total, terms
 
     def sh_loss(self) -> Tensor:

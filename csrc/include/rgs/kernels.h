@@ -6,6 +6,7 @@
 #include <cstdint>
 
 #include "rgs/ssim.h"
+#include "rgs/supervision.h"
 #include "rgs/types.h"
 
 namespace rgs {
@@ -172,6 +173,18 @@ void tone_curve_forward_cpu(int64_t n, const T* x, const T* gain, int64_t C, int
 template <typename T>
 void tone_curve_backward_cpu(int64_t n, const T* x, const T* gain, int64_t C, int64_t inner, double knee, int form_in,
                              int form_out, const T* grad_out, T* grad_x, T* grad_k, int num_threads);
+
+// ---- the training loss's supervision, L_TV and depth prior (rgs/supervision.h) -------------------------------
+// x9, y9: [9, H, W] out (the SSIM's stacks); partials: [rows, kSums] out, row r the sums over pixels
+// [r·HW/rows, (r+1)·HW/rows) (the caller adds the rows).
+template <typename T>
+void supervision_forward_cpu(const SupervisionArgs<T>& a, const T* image, const T* packed, T* x9, T* y9, T* partials,
+                             int rows, int num_threads);
+
+// grad_image [H, W, ci] out, from g_x9 [9, H, W] (or null) and g_sums [kSums].
+template <typename T>
+void supervision_backward_cpu(const SupervisionArgs<T>& a, const T* image, const T* packed, const T* g_x9,
+                              const T* g_sums, T* grad_image, int num_threads);
 
 // ---- Adam's step (rgs/adam.h) -------------------------------------------------------------------------
 template <typename T>

@@ -7,6 +7,7 @@
 #include <cstdint>
 
 #include "rgs/ssim.h"
+#include "rgs/supervision.h"
 #include "rgs/types.h"
 
 namespace rgs {
@@ -105,6 +106,16 @@ void tone_curve_forward_cuda(int64_t n, const T* x, const T* gain, int64_t C, in
 template <typename T>
 void tone_curve_backward_cuda(int64_t n, const T* x, const T* gain, int64_t C, int64_t inner, double knee,
                               int form_in, int form_out, const T* grad_out, T* grad_x, T* grad_k, void* stream);
+
+// Same as supervision_forward_cpu / supervision_backward_cpu: one thread per pixel; the forward's partials have
+// supervision_rows_cuda(H·W) rows, one a block. Gains, noise and confidence in device memory.
+int supervision_rows_cuda(int64_t pixels);
+template <typename T>
+void supervision_forward_cuda(const SupervisionArgs<T>& a, const T* image, const T* packed, T* x9, T* y9, T* partials,
+                              void* stream);
+template <typename T>
+void supervision_backward_cuda(const SupervisionArgs<T>& a, const T* image, const T* packed, const T* g_x9,
+                               const T* g_sums, T* grad_image, void* stream);
 
 // Same as adam_step_cpu: kAdamBatch tensors a launch, one thread per element.
 template <typename T>

@@ -1,0 +1,134 @@
+"""RetinexGS's per-pixel image losses as one kernel each way (``csrc/include/rgs/supervision.h``, issue 65): the
+2D priors' supervision and the reconstruction of Eq. 4 (its L1 parts; the SSIM parts on the fused SSIM), L_TV
+(Eq. 5) and the depth prior's smoothness, from the loss graph's inputs as they are: the render [H,W,6|8] and the
+view's packed targets [H,W,7|9].
+
+In torch these terms are ~200 small kernels a step inside the loss graph that move ~2.5 kB a pixel (the CPU census
+of ``scripts/profiling.py ops --traffic``): each costs its launch at 360×640 and its bytes at 12 MP. The values are
+those of :func:`retinexgs.train.losses.supervision_loss`, :func:`~retinexgs.train.losses.tv_loss` and
+:func:`~retinexgs.train.losses.depth_smoothness_loss`, their pure-torch twins, which the tests hold it to (values and
+gradients, float64); :func:`supported` says which configurations it covers, the rest take the twins.
+"""
+from __future__ import annotations
+
+from typing import Dict, NamedTuple, Optional, Tuple
+
+import torch
+from torch import Tensor
+from torch.autograd.function import once_differentiable
+
+from retinexgs.evaluate.metrics import cached_constant, gaussian_window
+from retinexgs.render._backend import kernels
+from retinexgs.model.tones.fused_curve import FORMS
+from retinexgs.train.losses import (RELATIVE_EPS, SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW, LinearTarget,
+                                    prior_confidence, to_bchw)
+from retinexgs.render.ssim import fused_ssim_map
+
+__all__ = ["Supervision", "plan", "supervision_terms", "REC_FORMS"]
+
+# rgs::RecForm and rgs::SupervisionSum
+REC_FORMS = {"plain": 0, "exposed": 1, "noise": 2, "relative": 3}
+(SUM_R, SUM_L, SUM_REC, SUM_W, SUM_TVX, SUM_TVY, SUM_DISP, SUM_COV, SUM_DX, SUM_MX, SUM_DY, SUM_MY) = range(12)
+MIN_ALPHA, DEPTH_EPS = 0.5, 1e-6  # depth_smoothness_loss's defaults
+
+
+class Supervision(NamedTuple):
+    """What the pass computes, besides the render and the targets: ``rec_form`` (REC_FORMS), ``ssim_gain`` (the SSIM
+    pair's exposure, a [1] tensor, or None: R̂∘L̂ and S as they are), ``lin_gain`` (the exposed L1's or the linear
+    term's gain), a raw view's noise ``a``, ``b`` ([3]), ``extended`` (S is a raw view's unclipped encoding)."""
+    rec_form: int
+    ssim_gain: Optional[Tensor] = None
+    lin_gain: Optional[Tensor] = None
+    a: Optional[Tensor] = None
+    b: Optional[Tensor] = None
+    extended: bool = False
+
+
+def _three(t: Tensor, like: Tensor) -> Tensor:
+    """A per-channel noise coefficient ([1,3,1,1] or one value) as [3] in ``like``'s dtype."""
+    return torch.broadcast_to(t.reshape(-1), (3,)).to(like.dtype).contiguous()
+
+
+def plan(rec_gain: Optional[Tensor], l1_exposed: bool, linear: Optional[LinearTarget], like: Tensor
+         ) -> Optional[Supervision]:
+    """The pass's :class:`Supervision` for :func:`retinexgs.train.losses.supervision_loss`'s options (``rec_gain``,
+    ``rec_l1_exposed``, ``linear``) on a render like ``like``, or None where the pass does not cover them: a linear
+    term of unit ``sigma``, or a gain that needs a gradient (the twins run then)."""
+    gains = [t for t in (rec_gain, None if linear is None else linear.gain) if t is not None]
+    if any(t.requires_grad or t.numel() != 1 for t in gains):
+        return None
+
+    def one(t: Optional[Tensor]) -> Optional[Tensor]:
+        return None if t is None else t.reshape(1).to(like.dtype)
+
+    if linear is None:
+        exposed = rec_gain is not None and l1_exposed
+        return Supervision(REC_FORMS["exposed" if exposed else "plain"], one(rec_gain), one(rec_gain) if exposed else None)
+    if linear.unit != "plain" or linear.mode not in ("noise", "relative"):
+        return None
+    g = linear.gain if linear.gain is not None else rec_gain
+    return Supervision(REC_FORMS[linear.mode], one(rec_gain), one(g) if g is not None else like.new_ones(1),
+                       _three(linear.a, like), _three(linear.b, like), extended=True)
+
+
+class _SupervisionPass(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, image: Tensor, packed: Tensor, conf: Optional[Tensor], sup: Supervision):
+        args = (sup.ssim_gain, sup.lin_gain, sup.a, sup.b, conf)
+        s_form = FORMS["extended" if sup.extended else "open"]
+        x9, y9, partials = kernels().supervision_forward(image, packed, *args, sup.rec_form, s_form, RELATIVE_EPS,
+                                                         MIN_ALPHA, DEPTH_EPS)
+        ctx.mark_non_differentiable(y9)
+        ctx.meta = (args, sup.rec_form, s_form)
+        ctx.save_for_backward(image, packed)
+        return x9, y9, partials.sum(0)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, g_x9: Optional[Tensor], _g_y9: Optional[Tensor], g_sums: Optional[Tensor]):
+        image, packed = ctx.saved_tensors
+        args, rec_form, s_form = ctx.meta
+        if g_sums is None:
+            g_sums = image.new_zeros(12)
+        grad = kernels().supervision_backward(image, packed, *args, g_x9, g_sums, rec_form, s_form, RELATIVE_EPS,
+                                              MIN_ALPHA, DEPTH_EPS)
+        return grad, None, None, None
+
+
+def _ssim_taps() -> Tensor:
+    return cached_constant(("ssim_taps", SSIM_WINDOW, SSIM_SIGMA),
+                           lambda: gaussian_window(SSIM_WINDOW, SSIM_SIGMA, dtype=torch.float64))
+
+
+def supervision_terms(image: Tensor, packed: Tensor, sup: Supervision, weights: Tuple[float, float, float],
+                      lambda_ssim: float, linear: Optional[LinearTarget] = None
+                      ) -> Tuple[Tensor, Dict[str, Tensor]]:
+    """(w_r·sup_r + w_l·sup_l + w_s·sup_rec, {"sup_r", "sup_l", "sup_rec", "tv"[, "depth"]}) of the render ``image``
+    [H,W,6] (R̂, L̂) or [H,W,8] (+ the depth prior's depth and alpha) against ``packed`` [H,W,7|9] (S, R, L[, the
+    edge weights]): the values of the torch terms (module docstring); "depth" is unweighted and not in the sum.
+    ``linear``: a raw scene's target with ``prior_snr`` > 0 weighs the priors' L1 by :func:`prior_confidence`."""
+    H, W = image.shape[0], image.shape[1]
+    conf = None
+    if linear is not None and linear.prior_snr > 0:
+        conf = prior_confidence(to_bchw(packed[..., :3]), linear)[0, 0].contiguous()
+    x9, y9, sums = _SupervisionPass.apply(image, packed, conf, sup)
+    n = 3.0 * H * W
+    rec = sums[SUM_REC] / sums[SUM_W].detach() if sup.rec_form >= REC_FORMS["noise"] else sums[SUM_REC] / n
+    l1 = torch.stack([sums[SUM_R] / n, sums[SUM_L] / n, rec])
+    if lambda_ssim:
+        s = fused_ssim_map(x9, y9, _ssim_taps(), SSIM_C1, SSIM_C2).reshape(3, -1).mean(1)
+        values = (1.0 - lambda_ssim) * l1 + lambda_ssim * (1.0 - s)
+    else:
+        values = l1
+    terms = dict(zip(("sup_r", "sup_l", "sup_rec"), values.unbind()))
+    w_r, w_l, w_s = weights
+    total = w_r * terms["sup_r"] + w_l * terms["sup_l"] + w_s * terms["sup_rec"]
+    zero = sums.new_zeros(())
+    tv_x = sums[SUM_TVX] / (3.0 * H * (W - 1)) if W > 1 else zero
+    tv_y = sums[SUM_TVY] / (3.0 * (H - 1) * W) if H > 1 else zero
+    terms["tv"] = tv_x + tv_y
+    if image.shape[-1] == 8:
+        scale = (sums[SUM_DISP] / sums[SUM_COV].clamp_min(1.0)).detach().clamp_min(DEPTH_EPS)
+        terms["depth"] = (sums[SUM_DX] / sums[SUM_MX].detach().clamp_min(1.0)
+                          + sums[SUM_DY] / sums[SUM_MY].detach().clamp_min(1.0)) / scale
+    return total, terms
