@@ -155,6 +155,7 @@ def test_cuda_pass_matches_cpu(case, dtype):
     image = image.repeat(5, 7, 1)  # 65 x 119: many blocks, edges inside them
     packed = packed.repeat(5, 7, 1)
     out = {}
+    weights = torch.rand(5, generator=g, dtype=dtype) + 0.5  # one draw for both devices
     for device in ("cpu", "cuda"):
         lin = None if linear is None else linear._replace(
             a=linear.a.to(device, dtype), b=linear.b.to(device, dtype),
@@ -163,7 +164,7 @@ def test_cuda_pass_matches_cpu(case, dtype):
         x = image.to(device).requires_grad_(True)
         p = packed.to(device)
         total, terms = supervision_terms(x, p, plan(gn, l1_exposed, lin, x), WEIGHTS, 0.2, lin)
-        w = torch.rand(len(terms), generator=g, dtype=dtype).to(device) + 0.5
+        w = weights[:len(terms)].to(device)
         combo = total + (torch.stack(list(terms.values())) * w).sum()
         out[device] = ([float(t) for t in terms.values()], torch.autograd.grad(combo, x)[0].cpu())
     tol = dict(rtol=1e-9, atol=1e-12) if dtype == torch.float64 else dict(rtol=2e-4, atol=1e-6)
