@@ -11,44 +11,73 @@
 
 namespace rgs {
 
+// One warp per Gaussian: its lanes take the tiles of its rectangle in row-major order, 32 at a time. One thread per
+// Gaussian looped over the whole rectangle alone: early in training a few large Gaussians cover thousands of tiles
+// each at 12 MP (4.0 + 4.3 ms of a 37 ms step in these two kernels at step 300), while their neighbours' threads
+// idle. The pairs come out in the same order as that loop's, so the keys are the same, bit for bit.
+constexpr int kBinThreads = 256;
+constexpr int kBinWarps = kBinThreads / 32;
+
 template <typename T>
-__global__ void count_pairs_kernel(int64_t N, const T* __restrict__ means2d,    // [N, 2]
-                                   const int32_t* __restrict__ radii,          // [N, 2]
-                                   const T* __restrict__ conics,               // [N, 3] or null
-                                   const T* __restrict__ opacities,            // [N] or null
-                                   TileGrid grid, int64_t* __restrict__ counts) {  // [N]
-    const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
-    if (i >= N) return;
-    counts[i] = gaussian_tile_count(gaussian_tile_rect(means2d + 2 * i, radii + 2 * i, grid), means2d + 2 * i,
-                                    conics ? conics + 3 * i : nullptr, opacities ? opacities + i : nullptr);
+__global__ void __launch_bounds__(kBinThreads)
+count_pairs_kernel(int64_t N, const T* __restrict__ means2d,    // [N, 2]
+                   const int32_t* __restrict__ radii,          // [N, 2]
+                   const T* __restrict__ conics,               // [N, 3] or null
+                   const T* __restrict__ opacities,            // [N] or null
+                   TileGrid grid, int64_t* __restrict__ counts) {  // [N]
+    const int64_t i = int64_t(blockIdx.x) * kBinWarps + (threadIdx.x >> 5);
+    const int lane = threadIdx.x & 31;
+    if (i >= N) return;  // the whole warp: i is the same on every lane
+    const TileRect r = gaussian_tile_rect(means2d + 2 * i, radii + 2 * i, grid);
+    const int64_t area = r.area();
+    if (conics == nullptr || area == 0) {
+        if (lane == 0) counts[i] = area;
+        return;
+    }
+    const TileReach reach = TileReach::make(means2d + 2 * i, conics + 3 * i, opacities[i]);
+    const int w = r.x1 - r.x0;
+    int64_t n = 0;
+    for (int64_t t = lane; t < area; t += 32) n += reach.hits(r.x0 + int(t % w), r.y0 + int(t / w)) ? 1 : 0;
+    n = warp_sum(n);
+    if (lane == 0) counts[i] = n;
 }
 
 template <typename T>
-__global__ void write_keys_kernel(int64_t N, const T* __restrict__ means2d, const int32_t* __restrict__ radii,
-                                  const T* __restrict__ conics,             // [N, 3] or null
-                                  const T* __restrict__ opacities,          // [N] or null
-                                  const T* __restrict__ depths,             // [N]
-                                  TileGrid grid, const int64_t* __restrict__ offsets,  // [N] inclusive
-                                  int64_t slots,                            // keys/ids length
-                                  uint64_t* __restrict__ keys,              // [slots]
-                                  int32_t* __restrict__ ids) {              // [slots]
-    const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
-    if (i >= N) return;
+__global__ void __launch_bounds__(kBinThreads)
+write_keys_kernel(int64_t N, const T* __restrict__ means2d, const int32_t* __restrict__ radii,
+                  const T* __restrict__ conics,             // [N, 3] or null
+                  const T* __restrict__ opacities,          // [N] or null
+                  const T* __restrict__ depths,             // [N]
+                  TileGrid grid, const int64_t* __restrict__ offsets,  // [N] inclusive
+                  int64_t slots,                            // keys/ids length
+                  uint64_t* __restrict__ keys,              // [slots]
+                  int32_t* __restrict__ ids) {              // [slots]
+    const int64_t i = int64_t(blockIdx.x) * kBinWarps + (threadIdx.x >> 5);
+    const int lane = threadIdx.x & 31;
+    if (i >= N) return;  // the whole warp
     const TileRect r = gaussian_tile_rect(means2d + 2 * i, radii + 2 * i, grid);
-    if (r.area() == 0) return;
+    const int64_t area = r.area();
+    if (area == 0) return;
     int64_t k = i == 0 ? 0 : offsets[i - 1];
     if (k >= slots) return;  // past the capacity: this Gaussian's pairs are dropped
     // Depths are >= near > 0, so the float's bit pattern orders like the value.
     const uint64_t depth_bits = __float_as_uint(sort_depth(depths[i]));  // > 0: bits order like values
     const bool cull = conics != nullptr;
     const TileReach reach = cull ? TileReach::make(means2d + 2 * i, conics + 3 * i, opacities[i]) : TileReach{};
-    for (int ty = r.y0; ty < r.y1; ++ty)
-        for (int tx = r.x0; tx < r.x1; ++tx) {
-            if (cull && !reach.hits(tx, ty)) continue;  // the same tiles count_pairs_kernel counted
-            keys[k] = (uint64_t(ty * grid.tiles_x + tx) << 32) | depth_bits;
-            ids[k] = int32_t(i);
-            if (++k >= slots) return;  // the capacity is full: the rest is dropped
+    const int w = r.x1 - r.x0;
+    const unsigned below = (1u << lane) - 1u;  // the lanes before this one
+    for (int64_t base = 0; base < area && k < slots; base += 32) {  // k is the same on every lane
+        const int64_t t = base + lane;
+        const int tx = r.x0 + int(t % w), ty = r.y0 + int(t / w);
+        const bool hit = t < area && (!cull || reach.hits(tx, ty));  // the tiles count_pairs_kernel counted
+        const unsigned hits = __ballot_sync(0xffffffffu, hit);
+        const int64_t at = k + __popc(hits & below);
+        if (hit && at < slots) {  // past the capacity: the rest is dropped
+            keys[at] = (uint64_t(ty * grid.tiles_x + tx) << 32) | depth_bits;
+            ids[at] = int32_t(i);
         }
+        k += __popc(hits);
+    }
 }
 
 // Slots [min(M, C), C) of a sync-free binning: a key whose tile field is above every real tile (it sorts last and
@@ -83,7 +112,7 @@ int64_t count_tile_pairs_cuda(int64_t N, const T* means2d, const int32_t* radii,
         return device_count != nullptr ? -1 : 0;
     }
     int64_t* counts = static_cast<int64_t*>(alloc(sizeof(int64_t) * N));
-    count_pairs_kernel<T><<<num_blocks(N, 256), 256, 0, stream>>>(N, means2d, radii, conics, opacities, grid,
+    count_pairs_kernel<T><<<num_blocks(N, kBinWarps), kBinThreads, 0, stream>>>(N, means2d, radii, conics, opacities, grid,
                                                                   counts);
     RGS_CHECK_LAUNCH("count_pairs");
     size_t temp_bytes = 0;
@@ -114,7 +143,7 @@ void bin_tile_pairs_cuda(int64_t N, const T* means2d, const int32_t* radii, cons
     uint64_t* keys_sorted = static_cast<uint64_t*>(alloc(sizeof(uint64_t) * M));
     int32_t* ids = static_cast<int32_t*>(alloc(sizeof(int32_t) * M));
     if (N > 0) {
-        write_keys_kernel<T><<<num_blocks(N, 256), 256, 0, stream>>>(N, means2d, radii, conics, opacities, depths,
+        write_keys_kernel<T><<<num_blocks(N, kBinWarps), kBinThreads, 0, stream>>>(N, means2d, radii, conics, opacities, depths,
                                                                      grid, offsets, M, keys, ids);
         RGS_CHECK_LAUNCH("write_keys");
     }
