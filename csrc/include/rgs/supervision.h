@@ -76,18 +76,30 @@ RGS_HD T sup_disparity(const SupervisionArgs<T>& a, const T* image, int64_t p, T
     return cov ? alpha / (z > a.depth_eps ? z : a.depth_eps) : T(0);
 }
 
+// What both passes read of pixel p: its place, its render and targets, the priors' weight and the two gains.
+template <typename T>
+struct SupPixel {
+    int64_t HW;
+    int x, y;
+    const T* im;  // image[p, :]
+    const T* pk;  // packed[p, :]
+    T c, Lp, gs, gl;
+
+    RGS_HD SupPixel(const SupervisionArgs<T>& a, int64_t p, const T* image, const T* packed)
+        : HW(int64_t(a.H) * a.W), x(int(p % a.W)), y(int(p / a.W)), im(image + p * a.ci), pk(packed + p * a.k),
+          c(a.conf ? a.conf[p] : T(1)), Lp(pk[6]), gs(a.ssim_gain ? a.ssim_gain[0] : T(1)),
+          gl(a.lin_gain ? a.lin_gain[0] : T(1)) {}
+};
+
 // Pixel p's forward: its x9 / y9 entries and its share of the sums (added to s[kSums]).
 template <typename T>
 RGS_HD void supervision_forward_pixel(const SupervisionArgs<T>& a, int64_t p, const T* image, const T* packed,
                                       T* x9, T* y9, T* s) {
-    const int64_t HW = int64_t(a.H) * a.W;
-    const int x = int(p % a.W), y = int(p / a.W);
-    const T* im = image + p * a.ci;
-    const T* pk = packed + p * a.k;
-    const T c = a.conf ? a.conf[p] : T(1);
-    const T Lp = pk[6];
-    const T gs = a.ssim_gain ? a.ssim_gain[0] : T(1);
-    const T gl = a.lin_gain ? a.lin_gain[0] : T(1);
+    const SupPixel<T> q(a, p, image, packed);
+    const int64_t HW = q.HW;
+    const int x = q.x, y = q.y;
+    const T *im = q.im, *pk = q.pk;
+    const T c = q.c, Lp = q.Lp, gs = q.gs, gl = q.gl;
     RGS_UNROLL
     for (int ch = 0; ch < 3; ++ch) {
         const T Rh = im[ch], Lh = im[3 + ch], S = pk[ch], R = pk[3 + ch];
@@ -137,15 +149,12 @@ RGS_HD void supervision_forward_pixel(const SupervisionArgs<T>& a, int64_t p, co
 template <typename T>
 RGS_HD void supervision_backward_pixel(const SupervisionArgs<T>& a, int64_t p, const T* image, const T* packed,
                                        const T* g_x9, const T* g, T* grad_image) {
-    const int64_t HW = int64_t(a.H) * a.W;
-    const int x = int(p % a.W), y = int(p / a.W);
-    const T* im = image + p * a.ci;
-    const T* pk = packed + p * a.k;
+    const SupPixel<T> q(a, p, image, packed);
+    const int64_t HW = q.HW;
+    const int x = q.x, y = q.y;
+    const T *im = q.im, *pk = q.pk;
+    const T c = q.c, Lp = q.Lp, gs = q.gs, gl = q.gl;
     T* gi = grad_image + p * a.ci;
-    const T c = a.conf ? a.conf[p] : T(1);
-    const T Lp = pk[6];
-    const T gs = a.ssim_gain ? a.ssim_gain[0] : T(1);
-    const T gl = a.lin_gain ? a.lin_gain[0] : T(1);
     RGS_UNROLL
     for (int ch = 0; ch < 3; ++ch) {
         const T Rh = im[ch], Lh = im[3 + ch], S = pk[ch], R = pk[3 + ch];
