@@ -122,19 +122,32 @@ def test_graphed_path_matches_eager_on_cpu(scene_dir, tmp_path, name, one_thread
     assert len(tr.graphs) == 0  # nothing captured on the CPU
 
 
-@pytest.mark.parametrize("name,fuses", [("default", True), ("paper", True), ("ablations/rec_exposed", True),
-                                        ("ablations/rec_photo", True), ("ablations/no_depth", True),
-                                        ("ablations/no_priors", False)])
-def test_fused_supervision_matches_eager_on_cpu(scene_dir, tmp_path, name, fuses, one_thread, monkeypatch):
-    """The graphed loss through the fused supervision pass (what the GPU runs: retinexgs/train/fused_loss.py, forced
-    here with the CPU kernel) against the eager torch step: the same terms, in the log's order, and gradients."""
+def _force_fused(monkeypatch) -> list:
+    """The fused supervision pass on the CPU (what the GPU runs: retinexgs/train/fused_loss.py, with the CPU
+    kernel); returns the list its calls are counted in."""
     from retinexgs.model.tones import fused_curve
     from retinexgs.train import fused_loss
     monkeypatch.setattr(fused_curve, "runs_fused", lambda x: True)
     calls = []
     real = fused_loss.supervision_terms
     monkeypatch.setattr(fused_loss, "supervision_terms", lambda *a, **k: calls.append(1) or real(*a, **k))
+    return calls
+
+
+@pytest.mark.parametrize("name", shipped_configs())
+def test_fused_supervision_matches_eager_on_cpu(scene_dir, tmp_path, name, one_thread, monkeypatch):
+    """Every shipped config's graphed loss with the fused supervision pass where it applies, against the eager
+    torch step: the same terms, in the log's order, and every parameter's gradient."""
+    _force_fused(monkeypatch)
     check_config(scene_dir, tmp_path, name, "cpu", emulate=True)
+
+
+@pytest.mark.parametrize("name,fuses", [("default", True), ("ablations/no_depth", True),
+                                        ("ablations/no_priors", False), ("ablations/baseline_3dgs", False)])
+def test_fused_supervision_is_taken_where_it_applies(scene_dir, tmp_path, name, fuses, one_thread, monkeypatch):
+    calls = _force_fused(monkeypatch)
+    tr = make_trainer(scene_dir, tmp_path / name.replace("/", "_"), name, "cpu", emulate=True)
+    step_gradients(tr, 0, 1, graphed=True)
     assert bool(calls) == fuses
 
 
