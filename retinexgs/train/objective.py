@@ -19,10 +19,10 @@ from torch.profiler import record_function
 
 from retinexgs.model.retinex_model import RetinexGSModel
 from retinexgs.model.schedule import Schedule
+from retinexgs.model.tones import fused_curve
 from retinexgs.model.tones.exposure import reference_gain
 from retinexgs.config.schema import Config, Loss
 from retinexgs.strategy import Strategy
-from retinexgs.model.tones import fused_curve
 from retinexgs.train import fused_loss, losses
 from retinexgs.train.capture_setup import NoiseSetUp
 from retinexgs.train.graphs import LossGraphs
