@@ -20,19 +20,16 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from retinexgs.evaluate.metrics import cached_constant, gaussian_window
 from retinexgs.render._backend import kernels
 from retinexgs.model.tones.fused_curve import FORMS
-from retinexgs.train.losses import (RELATIVE_EPS, SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW, LinearTarget,
-                                    prior_confidence, to_bchw)
-from retinexgs.render.ssim import fused_ssim_map
+from retinexgs.train.losses import (DEPTH_EPS, DEPTH_MIN_ALPHA, RELATIVE_EPS, LinearTarget, prior_confidence,
+                                    ssim_map, to_bchw)
 
 __all__ = ["Supervision", "plan", "supervision_terms", "REC_FORMS"]
 
 # rgs::RecForm and rgs::SupervisionSum
 REC_FORMS = {"plain": 0, "exposed": 1, "noise": 2, "relative": 3}
 (SUM_R, SUM_L, SUM_REC, SUM_W, SUM_TVX, SUM_TVY, SUM_DISP, SUM_COV, SUM_DX, SUM_MX, SUM_DY, SUM_MY) = range(12)
-MIN_ALPHA, DEPTH_EPS = 0.5, 1e-6  # depth_smoothness_loss's defaults
 
 
 class Supervision(NamedTuple):
@@ -80,7 +77,7 @@ class _SupervisionPass(torch.autograd.Function):
         args = (sup.ssim_gain, sup.lin_gain, sup.a, sup.b, conf)
         s_form = FORMS["extended" if sup.extended else "open"]
         x9, y9, partials = kernels().supervision_forward(image, packed, *args, sup.rec_form, s_form, RELATIVE_EPS,
-                                                         MIN_ALPHA, DEPTH_EPS)
+                                                         DEPTH_MIN_ALPHA, DEPTH_EPS)
         ctx.mark_non_differentiable(y9)
         ctx.meta = (args, sup.rec_form, s_form)
         ctx.save_for_backward(image, packed)
@@ -94,13 +91,8 @@ class _SupervisionPass(torch.autograd.Function):
         if g_sums is None:
             g_sums = image.new_zeros(12)
         grad = kernels().supervision_backward(image, packed, *args, g_x9, g_sums, rec_form, s_form, RELATIVE_EPS,
-                                              MIN_ALPHA, DEPTH_EPS)
+                                              DEPTH_MIN_ALPHA, DEPTH_EPS)
         return grad, None, None, None
-
-
-def _ssim_taps() -> Tensor:
-    return cached_constant(("ssim_taps", SSIM_WINDOW, SSIM_SIGMA),
-                           lambda: gaussian_window(SSIM_WINDOW, SSIM_SIGMA, dtype=torch.float64))
 
 
 def supervision_terms(image: Tensor, packed: Tensor, sup: Supervision, weights: Tuple[float, float, float],
@@ -119,7 +111,7 @@ def supervision_terms(image: Tensor, packed: Tensor, sup: Supervision, weights: 
     rec = sums[SUM_REC] / sums[SUM_W].detach() if sup.rec_form >= REC_FORMS["noise"] else sums[SUM_REC] / n
     l1 = torch.stack([sums[SUM_R] / n, sums[SUM_L] / n, rec])
     if lambda_ssim:
-        s = fused_ssim_map(x9, y9, _ssim_taps(), SSIM_C1, SSIM_C2).reshape(3, -1).mean(1)
+        s = ssim_map(x9[None], y9[None]).reshape(3, -1).mean(1)  # y9 is a target: the fused SSIM
         values = (1.0 - lambda_ssim) * l1 + lambda_ssim * (1.0 - s)
     else:
         values = l1

@@ -41,7 +41,7 @@ from retinexgs.config.schema import Loss
 __all__ = [
     "to_bchw", "gaussian_window", "ssim", "ssim_map", "noise_variance", "exposed", "l1_ssim",
     "LinearTarget", "RELATIVE_EPS", "PRIOR_WINDOW", "prior_confidence", "linear_weights", "linear_reconstruction", "reconstruction_loss",
-    "supervision_loss", "tv_loss", "edge_weights", "depth_smoothness_loss", "sh_sparsity_loss",
+    "supervision_loss", "tv_loss", "edge_weights", "DEPTH_MIN_ALPHA", "DEPTH_EPS", "depth_smoothness_loss", "sh_sparsity_loss",
     "spatial_consistency_loss", "exposure_loss", "color_constancy_loss", "enhancement_loss",
 ]
 
@@ -321,8 +321,11 @@ def edge_weights(guide: torch.Tensor, edge: float) -> Tuple[torch.Tensor, torch.
     return wx, wy
 
 
+DEPTH_MIN_ALPHA, DEPTH_EPS = 0.5, 1e-6  # the depth prior's coverage threshold and its depth floor
+
+
 def depth_smoothness_loss(depth: torch.Tensor, alpha: torch.Tensor, wx: torch.Tensor, wy: torch.Tensor,
-                          min_alpha: float = 0.5, eps: float = 1e-6) -> torch.Tensor:
+                          min_alpha: float = DEPTH_MIN_ALPHA, eps: float = DEPTH_EPS) -> torch.Tensor:
     """Edge-aware first-order smoothness of the rendered disparity (Monodepth's form, not in the paper).
 
     ``depth`` [B,1,H,W] is the alpha-weighted depth Σ wᵢzᵢ and ``alpha`` [B,1,H,W] the accumulated Σ wᵢ of the
