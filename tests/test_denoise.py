@@ -263,6 +263,10 @@ def test_auto_denoises_raw_scenes_and_photos_with_blotchy_colour_noise(night, ki
         assert all("decomposer.denoise=none" in n and "\n" not in n for n in notes)
     else:
         assert read == [] and notes == []
+    if spec is not None:  # decomposer.denoise_params reach the spec, and with it the cache's recipe
+        tuned = view_setup.denoise_spec(scene.train, load_config(overrides=[
+            "data.downscale=2", "decomposer.denoise=chroma", "decomposer.denoise_params.h_luma=0.4"]), "cpu")
+        assert tuned.params.h_luma == 0.4 and spec.params.h_luma != 0.4 and tuned.recipe != spec.recipe
     if kind == "raw":
         import unittest.mock as mock
         from retinexgs.data import capture  # the raw capture measures its noise (retinexgs/data/capture.py)

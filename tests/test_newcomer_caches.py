@@ -158,6 +158,32 @@ def test_every_decomposer_parameter_has_a_schema_field():
         assert check_decomposer_params(method, dataclasses.asdict(params())) == dataclasses.asdict(params())
 
 
+def test_denoise_params_schema_matches_the_denoiser_and_reaches_it(tmp_path):
+    """decomposer.denoise_params: the schema names DenoiseParams' fields, bad keys and values give one line, and the
+    overrides add up key by key like decomposer.params and reach the denoiser's spec (its cache key with them)."""
+    from retinexgs.config.schema import DenoiseParamsSchema, check_decomposer_params
+    from retinexgs.errors import UserError
+    from retinexgs.retinex.denoise import DenoiseParams, NoiseModel, denoise_key
+    from retinexgs.run.config import load_config
+
+    assert [f.name for f in dataclasses.fields(DenoiseParams)] == list(DenoiseParamsSchema.model_fields)
+    defaults = dataclasses.asdict(DenoiseParams())
+    assert check_decomposer_params("denoise", defaults, "decomposer.denoise_params") == defaults
+    cfg = load_config(overrides=["decomposer.denoise_params.h_luma=0.4", "decomposer.denoise_params.radius=12"])
+    assert cfg.decomposer.denoise_params == {"h_luma": 0.4, "radius": 12}
+    assert load_config(overrides=["decomposer.denoise_params={}"]).decomposer.denoise_params == {}
+    assert load_config(["configs/ablations/denoise_luma_0.4.yaml"]).decomposer.denoise_params == {"h_luma": 0.4}
+    for bad, message in (("decomposer.denoise_params.foo=1", "denoise has no parameter 'foo'"),
+                         ("decomposer.denoise_params.h_luma=-1", "h_luma must be a number >= 0"),
+                         ("decomposer.denoise_params.calibrate=3", "calibrate must be true or false")):
+        with pytest.raises(UserError, match=message):
+            load_config(overrides=[bad])
+    p = DenoiseParams.from_mapping(cfg.decomposer.denoise_params)
+    assert (p.h_luma, p.radius, p.h_chroma) == (0.4, 12, DenoiseParams().h_chroma)
+    noise = NoiseModel((1e-3,) * 3, (1e-5,) * 3)
+    assert denoise_key("chroma", noise, p) != denoise_key("chroma", noise)
+
+
 # ---- item 6: the cache keeps what another resolution or scene uses --------------------------------------------------
 
 def _decompose(capsys, scene: Path, *extra) -> str:

@@ -58,6 +58,10 @@ def read_yaml(path: Path) -> RawConfig:
     return data
 
 
+# Mappings whose keys the schema checks (per method), not the defaults file: they start empty and add up.
+FREE_MAPPINGS = ("params", "denoise_params")
+
+
 def merge(base: RawConfig, override: RawConfig, where: str, strict: bool = True) -> RawConfig:
     """Deep-merge ``override`` into a copy of ``base``; with ``strict``, keys must exist in ``base``."""
     out = copy.deepcopy(base)
@@ -67,11 +71,11 @@ def merge(base: RawConfig, override: RawConfig, where: str, strict: bool = True)
     for key, value in override.items():
         if strict and key not in out:
             raise UserError(f"unknown config key {where}{key} (known: {', '.join(sorted(out))})")
-        if key == "params" and isinstance(out.get(key), dict) and isinstance(value, dict) and value:
+        if key in FREE_MAPPINGS and isinstance(out.get(key), dict) and isinstance(value, dict) and value:
             # A method's free-form parameters (checked per method by the schema) add up key by key, so two
             # `--set decomposer.params.X` keep both; `params: {}` resets them.
             out[key] = {**out[key], **copy.deepcopy(value)}
-        elif isinstance(out.get(key), dict) and isinstance(value, dict) and key != "params":
+        elif isinstance(out.get(key), dict) and isinstance(value, dict) and key not in FREE_MAPPINGS:
             out[key] = merge(out[key], value, f"{where}{key}.", strict)
         else:
             out[key] = copy.deepcopy(value)

@@ -163,8 +163,21 @@ class LIMEParamsSchema(Section):
     cg_max_iter: Int(1) = None
 
 
+class DenoiseParamsSchema(Section):
+    """``decomposer.denoise_params``: the denoiser's settings (retinexgs.retinex.denoise.DenoiseParams)."""
+
+    h_luma: Num(ge=0) = None
+    h_chroma: Num(ge=0) = None
+    patch: Int(1) = None
+    search: Int(1) = None
+    radius: Int(1) = None
+    eps: Num(gt=0) = None
+    calibrate: Bool = None
+
+
 # method -> its parameters' schema; "none" (no decomposition) reads no parameters and checks none.
-DECOMPOSER_PARAMS: Dict[str, type] = {"lr3m": LR3MParamsSchema, "lime": LIMEParamsSchema}
+DECOMPOSER_PARAMS: Dict[str, type] = {"lr3m": LR3MParamsSchema, "lime": LIMEParamsSchema,
+                                      "denoise": DenoiseParamsSchema}
 
 
 def check_decomposer_params(method: str, params: Dict[str, Any], where: str = "decomposer.params") -> Dict[str, Any]:
@@ -216,6 +229,13 @@ class Decomposer(Section):
     redenoise_at: Annotated[List[Step], Expect("a list of steps (integers) or fractions of the run (decimals 0..1), "
                                                "e.g. [0.3, 0.6]; [] for never")]
     redenoise_chroma: Choice("pilot", "denoiser")  # whose chroma the re-denoised view keeps (the render's gains or the single-view denoiser's)
+    # overrides of the denoiser's settings, checked by DenoiseParamsSchema
+    denoise_params: Annotated[Dict[str, Any], Expect("a mapping of the denoiser's settings")]
+
+    @field_validator("denoise_params", mode="after")
+    @classmethod
+    def _known_denoise_params(cls, params: Dict[str, Any]) -> Dict[str, Any]:
+        return check_decomposer_params("denoise", params, "decomposer.denoise_params")
 
     @field_validator("params", mode="after")
     @classmethod

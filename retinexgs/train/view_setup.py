@@ -13,7 +13,7 @@ from retinexgs.errors import UserError
 from retinexgs.model.near_plane import MIN_POINTS, content_depth
 from retinexgs.data.capture import PHOTO_BLOTCH_MIN, capture_of_files
 from retinexgs.retinex.cache import entry_dir, iter_decompositions, produced_ahead, scene_cache_root
-from retinexgs.retinex.denoise import DenoiseSpec, NoiseModel, noise_model
+from retinexgs.retinex.denoise import DenoiseParams, DenoiseSpec, NoiseModel, noise_model
 from retinexgs.run.render import view_camera
 from retinexgs.config.schema import Config
 from retinexgs.train.noise import measure_capture_noise
@@ -72,7 +72,8 @@ def denoise_spec(views: List[View], cfg: Config, device: str,
         raise UserError(f"decomposer.denoise={method}: the views' noise could not be measured (no flat area in any "
                         "view): set decomposer.denoise=none")
     # Where the views are decomposed (decomposer.device, else training's): the denoiser runs there too.
-    return DenoiseSpec(method, model, device=str(cfg.decomposer.device or device),
+    return DenoiseSpec(method, model, DenoiseParams.from_mapping(cfg.decomposer.denoise_params),
+                       device=str(cfg.decomposer.device or device),
                        backend=cfg.decomposer.denoise_backend)
 
 
