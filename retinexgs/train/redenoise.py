@@ -20,7 +20,7 @@ from retinexgs.data.srgb import linear_to_srgb, srgb_to_linear, srgb_to_linear_e
 from retinexgs.errors import UserError
 from retinexgs.model.schedule import at_step
 from retinexgs.retinex import decompose
-from retinexgs.retinex.denoise import NoiseModel, denoise_linear, pilot_wiener
+from retinexgs.retinex.denoise import DenoiseParams, NoiseModel, denoise_linear, pilot_wiener
 from retinexgs.train.view_setup import views_noise
 from retinexgs.train.views import TrainView
 
@@ -56,7 +56,8 @@ def redenoise_priors(views: Sequence[TrainView], render: Callable[[TrainView], T
             chroma = None
             if dcfg.redenoise_chroma == "denoiser":  # the single-view denoiser's chroma, the render's luma
                 method = dcfg.denoise if dcfg.denoise in ("nlm", "chroma") else "chroma"
-                chroma = denoise_linear(light, noise, method, backend=dcfg.denoise_backend)
+                chroma = denoise_linear(light, noise, method, DenoiseParams.from_mapping(dcfg.denoise_params),
+                                        backend=dcfg.denoise_backend)
             clean = pilot_wiener(light, pilot, noise, chroma=chroma).clamp(0.0, 1.0)
             R, L = decompose(linear_to_srgb(clean).float(), dcfg.method, **dict(dcfg.params))
         tv.R = R.to(device=tv.R.device, dtype=tv.R.dtype).reshape(tv.R.shape)
