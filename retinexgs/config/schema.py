@@ -175,7 +175,8 @@ class DenoiseParamsSchema(Section):
     calibrate: Bool = None
 
 
-# method -> its parameters' schema; "none" (no decomposition) reads no parameters and checks none.
+# method -> its parameters' schema; "none" (no decomposition) reads no parameters and checks none; "denoise" names
+# the denoiser's settings (decomposer.denoise_params), checked the same way.
 DECOMPOSER_PARAMS: Dict[str, type] = {"lr3m": LR3MParamsSchema, "lime": LIMEParamsSchema,
                                       "denoise": DenoiseParamsSchema}
 
