@@ -48,6 +48,7 @@ def redenoise_priors(views: Sequence[TrainView], render: Callable[[TrainView], T
     """Replace each view's priors R, L by the decomposition of its light filtered with Wiener gains from
     ``render(view)`` (R̂∘L̂, sRGB-encoded like S). ``unclipped``: S is a raw view's unclipped encoding."""
     dcfg = cfg.decomposer
+    params = DenoiseParams.from_mapping(dcfg.denoise_params)
     for tv in views:
         S = tv.S.float()
         light = srgb_to_linear_extended(S) if unclipped else srgb_to_linear(S)
@@ -56,8 +57,7 @@ def redenoise_priors(views: Sequence[TrainView], render: Callable[[TrainView], T
             chroma = None
             if dcfg.redenoise_chroma == "denoiser":  # the single-view denoiser's chroma, the render's luma
                 method = dcfg.denoise if dcfg.denoise in ("nlm", "chroma") else "chroma"
-                chroma = denoise_linear(light, noise, method, DenoiseParams.from_mapping(dcfg.denoise_params),
-                                        backend=dcfg.denoise_backend)
+                chroma = denoise_linear(light, noise, method, params, backend=dcfg.denoise_backend)
             clean = pilot_wiener(light, pilot, noise, chroma=chroma).clamp(0.0, 1.0)
             R, L = decompose(linear_to_srgb(clean).float(), dcfg.method, **dict(dcfg.params))
         tv.R = R.to(device=tv.R.device, dtype=tv.R.dtype).reshape(tv.R.shape)
