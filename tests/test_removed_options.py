@@ -9,7 +9,7 @@ import torch
 import yaml
 
 from retinexgs.config import plain
-from retinexgs.config.versions import REMOVED_2_TO_3, migrate_config
+from retinexgs.config.versions import FORMAT, REMOVED_2_TO_3, migrate_config
 from retinexgs.errors import UserError
 from retinexgs.run.checkpoint import load_checkpoint
 from retinexgs.run.config import load_config
@@ -73,7 +73,7 @@ def test_a_format_2_checkpoint_is_migrated_or_refused_like_its_config(tmp_path):
     torch.save({"format": 2, "step": 3, "model": {}, "density": dict(density), "noise_probe_rng": None,
                 "config": _format_2({})}, old)
     state = load_checkpoint(old)
-    assert state["format"] == 3 and "noise_probe_rng" not in state
+    assert state["format"] == FORMAT and "noise_probe_rng" not in state
     assert set(state["density"]) == {"grad_accum", "count", "max_radius"}  # only noise_aware read the others
     assert "noise_aware" not in state["config"]["density"] and "leak" not in state["config"]["model"]["illumination"]
     used = tmp_path / "used.pt"

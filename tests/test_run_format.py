@@ -31,7 +31,7 @@ def _write(run, data: dict) -> None:
 
 
 def test_one_migration_a_format_step():
-    assert FORMAT == 3 and len(CONFIG_MIGRATIONS) == len(CHECKPOINT_MIGRATIONS) == FORMAT
+    assert FORMAT == 4 and len(CONFIG_MIGRATIONS) == len(CHECKPOINT_MIGRATIONS) == FORMAT
 
 
 def test_a_format_1_run_is_written_with_its_format_and_round_trips(tmp_path):
@@ -77,9 +77,9 @@ def test_a_format_0_run_gets_the_values_runs_had_before_the_keys(tmp_path):
 
 
 @pytest.mark.parametrize("fmt, expect", [
-    (4, "is in run format 4, newer than this retinexgs reads (format 3)"),
-    ("one", "format must be a whole number 0..3, got 'one'"),
-    (-1, "format must be a whole number 0..3, got -1"),
+    (5, "is in run format 5, newer than this retinexgs reads (format 4)"),
+    ("one", "format must be a whole number 0..4, got 'one'"),
+    (-1, "format must be a whole number 0..4, got -1"),
 ])
 def test_a_newer_or_malformed_run_format_is_refused_in_one_line(tmp_path, fmt, expect):
     write_run_config(tmp_path, load_config(), tmp_path)

@@ -106,6 +106,7 @@ def run(args: argparse.Namespace) -> int:
     balance = None  # data.white_balance: the scene's views carry it (open_scene)
     names = None  # the user's photos, named in errors where paths are the loader's undistorted/downscaled copies
     train_views = None  # the scene's training views as train opens them (where it has poses)
+    views_per_point = None  # how many of them see each point (the denoiser's luma strength)
     if _has_poses(scene, cfg.data.cache_dir):
         # Decompose exactly the images train will read: undistorted and downscaled copies where the scene
         # needs them, so that train finds every entry in the cache.
@@ -113,9 +114,10 @@ def run(args: argparse.Namespace) -> int:
         from retinexgs.train.sfm_preview import scene_sfm_denoise
 
         # the SfM model train uses (data.sfm_denoise names its previews' recipe, part of the cache key)
-        train = open_scene(scene, cfg, cache_hint=hint, sfm_denoise=scene_sfm_denoise(cfg.data.sfm_denoise)).train
+        opened = open_scene(scene, cfg, cache_hint=hint, sfm_denoise=scene_sfm_denoise(cfg.data.sfm_denoise))
+        train = opened.train
         paths, balance = [v.image_path for v in train], (train[0].balance if train else None)
-        train_views = train
+        train_views, views_per_point = train, opened.views_per_point()
         names = [v.source_path or v.image_path for v in train]
     else:
         if cfg.data.downscale != 1:
@@ -130,7 +132,8 @@ def run(args: argparse.Namespace) -> int:
         from retinexgs.train.view_setup import denoise_spec
 
         denoise = denoise_spec(train_views, cfg, str(resolve_device(args.device)),
-                               note=lambda line: print(line, file=sys.stderr))  # auto's choice on photos, as train says it
+                               note=lambda line: print(line, file=sys.stderr),  # auto's choice on photos, as train says it
+                               views_per_point=views_per_point)
     _, report = decompose_images(paths, dcfg.method, dict(dcfg.params) or None, cache_root,
                                  args.device, keep=False, preview=args.preview, progress=not args.quiet,
                                  cache_hint=hint, sweep=True, announce=False, raw_denoise=dcfg.raw.preview_denoise,

@@ -232,6 +232,8 @@ class Decomposer(Section):
     redenoise_chroma: Choice("pilot", "denoiser")  # whose chroma the re-denoised view keeps (the render's gains or the single-view denoiser's)
     # overrides of the denoiser's settings, checked by DenoiseParamsSchema
     denoise_params: Annotated[Dict[str, Any], Expect("a mapping of the denoiser's settings")]
+    # the median views per point up to which the luma NLM keeps its h_luma; above, h_luma·√(this/n) (0: off)
+    denoise_luma_views: Num(ge=0)
 
     @field_validator("denoise_params", mode="after")
     @classmethod

@@ -225,6 +225,22 @@ class Scene:
         the loader refuses a mix)."""
         return self.capture.kind == "raw"
 
+    def views_per_point(self, max_points: int = 20000) -> Optional[float]:
+        """The median number of training views whose frustum holds a scene point (in front of the camera and
+        inside its frame; occlusion ignored), over the reconstructed points (at most ``max_points`` of them, evenly
+        taken): how many views the multi-view fit averages at a point. None without SfM/COLMAP points (random
+        points say nothing about the scene) or without training views."""
+        if self.points_source == "random" or len(self.points) == 0 or not self.train:
+            return None
+        step = max(1, -(-len(self.points) // max_points))
+        pts = self.points[::step].to(torch.float64)
+        seen = torch.zeros(len(pts), dtype=torch.int64)
+        for v in self.train:
+            uvz = v.project(pts)
+            u, w, z = uvz[:, 0], uvz[:, 1], uvz[:, 2]
+            seen += ((z > 0) & (u >= 0) & (u < v.width) & (w >= 0) & (w < v.height)).to(torch.int64)
+        return float(seen.to(torch.float64).median())
+
     def summary(self) -> str:
         """One line describing the scene (counts and resolution)."""
         sizes = sorted({(v.width, v.height) for v in self.views})

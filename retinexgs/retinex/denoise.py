@@ -18,7 +18,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Dict, Mapping, Optional, Sequence, Tuple, Union
 
@@ -89,6 +89,17 @@ class DenoiseParams:
             raise UserError(f"denoiser parameters out of range: {asdict(out)} (h >= 0, eps > 0, radius, patch, "
                             "search >= 1)")
         return out
+
+    def for_views(self, views_per_point: Optional[float], full_up_to: float) -> "DenoiseParams":
+        """These settings for a scene whose points lie in ``views_per_point`` training views (the median;
+        :meth:`retinexgs.data.Scene.views_per_point`): the multi-view fit averages a point's luma noise over those
+        views (its σ falls as 1/√n), so the prior's luma NLM need remove only what the averaging leaves: ``h_luma``
+        holds up to ``full_up_to`` views and falls as √(full_up_to / n) above (``decomposer.denoise_luma_views``;
+        0 or an unknown count: unchanged). The chroma keeps its strength: its blotches are low-frequency, which
+        averaging views does not remove."""
+        if not full_up_to or views_per_point is None or views_per_point <= full_up_to:
+            return self
+        return replace(self, h_luma=self.h_luma * math.sqrt(full_up_to / views_per_point))
 
 
 @dataclass(frozen=True)

@@ -21,7 +21,7 @@ from retinexgs.errors import UserError
 from retinexgs.model.schedule import at_step
 from retinexgs.retinex import decompose
 from retinexgs.retinex.denoise import DenoiseParams, NoiseModel, denoise_linear, pilot_wiener
-from retinexgs.train.view_setup import views_noise
+from retinexgs.train.view_setup import denoise_params, views_noise
 from retinexgs.train.views import TrainView
 
 
@@ -44,11 +44,13 @@ def check_redenoise(cfg: Config, streamed: bool) -> None:
 
 
 def redenoise_priors(views: Sequence[TrainView], render: Callable[[TrainView], Tensor], noise: NoiseModel,
-                     unclipped: bool, cfg: Config) -> None:
+                     unclipped: bool, cfg: Config, params: Optional[DenoiseParams] = None) -> None:
     """Replace each view's priors R, L by the decomposition of its light filtered with Wiener gains from
-    ``render(view)`` (R̂∘L̂, sRGB-encoded like S). ``unclipped``: S is a raw view's unclipped encoding."""
+    ``render(view)`` (R̂∘L̂, sRGB-encoded like S). ``unclipped``: S is a raw view's unclipped encoding. ``params``:
+    the single-view denoiser's settings (the scene's, :func:`denoise_params`; None: the config's alone)."""
     dcfg = cfg.decomposer
-    params = DenoiseParams.from_mapping(dcfg.denoise_params)
+    if params is None:
+        params = DenoiseParams.from_mapping(dcfg.denoise_params)
     for tv in views:
         S = tv.S.float()
         light = srgb_to_linear_extended(S) if unclipped else srgb_to_linear(S)
@@ -68,8 +70,9 @@ def redenoise_priors(views: Sequence[TrainView], render: Callable[[TrainView], T
 class Redenoise:
     """``decomposer.redenoise_at`` for one run: its steps, the views' noise and how S encodes light."""
 
-    def __init__(self, steps: List[int], noise: NoiseModel, unclipped: bool) -> None:
-        self.steps, self.noise, self.unclipped = steps, noise, unclipped
+    def __init__(self, steps: List[int], noise: NoiseModel, unclipped: bool,
+                 params: Optional[DenoiseParams] = None) -> None:
+        self.steps, self.noise, self.unclipped, self.params = steps, noise, unclipped, params
 
     @classmethod
     def for_run(cls, cfg: Config, scene: Scene, streamed: bool, device: str) -> Optional["Redenoise"]:
@@ -83,7 +86,7 @@ class Redenoise:
         if noise is None:
             raise UserError("decomposer.redenoise_at needs the views' noise, which could not be measured (no flat "
                             "area in any view): drop decomposer.redenoise_at")
-        return cls(steps, noise, scene.capture.unclipped)
+        return cls(steps, noise, scene.capture.unclipped, denoise_params(cfg, scene.views_per_point()))
 
     def due(self, step: int, resumed_from: Optional[int] = None) -> bool:
         """Whether the views are re-denoised after ``step``; with ``resumed_from`` (a resumed run's first step):
@@ -93,4 +96,4 @@ class Redenoise:
         return step in self.steps
 
     def run(self, views: Sequence[TrainView], render: Callable[[TrainView], Tensor], cfg: Config) -> None:
-        redenoise_priors(views, render, self.noise, self.unclipped, cfg)
+        redenoise_priors(views, render, self.noise, self.unclipped, cfg, self.params)
