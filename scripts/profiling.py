@@ -85,6 +85,74 @@ def profile_train(args: argparse.Namespace) -> None:
         # The kernels by their own GPU time (what a fused or faster kernel would save), most first.
         print(table.table(sort_by="self_cuda_time_total", row_limit=args.rows))
         print(table.table(sort_by="cpu_time_total", row_limit=20))
+        print_gpu_idle(prof, args.profile)
+        if getattr(args, "host", False):
+            print_host_profile(tr, args.profile)
+
+
+def print_host_profile(tr, steps: int) -> None:
+    """The host's time by Python function over ``steps`` training steps (cProfile; its own overhead inflates
+    every call alike): where the GPU's idle gaps between phases come from."""
+    import cProfile
+    import io
+    import pstats
+
+    import gc
+
+    spent: Dict[int, List[float]] = {}
+    began: List[float] = []
+
+    def timed(phase: str, info: dict) -> None:  # the collector's own time, by generation
+        if phase == "start":
+            began.append(time.perf_counter())
+        elif began:
+            spent.setdefault(info["generation"], []).append(time.perf_counter() - began.pop())
+
+    gc.callbacks.append(timed)
+    pr = cProfile.Profile()
+    torch.cuda.synchronize()
+    pr.enable()
+    tr.train(stop_after=steps)
+    pr.disable()
+    torch.cuda.synchronize()
+    gc.callbacks.remove(timed)
+    print("garbage collections over the steps: " + (", ".join(
+        f"generation {g}: {len(t)} taking {sum(t) * 1e3:.2f} ms" for g, t in sorted(spent.items())) or "none"))
+    for key in ("tottime", "cumulative"):
+        out = io.StringIO()
+        pstats.Stats(pr, stream=out).sort_stats(key).print_stats(30)
+        print(f"host functions by {key} over {steps} steps:")
+        print("\n".join(line for line in out.getvalue().splitlines() if line.strip())[:9000])
+
+
+def print_gpu_idle(prof, steps: int) -> None:
+    """The GPU's timeline over the profiled steps: the share of the window some kernel or copy ran, and the idle
+    gaps summed by the pair of kernels around them (where the GPU waited for the host), most first."""
+    cuda = torch.autograd.DeviceType.CUDA
+    spans = sorted((e.time_range.start, e.time_range.end, e.name) for e in prof.events()
+                   if e.device_type == cuda and not e.name.startswith("step/") and e.time_range.end > e.time_range.start)
+    if not spans:
+        print("no GPU activity in the profile")
+        return
+    busy, gaps = 0.0, {}
+    start, end, last = spans[0][0], spans[0][1], spans[0][2]
+    for s0, s1, name in spans[1:]:
+        if s0 > end:  # an idle gap: the GPU had nothing queued between `last` and `name`
+            busy += end - start
+            key = (last[:48], name[:48])
+            t, c = gaps.get(key, (0.0, 0))
+            gaps[key] = (t + s0 - end, c + 1)
+            start = s0
+        if s1 >= end:
+            end, last = s1, name
+    busy += end - start
+    window = spans[-1][1] - spans[0][0]
+    idle = sum(t for t, _ in gaps.values())
+    print(f"GPU timeline: {window / steps / 1e3:.2f} ms a step, busy {busy / steps / 1e3:.2f} ms "
+          f"({100 * busy / window:.0f} %), idle {idle / steps / 1e3:.2f} ms in {sum(c for _, c in gaps.values()) / steps:.1f} gaps")
+    print("largest idle gaps, summed a step (µs, count a step): after -> before")
+    for (a, b), (t, c) in sorted(gaps.items(), key=lambda kv: -kv[1][0])[:15]:
+        print(f"  {t / steps:8.1f} µs {c / steps:5.2f}  {a} -> {b}")
 
 
 # ---------------------------------------------------------------------------------------------------- frame
@@ -642,6 +710,8 @@ def main(argv: List[str] | None = None) -> int:
     p.add_argument("--steps", type=int, default=300, help="warm-up steps before the profile (default 300)")
     p.add_argument("--profile", type=int, default=30, help="profiled steps (default 30)")
     p.add_argument("--rows", type=int, default=40, help="rows of the kernels-by-own-GPU-time table (default 40)")
+    p.add_argument("--host", action="store_true",
+                   help="also the host's Python by function over --profile more steps (cProfile, unsynchronised)")
     p.add_argument("--config", action="append", default=[])
     p.add_argument("--set", action="append", default=[], dest="overrides",
                    help="config override, e.g. train.cuda_graphs=false")
