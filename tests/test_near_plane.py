@@ -6,6 +6,7 @@ import pytest
 import torch
 import yaml
 
+from retinexgs.config.versions import FORMAT
 from retinexgs.model.gaussians import GaussianModel
 from retinexgs.model.inference import InferenceRenderer
 from retinexgs.model.near_plane import CONTENT_QUANTILE, MIN_POINTS, content_depth, with_near
@@ -131,7 +132,7 @@ def test_a_run_from_before_the_key_renders_as_it_did(tiny_run, tmp_path):
     raw = yaml.safe_load((old / "config.yaml").read_text())
     cfg_part = raw.get("config", raw)
     del cfg_part["model"]["near_fraction"], cfg_part["model"]["near_in_training"]
-    assert raw.pop("format") == 3  # written today; a run from before the key had no format (format 0)
+    assert raw.pop("format") == FORMAT  # written today; a run from before the key had no format (format 0)
     (old / "config.yaml").write_text(yaml.safe_dump(raw))
     ckpt = sorted((old / "checkpoints").glob("step_*.pt"))[-1]
     state = torch.load(ckpt, weights_only=False)

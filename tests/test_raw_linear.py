@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 
+from retinexgs.config.versions import FORMAT
 from retinexgs.data.camera_raw import read_raw, read_view_srgb
 from retinexgs.data.dng import write_dng
 from retinexgs.data.raw_noise import DISAGREEMENT, scene_noise, view_noise
@@ -388,7 +389,7 @@ def test_a_raw_run_trains_and_renders_with_its_knee_and_a_run_from_before_the_ke
     path = tmp_path / "raw" / "config.yaml"
     recorded = yaml.safe_load(path.read_text())
     del recorded["model"]["enhancement"]["raw"]
-    assert recorded.pop("format") == 3  # written today; a run from before the key had no format (format 0)
+    assert recorded.pop("format") == FORMAT  # written today; a run from before the key had no format (format 0)
     path.write_text(yaml.safe_dump(recorded))
     assert load_run(tmp_path / "raw", "cpu")[2].shoulder == 0.5
 

@@ -12,6 +12,7 @@ import torch
 import yaml
 
 from retinexgs.cli import main
+from retinexgs.config.versions import FORMAT
 from retinexgs.demo.synthetic import make_demo_scene
 from retinexgs.errors import UserError
 from retinexgs.train import runner as run_module
@@ -304,7 +305,7 @@ def test_a_run_older_than_a_key_gets_the_behaviour_it_was_trained_with(run):
     default tone."""
     from retinexgs.run.folder import read_run_config
     raw = recorded(run)
-    assert raw.pop("format") == 3  # a run made today records its format; one without is format 0 (before formats)
+    assert raw.pop("format") == FORMAT  # a run made today records its format; one without is format 0 (before formats)
     assert raw["model"]["enhancement"]["tone"] == "exposure"  # a run made today records it
     assert raw["loss"]["w_depth"] == 0.3
     assert raw["loss"]["rec_domain"] == "exposed_ssim"
