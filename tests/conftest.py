@@ -37,3 +37,16 @@ def one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="session")
+def night(tmp_path_factory):
+    """``darken --raw`` of a 96x72 demo scene (3 train, 1 test): NIGHT/raw (low/*.dng) and NIGHT/jpeg (the
+    denoiser's tests; a test that trains or writes copies it first)."""
+    from retinexgs.cli import main
+    from retinexgs.demo.synthetic import make_demo_scene
+
+    base = tmp_path_factory.mktemp("denoise_scene")
+    src = make_demo_scene(base / "src", n_train=3, n_test=1, width=96, height=72, n_points=200)
+    assert main(["darken", "--data", str(src), "--out", str(base / "night"), "--raw", "--quiet"]) == 0
+    return base / "night"

@@ -184,18 +184,6 @@ def test_calibration_catches_a_model_that_under_reads_the_noise():
     assert errs[True] < 0.6 * errs[False], errs
 
 
-@pytest.fixture(scope="module")
-def night(tmp_path_factory) -> Path:
-    """``darken --raw`` of a 96x72 demo scene (3 train, 1 test): NIGHT/raw (low/*.dng) and NIGHT/jpeg."""
-    from retinexgs.cli import main
-    from retinexgs.demo.synthetic import make_demo_scene
-
-    base = tmp_path_factory.mktemp("denoise_scene")
-    src = make_demo_scene(base / "src", n_train=3, n_test=1, width=96, height=72, n_points=200)
-    assert main(["darken", "--data", str(src), "--out", str(base / "night"), "--raw", "--quiet"]) == 0
-    return base / "night"
-
-
 @pytest.mark.parametrize("kind,stream", [("raw", "never"), ("jpeg", "never"), ("raw", "always")])
 def test_training_reads_its_priors_from_the_denoised_views(night, tmp_path, capsys, kind, stream):
     """decomposer.denoise=chroma on a raw scene and on its camera JPEGs: training measures the views' noise, caches

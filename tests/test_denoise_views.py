@@ -4,7 +4,6 @@ the scene's statistic (Scene.views_per_point), the scaling (DenoiseParams.for_vi
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import pytest
 import torch
@@ -56,18 +55,6 @@ def test_views_per_point_counts_the_training_frusta(tmp_path):
     # random points say nothing about the scene; nor does a scene without training views
     assert type(scene)(**{**scene.__dict__, "points_source": "random"}).views_per_point() is None
     assert type(scene)(**{**scene.__dict__, "train": []}).views_per_point() is None
-
-
-@pytest.fixture(scope="module")
-def night(tmp_path_factory) -> Path:
-    """``darken --raw`` of a 96x72 demo scene (4 train, 1 test): NIGHT/raw (low/*.dng) and NIGHT/jpeg."""
-    from retinexgs.cli import main
-    from retinexgs.demo.synthetic import make_demo_scene
-
-    base = tmp_path_factory.mktemp("denoise_views")
-    src = make_demo_scene(base / "src", n_train=4, n_test=1, width=96, height=72, n_points=200)
-    assert main(["darken", "--data", str(src), "--out", str(base / "night"), "--raw", "--quiet"]) == 0
-    return base / "night"
 
 
 def test_training_s_denoiser_takes_the_scene_s_views_per_point(night):
