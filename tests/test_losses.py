@@ -350,6 +350,25 @@ def test_scale_invariant_spa_and_col_ignore_a_global_gain():
     assert float(Lo.color_constancy_loss(3 * x)) == pytest.approx(9 * float(Lo.color_constancy_loss(x)))
 
 
+@pytest.mark.parametrize("shape", [(1, 3, 24, 32), (2, 3, 18, 23)])  # 18x23: the pooling drops partial borders
+def test_scale_invariant_spa_is_the_loss_on_mean_normalised_images(shape):
+    """L_spa (zero_dce) divides the pooled region means by the image's mean brightness: the same value and gradients
+    as the loss of the images divided by their mean first (Eq. 8 on mean-normalised images), in float64."""
+    g = torch.Generator().manual_seed(3)
+    e = (torch.rand(shape, generator=g, dtype=torch.float64) * 0.9 + 0.05).requires_grad_(True)
+    o = torch.rand(shape, generator=g, dtype=torch.float64) * 0.2
+    norm = lambda t: t / t.mean(dim=(1, 2, 3), keepdim=True).clamp_min(1e-6)
+    want = Lo.spatial_consistency_loss(norm(e), norm(o))
+    got = Lo.spatial_consistency_loss(e, o, scale_invariant=True)
+    (gw,) = torch.autograd.grad(want, e)
+    (gg,) = torch.autograd.grad(got, e)
+    assert float(got) == pytest.approx(float(want), rel=1e-12)
+    assert torch.allclose(gg, gw, rtol=1e-10, atol=1e-14)
+    crop = o[..., :9, :10]
+    assert torch.autograd.gradcheck(lambda t: Lo.spatial_consistency_loss(t, crop, scale_invariant=True),
+                                    (e[..., :9, :10].detach().clone().requires_grad_(True),))
+
+
 def test_spatial_consistency_paper_form_is_eq8():
     """form="paper": mean |∇_x S_enh − ∇_x S| + mean |∇_y S_enh − ∇_y S| at full resolution."""
     e = torch.rand(1, 3, 9, 11, dtype=torch.float64)
