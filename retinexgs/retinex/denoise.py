@@ -95,8 +95,8 @@ class DenoiseParams:
         :meth:`retinexgs.data.Scene.views_per_point`): the multi-view fit averages a point's luma noise over those
         views (its σ falls as 1/√n), so the prior's luma NLM need remove only what the averaging leaves: ``h_luma``
         holds up to ``full_up_to`` views and falls as √(full_up_to / n) above (``decomposer.denoise_luma_views``;
-        0 or an unknown count: unchanged). The chroma keeps its strength: its blotches are low-frequency, which
-        averaging views does not remove."""
+        0 or an unknown count: unchanged). The chroma keeps its strength (only the luma's was measured against the
+        view count; experiments/notes/2026-11-29-luma-views.md)."""
         if not full_up_to or views_per_point is None or views_per_point <= full_up_to:
             return self
         return replace(self, h_luma=self.h_luma * math.sqrt(full_up_to / views_per_point))
