@@ -55,7 +55,8 @@ class DenoiseParams:
     """The denoiser's settings (``decomposer.denoise`` uses these defaults; every one is part of the cache key).
 
     ``h_luma``/``h_chroma``: non-local means' filter strength in units of the (unit) noise σ after the GAT; chroma
-    far stronger because at SNR ≈ 1 its detail is below the noise anyway. ``patch``/``search``: NLM's template and
+    far stronger because at SNR ≈ 1 its detail is below the noise anyway (``h_chroma`` is read by the ``nlm`` method
+    only: ``chroma``, what ``auto`` picks, filters the chroma with the luma-guided filter of ``radius`` and ``eps``). ``patch``/``search``: NLM's template and
     search windows (OpenCV's defaults 7 and 21). ``radius``: the guided chroma filter's window half-size in pixels
     at 640 px wide (scaled with the view's width, so a larger photo gets the same angular support); ``eps``: its
     regulariser in units of σ² (larger: flatter colour, fewer luma edges kept). ``calibrate``: each luma/chroma
