@@ -94,10 +94,9 @@ def print_host_profile(tr, steps: int) -> None:
     """The host's time by Python function over ``steps`` training steps (cProfile; its own overhead inflates
     every call alike): where the GPU's idle gaps between phases come from."""
     import cProfile
+    import gc
     import io
     import pstats
-
-    import gc
 
     spent: Dict[int, List[float]] = {}
     began: List[float] = []
@@ -127,10 +126,12 @@ def print_host_profile(tr, steps: int) -> None:
 
 def print_gpu_idle(prof, steps: int) -> None:
     """The GPU's timeline over the profiled steps: the share of the window some kernel or copy ran, and the idle
-    gaps summed by the pair of kernels around them (where the GPU waited for the host), most first."""
+    gaps summed by the pair of kernels around them, most first (a gap waits on the host, or is the latency between
+    a graph's dependent kernels)."""
     cuda = torch.autograd.DeviceType.CUDA
     spans = sorted((e.time_range.start, e.time_range.end, e.name) for e in prof.events()
-                   if e.device_type == cuda and not e.name.startswith("step/") and e.time_range.end > e.time_range.start)
+                   if e.device_type == cuda and not e.name.startswith("step/")
+                   and e.time_range.end > e.time_range.start)
     if not spans:
         print("no GPU activity in the profile")
         return
@@ -148,8 +149,9 @@ def print_gpu_idle(prof, steps: int) -> None:
     busy += end - start
     window = spans[-1][1] - spans[0][0]
     idle = sum(t for t, _ in gaps.values())
+    count = sum(c for _, c in gaps.values())
     print(f"GPU timeline: {window / steps / 1e3:.2f} ms a step, busy {busy / steps / 1e3:.2f} ms "
-          f"({100 * busy / window:.0f} %), idle {idle / steps / 1e3:.2f} ms in {sum(c for _, c in gaps.values()) / steps:.1f} gaps")
+          f"({100 * busy / window:.0f} %), idle {idle / steps / 1e3:.2f} ms in {count / steps:.1f} gaps")
     print("largest idle gaps, summed a step (µs, count a step): after -> before")
     for (a, b), (t, c) in sorted(gaps.items(), key=lambda kv: -kv[1][0])[:15]:
         print(f"  {t / steps:8.1f} µs {c / steps:5.2f}  {a} -> {b}")

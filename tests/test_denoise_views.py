@@ -68,16 +68,19 @@ def test_training_s_denoiser_takes_the_scene_s_views_per_point(night):
     assert n is not None and n > 1
     cfg = load_config(overrides=["data.downscale=2", "decomposer.denoise_luma_views=1"])
     notes = []
-    spec = view_setup.denoise_spec(scene.train, cfg, "cpu", note=notes.append, views_per_point=n)
+    spec = view_setup.denoise_spec(scene.train, cfg, "cpu", note=notes.append, views_per_point=lambda: n)
     plain = view_setup.denoise_spec(scene.train, load_config(overrides=["data.downscale=2"]), "cpu",
-                                    views_per_point=n)
+                                    views_per_point=scene.views_per_point)
     assert spec.params.h_luma == pytest.approx(DenoiseParams().h_luma / math.sqrt(n))
     assert plain.params == DenoiseParams() and spec.recipe != plain.recipe
     assert len(notes) == 1 and "luma NLM at" in notes[0] and f"{n:g} training views" in notes[0]
     off = view_setup.denoise_spec(scene.train, load_config(overrides=["data.downscale=2",
                                                                       "decomposer.denoise_luma_views=0"]),
-                                  "cpu", views_per_point=n)
+                                  "cpu", views_per_point=lambda: n)
     assert off.params == DenoiseParams() and off.recipe == plain.recipe
+    asked = []  # where nothing is denoised the statistic is not computed (it walks every training camera)
+    assert view_setup.denoise_spec(scene.train, load_config(overrides=["decomposer.denoise=none"]), "cpu",
+                                   views_per_point=lambda: asked.append(1)) is None and asked == []
 
 
 def test_redenoise_reads_the_same_settings_as_the_priors(night):

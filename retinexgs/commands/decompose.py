@@ -106,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
     balance = None  # data.white_balance: the scene's views carry it (open_scene)
     names = None  # the user's photos, named in errors where paths are the loader's undistorted/downscaled copies
     train_views = None  # the scene's training views as train opens them (where it has poses)
-    views_per_point = None  # how many of them see each point (the denoiser's luma strength)
+    views_per_point = None  # the scene's Scene.views_per_point (the denoiser's luma strength), read if it denoises
     if _has_poses(scene, cfg.data.cache_dir):
         # Decompose exactly the images train will read: undistorted and downscaled copies where the scene
         # needs them, so that train finds every entry in the cache.
@@ -117,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
         opened = open_scene(scene, cfg, cache_hint=hint, sfm_denoise=scene_sfm_denoise(cfg.data.sfm_denoise))
         train = opened.train
         paths, balance = [v.image_path for v in train], (train[0].balance if train else None)
-        train_views, views_per_point = train, opened.views_per_point()
+        train_views, views_per_point = train, opened.views_per_point
         names = [v.source_path or v.image_path for v in train]
     else:
         if cfg.data.downscale != 1:

@@ -135,7 +135,7 @@ def rasterize_gaussians(
         # split, not two slices: its backward is one concatenation, each slice's a zero-filled full-size tensor
         image, depth = image.split([image.shape[-1] - 1, 1], dim=-1)
     if background is not None:
-        image = torch.addcmul(image, 1.0 - alpha, background)  # one full-size pass where (1 - alpha)·bg + image took two
+        image = torch.addcmul(image, 1.0 - alpha, background)  # one full-size pass, not a product and a sum
     return RenderOutput(image, alpha, depth, means2d, radii, num_pairs)
 
 

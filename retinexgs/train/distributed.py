@@ -404,7 +404,7 @@ class Distributed:
 
             # The entries the trainer reads: under decomposer.denoise, the denoised views' (keyed by its recipe,
             # which every rank measures from the same views), else the plain ones.
-            spec = denoise_spec(scene.train, cfg, device, views_per_point=scene.views_per_point())
+            spec = denoise_spec(scene.train, cfg, device, views_per_point=scene.views_per_point)
             decompose_images([v.image_path for v in mine], dcfg.method, dict(dcfg.params) or None,
                              cache_dir=scene_cache_root(scene.root, cfg.data.cache_dir),
                              device=dcfg.device or device, keep=False, progress=progress and self.is_main,

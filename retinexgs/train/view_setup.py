@@ -52,13 +52,14 @@ def denoise_params(cfg: Config, views_per_point: Optional[float],
 
 def denoise_spec(views: List[View], cfg: Config, device: str,
                  note: Optional[Callable[[str], None]] = None,
-                 views_per_point: Optional[float] = None) -> Optional[DenoiseSpec]:
+                 views_per_point: Optional[Callable[[], Optional[float]]] = None) -> Optional[DenoiseSpec]:
     """What ``decomposer.denoise`` reads the views through (None when ``none``): the method and the views' noise in
     the light of the images decomposed, as training measures it: a raw scene's :class:`RawNoise` (DNG NoiseProfile
     or the mosaic's estimate), a photo scene's :class:`CaptureNoise` (already at the training resolution);
     ``data.downscale`` and the white balance applied. UserError (one line) when it cannot be measured. ``note``:
     where ``auto`` denoises photos (their colour noise is blotchy), it is told so (one line). ``views_per_point``:
-    the scene's :meth:`Scene.views_per_point`, which sets the luma's strength (:func:`denoise_params`)."""
+    the scene's :meth:`Scene.views_per_point` (the method, called only where the views are denoised), which sets the
+    luma's strength (:func:`denoise_params`)."""
     capture = capture_of_files([v.user_path for v in views])
     method = auto = cfg.decomposer.denoise
     sources = [v.source_path if v.source_path is not None and Path(v.source_path).is_file() else v.image_path
@@ -87,7 +88,8 @@ def denoise_spec(views: List[View], cfg: Config, device: str,
         raise UserError(f"decomposer.denoise={method}: the views' noise could not be measured (no flat area in any "
                         "view): set decomposer.denoise=none")
     # Where the views are decomposed (decomposer.device, else training's): the denoiser runs there too.
-    return DenoiseSpec(method, model, denoise_params(cfg, views_per_point, note),
+    n = views_per_point() if views_per_point is not None else None
+    return DenoiseSpec(method, model, denoise_params(cfg, n, note),
                        device=str(cfg.decomposer.device or device),
                        backend=cfg.decomposer.denoise_backend)
 
@@ -169,7 +171,7 @@ def prepare_views(cfg: Config, scene: Scene, device: torch.device, depth_prior: 
     spec = None
     if needs_priors:
         log(f"2D priors: {cfg.decomposer.method} on {len(train)} views (cached per scene)")
-        spec = denoise_spec(train, cfg, str(dev), note=log, views_per_point=scene.views_per_point())
+        spec = denoise_spec(train, cfg, str(dev), note=log, views_per_point=scene.views_per_point)
     if not streamed:
         log(f"views: preloaded on the device ({gib(preload)} for {len(train)} views; streamed above "
                  f"train.views_on_device_gb={tcfg.views_on_device_gb:g})")
