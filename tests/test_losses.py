@@ -238,6 +238,31 @@ def test_spatial_consistency_matches_loop():
     assert got == pytest.approx(_spa_loop(enh.numpy(), orig.numpy()), abs=1e-12)
 
 
+def _spa_per_region(enh: torch.Tensor, orig: torch.Tensor, pool: int = 4) -> torch.Tensor:
+    """L_spa (zero_dce) in torch as Eq. 8's sum over each region's 4 neighbours (zero outside), each image's two
+    neighbour differences apart: the form the loss had before it took each pair once."""
+    def diffs(y):
+        p, (h, w) = torch.nn.functional.pad(y, (1, 1, 1, 1)), y.shape[-2:]
+        return (y - p[..., 1:h + 1, 0:w], y - p[..., 1:h + 1, 2:w + 2], y - p[..., 0:h, 1:w + 1],
+                y - p[..., 2:h + 2, 1:w + 1])
+    ye = torch.nn.functional.avg_pool2d(enh.mean(1, keepdim=True), pool)
+    yo = torch.nn.functional.avg_pool2d(orig.mean(1, keepdim=True), pool)
+    return sum((de - do).square() for de, do in zip(diffs(ye), diffs(yo))).mean()
+
+
+@pytest.mark.parametrize("shape", [(1, 3, 4, 4), (1, 3, 4, 28), (2, 3, 9, 4), (2, 3, 18, 23), (1, 3, 24, 32)])
+def test_spatial_consistency_pairs_once_is_the_per_region_sum(shape):
+    """Each neighbour pair once, weighted 2 inside and 1 at the border, is the sum over every region's 4 neighbours:
+    the same value and gradients in float64 (one region, one row, one column of regions, partial borders)."""
+    g = torch.Generator().manual_seed(sum(shape))
+    e = torch.rand(shape, generator=g, dtype=torch.float64).requires_grad_(True)
+    o = torch.rand(shape, generator=g, dtype=torch.float64) * 0.2
+    want, got = _spa_per_region(e, o), Lo.spatial_consistency_loss(e, o)
+    (gw,), (gg,) = torch.autograd.grad(want, e), torch.autograd.grad(got, e)
+    assert float(got) == pytest.approx(float(want), rel=1e-12)
+    assert torch.allclose(gg, gw, rtol=1e-10, atol=1e-15)
+
+
 def test_spatial_consistency_hand_8x8():
     # Pooled enh = [[1,0],[0,0]], orig all zero. Region (0,0): left/up see zero padding (diff 1 each),
     # right/down see 0 (diff 1 each) -> 4. Region (0,1): left neighbour 1 -> diff -1 -> 1; (1,0): up -> 1;
@@ -274,6 +299,22 @@ def test_color_constancy():
     assert float(Lo.color_constancy_loss(grey.detach())) == 0.0
     Lo.color_constancy_loss(grey, mode="zero_dce").backward()
     assert torch.isfinite(grey.grad).all()
+
+
+@pytest.mark.parametrize("mode", ["paper", "zero_dce"])
+@pytest.mark.parametrize("scale_invariant", [False, True])
+def test_color_constancy_is_eq10_over_the_three_pairs(mode, scale_invariant):
+    """Eq. 10 written out over the pairs (r,g), (r,b), (g,b): the same value and gradients in float64."""
+    x = torch.rand(2, 3, 5, 7, generator=torch.Generator().manual_seed(4), dtype=torch.float64).requires_grad_(True)
+    m = x.mean(dim=(2, 3))
+    if scale_invariant:
+        m = m / m.mean(dim=1, keepdim=True)
+    d = [(m[:, i] - m[:, j]).square() for i, j in ((0, 1), (0, 2), (1, 2))]
+    want = (sum(d) if mode == "paper" else torch.sqrt(sum(t.square() for t in d) + 1e-12)).mean()
+    got = Lo.color_constancy_loss(x, mode, scale_invariant=scale_invariant)
+    (gw,), (gg,) = torch.autograd.grad(want, x), torch.autograd.grad(got, x)
+    assert float(got) == pytest.approx(float(want), rel=1e-12)
+    assert torch.allclose(gg, gw, rtol=1e-10, atol=1e-15)
 
 
 def test_enhancement_loss_weights_and_grad():

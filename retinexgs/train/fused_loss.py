@@ -20,6 +20,7 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
+from retinexgs.evaluate.metrics import cached_constant
 from retinexgs.render._backend import kernels
 from retinexgs.model.tones.fused_curve import FORMS
 from retinexgs.train.losses import (DEPTH_EPS, DEPTH_MIN_ALPHA, RELATIVE_EPS, LinearTarget, prior_confidence,
@@ -95,6 +96,29 @@ class _SupervisionPass(torch.autograd.Function):
         return grad, None, None, None
 
 
+def _sum_scales(H: int, W: int, noise: bool, dtype: torch.dtype, device: torch.device) -> Tuple[Tensor, Tensor]:
+    """([4,12]: the pass's sums to the L1 means of sup_r, sup_l, sup_rec and L_TV; [12]: the sums the noise forms
+    divide by the weights' sum, the reconstruction's) for an H×W view."""
+    def build() -> Tuple[Tensor, Tensor]:
+        means = torch.zeros(4, 12, dtype=dtype, device=device)
+        n = 3.0 * H * W
+        means[0, SUM_R], means[1, SUM_L], means[2, SUM_REC] = 1.0 / n, 1.0 / n, 1.0 if noise else 1.0 / n
+        if W > 1:
+            means[3, SUM_TVX] = 1.0 / (3.0 * H * (W - 1))
+        if H > 1:
+            means[3, SUM_TVY] = 1.0 / (3.0 * (H - 1) * W)
+        over = torch.zeros(12, dtype=torch.bool, device=device)
+        over[SUM_REC] = noise
+        return means, over
+    return cached_constant(("supervision_scales", H, W, noise, dtype, device), build)
+
+
+def _weights(weights: Tuple[float, float, float], dtype: torch.dtype, device: torch.device) -> Tensor:
+    """(w_r, w_l, w_s) as a [3] tensor (built once)."""
+    key = ("supervision_weights", tuple(float(w) for w in weights), dtype, device)
+    return cached_constant(key, lambda: torch.tensor(key[1], dtype=dtype, device=device))
+
+
 def supervision_terms(image: Tensor, packed: Tensor, sup: Supervision, weights: Tuple[float, float, float],
                       lambda_ssim: float, linear: Optional[LinearTarget] = None
                       ) -> Tuple[Tensor, Dict[str, Tensor]]:
@@ -107,23 +131,21 @@ def supervision_terms(image: Tensor, packed: Tensor, sup: Supervision, weights: 
     if linear is not None and linear.prior_snr > 0:
         conf = prior_confidence(to_bchw(packed[..., :3]), linear)[0, 0].contiguous()
     x9, y9, sums = _SupervisionPass.apply(image, packed, conf, sup)
-    n = 3.0 * H * W
-    rec = sums[SUM_REC] / sums[SUM_W].detach() if sup.rec_form >= REC_FORMS["noise"] else sums[SUM_REC] / n
-    l1 = torch.stack([sums[SUM_R] / n, sums[SUM_L] / n, rec])
+    noise = sup.rec_form >= REC_FORMS["noise"]
+    means, over = _sum_scales(H, W, noise, sums.dtype, sums.device)
+    scaled = sums
+    if noise:  # the noise forms' reconstruction is a weighted mean: over the weights' sum (a constant of the step)
+        scaled = sums / torch.where(over, sums.detach()[SUM_W], 1.0)
+    v = means @ scaled  # [4]: sup_r's, sup_l's and sup_rec's L1 means, L_TV (one kernel, not a dozen, issue 65)
+    values = v[:3]
     if lambda_ssim:
         s = ssim_map(x9[None], y9[None]).reshape(3, -1).mean(1)  # y9 is a target: the fused SSIM
-        values = (1.0 - lambda_ssim) * l1 + lambda_ssim * (1.0 - s)
-    else:
-        values = l1
+        values = torch.lerp(values, 1.0 - s, lambda_ssim)  # (1 − λ)·L1 + λ·(1 − SSIM)
     terms = dict(zip(("sup_r", "sup_l", "sup_rec"), values.unbind()))
-    w_r, w_l, w_s = weights
-    total = w_r * terms["sup_r"] + w_l * terms["sup_l"] + w_s * terms["sup_rec"]
-    zero = sums.new_zeros(())
-    tv_x = sums[SUM_TVX] / (3.0 * H * (W - 1)) if W > 1 else zero
-    tv_y = sums[SUM_TVY] / (3.0 * (H - 1) * W) if H > 1 else zero
-    terms["tv"] = tv_x + tv_y
+    total = values @ _weights(weights, sums.dtype, sums.device)
+    terms["tv"] = v[3]
     if image.shape[-1] == 8:
-        scale = (sums[SUM_DISP] / sums[SUM_COV].clamp_min(1.0)).detach().clamp_min(DEPTH_EPS)
-        terms["depth"] = (sums[SUM_DX] / sums[SUM_MX].detach().clamp_min(1.0)
-                          + sums[SUM_DY] / sums[SUM_MY].detach().clamp_min(1.0)) / scale
+        # (disparity / coverage, x-steps / their mask, y-steps / theirs): the sums at 6, 8, 10 over those at 7, 9, 11
+        q = sums[SUM_DISP::2] / sums.detach()[SUM_COV::2].clamp_min(1.0)
+        terms["depth"] = q[1:].sum() / q[0].detach().clamp_min(DEPTH_EPS)
     return total, terms
