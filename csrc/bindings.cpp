@@ -13,6 +13,7 @@
 
 #include "rgs/adam.h"
 #include "rgs/gaussian_colors.h"
+#include "rgs/illumination_train.h"
 #include "rgs/kernels.h"
 #include "rgs/tone.h"
 #ifdef RGS_WITH_CUDA
@@ -609,6 +610,105 @@ Tensor gaussian_colors(int degree, Tensor means, Tensor sh_dc, Tensor sh_rest, s
     return colors;
 }
 
+// ---- the illumination field's MLP in training (rgs/illumination_train.h) ------------------------------------
+rgs::IllumConfig train_illum_config(const std::vector<int>& illum) {
+    RGS_CHECK_VALUE(illum.size() == 5, "illum must be (pos_freqs, dir_freqs, hidden, depth, dir_hidden), got ",
+                    illum.size(), " values");
+    const rgs::IllumConfig cfg = make_illum_config(illum[0], illum[1], illum[2], illum[3], illum[4]);
+    RGS_CHECK_VALUE(cfg.depth + 2 <= rgs::kMaxTrainLayers, "the training kernels support an illumination depth up to ",
+                    rgs::kMaxTrainLayers - 2, ", got ", cfg.depth);
+    return cfg;
+}
+
+// (in, out, a_in, d_out, (a_width, d_width)) of each Linear layer: the rows of A and D (IllumTrainLayout).
+std::vector<std::vector<int>> illumination_train_layout(std::vector<int> illum) {
+    const rgs::IllumTrainLayout S = rgs::illum_train_layout(train_illum_config(illum));
+    std::vector<std::vector<int>> out(5);
+    for (int l = 0; l < S.layers; ++l) {
+        out[0].push_back(S.in[l]);
+        out[1].push_back(S.out[l]);
+        out[2].push_back(S.a_in[l]);
+        out[3].push_back(S.d_out[l]);
+    }
+    out[4] = {S.a_width, S.d_width};
+    return out;
+}
+
+void check_illum_inputs(const Tensor& means, const Tensor& center, const rgs::IllumConfig& cfg, double bound,
+                        const Tensor& weights) {
+    check_float(means, "means");
+    check_tensor(means, "means", {means.size(0), 3}, means);
+    check_tensor(center, "center", {3}, means);
+    RGS_CHECK_VALUE(std::isfinite(bound) && bound > 0, "illumination bound must be finite and positive, got ", bound);
+    check_tensor(weights, "weights", {rgs::illum_layout(cfg).total}, means);
+    RGS_CHECK_VALUE(weights.is_contiguous() && reinterpret_cast<uintptr_t>(weights.data_ptr()) % 16 == 0,
+                    "weights must be contiguous and 16-byte aligned (use pack_illum_weights)");
+}
+
+// (rgb [N, 3], A [a_width, N]): IlluminationField at the centres `means` [N, 3] seen from `center` [3] (a tensor on
+// their device: a graph's static input), and every Linear's input for the backward.
+std::vector<Tensor> illumination_forward(Tensor means, Tensor center, std::vector<int> illum, double bound,
+                                         Tensor weights) {
+    const rgs::IllumConfig cfg = train_illum_config(illum);
+    check_illum_inputs(means, center, cfg, bound, weights);
+    means = means.contiguous(), center = center.contiguous();
+    const int64_t N = means.size(0);
+    Tensor rgb = torch::empty({N, 3}, means.options());
+    Tensor A = torch::empty({rgs::illum_train_layout(cfg).a_width, N}, means.options());
+    RGS_DEVICE_GUARD(means);
+    AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "illumination_forward", [&] {
+        if (means.is_cuda()) {
+#ifdef RGS_WITH_CUDA
+            rgs::illumination_forward_cuda<scalar_t>(N, means.data_ptr<scalar_t>(), center.data_ptr<scalar_t>(), cfg,
+                                                     bound, weights.data_ptr<scalar_t>(), rgb.data_ptr<scalar_t>(),
+                                                     A.data_ptr<scalar_t>(), RGS_CUDA_STREAM(means));
+#else
+            no_cuda();
+#endif
+        } else {
+            rgs::illumination_forward_cpu<scalar_t>(N, means.data_ptr<scalar_t>(), center.data_ptr<scalar_t>(), cfg,
+                                                    bound, weights.data_ptr<scalar_t>(), rgb.data_ptr<scalar_t>(),
+                                                    A.data_ptr<scalar_t>(), num_threads());
+        }
+    });
+    return {rgb, A};
+}
+
+// (g_means [N, 3], D [d_width, N]): the backward of illumination_forward given the gradient g_rgb [N, 3].
+std::vector<Tensor> illumination_backward(Tensor means, Tensor center, std::vector<int> illum, double bound,
+                                          Tensor weights, Tensor A, Tensor rgb, Tensor g_rgb) {
+    const rgs::IllumConfig cfg = train_illum_config(illum);
+    check_illum_inputs(means, center, cfg, bound, weights);
+    const int64_t N = means.size(0);
+    const rgs::IllumTrainLayout S = rgs::illum_train_layout(cfg);
+    check_tensor(A, "A", {S.a_width, N}, means);
+    check_tensor(rgb, "rgb", {N, 3}, means);
+    check_tensor(g_rgb, "g_rgb", {N, 3}, means);
+    means = means.contiguous(), center = center.contiguous(), A = A.contiguous(), rgb = rgb.contiguous();
+    g_rgb = g_rgb.contiguous();
+    Tensor g_means = torch::empty({N, 3}, means.options());
+    Tensor D = torch::empty({S.d_width, N}, means.options());
+    RGS_DEVICE_GUARD(means);
+    AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "illumination_backward", [&] {
+        if (means.is_cuda()) {
+#ifdef RGS_WITH_CUDA
+            rgs::illumination_backward_cuda<scalar_t>(
+                N, means.data_ptr<scalar_t>(), center.data_ptr<scalar_t>(), cfg, bound, weights.data_ptr<scalar_t>(),
+                A.data_ptr<scalar_t>(), rgb.data_ptr<scalar_t>(), g_rgb.data_ptr<scalar_t>(), D.data_ptr<scalar_t>(),
+                g_means.data_ptr<scalar_t>(), RGS_CUDA_STREAM(means));
+#else
+            no_cuda();
+#endif
+        } else {
+            rgs::illumination_backward_cpu<scalar_t>(
+                N, means.data_ptr<scalar_t>(), center.data_ptr<scalar_t>(), cfg, bound, weights.data_ptr<scalar_t>(),
+                A.data_ptr<scalar_t>(), rgb.data_ptr<scalar_t>(), g_rgb.data_ptr<scalar_t>(), D.data_ptr<scalar_t>(),
+                g_means.data_ptr<scalar_t>(), num_threads());
+        }
+    });
+    return {g_means, D};
+}
+
 // [H, W, 3] srgb(s(gain · lin(R̂ ∘ L̂))) of a rendered [H, W, C >= 6] image (R̂ in channels 0-2, L̂ in 3-5), a
 // gain [1] or [3] on the image's device and the highlight shoulder's knee s (>= 1: none): the exposure tone of
 // retinexgs/model/tone.py, forward only.
@@ -1017,6 +1117,12 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("gaussian_colors", &gaussian_colors, pybind11::arg("degree"), pybind11::arg("means"),
           pybind11::arg("sh_dc"), pybind11::arg("sh_rest"), pybind11::arg("center"), pybind11::arg("illum") = pybind11::none(),
           pybind11::arg("bound") = 1.0, pybind11::arg("weights") = pybind11::none());
+    m.def("illumination_train_layout", &illumination_train_layout, pybind11::arg("illum"));
+    m.def("illumination_forward", &illumination_forward, pybind11::arg("means"), pybind11::arg("center"),
+          pybind11::arg("illum"), pybind11::arg("bound"), pybind11::arg("weights"));
+    m.def("illumination_backward", &illumination_backward, pybind11::arg("means"), pybind11::arg("center"),
+          pybind11::arg("illum"), pybind11::arg("bound"), pybind11::arg("weights"), pybind11::arg("A"),
+          pybind11::arg("rgb"), pybind11::arg("g_rgb"));
     m.def("exposure_tone", &exposure_tone, pybind11::arg("image"), pybind11::arg("gain"),
           pybind11::arg("shoulder") = 1.0);
     m.def("tone_curve_forward", &tone_curve_forward, pybind11::arg("x"), pybind11::arg("gain"), pybind11::arg("C"),

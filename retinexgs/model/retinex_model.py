@@ -29,6 +29,7 @@ from retinexgs.data.capture import PHOTO, Capture
 from retinexgs.model.enhancement import EnhancementNet
 from retinexgs.model.gaussians import GaussianModel, sh_colors
 from retinexgs.model.illumination import IlluminationField
+from retinexgs.model.illumination_kernel import illumination_at
 from retinexgs.model.near_plane import with_near
 from retinexgs.model.tones import Tone, get_tone
 from retinexgs.render import Camera, rasterize_gaussians
@@ -43,7 +44,7 @@ def gaussian_channels(means: Tensor, sh_dc: Tensor, sh_rest: Tensor, center: Ten
     colors = sh_colors(means, sh_dc, sh_rest, center, degree)
     if illumination is None:
         return colors
-    illum = illumination(means, IlluminationField.view_dirs(means, center))
+    illum = illumination_at(illumination, means, center)  # two kernels on the GPU (illumination_kernel.py)
     return torch.cat([colors, illum.to(colors)], dim=-1)
 
 

@@ -123,6 +123,17 @@ void gaussian_colors_cpu(int64_t N, int degree,
                          T* colors,                 // [N, 3 or 6] out
                          int num_threads);
 
+// ---- the illumination field's MLP in training (rgs/illumination_train.h) --------------------------
+// Forward: rgb [N, 3] and the saved activations A [a_width, N] of IlluminationField at the Gaussians' centres seen
+// from `center`. Backward: the Linear layers' output gradients D [d_width, N] and the centres' gradient.
+template <typename T>
+void illumination_forward_cpu(int64_t N, const T* means, const T* center, const IllumConfig& cfg, double bound,
+                              const T* weights, T* rgb, T* A, int num_threads);
+template <typename T>
+void illumination_backward_cpu(int64_t N, const T* means, const T* center, const IllumConfig& cfg, double bound,
+                               const T* weights, const T* A, const T* rgb, const T* g_rgb, T* D, T* g_means,
+                               int num_threads);
+
 // ---- densification's screen-space statistics (rgs/screen_stats.h) --------------------------------
 // Adds one view's statistics in place: grad_accum, count (where both radii > 0) and max_radius, all float32.
 template <typename T>

@@ -80,6 +80,16 @@ void gaussian_colors_cuda(int64_t N, int degree, int rest, const T* means, const
                           const T* center, const IllumConfig* illum, double bound, const T* weights, T* colors,
                           void* stream);
 
+// Same as illumination_forward_cpu / _backward_cpu; center and the packed weights in device memory (the weights
+// staged in shared memory per block when they fit).
+template <typename T>
+void illumination_forward_cuda(int64_t N, const T* means, const T* center, const IllumConfig& cfg, double bound,
+                               const T* weights, T* rgb, T* A, void* stream);
+template <typename T>
+void illumination_backward_cuda(int64_t N, const T* means, const T* center, const IllumConfig& cfg, double bound,
+                                const T* weights, const T* A, const T* rgb, const T* g_rgb, T* D, T* g_means,
+                                void* stream);
+
 // Same as exposure_tone_cpu; gain in device memory (the frame graph computes it on the GPU).
 template <typename T>
 void exposure_tone_cuda(int64_t P, int C, int G, const T* image, const T* gain, double knee, T* out, void* stream);

@@ -1,0 +1,343 @@
+// The illumination field's MLP in training (issue 65): gaussian_colors.h's illumination_mlp, forward and backward,
+// one Gaussian per thread. In torch the field's forward + backward is ~60 kernels a step (5 Linear layers, the two
+// positional encodings, their concatenations, ReLUs, bias sums), 0.57 ms of GPU time at 58k Gaussians.
+//
+// The forward also keeps what the backward needs: every Linear's input followed by a 1 (the bias's column), in A
+// [a_width, N] (one row of A per activation, one column per Gaussian: the threads of a warp write consecutive
+// addresses). The backward writes each Linear's output gradient (before its activation) into D [d_width, N] and
+// the gradient of the Gaussians' centres; each layer's weight and bias gradients are then one matrix product,
+// D_l · A_lᵀ = [out, in + 1] (the last column: the bias's), done by the caller (retinexgs/model/illumination_kernel.py).
+// The weights are gaussian_colors.h's packed, transposed buffer (IllumLayout): the forward adds rows of it
+// (axpy_row), the backward takes dot products with them. The positional encodings and the view direction follow
+// IlluminationField.forward and view_dirs operation by operation (gaussian_colors.h), so float64 agrees with torch's
+// autograd to rounding.
+#pragma once
+#include "rgs/gaussian_colors.h"
+
+namespace rgs {
+
+constexpr int kMaxTrainLayers = 10;  // the trunk's depth + the head's 2 Linear layers: depth <= 8
+
+// Where each Linear's input sits in A and its output gradient in D (rows), and its widths.
+struct IllumTrainLayout {
+    int layers;                     // depth + 2
+    int in[kMaxTrainLayers];        // input width (the bias's column not counted)
+    int out[kMaxTrainLayers];       // output width
+    int a_in[kMaxTrainLayers];      // first row of the input in A (in + 1 rows: the input, then 1)
+    int d_out[kMaxTrainLayers];     // first row of the output gradient in D (out rows)
+    int a_width, d_width;
+};
+
+inline IllumTrainLayout illum_train_layout(const IllumConfig& c) {
+    IllumTrainLayout S{};
+    S.layers = c.depth + 2;
+    const int ex = encoded_width(c.pos_freqs), ed = encoded_width(c.dir_freqs);
+    int a = 0, d = 0;
+    for (int l = 0; l < S.layers; ++l) {
+        S.in[l] = l == 0 ? ex : l < c.depth ? c.hidden : l == c.depth ? c.hidden + ed : c.dir_hidden;
+        S.out[l] = l < c.depth ? c.hidden : l == c.depth ? c.dir_hidden : 3;
+        S.a_in[l] = a;
+        S.d_out[l] = d;
+        a += S.in[l] + 1;
+        d += S.out[l];
+    }
+    S.a_width = a;
+    S.d_width = d;
+    return S;
+}
+
+// Offset of Linear l's transposed weight ([in, out]) and of its bias in the packed buffer.
+RGS_HD int64_t layer_weight(const IllumLayout& L, int depth, int l) {
+    return l == 0 ? L.trunk0_w : l < depth ? L.trunk_w + (l - 1) * L.trunk_stride : l == depth ? L.head0_w : L.head1_w;
+}
+RGS_HD int64_t layer_bias(const IllumLayout& L, int depth, int l) {
+    return l == 0 ? L.trunk0_b : l < depth ? L.trunk_b + (l - 1) * L.trunk_stride : l == depth ? L.head0_b : L.head1_b;
+}
+
+// dst[k · stride] = src[k] for k < n (N > 0: unrolled, src stays in registers).
+template <typename T, int N>
+RGS_HD void store_column(int n, const T* src, T* __restrict__ dst, int64_t stride) {
+    if constexpr (N > 0) {
+        RGS_UNROLL
+        for (int k = 0; k < N; ++k) dst[k * stride] = src[k];
+    } else {
+        for (int k = 0; k < n; ++k) dst[k * stride] = src[k];
+    }
+}
+
+// Σ_o w[o] · v[o] for o < n; w starts at a multiple of 4 elements (vector loads on the GPU, as axpy_row).
+template <typename T, int N>
+RGS_HD T dot_row(int n, const T* __restrict__ w, const T* v) {
+    if constexpr (N > 0 && N % 4 == 0) {
+        T s0 = T(0), s1 = T(0), s2 = T(0), s3 = T(0);  // four chains: the FMAs do not wait on each other
+#if defined(__CUDA_ARCH__)
+        if constexpr (sizeof(T) == 4) {
+            RGS_UNROLL
+            for (int q = 0; q < N / 4; ++q) {
+                const float4 x = load_float4(w + 4 * q);
+                s0 += x.x * v[4 * q];
+                s1 += x.y * v[4 * q + 1];
+                s2 += x.z * v[4 * q + 2];
+                s3 += x.w * v[4 * q + 3];
+            }
+            return (s0 + s1) + (s2 + s3);
+        }
+#endif
+        RGS_UNROLL
+        for (int q = 0; q < N / 4; ++q) {
+            s0 += w[4 * q] * v[4 * q];
+            s1 += w[4 * q + 1] * v[4 * q + 1];
+            s2 += w[4 * q + 2] * v[4 * q + 2];
+            s3 += w[4 * q + 3] * v[4 * q + 3];
+        }
+        return (s0 + s1) + (s2 + s3);
+    } else {
+        const int m = N > 0 ? N : n;
+        T s = T(0);
+        for (int o = 0; o < m; ++o) s += w[o] * v[o];
+        return s;
+    }
+}
+
+// encode_into (gaussian_colors.h) that also writes the encoding (raw input, sines, cosines) to pe[k · stride].
+template <typename T, int N>
+RGS_HD void encode_saved(int n_freqs, int n, const T v[3], const T* __restrict__ w, T* acc, T* __restrict__ pe,
+                         int64_t stride) {
+    const int64_t ld = n;
+    for (int j = 0; j < 3; ++j) {
+        pe[j * stride] = v[j];
+        axpy_row<T, N>(n, w + j * ld, v[j], acc);
+    }
+    T freq = T(kPi);
+    for (int k = 0; k < n_freqs; ++k, freq *= T(2)) {
+        for (int j = 0; j < 3; ++j) {
+            T s, c;
+            pe_sincos(v[j] * freq, s, c);
+            pe[(3 + 3 * k + j) * stride] = s;
+            pe[(3 + 3 * n_freqs + 3 * k + j) * stride] = c;
+            axpy_row<T, N>(n, w + (3 + 3 * k + j) * ld, s, acc);
+            axpy_row<T, N>(n, w + (3 + 3 * n_freqs + 3 * k + j) * ld, c, acc);
+        }
+    }
+}
+
+// g_v[j] += the gradient of the encoding pe (read at pe[k · stride]) of v, given its gradient g_pe(k):
+// ∂/∂v_j of (v_j, sin(2^k π v_j), cos(2^k π v_j)) = (1, 2^k π cos, −2^k π sin).
+template <typename T, typename G>
+RGS_HD void encoding_backward(int n_freqs, const T* __restrict__ pe, int64_t stride, G&& g_pe, T g_v[3]) {
+    for (int j = 0; j < 3; ++j) g_v[j] += g_pe(j);
+    T freq = T(kPi);
+    for (int k = 0; k < n_freqs; ++k, freq *= T(2)) {
+        for (int j = 0; j < 3; ++j) {
+            const int ks = 3 + 3 * k + j, kc = 3 + 3 * n_freqs + 3 * k + j;
+            g_v[j] += freq * (g_pe(ks) * pe[kc * stride] - g_pe(kc) * pe[ks * stride]);
+        }
+    }
+}
+
+// One Gaussian's illumination at x (already divided by bound) along the unit direction d -> rgb, as
+// illumination_mlp, with every Linear's input (and its 1) written to A (this Gaussian's column: A[row · stride]).
+template <typename T, int H, int DH>
+RGS_HD void illumination_mlp_saved(const IllumConfig& cfg, const IllumLayout& L, const IllumTrainLayout& S,
+                                   const T* __restrict__ W, const T x[3], const T d[3], T rgb[3],
+                                   T* __restrict__ A, int64_t stride) {
+    constexpr int AW = H > 0 ? (H > DH ? H : DH) : kMaxIllumWidth;
+    const int h = H > 0 ? H : cfg.hidden, dh = DH > 0 ? DH : cfg.dir_hidden;
+    T act[AW], acc[AW];
+    load_bias<T, H>(h, W + L.trunk0_b, acc);
+    encode_saved<T, H>(cfg.pos_freqs, h, x, W + L.trunk0_w, acc, A + S.a_in[0] * stride, stride);
+    A[(S.a_in[0] + S.in[0]) * stride] = T(1);
+    relu_into<T, H>(h, acc, act);
+    for (int l = 1; l < cfg.depth; ++l) {
+        store_column<T, H>(h, act, A + S.a_in[l] * stride, stride);
+        A[(S.a_in[l] + h) * stride] = T(1);
+        const T* w = W + L.trunk_w + (l - 1) * L.trunk_stride;
+        load_bias<T, H>(h, W + L.trunk_b + (l - 1) * L.trunk_stride, acc);
+        if constexpr (H > 0) {
+            RGS_UNROLL
+            for (int i = 0; i < H; ++i) axpy_row<T, H>(h, w + i * H, act[i], acc);
+        } else {
+            for (int i = 0; i < h; ++i) axpy_row<T, H>(h, w + int64_t(i) * h, act[i], acc);
+        }
+        relu_into<T, H>(h, acc, act);
+    }
+    // Head: cat(feature, PE(d)) -> dir_hidden -> 3.
+    const int l0 = cfg.depth;
+    store_column<T, H>(h, act, A + S.a_in[l0] * stride, stride);
+    load_bias<T, DH>(dh, W + L.head0_b, acc);
+    const T* w0 = W + L.head0_w;
+    if constexpr (H > 0) {
+        RGS_UNROLL
+        for (int i = 0; i < H; ++i) axpy_row<T, DH>(dh, w0 + i * dh, act[i], acc);
+    } else {
+        for (int i = 0; i < h; ++i) axpy_row<T, DH>(dh, w0 + int64_t(i) * dh, act[i], acc);
+    }
+    encode_saved<T, DH>(cfg.dir_freqs, dh, d, w0 + int64_t(h) * dh, acc, A + (S.a_in[l0] + h) * stride, stride);
+    A[(S.a_in[l0] + S.in[l0]) * stride] = T(1);
+    relu_into<T, DH>(dh, acc, act);
+    store_column<T, DH>(dh, act, A + S.a_in[l0 + 1] * stride, stride);
+    A[(S.a_in[l0 + 1] + dh) * stride] = T(1);
+    T out[3] = {W[L.head1_b], W[L.head1_b + 1], W[L.head1_b + 2]};
+    const T* w1 = W + L.head1_w;
+    if constexpr (DH > 0) {
+        RGS_UNROLL
+        for (int i = 0; i < DH; ++i) axpy_row<T, 3>(3, w1 + 3 * i, act[i], out);
+    } else {
+        for (int i = 0; i < dh; ++i) axpy_row<T, 3>(3, w1 + 3 * i, act[i], out);
+    }
+    for (int c = 0; c < 3; ++c) rgb[c] = sigmoid_of(out[c]);
+}
+
+// The backward of illumination_mlp_saved for one Gaussian: from its output rgb and the gradient g_rgb, every
+// Linear's output gradient into D (this Gaussian's column: D[row · d_stride]) and the gradients of x and d added to
+// g_x and g_d. A ReLU passes the gradient where its output (the next layer's saved input) is positive, as torch's.
+template <typename T, int H, int DH>
+RGS_HD void illumination_mlp_backward(const IllumConfig& cfg, const IllumLayout& L, const IllumTrainLayout& S,
+                                      const T* __restrict__ W, const T* __restrict__ A, int64_t stride,
+                                      const T rgb[3], const T g_rgb[3], T* __restrict__ D, int64_t d_stride,
+                                      T g_x[3], T g_d[3]) {
+    constexpr int AW = H > 0 ? (H > DH ? H : DH) : kMaxIllumWidth;
+    const int h = H > 0 ? H : cfg.hidden, dh = DH > 0 ? DH : cfg.dir_hidden;
+    const int l0 = cfg.depth;
+    T delta[AW], prev[AW];
+    // sigmoid: g · (1 − y) · y (torch's order)
+    T g_out[4] = {T(0), T(0), T(0), T(0)};
+    for (int c = 0; c < 3; ++c) {
+        g_out[c] = g_rgb[c] * (T(1) - rgb[c]) * rgb[c];
+        D[(S.d_out[l0 + 1] + c) * d_stride] = g_out[c];
+    }
+    // Head's last Linear [dh, 3] (transposed rows of 3, padded to 4): its input g = relu(head's first Linear).
+    const T* w1 = W + L.head1_w;
+    const T* g_in = A + S.a_in[l0 + 1] * stride;
+    for (int j = 0; j < dh; ++j) {
+        const T t = w1[3 * j] * g_out[0] + w1[3 * j + 1] * g_out[1] + w1[3 * j + 2] * g_out[2];
+        delta[j] = g_in[j * stride] > T(0) ? t : T(0);
+    }
+    store_column<T, DH>(dh, delta, D + S.d_out[l0] * d_stride, d_stride);
+    // Head's first Linear [h + enc_d, dh]: the trunk's feature (h rows), then PE(d).
+    const T* w0 = W + L.head0_w;
+    const T* f_in = A + S.a_in[l0] * stride;
+    if constexpr (H > 0) {
+        RGS_UNROLL
+        for (int i = 0; i < H; ++i) {
+            const T t = dot_row<T, DH>(dh, w0 + i * dh, delta);
+            prev[i] = f_in[i * stride] > T(0) ? t : T(0);
+        }
+    } else {
+        for (int i = 0; i < h; ++i) {
+            const T t = dot_row<T, DH>(dh, w0 + int64_t(i) * dh, delta);
+            prev[i] = f_in[i * stride] > T(0) ? t : T(0);
+        }
+    }
+    encoding_backward(cfg.dir_freqs, f_in + int64_t(h) * stride, stride,
+                      [&](int k) { return dot_row<T, DH>(dh, w0 + int64_t(h + k) * dh, delta); }, g_d);
+    // The trunk, last to first: prev holds layer l's output gradient.
+    for (int l = cfg.depth - 1; l >= 0; --l) {
+        store_column<T, H>(h, prev, D + S.d_out[l] * d_stride, d_stride);
+        if constexpr (H > 0) {
+            RGS_UNROLL
+            for (int i = 0; i < H; ++i) delta[i] = prev[i];
+        } else {
+            for (int i = 0; i < h; ++i) delta[i] = prev[i];
+        }
+        const T* w = W + layer_weight(L, cfg.depth, l);
+        const T* in = A + S.a_in[l] * stride;
+        if (l == 0) {
+            encoding_backward(cfg.pos_freqs, in, stride, [&](int k) { return dot_row<T, H>(h, w + int64_t(k) * h, delta); },
+                              g_x);
+            break;
+        }
+        if constexpr (H > 0) {
+            RGS_UNROLL
+            for (int i = 0; i < H; ++i) {
+                const T t = dot_row<T, H>(h, w + i * H, delta);
+                prev[i] = in[i * stride] > T(0) ? t : T(0);
+            }
+        } else {
+            for (int i = 0; i < h; ++i) {
+                const T t = dot_row<T, H>(h, w + int64_t(i) * h, delta);
+                prev[i] = in[i * stride] > T(0) ? t : T(0);
+            }
+        }
+    }
+}
+
+// The view direction of IlluminationField at a Gaussian: F.normalize twice (view_dirs, then forward), each
+// x / max(|x|, 1e-12) of v = mean − centre; returns u (the first) and d, and the two norms.
+template <typename T>
+RGS_HD void view_direction(const T v[3], T u[3], T d[3], T& n1, T& n2) {
+    n1 = sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]);
+    const T m1 = n1 > T(1e-12) ? n1 : T(1e-12);
+    for (int c = 0; c < 3; ++c) u[c] = v[c] / m1;
+    n2 = sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2]);
+    const T m2 = n2 > T(1e-12) ? n2 : T(1e-12);
+    for (int c = 0; c < 3; ++c) d[c] = u[c] / m2;
+}
+
+// The gradient of v from that of d = normalize(normalize(v)): y = x / |x| gives g_x = (g_y − y (y · g_y)) / |x|
+// (and g_y / 1e-12 below the clamp).
+template <typename T>
+RGS_HD void view_direction_backward(const T u[3], const T d[3], T n1, T n2, const T g_d[3], T g_v[3]) {
+    T g_u[3];
+    const T dg = d[0] * g_d[0] + d[1] * g_d[1] + d[2] * g_d[2];
+    for (int c = 0; c < 3; ++c) g_u[c] = n2 > T(1e-12) ? (g_d[c] - d[c] * dg) / n2 : g_d[c] / T(1e-12);
+    const T ug = u[0] * g_u[0] + u[1] * g_u[1] + u[2] * g_u[2];
+    for (int c = 0; c < 3; ++c) g_v[c] = n1 > T(1e-12) ? (g_u[c] - u[c] * ug) / n1 : g_u[c] / T(1e-12);
+}
+
+// Everything one Gaussian needs besides the weights: the camera centre (device or host memory: read per thread)
+// and the position's scale (as ColorArgs: the GPU multiplies by 1 / bound, the CPU divides, as torch).
+template <typename T>
+struct IllumTrainArgs {
+    const T* center;   // [3]
+    T inv_bound, bound;
+};
+
+template <typename T>
+RGS_HD void illum_inputs(int64_t i, const IllumTrainArgs<T>& a, const T* __restrict__ means, T x[3], T v[3]) {
+    for (int c = 0; c < 3; ++c) {
+        v[c] = means[3 * i + c] - a.center[c];
+#if defined(__CUDA_ARCH__)
+        x[c] = means[3 * i + c] * a.inv_bound;
+#else
+        x[c] = means[3 * i + c] / a.bound;
+#endif
+    }
+}
+
+// Forward of Gaussian i: rgb[3i .. 3i+3) and its column of A [a_width, N].
+template <typename T, int H, int DH>
+RGS_HD void illumination_forward_one(int64_t i, int64_t N, const IllumTrainArgs<T>& a, const IllumConfig& cfg,
+                                     const IllumLayout& L, const IllumTrainLayout& S, const T* __restrict__ means,
+                                     const T* __restrict__ W, T* __restrict__ rgb, T* __restrict__ A) {
+    T x[3], v[3], u[3], d[3], n1, n2, out[3];
+    illum_inputs(i, a, means, x, v);
+    view_direction(v, u, d, n1, n2);
+    illumination_mlp_saved<T, H, DH>(cfg, L, S, W, x, d, out, A + i, N);
+    for (int c = 0; c < 3; ++c) rgb[3 * i + c] = out[c];
+}
+
+// Backward of Gaussian i: its column of D [d_width, N] and g_means[3i .. 3i+3).
+template <typename T, int H, int DH>
+RGS_HD void illumination_backward_one(int64_t i, int64_t N, const IllumTrainArgs<T>& a, const IllumConfig& cfg,
+                                      const IllumLayout& L, const IllumTrainLayout& S, const T* __restrict__ means,
+                                      const T* __restrict__ W, const T* __restrict__ A, const T* __restrict__ rgb,
+                                      const T* __restrict__ g_rgb, T* __restrict__ D, T* __restrict__ g_means) {
+    T x[3], v[3], u[3], d[3], n1, n2;
+    illum_inputs(i, a, means, x, v);
+    view_direction(v, u, d, n1, n2);
+    const T y[3] = {rgb[3 * i], rgb[3 * i + 1], rgb[3 * i + 2]};
+    const T g[3] = {g_rgb[3 * i], g_rgb[3 * i + 1], g_rgb[3 * i + 2]};
+    T g_x[3] = {T(0), T(0), T(0)}, g_d[3] = {T(0), T(0), T(0)}, g_v[3];
+    illumination_mlp_backward<T, H, DH>(cfg, L, S, W, A + i, N, y, g, D + i, N, g_x, g_d);
+    view_direction_backward(u, d, n1, n2, g_d, g_v);
+    for (int c = 0; c < 3; ++c) {
+#if defined(__CUDA_ARCH__)
+        g_means[3 * i + c] = g_x[c] * a.inv_bound + g_v[c];
+#else
+        g_means[3 * i + c] = g_x[c] / a.bound + g_v[c];
+#endif
+    }
+}
+
+}  // namespace rgs
