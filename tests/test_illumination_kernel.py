@@ -80,13 +80,15 @@ def test_saved_buffers_follow_the_layout():
     from retinexgs.model.inference import pack_illumination
     rgb, A = kernels().illumination_forward(means.detach(), center, list(shape), field.bound, pack_illumination(field))
     ins, outs, a_in, d_out, (aw, dw) = _layout(tuple(shape))
-    assert A.shape == (aw, 11) and aw == sum(i + 1 for i in ins) and dw == sum(outs)
+    chunk = kernels().illum_chunk
+    assert A.shape == (aw, chunk) and aw == sum(i + 1 for i in ins) and dw == sum(outs)
+    assert torch.equal(A[:, 11:], torch.zeros_like(A[:, 11:]))  # the padding to whole chunks
     for l, n_in in enumerate(ins):
-        assert torch.equal(A[a_in[l] + n_in], torch.ones(11, dtype=A.dtype))
+        assert torch.equal(A[a_in[l] + n_in, :11], torch.ones(11, dtype=A.dtype))
     # the first layer's input is the encoding of means / bound
     from retinexgs.model.illumination import positional_encoding
     want = positional_encoding(means.detach() / field.bound, shape[0])
-    assert torch.allclose(A[:ins[0]].t(), want, atol=1e-14)
+    assert torch.allclose(A[:ins[0], :11].t(), want, atol=1e-14)
 
 
 def test_illumination_at_keeps_torch_on_the_cpu(monkeypatch):

@@ -13,7 +13,7 @@ static IllumTrainArgs<T> train_args(const T* center, double bound) {
 
 template <typename T>
 void illumination_forward_cpu(int64_t N, const T* means, const T* center, const IllumConfig& cfg, double bound,
-                              const T* weights, T* rgb, T* A, int num_threads) {
+                              const T* weights, T* rgb, T* A, int64_t ld, int num_threads) {
     if (N == 0) return;
     const IllumTrainArgs<T> a = train_args(center, bound);
     const IllumLayout L = illum_layout(cfg);
@@ -21,13 +21,13 @@ void illumination_forward_cpu(int64_t N, const T* means, const T* center, const 
     dispatch_illum_widths(&cfg, [&](auto h, auto dh) {
         constexpr int H = decltype(h)::value, DH = decltype(dh)::value;
 #pragma omp parallel for schedule(static) num_threads(num_threads)
-        for (int64_t i = 0; i < N; ++i) illumination_forward_one<T, H, DH>(i, N, a, cfg, L, S, means, weights, rgb, A);
+        for (int64_t i = 0; i < N; ++i) illumination_forward_one<T, H, DH>(i, ld, a, cfg, L, S, means, weights, rgb, A);
     });
 }
 
 template <typename T>
 void illumination_backward_cpu(int64_t N, const T* means, const T* center, const IllumConfig& cfg, double bound,
-                               const T* weights, const T* A, const T* rgb, const T* g_rgb, T* D, T* g_means,
+                               const T* weights, const T* A, const T* rgb, const T* g_rgb, T* D, T* g_means, int64_t ld,
                                int num_threads) {
     if (N == 0) return;
     const IllumTrainArgs<T> a = train_args(center, bound);
@@ -37,15 +37,15 @@ void illumination_backward_cpu(int64_t N, const T* means, const T* center, const
         constexpr int H = decltype(h)::value, DH = decltype(dh)::value;
 #pragma omp parallel for schedule(static) num_threads(num_threads)
         for (int64_t i = 0; i < N; ++i)
-            illumination_backward_one<T, H, DH>(i, N, a, cfg, L, S, means, weights, A, rgb, g_rgb, D, g_means);
+            illumination_backward_one<T, H, DH>(i, ld, a, cfg, L, S, means, weights, A, rgb, g_rgb, D, g_means);
     });
 }
 
 #define RGS_INSTANTIATE(T)                                                                                          \
     template void illumination_forward_cpu<T>(int64_t, const T*, const T*, const IllumConfig&, double, const T*, T*, \
-                                              T*, int);                                                           \
+                                              T*, int64_t, int);                                                           \
     template void illumination_backward_cpu<T>(int64_t, const T*, const T*, const IllumConfig&, double, const T*,   \
-                                               const T*, const T*, const T*, T*, T*, int);
+                                               const T*, const T*, const T*, T*, T*, int64_t, int);
 RGS_INSTANTIATE(float)
 RGS_INSTANTIATE(double)
 #undef RGS_INSTANTIATE

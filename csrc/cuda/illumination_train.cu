@@ -30,12 +30,12 @@ template <typename T, int H, int DH, bool kShared>
 __global__ void __launch_bounds__(kIllumThreads)
 illumination_forward_kernel(int64_t N, IllumTrainArgs<T> a, IllumConfig cfg, IllumLayout L, IllumTrainLayout S,
                             const T* __restrict__ means, const T* __restrict__ weights, T* __restrict__ rgb,
-                            T* __restrict__ A) {
+                            T* __restrict__ A, int64_t ld) {
     extern __shared__ __align__(16) unsigned char smem_raw[];
     const T* W = staged_weights<T, kShared>(weights, L.total, smem_raw);
     const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
     if (i >= N) return;
-    illumination_forward_one<T, H, DH>(i, N, a, cfg, L, S, means, W, rgb, A);
+    illumination_forward_one<T, H, DH>(i, ld, a, cfg, L, S, means, W, rgb, A);
 }
 
 template <typename T, int H, int DH, bool kShared>
@@ -43,12 +43,12 @@ __global__ void __launch_bounds__(kIllumThreads)
 illumination_backward_kernel(int64_t N, IllumTrainArgs<T> a, IllumConfig cfg, IllumLayout L, IllumTrainLayout S,
                              const T* __restrict__ means, const T* __restrict__ weights, const T* __restrict__ A,
                              const T* __restrict__ rgb, const T* __restrict__ g_rgb, T* __restrict__ D,
-                             T* __restrict__ g_means) {
+                             T* __restrict__ g_means, int64_t ld) {
     extern __shared__ __align__(16) unsigned char smem_raw[];
     const T* W = staged_weights<T, kShared>(weights, L.total, smem_raw);
     const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
     if (i >= N) return;
-    illumination_backward_one<T, H, DH>(i, N, a, cfg, L, S, means, W, A, rgb, g_rgb, D, g_means);
+    illumination_backward_one<T, H, DH>(i, ld, a, cfg, L, S, means, W, A, rgb, g_rgb, D, g_means);
 }
 
 // Raises a kernel's dynamic shared-memory limit past the default 48 KB, once per kernel and device.
@@ -86,7 +86,7 @@ void illum_launch(int64_t N, const IllumConfig& cfg, F&& launch) {
 
 template <typename T>
 void illumination_forward_cuda(int64_t N, const T* means, const T* center, const IllumConfig& cfg, double bound,
-                               const T* weights, T* rgb, T* A, void* stream) {
+                               const T* weights, T* rgb, T* A, int64_t ld, void* stream) {
     if (N == 0) return;
     const IllumTrainArgs<T> a{center, T(1) / T(bound), T(bound)};
     const IllumLayout L = illum_layout(cfg);
@@ -98,14 +98,14 @@ void illumination_forward_cuda(int64_t N, const T* means, const T* center, const
         auto kernel = illumination_forward_kernel<T, H, DH, kShared>;
         if constexpr (kShared) allow_illum_shared(kernel, bytes, device, allowed);
         kernel<<<num_blocks(N, kIllumThreads), kIllumThreads, bytes, static_cast<cudaStream_t>(stream)>>>(
-            N, a, cfg, L, S, means, weights, rgb, A);
+            N, a, cfg, L, S, means, weights, rgb, A, ld);
     });
     RGS_CHECK_LAUNCH("illumination_forward");
 }
 
 template <typename T>
 void illumination_backward_cuda(int64_t N, const T* means, const T* center, const IllumConfig& cfg, double bound,
-                                const T* weights, const T* A, const T* rgb, const T* g_rgb, T* D, T* g_means,
+                                const T* weights, const T* A, const T* rgb, const T* g_rgb, T* D, T* g_means, int64_t ld,
                                 void* stream) {
     if (N == 0) return;
     const IllumTrainArgs<T> a{center, T(1) / T(bound), T(bound)};
@@ -118,16 +118,16 @@ void illumination_backward_cuda(int64_t N, const T* means, const T* center, cons
         auto kernel = illumination_backward_kernel<T, H, DH, kShared>;
         if constexpr (kShared) allow_illum_shared(kernel, bytes, device, allowed);
         kernel<<<num_blocks(N, kIllumThreads), kIllumThreads, bytes, static_cast<cudaStream_t>(stream)>>>(
-            N, a, cfg, L, S, means, weights, A, rgb, g_rgb, D, g_means);
+            N, a, cfg, L, S, means, weights, A, rgb, g_rgb, D, g_means, ld);
     });
     RGS_CHECK_LAUNCH("illumination_backward");
 }
 
 #define RGS_INSTANTIATE(T)                                                                                          \
     template void illumination_forward_cuda<T>(int64_t, const T*, const T*, const IllumConfig&, double, const T*,  \
-                                               T*, T*, void*);                                                     \
+                                               T*, T*, int64_t, void*);                                                     \
     template void illumination_backward_cuda<T>(int64_t, const T*, const T*, const IllumConfig&, double, const T*, \
-                                                const T*, const T*, const T*, T*, T*, void*);
+                                                const T*, const T*, const T*, T*, T*, int64_t, void*);
 RGS_INSTANTIATE(float)
 RGS_INSTANTIATE(double)
 #undef RGS_INSTANTIATE

@@ -66,10 +66,15 @@ class _IlluminationKernels(torch.autograd.Function):
         g_means, D = kernels().illumination_backward(means, center, list(ctx.shape), ctx.bound, weights, A, rgb,
                                                      g_rgb.contiguous())
         ins, outs, a_in, d_out, _ = _layout(ctx.shape)
+        chunk = int(kernels().illum_chunk)
+        C = A.shape[1] // chunk  # the columns are whole chunks, the padding zero
         grads: List[Optional[Tensor]] = []
         for l, (n_in, n_out) in enumerate(zip(ins, outs)):
-            # [out, N] · [N, in + 1]: the weight's gradient, then the bias's (A's row of ones)
-            g = D[d_out[l]:d_out[l] + n_out] @ A[a_in[l]:a_in[l] + n_in + 1].t()
+            # Σ over the Gaussians of [out] ⊗ [in + 1]: the weight's gradient, then the bias's (A's row of ones); one
+            # product per chunk of Gaussians, then their sum
+            d = D[d_out[l]:d_out[l] + n_out].view(n_out, C, chunk).transpose(0, 1)
+            a = A[a_in[l]:a_in[l] + n_in + 1].view(n_in + 1, C, chunk).permute(1, 2, 0)
+            g = torch.bmm(d, a).sum(0)
             grads += [g[:, :n_in], g[:, n_in]]
         return (None, None, g_means if ctx.needs_input_grad[2] else None, None, *grads)
 

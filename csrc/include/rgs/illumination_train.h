@@ -3,8 +3,8 @@
 // positional encodings, their concatenations, ReLUs, bias sums), 0.57 ms of GPU time at 58k Gaussians.
 //
 // The forward also keeps what the backward needs: every Linear's input followed by a 1 (the bias's column), in A
-// [a_width, N] (one row of A per activation, one column per Gaussian: the threads of a warp write consecutive
-// addresses). The backward writes each Linear's output gradient (before its activation) into D [d_width, N] and
+// [a_width, ld] (one row of A per activation, one column per Gaussian: the threads of a warp write consecutive
+// addresses; ld >= N, the columns past N are the caller's). The backward writes each Linear's output gradient (before its activation) into D [d_width, ld] and
 // the gradient of the Gaussians' centres; each layer's weight and bias gradients are then one matrix product,
 // D_l · A_lᵀ = [out, in + 1] (the last column: the bias's), done by the caller (retinexgs/model/illumination_kernel.py).
 // The weights are gaussian_colors.h's packed, transposed buffer (IllumLayout): the forward adds rows of it
@@ -305,21 +305,21 @@ RGS_HD void illum_inputs(int64_t i, const IllumTrainArgs<T>& a, const T* __restr
     }
 }
 
-// Forward of Gaussian i: rgb[3i .. 3i+3) and its column of A [a_width, N].
+// Forward of Gaussian i: rgb[3i .. 3i+3) and its column of A [a_width, ld].
 template <typename T, int H, int DH>
-RGS_HD void illumination_forward_one(int64_t i, int64_t N, const IllumTrainArgs<T>& a, const IllumConfig& cfg,
+RGS_HD void illumination_forward_one(int64_t i, int64_t ld, const IllumTrainArgs<T>& a, const IllumConfig& cfg,
                                      const IllumLayout& L, const IllumTrainLayout& S, const T* __restrict__ means,
                                      const T* __restrict__ W, T* __restrict__ rgb, T* __restrict__ A) {
     T x[3], v[3], u[3], d[3], n1, n2, out[3];
     illum_inputs(i, a, means, x, v);
     view_direction(v, u, d, n1, n2);
-    illumination_mlp_saved<T, H, DH>(cfg, L, S, W, x, d, out, A + i, N);
+    illumination_mlp_saved<T, H, DH>(cfg, L, S, W, x, d, out, A + i, ld);
     for (int c = 0; c < 3; ++c) rgb[3 * i + c] = out[c];
 }
 
-// Backward of Gaussian i: its column of D [d_width, N] and g_means[3i .. 3i+3).
+// Backward of Gaussian i: its column of D [d_width, ld] and g_means[3i .. 3i+3).
 template <typename T, int H, int DH>
-RGS_HD void illumination_backward_one(int64_t i, int64_t N, const IllumTrainArgs<T>& a, const IllumConfig& cfg,
+RGS_HD void illumination_backward_one(int64_t i, int64_t ld, const IllumTrainArgs<T>& a, const IllumConfig& cfg,
                                       const IllumLayout& L, const IllumTrainLayout& S, const T* __restrict__ means,
                                       const T* __restrict__ W, const T* __restrict__ A, const T* __restrict__ rgb,
                                       const T* __restrict__ g_rgb, T* __restrict__ D, T* __restrict__ g_means) {
@@ -329,7 +329,7 @@ RGS_HD void illumination_backward_one(int64_t i, int64_t N, const IllumTrainArgs
     const T y[3] = {rgb[3 * i], rgb[3 * i + 1], rgb[3 * i + 2]};
     const T g[3] = {g_rgb[3 * i], g_rgb[3 * i + 1], g_rgb[3 * i + 2]};
     T g_x[3] = {T(0), T(0), T(0)}, g_d[3] = {T(0), T(0), T(0)}, g_v[3];
-    illumination_mlp_backward<T, H, DH>(cfg, L, S, W, A + i, N, y, g, D + i, N, g_x, g_d);
+    illumination_mlp_backward<T, H, DH>(cfg, L, S, W, A + i, ld, y, g, D + i, ld, g_x, g_d);
     view_direction_backward(u, d, n1, n2, g_d, g_v);
     for (int c = 0; c < 3; ++c) {
 #if defined(__CUDA_ARCH__)

@@ -128,10 +128,10 @@ void gaussian_colors_cpu(int64_t N, int degree,
 // from `center`. Backward: the Linear layers' output gradients D [d_width, N] and the centres' gradient.
 template <typename T>
 void illumination_forward_cpu(int64_t N, const T* means, const T* center, const IllumConfig& cfg, double bound,
-                              const T* weights, T* rgb, T* A, int num_threads);
+                              const T* weights, T* rgb, T* A, int64_t ld, int num_threads);
 template <typename T>
 void illumination_backward_cpu(int64_t N, const T* means, const T* center, const IllumConfig& cfg, double bound,
-                               const T* weights, const T* A, const T* rgb, const T* g_rgb, T* D, T* g_means,
+                               const T* weights, const T* A, const T* rgb, const T* g_rgb, T* D, T* g_means, int64_t ld,
                                int num_threads);
 
 // ---- densification's screen-space statistics (rgs/screen_stats.h) --------------------------------

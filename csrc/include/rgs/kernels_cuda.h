@@ -84,10 +84,10 @@ void gaussian_colors_cuda(int64_t N, int degree, int rest, const T* means, const
 // staged in shared memory per block when they fit).
 template <typename T>
 void illumination_forward_cuda(int64_t N, const T* means, const T* center, const IllumConfig& cfg, double bound,
-                               const T* weights, T* rgb, T* A, void* stream);
+                               const T* weights, T* rgb, T* A, int64_t ld, void* stream);
 template <typename T>
 void illumination_backward_cuda(int64_t N, const T* means, const T* center, const IllumConfig& cfg, double bound,
-                                const T* weights, const T* A, const T* rgb, const T* g_rgb, T* D, T* g_means,
+                                const T* weights, const T* A, const T* rgb, const T* g_rgb, T* D, T* g_means, int64_t ld,
                                 void* stream);
 
 // Same as exposure_tone_cpu; gain in device memory (the frame graph computes it on the GPU).
