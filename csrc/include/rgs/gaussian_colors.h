@@ -166,36 +166,78 @@ RGS_HD void relu_into(int n, const T* acc, T* out) {
     }
 }
 
-// Positional encoding fed straight into a Linear: rows of w for (v, sin(2^k pi v_j), cos(2^k pi v_j)) in
-// IlluminationField's order (raw input, all sines, then all cosines; frequency-major, coordinate-minor).
+// dst[k · stride] = src[k] for k < n (N > 0: unrolled, src stays in registers).
 template <typename T, int N>
-RGS_HD void encode_into(int n_freqs, int n, const T v[3], const T* __restrict__ w, T* acc) {
+RGS_HD void store_column(int n, const T* src, T* __restrict__ dst, int64_t stride) {
+    if constexpr (N > 0) {
+        RGS_UNROLL
+        for (int k = 0; k < N; ++k) dst[k * stride] = src[k];
+    } else {
+        for (int k = 0; k < n; ++k) dst[k * stride] = src[k];
+    }
+}
+
+// Positional encoding fed straight into a Linear: rows of w for (v, sin(2^k pi v_j), cos(2^k pi v_j)) in
+// IlluminationField's order (raw input, all sines, then all cosines; frequency-major, coordinate-minor). kKeep: the
+// encoding is also written to pe[k · stride] (training keeps it for the backward).
+template <typename T, int N, bool kKeep = false>
+RGS_HD void encode_into(int n_freqs, int n, const T v[3], const T* __restrict__ w, T* acc, T* __restrict__ pe = nullptr,
+                        int64_t stride = 0) {
     const int64_t ld = n;  // row stride: the layer's output width
-    for (int j = 0; j < 3; ++j) axpy_row<T, N>(n, w + j * ld, v[j], acc);
+    for (int j = 0; j < 3; ++j) {
+        if constexpr (kKeep) pe[j * stride] = v[j];
+        axpy_row<T, N>(n, w + j * ld, v[j], acc);
+    }
     T freq = T(kPi);  // float32(2^k) * float32(pi) = 2^k * float32(pi): exact scaling, as torch's freqs
     for (int k = 0; k < n_freqs; ++k, freq *= T(2)) {
         for (int j = 0; j < 3; ++j) {
             T s, c;
             pe_sincos(v[j] * freq, s, c);
+            if constexpr (kKeep) {
+                pe[(3 + 3 * k + j) * stride] = s;
+                pe[(3 + 3 * n_freqs + 3 * k + j) * stride] = c;
+            }
             axpy_row<T, N>(n, w + (3 + 3 * k + j) * ld, s, acc);
             axpy_row<T, N>(n, w + (3 + 3 * n_freqs + 3 * k + j) * ld, c, acc);
         }
     }
 }
 
+// Where a training forward keeps each Linear's input followed by a 1 (the bias's column): rows of A, this
+// Gaussian's column (A[row · stride]); row[l] is Linear l's first (illumination_train.h). Inference keeps nothing.
+template <typename T>
+struct KeptInputs {
+    T* A;
+    int64_t stride;
+    const int* row;
+};
+
 // The illumination of one Gaussian at x (already divided by bound) seen along the unit direction d -> rgb.
 // H, DH: compile-time hidden / dir_hidden widths (0 = use cfg's at run time). Two activation arrays serve all
-// layers (the head's accumulators reuse the trunk's), which keeps the runtime path's local memory small.
-template <typename T, int H, int DH>
+// layers (the head's accumulators reuse the trunk's), which keeps the runtime path's local memory small. kKeep:
+// every Linear's input is also written to `keep` (the training forward).
+template <typename T, int H, int DH, bool kKeep = false>
 RGS_HD void illumination_mlp(const IllumConfig& cfg, const IllumLayout& L, const T* __restrict__ W, const T x[3],
-                             const T d[3], T rgb[3]) {
+                             const T d[3], T rgb[3], const KeptInputs<T>& keep = KeptInputs<T>{nullptr, 0, nullptr}) {
     constexpr int A = H > 0 ? (H > DH ? H : DH) : kMaxIllumWidth;
     const int h = H > 0 ? H : cfg.hidden, dh = DH > 0 ? DH : cfg.dir_hidden;
+    const int64_t st = keep.stride;
+    // Linear l's kept input: its first row, and the 1 after its `width` values
+    auto kept = [&](int l) { return keep.A + keep.row[l] * st; };
     T act[A], acc[A];
     load_bias<T, H>(h, W + L.trunk0_b, acc);
-    encode_into<T, H>(cfg.pos_freqs, h, x, W + L.trunk0_w, acc);
+    if constexpr (kKeep) {
+        encode_into<T, H, true>(cfg.pos_freqs, h, x, W + L.trunk0_w, acc, kept(0), st);
+        kept(0)[encoded_width(cfg.pos_freqs) * st] = T(1);
+    } else {
+        encode_into<T, H>(cfg.pos_freqs, h, x, W + L.trunk0_w, acc);
+    }
     relu_into<T, H>(h, acc, act);
     for (int l = 0; l + 1 < cfg.depth; ++l) {
+        if constexpr (kKeep) {
+            store_column<T, H>(h, act, kept(l + 1), st);
+            kept(l + 1)[h * st] = T(1);
+        }
         const T* w = W + L.trunk_w + l * L.trunk_stride;
         load_bias<T, H>(h, W + L.trunk_b + l * L.trunk_stride, acc);
         if constexpr (H > 0) {
@@ -207,6 +249,7 @@ RGS_HD void illumination_mlp(const IllumConfig& cfg, const IllumLayout& L, const
         relu_into<T, H>(h, acc, act);
     }
     // Head: cat(feature, PE(d)) -> dir_hidden -> 3.
+    if constexpr (kKeep) store_column<T, H>(h, act, kept(cfg.depth), st);
     load_bias<T, DH>(dh, W + L.head0_b, acc);
     const T* w0 = W + L.head0_w;
     if constexpr (H > 0) {
@@ -215,8 +258,17 @@ RGS_HD void illumination_mlp(const IllumConfig& cfg, const IllumLayout& L, const
     } else {
         for (int i = 0; i < h; ++i) axpy_row<T, DH>(dh, w0 + int64_t(i) * dh, act[i], acc);
     }
-    encode_into<T, DH>(cfg.dir_freqs, dh, d, w0 + int64_t(h) * dh, acc);
+    if constexpr (kKeep) {
+        encode_into<T, DH, true>(cfg.dir_freqs, dh, d, w0 + int64_t(h) * dh, acc, kept(cfg.depth) + h * st, st);
+        kept(cfg.depth)[(h + encoded_width(cfg.dir_freqs)) * st] = T(1);
+    } else {
+        encode_into<T, DH>(cfg.dir_freqs, dh, d, w0 + int64_t(h) * dh, acc);
+    }
     relu_into<T, DH>(dh, acc, act);
+    if constexpr (kKeep) {
+        store_column<T, DH>(dh, act, kept(cfg.depth + 1), st);
+        kept(cfg.depth + 1)[dh * st] = T(1);
+    }
     T out[3] = {W[L.head1_b], W[L.head1_b + 1], W[L.head1_b + 2]};
     const T* w1 = W + L.head1_w;
     if constexpr (DH > 0) {
@@ -226,6 +278,18 @@ RGS_HD void illumination_mlp(const IllumConfig& cfg, const IllumLayout& L, const
         for (int i = 0; i < dh; ++i) axpy_row<T, 3>(3, w1 + 3 * i, act[i], out);
     }
     for (int c = 0; c < 3; ++c) rgb[c] = sigmoid_of(out[c]);
+}
+
+// The view direction of IlluminationField at a Gaussian: F.normalize twice (view_dirs, then the field's forward),
+// each x / max(|x|, 1e-12) of v = mean − centre; u the first, d the second, n1 and n2 their norms (the backward's).
+template <typename T>
+RGS_HD void view_direction(const T v[3], T u[3], T d[3], T& n1, T& n2) {
+    n1 = sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]);
+    const T m1 = n1 > T(1e-12) ? n1 : T(1e-12);
+    for (int c = 0; c < 3; ++c) u[c] = v[c] / m1;
+    n2 = sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2]);
+    const T m2 = n2 > T(1e-12) ? n2 : T(1e-12);
+    for (int c = 0; c < 3; ++c) d[c] = u[c] / m2;
 }
 
 // Everything one Gaussian needs besides the weights.
@@ -261,14 +325,8 @@ RGS_HD void gaussian_colors(int64_t i, const ColorArgs<T>& a, const IllumConfig&
         out[c] = acc < T(0) ? T(0) : acc;
     }
     if constexpr (H >= 0) {
-        // Illumination: F.normalize twice (view_dirs, then IlluminationField.forward), each x / max(|x|, 1e-12).
-        T u[3], d[3], p[3];
-        const T n1 = sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]);
-        const T m1 = n1 > T(1e-12) ? n1 : T(1e-12);
-        for (int c = 0; c < 3; ++c) u[c] = v[c] / m1;
-        const T n2 = sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2]);
-        const T m2 = n2 > T(1e-12) ? n2 : T(1e-12);
-        for (int c = 0; c < 3; ++c) d[c] = u[c] / m2;
+        T u[3], d[3], p[3], n1, n2;
+        view_direction(v, u, d, n1, n2);
         for (int c = 0; c < 3; ++c) {
 #if defined(__CUDA_ARCH__)
             p[c] = means[3 * i + c] * a.inv_bound;

@@ -1,16 +1,16 @@
-// The illumination field's MLP in training (issue 65): gaussian_colors.h's illumination_mlp, forward and backward,
-// one Gaussian per thread. In torch the field's forward + backward is ~60 kernels a step (5 Linear layers, the two
-// positional encodings, their concatenations, ReLUs, bias sums), 0.57 ms of GPU time at 58k Gaussians.
+// The illumination field's MLP in training (issue 65), one Gaussian per thread. In torch the field's forward +
+// backward is ~60 kernels a step (5 Linear layers, the two positional encodings, their concatenations, ReLUs, bias
+// sums), 0.57 ms of GPU time at 58k Gaussians.
 //
-// The forward also keeps what the backward needs: every Linear's input followed by a 1 (the bias's column), in A
-// [a_width, ld] (one row of A per activation, one column per Gaussian: the threads of a warp write consecutive
-// addresses; ld >= N, the columns past N are the caller's). The backward writes each Linear's output gradient (before its activation) into D [d_width, ld] and
-// the gradient of the Gaussians' centres; each layer's weight and bias gradients are then one matrix product,
-// D_l · A_lᵀ = [out, in + 1] (the last column: the bias's), done by the caller (retinexgs/model/illumination_kernel.py).
-// The weights are gaussian_colors.h's packed, transposed buffer (IllumLayout): the forward adds rows of it
-// (axpy_row), the backward takes dot products with them. The positional encodings and the view direction follow
-// IlluminationField.forward and view_dirs operation by operation (gaussian_colors.h), so float64 agrees with torch's
-// autograd to rounding.
+// The forward is gaussian_colors.h's illumination_mlp keeping what the backward needs: every Linear's input followed
+// by a 1 (the bias's column), in A [a_width, ld] (one row per activation, one column per Gaussian: the threads of a
+// warp write consecutive addresses; ld >= N, the columns past N are the caller's). The backward writes each Linear's
+// output gradient (before its activation) into D [d_width, ld] and the gradient of the Gaussians' centres; each
+// layer's weight and bias gradients are then D_l · A_lᵀ = [out, in + 1] (the last column: the bias's), done by the
+// caller (retinexgs/model/illumination_kernel.py). The weights are gaussian_colors.h's packed, transposed buffer
+// (IllumLayout): the forward adds rows of it (axpy_row), the backward takes dot products with them. The encodings'
+// and the view direction's derivatives follow IlluminationField.forward and view_dirs, so float64 agrees with
+// torch's autograd to rounding.
 #pragma once
 #include "rgs/gaussian_colors.h"
 
@@ -54,37 +54,23 @@ RGS_HD int64_t layer_bias(const IllumLayout& L, int depth, int l) {
     return l == 0 ? L.trunk0_b : l < depth ? L.trunk_b + (l - 1) * L.trunk_stride : l == depth ? L.head0_b : L.head1_b;
 }
 
-// dst[k · stride] = src[k] for k < n (N > 0: unrolled, src stays in registers).
-template <typename T, int N>
-RGS_HD void store_column(int n, const T* src, T* __restrict__ dst, int64_t stride) {
-    if constexpr (N > 0) {
-        RGS_UNROLL
-        for (int k = 0; k < N; ++k) dst[k * stride] = src[k];
-    } else {
-        for (int k = 0; k < n; ++k) dst[k * stride] = src[k];
-    }
-}
-
 // Σ_o w[o] · v[o] for o < n; w starts at a multiple of 4 elements (vector loads on the GPU, as axpy_row).
 template <typename T, int N>
 RGS_HD T dot_row(int n, const T* __restrict__ w, const T* v) {
     if constexpr (N > 0 && N % 4 == 0) {
         T s0 = T(0), s1 = T(0), s2 = T(0), s3 = T(0);  // four chains: the FMAs do not wait on each other
+        RGS_UNROLL
+        for (int q = 0; q < N / 4; ++q) {
 #if defined(__CUDA_ARCH__)
-        if constexpr (sizeof(T) == 4) {
-            RGS_UNROLL
-            for (int q = 0; q < N / 4; ++q) {
+            if constexpr (sizeof(T) == 4) {  // 128-bit loads of the shared weights, as axpy_row
                 const float4 x = load_float4(w + 4 * q);
                 s0 += x.x * v[4 * q];
                 s1 += x.y * v[4 * q + 1];
                 s2 += x.z * v[4 * q + 2];
                 s3 += x.w * v[4 * q + 3];
+                continue;
             }
-            return (s0 + s1) + (s2 + s3);
-        }
 #endif
-        RGS_UNROLL
-        for (int q = 0; q < N / 4; ++q) {
             s0 += w[4 * q] * v[4 * q];
             s1 += w[4 * q + 1] * v[4 * q + 1];
             s2 += w[4 * q + 2] * v[4 * q + 2];
@@ -96,28 +82,6 @@ RGS_HD T dot_row(int n, const T* __restrict__ w, const T* v) {
         T s = T(0);
         for (int o = 0; o < m; ++o) s += w[o] * v[o];
         return s;
-    }
-}
-
-// encode_into (gaussian_colors.h) that also writes the encoding (raw input, sines, cosines) to pe[k · stride].
-template <typename T, int N>
-RGS_HD void encode_saved(int n_freqs, int n, const T v[3], const T* __restrict__ w, T* acc, T* __restrict__ pe,
-                         int64_t stride) {
-    const int64_t ld = n;
-    for (int j = 0; j < 3; ++j) {
-        pe[j * stride] = v[j];
-        axpy_row<T, N>(n, w + j * ld, v[j], acc);
-    }
-    T freq = T(kPi);
-    for (int k = 0; k < n_freqs; ++k, freq *= T(2)) {
-        for (int j = 0; j < 3; ++j) {
-            T s, c;
-            pe_sincos(v[j] * freq, s, c);
-            pe[(3 + 3 * k + j) * stride] = s;
-            pe[(3 + 3 * n_freqs + 3 * k + j) * stride] = c;
-            axpy_row<T, N>(n, w + (3 + 3 * k + j) * ld, s, acc);
-            axpy_row<T, N>(n, w + (3 + 3 * n_freqs + 3 * k + j) * ld, c, acc);
-        }
     }
 }
 
@@ -135,60 +99,7 @@ RGS_HD void encoding_backward(int n_freqs, const T* __restrict__ pe, int64_t str
     }
 }
 
-// One Gaussian's illumination at x (already divided by bound) along the unit direction d -> rgb, as
-// illumination_mlp, with every Linear's input (and its 1) written to A (this Gaussian's column: A[row · stride]).
-template <typename T, int H, int DH>
-RGS_HD void illumination_mlp_saved(const IllumConfig& cfg, const IllumLayout& L, const IllumTrainLayout& S,
-                                   const T* __restrict__ W, const T x[3], const T d[3], T rgb[3],
-                                   T* __restrict__ A, int64_t stride) {
-    constexpr int AW = H > 0 ? (H > DH ? H : DH) : kMaxIllumWidth;
-    const int h = H > 0 ? H : cfg.hidden, dh = DH > 0 ? DH : cfg.dir_hidden;
-    T act[AW], acc[AW];
-    load_bias<T, H>(h, W + L.trunk0_b, acc);
-    encode_saved<T, H>(cfg.pos_freqs, h, x, W + L.trunk0_w, acc, A + S.a_in[0] * stride, stride);
-    A[(S.a_in[0] + S.in[0]) * stride] = T(1);
-    relu_into<T, H>(h, acc, act);
-    for (int l = 1; l < cfg.depth; ++l) {
-        store_column<T, H>(h, act, A + S.a_in[l] * stride, stride);
-        A[(S.a_in[l] + h) * stride] = T(1);
-        const T* w = W + L.trunk_w + (l - 1) * L.trunk_stride;
-        load_bias<T, H>(h, W + L.trunk_b + (l - 1) * L.trunk_stride, acc);
-        if constexpr (H > 0) {
-            RGS_UNROLL
-            for (int i = 0; i < H; ++i) axpy_row<T, H>(h, w + i * H, act[i], acc);
-        } else {
-            for (int i = 0; i < h; ++i) axpy_row<T, H>(h, w + int64_t(i) * h, act[i], acc);
-        }
-        relu_into<T, H>(h, acc, act);
-    }
-    // Head: cat(feature, PE(d)) -> dir_hidden -> 3.
-    const int l0 = cfg.depth;
-    store_column<T, H>(h, act, A + S.a_in[l0] * stride, stride);
-    load_bias<T, DH>(dh, W + L.head0_b, acc);
-    const T* w0 = W + L.head0_w;
-    if constexpr (H > 0) {
-        RGS_UNROLL
-        for (int i = 0; i < H; ++i) axpy_row<T, DH>(dh, w0 + i * dh, act[i], acc);
-    } else {
-        for (int i = 0; i < h; ++i) axpy_row<T, DH>(dh, w0 + int64_t(i) * dh, act[i], acc);
-    }
-    encode_saved<T, DH>(cfg.dir_freqs, dh, d, w0 + int64_t(h) * dh, acc, A + (S.a_in[l0] + h) * stride, stride);
-    A[(S.a_in[l0] + S.in[l0]) * stride] = T(1);
-    relu_into<T, DH>(dh, acc, act);
-    store_column<T, DH>(dh, act, A + S.a_in[l0 + 1] * stride, stride);
-    A[(S.a_in[l0 + 1] + dh) * stride] = T(1);
-    T out[3] = {W[L.head1_b], W[L.head1_b + 1], W[L.head1_b + 2]};
-    const T* w1 = W + L.head1_w;
-    if constexpr (DH > 0) {
-        RGS_UNROLL
-        for (int i = 0; i < DH; ++i) axpy_row<T, 3>(3, w1 + 3 * i, act[i], out);
-    } else {
-        for (int i = 0; i < dh; ++i) axpy_row<T, 3>(3, w1 + 3 * i, act[i], out);
-    }
-    for (int c = 0; c < 3; ++c) rgb[c] = sigmoid_of(out[c]);
-}
-
-// The backward of illumination_mlp_saved for one Gaussian: from its output rgb and the gradient g_rgb, every
+// The backward of illumination_mlp (gaussian_colors.h) with its inputs kept, for one Gaussian: from its output rgb and the gradient g_rgb, every
 // Linear's output gradient into D (this Gaussian's column: D[row · d_stride]) and the gradients of x and d added to
 // g_x and g_d. A ReLU passes the gradient where its output (the next layer's saved input) is positive, as torch's.
 template <typename T, int H, int DH>
@@ -262,18 +173,6 @@ RGS_HD void illumination_mlp_backward(const IllumConfig& cfg, const IllumLayout&
     }
 }
 
-// The view direction of IlluminationField at a Gaussian: F.normalize twice (view_dirs, then forward), each
-// x / max(|x|, 1e-12) of v = mean − centre; returns u (the first) and d, and the two norms.
-template <typename T>
-RGS_HD void view_direction(const T v[3], T u[3], T d[3], T& n1, T& n2) {
-    n1 = sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]);
-    const T m1 = n1 > T(1e-12) ? n1 : T(1e-12);
-    for (int c = 0; c < 3; ++c) u[c] = v[c] / m1;
-    n2 = sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2]);
-    const T m2 = n2 > T(1e-12) ? n2 : T(1e-12);
-    for (int c = 0; c < 3; ++c) d[c] = u[c] / m2;
-}
-
 // The gradient of v from that of d = normalize(normalize(v)): y = x / |x| gives g_x = (g_y − y (y · g_y)) / |x|
 // (and g_y / 1e-12 below the clamp).
 template <typename T>
@@ -313,7 +212,7 @@ RGS_HD void illumination_forward_one(int64_t i, int64_t ld, const IllumTrainArgs
     T x[3], v[3], u[3], d[3], n1, n2, out[3];
     illum_inputs(i, a, means, x, v);
     view_direction(v, u, d, n1, n2);
-    illumination_mlp_saved<T, H, DH>(cfg, L, S, W, x, d, out, A + i, ld);
+    illumination_mlp<T, H, DH, true>(cfg, L, W, x, d, out, KeptInputs<T>{A + i, ld, S.a_in});
     for (int c = 0; c < 3; ++c) rgb[3 * i + c] = out[c];
 }
 
