@@ -36,6 +36,7 @@ def _layout(shape: Tuple[int, ...]) -> Tuple[List[int], ...]:
 
 
 def _linears(field: IlluminationField) -> List[nn.Linear]:
+    """The field's Linear layers, trunk then head: the kernels' layer order."""
     return [m for m in field.trunk if isinstance(m, nn.Linear)] + [m for m in field.head if isinstance(m, nn.Linear)]
 
 
