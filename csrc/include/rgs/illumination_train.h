@@ -85,6 +85,25 @@ RGS_HD T dot_row(int n, const T* __restrict__ w, const T* v) {
     }
 }
 
+// prev[i] for i < n (N: its compile-time value) = Σ_o w[i·m + o] · delta[o], the input gradient of a Linear whose
+// transposed rows are m wide, where the ReLU before it gave a positive output (the Linear's saved input in[i · stride]).
+template <typename T, int N, int M>
+RGS_HD void relu_input_grad(int n, int m, const T* __restrict__ w, const T* delta, const T* __restrict__ in,
+                            int64_t stride, T* prev) {
+    if constexpr (N > 0) {
+        RGS_UNROLL
+        for (int i = 0; i < N; ++i) {
+            const T t = dot_row<T, M>(m, w + i * m, delta);
+            prev[i] = in[i * stride] > T(0) ? t : T(0);
+        }
+    } else {
+        for (int i = 0; i < n; ++i) {
+            const T t = dot_row<T, M>(m, w + int64_t(i) * m, delta);
+            prev[i] = in[i * stride] > T(0) ? t : T(0);
+        }
+    }
+}
+
 // g_v[j] += the gradient of the encoding pe (read at pe[k · stride]) of v, given its gradient g_pe(k):
 // ∂/∂v_j of (v_j, sin(2^k π v_j), cos(2^k π v_j)) = (1, 2^k π cos, −2^k π sin).
 template <typename T, typename G>
@@ -117,29 +136,13 @@ RGS_HD void illumination_mlp_backward(const IllumConfig& cfg, const IllumLayout&
         g_out[c] = g_rgb[c] * (T(1) - rgb[c]) * rgb[c];
         D[(S.d_out[l0 + 1] + c) * d_stride] = g_out[c];
     }
-    // Head's last Linear [dh, 3] (transposed rows of 3, padded to 4): its input g = relu(head's first Linear).
-    const T* w1 = W + L.head1_w;
-    const T* g_in = A + S.a_in[l0 + 1] * stride;
-    for (int j = 0; j < dh; ++j) {
-        const T t = w1[3 * j] * g_out[0] + w1[3 * j + 1] * g_out[1] + w1[3 * j + 2] * g_out[2];
-        delta[j] = g_in[j * stride] > T(0) ? t : T(0);
-    }
+    // Head's last Linear [dh, 3] (transposed rows of 3): its input g = relu(head's first Linear).
+    relu_input_grad<T, DH, 3>(dh, 3, W + L.head1_w, g_out, A + S.a_in[l0 + 1] * stride, stride, delta);
     store_column<T, DH>(dh, delta, D + S.d_out[l0] * d_stride, d_stride);
     // Head's first Linear [h + enc_d, dh]: the trunk's feature (h rows), then PE(d).
     const T* w0 = W + L.head0_w;
     const T* f_in = A + S.a_in[l0] * stride;
-    if constexpr (H > 0) {
-        RGS_UNROLL
-        for (int i = 0; i < H; ++i) {
-            const T t = dot_row<T, DH>(dh, w0 + i * dh, delta);
-            prev[i] = f_in[i * stride] > T(0) ? t : T(0);
-        }
-    } else {
-        for (int i = 0; i < h; ++i) {
-            const T t = dot_row<T, DH>(dh, w0 + int64_t(i) * dh, delta);
-            prev[i] = f_in[i * stride] > T(0) ? t : T(0);
-        }
-    }
+    relu_input_grad<T, H, DH>(h, dh, w0, delta, f_in, stride, prev);
     encoding_backward(cfg.dir_freqs, f_in + int64_t(h) * stride, stride,
                       [&](int k) { return dot_row<T, DH>(dh, w0 + int64_t(h + k) * dh, delta); }, g_d);
     // The trunk, last to first: prev holds layer l's output gradient.
@@ -158,18 +161,7 @@ RGS_HD void illumination_mlp_backward(const IllumConfig& cfg, const IllumLayout&
                               g_x);
             break;
         }
-        if constexpr (H > 0) {
-            RGS_UNROLL
-            for (int i = 0; i < H; ++i) {
-                const T t = dot_row<T, H>(h, w + i * H, delta);
-                prev[i] = in[i * stride] > T(0) ? t : T(0);
-            }
-        } else {
-            for (int i = 0; i < h; ++i) {
-                const T t = dot_row<T, H>(h, w + int64_t(i) * h, delta);
-                prev[i] = in[i * stride] > T(0) ? t : T(0);
-            }
-        }
+        relu_input_grad<T, H, H>(h, h, w, delta, in, stride, prev);
     }
 }
 
