@@ -66,6 +66,8 @@ def profile_train(args: argparse.Namespace) -> None:
         torch.cuda.synchronize()
         print(f"{(time.perf_counter() - t0) / args.profile * 1e3:.2f} ms per step (unprofiled), "
               f"{len(tr.model.gaussians)} Gaussians")
+        if getattr(args, "slack", 0):
+            print_slack(tr, args.profile, args.slack)
         acts = [torch.profiler.ProfilerActivity.CPU, torch.profiler.ProfilerActivity.CUDA]
         with torch.profiler.profile(activities=acts) as prof:
             tr.train(stop_after=args.profile)
@@ -88,6 +90,44 @@ def profile_train(args: argparse.Namespace) -> None:
         print_gpu_idle(prof, args.profile)
         if getattr(args, "host", False):
             print_host_profile(tr, args.profile)
+
+
+def print_slack(tr, steps: int, extra_us: float) -> None:
+    """Which side bounds the step: the unprofiled step timed again with ``extra_us`` more work a step on the GPU
+    (a spin kernel, ``torch.cuda._sleep``) and then on the host (a busy wait). The side whose extra work lengthens
+    the step by about ``extra_us`` is the critical path; the other's slack is ``extra_us`` minus its lengthening."""
+    start, stop = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+    cycles = 1_000_000
+    start.record()
+    torch.cuda._sleep(cycles)
+    stop.record()
+    torch.cuda.synchronize()
+    per_us = cycles / (start.elapsed_time(stop) * 1e3)  # the spin kernel's cycles per microsecond
+    step = tr.train_step
+
+    def timed(extra) -> float:
+        def wrapped(*a, **k):
+            extra()
+            return step(*a, **k)
+        tr.train_step = wrapped
+        torch.cuda.synchronize()
+        t0 = time.perf_counter()
+        tr.train(stop_after=steps)
+        torch.cuda.synchronize()
+        tr.train_step = step
+        return (time.perf_counter() - t0) / steps * 1e6
+
+    def host_spin() -> None:
+        until = time.perf_counter() + extra_us * 1e-6
+        while time.perf_counter() < until:
+            pass
+
+    base = timed(lambda: None)
+    gpu = timed(lambda: torch.cuda._sleep(int(extra_us * per_us)))
+    host = timed(host_spin)
+    again = timed(lambda: None)
+    print(f"slack probe, {steps} steps each: step {base:.0f} µs (again {again:.0f}); +{extra_us:.0f} µs on the GPU: "
+          f"{gpu:.0f} µs (+{gpu - base:.0f}); +{extra_us:.0f} µs on the host: {host:.0f} µs (+{host - base:.0f})")
 
 
 def print_host_profile(tr, steps: int) -> None:
@@ -714,6 +754,9 @@ def main(argv: List[str] | None = None) -> int:
     p.add_argument("--rows", type=int, default=40, help="rows of the kernels-by-own-GPU-time table (default 40)")
     p.add_argument("--host", action="store_true",
                    help="also the host's Python by function over --profile more steps (cProfile, unsynchronised)")
+    p.add_argument("--slack", type=float, default=0.0, metavar="US",
+                   help="also time --profile steps with US µs more work a step on the GPU, then on the host: "
+                        "which side bounds the step")
     p.add_argument("--config", action="append", default=[])
     p.add_argument("--set", action="append", default=[], dest="overrides",
                    help="config override, e.g. train.cuda_graphs=false")
