@@ -219,32 +219,6 @@ def test_an_overflow_is_counted_and_the_next_render_synced():
     assert reads.started == reads.finished == 3
 
 
-def test_with_a_lag_each_count_is_read_that_many_renders_late():
-    """lag 3: the read of a render is finished at the plan three renders later (two stay in flight), so a
-    count sizes the buffer from then on, and an overflow is seen (and the next render synced) that late."""
-    reads = LateReads()
-    b = PairBudget(2.0, reader=reads, lag=3)
-    assert b.plan(10, CPU) is None
-    b.observe_synced(100)
-    assert b.plan(10, CPU) == 200
-    b.observe(count(150), 200)  # render 2
-    assert b.plan(10, CPU) == 200 and reads.finished == 0
-    b.observe(count(120), 200)  # render 3
-    assert b.plan(10, CPU) == 200 and reads.finished == 0  # two reads in flight
-    b.observe(count(250), 200)  # render 4 overflows
-    assert b.plan(10, CPU) == 300 and reads.finished == 1  # render 2's 150 folded in
-    b.observe(count(90), 300)  # render 5
-    assert b.plan(10, CPU) == 300 and reads.finished == 2
-    b.observe(count(90), 300)  # render 6
-    assert b.plan(10, CPU) is None and b.overflows == 1  # render 4's overflow seen: synced
-    b.observe_synced(260)
-    assert reads.started - reads.finished == 2
-    assert b.summary().startswith("1 of 7 renders") and reads.started == reads.finished == 5
-    for bad in (0, -1, 1.5, True, "3"):
-        with pytest.raises(ValueError, match="lag must be"):
-            PairBudget(1.5, lag=bad)
-
-
 def test_cpu_tensors_and_margin_zero_always_bin_synced():
     b = PairBudget()  # the default reader: CUDA only, the CPU pays no sync
     for _ in range(3):
@@ -265,9 +239,6 @@ def test_config_key_pair_margin():
     from retinexgs.errors import UserError
     from retinexgs.run.config import load_config
     assert load_config().train.pair_margin == 1.5
-    assert load_config().train.pair_lag == 3
-    with pytest.raises(UserError, match="pair_lag"):
-        load_config([], ["train.pair_lag=0"])
     assert load_config([], ["train.pair_margin=0"]).train.pair_margin == 0
     with pytest.raises(UserError, match="pair_margin"):
         load_config([], ["train.pair_margin=0.5"])

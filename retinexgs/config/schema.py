@@ -414,8 +414,6 @@ class Train(Section):
     # binning without a host sync (issue 65): the pair buffer is this × the recent pair counts; 0: synced, exact
     pair_margin: Annotated[float, BeforeValidator(_yaml_number), Field(ge=0, allow_inf_nan=False),
                            AfterValidator(_zero_or_at_least_one), Expect("0 (synced binning) or a number >= 1")]
-    # renders between a sync-free binning and the read of its pair count: the host may run this many steps ahead
-    pair_lag: Int(1)
     # [[until, downsample], ...] (retinexgs.train.resolution); YAML lists become the tuples strict mode wants
     resolution: Annotated[List[Tuple[Step, Annotated[StrictInt, Field(ge=1, le=64)]]], BeforeValidator(_pairs),
                           Expect("a list of [until, downsample] pairs: until a fraction of steps 0..1 or a step, "

@@ -2,43 +2,42 @@
 
 Binning's exact path copies the pair count M to the host and waits for it, because the pair buffers are sized
 by M; the GPU then idles while the host launches the rest of the step. :class:`PairBudget` sizes the buffer from
-the counts of earlier steps instead, learning each step's M a few steps late from a copy the GPU made long ago.
+the counts of earlier steps instead, learning each step's M one step late from a copy the GPU made long ago.
 """
 from __future__ import annotations
 
 import math
-from collections import deque
-from typing import Callable, Deque, Dict, Hashable, List, Optional, Tuple
+from typing import Callable, Dict, Hashable, Optional, Tuple
 
 import torch
 from torch import Tensor
 
 # Starts reading an int64 [1] count tensor (on its device, in stream order) and returns the function that finishes
-# the read and gives the value; at most ``lag`` reads are started and not finished, finished in the order started.
+# the read and gives the value; called again only after that function.
 LateReader = Callable[[Tensor], Callable[[], int]]
 
 MAX_CAPACITY = 2 ** 31 - 1  # pair indices are int32
 
 
 class _CudaLateRead:
-    """The GPU's late read: a non-blocking copy into pinned host memory and an event after it, in a ring of
-    ``slots`` (one a read in flight). Finishing waits on that read's event, which the GPU passed renders ago."""
+    """The GPU's late read: a non-blocking copy into pinned host memory and an event after it. Finishing
+    waits on that event, which the GPU passed a step ago: no stall in practice."""
 
-    def __init__(self, slots: int) -> None:
-        self._host = torch.empty(slots, dtype=torch.int64, pin_memory=True)
-        self._events: List[torch.cuda.Event] = [torch.cuda.Event() for _ in range(slots)]
-        self._next = 0
+    def __init__(self) -> None:
+        self._host: Optional[Tensor] = None
+        self._event: Optional[torch.cuda.Event] = None
 
     def __call__(self, count: Tensor) -> Callable[[], int]:
-        slot = self._next
-        self._next = (slot + 1) % len(self._events)
-        self._host[slot:slot + 1].copy_(count, non_blocking=True)
-        self._events[slot].record(torch.cuda.current_stream(count.device))
+        if self._host is None:  # one pinned buffer: each read is finished before the next one starts
+            self._host = torch.empty(1, dtype=torch.int64, pin_memory=True)
+            self._event = torch.cuda.Event()
+        self._host.copy_(count, non_blocking=True)
+        self._event.record(torch.cuda.current_stream(count.device))
+        return self._finish
 
-        def finish() -> int:
-            self._events[slot].synchronize()
-            return int(self._host[slot])
-        return finish
+    def _finish(self) -> int:
+        self._event.synchronize()
+        return int(self._host[0])
 
 
 class PairBudget:
@@ -56,33 +55,27 @@ class PairBudget:
     about k² fold with no change of N, and a capture may mix sizes), after an overflow (a late-read M above the
     capacity its render used: that render dropped pairs; counted in ``overflows``), with ``margin`` 0, and for
     CPU tensors (the CPU pays no sync) unless a ``reader`` is given. After a sync-free binning,
-    :meth:`observe` starts the late read of its ``count``; it is finished ``lag`` renders later, so the host may
-    run up to ``lag`` renders ahead of the GPU (with 1, every render's plan waits for the GPU to have binned the
-    render before: the host and the GPU take turns instead of overlapping).
+    :meth:`observe` starts the late read of its ``count``.
 
     Counters for the log: ``steps`` (renders planned), ``synced`` (of them, binned with the synced path),
     ``overflows`` (renders that dropped pairs)."""
 
-    def __init__(self, margin: float = 1.5, reader: Optional[LateReader] = None, lag: int = 1) -> None:
+    def __init__(self, margin: float = 1.5, reader: Optional[LateReader] = None) -> None:
         """``margin``: the capacity over the largest recent count (>= 1), or 0 for always synced (exact) binning.
         ``reader``: how a device count is read late (default: a pinned copy and a CUDA event, CUDA tensors only);
-        a given reader (tests) is used on any device, the CPU included. ``lag``: renders between a count's
-        read and its use (>= 1)."""
+        a given reader (tests) is used on any device, the CPU included."""
         if isinstance(margin, bool) or not isinstance(margin, (int, float)) or not (
                 margin == 0 or 1 <= margin < math.inf):
             raise ValueError(f"margin must be 0 (always synced) or a finite number >= 1, got {margin!r}")
-        if isinstance(lag, bool) or not isinstance(lag, int) or lag < 1:
-            raise ValueError(f"lag must be an integer >= 1, got {lag!r}")
         self.margin = float(margin)
-        self.lag = lag
         self._reader = reader
         self._cuda_reader: Optional[_CudaLateRead] = None
         self.steps = self.synced = self.overflows = 0
         self._max_seen: Dict[Hashable, int] = {}  # the largest M since the last reset, per image size
         self._n: Optional[int] = None  # the Gaussian count of the last plan
         self._epoch = 0  # bumped by every reset: a read started before it measured the old set
-        # the reads in flight, oldest first: (finish, capacity used, epoch, size)
-        self._pending: Deque[Tuple[Callable[[], int], int, int, Hashable]] = deque()
+        # (finish, capacity used, epoch, size)
+        self._pending: Optional[Tuple[Callable[[], int], int, int, Hashable]] = None
         self._size: Hashable = None  # the size of the last plan
 
     def reset(self) -> None:
@@ -94,7 +87,7 @@ class PairBudget:
         """The capacity for the next render of ``n`` Gaussians on ``device`` at image ``size`` (e.g. (W, H)),
         or None: bin synced (then :meth:`observe_synced`; else :meth:`observe`)."""
         self.steps += 1
-        overflowed = self._settle(keep=self.lag - 1)
+        overflowed = self._settle()
         if n != self._n:  # another set of Gaussians: its counts are not the old ones'
             self._n = n
             self.reset()
@@ -116,12 +109,12 @@ class PairBudget:
             reader = self._reader
         else:
             if self._cuda_reader is None:
-                self._cuda_reader = _CudaLateRead(self.lag)
+                self._cuda_reader = _CudaLateRead()
             reader = self._cuda_reader
-        self._pending.append((reader(count), int(capacity), self._epoch, self._size))
+        self._pending = (reader(count), int(capacity), self._epoch, self._size)
 
     def summary(self) -> Optional[str]:
-        """One line for the end of a run if any render dropped pairs, else None (finishes every read)."""
+        """One line for the end of a run if any render dropped pairs, else None (finishes the last read)."""
         self._settle()
         if not self.overflows:
             return None
@@ -129,19 +122,19 @@ class PairBudget:
                 f"sync-free binning's buffer (train.pair_margin {self.margin:g} x the largest recent count); "
                 "each was followed by a synced render")
 
-    def _settle(self, keep: int = 0) -> bool:
-        """Finish the reads in flight but the ``keep`` newest: fold each M into the counts seen; True if any of
-        their renders overflowed."""
-        overflowed = False
-        while len(self._pending) > keep:
-            finish, capacity, epoch, size = self._pending.popleft()
-            m = finish()
-            if epoch == self._epoch:
-                self._see(m, size)
-            if m > capacity:
-                self.overflows += 1
-                overflowed = True
-        return overflowed
+    def _settle(self) -> bool:
+        """Finish the pending late read: fold its M into the counts seen; True if its render overflowed."""
+        if self._pending is None:
+            return False
+        finish, capacity, epoch, size = self._pending
+        self._pending = None
+        m = finish()
+        if epoch == self._epoch:
+            self._see(m, size)
+        if m > capacity:
+            self.overflows += 1
+            return True
+        return False
 
     def _see(self, m: int, size: Hashable) -> None:
         self._max_seen[size] = max(self._max_seen.get(size, m), m)

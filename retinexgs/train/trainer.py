@@ -149,7 +149,7 @@ class Trainer:
             self.order = list(state["order"])
             self.strategy.load_state_dict(state["density"], self.device)
         self.divergence = DivergenceWatch(self.model, self.run, self.step)
-        self.pairs = PairBudget(self.cfg.train.pair_margin, lag=self.cfg.train.pair_lag)  # binning without a sync
+        self.pairs = PairBudget(self.cfg.train.pair_margin)  # train.pair_margin: binning without a host sync
         # The image losses as CUDA graphs (train.cuda_graphs; CUDA only, eager elsewhere).
         self.graphs: Optional[LossGraphs] = None
         self.channel_graphs: Optional[ChannelGraphs] = None
