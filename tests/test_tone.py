@@ -270,6 +270,28 @@ def test_the_highlight_meter_caps_the_target_where_more_than_its_share_would_blo
     assert float(highlight_capped_mean(image(0.10), 0.5, 0.2, shoulder=0.5)) == 0.5
 
 
+def test_the_highlight_meters_white_is_the_sorted_peaks_rank_exactly():
+    """The meter's white point is a selection (kthvalue), not a sort: the same value, ties and repeats included,
+    so the meter gives bit for bit what the sorting meter gave (its form until 2026-11-30, written out here)."""
+    from retinexgs.model.tone import highlight_capped_mean, highlight_shoulder
+    from retinexgs.model.tones.curves import srgb_to_linear
+
+    def sorting_meter(RL, target, share, shoulder):
+        lin = srgb_to_linear(RL.clamp(0, 1))
+        peak = lin.amax(-1).flatten()
+        rank = min(peak.numel() - 1, max(0, int(round((1.0 - share) * (peak.numel() - 1)))))
+        white = torch.sort(peak).values[rank].clamp_min(1e-8)
+        return linear_to_srgb(highlight_shoulder(lin / white, shoulder)).mean().clamp(max=target)
+
+    gen = torch.Generator().manual_seed(3)
+    for dtype in (torch.float32, torch.float64):
+        for shape, share in (((7, 5, 3), 0.05), ((64, 48, 3), 0.05), ((64, 48, 3), 0.3), ((1, 1, 3), 0.05)):
+            RL = torch.rand(shape, generator=gen, dtype=dtype)
+            RL[RL > 0.7] = 0.7  # ties at the top
+            got = highlight_capped_mean(RL, 0.5, share, 0.5)
+            assert torch.equal(got, sorting_meter(RL.float(), 0.5, share, 0.5)), (dtype, shape, share)
+
+
 def test_the_highlight_meter_acts_only_on_the_whole_image_meter_of_the_exposure_tone():
     from retinexgs.run.config import load_config
     from retinexgs.train.losses import highlight_meter_applies
