@@ -263,6 +263,24 @@ def test_spatial_consistency_pairs_once_is_the_per_region_sum(shape):
     assert torch.allclose(gg, gw, rtol=1e-10, atol=1e-15)
 
 
+@pytest.mark.parametrize("shape", [(1, 1, 1, 1), (1, 1, 1, 5), (2, 1, 4, 1), (3, 1, 6, 7)])
+def test_spatial_pair_energy_is_its_pairs_and_its_gradient_twice_a_d(shape):
+    """L_spa's pair sum as a quadratic form (one region, one row, one column, a batch): the value is the pairs'
+    weighted sum, and gradcheck in float64 takes its gradient 2 A d (its own backward)."""
+    g = torch.Generator().manual_seed(sum(shape))
+    d = torch.randn(shape, generator=g, dtype=torch.float64).requires_grad_(True)
+    p = torch.nn.functional.pad(d.detach(), (1, 1, 1, 1))
+    h, w = shape[-2:]
+    want = 0.0
+    for b in range(shape[0]):
+        for i in range(1, h + 1):
+            for j in range(1, w + 1):
+                want += sum(float(p[b, 0, i, j] - p[b, 0, i + di, j + dj]) ** 2
+                            for di, dj in ((0, -1), (0, 1), (-1, 0), (1, 0)))
+    assert float(Lo._PairEnergy.apply(d)) == pytest.approx(want / d.numel(), rel=1e-12)
+    assert torch.autograd.gradcheck(Lo._PairEnergy.apply, (d,))
+
+
 def test_spatial_consistency_hand_8x8():
     # Pooled enh = [[1,0],[0,0]], orig all zero. Region (0,0): left/up see zero padding (diff 1 each),
     # right/down see 0 (diff 1 each) -> 4. Region (0,1): left neighbour 1 -> diff -1 -> 1; (1,0): up -> 1;

@@ -29,6 +29,7 @@ from typing import Dict, NamedTuple, Optional, Tuple, Union
 
 import torch
 import torch.nn.functional as F
+from torch.autograd.function import once_differentiable
 
 from retinexgs.evaluate.metrics import cached_constant, check_bchw, gaussian_window, ssim
 from retinexgs.data.raw_noise import PREVIEW_RADIUS
@@ -367,25 +368,41 @@ def sh_sparsity_loss(sh_rest: torch.Tensor, reduction: str = "mean") -> torch.Te
     raise ValueError("reduction must be 'mean' or 'sum'")
 
 
-def _pair_weights(h: int, w: int, dtype: torch.dtype, device) -> torch.Tensor:
-    """[2,h+1,w+1] weights of :func:`_neighbour_pair_diffs`' pairs in L_spa's sum over every region's 4 neighbours: a
-    pair of two regions counts twice (once from each), a region and the zero outside once, the padding's own row and
-    column (always 0) not at all."""
+def _pair_coefficients(h: int, w: int, dtype: torch.dtype, device) -> torch.Tensor:
+    """[1,1,h,w]: 8 − (a region's sides on the image border), the diagonal of :class:`_PairEnergy`'s A."""
     def build() -> torch.Tensor:
-        wts = torch.full((2, h + 1, w + 1), 2.0, dtype=dtype, device=device)
-        wts[0, 0], wts[1, :, 0] = 0.0, 0.0        # the padding's row (horizontal pairs), column (vertical)
-        wts[0, 1:, 0], wts[0, 1:, w] = 1.0, 1.0   # left and right border pairs
-        wts[1, 0, 1:], wts[1, h, 1:] = 1.0, 1.0   # top and bottom border pairs
-        return wts
-    return cached_constant(("spa_pairs", h, w, dtype, torch.device(device or "cpu")), build)
+        border = torch.zeros((1, 1, h, w), dtype=dtype, device=device)
+        border[..., 0, :] += 1
+        border[..., h - 1, :] += 1
+        border[..., :, 0] += 1
+        border[..., :, w - 1] += 1
+        return 8.0 - border
+    return cached_constant(("spa_pair_coefficients", h, w, dtype, torch.device(device or "cpu")), build)
 
 
-def _neighbour_pair_diffs(d: torch.Tensor) -> torch.Tensor:
-    """[B,2,h+1,w+1]: every horizontal (channel 0) and vertical (1) pair of neighbours of [B,1,h,w] once, the zero
-    outside the image included (row 0 of channel 0 and column 0 of channel 1 are the padding's own pairs: 0)."""
-    h, w = d.shape[-2:]
-    p = F.pad(d, (1, 1, 1, 1))
-    return torch.cat([p[..., :h + 1, 1:] - p[..., :h + 1, :-1], p[..., 1:, :w + 1] - p[..., :-1, :w + 1]], dim=1)
+class _PairEnergy(torch.autograd.Function):
+    """L_spa's sum over every region's 4 neighbours of (d_k − d_j)², d [B,1,h,w] (zero outside the image), over
+    d's size. Taken pair by pair, a pair of two regions counts twice (once from each) and a region with the zero
+    outside once, so the sum is the quadratic form dᵀA d with (A d)_k = 2 Σ_inner j (d_k − d_j) + (border sides)·d_k
+    = (8 − border sides)·d_k − 2·(sum of the 4 neighbours), and its gradient is 2 A d. One function, its gradient
+    from the A d its forward made (a few kernels each way in the loss graph instead of ~25, issue 65)."""
+
+    @staticmethod
+    def forward(ctx, d: torch.Tensor) -> torch.Tensor:
+        h, w = d.shape[-2:]
+        # the 4 neighbours' sum from the zero-padded map (not a convolution: cuDNN's may round through TF32)
+        p = F.pad(d, (1, 1, 1, 1))
+        neighbours = p[..., :h, 1:w + 1] + p[..., 2:, 1:w + 1] + p[..., 1:h + 1, :w] + p[..., 1:h + 1, 2:]
+        Ad = torch.addcmul(neighbours, _pair_coefficients(h, w, d.dtype, d.device), d, value=-0.5).mul_(-2.0)
+        ctx.save_for_backward(Ad)
+        ctx.scale = 1.0 / d.numel()
+        return torch.dot(d.reshape(-1), Ad.reshape(-1)) * ctx.scale
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad: torch.Tensor) -> torch.Tensor:
+        (Ad,) = ctx.saved_tensors
+        return Ad * (grad * (2.0 * ctx.scale))
 
 
 def _mean_normalized(x: torch.Tensor) -> torch.Tensor:
@@ -430,13 +447,10 @@ def spatial_consistency_loss(enh: torch.Tensor, orig: torch.Tensor, pool: int = 
         return dx.abs().mean() + dy.abs().mean()
     if form != "zero_dce":
         raise ValueError("form must be 'zero_dce' or 'paper'")
-    # D_kj(enh) − D_kj(orig) = d_k − d_j with d = Y(enh) − Y(orig): the differences are linear. Each pair of
-    # neighbours is taken once and weighted by how often the sum over regions meets it (a dozen kernels a step
-    # inside the loss graph instead of ~70 with the backward, issue 65).
+    # D_kj(enh) − D_kj(orig) = d_k − d_j with d = Y(enh) − Y(orig): the differences are linear, and the sum over
+    # every region's neighbours is a quadratic form in d (_PairEnergy).
     d = _pooled_brightness(enh, pool, scale_invariant) - _pooled_brightness(orig, pool, scale_invariant)
-    diffs = _neighbour_pair_diffs(d)
-    wts = _pair_weights(d.shape[-2], d.shape[-1], d.dtype, d.device)
-    return (diffs.square() * wts).sum() / d.numel()
+    return _PairEnergy.apply(d)
 
 
 def exposure_loss(enh: torch.Tensor, E: float = 0.6, patch: int = 16, form: str = "l2") -> torch.Tensor:
