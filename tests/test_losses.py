@@ -489,3 +489,24 @@ def test_noise_variance_builds_its_mask_once(monkeypatch):
         raise AssertionError("noise_variance built a tensor from host data again")
     monkeypatch.setattr(torch, "tensor", no_host_tensor)
     assert torch.equal(Lo.noise_variance(y), first)
+
+
+@pytest.mark.parametrize("scale_invariant", [False, True])
+def test_enhancement_loss_shares_the_channel_means_of_l_exp_and_l_col(scale_invariant):
+    """L_exp on the whole image and L_col take the image's channel means once inside L_enhance: the same terms and
+    gradients in float64 as each term taking them itself."""
+    g = torch.Generator().manual_seed(5)
+    enh = torch.rand(2, 3, 16, 20, generator=g, dtype=torch.float64).requires_grad_(True)
+    orig = 0.2 * torch.rand(2, 3, 16, 20, generator=g, dtype=torch.float64)
+    total, terms = Lo.enhancement_loss(enh, orig, 0.1, 1.0, 0.5, 0.6, exp_patch=0, scale_invariant=scale_invariant)
+    exp = Lo.exposure_loss(enh, 0.6, 0, "l2")
+    col = Lo.color_constancy_loss(enh, "paper", scale_invariant=scale_invariant)
+    spa = Lo.spatial_consistency_loss(enh, orig, scale_invariant=scale_invariant)
+    assert float(terms["exp"]) == pytest.approx(float(exp), rel=1e-12)
+    assert float(terms["col"]) == pytest.approx(float(col), rel=1e-12)
+    (got,) = torch.autograd.grad(total, enh)
+    (want,) = torch.autograd.grad(0.1 * spa + exp + 0.5 * col, enh)
+    assert torch.allclose(got, want, rtol=1e-10, atol=1e-15)
+    # the old form of the whole-image brightness: the channel mean first, then the spatial mean
+    y = enh.detach().mean(1, keepdim=True).mean(dim=(2, 3), keepdim=True)
+    assert float(exp) == pytest.approx(float((y - 0.6).square().mean()), rel=1e-12)

@@ -453,17 +453,21 @@ def spatial_consistency_loss(enh: torch.Tensor, orig: torch.Tensor, pool: int = 
     return _PairEnergy.apply(d)
 
 
-def exposure_loss(enh: torch.Tensor, E: float = 0.6, patch: int = 16, form: str = "l2") -> torch.Tensor:
+def exposure_loss(enh: torch.Tensor, E: float = 0.6, patch: int = 16, form: str = "l2",
+                  means: Optional[torch.Tensor] = None) -> torch.Tensor:
     """L_exp (Eq. 9): deviation of the brightness Y_k of regions from the target exposure E.
 
     Y_k = mean brightness (channel mean, then the average over non-overlapping ``patch``² regions; a partial
     border patch is dropped). ``patch=0`` uses one region, the whole image (the right form for one gamma
     per image: a single parameter cannot move every patch to E, and per-patch errors then pull it towards
     flattening the contrast). form="l2": mean (Y_k − E)² (Zero-DCE's code); "l1": mean |Y_k − E| (Eq. 9).
+    ``means``: with ``patch=0``, ``enh``'s channel means [B,C] already taken (L_col's too: one pass over the image).
     """
     check_bchw(enh)
-    y = enh.mean(1, keepdim=True)
-    y = y.mean(dim=(2, 3), keepdim=True) if patch == 0 else F.avg_pool2d(y, patch)
+    if patch == 0:  # the image's mean brightness: the mean of its channel means
+        y = (enh.mean(dim=(2, 3)) if means is None else means).mean(1)
+    else:
+        y = F.avg_pool2d(enh.mean(1, keepdim=True), patch)
     if form == "l2":
         return (y - E).square().mean()
     if form == "l1":
@@ -490,7 +494,7 @@ def exposure_target(c: Loss, tone: Union[str, Tone], RL: torch.Tensor, shoulder:
 
 
 def color_constancy_loss(enh: torch.Tensor, mode: str = "paper", eps: float = 1e-12,
-                         scale_invariant: bool = False) -> torch.Tensor:
+                         scale_invariant: bool = False, means: Optional[torch.Tensor] = None) -> torch.Tensor:
     """L_col (Eq. 10): gray-world penalty on the per-image channel means m_r, m_g, m_b; batch mean.
 
     ``scale_invariant`` divides the means by their average first (a penalty on the colour balance alone:
@@ -498,14 +502,14 @@ def color_constancy_loss(enh: torch.Tensor, mode: str = "paper", eps: float = 1e
 
     mode="paper": (m_r−m_g)² + (m_r−m_b)² + (m_g−m_b)² (the 3 unordered pairs of Eq. 10).
     mode="zero_dce": sqrt((m_r−m_g)^4 + (m_r−m_b)^4 + (m_g−m_b)^4 + eps) (Zero-DCE's code; eps keeps
-    the gradient finite at a grey image).
+    the gradient finite at a grey image). ``means``: ``enh``'s channel means [B,3] already taken.
     """
     check_bchw(enh)
     if enh.shape[1] != 3:
         raise ValueError("color_constancy_loss needs 3 channels")
     if mode not in ("paper", "zero_dce"):
         raise ValueError("mode must be 'paper' or 'zero_dce'")
-    m = enh.mean(dim=(2, 3))
+    m = enh.mean(dim=(2, 3)) if means is None else means
     if scale_invariant:
         m = m / m.mean(dim=1, keepdim=True).clamp_min(1e-6)
     # every ordered pair at once ([B,3,3], the diagonal 0): each unordered pair twice, so half the sum (a few
@@ -530,10 +534,14 @@ def enhancement_loss(enh: torch.Tensor, orig: torch.Tensor, w_spa: float = 0.1, 
     Returns:
         (w_spa·L_spa + w_exp·L_exp + w_col·L_col, {"spa", "exp", "col"}) — unweighted terms.
     """
+    # L_exp on the whole image and L_col both start from the image's channel means: taken once (a full-size pass
+    # each way fewer)
+    means = enh.mean(dim=(2, 3)) if illumination is None and exp_patch == 0 and enh.shape[1] == 3 else None
     parts = {
         "spa": (w_spa, lambda: spatial_consistency_loss(enh, orig, form=spa_form, scale_invariant=scale_invariant)),
-        "exp": (w_exp, lambda: exposure_loss(enh if illumination is None else illumination, E, exp_patch, exp_form)),
-        "col": (w_col, lambda: color_constancy_loss(enh, color_mode, scale_invariant=scale_invariant)),
+        "exp": (w_exp, lambda: exposure_loss(enh if illumination is None else illumination, E, exp_patch, exp_form,
+                                             means)),
+        "col": (w_col, lambda: color_constancy_loss(enh, color_mode, scale_invariant=scale_invariant, means=means)),
     }
     terms, total = {}, None
     for name, (weight, term) in parts.items():
