@@ -823,6 +823,8 @@ def main(argv: List[str] | None = None) -> int:
     p.set_defaults(fn=time_ssim)
 
     args = ap.parse_args(argv)
+    if getattr(args, "slack", 0) < 0:
+        ap.error(f"--slack must be >= 0 microseconds, got {args.slack:g}")
     return args.fn(args) or 0
 
 
