@@ -62,13 +62,7 @@ def main() -> None:
     ap.add_argument("scene", type=Path)
     ap.add_argument("--steps", type=int, default=3000)
     ap.add_argument("--iters", type=int, default=300)
-    ap.add_argument("--trainer-only", action="store_true", help="time the trainer's step alone")
-    ap.add_argument("--no-branch", action="store_true",
-                    help="the loss graph without its parallel branch (cuda_graphs.Branch never forks)")
     args = ap.parse_args()
-    if args.no_branch:
-        from retinexgs.render import cuda_graphs
-        cuda_graphs.Branch.__init__ = lambda self, like: setattr(self, "_side", None)
 
     from retinexgs.run.config import load_config
     from retinexgs.run.folder import open_scene
@@ -105,10 +99,6 @@ def main() -> None:
         rows = {}
         rows["trainer"] = _timed(lambda: tr.train_step(step, tv, check=False), args.iters)
         restore()
-        if args.trainer_only:
-            print(f"ms a step on view 0 ({args.iters} steps): trainer {rows['trainer']:.3f} ms"
-                  f"{' (no branch)' if args.no_branch else ''}; graph failures: {tr.graphs.failures if tr.graphs else None}")
-            return
 
         seen = max(tr.pairs._max_seen.values()) if tr.pairs._max_seen else None
         if seen is None:

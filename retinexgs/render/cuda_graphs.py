@@ -13,12 +13,11 @@ from __future__ import annotations
 import contextlib
 import gc
 import threading
-from typing import Iterator, Optional
+from typing import Iterator
 
 import torch
-from torch import Tensor
 
-__all__ = ["Branch", "capture", "capture_lean"]
+__all__ = ["capture", "capture_lean"]
 
 # Captures may overlap (a live viewer's frame graph on its server thread beside the trainer's): the collector
 # is paused by the first and re-enabled by the last, and only if it was on before the first.
@@ -70,40 +69,3 @@ def capture(graph: "torch.cuda.CUDAGraph", **kwargs) -> Iterator[None]:
     gc.collect()
     with _collector_paused(), torch.cuda.graph(graph, **kwargs):
         yield
-
-
-class Branch:
-    """Work that does not depend on what the current stream runs next, as a parallel branch of the CUDA graph being
-    captured: inside ``with branch:`` kernels go to a side stream forked from the current one, and :meth:`join` makes
-    the current stream wait for them (their ``outputs`` recorded as used there). A replay then runs the two chains
-    side by side: each kernel of a graph waits out its predecessor's latency (≈ 1.5 µs, a fox-dark step's ~300
-    kernels: experiments/notes/2026-11-30-step-bound.md), so two chains of small kernels take about the longer's time.
-    Autograd runs each backward kernel on its forward kernel's stream, so the branch's backward is a branch too.
-    Outside a capture (eager steps, the CPU) it does nothing: the same kernels on the one stream, in the same order."""
-
-    def __init__(self, like: Tensor) -> None:
-        self._side: Optional["torch.cuda.Stream"] = None
-        if like.is_cuda and torch.cuda.is_current_stream_capturing():
-            self._main = torch.cuda.current_stream(like.device)
-            self._side = torch.cuda.Stream(device=like.device)
-            self._ctx = torch.cuda.stream(self._side)
-
-    def __enter__(self) -> "Branch":
-        if self._side is not None:
-            self._side.wait_stream(self._main)
-            self._ctx.__enter__()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        if self._side is not None:
-            self._ctx.__exit__(*exc)
-
-    def join(self, *outputs: Tensor) -> None:
-        """The current stream waits for the branch; ``outputs`` (made on the branch, read after the join) are
-        recorded as used on it, so their memory is not handed to the branch again while the capture reads them."""
-        if self._side is None:
-            return
-        self._main.wait_stream(self._side)
-        for t in outputs:
-            if t.is_cuda:
-                t.record_stream(self._main)

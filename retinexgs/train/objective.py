@@ -21,7 +21,6 @@ from retinexgs.model.retinex_model import RetinexGSModel
 from retinexgs.model.schedule import Schedule
 from retinexgs.model.tones import fused_curve
 from retinexgs.model.tones.exposure import reference_gain
-from retinexgs.render import cuda_graphs
 from retinexgs.config.schema import Config, Loss
 from retinexgs.strategy import Strategy
 from retinexgs.train import fused_loss, losses
@@ -222,17 +221,13 @@ class RetinexObjective(PlainObjective):
             linear = linear._replace(gain=reference_gain(self.model.illum_ref))
         return self.rec_gain(), linear
 
-    def _enhancement(self, image: Tensor, S_b: Tensor) -> Tuple[Tensor, Dict[str, Tensor]]:
-        """L_enhance (weighted sum, terms) of the render ``image`` [H,W,6+] against the view ``S_b`` [1,3,H,W]."""
-        R_img, L_img = image.split(3, dim=-1)[:2]
-        # loss.raw.spa photo: L_spa's input is a raw view as the photo it shows (its mean undragged by the noise)
-        S_spa = self.capture.spa_input(S_b, self.cfg.loss)
-        return enhancement_objective(self.model, self.cfg.loss, R_img, L_img, S_spa)
-
     def _add_enhancement(self, total: Tensor, terms: Dict[str, Tensor], image: Tensor, S_b: Tensor) -> Tensor:
         """``total`` + L_enhance of the render ``image`` [H,W,6+] against the view ``S_b`` [1,3,H,W] (its terms into
         ``terms``)."""
-        enh, enh_terms = self._enhancement(image, S_b)
+        R_img, L_img = image.split(3, dim=-1)[:2]
+        # loss.raw.spa photo: L_spa's input is a raw view as the photo it shows (its mean undragged by the noise)
+        S_spa = self.capture.spa_input(S_b, self.cfg.loss)
+        enh, enh_terms = enhancement_objective(self.model, self.cfg.loss, R_img, L_img, S_spa)
         terms.update(enh_terms)
         return total + enh
 
@@ -273,17 +268,11 @@ class RetinexObjective(PlainObjective):
             sup = fused_loss.plan(gain, c.rec_domain == "exposed", linear, image)
         if sup is None:
             return super().graphed_loss(image, packed, enhance)
-        # L_enhance depends on nothing the supervision computes: while captured, a parallel branch of the graph
-        branch = cuda_graphs.Branch(image)
-        with branch:
-            enh = self._enhancement(image, to_bchw(packed[..., :3])) if enhance else None
         total, terms = fused_loss.supervision_terms(image, packed, sup, (c.w_r, c.w_l, c.w_s), c.lambda_ssim, linear)
         depth = terms.pop("depth", None)
         total = total + c.w_tv * terms["tv"]
-        if enh is not None:
-            branch.join(enh[0], *enh[1].values())
-            total = total + enh[0]
-            terms.update(enh[1])
+        if enhance:
+            total = self._add_enhancement(total, terms, image, to_bchw(packed[..., :3]))
         if depth is not None:
             terms["depth"] = depth
             total = torch.add(total, depth, alpha=c.w_depth)
