@@ -1,6 +1,7 @@
 // Back-to-front gradient of the compositing on the GPU: one block per tile, one thread per pixel, walking the
 // tile's Gaussians from the last contributor back and recovering T_i = T_{i+1} / (1 - α_i). Each Gaussian's
-// per-pixel gradients are summed across the warp with shuffles before one atomicAdd per warp.
+// per-pixel gradients are summed across the warp with shuffles before one atomicAdd per warp; where one lane alone
+// is touched (a Gaussian's rim, a small Gaussian) its own values are the sums, and the 5·(6+C) shuffles are skipped.
 #include "common.cuh"
 #include "rgs/kernels_cuda.h"
 #include "rgs/math.h"
@@ -9,8 +10,17 @@ namespace rgs {
 
 constexpr int kBlockB = kTileSize * kTileSize;
 
+// The batch's colours are staged in shared memory beside its conics when they fit (training's 6-7 channels);
+// wider renders read them from global memory.
+template <int CMAX>
+constexpr bool kStageColors = CMAX <= 8;
+// Three blocks an SM, as before the staging, for training's float kernel (6-7 channels): without the hint ptxas fits the
+// CMAX-8 kernel into 64 registers and spills; the hint keeps it at 72 with no spill. Others as ptxas picks (0: no hint).
 template <typename T, int CMAX>
-__global__ void __launch_bounds__(kBlockB)
+constexpr int kMinBlocks = sizeof(T) == 4 && CMAX == 8 ? 3 : 0;
+
+template <typename T, int CMAX>
+__global__ void __launch_bounds__(kBlockB, (kMinBlocks<T, CMAX>))
 rasterize_backward_kernel(int C, int width, int height, TileGrid grid,
                           const T* __restrict__ means2d,            // [N, 2]
                           const T* __restrict__ conics,             // [N, 3]
@@ -29,6 +39,7 @@ rasterize_backward_kernel(int C, int width, int height, TileGrid grid,
     __shared__ int32_t s_id[kBlockB];
     __shared__ Vec3<T> s_conic[kBlockB];
     __shared__ T s_xyo[kBlockB][3];
+    __shared__ T s_col[kBlockB][kStageColors<CMAX> ? CMAX : 1];
     __shared__ int s_end;
 
     const int tile = blockIdx.x;
@@ -69,6 +80,11 @@ rasterize_backward_kernel(int C, int width, int height, TileGrid grid,
             s_xyo[tid][0] = means2d[2 * g];
             s_xyo[tid][1] = means2d[2 * g + 1];
             s_xyo[tid][2] = opacities[g];
+            if constexpr (kStageColors<CMAX>) {
+#pragma unroll
+                for (int c = 0; c < CMAX; ++c)
+                    if (c < C) s_col[tid][c] = colors[int64_t(g) * C + c];
+            }
         }
         __syncthreads();
         for (int j = count - 1; j >= 0; --j) {
@@ -81,10 +97,10 @@ rasterize_backward_kernel(int C, int width, int height, TileGrid grid,
                 pa = pixel_alpha(conic, s_xyo[j][0], s_xyo[j][1], o, fx, fy);
                 valid = pa.alpha != T(0);
             }
-            if (!__any_sync(0xffffffffu, valid)) continue;
+            const unsigned touched = __ballot_sync(0xffffffffu, valid);
+            if (!touched) continue;
             T v_xy[2] = {T(0), T(0)}, v_cn[3] = {T(0), T(0), T(0)}, v_o = T(0), v_col[CMAX];
             const int32_t g = s_id[j];
-            const T* col = colors + int64_t(g) * C;
 #pragma unroll
             for (int c = 0; c < CMAX; ++c) v_col[c] = T(0);
             if (valid) {
@@ -95,7 +111,7 @@ rasterize_backward_kernel(int C, int width, int height, TileGrid grid,
 #pragma unroll
                 for (int c = 0; c < CMAX; ++c)
                     if (c < C) {
-                        const T cc = col[c];
+                        const T cc = kStageColors<CMAX> ? s_col[j][c] : colors[int64_t(g) * C + c];
                         v_col[c] = w * v_img[c];
                         v_alpha += v_img[c] * (Ti * cc - behind[c] / one_minus);
                         behind[c] += w * cc;
@@ -104,17 +120,22 @@ rasterize_backward_kernel(int C, int width, int height, TileGrid grid,
                 pixel_alpha_vjp(pa, conic, o, v_alpha, v_xy, v_cn, v_o);
                 T_run = Ti;
             }
-            // Sum over the warp, then one atomic per component.
-            v_xy[0] = warp_sum(v_xy[0]);
-            v_xy[1] = warp_sum(v_xy[1]);
-            v_cn[0] = warp_sum(v_cn[0]);
-            v_cn[1] = warp_sum(v_cn[1]);
-            v_cn[2] = warp_sum(v_cn[2]);
-            v_o = warp_sum(v_o);
+            // One lane touched: its values are the warp's sums (the branch is the same on every lane).
+            int writer = 0;
+            if ((touched & (touched - 1)) == 0) {
+                writer = __ffs(touched) - 1;
+            } else {  // sum over the warp, then one atomic per component from lane 0
+                v_xy[0] = warp_sum(v_xy[0]);
+                v_xy[1] = warp_sum(v_xy[1]);
+                v_cn[0] = warp_sum(v_cn[0]);
+                v_cn[1] = warp_sum(v_cn[1]);
+                v_cn[2] = warp_sum(v_cn[2]);
+                v_o = warp_sum(v_o);
 #pragma unroll
-            for (int c = 0; c < CMAX; ++c)
-                if (c < C) v_col[c] = warp_sum(v_col[c]);
-            if (lane == 0) {
+                for (int c = 0; c < CMAX; ++c)
+                    if (c < C) v_col[c] = warp_sum(v_col[c]);
+            }
+            if (lane == writer) {
                 atomicAdd(v_means2d + 2 * g, v_xy[0]);
                 atomicAdd(v_means2d + 2 * g + 1, v_xy[1]);
                 atomicAdd(v_conics + 3 * g, v_cn[0]);
