@@ -32,6 +32,9 @@ SCENES = {
     "edge_cases": lambda C: edge_case_scene(C),
     "dense": lambda C: (random_gaussians(4000, C, seed=9, dtype=torch.float64),
                         make_camera(width=173, height=91)),
+    # Gaussians of a pixel or two: most warps they reach have one lane touched (the backward's path without sums).
+    "small": lambda C: (random_gaussians(3000, C, seed=11, dtype=torch.float64, scale_range=(-6.0, -4.5)),
+                        make_camera(width=173, height=91)),
 }
 
 
