@@ -27,18 +27,14 @@ from typing import Dict, List
 import numpy as np
 import torch
 
-from retinexgs.data.srgb import linear_to_srgb, srgb_to_linear_extended
+from bm3d_prior_train import load_bm3d
+from pilot_wiener_study import exposed_srgb
+from retinexgs.data.srgb import srgb_to_linear_extended
 from retinexgs.evaluate.metrics import gt_mean_align, psnr, ssim_metric
 from retinexgs.retinex import denoise as dn
 from retinexgs.run.config import load_config
 from retinexgs.run.folder import open_scene
 from retinexgs.train.view_setup import denoise_spec
-
-
-def exposed_srgb(lin: torch.Tensor) -> torch.Tensor:
-    """sRGB of ``lin`` [H,W,3] with its mean luma exposed to 0.18 (one gain), clipped."""
-    luma = (lin.clamp_min(0) * lin.new_tensor([0.2126, 0.7152, 0.0722])).sum(-1).mean()
-    return linear_to_srgb((lin * (0.18 / luma.clamp_min(1e-8))).clamp(0, 1))
 
 
 def smoothed_psd(residual: np.ndarray, radius: int = 4) -> np.ndarray:
@@ -55,10 +51,7 @@ def smoothed_psd(residual: np.ndarray, radius: int = 4) -> np.ndarray:
 
 def run(lin: torch.Tensor, noise: dn.NoiseModel, h_luma: float, bm3d_scale: float) -> Dict[str, torch.Tensor]:
     """The candidates' linear light for one view ``lin`` [H,W,3]."""
-    import bm3d
-
-    if not hasattr(np, "trapz"):  # bm4d 4.2.5 (under bm3d) calls numpy 1's name
-        np.trapz = np.trapezoid
+    bm3d = load_bm3d()
     p = dn.DenoiseParams(h_luma=h_luma)
     x = lin.double()
     d = dn.gat_forward(x, noise.a, noise.b)

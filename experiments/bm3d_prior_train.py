@@ -20,14 +20,22 @@ import numpy as np
 import torch
 
 
-def patch(scale: float) -> None:
-    """Make ``decomposer.denoise: chroma`` filter the luma with BM3D at ``scale`` × its calibrated σ."""
-    import bm3d
-
-    from retinexgs.retinex import denoise as dn
-
+def load_bm3d():
+    """The bm3d module, or SystemExit with one line where it is not installed."""
+    try:
+        import bm3d
+    except ImportError:
+        raise SystemExit("this study needs the bm3d package (pip install bm3d; non-commercial licence)") from None
     if not hasattr(np, "trapz"):  # bm4d 4.2.5 (under bm3d) calls numpy 1's name
         np.trapz = np.trapezoid
+    return bm3d
+
+
+def patch(scale: float) -> None:
+    """Make ``decomposer.denoise: chroma`` filter the luma with BM3D at ``scale`` × its calibrated σ."""
+    from retinexgs.retinex import denoise as dn
+
+    bm3d = load_bm3d()
 
     def luma_bm3d(x: torch.Tensor, h: float, p, impl: str) -> torch.Tensor:
         sigma = max(1.0, dn._measured_sigma(x)) if p.calibrate else 1.0

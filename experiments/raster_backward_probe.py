@@ -123,6 +123,8 @@ def main() -> None:
     t.add_argument("--kernels", type=int, default=0, metavar="PASSES",
                    help="also each kernel's own GPU time, over PASSES profiled passes")
     args = ap.parse_args()
+    if args.cmd == "time" and (args.iters < 1 or args.kernels < 0):
+        ap.error("--iters must be at least 1 and --kernels at least 0")
     if args.cmd == "save":
         save(args.scene, args.file, args.steps, args.views)
     else:
