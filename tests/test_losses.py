@@ -510,3 +510,33 @@ def test_enhancement_loss_shares_the_channel_means_of_l_exp_and_l_col(scale_inva
     # the old form of the whole-image brightness: the channel mean first, then the spatial mean
     y = enh.detach().mean(1, keepdim=True).mean(dim=(2, 3), keepdim=True)
     assert float(exp) == pytest.approx(float((y - 0.6).square().mean()), rel=1e-12)
+
+
+@pytest.mark.parametrize("kappa", [0.0, 0.25])
+def test_supervision_loss_r_prior_luma_weighs_the_reflectance_luma(kappa):
+    """loss.r_prior_luma κ: the R prior's term is Ls of R̂ and R with their channel means scaled by κ. At κ = 0 a grey
+    offset of R̂ (a change of its luma alone) leaves the term as it is and a change of its chroma does not; the
+    reconstruction still sees R̂ itself; κ = 1 is the paper's term."""
+    g = torch.Generator().manual_seed(5)
+    R_hat, L_hat, R, S = (torch.rand(1, 3, 19, 21, generator=g, dtype=torch.float64) for _ in range(4))
+    L = torch.rand(1, 1, 19, 21, generator=g, dtype=torch.float64)
+    _, paper = Lo.supervision_loss(R_hat, L_hat, R, L, S)
+    _, same = Lo.supervision_loss(R_hat, L_hat, R, L, S, r_luma=1.0)
+    assert float(same["sup_r"]) == float(paper["sup_r"])
+    _, t = Lo.supervision_loss(R_hat, L_hat, R, L, S, r_luma=kappa)
+    mean = lambda x: x.mean(1, keepdim=True)  # noqa: E731
+    want = Lo.l1_ssim(R_hat - (1 - kappa) * mean(R_hat), R - (1 - kappa) * mean(R))
+    assert float(t["sup_r"]) == pytest.approx(float(want), rel=1e-12)
+    assert float(t["sup_rec"]) == float(paper["sup_rec"]) and float(t["sup_l"]) == float(paper["sup_l"])
+    grey = torch.full_like(R_hat, 0.2)
+    _, shifted = Lo.supervision_loss(R_hat + grey, L_hat, R, L, S, r_luma=kappa)
+    _, shifted_paper = Lo.supervision_loss(R_hat + grey, L_hat, R, L, S)
+    assert float(shifted_paper["sup_r"]) != pytest.approx(float(paper["sup_r"]), rel=1e-3)
+    if kappa == 0.0:
+        assert float(shifted["sup_r"]) == pytest.approx(float(t["sup_r"]), rel=1e-12)
+    else:
+        assert float(shifted["sup_r"]) != pytest.approx(float(t["sup_r"]), rel=1e-3)
+    tint = torch.zeros_like(R_hat)
+    tint[:, 0] = 0.2
+    _, tinted = Lo.supervision_loss(R_hat + tint, L_hat, R, L, S, r_luma=kappa)
+    assert float(tinted["sup_r"]) != pytest.approx(float(t["sup_r"]), rel=1e-3)

@@ -315,6 +315,7 @@ class LossRaw(Section):
 class Loss(Section):
     lambda_ssim: Num(ge=0, le=1)
     w_r: Num(ge=0)
+    r_prior_luma: Num(ge=0, le=1)
     w_l: Num(ge=0)
     w_s: Num(ge=0)
     w_tv: Num(ge=0)

@@ -42,7 +42,7 @@ from retinexgs.config.schema import Loss
 __all__ = [
     "to_bchw", "gaussian_window", "ssim", "ssim_map", "noise_variance", "exposed", "l1_ssim",
     "LinearTarget", "RELATIVE_EPS", "PRIOR_WINDOW", "prior_confidence", "linear_weights", "linear_reconstruction", "reconstruction_loss",
-    "supervision_loss", "tv_loss", "edge_weights", "DEPTH_MIN_ALPHA", "DEPTH_EPS", "depth_smoothness_loss",
+    "supervision_loss", "chroma_weighted", "tv_loss", "edge_weights", "DEPTH_MIN_ALPHA", "DEPTH_EPS", "depth_smoothness_loss",
     "sh_sparsity_loss",
     "spatial_consistency_loss", "exposure_loss", "color_constancy_loss", "enhancement_loss",
 ]
@@ -250,10 +250,17 @@ def reconstruction_loss(rec: torch.Tensor, S: torch.Tensor, lambda_ssim: float =
     return l1_ssim(x, y, lambda_ssim, None if xs is x else (xs, ys))
 
 
+def chroma_weighted(x: torch.Tensor, luma: float) -> torch.Tensor:
+    """x − (1 − ``luma``)·mean_c x: x [B,C,H,W] with its channel mean (its luma) scaled by ``luma``, its chroma (x
+    minus that mean) kept."""
+    return x - (1.0 - luma) * x.mean(dim=1, keepdim=True)
+
+
 def supervision_loss(R_hat: torch.Tensor, L_hat: torch.Tensor, R: torch.Tensor, L: torch.Tensor,
                      S: torch.Tensor, w_r: float = 0.5, w_l: float = 0.5, w_s: float = 1.0,
                      lambda_ssim: float = 0.2, rec_gain: Optional[torch.Tensor] = None,
-                     rec_l1_exposed: bool = True, linear: Optional[LinearTarget] = None) -> Tuple[torch.Tensor, Terms]:
+                     rec_l1_exposed: bool = True, linear: Optional[LinearTarget] = None,
+                     r_luma: float = 1.0) -> Tuple[torch.Tensor, Terms]:
     """L_sup of Eq. 4: w_r·Ls(R̂, R) + w_l·Ls(L̂, L) + w_s·Ls(R̂∘L̂, S).
 
     Args:
@@ -273,6 +280,8 @@ def supervision_loss(R_hat: torch.Tensor, L_hat: torch.Tensor, R: torch.Tensor, 
     # The three Ls terms as one channel-stacked L1 + SSIM (SSIM is per channel, so stacking changes no value;
     # it is one set of kernels instead of three). Each pair is broadcast to a common channel count first.
     rec = R_hat * L_hat
+    if r_luma != 1.0:
+        R_hat, R = chroma_weighted(R_hat, r_luma), chroma_weighted(R, r_luma)
     lin_rec = None if linear is None else linear_reconstruction(rec, S, linear, rec_gain)
     (rec, target), (rec_s, target_s) = _reconstruction_pairs(rec, S, rec_gain, rec_l1_exposed and linear is None,
                                                              linear is not None)

@@ -245,7 +245,8 @@ class RetinexObjective(PlainObjective):
         l1_exposed = c.rec_domain == "exposed"
         if R is not None:
             sup, sup_terms = losses.supervision_loss(R_hat, L_hat, to_bchw(R), to_bchw(L), S_b, c.w_r,
-                                                     c.w_l, c.w_s, c.lambda_ssim, gain, l1_exposed, linear)
+                                                     c.w_l, c.w_s, c.lambda_ssim, gain, l1_exposed, linear,
+                                                     c.r_prior_luma)
             terms.update(sup_terms)
         else:  # no 2D priors: only the reconstruction is supervised
             terms["sup_rec"] = losses.reconstruction_loss(R_hat * L_hat, S_b, c.lambda_ssim, gain, l1_exposed,
@@ -264,7 +265,8 @@ class RetinexObjective(PlainObjective):
         gain, linear = self._rec_targets()
         sup = None
         if (fused_curve.runs_fused(image) and packed.shape[-1] in (7, 9) and image.shape[-1] == packed.shape[-1] - 1
-                and (linear is not None or not self.capture.unclipped)):  # as_photo is the identity on photos
+                and (linear is not None or not self.capture.unclipped)  # as_photo is the identity on photos
+                and c.r_prior_luma == 1.0):  # the kernel's R prior is the paper's; κ < 1 runs the twins
             sup = fused_loss.plan(gain, c.rec_domain == "exposed", linear, image)
         if sup is None:
             return super().graphed_loss(image, packed, enhance)
