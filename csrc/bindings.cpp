@@ -877,7 +877,7 @@ struct SupervisionInputs {
 
 template <typename T>
 rgs::SupervisionArgs<T> supervision_args(const SupervisionInputs& in, int rec_form, int s_form, double relative_eps,
-                                         double min_alpha, double depth_eps) {
+                                         double min_alpha, double depth_eps, double r_luma) {
     auto ptr = [](const std::optional<Tensor>& t) { return t ? t->data_ptr<T>() : (const T*)nullptr; };
     rgs::SupervisionArgs<T> a;
     a.H = int(in.image.size(0)), a.W = int(in.image.size(1));
@@ -886,6 +886,7 @@ rgs::SupervisionArgs<T> supervision_args(const SupervisionInputs& in, int rec_fo
     a.ssim_gain = ptr(in.ssim_gain), a.lin_gain = ptr(in.lin_gain);
     a.noise_a = ptr(in.noise_a), a.noise_b = ptr(in.noise_b), a.conf = ptr(in.conf);
     a.relative_eps = T(relative_eps), a.min_alpha = T(min_alpha), a.depth_eps = T(depth_eps);
+    a.r_luma = T(r_luma);
     return a;
 }
 
@@ -923,15 +924,16 @@ std::tuple<Tensor, Tensor, Tensor> supervision_forward(Tensor image, Tensor pack
                                                        std::optional<Tensor> lin_gain, std::optional<Tensor> noise_a,
                                                        std::optional<Tensor> noise_b, std::optional<Tensor> conf,
                                                        int rec_form, int s_form, double relative_eps, double min_alpha,
-                                                       double depth_eps) {
+                                                       double depth_eps, double r_luma) {
     const auto in = check_supervision(image, packed, ssim_gain, lin_gain, noise_a, noise_b, conf, rec_form, s_form);
+    RGS_CHECK_VALUE(r_luma >= 0.0 && r_luma <= 1.0, "r_luma must be in [0, 1], got ", r_luma);
     const int64_t H = image.size(0), W = image.size(1);
     Tensor x9 = torch::empty({9, H, W}, image.options());
     Tensor y9 = torch::empty({9, H, W}, image.options());
     Tensor partials;
     RGS_DEVICE_GUARD(image);
     AT_DISPATCH_FLOATING_TYPES(image.scalar_type(), "supervision_forward", [&] {
-        const auto a = supervision_args<scalar_t>(in, rec_form, s_form, relative_eps, min_alpha, depth_eps);
+        const auto a = supervision_args<scalar_t>(in, rec_form, s_form, relative_eps, min_alpha, depth_eps, r_luma);
         if (image.is_cuda()) {
 #ifdef RGS_WITH_CUDA
             partials = torch::empty({rgs::supervision_rows_cuda(H * W), int64_t(rgs::kSums)}, image.options());
@@ -955,8 +957,9 @@ std::tuple<Tensor, Tensor, Tensor> supervision_forward(Tensor image, Tensor pack
 Tensor supervision_backward(Tensor image, Tensor packed, std::optional<Tensor> ssim_gain, std::optional<Tensor> lin_gain,
                             std::optional<Tensor> noise_a, std::optional<Tensor> noise_b, std::optional<Tensor> conf,
                             std::optional<Tensor> g_x9, Tensor g_sums, int rec_form, int s_form, double relative_eps,
-                            double min_alpha, double depth_eps) {
+                            double min_alpha, double depth_eps, double r_luma) {
     const auto in = check_supervision(image, packed, ssim_gain, lin_gain, noise_a, noise_b, conf, rec_form, s_form);
+    RGS_CHECK_VALUE(r_luma >= 0.0 && r_luma <= 1.0, "r_luma must be in [0, 1], got ", r_luma);
     const int64_t H = image.size(0), W = image.size(1);
     check_tensor(g_sums, "g_sums", {int64_t(rgs::kSums)}, image);
     g_sums = g_sums.contiguous();
@@ -967,7 +970,7 @@ Tensor supervision_backward(Tensor image, Tensor packed, std::optional<Tensor> s
     Tensor grad = torch::empty_like(in.image);
     RGS_DEVICE_GUARD(image);
     AT_DISPATCH_FLOATING_TYPES(image.scalar_type(), "supervision_backward", [&] {
-        const auto a = supervision_args<scalar_t>(in, rec_form, s_form, relative_eps, min_alpha, depth_eps);
+        const auto a = supervision_args<scalar_t>(in, rec_form, s_form, relative_eps, min_alpha, depth_eps, r_luma);
         const scalar_t* gx = g_x9 ? g_x9->data_ptr<scalar_t>() : nullptr;
         if (image.is_cuda()) {
 #ifdef RGS_WITH_CUDA
@@ -1152,12 +1155,12 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("supervision_forward", &supervision_forward, pybind11::arg("image"), pybind11::arg("packed"),
           pybind11::arg("ssim_gain"), pybind11::arg("lin_gain"), pybind11::arg("noise_a"), pybind11::arg("noise_b"),
           pybind11::arg("conf"), pybind11::arg("rec_form"), pybind11::arg("s_form"), pybind11::arg("relative_eps"),
-          pybind11::arg("min_alpha"), pybind11::arg("depth_eps"));
+          pybind11::arg("min_alpha"), pybind11::arg("depth_eps"), pybind11::arg("r_luma"));
     m.def("supervision_backward", &supervision_backward, pybind11::arg("image"), pybind11::arg("packed"),
           pybind11::arg("ssim_gain"), pybind11::arg("lin_gain"), pybind11::arg("noise_a"), pybind11::arg("noise_b"),
           pybind11::arg("conf"), pybind11::arg("g_x9"), pybind11::arg("g_sums"), pybind11::arg("rec_form"),
           pybind11::arg("s_form"), pybind11::arg("relative_eps"), pybind11::arg("min_alpha"),
-          pybind11::arg("depth_eps"));
+          pybind11::arg("depth_eps"), pybind11::arg("r_luma"));
     m.attr("max_illum_width") = rgs::kMaxIllumWidth;
     m.attr("illum_chunk") = kIllumChunk;
     m.attr("max_illum_freqs") = rgs::kMaxIllumFreqs;

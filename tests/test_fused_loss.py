@@ -32,11 +32,12 @@ def scene(depth: bool, seed: int = 0, dtype=torch.float64, raw: bool = False):
     return torch.cat(maps, -1), torch.cat(packed, -1)
 
 
-def twin(image, packed, lambda_ssim, gain, l1_exposed, linear):
+def twin(image, packed, lambda_ssim, gain, l1_exposed, linear, r_luma=1.0):
     """The torch terms the pass replaces, as RetinexObjective computes them."""
     R_hat, L_hat = to_bchw(image[..., :3]), to_bchw(image[..., 3:6])
     S, R, L = (to_bchw(packed[..., a:b]) for a, b in ((0, 3), (3, 6), (6, 7)))
-    total, terms = losses.supervision_loss(R_hat, L_hat, R, L, S, *WEIGHTS, lambda_ssim, gain, l1_exposed, linear)
+    total, terms = losses.supervision_loss(R_hat, L_hat, R, L, S, *WEIGHTS, lambda_ssim, gain, l1_exposed, linear,
+                                           r_luma)
     terms["tv"] = losses.tv_loss(R_hat)
     if image.shape[-1] == 8:
         wx, wy = packed[None, None, :, :-1, -2], packed[None, None, :-1, :, -1]
@@ -61,14 +62,14 @@ CASES = {  # name: (gain, l1_exposed, linear)
 }
 
 
-def run_both(case, depth, lambda_ssim, seed=0):
+def run_both(case, depth, lambda_ssim, seed=0, r_luma=1.0):
     gain, l1_exposed, linear = CASES[case]
     image, packed = scene(depth, seed, raw=linear is not None)
-    sup = plan(gain, l1_exposed, linear, image)
-    assert sup is not None
+    sup = plan(gain, l1_exposed, linear, image, r_luma)
+    assert sup is not None and sup.r_luma == r_luma
     out = []
     for fn in (lambda x: supervision_terms(x, packed, sup, WEIGHTS, lambda_ssim, linear),
-               lambda x: twin(x, packed, lambda_ssim, gain, l1_exposed, linear)):
+               lambda x: twin(x, packed, lambda_ssim, gain, l1_exposed, linear, r_luma)):
         x = image.clone().requires_grad_(True)
         total, terms = fn(x)
         # one combination of every term, each with its own weight, so that each term's gradient counts
@@ -79,8 +80,9 @@ def run_both(case, depth, lambda_ssim, seed=0):
 
 @pytest.mark.parametrize("case", list(CASES))
 @pytest.mark.parametrize("depth", [False, True])
-def test_pass_matches_the_torch_terms(case, depth):
-    (total, terms, grad), (total_t, terms_t, grad_t) = run_both(case, depth, 0.2)
+@pytest.mark.parametrize("r_luma", [1.0, 0.0, 0.3])  # loss.r_prior_luma: the paper's R prior, its chroma alone, between
+def test_pass_matches_the_torch_terms(case, depth, r_luma):
+    (total, terms, grad), (total_t, terms_t, grad_t) = run_both(case, depth, 0.2, r_luma=r_luma)
     assert list(terms) == list(terms_t)
     torch.testing.assert_close(total, total_t, rtol=1e-10, atol=1e-12)
     for name in terms:
@@ -95,13 +97,13 @@ def test_pass_without_ssim_matches():
     torch.testing.assert_close(grad, grad_t, rtol=1e-8, atol=1e-12)
 
 
-@pytest.mark.parametrize("case", ["exposed-l1", "raw-noise-prior-snr"])
-def test_pass_finite_differences(case):
+@pytest.mark.parametrize("case,r_luma", [("exposed-l1", 1.0), ("raw-noise-prior-snr", 1.0), ("exposed-l1", 0.3)])
+def test_pass_finite_differences(case, r_luma):
     """torch.autograd.gradcheck of the pass itself: every output (x9 and the sums) against float64 differences."""
     gain, l1_exposed, linear = CASES[case]
     image, packed = scene(True, 3, raw=linear is not None)
     image, packed = image[:6, :7].contiguous(), packed[:6, :7].contiguous()
-    sup = plan(gain, l1_exposed, linear, image)
+    sup = plan(gain, l1_exposed, linear, image, r_luma)
 
     def fn(x):
         x9, _, sums = _SupervisionPass.apply(x, packed, None, sup)
@@ -127,11 +129,13 @@ def test_kernel_rejects_bad_shapes():
     from retinexgs.render._backend import kernels
     image, packed = scene(False)
     with pytest.raises(ValueError, match="image must be"):
-        kernels().supervision_forward(image[..., :5], packed, None, None, None, None, None, 0, 1, 1e-3, 0.5, 1e-6)
+        kernels().supervision_forward(image[..., :5], packed, None, None, None, None, None, 0, 1, 1e-3, 0.5, 1e-6, 1.0)
     with pytest.raises(ValueError, match="packed"):
-        kernels().supervision_forward(image, packed[..., :6], None, None, None, None, None, 0, 1, 1e-3, 0.5, 1e-6)
+        kernels().supervision_forward(image, packed[..., :6], None, None, None, None, None, 0, 1, 1e-3, 0.5, 1e-6, 1.0)
     with pytest.raises(ValueError, match="needs lin_gain"):
-        kernels().supervision_forward(image, packed, None, None, None, None, None, 1, 1, 1e-3, 0.5, 1e-6)
+        kernels().supervision_forward(image, packed, None, None, None, None, None, 1, 1, 1e-3, 0.5, 1e-6, 1.0)
+    with pytest.raises(ValueError, match="r_luma must be in"):
+        kernels().supervision_forward(image, packed, None, None, None, None, None, 0, 1, 1e-3, 0.5, 1e-6, 1.5)
 
 
 def test_float32_close_to_float64():
@@ -147,7 +151,8 @@ def test_float32_close_to_float64():
 @needs_cuda
 @pytest.mark.parametrize("case", list(CASES))
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-def test_cuda_pass_matches_cpu(case, dtype):
+@pytest.mark.parametrize("r_luma", [1.0, 0.0])
+def test_cuda_pass_matches_cpu(case, dtype, r_luma):
     """The CUDA kernels against the CPU ones (the reference): terms and gradients, on a view larger than a block."""
     gain, l1_exposed, linear = CASES[case]
     g = torch.Generator().manual_seed(11)
@@ -163,7 +168,7 @@ def test_cuda_pass_matches_cpu(case, dtype):
         gn = None if gain is None else gain.to(device, dtype)
         x = image.to(device).requires_grad_(True)
         p = packed.to(device)
-        total, terms = supervision_terms(x, p, plan(gn, l1_exposed, lin, x), WEIGHTS, 0.2, lin)
+        total, terms = supervision_terms(x, p, plan(gn, l1_exposed, lin, x, r_luma), WEIGHTS, 0.2, lin)
         w = weights[:len(terms)].to(device)
         combo = total + (torch.stack(list(terms.values())) * w).sum()
         out[device] = ([float(t) for t in terms.values()], torch.autograd.grad(combo, x)[0].cpu())

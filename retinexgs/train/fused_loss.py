@@ -36,13 +36,15 @@ REC_FORMS = {"plain": 0, "exposed": 1, "noise": 2, "relative": 3}
 class Supervision(NamedTuple):
     """What the pass computes, besides the render and the targets: ``rec_form`` (REC_FORMS), ``ssim_gain`` (the SSIM
     pair's exposure, a [1] tensor, or None: R̂∘L̂ and S as they are), ``lin_gain`` (the exposed L1's or the linear
-    term's gain), a raw view's noise ``a``, ``b`` ([3]), ``extended`` (S is a raw view's unclipped encoding)."""
+    term's gain), a raw view's noise ``a``, ``b`` ([3]), ``extended`` (S is a raw view's unclipped encoding), ``r_luma``
+    (``loss.r_prior_luma``: the share of R̂'s luma the R prior compares)."""
     rec_form: int
     ssim_gain: Optional[Tensor] = None
     lin_gain: Optional[Tensor] = None
     a: Optional[Tensor] = None
     b: Optional[Tensor] = None
     extended: bool = False
+    r_luma: float = 1.0
 
 
 def _three(t: Tensor, like: Tensor) -> Tensor:
@@ -50,10 +52,10 @@ def _three(t: Tensor, like: Tensor) -> Tensor:
     return torch.broadcast_to(t.reshape(-1), (3,)).to(like.dtype).contiguous()
 
 
-def plan(rec_gain: Optional[Tensor], l1_exposed: bool, linear: Optional[LinearTarget], like: Tensor
-         ) -> Optional[Supervision]:
+def plan(rec_gain: Optional[Tensor], l1_exposed: bool, linear: Optional[LinearTarget], like: Tensor,
+         r_luma: float = 1.0) -> Optional[Supervision]:
     """The pass's :class:`Supervision` for :func:`retinexgs.train.losses.supervision_loss`'s options (``rec_gain``,
-    ``rec_l1_exposed``, ``linear``) on a render like ``like``, or None where the pass does not cover them: a linear
+    ``rec_l1_exposed``, ``linear``, ``r_luma``) on a render like ``like``, or None where the pass does not cover them: a linear
     term of unit ``sigma``, or a gain that needs a gradient (the twins run then)."""
     gains = [t for t in (rec_gain, None if linear is None else linear.gain) if t is not None]
     if any(t.requires_grad or t.numel() != 1 for t in gains):
@@ -64,12 +66,13 @@ def plan(rec_gain: Optional[Tensor], l1_exposed: bool, linear: Optional[LinearTa
 
     if linear is None:
         exposed = rec_gain is not None and l1_exposed
-        return Supervision(REC_FORMS["exposed" if exposed else "plain"], one(rec_gain), one(rec_gain) if exposed else None)
+        return Supervision(REC_FORMS["exposed" if exposed else "plain"], one(rec_gain), one(rec_gain) if exposed else None,
+                           r_luma=r_luma)
     if linear.unit != "plain" or linear.mode not in ("noise", "relative"):
         return None
     g = linear.gain if linear.gain is not None else rec_gain
     return Supervision(REC_FORMS[linear.mode], one(rec_gain), one(g) if g is not None else like.new_ones(1),
-                       _three(linear.a, like), _three(linear.b, like), extended=True)
+                       _three(linear.a, like), _three(linear.b, like), extended=True, r_luma=r_luma)
 
 
 class _SupervisionPass(torch.autograd.Function):
@@ -78,9 +81,9 @@ class _SupervisionPass(torch.autograd.Function):
         args = (sup.ssim_gain, sup.lin_gain, sup.a, sup.b, conf)
         s_form = FORMS["extended" if sup.extended else "open"]
         x9, y9, partials = kernels().supervision_forward(image, packed, *args, sup.rec_form, s_form, RELATIVE_EPS,
-                                                         DEPTH_MIN_ALPHA, DEPTH_EPS)
+                                                         DEPTH_MIN_ALPHA, DEPTH_EPS, sup.r_luma)
         ctx.mark_non_differentiable(y9)
-        ctx.meta = (args, sup.rec_form, s_form)
+        ctx.meta = (args, sup.rec_form, s_form, sup.r_luma)
         ctx.save_for_backward(image, packed)
         return x9, y9, partials.sum(0)
 
@@ -88,11 +91,11 @@ class _SupervisionPass(torch.autograd.Function):
     @once_differentiable
     def backward(ctx, g_x9: Optional[Tensor], _g_y9: Optional[Tensor], g_sums: Optional[Tensor]):
         image, packed = ctx.saved_tensors
-        args, rec_form, s_form = ctx.meta
+        args, rec_form, s_form, r_luma = ctx.meta
         if g_sums is None:
             g_sums = image.new_zeros(12)
         grad = kernels().supervision_backward(image, packed, *args, g_x9, g_sums, rec_form, s_form, RELATIVE_EPS,
-                                              DEPTH_MIN_ALPHA, DEPTH_EPS)
+                                              DEPTH_MIN_ALPHA, DEPTH_EPS, r_luma)
         return grad, None, None, None
 
 

@@ -265,9 +265,8 @@ class RetinexObjective(PlainObjective):
         gain, linear = self._rec_targets()
         sup = None
         if (fused_curve.runs_fused(image) and packed.shape[-1] in (7, 9) and image.shape[-1] == packed.shape[-1] - 1
-                and (linear is not None or not self.capture.unclipped)  # as_photo is the identity on photos
-                and c.r_prior_luma == 1.0):  # the kernel's R prior is the paper's; κ < 1 runs the twins
-            sup = fused_loss.plan(gain, c.rec_domain == "exposed", linear, image)
+                and (linear is not None or not self.capture.unclipped)):  # as_photo is the identity on photos
+            sup = fused_loss.plan(gain, c.rec_domain == "exposed", linear, image, c.r_prior_luma)
         if sup is None:
             return super().graphed_loss(image, packed, enhance)
         total, terms = fused_loss.supervision_terms(image, packed, sup, (c.w_r, c.w_l, c.w_s), c.lambda_ssim, linear)

@@ -7,8 +7,9 @@
 //
 // Per pixel p (HWC inputs: image [H, W, Ci], Ci = 6: R̂, L̂; Ci = 8: + the depth prior's depth Σwz and alpha Σw;
 // packed [H, W, K], K = 7: S, R, L (1 channel); K = 9: + the edge weights wx, wy, zero in the last column / row):
-//   x9 = [R̂, L̂, e(R̂∘L̂)], y9 = [R, L, L, L, e(S)]  (CHW; the SSIM's pairs, e the exposure or the identity)
-//   sums (kSum*): the L1 numerators Σ c·|R̂ − R|, Σ c·|L̂ − L| (c the raw priors' confidence, else 1), the
+//   x9 = [R̂', L̂, e(R̂∘L̂)], y9 = [R', L, L, L, e(S)]  (CHW; the SSIM's pairs, e the exposure or the identity;
+//   X' = X − (1−κ)·mean_c X, the R prior's pair with its luma scaled by κ = loss.r_prior_luma, 1: X itself)
+//   sums (kSum*): the L1 numerators Σ c·|R̂' − R'|, Σ c·|L̂ − L| (c the raw priors' confidence, else 1), the
 //   reconstruction's numerator (Σ|R̂∘L̂ − S|, Σ|e(R̂∘L̂) − e(S)|, or a raw scene's Σ w·(g(lin(R̂∘L̂) − lin(S)))² with
 //   its Σ w), L_TV's forward differences, and the depth prior's Σ disparity, Σ covered, Σ |Δ disparity|·w·m, Σ m.
 // The means and ratios are formed from the sums by the caller. The gradient of every sum is defined, except of the
@@ -42,6 +43,7 @@ struct SupervisionArgs {
     const T* conf;         // [H, W]: the priors' L1 weight, or null (1)
     T relative_eps;        // RawNeRF's ε (kRecRelative)
     T min_alpha, depth_eps;
+    T r_luma;              // κ: the share of R̂'s luma (channel mean) the R prior compares (1: all of it)
 };
 
 template <typename T>
@@ -84,11 +86,14 @@ struct SupPixel {
     const T* im;  // image[p, :]
     const T* pk;  // packed[p, :]
     T c, Lp, gs, gl;
+    T dRh, dR;  // (1−κ)·mean_c R̂ and (1−κ)·mean_c R: what the R prior's pair leaves out of each channel
 
     RGS_HD SupPixel(const SupervisionArgs<T>& a, int64_t p, const T* image, const T* packed)
         : HW(int64_t(a.H) * a.W), x(int(p % a.W)), y(int(p / a.W)), im(image + p * a.ci), pk(packed + p * a.k),
           c(a.conf ? a.conf[p] : T(1)), Lp(pk[6]), gs(a.ssim_gain ? a.ssim_gain[0] : T(1)),
-          gl(a.lin_gain ? a.lin_gain[0] : T(1)) {}
+          gl(a.lin_gain ? a.lin_gain[0] : T(1)),
+          dRh((T(1) - a.r_luma) * ((im[0] + im[1] + im[2]) / T(3))),
+          dR((T(1) - a.r_luma) * ((pk[3] + pk[4] + pk[5]) / T(3))) {}
 };
 
 // Pixel p's forward: its x9 / y9 entries and its share of the sums (added to s[kSums]).
@@ -103,13 +108,14 @@ RGS_HD void supervision_forward_pixel(const SupervisionArgs<T>& a, int64_t p, co
     RGS_UNROLL
     for (int ch = 0; ch < 3; ++ch) {
         const T Rh = im[ch], Lh = im[3 + ch], S = pk[ch], R = pk[3 + ch];
-        s[kSumR] += c * fabs(Rh - R);
+        const T Rh_p = Rh - q.dRh, R_p = R - q.dR;  // the R prior's pair
+        s[kSumR] += c * fabs(Rh_p - R_p);
         s[kSumL] += c * fabs(Lh - Lp);
         const T rec = Rh * Lh;
         const T xe = a.ssim_gain ? sup_exposed(rec, gs, int(kOpen), (T*)nullptr) : rec;
         const T ye = a.ssim_gain ? sup_exposed(S, gs, a.s_form, (T*)nullptr) : S;
-        x9[ch * HW + p] = Rh, x9[(3 + ch) * HW + p] = Lh, x9[(6 + ch) * HW + p] = xe;
-        y9[ch * HW + p] = R, y9[(3 + ch) * HW + p] = Lp, y9[(6 + ch) * HW + p] = ye;
+        x9[ch * HW + p] = Rh_p, x9[(3 + ch) * HW + p] = Lh, x9[(6 + ch) * HW + p] = xe;
+        y9[ch * HW + p] = R_p, y9[(3 + ch) * HW + p] = Lp, y9[(6 + ch) * HW + p] = ye;
         if (a.rec_form == kRecPlain) {
             s[kSumRec] += fabs(rec - S);
         } else if (a.rec_form == kRecExposed) {
@@ -155,15 +161,22 @@ RGS_HD void supervision_backward_pixel(const SupervisionArgs<T>& a, int64_t p, c
     const T *im = q.im, *pk = q.pk;
     const T c = q.c, Lp = q.Lp, gs = q.gs, gl = q.gl;
     T* gi = grad_image + p * a.ci;
+    // The R prior's gradient on its pair R̂' = R̂ − (1−κ)·mean_c R̂, then through that map: d/dR̂ = g' − (1−κ)·mean_c g'.
+    T gp[3];
     RGS_UNROLL
     for (int ch = 0; ch < 3; ++ch) {
-        const T Rh = im[ch], Lh = im[3 + ch], S = pk[ch], R = pk[3 + ch];
+        gp[ch] = g[kSumR] * c * sup_sign((im[ch] - q.dRh) - (pk[3 + ch] - q.dR));
+        if (g_x9) gp[ch] += g_x9[ch * HW + p];
+    }
+    const T gp_shift = (T(1) - a.r_luma) * ((gp[0] + gp[1] + gp[2]) / T(3));
+    RGS_UNROLL
+    for (int ch = 0; ch < 3; ++ch) {
+        const T Rh = im[ch], Lh = im[3 + ch], S = pk[ch];
         const T rec = Rh * Lh;
-        T gR = g[kSumR] * c * sup_sign(Rh - R);
+        T gR = gp[ch] - gp_shift;
         T gL = g[kSumL] * c * sup_sign(Lh - Lp);
         T grec = T(0);
         if (g_x9) {
-            gR += g_x9[ch * HW + p];
             gL += g_x9[(3 + ch) * HW + p];
             T de = T(1);
             if (a.ssim_gain) sup_exposed(rec, gs, int(kOpen), &de);
