@@ -128,7 +128,9 @@ def test_a_format_1_run_with_the_old_raw_keys_reads_them_in_their_new_places_and
     r = cfg.loss.raw
     assert (r.mode, r.unit, r.prior_snr, r.spa) == ("relative", "sigma", 1.5, "extended")
     assert not hasattr(r, "model_error")  # format 3 dropped it (its default)
-    assert lines == []  # moved, not filled: nothing predates a key
+    # moved, not filled; only the key format 5 added (back() took the whole raw section) predates the run
+    assert len(lines) == 1 and "predates config keys loss.raw.r_prior_luma:" in lines[0]
+    assert r.r_prior_luma == 1.0  # the paper's prior, as the run was trained
     assert load_run(run, "cpu")[2].shoulder == 0.7  # the raw scene's knee, read from its old key
     code, out, err = run_cli(["eval", "--run", run, "--device", "cpu"], capsys)
     assert code == 0, err

@@ -31,7 +31,7 @@ def _write(run, data: dict) -> None:
 
 
 def test_one_migration_a_format_step():
-    assert FORMAT == 4 and len(CONFIG_MIGRATIONS) == len(CHECKPOINT_MIGRATIONS) == FORMAT
+    assert FORMAT == 5 and len(CONFIG_MIGRATIONS) == len(CHECKPOINT_MIGRATIONS) == FORMAT
 
 
 def test_a_format_1_run_is_written_with_its_format_and_round_trips(tmp_path):
@@ -77,9 +77,9 @@ def test_a_format_0_run_gets_the_values_runs_had_before_the_keys(tmp_path):
 
 
 @pytest.mark.parametrize("fmt, expect", [
-    (5, "is in run format 5, newer than this retinexgs reads (format 4)"),
-    ("one", "format must be a whole number 0..4, got 'one'"),
-    (-1, "format must be a whole number 0..4, got -1"),
+    (6, "is in run format 6, newer than this retinexgs reads (format 5)"),
+    ("one", "format must be a whole number 0..5, got 'one'"),
+    (-1, "format must be a whole number 0..5, got -1"),
 ])
 def test_a_newer_or_malformed_run_format_is_refused_in_one_line(tmp_path, fmt, expect):
     write_run_config(tmp_path, load_config(), tmp_path)
@@ -141,3 +141,14 @@ def test_registry_choices_are_checked_by_the_loader_in_one_line(monkeypatch):
     with pytest.raises(UserError, match=r"^--set model.background=mean: model.background must be one of black, "
                                         r"got 'mean'$"):
         load_config([], ["model.background=mean"])
+
+
+def test_a_format_4_run_keeps_the_paper_reflectance_prior_on_raw_scenes():
+    """Format 4 -> 5: a run made before loss.raw.r_prior_luma trained the R prior on R̂'s luma too (κ = 1); a value
+    written on purpose is kept; today's default is the chroma alone."""
+    from retinexgs.config.versions import migrate_config
+    old, filled = migrate_config({"format": 4, "loss": {"raw": {"mode": "noise"}}}, "old/config.yaml")
+    assert old["loss"]["raw"]["r_prior_luma"] == 1.0 and "loss.raw.r_prior_luma" in filled
+    kept, _ = migrate_config({"format": 4, "loss": {"raw": {"r_prior_luma": 0.5}}}, "old/config.yaml")
+    assert kept["loss"]["raw"]["r_prior_luma"] == 0.5
+    assert load_config().loss.raw.r_prior_luma == 0.0

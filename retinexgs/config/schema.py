@@ -310,12 +310,12 @@ class LossRaw(Section):
     unit: Choice("plain", "sigma")
     prior_snr: Num(ge=0)
     spa: Choice("photo", "extended")  # what L_spa compares a raw view's enhanced render with
+    r_prior_luma: Num(ge=0, le=1)  # κ: the share of R̂'s luma the reflectance prior supervises
 
 
 class Loss(Section):
     lambda_ssim: Num(ge=0, le=1)
     w_r: Num(ge=0)
-    r_prior_luma: Num(ge=0, le=1)
     w_l: Num(ge=0)
     w_s: Num(ge=0)
     w_tv: Num(ge=0)

@@ -56,6 +56,11 @@ class Capture:
         """What L_spa compares the enhanced render with (``loss.raw.spa`` on a raw scene)."""
         raise NotImplementedError
 
+    def r_prior_luma(self, loss: Loss) -> float:
+        """κ, the share of R̂'s luma the reflectance prior supervises (``loss.raw.r_prior_luma`` on a raw scene; a
+        photo's prior is the paper's, κ = 1)."""
+        raise NotImplementedError
+
     def linear_mode(self, loss: Loss) -> Optional[str]:
         """The reconstruction in linear light (``loss.raw.mode``: noise or relative), or None: compared as photos."""
         raise NotImplementedError
@@ -101,6 +106,10 @@ class PhotoCapture(Capture):
     def spa_input(self, target: Tensor, loss: Loss) -> Tensor:
         return target
 
+    def r_prior_luma(self, loss: Loss) -> float:
+        # the prior's luma stays: on LOM its chroma alone lost (bike −0.26 dB, LPIPS up on all three; the note below)
+        return 1.0
+
     def linear_mode(self, loss: Loss) -> Optional[str]:
         return None
 
@@ -141,6 +150,9 @@ class RawCapture(Capture):
 
     def spa_input(self, target: Tensor, loss: Loss) -> Tensor:
         return self.as_photo(target) if loss.raw.spa == "photo" else target
+
+    def r_prior_luma(self, loss: Loss) -> float:
+        return float(loss.raw.r_prior_luma)
 
     def linear_mode(self, loss: Loss) -> Optional[str]:
         return None if loss.raw.mode == "photo" else loss.raw.mode

@@ -37,7 +37,7 @@ class Supervision(NamedTuple):
     """What the pass computes, besides the render and the targets: ``rec_form`` (REC_FORMS), ``ssim_gain`` (the SSIM
     pair's exposure, a [1] tensor, or None: R̂∘L̂ and S as they are), ``lin_gain`` (the exposed L1's or the linear
     term's gain), a raw view's noise ``a``, ``b`` ([3]), ``extended`` (S is a raw view's unclipped encoding), ``r_luma``
-    (``loss.r_prior_luma``: the share of R̂'s luma the R prior compares)."""
+    (``loss.raw.r_prior_luma`` on a raw scene: the share of R̂'s luma the R prior compares)."""
     rec_form: int
     ssim_gain: Optional[Tensor] = None
     lin_gain: Optional[Tensor] = None
