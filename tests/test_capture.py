@@ -21,8 +21,8 @@ from scenes import TINY_RUN, run_cli
 ROOT = Path(__file__).resolve().parents[1]
 
 # what callers asked of the scene's rawness before the capture object (issue 63's list), now asked of the capture
-QUESTIONS = ("name", "unclipped", "as_photo", "encode_target", "knee", "spa_input", "linear_mode", "noise",
-             "noise_downscale", "auto_denoise", "preview_denoise", "jpeg_codec")
+QUESTIONS = ("name", "unclipped", "as_photo", "encode_target", "knee", "spa_input", "r_prior_luma", "linear_mode",
+             "noise", "noise_downscale", "auto_denoise", "preview_denoise", "jpeg_codec")
 
 
 @pytest.fixture(scope="module")
@@ -55,6 +55,9 @@ def test_the_two_capture_kinds_answer_alike_what_callers_ask():
     extended = load_config(["ablations/spa_raw_extended"]).loss
     assert torch.equal(RAW.spa_input(t, extended), t)
     assert PHOTO.linear_mode(cfg.loss) is None and RAW.linear_mode(cfg.loss) == "noise"
+    # the R prior: a raw scene's on R̂'s chroma alone (its key), a photo's the paper's whatever the raw key says
+    paper = load_config(["ablations/raw_r_prior_luma"]).loss
+    assert (PHOTO.r_prior_luma(cfg.loss), RAW.r_prior_luma(cfg.loss), RAW.r_prior_luma(paper)) == (1.0, 0.0, 1.0)
     assert RAW.linear_mode(load_config(["ablations/raw_photo"]).loss) is None  # raw compared as the photo shown
     assert (PHOTO.auto_denoise(), RAW.auto_denoise()) == ("none", "chroma")
     # photos: the denoiser where their colour noise is blotchy (measured only when asked); raw: always
@@ -114,6 +117,28 @@ def _as_format_1(run: Path) -> None:
         state["format"] = 1
         state["config"] = back(state["config"])
         torch.save(state, ckpt)
+
+
+def test_training_gives_the_reflectance_prior_the_captures_share_of_luma(night, tmp_path, capsys, monkeypatch):
+    """The objective asks the capture for κ (loss.raw.r_prior_luma): 0 on the raw scene, the paper's 1 on the
+    photos it was darkened from, and 1 on the raw scene with ablations/raw_r_prior_luma."""
+    from retinexgs.train import losses
+    seen = []
+    real = losses.supervision_loss
+
+    def spy(*args, **kwargs):
+        seen.append(args[12] if len(args) > 12 else kwargs.get("r_luma", 1.0))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(losses, "supervision_loss", spy)
+    for scene, extra, want in ((night / "raw", [], 0.0), (night.parent / "src", [], 1.0),
+                               (night / "raw", ["--config", "ablations/raw_r_prior_luma"], 1.0)):
+        seen.clear()
+        sets = [a for s in TINY_RUN for a in ("--set", s)]
+        code, _, err = run_cli(["train", "--data", scene, "--out", tmp_path / f"run{len(extra)}{want}", "--config",
+                                "demo", *extra, *sets, "--device", "cpu", "--quiet"], capsys)
+        assert code == 0, err
+        assert seen and set(seen) == {want}, (scene, extra, seen)
 
 
 def test_a_format_1_run_with_the_old_raw_keys_reads_them_in_their_new_places_and_trains_on(night, tmp_path, capsys):

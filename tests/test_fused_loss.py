@@ -80,7 +80,8 @@ def run_both(case, depth, lambda_ssim, seed=0, r_luma=1.0):
 
 @pytest.mark.parametrize("case", list(CASES))
 @pytest.mark.parametrize("depth", [False, True])
-@pytest.mark.parametrize("r_luma", [1.0, 0.0, 0.3])  # loss.raw.r_prior_luma: the paper's R prior, its chroma alone, between
+# loss.raw.r_prior_luma: the paper's R prior, its chroma alone, between
+@pytest.mark.parametrize("r_luma", [1.0, 0.0, 0.3])
 def test_pass_matches_the_torch_terms(case, depth, r_luma):
     (total, terms, grad), (total_t, terms_t, grad_t) = run_both(case, depth, 0.2, r_luma=r_luma)
     assert list(terms) == list(terms_t)

@@ -514,8 +514,8 @@ def test_enhancement_loss_shares_the_channel_means_of_l_exp_and_l_col(scale_inva
 
 @pytest.mark.parametrize("kappa", [0.0, 0.25])
 def test_supervision_loss_r_prior_luma_weighs_the_reflectance_luma(kappa):
-    """loss.raw.r_prior_luma κ: the R prior's term is Ls of R̂ and R with their channel means scaled by κ. At κ = 0 a grey
-    offset of R̂ (a change of its luma alone) leaves the term as it is and a change of its chroma does not; the
+    """loss.raw.r_prior_luma κ: the R prior's term is Ls of R̂ and R with their channel means scaled by κ. At κ = 0 a
+    grey offset of R̂ (a change of its luma alone) leaves the term as it is and a change of its chroma does not; the
     reconstruction still sees R̂ itself; κ = 1 is the paper's term."""
     g = torch.Generator().manual_seed(5)
     R_hat, L_hat, R, S = (torch.rand(1, 3, 19, 21, generator=g, dtype=torch.float64) for _ in range(4))

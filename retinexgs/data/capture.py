@@ -107,7 +107,9 @@ class PhotoCapture(Capture):
         return target
 
     def r_prior_luma(self, loss: Loss) -> float:
-        # the prior's luma stays: on LOM its chroma alone lost (bike −0.26 dB, LPIPS up on all three; the note below)
+        # the paper's prior: with its chroma alone LOM lost (bike −0.25 dB GT-mean, LPIPS up on all three;
+        # experiments/notes/2026-11-30-r-prior-chroma.md §2): a photo's reconstruction does not measure the luma
+        # without bias, as a raw scene's linear term does
         return 1.0
 
     def linear_mode(self, loss: Loss) -> Optional[str]:

@@ -55,8 +55,8 @@ def _three(t: Tensor, like: Tensor) -> Tensor:
 def plan(rec_gain: Optional[Tensor], l1_exposed: bool, linear: Optional[LinearTarget], like: Tensor,
          r_luma: float = 1.0) -> Optional[Supervision]:
     """The pass's :class:`Supervision` for :func:`retinexgs.train.losses.supervision_loss`'s options (``rec_gain``,
-    ``rec_l1_exposed``, ``linear``, ``r_luma``) on a render like ``like``, or None where the pass does not cover them: a linear
-    term of unit ``sigma``, or a gain that needs a gradient (the twins run then)."""
+    ``rec_l1_exposed``, ``linear``, ``r_luma``) on a render like ``like``, or None where the pass does not cover
+    them: a linear term of unit ``sigma``, or a gain that needs a gradient (the twins run then)."""
     gains = [t for t in (rec_gain, None if linear is None else linear.gain) if t is not None]
     if any(t.requires_grad or t.numel() != 1 for t in gains):
         return None
@@ -66,8 +66,8 @@ def plan(rec_gain: Optional[Tensor], l1_exposed: bool, linear: Optional[LinearTa
 
     if linear is None:
         exposed = rec_gain is not None and l1_exposed
-        return Supervision(REC_FORMS["exposed" if exposed else "plain"], one(rec_gain), one(rec_gain) if exposed else None,
-                           r_luma=r_luma)
+        return Supervision(REC_FORMS["exposed" if exposed else "plain"], one(rec_gain),
+                           one(rec_gain) if exposed else None, r_luma=r_luma)
     if linear.unit != "plain" or linear.mode not in ("noise", "relative"):
         return None
     g = linear.gain if linear.gain is not None else rec_gain

@@ -42,8 +42,8 @@ from retinexgs.config.schema import Loss
 __all__ = [
     "to_bchw", "gaussian_window", "ssim", "ssim_map", "noise_variance", "exposed", "l1_ssim",
     "LinearTarget", "RELATIVE_EPS", "PRIOR_WINDOW", "prior_confidence", "linear_weights", "linear_reconstruction", "reconstruction_loss",
-    "supervision_loss", "chroma_weighted", "tv_loss", "edge_weights", "DEPTH_MIN_ALPHA", "DEPTH_EPS", "depth_smoothness_loss",
-    "sh_sparsity_loss",
+    "supervision_loss", "chroma_weighted", "tv_loss", "edge_weights", "DEPTH_MIN_ALPHA", "DEPTH_EPS",
+    "depth_smoothness_loss", "sh_sparsity_loss",
     "spatial_consistency_loss", "exposure_loss", "color_constancy_loss", "enhancement_loss",
 ]
 

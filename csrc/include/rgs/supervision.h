@@ -8,7 +8,7 @@
 // Per pixel p (HWC inputs: image [H, W, Ci], Ci = 6: R̂, L̂; Ci = 8: + the depth prior's depth Σwz and alpha Σw;
 // packed [H, W, K], K = 7: S, R, L (1 channel); K = 9: + the edge weights wx, wy, zero in the last column / row):
 //   x9 = [R̂', L̂, e(R̂∘L̂)], y9 = [R', L, L, L, e(S)]  (CHW; the SSIM's pairs, e the exposure or the identity;
-//   X' = X − (1−κ)·mean_c X, the R prior's pair with its luma scaled by κ = loss.r_prior_luma, 1: X itself)
+//   X' = X − (1−κ)·mean_c X, the R prior's pair with its luma scaled by κ = loss.raw.r_prior_luma, 1: X itself)
 //   sums (kSum*): the L1 numerators Σ c·|R̂' − R'|, Σ c·|L̂ − L| (c the raw priors' confidence, else 1), the
 //   reconstruction's numerator (Σ|R̂∘L̂ − S|, Σ|e(R̂∘L̂) − e(S)|, or a raw scene's Σ w·(g(lin(R̂∘L̂) − lin(S)))² with
 //   its Σ w), L_TV's forward differences, and the depth prior's Σ disparity, Σ covered, Σ |Δ disparity|·w·m, Σ m.
