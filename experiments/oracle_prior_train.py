@@ -39,7 +39,11 @@ def patch(clean: Path, downscale: float, cache_dir: Path) -> None:
     real = cache.read_image
     if not (clean / "low").is_dir():
         raise SystemExit(f"{clean} has no low/ folder: give the raw ladder's clean capture of the same scene")
-    scene = load_scene(clean, downscale=downscale, cache_dir=cache_dir)
+    from retinexgs.errors import UserError
+    try:
+        scene = load_scene(clean, downscale=downscale, cache_dir=cache_dir)
+    except UserError as exc:  # one line, as the CLI gives it
+        raise SystemExit(f"--clean {clean}: {exc}") from None
     twins = {_stem(v.image_path): Path(v.image_path) for v in scene.views}
 
     def oracle(path, raw_denoise=False, balance=None, denoise=None, cache_root=None, cache_hint=""):
