@@ -38,10 +38,11 @@ def test_steps_resolve_fractions_and_drop_the_ends():
         load_config(["demo"], ["decomposer.redenoise_at=[fast]"])
 
 
-@pytest.mark.parametrize("chroma", ["pilot", "denoiser"])
-def test_the_priors_are_replaced_at_the_step_and_training_goes_on(scene_dir, tmp_path, chroma):
+@pytest.mark.parametrize("chroma,source", [("pilot", "render"), ("denoiser", "render"), ("pilot", "views")])
+def test_the_priors_are_replaced_at_the_step_and_training_goes_on(scene_dir, tmp_path, chroma, source):
     tr = trainer_for(scene_dir, tmp_path / "run", ["decomposer.redenoise_at=[3]",
-                                                   f"decomposer.redenoise_chroma={chroma}"])
+                                                   f"decomposer.redenoise_chroma={chroma}",
+                                                   f"decomposer.redenoise_source={source}"])
     before = priors(tr)
     tr.train(stop_after=2)
     assert all(torch.equal(R, v.R) for (R, _), v in zip(before, tr.views))  # not yet
@@ -89,3 +90,35 @@ def test_the_chroma_choice_changes_the_priors(scene_dir, tmp_path):
         tr.train(stop_after=2)
         out.append(priors(tr))
     assert any(not torch.equal(a[0], b[0]) for a, b in zip(*out))
+
+
+def test_the_views_source_averages_the_neighbours_in(scene_dir, tmp_path, monkeypatch):
+    """``decomposer.redenoise_source: views``: every view is averaged with its neighbours warped in, and the
+    priors differ from the render's Wiener filter's."""
+    import retinexgs.train.redenoise as rd
+    from retinexgs.train.view_warp import neighbours
+
+    calls = []
+    real = rd.warp_average
+
+    def spy(target, sources, *a, **k):
+        calls.append((target.camera, [s.camera for s in sources]))
+        avg, count = real(target, sources, *a, **k)
+        assert avg.shape == target.light.shape and bool((count >= 1).all())
+        return avg, count
+
+    monkeypatch.setattr(rd, "warp_average", spy)
+    out = {}
+    for source in ("render", "views"):
+        tr = trainer_for(scene_dir, tmp_path / source, ["decomposer.redenoise_at=[2]",
+                                                        f"decomposer.redenoise_source={source}"])
+        tr.train(stop_after=2)
+        out[source] = priors(tr)
+    cams = [v.camera for v in tr.views]
+    assert [c for c, _ in calls] == cams  # once per view, the render source never warps
+    # the sources: the others facing within 60° (the demo's 4 views are spread: views 0 and 1 see each other)
+    assert [srcs for _, srcs in calls] == [[cams[j] for j in neighbours(cams, i, 16)] for i in range(len(cams))]
+    assert calls[0][1] == [cams[1]] and calls[1][1] == [cams[0]]
+    assert any(not torch.equal(a[0], b[0]) for a, b in zip(out["render"], out["views"]))
+    with pytest.raises(UserError, match="redenoise_source"):
+        load_config(["demo"], ["decomposer.redenoise_source=depth"])

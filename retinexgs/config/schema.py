@@ -230,6 +230,7 @@ class Decomposer(Section):
     redenoise_at: Annotated[List[Step], Expect("a list of steps (integers) or fractions of the run (decimals 0..1), "
                                                "e.g. [0.3, 0.6]; [] for never")]
     redenoise_chroma: Choice("pilot", "denoiser")  # whose chroma the re-denoised view keeps (the render's gains or the single-view denoiser's)
+    redenoise_source: Choice("render", "views")  # what re-denoises a view: the render's Wiener gains, or its neighbours warped in by the model's depth
     # overrides of the denoiser's settings, checked by DenoiseParamsSchema
     denoise_params: Annotated[Dict[str, Any], Expect("a mapping of the denoiser's settings")]
     # the median views per point up to which the luma NLM keeps its h_luma; above, h_luma·√(this/n) (0: off)

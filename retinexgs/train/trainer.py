@@ -425,8 +425,8 @@ class Trainer:
     def _redenoise(self) -> None:
         """The views' priors made again from the views re-denoised with the model's render as the pilot."""
         degree = self.active_degree(self.step)
-        self.redenoise.run(self.views, lambda tv: self.model.render(tv.camera, degree, validate=False, enhance=False,
-                                                                    center=tv.center)["S_rec"], self.cfg)
+        self.redenoise.run(self.views, lambda tv, depth: self.model.render(
+            tv.camera, degree, validate=False, enhance=False, center=tv.center, depth=depth), self.cfg)
         self.resolution.forget_views()  # pooled copies hold the old priors
 
     def _sync(self) -> None:
