@@ -58,6 +58,11 @@ def test_the_two_capture_kinds_answer_alike_what_callers_ask():
     # the R prior: a raw scene's on R̂'s chroma alone (its key), a photo's the paper's whatever the raw key says
     paper = load_config(["ablations/raw_r_prior_luma"]).loss
     assert (PHOTO.r_prior_luma(cfg.loss), RAW.r_prior_luma(cfg.loss), RAW.r_prior_luma(paper)) == (1.0, 0.0, 1.0)
+    # views binned by data.downscale: the binned key (the paper's κ 1 by default), photos the paper's regardless
+    assert (RAW.r_prior_luma(cfg.loss, 2.0), RAW.r_prior_luma(cfg.loss, 1.0), PHOTO.r_prior_luma(cfg.loss, 2.0)) == \
+        (1.0, 0.0, 1.0)
+    odd = load_config([], ["loss.raw.r_prior_luma_binned=0.25"]).loss
+    assert (RAW.r_prior_luma(odd, 1.5), RAW.r_prior_luma(odd, 1.0)) == (0.25, 0.0)
     assert RAW.linear_mode(load_config(["ablations/raw_photo"]).loss) is None  # raw compared as the photo shown
     assert (PHOTO.auto_denoise(), RAW.auto_denoise()) == ("none", "chroma")
     # photos: the denoiser where their colour noise is blotchy (measured only when asked); raw: always
@@ -121,7 +126,8 @@ def _as_format_1(run: Path) -> None:
 
 def test_training_gives_the_reflectance_prior_the_captures_share_of_luma(night, tmp_path, capsys, monkeypatch):
     """The objective asks the capture for κ (loss.raw.r_prior_luma): 0 on the raw scene, the paper's 1 on the
-    photos it was darkened from, and 1 on the raw scene with ablations/raw_r_prior_luma."""
+    photos it was darkened from, 1 on the raw scene with ablations/raw_r_prior_luma, and on its views binned by
+    data.downscale loss.raw.r_prior_luma_binned (1, or 0 when set so)."""
     from retinexgs.train import losses
     seen = []
     real = losses.supervision_loss
@@ -131,14 +137,19 @@ def test_training_gives_the_reflectance_prior_the_captures_share_of_luma(night, 
         return real(*args, **kwargs)
 
     monkeypatch.setattr(losses, "supervision_loss", spy)
+    seen_runs = []
     for scene, extra, want in ((night / "raw", [], 0.0), (night.parent / "src", [], 1.0),
-                               (night / "raw", ["--config", "ablations/raw_r_prior_luma"], 1.0)):
+                               (night / "raw", ["--config", "ablations/raw_r_prior_luma"], 1.0),
+                               (night / "raw", ["--set", "data.downscale=2"], 1.0),
+                               (night / "raw", ["--set", "data.downscale=2", "--set", "loss.raw.r_prior_luma_binned=0"],
+                                0.0)):
         seen.clear()
         sets = [a for s in TINY_RUN for a in ("--set", s)]
-        code, _, err = run_cli(["train", "--data", scene, "--out", tmp_path / f"run{len(extra)}{want}", "--config",
+        code, _, err = run_cli(["train", "--data", scene, "--out", tmp_path / f"run{len(seen_runs)}", "--config",
                                 "demo", *extra, *sets, "--device", "cpu", "--quiet"], capsys)
         assert code == 0, err
         assert seen and set(seen) == {want}, (scene, extra, seen)
+        seen_runs.append(scene)
 
 
 def test_a_format_1_run_with_the_old_raw_keys_reads_them_in_their_new_places_and_trains_on(night, tmp_path, capsys):
@@ -153,9 +164,9 @@ def test_a_format_1_run_with_the_old_raw_keys_reads_them_in_their_new_places_and
     r = cfg.loss.raw
     assert (r.mode, r.unit, r.prior_snr, r.spa) == ("relative", "sigma", 1.5, "extended")
     assert not hasattr(r, "model_error")  # format 3 dropped it (its default)
-    # moved, not filled; only the key format 5 added (back() took the whole raw section) predates the run
-    assert len(lines) == 1 and "predates config keys loss.raw.r_prior_luma:" in lines[0]
-    assert r.r_prior_luma == 1.0  # the paper's prior, as the run was trained
+    # moved, not filled; only the keys formats 5 and 6 added (back() took the whole raw section) predate the run
+    assert len(lines) == 1 and "predates config keys loss.raw.r_prior_luma, loss.raw.r_prior_luma_binned:" in lines[0]
+    assert r.r_prior_luma == r.r_prior_luma_binned == 1.0  # the paper's prior, as the run was trained
     assert load_run(run, "cpu")[2].shoulder == 0.7  # the raw scene's knee, read from its old key
     code, out, err = run_cli(["eval", "--run", run, "--device", "cpu"], capsys)
     assert code == 0, err

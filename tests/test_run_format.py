@@ -31,7 +31,7 @@ def _write(run, data: dict) -> None:
 
 
 def test_one_migration_a_format_step():
-    assert FORMAT == 5 and len(CONFIG_MIGRATIONS) == len(CHECKPOINT_MIGRATIONS) == FORMAT
+    assert FORMAT == 6 and len(CONFIG_MIGRATIONS) == len(CHECKPOINT_MIGRATIONS) == FORMAT
 
 
 def test_a_format_1_run_is_written_with_its_format_and_round_trips(tmp_path):
@@ -77,9 +77,9 @@ def test_a_format_0_run_gets_the_values_runs_had_before_the_keys(tmp_path):
 
 
 @pytest.mark.parametrize("fmt, expect", [
-    (6, "is in run format 6, newer than this retinexgs reads (format 5)"),
-    ("one", "format must be a whole number 0..5, got 'one'"),
-    (-1, "format must be a whole number 0..5, got -1"),
+    (7, "is in run format 7, newer than this retinexgs reads (format 6)"),
+    ("one", "format must be a whole number 0..6, got 'one'"),
+    (-1, "format must be a whole number 0..6, got -1"),
 ])
 def test_a_newer_or_malformed_run_format_is_refused_in_one_line(tmp_path, fmt, expect):
     write_run_config(tmp_path, load_config(), tmp_path)
@@ -152,3 +152,18 @@ def test_a_format_4_run_keeps_the_paper_reflectance_prior_on_raw_scenes():
     kept, _ = migrate_config({"format": 4, "loss": {"raw": {"r_prior_luma": 0.5}}}, "old/config.yaml")
     assert kept["loss"]["raw"]["r_prior_luma"] == 0.5
     assert load_config().loss.raw.r_prior_luma == 0.0
+
+
+def test_a_format_5_run_reads_its_binned_views_with_the_one_kappa_it_had():
+    """Format 5 -> 6: before loss.raw.r_prior_luma_binned, views binned by data.downscale read the R prior with
+    loss.raw.r_prior_luma; the new key takes that value (the run resumes as it trained); today's default is 1."""
+    from retinexgs.config.versions import migrate_config
+    for kappa in (0.0, 0.5, 1.0):
+        old, filled = migrate_config({"format": 5, "loss": {"raw": {"r_prior_luma": kappa}}}, "old/config.yaml")
+        assert old["loss"]["raw"]["r_prior_luma_binned"] == kappa and "loss.raw.r_prior_luma_binned" in filled
+    four, _ = migrate_config({"format": 4, "data": {"downscale": 2}}, "old/config.yaml")  # before κ at all: 1
+    assert four["loss"]["raw"]["r_prior_luma_binned"] == 1.0
+    kept, _ = migrate_config({"format": 5, "loss": {"raw": {"r_prior_luma": 0.0, "r_prior_luma_binned": 0.3}}},
+                             "old/config.yaml")
+    assert kept["loss"]["raw"]["r_prior_luma_binned"] == 0.3
+    assert load_config().loss.raw.r_prior_luma_binned == 1.0

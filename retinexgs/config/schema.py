@@ -311,7 +311,8 @@ class LossRaw(Section):
     unit: Choice("plain", "sigma")
     prior_snr: Num(ge=0)
     spa: Choice("photo", "extended")  # what L_spa compares a raw view's enhanced render with
-    r_prior_luma: Num(ge=0, le=1)  # κ: the share of R̂'s luma the reflectance prior supervises
+    r_prior_luma: Num(ge=0, le=1)  # κ: the share of R̂'s luma the reflectance prior supervises (full-size views)
+    r_prior_luma_binned: Num(ge=0, le=1)  # κ on views binned by data.downscale > 1
 
 
 class Loss(Section):

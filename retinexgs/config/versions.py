@@ -18,7 +18,7 @@ from typing import Any, Callable, Dict, List, Tuple
 from retinexgs.config.files import RawConfig, configs_dir, read_yaml
 from retinexgs.errors import UserError
 
-FORMAT = 5  # the format this code writes
+FORMAT = 6  # the format this code writes
 
 # Format 0 -> 1: the keys whose default changed after they were added. A run made before a key existed behaved as
 # the value here, not as today's default (which would re-render it differently). The tone form was the gamma on L̂
@@ -170,6 +170,15 @@ def config_4_to_5(cfg: RawConfig, filled: List[str]) -> RawConfig:
     return cfg
 
 
+def config_5_to_6(cfg: RawConfig, filled: List[str]) -> RawConfig:
+    """Format 5 -> 6 (issue 64): a raw scene's views binned by data.downscale read the R prior with the one κ of
+    loss.raw.r_prior_luma before loss.raw.r_prior_luma_binned: the new key takes that value where it is missing."""
+    node, _ = _section_of(cfg, "loss.raw.r_prior_luma")
+    kappa = node.get("r_prior_luma", 0.0) if isinstance(node, dict) else 0.0
+    _set_missing(cfg, {"loss.raw.r_prior_luma_binned": kappa}, filled)
+    return cfg
+
+
 def checkpoint_0_to_1(state: Dict[str, Any]) -> Dict[str, Any]:
     """Format 0 -> 1: checkpoint fields older versions did not write: no training time recorded (0 s), no view
     order (a fresh shuffle), no strategy statistics, no record of the training views."""
@@ -196,10 +205,10 @@ def _checkpoint_same(state: Dict[str, Any]) -> Dict[str, Any]:
 # CONFIG_MIGRATIONS[n] turns format n into n + 1 (likewise for checkpoints' own fields): FORMAT steps each
 # (tests/test_run_format.py checks it).
 CONFIG_MIGRATIONS: List[Callable[[RawConfig, List[str]], RawConfig]] = [config_0_to_1, config_1_to_2, config_2_to_3,
-                                                                     config_3_to_4, config_4_to_5]
+                                                                     config_3_to_4, config_4_to_5, config_5_to_6]
 CHECKPOINT_MIGRATIONS: List[Callable[[Dict[str, Any]], Dict[str, Any]]] = [checkpoint_0_to_1, _checkpoint_same,
                                                                           checkpoint_2_to_3, _checkpoint_same,
-                                                                          _checkpoint_same]
+                                                                          _checkpoint_same, _checkpoint_same]
 
 
 def format_of(data: Dict[str, Any], where: str) -> int:

@@ -56,9 +56,10 @@ class Capture:
         """What L_spa compares the enhanced render with (``loss.raw.spa`` on a raw scene)."""
         raise NotImplementedError
 
-    def r_prior_luma(self, loss: Loss) -> float:
-        """κ, the share of R̂'s luma the reflectance prior supervises (``loss.raw.r_prior_luma`` on a raw scene; a
-        photo's prior is the paper's, κ = 1)."""
+    def r_prior_luma(self, loss: Loss, downscale: float = 1.0) -> float:
+        """κ, the share of R̂'s luma the reflectance prior supervises (on a raw scene ``loss.raw.r_prior_luma``, or
+        ``loss.raw.r_prior_luma_binned`` where ``downscale`` (``data.downscale``) bins the views; a photo's prior is
+        the paper's, κ = 1)."""
         raise NotImplementedError
 
     def linear_mode(self, loss: Loss) -> Optional[str]:
@@ -106,7 +107,7 @@ class PhotoCapture(Capture):
     def spa_input(self, target: Tensor, loss: Loss) -> Tensor:
         return target
 
-    def r_prior_luma(self, loss: Loss) -> float:
+    def r_prior_luma(self, loss: Loss, downscale: float = 1.0) -> float:
         # the paper's prior: with its chroma alone LOM lost (bike −0.25 dB GT-mean, LPIPS up on all three;
         # experiments/notes/2026-11-30-r-prior-chroma.md §2): a photo's reconstruction does not measure the luma
         # without bias, as a raw scene's linear term does
@@ -153,8 +154,8 @@ class RawCapture(Capture):
     def spa_input(self, target: Tensor, loss: Loss) -> Tensor:
         return self.as_photo(target) if loss.raw.spa == "photo" else target
 
-    def r_prior_luma(self, loss: Loss) -> float:
-        return float(loss.raw.r_prior_luma)
+    def r_prior_luma(self, loss: Loss, downscale: float = 1.0) -> float:
+        return float(loss.raw.r_prior_luma_binned if downscale > 1 else loss.raw.r_prior_luma)
 
     def linear_mode(self, loss: Loss) -> Optional[str]:
         return None if loss.raw.mode == "photo" else loss.raw.mode

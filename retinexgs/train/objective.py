@@ -214,6 +214,10 @@ class RetinexObjective(PlainObjective):
         cap = self.noise.rec_gain_cap
         return gain if cap is None else torch.minimum(gain, cap)
 
+    def _r_luma(self) -> float:
+        """κ of the R prior, the capture's answer for these views (:meth:`Capture.r_prior_luma`)."""
+        return self.capture.r_prior_luma(self.cfg.loss, float(self.cfg.data.downscale))
+
     def _rec_targets(self) -> Tuple[Optional[Tensor], Optional[losses.LinearTarget]]:
         """(the reconstruction's gain, a raw scene's linear target at the scene's own exposure, or None)."""
         linear = self.noise.linear_target
@@ -246,7 +250,7 @@ class RetinexObjective(PlainObjective):
         if R is not None:
             sup, sup_terms = losses.supervision_loss(R_hat, L_hat, to_bchw(R), to_bchw(L), S_b, c.w_r,
                                                      c.w_l, c.w_s, c.lambda_ssim, gain, l1_exposed, linear,
-                                                     self.capture.r_prior_luma(c))
+                                                     self._r_luma())
             terms.update(sup_terms)
         else:  # no 2D priors: only the reconstruction is supervised
             terms["sup_rec"] = losses.reconstruction_loss(R_hat * L_hat, S_b, c.lambda_ssim, gain, l1_exposed,
@@ -266,7 +270,7 @@ class RetinexObjective(PlainObjective):
         sup = None
         if (fused_curve.runs_fused(image) and packed.shape[-1] in (7, 9) and image.shape[-1] == packed.shape[-1] - 1
                 and (linear is not None or not self.capture.unclipped)):  # as_photo is the identity on photos
-            sup = fused_loss.plan(gain, c.rec_domain == "exposed", linear, image, self.capture.r_prior_luma(c))
+            sup = fused_loss.plan(gain, c.rec_domain == "exposed", linear, image, self._r_luma())
         if sup is None:
             return super().graphed_loss(image, packed, enhance)
         total, terms = fused_loss.supervision_terms(image, packed, sup, (c.w_r, c.w_l, c.w_s), c.lambda_ssim, linear)
