@@ -74,6 +74,18 @@ def run(lin: torch.Tensor, noise: dn.NoiseModel, h_luma: float, bm3d_scale: floa
             "bm3d-psd": finish(luma_psd)}
 
 
+def capture_views(capture: str):
+    """(the capture's training views, their denoiser spec with ``decomposer.denoise: chroma``), or None with one
+    line on stderr where its noise cannot be measured."""
+    cfg = load_config([], ["decomposer.denoise=chroma"])
+    views = list(open_scene(capture, cfg).train)
+    spec = denoise_spec(views, cfg, "cpu")
+    if spec is None:
+        print("the capture's noise could not be measured", file=sys.stderr)
+        return None
+    return views, spec
+
+
 def main(argv: List[str]) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("capture")
@@ -81,13 +93,10 @@ def main(argv: List[str]) -> int:
     ap.add_argument("--h-luma", type=float, default=0.8)
     ap.add_argument("--bm3d-scale", type=float, default=1.0)
     args = ap.parse_args(argv)
-    cfg = load_config([], ["decomposer.denoise=chroma"])
-    scene = open_scene(args.capture, cfg)
-    views = list(scene.train)
-    spec = denoise_spec(views, cfg, "cpu")
-    if spec is None:
-        print("the capture's noise could not be measured", file=sys.stderr)
+    opened = capture_views(args.capture)
+    if opened is None:
         return 2
+    views, spec = opened
     step = max(1, len(views) // args.views)
     rows: Dict[str, List[tuple]] = {}
     for view in views[::step][:args.views]:

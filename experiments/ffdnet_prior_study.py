@@ -84,10 +84,8 @@ def candidates(lin: torch.Tensor, noise: dn.NoiseModel, h_luma: float, scales: L
 def views(argv: List[str]) -> int:
     from retinexgs.data.srgb import srgb_to_linear_extended
     from retinexgs.evaluate.metrics import gt_mean_align, psnr, ssim_metric
-    from retinexgs.run.config import load_config
-    from retinexgs.run.folder import open_scene
-    from retinexgs.train.view_setup import denoise_spec
     sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from bm3d_luma_study import capture_views
     from pilot_wiener_study import exposed_srgb
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -96,13 +94,10 @@ def views(argv: List[str]) -> int:
     ap.add_argument("--h-luma", type=float, default=0.8)
     ap.add_argument("--scales", default="0.5,1,2")
     args = ap.parse_args(argv)
-    cfg = load_config([], ["decomposer.denoise=chroma"])
-    scene = open_scene(args.capture, cfg)
-    train = list(scene.train)
-    spec = denoise_spec(train, cfg, "cpu")
-    if spec is None:
-        print("the capture's noise could not be measured", file=sys.stderr)
+    opened = capture_views(args.capture)
+    if opened is None:
         return 2
+    train, spec = opened
     scales = [float(s) for s in args.scales.split(",")]
     rows: Dict[str, List[tuple]] = {}
     for view in train[::max(1, len(train) // args.views)][:args.views]:

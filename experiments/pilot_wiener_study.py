@@ -42,6 +42,19 @@ def exposed_srgb(lin: torch.Tensor) -> torch.Tensor:
     return linear_to_srgb((lin * (0.18 / luma.clamp_min(1e-8))).clamp(0, 1))
 
 
+def score(rows: Dict[str, List[tuple]], name: str, lin: torch.Tensor, truth: torch.Tensor) -> None:
+    """Append candidate ``name``'s (PSNR, SSIM, chroma_noise) against ``truth``: ``lin`` exposed, GT-mean aligned."""
+    img = gt_mean_align(exposed_srgb(lin.cpu()), truth).float()
+    rows.setdefault(name, []).append((psnr(img, truth), ssim_metric(img, truth), chroma_noise(img, truth)))
+
+
+def print_means(rows: Dict[str, List[tuple]], width: int = 12) -> None:
+    """One line a candidate: its PSNR / SSIM / chroma_noise, mean over the views."""
+    for name, vals in rows.items():
+        m = [sum(v[i] for v in vals) / len(vals) for i in range(3)]
+        print(f"  {name:{width}s} {m[0]:6.2f} / {m[1]:.3f} / {m[2]:.2f}")
+
+
 def main(argv: List[str]) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("run")
@@ -72,13 +85,10 @@ def main(argv: List[str]) -> int:
         cands = {"noisy": y, "today": today, "render": pilot, "wiener": wiener,
                  "wiener-luma": pilot_wiener(y, pilot, spec.noise, args.block, chroma=today)}
         for name, lin in cands.items():
-            img = gt_mean_align(exposed_srgb(lin.cpu()), truth).float()
-            rows.setdefault(name, []).append((psnr(img, truth), ssim_metric(img, truth), chroma_noise(img, truth)))
+            score(rows, name, lin, truth)
     print(f"run {args.run} (step {step}), {len(next(iter(rows.values()), []))} training views, denoiser "
           f"{spec.method}, {args.block}x{args.block} blocks; GT-mean PSNR / SSIM / chroma_noise, mean over views")
-    for name, vals in rows.items():
-        m = [sum(v[i] for v in vals) / len(vals) for i in range(3)]
-        print(f"  {name:12s} {m[0]:6.2f} / {m[1]:.3f} / {m[2]:.2f}")
+    print_means(rows)
     return 0
 
 

@@ -26,7 +26,6 @@ import torch
 import torch.nn.functional as F
 
 from retinexgs.data.srgb import srgb_to_linear, srgb_to_linear_extended
-from retinexgs.evaluate.metrics import chroma_noise, gt_mean_align, psnr, ssim_metric
 from retinexgs.render.rasterize import rasterize_gaussians
 from retinexgs.retinex.denoise import DenoiseParams, NoiseModel, denoise_linear, pilot_wiener
 from retinexgs.run.folder import load_run
@@ -34,7 +33,7 @@ from retinexgs.run.render import active_sh_degree, render_function, view_camera
 from retinexgs.train.view_setup import denoise_params, denoise_spec
 
 sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parent))
-from pilot_wiener_study import exposed_srgb  # noqa: E402
+from pilot_wiener_study import print_means, score  # noqa: E402
 
 
 def depth_of(model, view) -> Tuple[torch.Tensor, torch.Tensor]:
@@ -138,13 +137,10 @@ def main(argv: List[str]) -> int:
                  "warp+denoise": denoise_linear(avg, noise_n, spec.method, full, backend=spec.backend).float(),
                  "warp+wiener": pilot_wiener(avg, pilot, noise_n)}
         for name, lin in cands.items():
-            img = gt_mean_align(exposed_srgb(lin.cpu()), truth).float()
-            rows.setdefault(name, []).append((psnr(img, truth), ssim_metric(img, truth), chroma_noise(img, truth)))
+            score(rows, name, lin, truth)
     print(f"run {args.run} (step {step}), {len(counts)} training views, k {args.k}, tol {args.tol}, median count "
           f"{sorted(counts)[len(counts) // 2]:.1f}; GT-mean PSNR / SSIM / chroma_noise, mean over views")
-    for name, vals in rows.items():
-        m = [sum(v[i] for v in vals) / len(vals) for i in range(3)]
-        print(f"  {name:13s} {m[0]:6.2f} / {m[1]:.3f} / {m[2]:.2f}")
+    print_means(rows, 13)
     return 0
 
 
