@@ -204,3 +204,18 @@ def test_raw_checks_outside_data_live_in_at_most_two_files():
                    if "data" not in p.relative_to(ROOT / "retinexgs").parts[:1] and pattern.search(p.read_text()))
     found = [f for f in found if f != "retinexgs/formats.py"]  # the list of extensions itself, checked nowhere
     assert found == ["retinexgs/commands/sensor.py", "retinexgs/retinex/cache.py"], found
+
+
+@pytest.mark.parametrize("overrides,says", [
+    ([], "supervises R̂'s colour only (loss.raw.r_prior_luma)"),
+    (["data.downscale=2"], "supervises R̂'s colour and brightness (loss.raw.r_prior_luma_binned: the views are binned)"),
+    (["loss.raw.r_prior_luma=0.3"], "supervises R̂'s colour and 0.3 of its brightness (loss.raw.r_prior_luma)"),
+])
+def test_a_raw_run_says_what_its_reflectance_prior_supervises(night, tmp_path, overrides, says):
+    from retinexgs.data import load_scene
+    from retinexgs.train.trainer import Trainer
+    cfg = load_config(["demo"], list(TINY_RUN) + overrides)
+    lines = []
+    Trainer(cfg, load_scene(night / "raw", downscale=cfg.data.downscale), tmp_path / "run", "cpu", progress=False,
+            log=lines.append)
+    assert [ln for ln in lines if ln.startswith("raw scene:") and says in ln], lines

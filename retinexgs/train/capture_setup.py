@@ -111,4 +111,9 @@ def _raw_noise(out: NoiseSetUp, cfg: Config, scene: Scene, state: Optional[Dict]
         a, b = a * g, b * g * g
     c = cfg.loss.raw
     out.linear_target = losses.LinearTarget(mode, a, b, unit=c.unit, prior_snr=float(c.prior_snr))
-    log(f"raw scene: reconstruction in linear light ({mode}); {noise.describe()}")
+    binned = float(cfg.data.downscale) > 1
+    kappa = out.capture.r_prior_luma(cfg.loss, float(cfg.data.downscale))
+    share = {0.0: "colour only", 1.0: "colour and brightness"}.get(kappa, f"colour and {kappa:g} of its brightness")
+    key = "loss.raw.r_prior_luma_binned: the views are binned" if binned else "loss.raw.r_prior_luma"
+    log(f"raw scene: reconstruction in linear light ({mode}); the reflectance prior supervises R̂'s {share} ({key}); "
+        f"{noise.describe()}")
