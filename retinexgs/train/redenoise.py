@@ -5,7 +5,9 @@ view averages every view that saw the scene, so it is a far better pilot. At eac
 every training view is filtered with Wiener gains taken from its render (:func:`retinexgs.retinex.denoise.pilot_wiener`:
 what the render says is signal survives, what it says is noise goes), decomposed again, and its 2D priors R, L
 replaced; the reconstruction term keeps the view's own unbiased light. Measured on a trained run before any training
-change by ``experiments/pilot_wiener_study.py``.
+change by ``experiments/pilot_wiener_study.py``. With ``decomposer.redenoise_source: views`` a view is instead
+averaged with its neighbours warped in along the model's depth (:mod:`retinexgs.train.view_warp`), then denoised at
+the average's noise (``experiments/warp_pilot_study.py``).
 """
 from __future__ import annotations
 
