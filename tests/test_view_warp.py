@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from retinexgs.render.camera import Camera
-from retinexgs.train.view_warp import WarpSource, camera_centre, neighbours, warp_average
+from retinexgs.train.view_warp import WarpSource, neighbours, warp_average
 
 W, H, F = 48, 32, 40.0
 PLANE_Z = 2.0
@@ -32,7 +32,7 @@ def plane_view(cam: Camera) -> WarpSource:
     """What ``cam`` (unturned) sees of the textured plane: its light, depth PLANE_Z everywhere, alpha 1."""
     ys = (torch.arange(H, dtype=torch.float64) + 0.5 - cam.cy) / cam.fy
     xs = (torch.arange(W, dtype=torch.float64) + 0.5 - cam.cx) / cam.fx
-    X = camera_centre(cam)[0] + xs[None, :].expand(H, -1) * PLANE_Z
+    X = cam.center[0] + xs[None, :].expand(H, -1) * PLANE_Z
     Y = ys[:, None].expand(-1, W) * PLANE_Z
     return WarpSource(cam, texture(X, Y), torch.full((H, W), PLANE_Z, dtype=torch.float64),
                       torch.ones(H, W, dtype=torch.float64))
@@ -97,4 +97,4 @@ def test_neighbours_are_the_nearest_cameras_facing_the_same_way():
     assert neighbours(cams, 0, 3) == [2, 3, 5]  # 0.5, 1.0, then 1.2 (turned 30°: inside 60°)
     assert 4 not in neighbours(cams, 0, 10)  # turned 90°: sees other surfaces
     assert neighbours(cams, 0, 0) == []
-    assert torch.allclose(camera_centre(cams[1]), torch.tensor([3.0, 0.0, 0.0], dtype=torch.float64))
+    assert torch.allclose(cams[1].center, torch.tensor([3.0, 0.0, 0.0], dtype=torch.float64))

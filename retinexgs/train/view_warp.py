@@ -33,22 +33,16 @@ class WarpSource:
     alpha: Tensor
 
 
-def camera_centre(camera: Camera) -> Tensor:
-    """The camera's centre in world coordinates, float64 [3]."""
-    R, t = camera.viewmat[:3, :3], camera.viewmat[:3, 3]
-    return -R.T @ t
-
-
 def neighbours(cameras: Sequence[Camera], index: int, k: int, min_cos: float = 0.5) -> List[int]:
     """Indices of the ``k`` cameras nearest ``cameras[index]``'s centre among those whose viewing axis lies
     within acos(``min_cos``) of its own (60°: a neighbour facing away sees other surfaces), nearest first."""
     me = cameras[index]
-    centre, axis = camera_centre(me), me.viewmat[2, :3]
+    centre, axis = me.center, me.viewmat[2, :3]
     ranked = []
     for j, cam in enumerate(cameras):
         if j == index or float(cam.viewmat[2, :3] @ axis) <= min_cos:
             continue
-        ranked.append((float((camera_centre(cam) - centre).norm()), j))
+        ranked.append((float((cam.center - centre).norm()), j))
     return [j for _, j in sorted(ranked)[:k]]
 
 
