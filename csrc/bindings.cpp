@@ -373,24 +373,49 @@ void check_raster_inputs(const Tensor& means2d, const Tensor& conics, const Tens
 #endif
 }
 
+// The output layout of a render (rgs/types.h OutputLayout): background [n_bg <= C] on the leading channels, alpha as
+// one more channel. The background is checked against the colours' dtype and device.
+template <typename T>
+static rgs::OutputLayout<T> output_layout(int C, const std::optional<Tensor>& background, bool alpha) {
+    rgs::OutputLayout<T> layout;
+    layout.C = C;
+    layout.alpha = alpha;
+    if (background) {
+        layout.n_bg = int(background->size(0));
+        layout.bg = background->data_ptr<T>();
+    }
+    return layout;
+}
+
+static Tensor check_background(const std::optional<Tensor>& background, const Tensor& colors, const Tensor& like) {
+    RGS_CHECK_VALUE(background->dim() == 1 && background->size(0) >= 1 && background->size(0) <= colors.size(1),
+                    "background must be [K] with 1 <= K <= colors' ", colors.size(1), " channels, got ",
+                    background->sizes());
+    check_tensor(*background, "background", {background->size(0)}, like);
+    return background->contiguous();
+}
+
 std::tuple<Tensor, Tensor, Tensor> rasterize_forward(Tensor means2d, Tensor conics, Tensor colors,
                                                      Tensor opacities, Tensor gauss_ids, Tensor tile_ranges,
-                                                     int width, int height) {
+                                                     int width, int height, std::optional<Tensor> background,
+                                                     bool alpha) {
     check_raster_inputs(means2d, conics, colors, opacities, gauss_ids, tile_ranges, width, height);
+    if (background) background = check_background(background, colors, means2d);
     means2d = means2d.contiguous(), conics = conics.contiguous(), colors = colors.contiguous();
     opacities = opacities.contiguous(), gauss_ids = gauss_ids.contiguous(), tile_ranges = tile_ranges.contiguous();
     const int64_t N = means2d.size(0);
     const int C = int(colors.size(1));
     auto opts = means2d.options();
-    Tensor image = torch::empty({height, width, C}, opts);
+    Tensor image = torch::empty({height, width, C + (alpha ? 1 : 0)}, opts);
     Tensor transmittance = torch::empty({height, width}, opts);
     Tensor last_ids = torch::empty({height, width}, opts.dtype(torch::kInt32));
     RGS_DEVICE_GUARD(means2d);
     AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "rasterize_forward", [&] {
+        const auto layout = output_layout<scalar_t>(C, background, alpha);
         if (means2d.is_cuda()) {
 #ifdef RGS_WITH_CUDA
             rgs::rasterize_forward_cuda<scalar_t>(
-                N, C, width, height, means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
+                N, layout, width, height, means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
                 colors.data_ptr<scalar_t>(), opacities.data_ptr<scalar_t>(), gauss_ids.data_ptr<int32_t>(),
                 tile_ranges.data_ptr<int32_t>(), image.data_ptr<scalar_t>(), transmittance.data_ptr<scalar_t>(),
                 last_ids.data_ptr<int32_t>(), RGS_CUDA_STREAM(means2d));
@@ -399,7 +424,7 @@ std::tuple<Tensor, Tensor, Tensor> rasterize_forward(Tensor means2d, Tensor coni
 #endif
         } else {
             rgs::rasterize_forward_cpu<scalar_t>(
-                N, C, width, height, means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
+                N, layout, width, height, means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
                 colors.data_ptr<scalar_t>(), opacities.data_ptr<scalar_t>(), gauss_ids.data_ptr<int32_t>(),
                 tile_ranges.data_ptr<int32_t>(), image.data_ptr<scalar_t>(), transmittance.data_ptr<scalar_t>(),
                 last_ids.data_ptr<int32_t>(), num_threads());
@@ -412,31 +437,38 @@ std::tuple<Tensor, Tensor, Tensor, Tensor> rasterize_backward(Tensor means2d, Te
                                                               Tensor opacities, Tensor gauss_ids,
                                                               Tensor tile_ranges, int width, int height,
                                                               Tensor transmittance, Tensor last_ids,
-                                                              Tensor v_image, Tensor v_transmittance) {
+                                                              Tensor v_image, std::optional<Tensor> v_transmittance,
+                                                              std::optional<Tensor> background, bool alpha) {
     check_raster_inputs(means2d, conics, colors, opacities, gauss_ids, tile_ranges, width, height);
     const int64_t N = means2d.size(0);
     const int C = int(colors.size(1));
     check_tensor(transmittance, "transmittance", {height, width}, means2d);
     check_index(last_ids, "last_ids", {height, width}, means2d);
-    check_tensor(v_image, "v_image", {height, width, C}, means2d);
-    check_tensor(v_transmittance, "v_transmittance", {height, width}, means2d);
+    if (background) background = check_background(background, colors, means2d);
+    check_tensor(v_image, "v_image", {height, width, C + (alpha ? 1 : 0)}, means2d);
+    if (v_transmittance) {
+        check_tensor(*v_transmittance, "v_transmittance", {height, width}, means2d);
+        v_transmittance = v_transmittance->contiguous();
+    }
     means2d = means2d.contiguous(), conics = conics.contiguous(), colors = colors.contiguous();
     opacities = opacities.contiguous(), gauss_ids = gauss_ids.contiguous(), tile_ranges = tile_ranges.contiguous();
     transmittance = transmittance.contiguous(), last_ids = last_ids.contiguous();
-    v_image = v_image.contiguous(), v_transmittance = v_transmittance.contiguous();
+    v_image = v_image.contiguous();
     // The CUDA kernel accumulates with atomics into zeroed buffers; the CPU kernel writes every entry.
     auto make = [&](const Tensor& t) { return means2d.is_cuda() ? torch::zeros_like(t) : torch::empty_like(t); };
     Tensor v_means2d = make(means2d), v_conics = make(conics), v_colors = make(colors), v_opacities = make(opacities);
     const int64_t M = gauss_ids.size(0);
     RGS_DEVICE_GUARD(means2d);
     AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "rasterize_backward", [&] {
+        const auto layout = output_layout<scalar_t>(C, background, alpha);
+        const scalar_t* v_T = v_transmittance ? v_transmittance->data_ptr<scalar_t>() : nullptr;
         if (means2d.is_cuda()) {
 #ifdef RGS_WITH_CUDA
             rgs::rasterize_backward_cuda<scalar_t>(
-                N, C, width, height, means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
+                N, layout, width, height, means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
                 colors.data_ptr<scalar_t>(), opacities.data_ptr<scalar_t>(), gauss_ids.data_ptr<int32_t>(),
                 tile_ranges.data_ptr<int32_t>(), M, transmittance.data_ptr<scalar_t>(),
-                last_ids.data_ptr<int32_t>(), v_image.data_ptr<scalar_t>(), v_transmittance.data_ptr<scalar_t>(),
+                last_ids.data_ptr<int32_t>(), v_image.data_ptr<scalar_t>(), v_T,
                 v_means2d.data_ptr<scalar_t>(), v_conics.data_ptr<scalar_t>(), v_colors.data_ptr<scalar_t>(),
                 v_opacities.data_ptr<scalar_t>(), RGS_CUDA_STREAM(means2d));
 #else
@@ -444,10 +476,10 @@ std::tuple<Tensor, Tensor, Tensor, Tensor> rasterize_backward(Tensor means2d, Te
 #endif
         } else {
             rgs::rasterize_backward_cpu<scalar_t>(
-                N, C, width, height, means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
+                N, layout, width, height, means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
                 colors.data_ptr<scalar_t>(), opacities.data_ptr<scalar_t>(), gauss_ids.data_ptr<int32_t>(),
                 tile_ranges.data_ptr<int32_t>(), M, transmittance.data_ptr<scalar_t>(),
-                last_ids.data_ptr<int32_t>(), v_image.data_ptr<scalar_t>(), v_transmittance.data_ptr<scalar_t>(),
+                last_ids.data_ptr<int32_t>(), v_image.data_ptr<scalar_t>(), v_T,
                 v_means2d.data_ptr<scalar_t>(), v_conics.data_ptr<scalar_t>(), v_colors.data_ptr<scalar_t>(),
                 v_opacities.data_ptr<scalar_t>(), num_threads());
         }
@@ -1122,8 +1154,16 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
           pybind11::arg("width"), pybind11::arg("height"), pybind11::arg("conics") = pybind11::none(),
           pybind11::arg("opacities") = pybind11::none(), pybind11::arg("capacity") = -1,
           pybind11::arg("count") = pybind11::none());
-    m.def("rasterize_forward", &rasterize_forward);
-    m.def("rasterize_backward", &rasterize_backward);
+    m.def("rasterize_forward", &rasterize_forward, pybind11::arg("means2d"), pybind11::arg("conics"),
+          pybind11::arg("colors"), pybind11::arg("opacities"), pybind11::arg("gauss_ids"),
+          pybind11::arg("tile_ranges"), pybind11::arg("width"), pybind11::arg("height"),
+          pybind11::arg("background") = pybind11::none(), pybind11::arg("alpha") = false);
+    m.def("rasterize_backward", &rasterize_backward, pybind11::arg("means2d"), pybind11::arg("conics"),
+          pybind11::arg("colors"), pybind11::arg("opacities"), pybind11::arg("gauss_ids"),
+          pybind11::arg("tile_ranges"), pybind11::arg("width"), pybind11::arg("height"),
+          pybind11::arg("transmittance"), pybind11::arg("last_ids"), pybind11::arg("v_image"),
+          pybind11::arg("v_transmittance") = pybind11::none(), pybind11::arg("background") = pybind11::none(),
+          pybind11::arg("alpha") = false);
     m.def("sh_forward", &sh_forward);
     m.def("sh_backward", &sh_backward);
     m.def("pack_illum_weights", &pack_illum_weights);

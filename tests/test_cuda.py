@@ -61,6 +61,30 @@ def test_cuda_matches_cpu_float64():
         assert rel_err(a.cpu(), b) < 1e-9
 
 
+def run_packed(args, cam, device, dtype, bg, seed=0):
+    """The training's render: channels + depth + alpha in one tensor, a background on the channels."""
+    args = tuple(a.detach().to(device=device, dtype=dtype).requires_grad_() for a in args)
+    out = rasterize_gaussians(*args, cam, render_depth=True, background=bg.to(device=device, dtype=dtype),
+                              packed=True)
+    g = torch.Generator().manual_seed(seed)
+    w = torch.randn(out.packed.shape, generator=g, dtype=torch.float64).to(device=device, dtype=dtype)
+    return (out.packed,) + torch.autograd.grad((out.packed * w).sum(), args)
+
+
+@pytest.mark.parametrize("C", [3, 6])  # + depth + alpha: CMAX 8 with 5 and 8 values a pixel
+@pytest.mark.parametrize("scene", sorted(SCENES))
+def test_cuda_packed_render_with_background_matches_cpu(C, scene):
+    args, cam = SCENES[scene](C)
+    bg = torch.linspace(0.2, 0.7, C, dtype=torch.float64)
+    for dtype, tol in ((torch.float32, (1e-4, 1e-3)), (torch.float64, (1e-9, 1e-9))):
+        cpu = run_packed(args, cam, "cpu", dtype, bg)
+        gpu = run_packed(args, cam, "cuda", dtype, bg)
+        assert rel_err(gpu[0].cpu(), cpu[0]) < tol[0], "packed image"
+        for name, a, b in zip(("means", "quats", "scales", "opacities", "colors"), gpu[1:], cpu[1:]):
+            assert torch.isfinite(a).all(), name
+            assert rel_err(a.cpu(), b) < tol[1], (name, dtype)
+
+
 @pytest.mark.parametrize("degree", [0, 1, 2, 3])
 def test_cuda_sh_matches_cpu(degree):
     g = torch.Generator().manual_seed(degree)

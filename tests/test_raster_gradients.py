@@ -114,3 +114,54 @@ def test_gradients_match_reference_on_edge_cases(C):
         torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-9, msg=name)
     # The screen-space gradient used by densification is exposed on means2d.
     assert out.means2d.grad is not None and out.means2d.grad.abs().sum() > 0
+
+
+def test_rasterize_gradcheck_background_and_alpha_channel():
+    # The compositing's output epilogue: a background on the first K channels and the alpha as channel C,
+    # through the kernels' own gradient (dL/dT from both), against finite differences.
+    (means, quats, scales, opac, colors), cam = small_scene(C=4)
+    means2d, depths, conics, radii, _ = ProjectGaussians.apply(means, quats, scales, opac, cam)
+    gauss_ids, tile_ranges = bin_gaussians(means2d, radii, depths, cam.width, cam.height)
+    bg = torch.tensor([0.3, -0.2, 0.9], dtype=torch.float64)
+    inputs = tuple(t.detach().clone().requires_grad_() for t in (means2d, conics, colors, opac, bg))
+    for alpha_channel in (False, True):
+        def f(m2, cn, col, op, b):
+            image, alpha = RasterizeGaussians.apply(m2, cn, col, op, gauss_ids, tile_ranges, cam.width, cam.height,
+                                                    b, alpha_channel)
+            return image if alpha_channel else (image, alpha)
+
+        assert gradcheck(f, inputs, **GRADCHECK), alpha_channel
+
+
+@pytest.mark.parametrize("depth", [False, True])
+def test_packed_render_is_the_concatenation(depth):
+    # rasterize_gaussians(packed=True): [image (background closed), depth, alpha] written by the compositing equal
+    # the separate outputs, and a loss on the packed tensor has the gradients of the same loss on the three.
+    (means, quats, scales, opac, colors), cam = small_scene(n=12, C=6)
+    bg = torch.linspace(0.1, 0.6, 6, dtype=torch.float64)
+    args = tuple(t.clone().requires_grad_() for t in (means, quats, scales, opac, colors))
+    plain = rasterize_gaussians(*args, cam, background=bg, render_depth=depth)
+    packed = rasterize_gaussians(*args, cam, background=bg, render_depth=depth, packed=True)
+    want = torch.cat([plain.image] + ([plain.depth] if depth else []) + [plain.alpha], dim=-1)
+    assert plain.packed is None and packed.packed.shape == want.shape
+    torch.testing.assert_close(packed.packed, want, rtol=0, atol=1e-14)
+    for name in ("image", "alpha") + (("depth",) if depth else ()):
+        assert getattr(packed, name).data_ptr() >= packed.packed.data_ptr(), name  # views of the one tensor
+        torch.testing.assert_close(getattr(packed, name), getattr(plain, name), rtol=0, atol=1e-14)
+    w = torch.randn(want.shape, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    got = torch.autograd.grad((packed.packed * w).sum(), args)
+    ref = torch.autograd.grad((want * w).sum(), args)
+    for name, a, b in zip(("means", "quats", "scales", "opacities", "colors"), got, ref):
+        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12, msg=name)
+    # The background moves the image where the Gaussians leave light through: out - bg·T is the same image.
+    bare = rasterize_gaussians(*args, cam, render_depth=depth)
+    torch.testing.assert_close(packed.image - (1 - packed.alpha) * bg, bare.image, rtol=0, atol=1e-13)
+
+
+def test_background_longer_than_the_channels_is_refused():
+    (means, quats, scales, opac, colors), cam = small_scene(C=2)
+    means2d, depths, conics, radii, _ = ProjectGaussians.apply(means, quats, scales, opac, cam)
+    gauss_ids, tile_ranges = bin_gaussians(means2d, radii, depths, cam.width, cam.height)
+    with pytest.raises(ValueError, match="background must be"):
+        RasterizeGaussians.apply(means2d, conics, colors, opac, gauss_ids, tile_ranges, cam.width, cam.height,
+                                 torch.zeros(3, dtype=torch.float64))

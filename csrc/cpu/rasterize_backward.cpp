@@ -11,12 +11,14 @@
 namespace rgs {
 
 template <typename T>
-void rasterize_backward_cpu(int64_t N, int C, int width, int height, const T* means2d, const T* conics,
+void rasterize_backward_cpu(int64_t N, const OutputLayout<T>& layout, int width, int height, const T* means2d,
+                            const T* conics,
                             const T* colors, const T* opacities, const int32_t* gauss_ids,
                             const int32_t* tile_ranges, int64_t M, const T* transmittance, const int32_t* last_ids,
                             const T* v_image, const T* v_transmittance, T* v_means2d, T* v_conics, T* v_colors,
                             T* v_opacities, int num_threads) {
     const TileGrid grid = make_tile_grid(width, height);
+    const int C = layout.C, stride = layout.stride();
     const int S = 6 + C;  // slot layout: mean2d (2), conic (3), opacity (1), colours (C)
     std::vector<T> slots(size_t(M) * S, T(0));
 #pragma omp parallel num_threads(num_threads)
@@ -38,11 +40,12 @@ void rasterize_backward_cpu(int64_t N, int C, int width, int height, const T* me
                     const int64_t pix = int64_t(y) * width + x;
                     const int l = (y - ty0) * kTileSize + (x - tx0);
                     T_run[l] = T_final[l] = transmittance[pix];
-                    v_T[l] = v_transmittance ? v_transmittance[pix] : T(0);
+                    v_T[l] = transmittance_grad(layout, v_image + pix * stride,
+                                                v_transmittance ? v_transmittance[pix] : T(0));
                     last[l] = last_ids[pix];
                     for (int c = 0; c < C; ++c) {
                         behind[size_t(l) * C + c] = T(0);
-                        v_img[size_t(l) * C + c] = v_image[pix * C + c];
+                        v_img[size_t(l) * C + c] = v_image[pix * stride + c];
                     }
                     if (last[l] > end) end = last[l];
                 }
@@ -111,8 +114,9 @@ void rasterize_backward_cpu(int64_t N, int C, int width, int height, const T* me
 }
 
 #define RGS_INSTANTIATE(T)                                                                                     \
-    template void rasterize_backward_cpu<T>(int64_t, int, int, int, const T*, const T*, const T*, const T*,     \
-                                            const int32_t*, const int32_t*, int64_t, const T*, const int32_t*,  \
+    template void rasterize_backward_cpu<T>(int64_t, const OutputLayout<T>&, int, int, const T*, const T*,      \
+                                            const T*, const T*, const int32_t*, const int32_t*, int64_t,        \
+                                            const T*, const int32_t*,                                           \
                                             const T*, const T*, T*, T*, T*, T*, int);
 RGS_INSTANTIATE(float)
 RGS_INSTANTIATE(double)

@@ -11,11 +11,12 @@
 namespace rgs {
 
 template <typename T>
-void rasterize_forward_cpu(int64_t N, int C, int width, int height, const T* means2d, const T* conics,
-                           const T* colors, const T* opacities, const int32_t* gauss_ids,
+void rasterize_forward_cpu(int64_t N, const OutputLayout<T>& layout, int width, int height, const T* means2d,
+                           const T* conics, const T* colors, const T* opacities, const int32_t* gauss_ids,
                            const int32_t* tile_ranges, T* image, T* transmittance, int32_t* last_ids,
                            int num_threads) {
     (void)N;
+    const int C = layout.C, S = layout.stride();
     constexpr int P = kTileSize * kTileSize;
     const TileGrid grid = make_tile_grid(width, height);
 #pragma omp parallel num_threads(num_threads)
@@ -75,15 +76,17 @@ void rasterize_forward_cpu(int64_t N, int C, int width, int height, const T* mea
                     const int64_t pix = int64_t(y) * width + x;
                     transmittance[pix] = Tr[l];
                     last_ids[pix] = last[l];
-                    for (int c = 0; c < C; ++c) image[pix * C + c] = acc[size_t(l) * C + c];
+                    for (int c = 0; c < C; ++c) image[pix * S + c] = output_value(layout, c, acc[size_t(l) * C + c], Tr[l]);
+                    if (layout.alpha) image[pix * S + C] = T(1) - Tr[l];
                 }
         }
     }
 }
 
 #define RGS_INSTANTIATE(T)                                                                                  \
-    template void rasterize_forward_cpu<T>(int64_t, int, int, int, const T*, const T*, const T*, const T*,   \
-                                           const int32_t*, const int32_t*, T*, T*, int32_t*, int);
+    template void rasterize_forward_cpu<T>(int64_t, const OutputLayout<T>&, int, int, const T*, const T*,      \
+                                           const T*, const T*, const int32_t*, const int32_t*, T*, T*,       \
+                                           int32_t*, int);
 RGS_INSTANTIATE(float)
 RGS_INSTANTIATE(double)
 #undef RGS_INSTANTIATE

@@ -21,7 +21,7 @@ constexpr int kMinBlocks = sizeof(T) == 4 && CMAX == 8 ? 3 : 0;
 
 template <typename T, int CMAX>
 __global__ void __launch_bounds__(kBlockB, (kMinBlocks<T, CMAX>))
-rasterize_backward_kernel(int C, int width, int height, TileGrid grid,
+rasterize_backward_kernel(OutputLayout<T> layout, int width, int height, TileGrid grid,
                           const T* __restrict__ means2d,            // [N, 2]
                           const T* __restrict__ conics,             // [N, 3]
                           const T* __restrict__ colors,             // [N, C]
@@ -30,8 +30,8 @@ rasterize_backward_kernel(int C, int width, int height, TileGrid grid,
                           const int32_t* __restrict__ tile_ranges,  // [tiles, 2]
                           const T* __restrict__ transmittance,      // [H, W]
                           const int32_t* __restrict__ last_ids,     // [H, W]
-                          const T* __restrict__ v_image,            // [H, W, C]
-                          const T* __restrict__ v_transmittance,    // [H, W]
+                          const T* __restrict__ v_image,            // [H, W, layout.stride()]
+                          const T* __restrict__ v_transmittance,    // [H, W] or nullptr
                           T* __restrict__ v_means2d,                // [N, 2] accumulated
                           T* __restrict__ v_conics,                 // [N, 3] accumulated
                           T* __restrict__ v_colors,                 // [N, C] accumulated
@@ -42,6 +42,7 @@ rasterize_backward_kernel(int C, int width, int height, TileGrid grid,
     __shared__ T s_col[kBlockB][kStageColors<CMAX> ? CMAX : 1];
     __shared__ int s_end;
 
+    const int C = layout.C;
     const int tile = blockIdx.x;
     const int tid = threadIdx.x;
     const int lane = tid & 31;
@@ -54,12 +55,14 @@ rasterize_backward_kernel(int C, int width, int height, TileGrid grid,
 
     const int last = inside ? last_ids[pix] : begin;
     const T T_final = inside ? transmittance[pix] : T(1);
-    const T v_T = inside ? v_transmittance[pix] : T(0);
+    const int64_t at = pix * layout.stride();
+    const T v_T = inside ? transmittance_grad(layout, v_image + at, v_transmittance ? v_transmittance[pix] : T(0))
+                         : T(0);
     T T_run = T_final;
     T v_img[CMAX], behind[CMAX];
 #pragma unroll
     for (int c = 0; c < CMAX; ++c) {
-        v_img[c] = (inside && c < C) ? v_image[pix * C + c] : T(0);
+        v_img[c] = (inside && c < C) ? v_image[at + c] : T(0);
         behind[c] = T(0);
     }
     // Only pairs before the tile's largest last contributor matter.
@@ -151,28 +154,30 @@ rasterize_backward_kernel(int C, int width, int height, TileGrid grid,
 }
 
 template <typename T, int CMAX>
-static void launch_backward(int C, int width, int height, TileGrid grid, const T* means2d, const T* conics,
+static void launch_backward(const OutputLayout<T>& layout, int width, int height, TileGrid grid, const T* means2d, const T* conics,
                             const T* colors, const T* opacities, const int32_t* gauss_ids,
                             const int32_t* tile_ranges, const T* transmittance, const int32_t* last_ids,
                             const T* v_image, const T* v_transmittance, T* v_means2d, T* v_conics, T* v_colors,
                             T* v_opacities, cudaStream_t stream) {
     rasterize_backward_kernel<T, CMAX><<<grid.count(), kBlockB, 0, stream>>>(
-        C, width, height, grid, means2d, conics, colors, opacities, gauss_ids, tile_ranges, transmittance, last_ids,
+        layout, width, height, grid, means2d, conics, colors, opacities, gauss_ids, tile_ranges, transmittance, last_ids,
         v_image, v_transmittance, v_means2d, v_conics, v_colors, v_opacities);
 }
 
 template <typename T>
-void rasterize_backward_cuda(int64_t N, int C, int width, int height, const T* means2d, const T* conics,
+void rasterize_backward_cuda(int64_t N, const OutputLayout<T>& layout, int width, int height, const T* means2d,
+                             const T* conics,
                              const T* colors, const T* opacities, const int32_t* gauss_ids,
                              const int32_t* tile_ranges, int64_t M, const T* transmittance, const int32_t* last_ids,
                              const T* v_image, const T* v_transmittance, T* v_means2d, T* v_conics, T* v_colors,
                              T* v_opacities, void* stream_) {
     (void)N;
     (void)M;
+    const int C = layout.C;
     const TileGrid grid = make_tile_grid(width, height);
     cudaStream_t stream = (cudaStream_t)stream_;
 #define RGS_LAUNCH(CM)                                                                                           \
-    launch_backward<T, CM>(C, width, height, grid, means2d, conics, colors, opacities, gauss_ids, tile_ranges,   \
+    launch_backward<T, CM>(layout, width, height, grid, means2d, conics, colors, opacities, gauss_ids, tile_ranges,   \
                            transmittance, last_ids, v_image, v_transmittance, v_means2d, v_conics, v_colors,      \
                            v_opacities, stream)
     if (C <= 1) RGS_LAUNCH(1);
@@ -189,7 +194,8 @@ void rasterize_backward_cuda(int64_t N, int C, int width, int height, const T* m
 }
 
 #define RGS_INSTANTIATE(T)                                                                                        \
-    template void rasterize_backward_cuda<T>(int64_t, int, int, int, const T*, const T*, const T*, const T*,       \
+    template void rasterize_backward_cuda<T>(int64_t, const OutputLayout<T>&, int, int, const T*, const T*,        \
+                                             const T*, const T*,                                                 \
                                              const int32_t*, const int32_t*, int64_t, const T*, const int32_t*,    \
                                              const T*, const T*, T*, T*, T*, T*, void*);
 RGS_INSTANTIATE(float)

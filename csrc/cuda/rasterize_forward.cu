@@ -12,20 +12,21 @@ constexpr int kBlock = kTileSize * kTileSize;
 
 template <typename T, int CMAX>
 __global__ void __launch_bounds__(kBlock)
-rasterize_forward_kernel(int C, int width, int height, TileGrid grid,
+rasterize_forward_kernel(OutputLayout<T> layout, int width, int height, TileGrid grid,
                          const T* __restrict__ means2d,           // [N, 2]
                          const T* __restrict__ conics,            // [N, 3]
                          const T* __restrict__ colors,            // [N, C]
                          const T* __restrict__ opacities,         // [N]
                          const int32_t* __restrict__ gauss_ids,   // [M]
                          const int32_t* __restrict__ tile_ranges, // [tiles, 2]
-                         T* __restrict__ image,                   // [H, W, C]
+                         T* __restrict__ image,                   // [H, W, layout.stride()]
                          T* __restrict__ transmittance,           // [H, W]
                          int32_t* __restrict__ last_ids) {        // [H, W]
     __shared__ int32_t s_id[kBlock];
     __shared__ Vec3<T> s_conic[kBlock];
     __shared__ T s_xyo[kBlock][3];  // mean x, mean y, opacity
 
+    const int C = layout.C;
     const int tile = blockIdx.x;
     const int tid = threadIdx.x;
     const int px = (tile % grid.tiles_x) * kTileSize + tid % kTileSize;
@@ -75,30 +76,34 @@ rasterize_forward_kernel(int C, int width, int height, TileGrid grid,
     const int64_t pix = int64_t(py) * width + px;
     transmittance[pix] = Tr;
     last_ids[pix] = last;
+    const int S = layout.stride();
 #pragma unroll
     for (int c = 0; c < CMAX; ++c)
-        if (c < C) image[pix * C + c] = acc[c];
+        if (c < C) image[pix * S + c] = output_value(layout, c, acc[c], Tr);
+    if (layout.alpha) image[pix * S + C] = T(1) - Tr;
 }
 
 template <typename T, int CMAX>
-static void launch_forward(int C, int width, int height, TileGrid grid, const T* means2d, const T* conics,
+static void launch_forward(const OutputLayout<T>& layout, int width, int height, TileGrid grid, const T* means2d, const T* conics,
                            const T* colors, const T* opacities, const int32_t* gauss_ids, const int32_t* tile_ranges,
                            T* image, T* transmittance, int32_t* last_ids, cudaStream_t stream) {
     rasterize_forward_kernel<T, CMAX><<<grid.count(), kBlock, 0, stream>>>(
-        C, width, height, grid, means2d, conics, colors, opacities, gauss_ids, tile_ranges, image, transmittance,
+        layout, width, height, grid, means2d, conics, colors, opacities, gauss_ids, tile_ranges, image, transmittance,
         last_ids);
 }
 
 template <typename T>
-void rasterize_forward_cuda(int64_t N, int C, int width, int height, const T* means2d, const T* conics,
+void rasterize_forward_cuda(int64_t N, const OutputLayout<T>& layout, int width, int height, const T* means2d,
+                            const T* conics,
                             const T* colors, const T* opacities, const int32_t* gauss_ids,
                             const int32_t* tile_ranges, T* image, T* transmittance, int32_t* last_ids,
                             void* stream_) {
     (void)N;
+    const int C = layout.C;
     const TileGrid grid = make_tile_grid(width, height);
     cudaStream_t stream = (cudaStream_t)stream_;
 #define RGS_LAUNCH(CM) \
-    launch_forward<T, CM>(C, width, height, grid, means2d, conics, colors, opacities, gauss_ids, tile_ranges, image, \
+    launch_forward<T, CM>(layout, width, height, grid, means2d, conics, colors, opacities, gauss_ids, tile_ranges, image, \
                           transmittance, last_ids, stream)
     if (C <= 1) RGS_LAUNCH(1);
     else if (C <= 2) RGS_LAUNCH(2);
@@ -114,8 +119,9 @@ void rasterize_forward_cuda(int64_t N, int C, int width, int height, const T* me
 }
 
 #define RGS_INSTANTIATE(T)                                                                                       \
-    template void rasterize_forward_cuda<T>(int64_t, int, int, int, const T*, const T*, const T*, const T*,       \
-                                            const int32_t*, const int32_t*, T*, T*, int32_t*, void*);
+    template void rasterize_forward_cuda<T>(int64_t, const OutputLayout<T>&, int, int, const T*, const T*,       \
+                                            const T*, const T*, const int32_t*, const int32_t*, T*, T*, int32_t*, \
+                                            void*);
 RGS_INSTANTIATE(float)
 RGS_INSTANTIATE(double)
 #undef RGS_INSTANTIATE

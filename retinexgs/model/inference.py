@@ -312,11 +312,10 @@ class InferenceRenderer:
             colors.record_stream(main)  # allocated on the side stream, freed after the main stream's use
         elif colors is None:
             colors = self.colors(camera)
-        image, transmittance, _ = K.rasterize_forward(means2d, conics, colors, self.opacities, gauss_ids, tile_ranges,
-                                                      camera.width, camera.height)
-        if self.model.has_background:  # model.background: what uncovered pixels show (model.render's compositing)
-            image = image + transmittance.unsqueeze(-1) * self.model.background.to(image)
-        return image
+        # model.background: what uncovered pixels show (model.render's compositing), closed inside the kernel
+        background = self.model.background.to(colors) if self.model.has_background else None
+        return K.rasterize_forward(means2d, conics, colors, self.opacities, gauss_ids, tile_ranges, camera.width,
+                                   camera.height, background)[0]
 
     def _side_stream(self, device: torch.device) -> "torch.cuda.Stream":
         stream = self._side

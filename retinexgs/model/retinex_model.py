@@ -225,7 +225,7 @@ class RetinexGSModel(nn.Module):
     def render(self, camera: Camera, active_degree: int, exposure: Optional[float] = None,
                gamma: Optional[float] = None, validate: bool = True, enhance: bool = True,
                center: Optional[Tensor] = None, colors: Optional[Tensor] = None, depth: bool = False,
-               near: bool = True, pairs: Optional[PairBudget] = None) -> Dict[str, Tensor]:
+               near: bool = True, pairs: Optional[PairBudget] = None, packed: bool = False) -> Dict[str, Tensor]:
         """Render one view. Returns ``out`` (RenderOutput) and [H,W,3] maps: ``rgb`` (the model's output
         image: S_enh, or the plain render for baselines), and for RetinexGS ``R``, ``L``, ``S_rec``, ``gamma``.
 
@@ -238,7 +238,8 @@ class RetinexGSModel(nn.Module):
         CUDA graph of them), else they are evaluated here. ``depth``: ``out`` also holds the alpha-weighted depth.
         ``near``: draw with the scene's near plane (:meth:`camera_for`); False draws as the camera says (training,
         unless ``model.near_in_training``). ``pairs``: bin without a host sync, the pair buffer sized by this
-        :class:`PairBudget` (the trainer's; needs ``validate=False``).
+        :class:`PairBudget` (the trainer's; needs ``validate=False``). ``packed``: ``out.packed`` holds the channels,
+        depth and alpha as one tensor (the captured loss's input, :func:`rasterize_gaussians`).
         """
         g = self.gaussians
         if near:
@@ -248,7 +249,7 @@ class RetinexGSModel(nn.Module):
             colors = self.channels(center, active_degree)
         out = rasterize_gaussians(g.means, g.quats, g.scales, g.opacities, colors, camera, validate=validate,
                                   render_depth=depth, background=self.background if self.has_background else None,
-                                  pairs=pairs)
+                                  pairs=pairs, packed=packed)
         if not self.decomposed:
             return {"out": out, "rgb": out.image}
         R, L = out.image[..., :3], out.image[..., 3:6]

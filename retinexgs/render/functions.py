@@ -69,32 +69,42 @@ def bin_gaussians(means2d: Tensor, radii: Tensor, depths: Tensor, width: int, he
 
 
 class RasterizeGaussians(torch.autograd.Function):
-    """Alpha compositing of binned 2D Gaussians into an [H,W,C] image and its [H,W,1] alpha."""
+    """Alpha compositing of binned 2D Gaussians into an [H,W,C] image and its [H,W,1] alpha.
+
+    ``background`` [K] (K <= C) closes the first K channels: out = Σ wᵢcᵢ + T·background, inside the kernel.
+    ``alpha_channel``: one [H,W,C+1] tensor whose last channel is the alpha, and None in the alpha's place (a loss
+    that wants [channels, alpha] together reads it as it is: no concatenation forward or backward)."""
 
     @staticmethod
     def forward(ctx, means2d: Tensor, conics: Tensor, colors: Tensor, opacities: Tensor, gauss_ids: Tensor,
-                tile_ranges: Tensor, width: int, height: int):
-        image, transmittance, last_ids = kernels().rasterize_forward(means2d, conics, colors, opacities,
-                                                                     gauss_ids, tile_ranges, width, height)
+                tile_ranges: Tensor, width: int, height: int, background: Optional[Tensor] = None,
+                alpha_channel: bool = False):
+        bg = None if background is None else background.detach()
+        image, transmittance, last_ids = kernels().rasterize_forward(means2d, conics, colors, opacities, gauss_ids,
+                                                                     tile_ranges, width, height, bg, alpha_channel)
         ctx.size = (width, height)
-        ctx.save_for_backward(means2d, conics, colors, opacities, gauss_ids, tile_ranges, transmittance, last_ids)
+        ctx.alpha_channel = alpha_channel
+        ctx.save_for_backward(means2d, conics, colors, opacities, gauss_ids, tile_ranges, transmittance, last_ids, bg)
+        if alpha_channel:
+            return image, None
         return image, (1.0 - transmittance).unsqueeze(-1)
 
     @staticmethod
     @once_differentiable
-    def backward(ctx, v_image: Tensor, v_alpha: Tensor):
-        means2d, conics, colors, opacities, gauss_ids, tile_ranges, transmittance, last_ids = ctx.saved_tensors
+    def backward(ctx, v_image: Tensor, v_alpha: Optional[Tensor]):
+        means2d, conics, colors, opacities, gauss_ids, tile_ranges, transmittance, last_ids, bg = ctx.saved_tensors
         width, height = ctx.size
         if v_image is None:
-            v_image = torch.zeros(height, width, colors.shape[1], dtype=colors.dtype, device=colors.device)
-        if v_alpha is None:
-            v_transmittance = torch.zeros_like(transmittance)
-        else:
-            v_transmittance = -v_alpha.squeeze(-1)  # alpha = 1 - T
+            C = colors.shape[1] + (1 if ctx.alpha_channel else 0)
+            v_image = torch.zeros(height, width, C, dtype=colors.dtype, device=colors.device)
+        v_transmittance = None if v_alpha is None else -v_alpha.squeeze(-1)  # alpha = 1 - T
         v_means2d, v_conics, v_colors, v_opacities = kernels().rasterize_backward(
             means2d, conics, colors, opacities, gauss_ids, tile_ranges, width, height, transmittance, last_ids,
-            v_image, v_transmittance)
-        return v_means2d, v_conics, v_colors, v_opacities, None, None, None, None
+            v_image, v_transmittance, bg, ctx.alpha_channel)
+        v_bg = None
+        if bg is not None and ctx.needs_input_grad[8]:  # d out[c] / d background[c] = T
+            v_bg = torch.einsum("hwk,hw->k", v_image[..., :bg.shape[0]], transmittance)
+        return v_means2d, v_conics, v_colors, v_opacities, None, None, None, None, v_bg, None
 
 
 class SphericalHarmonics(torch.autograd.Function):

@@ -29,6 +29,8 @@ class RenderOutput:
         num_pairs: number of (tile, Gaussian) pairs rasterized: the tiles of each Gaussian's rectangle where it
             can reach alpha >= 1/255 (tile culling); None when binned without a host sync (``pairs``), where
             the count stays on the device.
+        packed: with ``rasterize_gaussians(packed=True)``, [H, W, C (+1) + 1]: image, depth (if rendered) and
+            alpha as one tensor, of which the three above are views; else None.
     """
 
     image: Tensor
@@ -37,6 +39,7 @@ class RenderOutput:
     means2d: Tensor
     radii: Tensor
     num_pairs: Optional[int]
+    packed: Optional[Tensor] = None
 
     @property
     def visible(self) -> Tensor:
@@ -56,6 +59,7 @@ def rasterize_gaussians(
     render_depth: bool = False,
     validate: bool = True,
     pairs: Optional[PairBudget] = None,
+    packed: bool = False,
 ) -> RenderOutput:
     """Render N 3D Gaussians with C-channel colours from one camera, differentiably.
 
@@ -82,6 +86,9 @@ def rasterize_gaussians(
         pairs: a :class:`~retinexgs.render.pair_budget.PairBudget` (a training loop's): bin without a host sync
             into a pair buffer it sizes (the GPU then never waits for the host in a render); needs
             ``validate=False``, whose verdict is read after the synced binning.
+        packed: also return image, depth and alpha as one tensor (``RenderOutput.packed``), written so by the
+            compositing: a loss that takes them together needs no concatenation, and its gradient reaches the
+            compositing as it is.
 
     Returns:
         A :class:`RenderOutput` with ``image`` [H, W, C], ``alpha`` [H, W, 1], ``depth`` [H, W, 1] or None,
@@ -128,15 +135,17 @@ def rasterize_gaussians(
     if means.is_cuda and channels.shape[1] > MAX_CUDA_CHANNELS:
         raise ValueError(f"colors has {colors.shape[1]} channels{' + depth' if render_depth else ''}; the CUDA "
                          f"compositing supports at most {MAX_CUDA_CHANNELS} (render in chunks of channels)")
+    # The background closes the colours' channels inside the compositing (not the depth's): no pass of its own.
     image, alpha = RasterizeGaussians.apply(means2d, conics, channels, opacities, gauss_ids, tile_ranges,
-                                            camera.width, camera.height)
-    depth = None
-    if render_depth:
-        # split, not two slices: its backward is one concatenation, each slice's a zero-filled full-size tensor
-        image, depth = image.split([image.shape[-1] - 1, 1], dim=-1)
-    if background is not None:
-        image = torch.addcmul(image, 1.0 - alpha, background)  # one full-size pass, not a product and a sum
-    return RenderOutput(image, alpha, depth, means2d, radii, num_pairs)
+                                            camera.width, camera.height, background, packed)
+    whole, depth = (image if packed else None), None
+    if render_depth or packed:
+        # split, not slices: its backward is one concatenation, each slice's a zero-filled full-size tensor
+        parts = image.split([colors.shape[1]] + [1] * (int(render_depth) + int(packed)), dim=-1)
+        image, depth = parts[0], (parts[1] if render_depth else None)
+        if packed:
+            alpha = parts[-1]
+    return RenderOutput(image, alpha, depth, means2d, radii, num_pairs, whole)
 
 
 def spherical_harmonics(degree: int, dirs: Tensor, coeffs: Tensor) -> Tensor:

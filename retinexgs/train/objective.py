@@ -139,10 +139,14 @@ class PlainObjective:
 
     def graph_input(self, res: Dict[str, Tensor]) -> Tensor:
         """The captured loss's input [H,W,C(+2)]: the rendered channels, then the depth prior's depth and alpha
-        (its ~60 small kernels run inside the graph instead of eagerly)."""
+        (its ~60 small kernels run inside the graph instead of eagerly): the render's packed tensor as the
+        compositing wrote it (a render with ``packed``, as the trainer's), else their concatenation."""
+        out = res["out"]
         if not self.depth_prior:
-            return res["out"].image
-        return torch.cat([res["out"].image, *self._depth_maps(res)], dim=-1)
+            return out.image
+        if out.packed is not None:
+            return out.packed
+        return torch.cat([out.image, *self._depth_maps(res)], dim=-1)
 
     def backward_graphed(self, graphs: LossGraphs, res: Dict[str, Tensor], tv: TrainView, step: int,
                          log_failures: Callable[[Dict], None]) -> Optional[Dict[str, Tensor]]:
@@ -163,6 +167,8 @@ class PlainObjective:
             grad = result.grad_image
             if depth is None:
                 roots, grads = [out.image], [grad]
+            elif out.packed is not None:  # the gradient of the packed render reaches the compositing as it is
+                roots, grads = [out.packed], [grad]
             else:
                 C = out.image.shape[-1]
                 roots = [out.image, out.depth, out.alpha]

@@ -189,7 +189,8 @@ class Trainer:
                                  "until the Gaussians change")
             return self.model.render(tv.camera, self.active_degree(step), validate=False, enhance=False,
                                      center=tv.center, colors=colors, depth=self.depth_prior,
-                                     near=self.cfg.model.near_in_training, pairs=self.pairs)
+                                     near=self.cfg.model.near_in_training, pairs=self.pairs,
+                                     packed=self.depth_prior and self.graphs is not None)
 
     def train_step(self, step: int, tv, check: bool = True) -> Dict[str, float]:
         """One optimisation step on view ``tv`` (or on this rank's list of the step's views: each is rendered

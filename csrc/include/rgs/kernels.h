@@ -66,25 +66,28 @@ void bin_tile_pairs_cpu(int64_t N, const T* means2d, const int32_t* radii,
 
 // ---- compositing -----------------------------------------------------------------------------
 template <typename T>
-void rasterize_forward_cpu(int64_t N, int C, int width, int height,
+void rasterize_forward_cpu(int64_t N,
+                           const OutputLayout<T>& layout,  // C channels, background, alpha (rgs/math.h)
+                           int width, int height,
                            const T* means2d,           // [N, 2]
                            const T* conics,            // [N, 3]
                            const T* colors,            // [N, C]
                            const T* opacities,         // [N]
                            const int32_t* gauss_ids,   // [M]
                            const int32_t* tile_ranges, // [tiles, 2]
-                           T* image,                   // [H, W, C] out
+                           T* image,                   // [H, W, layout.stride()] out
                            T* transmittance,           // [H, W] out, T after the last contributor
                            int32_t* last_ids,          // [H, W] out, end of the contributing pairs
                            int num_threads);
 
 template <typename T>
-void rasterize_backward_cpu(int64_t N, int C, int width, int height, const T* means2d, const T* conics,
+void rasterize_backward_cpu(int64_t N, const OutputLayout<T>& layout, int width, int height, const T* means2d,
+                            const T* conics,
                             const T* colors, const T* opacities, const int32_t* gauss_ids,
                             const int32_t* tile_ranges, int64_t M,
                             const T* transmittance,     // [H, W] from the forward
                             const int32_t* last_ids,    // [H, W] from the forward
-                            const T* v_image,           // [H, W, C]
+                            const T* v_image,           // [H, W, layout.stride()]
                             const T* v_transmittance,   // [H, W] (or nullptr)
                             T* v_means2d,               // [N, 2] out
                             T* v_conics,                // [N, 3] out

@@ -54,14 +54,16 @@ void bin_tile_pairs_cuda(int64_t N, const T* means2d, const int32_t* radii, cons
                          int32_t* tile_ranges, DeviceAllocator alloc, void* stream);
 
 template <typename T>
-void rasterize_forward_cuda(int64_t N, int C, int width, int height, const T* means2d, const T* conics,
+void rasterize_forward_cuda(int64_t N, const OutputLayout<T>& layout, int width, int height, const T* means2d,
+                            const T* conics,
                             const T* colors, const T* opacities, const int32_t* gauss_ids,
                             const int32_t* tile_ranges, T* image, T* transmittance, int32_t* last_ids,
                             void* stream);
 
 // Gradient outputs must be zero-filled by the caller (the kernel accumulates with atomics).
 template <typename T>
-void rasterize_backward_cuda(int64_t N, int C, int width, int height, const T* means2d, const T* conics,
+void rasterize_backward_cuda(int64_t N, const OutputLayout<T>& layout, int width, int height, const T* means2d,
+                             const T* conics,
                              const T* colors, const T* opacities, const int32_t* gauss_ids,
                              const int32_t* tile_ranges, int64_t M, const T* transmittance, const int32_t* last_ids,
                              const T* v_image, const T* v_transmittance, T* v_means2d, T* v_conics, T* v_colors,

@@ -636,6 +636,29 @@ RGS_HD void pixel_alpha_vjp(const PixelAlpha<T>& pa, const Vec3<T>& conic, T opa
     v_mean2d[1] -= (conic.y * pa.dx + conic.z * pa.dy) * v_sigma;
 }
 
+// ---------------------------------------------------------------------------------------------
+// The compositing's output at a pixel (3DGS eq. 3 closed by what is behind the Gaussians): with A_c = Σ w_i c_i
+// and T the transmittance left,
+//   out[c] = A_c + T·bg[c]   (c < n_bg: the channels with a background),   out[c] = A_c   (n_bg <= c < C),
+//   out[C] = 1 - T           (only with alpha: the accumulated opacity as one more channel).
+// Composited in the kernel, the background and alpha cost no full-size pass of their own, and a loss that wants
+// [channels, alpha] in one tensor gets it without a concatenation (issue 65). Its gradient reaches the compositing
+// through A_c (one for one) and through T:
+//   dL/dT = v_T + Σ_{c<n_bg} v_out[c]·bg[c] - v_out[C]   (the last term only with alpha).
+// ---------------------------------------------------------------------------------------------
+// (OutputLayout, the layout these read, is in rgs/types.h.)
+template <typename T>
+RGS_HD T output_value(const OutputLayout<T>& o, int c, T acc, T Tr) {
+    return c < o.n_bg ? acc + Tr * o.bg[c] : acc;
+}
+
+// dL/dT at a pixel from its output gradient v_out [stride] and the gradient v_T given for T itself.
+template <typename T>
+RGS_HD T transmittance_grad(const OutputLayout<T>& o, const T* v_out, T v_T) {
+    for (int c = 0; c < o.n_bg; ++c) v_T += v_out[c] * o.bg[c];
+    return o.alpha ? v_T - v_out[o.C] : v_T;
+}
+
 // Axis-aligned pixel box (inclusive, clamped to [lo, hi)) where a Gaussian can reach alpha >= 1/255,
 // recovered from its conic and opacity. Used to skip pixels inside a tile; one pixel of margin.
 template <typename T>

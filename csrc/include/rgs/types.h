@@ -70,6 +70,17 @@ struct TileRect {
     RGS_HD int area() const { return (x1 - x0) * (y1 - y0); }
 };
 
+// What the compositing writes per pixel (rgs/math.h, output_value): C channels, the first n_bg closed by a background,
+// and with alpha the accumulated opacity 1 - T as one more.
+template <typename T>
+struct OutputLayout {
+    int C;                 // composited channels (the colours' count)
+    int n_bg = 0;          // leading channels with a background, 0..C
+    const T* bg = nullptr; // [n_bg] (device memory on the GPU)
+    bool alpha = false;    // out[C] = 1 - T
+    RGS_HD int stride() const { return C + (alpha ? 1 : 0); }
+};
+
 // Shape of the illumination field's MLP (IlluminationField's constructor arguments; rgs/gaussian_colors.h).
 struct IllumConfig {
     int pos_freqs, dir_freqs, hidden, depth, dir_hidden;
