@@ -198,6 +198,13 @@ stage_data() {
   mkdir -p /tmp/data && { cp -rn "$src"/. /tmp/data/ 2>&1 | grep -v "behavior of -n is non-portable"; true; }
 }
 need_scene() { [ -d "/tmp/data/$1" ] || die "scene $1 is not under ${DATA:-.data} (/tmp/data has: $(ls /tmp/data))"; }
+# A scene trained as it is needs its dark photos (a copy made for the raw ladder keeps high/ and the poses only).
+need_photos() {
+  need_scene "$1"
+  if [ -f "/tmp/data/$1/transforms_train.json" ] && [ ! -d "/tmp/data/$1/low" ]; then
+    die "scene $1 has no low/ photos under ${DATA:-.data}: copy them in (cp -r ../shared/data/$1/low ${DATA:-.data}/$1/)"
+  fi
+}
 need_train_wheels() {
   python3 -c "import pycolmap, plyfile" 2> /dev/null \
     || die "pycolmap or plyfile is missing here: carry their wheels in $WHL (see the header)"
@@ -363,7 +370,7 @@ mode_train() {
   for spec in "${specs[@]}"; do
     i=$((i + 1))
     IFS=: read -r name cfg scene seed <<< "$spec"
-    scene=${scene:-$SCENE}; seed=${seed:-$SEED}; need_scene "$scene"
+    scene=${scene:-$SCENE}; seed=${seed:-$SEED}; need_photos "$scene"
     args=(); [ -n "$cfg" ] && args+=(--config "$cfg")
     while [ "$(jobs -rp | wc -l)" -ge "$JOBS" ]; do wait -n; done
     rm -rf "/tmp/train/$name"
@@ -415,7 +422,7 @@ print('gsplat ready')" > "$LOGS/gsplat_build.log" 2>&1; echo "gsplat JIT: exit $
   fi
   has train && train=1
   if [ $train = 1 ] || has trainspeed || has stream || has profile || has lr3m || has bigphoto || has ab; then
-    need_train_wheels; stage_data; need_scene "$SCENE"
+    need_train_wheels; stage_data; need_photos "$SCENE"
   fi
   wait  # gsplat's build, before anything is timed
   if [ $train = 1 ]; then
@@ -510,6 +517,8 @@ print('gsplat ready')" > "$LOGS/gsplat_build.log" 2>&1; echo "gsplat JIT: exit $
         (cd "$dir" && PYTHONPATH="$dir${SITE:+:$SITE}" python3 -m retinexgs train --data "$scene" "${cfg[@]}" \
           --set seed=0 "${SETS[@]}" --out "/tmp/ab/$side-$i" --device cuda --quiet > "$LOGS/ab-$side-$i.log" 2>&1)
         metrics "$side-$i" "/tmp/ab/$side-$i" | tee -a "$OUT/ab.txt"
+        # a run that failed says why in its log's last line; the others would fail alike (missing photos, a wheel)
+        [ -f "/tmp/ab/$side-$i/metrics.json" ] || die "speed ab: the $side run failed: $(tail -1 "$LOGS/ab-$side-$i.log")"
       done
     done
     # Each side's median training time and their ratio (the spread of one card is the figure to beat).
