@@ -30,6 +30,7 @@ import torch
 import torch.nn.functional as F
 
 from retinexgs.evaluate.lpips import lpips_distance, weights_available
+from retinexgs.kth_value import kth_smallest
 from retinexgs.model.tone import highlight_shoulder, linear_to_srgb, srgb_to_linear
 
 
@@ -236,8 +237,8 @@ def black_lift(x: ImageLike, y: ImageLike, q: float = 0.01) -> float:
 
     def low(img: torch.Tensor) -> torch.Tensor:
         lin = srgb_to_linear(img, clip=False).reshape(-1, img.shape[-1])
-        k = int(round(q * (lin.shape[0] - 1))) + 1  # the nearest rank: kthvalue has no size limit (quantile has)
-        return lin.kthvalue(k, dim=0).values
+        k = int(round(q * (lin.shape[0] - 1))) + 1  # the nearest rank: a k-th value has no size limit (quantile has)
+        return kth_smallest(lin, k, dim=0)
 
     return float((low(a) - low(b)).mean())
 

@@ -21,6 +21,8 @@ from typing import Tuple
 import torch
 import torch.nn.functional as F
 
+from retinexgs.kth_value import kth_smallest
+
 
 def gaussian_blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
     """Separable Gaussian blur of [B,C,H,W] with reflect padding (radius 3σ); identity for σ <= 0."""
@@ -64,8 +66,8 @@ def percentile_scale(x: torch.Tensor, q: float = 0.99) -> torch.Tensor:
     """Per-image q-quantile of [B,C,H,W] as [B,1,1,1] (floored so an almost-black image stays finite)."""
     flat = x.flatten(1)
     k = max(1, min(flat.shape[1], int(round(q * flat.shape[1]))))
-    # kthvalue has no size limit (torch.quantile has) and is exact.
-    val = flat.kthvalue(k, dim=1).values
+    # a k-th value: no size limit (torch.quantile has), exact, and fast on the GPU (retinexgs/kth_value.py)
+    val = kth_smallest(flat, k, dim=1)
     return val.clamp_min(1e-4).view(-1, 1, 1, 1)
 
 

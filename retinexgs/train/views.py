@@ -33,6 +33,7 @@ import torch
 from torch import Tensor
 
 from retinexgs.errors import UserError
+from retinexgs.kth_value import kth_smallest
 from retinexgs.render import Camera
 from retinexgs.retinex import enhance_for_viewing
 from retinexgs.train import losses
@@ -182,7 +183,7 @@ class ViewStatistics:
         if self.quantile is not None:
             flat = light.reshape(-1).float()
             k = min(flat.numel(), max(1, round(float(self.quantile) * flat.numel())))
-            self._refs.append(flat.kthvalue(k).values)
+            self._refs.append(kth_smallest(flat, k))
         refl = (R if R is not None else S).contiguous()
         self._mean_r.append(refl.reshape(-1, refl.shape[-1]).float().mean(0))
         self._mean_l.append(light.reshape(-1, 1).float().mean(0))

@@ -6,6 +6,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from retinexgs.kth_value import kth_smallest
 from retinexgs.model.tones import fused_curve
 from retinexgs.model.tones.curves import highlight_shoulder, linear_to_srgb
 
@@ -27,10 +28,9 @@ def highlight_capped_mean(RL: Tensor, target: float, share: float, shoulder: flo
         lin = fused_curve.to_linear(RL, "clip")
         peak = lin.amax(-1).flatten()
         rank = min(peak.numel() - 1, max(0, int(round((1.0 - share) * (peak.numel() - 1)))))
-        # the (rank+1)-th smallest, i.e. the least of the N - rank largest: a selection, not a sort of the whole image.
-        # topk, not kthvalue: on the GPU kthvalue selects within one thread block per slice, 76 ms for a 12 MP
-        # image's one slice (70 % of that step, issue 65); topk's radix selection spreads over the GPU.
-        white = torch.topk(peak, peak.numel() - rank, sorted=False).values.min().clamp_min(1e-8)
+        # the (rank+1)-th smallest: a selection, not a sort of the whole image (torch's kthvalue took 76 ms of a
+        # 12 MP step on the GPU: retinexgs/kth_value.py)
+        white = kth_smallest(peak, rank + 1).clamp_min(1e-8)
         if fused_curve.runs_fused(RL):
             capped = fused_curve.tone_curve(RL, white.reciprocal(), shoulder, "clip", "clip").mean()
         else:

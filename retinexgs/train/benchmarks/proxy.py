@@ -23,6 +23,7 @@ import torch
 import torch.nn.functional as F
 
 from retinexgs.evaluate.metrics import psnr, ssim_metric
+from retinexgs.kth_value import kth_smallest
 from retinexgs.model.tone import tone_map
 from retinexgs.train import losses
 from retinexgs.run.folder import open_scene
@@ -39,7 +40,7 @@ RAW_GAMMAS = torch.linspace(0.05, 1.0, 96)
 
 def quantile(x: torch.Tensor, q: float) -> torch.Tensor:
     flat = x.reshape(-1)
-    return flat.kthvalue(min(flat.numel(), max(1, round(q * flat.numel())))).values
+    return kth_smallest(flat, min(flat.numel(), max(1, round(q * flat.numel()))))
 
 
 def _bchw(x: torch.Tensor) -> torch.Tensor:
