@@ -26,6 +26,14 @@ def test_topk_form_is_kthvalue(case):
             assert torch.equal(kth_smallest(x, k, dim), want), (case, dim, k)
 
 
+def test_lower_median_is_torchs_median():
+    # estimate_noise_sigma's median as a k-th value: torch.median is the lower middle value, odd and even n.
+    g = torch.Generator().manual_seed(6)
+    for n in (1, 2, 9, 10, 1000):
+        x = torch.randint(0, 5, (2, n), generator=g).float() + torch.rand(2, n, generator=g).round()
+        assert torch.equal(by_topk(x, (n + 1) // 2, 1), x.median(dim=1).values), n
+
+
 def test_bad_k_is_refused():
     x = torch.rand(10)
     for k in (0, 11, -1):
