@@ -271,7 +271,7 @@ def test_the_highlight_meter_caps_the_target_where_more_than_its_share_would_blo
 
 
 def test_the_highlight_meters_white_is_the_sorted_peaks_rank_exactly():
-    """The meter's white point is a selection (topk's least), not a sort: the same value, ties and repeats included,
+    """The meter's white point is a selection (kth_value.kth_smallest), not a sort: the same value, ties and repeats included,
     so the meter gives bit for bit what the sorting meter gave (its form until 2026-11-30, written out here)."""
     from retinexgs.model.tone import highlight_capped_mean, highlight_shoulder
     from retinexgs.model.tones.curves import srgb_to_linear
