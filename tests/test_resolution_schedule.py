@@ -45,11 +45,46 @@ def test_schedule_values_fractions_and_steps():
     assert [rs.downsample_at(s) for s in (1, 30, 31)] == [3, 3, 1]
 
 
-def test_default_is_full_size_and_returns_the_view_itself():
-    rs = ResolutionSchedule.from_config(load_config([], []))
+def test_no_schedule_is_full_size_and_returns_the_view_itself():
+    rs = ResolutionSchedule.from_config(load_config([], ["train.resolution=[]"]))
     assert not rs.enabled and rs.stages == []
     tv = TrainView(make_camera(), torch.rand(37, 45, 3))
     assert rs.view_at(tv, 0, 1) is tv
+
+
+def test_views_below_the_pixel_threshold_train_at_full_size():
+    rs = ResolutionSchedule([(10, 4), (20, 2)], 30, min_pixels=6_000_000)
+    assert rs.view_downsample(4000, 3000, 4) == 4 and rs.view_downsample(4000, 3000, 2) == 2
+    assert rs.view_downsample(3000, 2000, 4) == 4  # 6 MP: on the schedule
+    assert rs.view_downsample(2999, 2000, 4) == 1 and rs.view_downsample(2000, 1500, 2) == 1
+    assert rs.view_downsample(1920, 1080, 4) == 1 and rs.view_downsample(640, 360, 4) == 1
+    assert ResolutionSchedule([(10, 4)], 30).view_downsample(64, 48, 4) == 4  # 0: every view
+
+
+def test_the_default_pools_12_megapixel_views_and_leaves_small_ones_at_full_size():
+    cfg = load_config([], ["steps=10000"])
+    big = ResolutionSchedule.from_config(cfg, [(4000, 3000)] * 2)
+    assert big.enabled
+    assert big.describe() == "resolution: 1/4 until step 8000, 1/2 until step 9500, full size after"
+    small = ResolutionSchedule.from_config(cfg, [(640, 360), (500, 375), (2000, 1500)])
+    assert not small.enabled
+    assert small.describe() == ("resolution: full size throughout (every view below "
+                                "train.resolution_min_pixels=6000000)")
+    tv = TrainView(make_camera(45, 37), torch.rand(37, 45, 3))
+    assert all(small.view_at(tv, 0, s) is tv for s in (1, 8001, 9501))
+    mixed = ResolutionSchedule.from_config(cfg, [(2000, 1500), (4000, 3000)])
+    assert mixed.describe() == ("resolution: full size or 1/4 until step 8000, full size or 1/2 until step 9500, "
+                                "full size after (views below train.resolution_min_pixels=6000000 at full size)")
+
+
+def test_a_stage_pools_the_large_views_of_a_mixed_scene_and_hands_the_small_ones_on():
+    rs = ResolutionSchedule([(10, 2)], 20, min_pixels=1000, sizes=[(45, 37), (20, 18)])
+    big = TrainView(make_camera(45, 37), torch.rand(37, 45, 3))
+    small = TrainView(make_camera(20, 18), torch.rand(18, 20, 3))
+    pooled = rs.view_at(big, 0, 1)
+    assert (pooled.camera.width, pooled.camera.height) == (22, 18) and rs.view_at(big, 0, 2) is pooled  # kept
+    assert rs.view_at(small, 1, 1) is small  # 360 < 1000 pixels: full size
+    assert rs.view_at(big, 0, 11) is big  # after the stage
 
 
 @pytest.mark.parametrize("value, words", [("[[0.5, 2], [0.2, 1]]", "must increase"),
@@ -157,7 +192,7 @@ def _full_size_loss(tr, i=0):
 @pytest.mark.parametrize("stream", ["never", "always"])
 def test_training_on_the_schedule_trains_at_each_stage_and_the_loss_falls(scene_dir, tmp_path, stream):
     tr = trainer_for(scene_dir, tmp_path / "run", ["steps=24", "train.resolution=[[0.25, 4], [0.5, 2]]",
-                                                   f"train.stream_views={stream}"],
+                                                   "train.resolution_min_pixels=0", f"train.stream_views={stream}"],
                      emulate_graphs=True)
     sizes = []
     render = tr.render_view
@@ -181,7 +216,8 @@ def test_training_on_the_schedule_trains_at_each_stage_and_the_loss_falls(scene_
 
 
 def test_the_default_trains_bit_identically_to_the_loop_without_a_schedule(scene_dir, tmp_path):
-    """[] leaves every step as it was: the same parameters as a loop that hands the views on untouched."""
+    """The default leaves every step of views below its pixel floor (these 74 x 66) as it was: the same parameters
+    as a loop that hands the views on untouched."""
     def trained(name, overrides=(), plain_loop=False):  # each seeded and trained in turn (one global RNG)
         tr = trainer_for(scene_dir, tmp_path / name, ["steps=3", *overrides])
         if plain_loop:
@@ -190,7 +226,7 @@ def test_the_default_trains_bit_identically_to_the_loop_without_a_schedule(scene
         return tr
 
     a, b = trained("a"), trained("b", plain_loop=True)
-    c = trained("c", ["train.resolution=[[1, 2]]"])  # step 1 at 1/2
+    c = trained("c", ["train.resolution=[[1, 2]]", "train.resolution_min_pixels=0"])  # step 1 at 1/2
     pa, pb, pc = (dict(tr.model.named_parameters()) for tr in (a, b, c))
     assert pa.keys() == pb.keys()
     for name in pa:
@@ -205,7 +241,7 @@ def test_streamed_coarse_stages_keep_their_pooled_views_where_they_fit(scene_dir
 
     def trained(name, budget):
         tr = trainer_for(scene_dir, tmp_path / name, ["steps=24", "train.resolution=[[0.25, 4], [0.5, 2]]",
-                                                      "train.stream_views=always",
+                                                      "train.resolution_min_pixels=0", "train.stream_views=always",
                                                       f"train.views_on_device_gb={budget}"])
         fetched = []
         get = StreamedViews.get

@@ -31,7 +31,7 @@ def _write(run, data: dict) -> None:
 
 
 def test_one_migration_a_format_step():
-    assert FORMAT == 6 and len(CONFIG_MIGRATIONS) == len(CHECKPOINT_MIGRATIONS) == FORMAT
+    assert FORMAT == 7 and len(CONFIG_MIGRATIONS) == len(CHECKPOINT_MIGRATIONS) == FORMAT
 
 
 def test_a_format_1_run_is_written_with_its_format_and_round_trips(tmp_path):
@@ -77,9 +77,9 @@ def test_a_format_0_run_gets_the_values_runs_had_before_the_keys(tmp_path):
 
 
 @pytest.mark.parametrize("fmt, expect", [
-    (7, "is in run format 7, newer than this retinexgs reads (format 6)"),
-    ("one", "format must be a whole number 0..6, got 'one'"),
-    (-1, "format must be a whole number 0..6, got -1"),
+    (8, "is in run format 8, newer than this retinexgs reads (format 7)"),
+    ("one", "format must be a whole number 0..7, got 'one'"),
+    (-1, "format must be a whole number 0..7, got -1"),
 ])
 def test_a_newer_or_malformed_run_format_is_refused_in_one_line(tmp_path, fmt, expect):
     write_run_config(tmp_path, load_config(), tmp_path)
@@ -167,3 +167,16 @@ def test_a_format_5_run_reads_its_binned_views_with_the_one_kappa_it_had():
                              "old/config.yaml")
     assert kept["loss"]["raw"]["r_prior_luma_binned"] == 0.3
     assert load_config().loss.raw.r_prior_luma_binned == 1.0
+
+
+def test_a_format_6_run_keeps_training_at_the_resolution_it_had():
+    """Format 6 -> 7: before the coarse-to-fine default a run without train.resolution trained at full size, and a
+    run with a schedule pooled every view by its stage's k (no pixel floor): both resume as they trained."""
+    from retinexgs.config.versions import migrate_config
+    old, filled = migrate_config({"format": 6, "steps": 50}, "old/config.yaml")
+    assert old["train"]["resolution"] == [] and old["train"]["resolution_min_pixels"] == 0
+    assert {"train.resolution", "train.resolution_min_pixels"} <= set(filled)
+    kept, _ = migrate_config({"format": 6, "train": {"resolution": [[0.2, 4]]}}, "old/config.yaml")
+    assert kept["train"]["resolution"] == [[0.2, 4]] and kept["train"]["resolution_min_pixels"] == 0
+    today = load_config().train
+    assert today.resolution == [(0.8, 4), (0.95, 2)] and today.resolution_min_pixels == 6_000_000

@@ -19,8 +19,17 @@ RawConfig = Dict[str, Any]
 
 
 def plain(cfg: Union[Config, RawConfig]) -> RawConfig:
-    """``cfg`` as plain data (nested dicts, lists, numbers, strings): what YAML and checkpoints store."""
-    return cfg.model_dump() if isinstance(cfg, BaseModel) else copy.deepcopy(cfg)
+    """``cfg`` as plain data (nested dicts, lists, numbers, strings): what YAML and checkpoints store. The schema's
+    tuples (``train.resolution``'s pairs) are lists, as YAML reads them back."""
+    return _lists(cfg.model_dump()) if isinstance(cfg, BaseModel) else copy.deepcopy(cfg)
+
+
+def _lists(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {k: _lists(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_lists(v) for v in x]
+    return x
 
 
 def configs_dir() -> Path:

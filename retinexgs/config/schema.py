@@ -421,6 +421,8 @@ class Train(Section):
     resolution: Annotated[List[Tuple[Step, Annotated[StrictInt, Field(ge=1, le=64)]]], BeforeValidator(_pairs),
                           Expect("a list of [until, downsample] pairs: until a fraction of steps 0..1 or a step, "
                                  "downsample an integer 1..64, e.g. [[0.2, 4], [0.5, 2]]; [] for full size")]
+    # views of fewer pixels train at full size throughout (retinexgs.train.resolution); 0: every view on the schedule
+    resolution_min_pixels: Int(0)
 
 
 class ConfigSchema(Section):

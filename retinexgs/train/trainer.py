@@ -80,7 +80,9 @@ class Trainer:
             raise UserError(f"scene {scene.root} has no training views")
         self.method = cfg.method
         self.schedule = build_schedule(cfg)
-        self.resolution = ResolutionSchedule.from_config(cfg)  # train.resolution: coarse views early
+        # train.resolution: coarse views early, for views above train.resolution_min_pixels
+        self.resolution = ResolutionSchedule.from_config(cfg, [(v.width, v.height) for v in scene.train])
+        log(self.resolution.describe())
         self.decomposed = self.method == "retinexgs"
         # The depth prior is RetinexGS's (the 3DGS baselines stay as published).
         self.depth_prior = self.decomposed and cfg.loss.w_depth > 0
@@ -95,8 +97,7 @@ class Trainer:
         self.views_set_up_seconds = time.time() - t_views
         if self.streamed:  # a coarse stage keeps its pooled views where they fit the budget the full-size ones did not
             priors = self.method in ("retinexgs", "pre") and cfg.decomposer.method != "none"
-            self.resolution.plan_streamed(sum(v.width * v.height for v in scene.train),
-                                          preload_bytes_per_pixel(self.method, priors, self.depth_prior),
+            self.resolution.plan_streamed(preload_bytes_per_pixel(self.method, priors, self.depth_prior),
                                           cfg.train.views_on_device_gb)
         self.redenoise = Redenoise.for_run(cfg, scene, self.streamed, str(self.device))  # decomposer.redenoise_at
         self.extent = scene_extent(scene)
