@@ -87,6 +87,13 @@ def test_a_stage_pools_the_large_views_of_a_mixed_scene_and_hands_the_small_ones
     assert rs.view_at(big, 0, 11) is big  # after the stage
 
 
+def test_stages_that_train_no_step_are_dropped():
+    """The default's fractions in a run of a few steps: 0.8 and 0.95 of 2 steps are both step 2."""
+    rs = ResolutionSchedule.from_config(load_config([], ["steps=2"]))
+    assert rs.stages == [(2, 4)] and [rs.downsample_at(s) for s in (1, 2, 3)] == [4, 4, 1]
+    assert ResolutionSchedule([(0, 4), (5, 2), (5, 1)], 10).stages == [(5, 2)]
+
+
 @pytest.mark.parametrize("value, words", [("[[0.5, 2], [0.2, 1]]", "must increase"),
                                           ("[[0.2, 2], [0.5, 4]]", "must not grow")])
 def test_a_schedule_out_of_order_is_refused_in_one_line(value, words):

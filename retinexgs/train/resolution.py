@@ -107,21 +107,28 @@ class ResolutionSchedule:
 
     def __init__(self, stages: Sequence[Tuple[int, int]], steps: int, min_pixels: int = 0,
                  sizes: Optional[Sequence[Tuple[int, int]]] = None) -> None:
-        """``stages``: (until step, downsample k) pairs, in order: ``until`` strictly increasing, k not
-        increasing (coarse to fine). A UserError (one line) names the first that is not. ``min_pixels``
-        (``train.resolution_min_pixels``): a view of fewer pixels trains at full size throughout. ``sizes``: the training views' (width, height), for :attr:`enabled`,
-        :meth:`describe` and :meth:`plan_streamed` (None: as if every view were pooled by its stage's k)."""
+        """``stages``: (until step, downsample k) pairs, in order: ``until`` not decreasing and k not increasing
+        (coarse to fine); a UserError (one line) names the first pair that is not. ``min_pixels``
+        (``train.resolution_min_pixels``): a view of fewer pixels trains at full size throughout. ``sizes``: the
+        training views' (width, height), for :attr:`enabled`, :meth:`describe` and :meth:`plan_streamed` (None: as
+        if every view were pooled by its stage's k)."""
         self.steps = int(steps)
         self.min_pixels = int(min_pixels)
         self.sizes = [(int(w), int(h)) for w, h in sizes] if sizes is not None else None
-        self.stages: List[Tuple[int, int]] = [(int(u), int(k)) for u, k in stages]
-        for (u0, k0), (u1, k1) in zip(self.stages, self.stages[1:]):
-            if u1 <= u0:
+        pairs = [(int(u), int(k)) for u, k in stages]
+        for (u0, k0), (u1, k1) in zip(pairs, pairs[1:]):
+            if u1 < u0:
                 raise UserError(f"train.resolution: the steps must increase, got step {u1} after step {u0} (decimals "
                                 "are fractions of steps, integers are steps)")
             if k1 > k0:
                 raise UserError(f"train.resolution: the downsample must not grow along the run (coarse to fine), "
                                 f"got {k1} after {k0}")
+        # A stage ending where the one before it ends trains no step (the default's 0.8 and 0.95 in a run of a
+        # few steps): dropped, as is one ending at step 0.
+        self.stages: List[Tuple[int, int]] = []
+        for u, k in pairs:
+            if u > (self.stages[-1][0] if self.stages else 0):
+                self.stages.append((u, k))
         self._cache: Dict[int, TrainView] = {}  # view index -> pooled view, for the current downsample
         self._cache_k = 1
         self._keep_streamed: Dict[int, bool] = {}  # downsample -> whether a streamed run keeps its pooled views
