@@ -275,3 +275,14 @@ def test_streamed_coarse_stages_keep_their_pooled_views_where_they_fit(scene_dir
     pk, pp = dict(kept.model.named_parameters()), dict(pooled.model.named_parameters())
     for name in pk:
         assert torch.equal(pk[name], pp[name]), name
+
+
+def test_the_streamed_plan_counts_only_the_views_a_stage_pools():
+    """A stage keeps its pooled views where they fit the budget; views below the threshold are streamed at full size
+    and do not count. Without the views' sizes nothing is kept."""
+    rs = ResolutionSchedule([(10, 4), (20, 2)], 30, min_pixels=1000, sizes=[(100, 100), (20, 20)])
+    rs.plan_streamed(100, 25 * 25 * 100 / 1e9)  # exactly the large view at 1/4; the 20 x 20 one is not pooled
+    assert rs.keeps_streamed(4) and not rs.keeps_streamed(2)
+    bare = ResolutionSchedule([(10, 4)], 30)
+    bare.plan_streamed(100, 1.0)
+    assert not bare.keeps_streamed(4)

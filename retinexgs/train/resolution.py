@@ -146,16 +146,13 @@ class ResolutionSchedule:
         return k if width * height >= self.min_pixels else 1
 
     def plan_streamed(self, bytes_per_pixel: int, budget_gb: float) -> None:
-        """For streamed views (:attr:`sizes`): keep a stage's pooled views on the device where they fit
-        ``budget_gb`` (10^9 bytes, ``train.views_on_device_gb``) at ``bytes_per_pixel`` (a preloaded view's)."""
-        sizes = self.sizes or []
-        plan = {}
-        for _, k in self.stages:
-            if k > 1:
-                pixels = sum((w // kv) * (h // kv) for w, h in sizes
-                             for kv in [self.view_downsample(w, h, k)] if kv > 1)
-                plan[k] = pixels * bytes_per_pixel <= budget_gb * 1e9
-        self._keep_streamed = plan
+        """For streamed views (:attr:`sizes`; None: keep none): keep a stage's pooled views on the device where they
+        fit ``budget_gb`` (10^9 bytes, ``train.views_on_device_gb``) at ``bytes_per_pixel`` (a preloaded view's)."""
+        if self.sizes is None:  # nothing to size the pooled views by: keep none
+            self._keep_streamed = {}
+            return
+        self._keep_streamed = {k: sum((w // k) * (h // k) for w, h in self.sizes if self.view_downsample(w, h, k) > 1)
+                               * bytes_per_pixel <= budget_gb * 1e9 for _, k in self.stages if k > 1}
 
     def keeps_streamed(self, k: int) -> bool:
         """Whether a streamed run keeps the pooled views of downsample ``k`` (:meth:`plan_streamed`)."""
