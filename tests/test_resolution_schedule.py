@@ -54,11 +54,14 @@ def test_no_schedule_is_full_size_and_returns_the_view_itself():
 
 def test_views_below_the_pixel_threshold_train_at_full_size():
     rs = ResolutionSchedule([(10, 4), (20, 2)], 30, min_pixels=6_000_000)
-    assert rs.view_downsample(4000, 3000, 4) == 4 and rs.view_downsample(4000, 3000, 2) == 2
-    assert rs.view_downsample(3000, 2000, 4) == 4  # 6 MP: on the schedule
-    assert rs.view_downsample(2999, 2000, 4) == 1 and rs.view_downsample(2000, 1500, 2) == 1
-    assert rs.view_downsample(1920, 1080, 4) == 1 and rs.view_downsample(640, 360, 4) == 1
-    assert ResolutionSchedule([(10, 4)], 30).view_downsample(64, 48, 4) == 4  # 0: every view
+    assert rs.on_schedule(4000, 3000) and rs.on_schedule(3000, 2000)  # 6 MP: on the schedule
+    assert not rs.on_schedule(2999, 2000) and not rs.on_schedule(2000, 1500)
+    assert not rs.on_schedule(1920, 1080) and not rs.on_schedule(640, 360)
+    assert ResolutionSchedule([(10, 4)], 30).on_schedule(64, 48)  # 0: every view
+    tv = TrainView(make_camera(45, 37), torch.rand(37, 45, 3))  # 1665 pixels: below a threshold of 1666
+    assert ResolutionSchedule([(10, 2)], 30, min_pixels=1666).view_at(tv, 0, 1) is tv
+    pooled = ResolutionSchedule([(10, 2)], 30, min_pixels=1665).view_at(tv, 0, 1)
+    assert (pooled.camera.width, pooled.camera.height) == (22, 18)
 
 
 def test_the_default_pools_12_megapixel_views_and_leaves_small_ones_at_full_size():

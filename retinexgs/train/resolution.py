@@ -140,10 +140,10 @@ class ResolutionSchedule:
         return cls([(at_step(u, cfg.steps), k) for u, k in cfg.train.resolution], cfg.steps,
                    cfg.train.resolution_min_pixels, sizes)
 
-    def view_downsample(self, width: int, height: int, k: int) -> int:
-        """The downsample a view of ``width`` x ``height`` trains at in a stage of ``k``: k, or 1 (full size) for a
-        view of fewer than ``min_pixels`` pixels."""
-        return k if width * height >= self.min_pixels else 1
+    def on_schedule(self, width: int, height: int) -> bool:
+        """Whether a view of ``width`` x ``height`` trains on the schedule (it has ``min_pixels`` or more); a view
+        that does not trains at full size throughout."""
+        return width * height >= self.min_pixels
 
     def plan_streamed(self, bytes_per_pixel: int, budget_gb: float) -> None:
         """For streamed views (:attr:`sizes`; None: keep none): keep a stage's pooled views on the device where they
@@ -151,27 +151,23 @@ class ResolutionSchedule:
         if self.sizes is None:  # nothing to size the pooled views by: keep none
             self._keep_streamed = {}
             return
-        self._keep_streamed = {k: sum((w // k) * (h // k) for w, h in self.sizes if self.view_downsample(w, h, k) > 1)
-                               * bytes_per_pixel <= budget_gb * 1e9 for _, k in self.stages if k > 1}
+        pixels = {k: sum((w // k) * (h // k) for w, h in self.sizes if self.on_schedule(w, h))
+                  for _, k in self.stages if k > 1}
+        self._keep_streamed = {k: n * bytes_per_pixel <= budget_gb * 1e9 for k, n in pixels.items()}
 
     def keeps_streamed(self, k: int) -> bool:
         """Whether a streamed run keeps the pooled views of downsample ``k`` (:meth:`plan_streamed`)."""
         return self._keep_streamed.get(k, False)
 
-    def _pooled(self, k: int) -> bool:
-        """Whether a stage of ``k`` pools any view (:attr:`sizes` None: any k > 1 does)."""
-        if self.sizes is None:
-            return k > 1
-        return any(self.view_downsample(w, h, k) > 1 for w, h in self.sizes)
-
     @property
     def enabled(self) -> bool:
-        """Whether any step trains a view below full size."""
-        return any(self._pooled(k) for _, k in self.stages)
+        """Whether any step trains a view below full size (:attr:`sizes` None: whether any stage's k > 1)."""
+        return any(k > 1 for _, k in self.stages) and (
+            self.sizes is None or any(self.on_schedule(w, h) for w, h in self.sizes))
 
     def downsample_at(self, step: int) -> int:
         """The stage's k of ``step`` (1-based): the first stage whose ``until`` >= step, else 1 (full size). A view
-        trains at :meth:`view_downsample` of it."""
+        trains at it where it is :meth:`on_schedule`, else at full size."""
         for until, k in self.stages:
             if step <= until:
                 return k
@@ -183,15 +179,12 @@ class ResolutionSchedule:
         if not self.enabled:
             unpooled = any(k > 1 for _, k in self.stages)
             return "resolution: full size throughout" + (f" (every view below {floor})" if unpooled else "")
-        parts = []
-        for u, k in self.stages:
-            ks = sorted({self.view_downsample(w, h, k) for w, h in self.sizes}) if self.sizes else [k]
-            at = " or ".join("full size" if x == 1 else f"1/{x}" for x in ks)
-            parts.append(f"{at} until step {u}")
-        lowered = self.sizes is not None and any(self.view_downsample(w, h, k) < k for w, h in self.sizes
-                                                for _, k in self.stages)
+        # enabled: some view is on the schedule; a mixed scene trains its others at full size throughout
+        mixed = self.sizes is not None and not all(self.on_schedule(w, h) for w, h in self.sizes)
+        parts = [("full size" if k == 1 else ("full size or " if mixed else "") + f"1/{k}") + f" until step {u}"
+                 for u, k in self.stages]
         return ("resolution: " + ", ".join(parts) + ", full size after"
-                + (f" (views below {floor} at full size)" if lowered else ""))
+                + (f" (views below {floor} at full size)" if mixed else ""))
 
     def forget_views(self) -> None:
         """Drop the pooled views kept for the current stage (their full-size views changed)."""
@@ -213,17 +206,16 @@ class ResolutionSchedule:
         pooled: Optional[TrainView] = self._cache.get(index) if keep else None
         if pooled is None:
             full = tv() if callable(tv) else tv
-            kv = self.view_downsample(full.camera.width, full.camera.height, k)
-            if kv == 1:  # below train.resolution_min_pixels: this view trains at full size throughout
-                return full
-            if (index, kv) not in self._checked:
-                W, H = full.camera.width // kv, full.camera.height // kv
+            if not self.on_schedule(full.camera.width, full.camera.height):
+                return full  # below train.resolution_min_pixels: this view trains at full size throughout
+            if (index, k) not in self._checked:
+                W, H = full.camera.width // k, full.camera.height // k
                 if min(W, H) < MIN_SIDE:
-                    raise UserError(f"train.resolution: downsample {kv} makes training view {index} "
+                    raise UserError(f"train.resolution: downsample {k} makes training view {index} "
                                     f"({full.camera.width}x{full.camera.height}) {W}x{H}, below {MIN_SIDE} px a "
                                     "side: use a smaller downsample")
-                self._checked.add((index, kv))
-            pooled = downscale_view(full, kv)
+                self._checked.add((index, k))
+            pooled = downscale_view(full, k)
             if keep:
                 self._cache[index] = pooled
         return pooled
