@@ -93,3 +93,72 @@ def test_cuda_kernels_capture_in_a_graph():
     torch.cuda.synchronize()
     for a, b in zip(eager, grads):
         assert torch.allclose(a, b, rtol=1e-5, atol=1e-6)
+
+
+def _tf32(field, on=True):
+    f = copy.deepcopy(field)
+    f.tf32 = on
+    return f
+
+
+@pytest.mark.parametrize("n", [20000, 1000, 17, 1])
+@pytest.mark.parametrize("shape", SHAPES[:2])
+def test_cuda_tf32_kernels_near_the_float64_field(shape, n):
+    """model.illumination.tf32 (illumination_train_tc.cu): every output and gradient within TF32's rounding of the
+    float64 field, and not the fp32 kernels' numbers (the tensor-core path ran). The products' inputs keep 10
+    mantissa bits (~5e-4 of a value); through five layers and sums of many signed terms the gradients' relative error
+    reaches 1.5-3.5e-2 (H200, 2026-11-30), the output's ~2e-4; a wrong layer or column is off by its whole size.
+    Partial tiles of 16 Gaussians (17, 1) write no column past N."""
+    g = torch.Generator().manual_seed(4)
+    means = torch.randn(n, 3, generator=g, dtype=torch.float64).cuda() * 1.5
+    g_out = torch.randn(n, 3, generator=g, dtype=torch.float64).cuda()
+    center = torch.tensor(CENTER, dtype=torch.float64).cuda()
+    f64 = make_field(shape).cuda()
+    truth = _run(f64, means, center, g_out, _torch)
+    f32 = copy.deepcopy(f64).float()
+    fp32 = _run(f32, means.float(), center.float(), g_out.float(), kernels_apply)
+    tf32 = _run(_tf32(f32), means.float(), center.float(), g_out.float(), kernels_apply)
+    names = ["rgb", "means"] + [name for name, _ in f64.named_parameters()]
+    differs = False
+    for name, t, a, b in zip(names, truth, fp32, tf32):
+        scale = t.norm().clamp_min(1e-12)
+        err = float((b.double() - t).norm() / scale)
+        assert err < (2e-3 if name == "rgb" else 7e-2), (name, err)
+        differs |= not torch.equal(a, b)
+    assert differs
+
+
+@pytest.mark.parametrize("shape", SHAPES[2:])
+def test_cuda_tf32_falls_back_where_widths_are_not_whole_16s(shape):
+    """Widths the tiles cannot take run the fp32 kernels: the same numbers bit for bit."""
+    f32 = make_field(shape).float().cuda()
+    means = torch.randn(2000, 3, device="cuda") * 1.5
+    g_out = torch.randn(2000, 3, device="cuda")
+    center = torch.tensor(CENTER, device="cuda")
+    for a, b in zip(_run(f32, means, center, g_out, kernels_apply),
+                    _run(_tf32(f32), means, center, g_out, kernels_apply)):
+        assert torch.equal(a, b)
+
+
+def test_cuda_tf32_kernels_capture_in_a_graph():
+    """The tensor-core kernels replayed from a CUDA graph give their eager values."""
+    field = _tf32(make_field(SHAPES[0]).float().cuda())
+    means = (torch.randn(5000, 3, device="cuda") * 1.5).requires_grad_(True)
+    center = torch.tensor(CENTER, device="cuda")
+    g_out = torch.randn(5000, 3, device="cuda")
+    params = list(field.parameters())
+    eager = torch.autograd.grad(kernels_apply(field, means, center), [means] + params, g_out)
+    side = torch.cuda.Stream()
+    side.wait_stream(torch.cuda.current_stream())
+    with torch.cuda.stream(side):
+        for _ in range(2):
+            torch.autograd.grad(kernels_apply(field, means, center), [means] + params, g_out)
+    torch.cuda.current_stream().wait_stream(side)
+    graph = torch.cuda.CUDAGraph()
+    with torch.cuda.graph(graph):
+        out = kernels_apply(field, means, center)
+        grads = torch.autograd.grad(out, [means] + params, g_out)
+    graph.replay()
+    torch.cuda.synchronize()
+    for a, b in zip(eager, grads):
+        assert torch.allclose(a, b, rtol=1e-5, atol=1e-6)
