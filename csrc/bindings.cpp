@@ -686,7 +686,7 @@ int64_t illum_columns(int64_t N) { return (N + kIllumChunk - 1) / kIllumChunk * 
 // (rgb [N, 3], A [a_width, illum_columns(N)]): IlluminationField at the centres `means` [N, 3] seen from `center` [3] (a tensor on
 // their device: a graph's static input), and every Linear's input for the backward.
 std::vector<Tensor> illumination_forward(Tensor means, Tensor center, std::vector<int> illum, double bound,
-                                         Tensor weights, bool tf32) {
+                                         Tensor weights) {
     const rgs::IllumConfig cfg = train_illum_config(illum);
     check_illum_inputs(means, center, cfg, bound, weights);
     means = means.contiguous(), center = center.contiguous();
@@ -699,17 +699,9 @@ std::vector<Tensor> illumination_forward(Tensor means, Tensor center, std::vecto
     AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "illumination_forward", [&] {
         if (means.is_cuda()) {
 #ifdef RGS_WITH_CUDA
-            bool done = false;
-            if constexpr (std::is_same_v<scalar_t, float>)
-                done = tf32 && rgs::illumination_forward_tc_cuda(N, means.data_ptr<float>(), center.data_ptr<float>(),
-                                                                 cfg, bound, weights.data_ptr<float>(),
-                                                                 rgb.data_ptr<float>(), A.data_ptr<float>(), ld,
-                                                                 RGS_CUDA_STREAM(means));
-            if (!done)
-                rgs::illumination_forward_cuda<scalar_t>(N, means.data_ptr<scalar_t>(), center.data_ptr<scalar_t>(),
-                                                         cfg, bound, weights.data_ptr<scalar_t>(),
-                                                         rgb.data_ptr<scalar_t>(), A.data_ptr<scalar_t>(), ld,
-                                                         RGS_CUDA_STREAM(means));
+            rgs::illumination_forward_cuda<scalar_t>(N, means.data_ptr<scalar_t>(), center.data_ptr<scalar_t>(), cfg,
+                                                     bound, weights.data_ptr<scalar_t>(), rgb.data_ptr<scalar_t>(),
+                                                     A.data_ptr<scalar_t>(), ld, RGS_CUDA_STREAM(means));
 #else
             no_cuda();
 #endif
@@ -724,7 +716,7 @@ std::vector<Tensor> illumination_forward(Tensor means, Tensor center, std::vecto
 
 // (g_means [N, 3], D [d_width, illum_columns(N)]): the backward of illumination_forward given the gradient g_rgb [N, 3].
 std::vector<Tensor> illumination_backward(Tensor means, Tensor center, std::vector<int> illum, double bound,
-                                          Tensor weights, Tensor A, Tensor rgb, Tensor g_rgb, bool tf32) {
+                                          Tensor weights, Tensor A, Tensor rgb, Tensor g_rgb) {
     const rgs::IllumConfig cfg = train_illum_config(illum);
     check_illum_inputs(means, center, cfg, bound, weights);
     const int64_t N = means.size(0);
@@ -742,19 +734,10 @@ std::vector<Tensor> illumination_backward(Tensor means, Tensor center, std::vect
     AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "illumination_backward", [&] {
         if (means.is_cuda()) {
 #ifdef RGS_WITH_CUDA
-            bool done = false;
-            if constexpr (std::is_same_v<scalar_t, float>)
-                done = tf32 && rgs::illumination_backward_tc_cuda(
-                                   N, means.data_ptr<float>(), center.data_ptr<float>(), cfg, bound,
-                                   weights.data_ptr<float>(), A.data_ptr<float>(), rgb.data_ptr<float>(),
-                                   g_rgb.data_ptr<float>(), D.data_ptr<float>(), g_means.data_ptr<float>(), ld,
-                                   RGS_CUDA_STREAM(means));
-            if (!done)
-                rgs::illumination_backward_cuda<scalar_t>(
-                    N, means.data_ptr<scalar_t>(), center.data_ptr<scalar_t>(), cfg, bound,
-                    weights.data_ptr<scalar_t>(), A.data_ptr<scalar_t>(), rgb.data_ptr<scalar_t>(),
-                    g_rgb.data_ptr<scalar_t>(), D.data_ptr<scalar_t>(), g_means.data_ptr<scalar_t>(), ld,
-                    RGS_CUDA_STREAM(means));
+            rgs::illumination_backward_cuda<scalar_t>(
+                N, means.data_ptr<scalar_t>(), center.data_ptr<scalar_t>(), cfg, bound, weights.data_ptr<scalar_t>(),
+                A.data_ptr<scalar_t>(), rgb.data_ptr<scalar_t>(), g_rgb.data_ptr<scalar_t>(), D.data_ptr<scalar_t>(),
+                g_means.data_ptr<scalar_t>(), ld, RGS_CUDA_STREAM(means));
 #else
             no_cuda();
 #endif
@@ -1189,10 +1172,10 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
           pybind11::arg("bound") = 1.0, pybind11::arg("weights") = pybind11::none());
     m.def("illumination_train_layout", &illumination_train_layout, pybind11::arg("illum"));
     m.def("illumination_forward", &illumination_forward, pybind11::arg("means"), pybind11::arg("center"),
-          pybind11::arg("illum"), pybind11::arg("bound"), pybind11::arg("weights"), pybind11::arg("tf32") = false);
+          pybind11::arg("illum"), pybind11::arg("bound"), pybind11::arg("weights"));
     m.def("illumination_backward", &illumination_backward, pybind11::arg("means"), pybind11::arg("center"),
           pybind11::arg("illum"), pybind11::arg("bound"), pybind11::arg("weights"), pybind11::arg("A"),
-          pybind11::arg("rgb"), pybind11::arg("g_rgb"), pybind11::arg("tf32") = false);
+          pybind11::arg("rgb"), pybind11::arg("g_rgb"));
     m.def("exposure_tone", &exposure_tone, pybind11::arg("image"), pybind11::arg("gain"),
           pybind11::arg("shoulder") = 1.0);
     m.def("tone_curve_forward", &tone_curve_forward, pybind11::arg("x"), pybind11::arg("gain"), pybind11::arg("C"),

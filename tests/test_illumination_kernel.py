@@ -54,7 +54,7 @@ def test_kernels_gradcheck():
     params = []
     for m in [m for m in field.trunk if isinstance(m, torch.nn.Linear)] + [m for m in field.head if isinstance(m, torch.nn.Linear)]:
         params += [m.weight.detach().clone().requires_grad_(True), m.bias.detach().clone().requires_grad_(True)]
-    fn = lambda m, *ps: _IlluminationKernels.apply(shape, field.bound, False, m, center, *ps)  # noqa: E731
+    fn = lambda m, *ps: _IlluminationKernels.apply(shape, field.bound, m, center, *ps)  # noqa: E731
     assert torch.autograd.gradcheck(fn, (means, *params))
 
 

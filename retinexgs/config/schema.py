@@ -258,7 +258,6 @@ class Illumination(Section):
     dir_hidden: Int(1)
     init_value: Num(gt=0)
     view_dependent: Bool
-    tf32: Bool  # the training kernels' products on the GPU's tensor cores (TF32), not fp32 FMAs
 
 
 class EnhancementRaw(Section):

@@ -88,15 +88,12 @@ class IlluminationField(nn.Module):
         bound: positions are divided by this before encoding (see "Input scaling").
         init_value: initial output for every input (sigmoid bias = logit(init_value)).
         view_dependent: False holds the head's direction columns at zero (see the module docstring).
-        tf32: the GPU training kernels (illumination_kernel.py) multiply on the tensor cores in TF32 (a 10-bit
-            mantissa, fp32 sums); torch's forward and the CPU are fp32 whatever it says.
     """
 
     def __init__(self, pos_freqs: int = 10, dir_freqs: int = 4, hidden: int = 64, depth: int = 3,
                  dir_hidden: int = 32, bound: float = 2.0, init_value: float = 0.1,
-                 view_dependent: bool = True, tf32: bool = False) -> None:
+                 view_dependent: bool = True) -> None:
         super().__init__()
-        self.tf32 = bool(tf32)
         if depth < 1:
             raise ValueError("depth must be >= 1")
         if not 0.0 < init_value < 1.0:

@@ -50,15 +50,13 @@ def kernels_unsupported(field: IlluminationField) -> Optional[str]:
 
 class _IlluminationKernels(torch.autograd.Function):
     """IlluminationField(means, view_dirs(means, center)) -> [N,3]; the parameters in :func:`_linears`' order
-    (weight, bias per layer; the head's first weight as the forward uses it, ``head_weight()``). ``tf32``: the
-    products on the tensor cores (float32 on a GPU of sm_80 and up, widths in whole 16s; else the fp32 kernels)."""
+    (weight, bias per layer; the head's first weight as the forward uses it, ``head_weight()``)."""
 
     @staticmethod
-    def forward(ctx, shape: Tuple[int, ...], bound: float, tf32: bool, means: Tensor, center: Tensor,
-                *params: Tensor) -> Tensor:
+    def forward(ctx, shape: Tuple[int, ...], bound: float, means: Tensor, center: Tensor, *params: Tensor) -> Tensor:
         weights = kernels().pack_illum_weights(list(params[0::2]), list(params[1::2]), *shape)
-        rgb, A = kernels().illumination_forward(means, center, list(shape), bound, weights, tf32)
-        ctx.shape, ctx.bound, ctx.tf32 = shape, bound, tf32
+        rgb, A = kernels().illumination_forward(means, center, list(shape), bound, weights)
+        ctx.shape, ctx.bound = shape, bound
         ctx.save_for_backward(means, center, weights, A, rgb)
         return rgb
 
@@ -67,7 +65,7 @@ class _IlluminationKernels(torch.autograd.Function):
     def backward(ctx, g_rgb: Tensor):
         means, center, weights, A, rgb = ctx.saved_tensors
         g_means, D = kernels().illumination_backward(means, center, list(ctx.shape), ctx.bound, weights, A, rgb,
-                                                     g_rgb.contiguous(), ctx.tf32)
+                                                     g_rgb.contiguous())
         ins, outs, a_in, d_out, _ = _layout(ctx.shape)
         chunk = int(kernels().illum_chunk)
         C = A.shape[1] // chunk  # the columns are whole chunks, the padding zero
@@ -79,7 +77,7 @@ class _IlluminationKernels(torch.autograd.Function):
             a = A[a_in[l]:a_in[l] + n_in + 1].view(n_in + 1, C, chunk).permute(1, 2, 0)
             g = torch.bmm(d, a).sum(0)
             grads += [g[:, :n_in], g[:, n_in]]
-        return (None, None, None, g_means if ctx.needs_input_grad[3] else None, None, *grads)
+        return (None, None, g_means if ctx.needs_input_grad[2] else None, None, *grads)
 
 
 def kernels_apply(field: IlluminationField, means: Tensor, center: Tensor) -> Tensor:
@@ -90,7 +88,7 @@ def kernels_apply(field: IlluminationField, means: Tensor, center: Tensor) -> Te
     for i, m in enumerate(linears):
         params += [field.head_weight() if i == len(linears) - 2 else m.weight, m.bias]
     dtype = linears[0].weight.dtype
-    return _IlluminationKernels.apply(tuple(illumination_shape(field)), field.bound, field.tf32, means.to(dtype),
+    return _IlluminationKernels.apply(tuple(illumination_shape(field)), field.bound, means.to(dtype),
                                       center.to(means.device, dtype).reshape(3), *params)
 
 

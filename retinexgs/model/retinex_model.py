@@ -74,8 +74,7 @@ class RetinexGSModel(nn.Module):
             il = model_cfg.illumination
             self.illumination = IlluminationField(pos_freqs=il.pos_freqs, dir_freqs=il.dir_freqs, hidden=il.hidden,
                                                   depth=il.depth, dir_hidden=il.dir_hidden,
-                                                  init_value=il.init_value, view_dependent=il.view_dependent,
-                                                  tf32=il.tf32)
+                                                  init_value=il.init_value, view_dependent=il.view_dependent)
             self._set_enhancement(model_cfg.enhancement)
             self.register_buffer("illum_ref", torch.ones(()))  # L_ref; set by the trainer from the 2D priors
         # model.background "mean": uncovered pixels show [6] channel values (R̂ then L̂) that the trainer sets from

@@ -91,13 +91,6 @@ template <typename T>
 void illumination_backward_cuda(int64_t N, const T* means, const T* center, const IllumConfig& cfg, double bound,
                                 const T* weights, const T* A, const T* rgb, const T* g_rgb, T* D, T* g_means, int64_t ld,
                                 void* stream);
-// The same on the tensor cores in TF32 (float32 only; illumination_train_tc.cu); false, with nothing launched, where
-// that path does not apply (a GPU before sm_80, widths not whole 16s, weights past shared memory).
-bool illumination_forward_tc_cuda(int64_t N, const float* means, const float* center, const IllumConfig& cfg,
-                                  double bound, const float* weights, float* rgb, float* A, int64_t ld, void* stream);
-bool illumination_backward_tc_cuda(int64_t N, const float* means, const float* center, const IllumConfig& cfg,
-                                   double bound, const float* weights, const float* A, const float* rgb,
-                                   const float* g_rgb, float* D, float* g_means, int64_t ld, void* stream);
 
 // Same as exposure_tone_cpu; gain in device memory (the frame graph computes it on the GPU).
 template <typename T>
