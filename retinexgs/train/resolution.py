@@ -10,7 +10,8 @@ Large views only (``train.resolution_min_pixels``): a view of fewer pixels train
 schedule pays where a view is large: on the 12 MP raw scene the default's ``[[0.8, 4], [0.95, 2]]`` scored above
 full size throughout (PSNR +0.28 dB, 2 seeds) at 3.5x the steps/s, while on the same DNGs at 3 MP (half size) even
 1/2 until 95 % lost 0.40 dB (2 seeds), and on fox-dark (0.23 MP) no schedule saved time. The default's 6 MP is the
-geometric middle of the two sizes measured; views of 1920 x 1080 or 2000 x 1500 train exactly as without a schedule
+geometric middle of the two sizes measured (at 6 MP itself the schedule was level on PSNR, 2 seeds); views of
+1920 x 1080 or 2000 x 1500 train exactly as without a schedule
 (experiments/notes/2026-11-30-resolution-large-views.md).
 
 A view downsampled by k (:func:`downscale_view`):
