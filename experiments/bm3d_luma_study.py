@@ -49,12 +49,12 @@ def smoothed_psd(residual: np.ndarray, radius: int = 4) -> np.ndarray:
     return out / (k * k)
 
 
-def run(lin: torch.Tensor, noise: dn.NoiseModel, h_luma: float, bm3d_scale: float) -> Dict[str, torch.Tensor]:
-    """The candidates' linear light for one view ``lin`` [H,W,3]."""
-    bm3d = load_bm3d()
+def stabilised(lin: torch.Tensor, noise: dn.NoiseModel, h_luma: float):
+    """Today's transform of one view ``lin`` [H,W,3]: (its GAT [H,W,3], the luma/chroma split [3,H,W], each
+    channel's measured σ, ``finish(luma)``: the linear light of a luma with today's luma-guided chroma, today's luma
+    NLM at ``h_luma`` σ)."""
     p = dn.DenoiseParams(h_luma=h_luma)
-    x = lin.double()
-    d = dn.gat_forward(x, noise.a, noise.b)
+    d = dn.gat_forward(lin.double(), noise.a, noise.b)
     ycc = torch.einsum("ij,hwj->ihw", dn.YCC.to(d), d)
     sig = [max(1.0, dn._measured_sigma(c)) for c in ycc]
     h, w = ycc.shape[-2:]
@@ -65,7 +65,13 @@ def run(lin: torch.Tensor, noise: dn.NoiseModel, h_luma: float, bm3d_scale: floa
         out = torch.einsum("ij,ihw->hwj", dn.YCC.to(d), torch.cat([luma[None], chroma]))
         return dn.gat_inverse(out, noise.a, noise.b).float()
 
-    luma_today = dn._nlm_any(ycc[0], p.h_luma * sig[0], p, "opencv")
+    return d, ycc, sig, finish, dn._nlm_any(ycc[0], p.h_luma * sig[0], p, "opencv")
+
+
+def run(lin: torch.Tensor, noise: dn.NoiseModel, h_luma: float, bm3d_scale: float) -> Dict[str, torch.Tensor]:
+    """The candidates' linear light for one view ``lin`` [H,W,3]."""
+    bm3d = load_bm3d()
+    _, ycc, sig, finish, luma_today = stabilised(lin, noise, h_luma)
     y0 = ycc[0].numpy()
     luma_bm3d = torch.from_numpy(np.asarray(bm3d.bm3d(y0, sig[0] * bm3d_scale)).reshape(y0.shape)).to(ycc)
     psd = smoothed_psd(y0 - luma_today.numpy()) * bm3d_scale ** 2
@@ -86,23 +92,37 @@ def capture_views(capture: str):
     return views, spec
 
 
-def main(argv: List[str]) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def sampled_views(capture: str, n: int):
+    """(n training views of ``capture``, evenly spaced, each with its linear light as training reads it; the views'
+    noise model), or None with one line on stderr where the noise cannot be measured."""
+    opened = capture_views(capture)
+    if opened is None:
+        return None
+    views, spec = opened
+    step = max(1, len(views) // n)
+    return [(v, srgb_to_linear_extended(v.load_target().float())) for v in views[::step][:n]], spec.noise
+
+
+def study_parser(doc: str) -> argparse.ArgumentParser:
+    """The single-view studies' arguments: the capture, how many views, today's luma strength."""
+    ap = argparse.ArgumentParser(description=doc.splitlines()[0])
     ap.add_argument("capture")
     ap.add_argument("--views", type=int, default=4)
     ap.add_argument("--h-luma", type=float, default=0.8)
+    return ap
+
+
+def main(argv: List[str]) -> int:
+    ap = study_parser(__doc__)
     ap.add_argument("--bm3d-scale", type=float, default=1.0)
     args = ap.parse_args(argv)
-    opened = capture_views(args.capture)
-    if opened is None:
+    sampled = sampled_views(args.capture, args.views)
+    if sampled is None:
         return 2
-    views, spec = opened
-    step = max(1, len(views) // args.views)
     rows: Dict[str, List[tuple]] = {}
-    for view in views[::step][:args.views]:
+    for view, y in sampled[0]:
         truth = view.paired_image
-        y = srgb_to_linear_extended(view.load_target().float())
-        for name, lin in run(y, spec.noise, args.h_luma, args.bm3d_scale).items():
+        for name, lin in run(y, sampled[1], args.h_luma, args.bm3d_scale).items():
             img = gt_mean_align(exposed_srgb(lin), truth).float()
             rows.setdefault(name, []).append((psnr(img, truth), ssim_metric(img, truth)))
         print(view.name, {k: f"{v[-1][0]:.2f}/{v[-1][1]:.3f}" for k, v in rows.items()}, flush=True)
