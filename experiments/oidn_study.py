@@ -5,12 +5,14 @@ Every classical denoiser tried on fox-dark at 1000 e⁻ lost the detail the fit 
 experiments/notes/2026-11-30-bm3d-luma.md); priors from the noise-free capture lift the trained SSIM from 0.74 to
 0.88 (r-prior-chroma §4-5). OIDN is a U-Net trained on rendering noise and shipped with its weights (`pip install
 pyoidn`: MIT binding, OIDN Apache-2.0, CPU and CUDA devices). Its premise, measured on single views as
-bm3d_luma_study.py does: each of the first ``--views`` training views of a capture through
+bm3d_luma_study.py does: ``--views`` training views of a capture, evenly spaced, through
 
 - ``today``: ``decomposer.denoise``'s ``chroma`` at ``--h-luma``;
 - ``oidn``: OIDN (HDR, quality high) on the view's linear light;
 - ``oidn-gat``: OIDN (LDR) on the variance-stabilised view (GAT at the measured noise), scaled into [0, 1], inverted;
 - ``oidn+chroma``: OIDN's luma, today's luma-guided chroma filter (in the GAT domain);
+- ``oidn-binK``: OIDN (HDR) on the view's K×K means (K = 2, 3, 4: a whiter noise), bilinearly upsampled;
+- ``oidn-albedo``: OIDN (HDR) given today's denoised view as a clean albedo (``clean_aux``);
 
 scored against the view's normal-light truth (exposed to a mean luma of 0.18, sRGB, GT-mean aligned): PSNR / SSIM /
 chroma_noise. A measurement; never a dependency of the package unless it wins.
@@ -20,19 +22,24 @@ chroma_noise. A measurement; never a dependency of the package unless it wins.
 from __future__ import annotations
 
 import sys
-from typing import Dict, List
+from typing import Dict, List, Optional
 
 import torch
+import torch.nn.functional as F
 
 from bm3d_luma_study import sampled_views, stabilised, study_parser
 from pilot_wiener_study import print_means, score
 from retinexgs.retinex import denoise as dn
 
 
-def oidn(rgb: torch.Tensor, hdr: bool) -> torch.Tensor:
-    """OIDN's RT filter on ``rgb`` [H,W,3] (float32, CPU)."""
-    import pyoidn
-    return pyoidn.denoise(rgb.float().contiguous(), hdr=hdr, quality="high").to(rgb)
+def oidn(rgb: torch.Tensor, hdr: bool, albedo: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """OIDN's RT filter on ``rgb`` [H,W,3] (float32, CPU); ``albedo``: a clean one in [0, 1]."""
+    try:
+        import pyoidn
+    except ImportError:
+        raise SystemExit("this study needs pyoidn (pip install pyoidn; Apache-2.0, an 88 MB wheel)") from None
+    aux = None if albedo is None else albedo.float().contiguous()
+    return pyoidn.denoise(rgb.float().contiguous(), aux, hdr=hdr, clean_aux=aux is not None, quality="high").to(rgb)
 
 
 def run(lin: torch.Tensor, noise: dn.NoiseModel, h_luma: float) -> Dict[str, torch.Tensor]:
@@ -46,6 +53,13 @@ def run(lin: torch.Tensor, noise: dn.NoiseModel, h_luma: float) -> Dict[str, tor
     g = oidn(((d - lo) / (hi - lo)).clamp(0, 1), hdr=False).double() * (hi - lo) + lo
     out["oidn-gat"] = dn.gat_inverse(g, noise.a, noise.b).float()
     out["oidn+chroma"] = finish(torch.einsum("ij,hwj->ihw", dn.YCC.to(g), g)[0])
+    hdr = (x / scale).clamp_min(0).permute(2, 0, 1)[None]
+    for k in (2, 3, 4):
+        small = oidn(F.avg_pool2d(hdr, k)[0].permute(1, 2, 0), hdr=True).permute(2, 0, 1)[None]
+        up = F.interpolate(small, size=x.shape[:2], mode="bilinear", align_corners=False)
+        out[f"oidn-bin{k}"] = up[0].permute(1, 2, 0) * scale
+    clean = out["today"].double().clamp_min(0) / scale
+    out["oidn-albedo"] = oidn(hdr[0].permute(1, 2, 0), hdr=True, albedo=(clean / clean.max()).clamp(0, 1)) * scale
     return out
 
 
