@@ -115,38 +115,6 @@ def test_term_names_that_change_between_checks_are_kept_apart(tmp_path):
     assert diverged(watch, 5).startswith("loss term total became non-finite at step 2; ")
 
 
-def every_4th(step):  # loss.enhance_every 4: the enhancement's term on every 4th step only (two keys interleaved)
-    return ("rgb", "enhance", "total") if step % 4 == 0 else ("rgb", "total")
-
-
-@pytest.mark.parametrize("bad", [(13, "rgb"), (14, "total"), (16, "enhance"), (15, "rgb")])
-def test_interleaved_keys_name_the_step_itself(tmp_path, bad):
-    # A key's rows are not consecutive steps: the step of each row is the one it was watched at.
-    model = Tiny()
-    watch = DivergenceWatch(model, tmp_path, 0)
-    run_steps(watch, model, range(1, 20), bad_term=bad, names=every_4th)
-    assert diverged(watch, 19).startswith(f"loss term {bad[1]} became non-finite at step {bad[0]}; ")
-    model = Tiny()
-    watch = DivergenceWatch(model, tmp_path, 0)
-    run_steps(watch, model, range(1, 20), bad_param=(10, model.net[2].bias), names=every_4th)
-    assert diverged(watch, 19).startswith("network parameter net.2.bias became non-finite at step 10; ")
-
-
-def test_a_term_the_last_step_lacks_comes_from_the_latest_step_that_had_it(tmp_path):
-    model = Tiny()
-    watch = DivergenceWatch(model, tmp_path, 0)
-    run_steps(watch, model, range(1, 11), names=every_4th)  # enhance at 4 and 8, the check at 10
-    values = watch.check(10)
-    assert set(values) == {"rgb", "enhance", "total"}
-    at_8 = terms_of(model, 8, names=every_4th(8))
-    assert values["enhance"] == pytest.approx(float(at_8["enhance"].detach()))
-    at_10 = terms_of(model, 10, names=every_4th(10))
-    assert values["rgb"] == pytest.approx(float(at_10["rgb"].detach()))
-    assert values["total"] == pytest.approx(float(at_10["total"].detach()))
-    run_steps(watch, model, range(11, 12), names=every_4th)  # no enhancement step since the last check
-    assert set(watch.check(11)) == {"rgb", "total"}
-
-
 def test_terms_of_other_dtypes_are_watched(tmp_path):
     model = Tiny()
     watch = DivergenceWatch(model, tmp_path, 0)

@@ -27,14 +27,13 @@ def events(sched, steps):
     }
 
 
-def old_events(steps, start, stop, every, reset, enhance_from, sh_degree, sh_every, enhance_every=1):
-    """The schedule as the trainer computed it before issue 15 (absolute steps), formula for formula; since issue
-    65 the enhancement losses only on multiples of ``enhance_every`` (loss.enhance_every)."""
+def old_events(steps, start, stop, every, reset, enhance_from, sh_degree, sh_every):
+    """The schedule as the trainer computed it before issue 15 (absolute steps), formula for formula."""
     return {
         "densify": [s for s in range(1, steps + 1) if start < s <= stop and s % every == 0],
         "reset": [s for s in range(1, steps + 1) if reset and s % reset == 0 and s <= stop],
         "prune_large": [s for s in range(1, steps + 1) if reset and s > reset],
-        "enhance": [s for s in range(1, steps + 1) if s >= enhance_from and s % enhance_every == 0],
+        "enhance": [s for s in range(1, steps + 1) if s >= enhance_from],
         "sh": [min(sh_degree, s // max(sh_every, 1)) for s in range(0, steps + 1)],
     }
 
@@ -44,17 +43,14 @@ def test_default_schedule_at_10k_steps_is_unchanged():
     (densify 500..5000 every 100, opacity reset at 3000, enhancement from 3000, SH degree +1 every 1000)."""
     cfg = load_config()
     assert cfg.steps == 10000
-    assert events(build_schedule(cfg), 10000) == old_events(10000, 500, 5000, 100, 3000, 3000, 3, 1000, 4)
+    assert events(build_schedule(cfg), 10000) == old_events(10000, 500, 5000, 100, 3000, 3000, 3, 1000)
     assert build_schedule(cfg).resets() == [3000]
-    every_step = load_config(overrides=["loss.enhance_every=1"])
-    assert events(build_schedule(every_step), 10000) == old_events(10000, 500, 5000, 100, 3000, 3000, 3, 1000)
 
 
 def test_demo_schedule_at_1500_steps_is_unchanged():
     cfg = load_config(["demo"])
     assert cfg.steps == 1500
-    assert events(build_schedule(cfg), 1500) == old_events(1500, 200, 1000, 100, 100000, 450, 1, 500,
-                                                           cfg.loss.enhance_every)
+    assert events(build_schedule(cfg), 1500) == old_events(1500, 200, 1000, 100, 100000, 450, 1, 500)
 
 
 @pytest.mark.parametrize("steps", [50, 300, 3000, 7000, 25000])
@@ -165,7 +161,7 @@ def test_the_check_catches_a_reset_on_the_last_step(small_scene, tmp_path, one_t
 
 def test_steps_unchanged_counts_to_the_next_densification_or_degree():
     s = Schedule(steps=2000, densify_start=100, densify_stop=1000, densify_every=20, reset_every=600,
-                 enhance_from=600, enhance_every=1, sh_degree=3, sh_degree_every=200)
+                 enhance_from=600, sh_degree=3, sh_degree_every=200)
 
     def brute(step):  # the steps from ``step`` rendering its degree and Gaussians, walked one by one
         n, degree = 0, s.sh_degree_at(step)

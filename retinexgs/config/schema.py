@@ -334,7 +334,6 @@ class Loss(Section):
     enhance_scale_invariant: Bool
     sh_reduction: Choice("mean", "sum")
     enhance_from: Step
-    enhance_every: Int(1)
     enhance_trains_scene: Bool
     rec_domain: Choice("photo", "exposed", "exposed_ssim")
     rec_noise_floor: Bool

@@ -45,7 +45,6 @@ class Schedule:
     densify_every: int
     reset_every: int        # opacity reset at multiples of this up to densify_stop; 0 = never
     enhance_from: int
-    enhance_every: int      # the enhancement losses on the steps >= enhance_from that are multiples of this
     sh_degree: int
     sh_degree_every: int
 
@@ -60,8 +59,7 @@ class Schedule:
         return bool(self.reset_every) and step > self.reset_every
 
     def enhance_at(self, step: int) -> bool:
-        # Multiples of enhance_every, not counted from enhance_from: the log's steps (multiples of 25 or 100) see them.
-        return step >= self.enhance_from and step % self.enhance_every == 0
+        return step >= self.enhance_from
 
     def sh_degree_at(self, step: int) -> int:
         return min(self.sh_degree, step // self.sh_degree_every)
@@ -91,8 +89,6 @@ class Schedule:
         resets = self.resets()
         enhance = (f"from step {self.enhance_from}" if self.enhance_from <= self.steps else
                    f"from step {self.enhance_from}, after the last step (not in this run)")
-        if self.enhance_every > 1:
-            enhance += f" on every {self.enhance_every}th step"
         return (f"schedule for {self.steps} steps: {dens}; opacity reset at "
                 f"{', '.join(map(str, resets)) if resets else 'no step'}; enhancement losses {enhance}; "
                 f"SH degree +1 every {self.sh_degree_every} steps")
@@ -106,7 +102,7 @@ def build_schedule(cfg: Config) -> Schedule:
     stop = min(at_step(d.stop, steps), at_step(d.last_event, steps))
     return Schedule(steps=steps, densify_start=start, densify_stop=stop, densify_every=interval(d.every, steps),
                     reset_every=interval(d.reset_opacity_every, steps),
-                    enhance_from=at_step(cfg.loss.enhance_from, steps), enhance_every=int(cfg.loss.enhance_every),
+                    enhance_from=at_step(cfg.loss.enhance_from, steps),
                     sh_degree=int(cfg.model.sh_degree),
                     sh_degree_every=max(1, interval(cfg.model.sh_degree_every, steps)))
 

@@ -30,9 +30,7 @@ class DivergenceWatch:
         # per key (term names, parameter names): a float32 (rows, terms + parameters) buffer on the device and
         # its rows as views (made once per buffer, so writing a row dispatches no indexing op)
         self._buffers: Dict[tuple, Tuple[Tensor, Tuple[Tensor, ...]]] = {}
-        # per key since the last check: the step of each row filled (a key's steps need not be consecutive: the
-        # enhancement losses' terms come on every loss.enhance_every-th step only)
-        self._pending: Dict[tuple, List[int]] = {}
+        self._pending: Dict[tuple, List[int]] = {}  # per key since the last check: [first step, rows filled]
         # the last step's (term names, its buffer row: the terms come first)
         self._last_terms: Optional[Tuple[Tuple[str, ...], Tensor]] = None
         self.checked_through = step  # every step up to this one is known finite
@@ -45,14 +43,16 @@ class DivergenceWatch:
         full is first copied into one twice its size: rare)."""
         params = list(self.model.named_parameters())
         key = (tuple(terms), tuple(name for name, _ in params))
-        steps = self._pending.setdefault(key, [])
+        entry = self._pending.get(key)
+        if entry is None:
+            entry = self._pending[key] = [step, 0]
         with torch.no_grad():  # no autograd graph, and no detach op per tensor
             norms = torch._foreach_norm([p for _, p in params])
             values = [t if t.dtype == torch.float32 else t.float() for t in terms.values()] + \
                 [n if n.dtype == torch.float32 else n.float() for n in norms]
-            row = self._row(key, len(steps), len(values), values[0].device)
+            row = self._row(key, entry[1], len(values), values[0].device)
             torch.stack(values, out=row)
-        steps.append(step)
+        entry[1] += 1
         self._last_terms = (key[0], row)
 
     def _row(self, key: tuple, index: int, width: int, device: torch.device) -> Tensor:
@@ -70,32 +70,30 @@ class DivergenceWatch:
 
     def check(self, step: int) -> Dict[str, float]:
         """Raise :class:`TrainingDiverged` naming the first loss term or parameter that became non-finite at any
-        step since the last check (and the step); returns the loss values (below). One host sync for all
+        step since the last check (and the step); returns the last step's loss values. One host sync for all
         of it (training is launch-bound: syncs stall the GPU queue), so the trainer runs it on logging,
         checkpoint and density steps only, and before writing a checkpoint: the last checkpoint on disk is
         always a good one. The first non-finite row of each column of the buffers is found on the host. In
         between a non-finite parameter does no harm: the renderer culls Gaussians with non-finite geometry, and
-        NaN/inf never turn finite again under Adam. The values are every term's latest: a term the last step lacks
-        comes from the latest step since the last check that had it."""
+        NaN/inf never turn finite again under Adam."""
         params = list(self.model.named_parameters())
-        pending = [(key, steps) for key, steps in self._pending.items() if steps]
+        pending = [(key, first, rows) for key, (first, rows) in self._pending.items() if rows > 0]
         with torch.no_grad():
             norms = torch._foreach_norm([p for _, p in params])  # as updated by this step
             names, last = self._last_terms if self._last_terms is not None else ((), None)
             parts = ([last[:len(names)]] if last is not None else []) + \
-                [self._buffers[key][0][:len(steps)].reshape(-1) for key, steps in pending] + \
+                [self._buffers[key][0][:rows].reshape(-1) for key, _, rows in pending] + \
                 [torch.stack(norms).float()]
             flat = torch.cat(parts).tolist()
-        latest: List[Tuple[int, Tuple[str, ...], List[float]]] = []  # per key: its last row's step, names, terms
+        values = dict(zip(names, flat[:len(names)]))
         pos = len(names)
         # (step, 0 for a loss term / 1 for a parameter, position, name): a step's loss comes before its update;
         # within a step the log's order decides (the terms before their total).
         bad: List[Tuple[int, int, int, str]] = []
-        for (term_names, param_names), steps in pending:
-            rows, width = len(steps), len(term_names) + len(param_names)
+        for (term_names, param_names), first, rows in pending:
+            width = len(term_names) + len(param_names)
             block = flat[pos:pos + rows * width]  # row-major: one row per watched step
             pos += len(block)
-            latest.append((steps[-1], term_names, block[(rows - 1) * width:(rows - 1) * width + len(term_names)]))
             if math.isfinite(sum(block)):  # float32 values: a sum of finite ones cannot overflow a double
                 continue
             for i, name in enumerate(term_names + param_names):
@@ -103,15 +101,9 @@ class DivergenceWatch:
                 if r is None:
                     continue
                 if i < len(term_names):
-                    bad.append((steps[r], 0, i, name))
-                else:  # seen non-finite before the update of step steps[r]: made so by the one before
-                    bad.append((steps[r] - 1, 1, i - len(term_names), name))
-        # Every term's latest value: the last step's terms, and those it lacks (the enhancement losses' on steps
-        # off loss.enhance_every) from the latest step that had them.
-        values: Dict[str, float] = {}
-        for _, term_names, row in sorted(latest, key=lambda entry: entry[0]):
-            values.update(zip(term_names, row))
-        values.update(zip(names, flat[:len(names)]))
+                    bad.append((first + r, 0, i, name))
+                else:  # seen non-finite before the update of step first + r: made so by the one before
+                    bad.append((first + r - 1, 1, i - len(term_names), name))
         for i, ((name, _), norm) in enumerate(zip(params, flat[pos:])):
             if not math.isfinite(norm):
                 bad.append((step, 1, i, name))
