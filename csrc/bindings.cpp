@@ -12,6 +12,7 @@
 #include <vector>
 
 #include "rgs/adam.h"
+#include "rgs/enhance_loss.h"
 #include "rgs/gaussian_colors.h"
 #include "rgs/illumination_train.h"
 #include "rgs/kernels.h"
@@ -899,6 +900,48 @@ std::tuple<Tensor, Tensor> tone_curve_backward(Tensor x, Tensor gain, Tensor gra
     return {grad_x, grad_k};
 }
 
+// L_enhance of the default configuration with its gradient in the gain (rgs/enhance_loss.h): x = R̂∘L̂ and s [H, W, 3]
+// (H, W >= pool), gain [3], E [1], one float dtype and device. Returns [12]: (spa, exp, col), then d(term)/d(gain_c)
+// term by term.
+Tensor enhance_loss(Tensor x, Tensor s, Tensor gain, Tensor E, int64_t pool, double knee, int form_in, int form_out,
+                    bool exp_l1, bool scale_invariant) {
+    check_float(x, "x");
+    RGS_CHECK_VALUE(x.dim() == 3 && x.size(2) == 3, "x must have shape (H, W, 3), got ", x.sizes());
+    const int64_t H = x.size(0), W = x.size(1);
+    check_tensor(s, "s", {H, W, 3}, x);
+    check_tensor(gain, "gain", {3}, x);
+    check_tensor(E, "E", {1}, x);
+    RGS_CHECK_VALUE(pool >= 1 && H >= pool && W >= pool, "enhance_loss needs 1 <= pool <= H, W, got pool ", pool,
+                    " for ", H, "x", W);
+    RGS_CHECK_VALUE(form_in >= 0 && form_in <= 2 && form_out >= 0 && form_out <= 3,
+                    "enhance_loss forms must be 0 (clip), 1 (open) or 2 (extended), the output's also 3 (linear), got ",
+                    form_in, " and ", form_out);
+    x = x.contiguous(), s = s.contiguous(), gain = gain.contiguous(), E = E.contiguous();
+    const int64_t cells_n = ((H + pool - 1) / pool) * ((W + pool - 1) / pool);
+    Tensor cells = torch::empty({cells_n, rgs::kEnhanceCellValues}, x.options());
+    Tensor out = torch::empty({rgs::kEnhanceOut}, x.options());
+    RGS_DEVICE_GUARD(x);
+    AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "enhance_loss", [&] {
+        if (x.is_cuda()) {
+#ifdef RGS_WITH_CUDA
+            Tensor d = torch::empty({std::max<int64_t>(1, (H / pool) * (W / pool))}, x.options().dtype(torch::kFloat64));
+            rgs::enhance_loss_cuda<scalar_t>(x.data_ptr<scalar_t>(), s.data_ptr<scalar_t>(), H, W, int(pool),
+                                             gain.data_ptr<scalar_t>(), knee, form_in, form_out, E.data_ptr<scalar_t>(),
+                                             exp_l1, scale_invariant, cells.data_ptr<scalar_t>(), d.data_ptr<double>(),
+                                             out.data_ptr<scalar_t>(), RGS_CUDA_STREAM(x));
+#else
+            no_cuda();
+#endif
+        } else {
+            rgs::enhance_loss_cpu<scalar_t>(x.data_ptr<scalar_t>(), s.data_ptr<scalar_t>(), H, W, int(pool),
+                                            gain.data_ptr<scalar_t>(), knee, form_in, form_out, E.data_ptr<scalar_t>(),
+                                            exp_l1, scale_invariant, cells.data_ptr<scalar_t>(),
+                                            out.data_ptr<scalar_t>(), num_threads());
+        }
+    });
+    return out;
+}
+
 // The training loss's supervision, L_TV and depth prior in one pass each way (rgs/supervision.h). image [H, W, 6|8],
 // packed [H, W, 7|9] (8 and 9 together: the depth prior), one float dtype and device; the gains [1], noise a, b [3]
 // and confidence [H, W] optional, on that device. Returns (x9, y9 [9, H, W], partials [rows, kSums]).
@@ -1183,6 +1226,9 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("tone_curve_backward", &tone_curve_backward, pybind11::arg("x"), pybind11::arg("gain"),
           pybind11::arg("grad_out"), pybind11::arg("C"), pybind11::arg("inner"), pybind11::arg("knee"),
           pybind11::arg("form_in"), pybind11::arg("form_out"), pybind11::arg("need_x"), pybind11::arg("need_gain"));
+    m.def("enhance_loss", &enhance_loss, pybind11::arg("x"), pybind11::arg("s"), pybind11::arg("gain"),
+          pybind11::arg("E"), pybind11::arg("pool"), pybind11::arg("knee"), pybind11::arg("form_in"),
+          pybind11::arg("form_out"), pybind11::arg("exp_l1"), pybind11::arg("scale_invariant"));
     m.def("adam_step", &adam_step, pybind11::arg("params"), pybind11::arg("grads"), pybind11::arg("exp_avgs"),
           pybind11::arg("exp_avg_sqs"), pybind11::arg("beta1"), pybind11::arg("beta2"), pybind11::arg("eps"),
           pybind11::arg("step_size"), pybind11::arg("bc2_sqrt"));

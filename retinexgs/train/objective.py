@@ -23,7 +23,7 @@ from retinexgs.model.tones import fused_curve
 from retinexgs.model.tones.exposure import reference_gain
 from retinexgs.config.schema import Config, Loss
 from retinexgs.strategy import Strategy
-from retinexgs.train import fused_loss, losses
+from retinexgs.train import fused_enhance, fused_loss, losses
 from retinexgs.train.capture_setup import NoiseSetUp
 from retinexgs.train.graphs import LossGraphs
 from retinexgs.train.losses import to_bchw
@@ -41,6 +41,8 @@ def enhancement_objective(model: RetinexGSModel, c: Loss, R_img: Tensor, L_img: 
         # The paper trains the EnhancementNet alone with L_enhance: without this the exposure term would
         # flatten R̂ and L̂ towards E instead of adjusting the gamma.
         R_img, L_img = R_img.detach(), L_img.detach()
+    if fused_enhance.applies(model, c, R_img):  # the default on the GPU: two kernels for the terms and their gradient
+        return fused_enhance.enhancement_terms(model, c, R_img, L_img, S_b)
     out = model.enhance(R_img, L_img)
     light = to_bchw(out["L_enh"]) if c.exp_on == "illumination" else None
     E = losses.exposure_target(c, model.tone, R_img * L_img, model.shoulder)

@@ -188,6 +188,13 @@ template <typename T>
 void tone_curve_backward_cpu(int64_t n, const T* x, const T* gain, int64_t C, int64_t inner, double knee, int form_in,
                              int form_out, const T* grad_out, T* grad_x, T* grad_k, int num_threads);
 
+// ---- L_enhance of the default configuration (rgs/enhance_loss.h) ---------------------------------------------
+// x = R̂∘L̂ and s (the view L_spa compares with) [H, W, 3], gain [3], E [1]; H, W >= pool. cells: scratch
+// [ceil(H/pool)·ceil(W/pool), kEnhanceCellValues]; out [kEnhanceOut]: (spa, exp, col), then d(term)/d(gain_c).
+template <typename T>
+void enhance_loss_cpu(const T* x, const T* s, int64_t H, int64_t W, int pool, const T* gain, double knee, int form_in,
+                      int form_out, const T* E, bool exp_l1, bool scale_invariant, T* cells, T* out, int num_threads);
+
 // ---- the training loss's supervision, L_TV and depth prior (rgs/supervision.h) -------------------------------
 // x9, y9: [9, H, W] out (the SSIM's stacks); partials: [rows, kSums] out, row r the sums over pixels
 // [r·HW/rows, (r+1)·HW/rows) (the caller adds the rows).

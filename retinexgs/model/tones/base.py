@@ -31,6 +31,9 @@ class Tone:
         meter_applies: ``loss.exp_highlight_share`` (the highlight-protecting exposure meter) caps the exposure
             target of this tone (the meter reads the light as a gain would expose it).
         needs_reference: the tone needs ``model.enhancement.ref_quantile`` (an L_ref below 1).
+        gain_curve: S_enh is the training tone curve of R̂∘L̂ at the gain :meth:`fused_gain`, clipped in and out
+            (:func:`~retinexgs.model.tones.fused_curve.tone_curve`): L_enhance then runs as two kernels
+            (:mod:`retinexgs.train.fused_enhance`).
     """
 
     name: ClassVar[str] = ""
@@ -38,6 +41,7 @@ class Tone:
     fused_kernel: ClassVar[Optional[str]] = None
     meter_applies: ClassVar[bool] = False
     needs_reference: ClassVar[bool] = False
+    gain_curve: ClassVar[bool] = False
 
     def __eq__(self, other: object) -> bool:
         # A tone compared with a name is a check this registry replaces (``model.tone == "exposure"`` would now be

@@ -93,6 +93,7 @@ class ExposureTone(Tone):
     fused_kernel = "exposure_tone"
     meter_applies = True
     needs_reference = True
+    gain_curve = True  # map is tone_curve(R * L, exposure_gain(g), shoulder)
 
     def map(self, R: Tensor, L: Tensor, illum_ref: Tensor, gamma: Tensor, eps: float = 1e-3,
             shoulder: float = 1.0) -> Tuple[Tensor, Tensor]:
