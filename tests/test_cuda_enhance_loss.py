@@ -34,11 +34,12 @@ def test_cuda_is_deterministic_and_captures_in_a_graph():
     k = torch.tensor([3.0, 4.0, 5.0], device="cuda", requires_grad=True)
     first = [kernels().enhance_loss(x, s, k.detach(), E, 4, 0.5, 0, 0, False, True) for _ in range(3)]
     assert all(torch.equal(first[0], f) for f in first[1:])
+    weights = torch.tensor([0.1, 1.0, 0.5], device="cuda")
     out = {}
 
     def step():
         terms = enhance_loss(x, s, k, E, 0.5)
-        out["grad"], = torch.autograd.grad((terms * torch.tensor([0.1, 1.0, 0.5], device="cuda")).sum(), k)
+        out["grad"], = torch.autograd.grad((terms * weights).sum(), k)
         out["terms"] = terms.detach()
 
     side = torch.cuda.Stream()
