@@ -4,7 +4,6 @@ differences), the objective's terms and the EnhancementNet's gradients unchanged
 import pytest
 import torch
 
-from retinexgs.errors import UserError  # noqa: F401 (the kernels' checks raise ValueError, named below)
 from retinexgs.model.tones import fused_curve
 from retinexgs.model.tones.fused_curve import tone_curve_reference
 from retinexgs.render._backend import kernels

@@ -80,7 +80,7 @@ def enhancement_terms(model, c: Loss, R_img: Tensor, L_img: Tensor, S_b: Tensor
     k = model.tone.fused_gain(model.illum_ref, g)
     RL = R_img * L_img
     E = losses.exposure_target(c, model.tone, RL, model.shoulder)
-    E_t: Optional[Tensor] = E.detach() if torch.is_tensor(E) else RL.new_full((1,), float(E))
+    E_t = E.detach().reshape(1) if torch.is_tensor(E) else RL.new_full((1,), float(E))
     values = enhance_loss(RL, S_b[0].permute(1, 2, 0), k, E_t, float(model.shoulder), c.exp_form == "l1",
                           bool(c.enhance_scale_invariant))
     terms: Dict[str, Tensor] = dict(zip(("spa", "exp", "col"), values.unbind()))
@@ -88,6 +88,5 @@ def enhancement_terms(model, c: Loss, R_img: Tensor, L_img: Tensor, S_b: Tensor
     for name, weight in (("spa", c.w_spa), ("exp", c.w_exp), ("col", c.w_col)):
         if weight:
             total = weight * terms[name] if total is None else total + weight * terms[name]
-    terms["exp_E"] = E_t.detach().float().reshape(()) if torch.is_tensor(E) else torch.full(
-        (), float(E), device=R_img.device)
+    terms["exp_E"] = E_t.float().reshape(())  # logged, not a loss (as enhancement_objective's)
     return (RL.new_zeros(()) if total is None else total), terms
