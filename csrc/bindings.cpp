@@ -924,11 +924,12 @@ Tensor enhance_loss(Tensor x, Tensor s, Tensor gain, Tensor E, int64_t pool, dou
     AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "enhance_loss", [&] {
         if (x.is_cuda()) {
 #ifdef RGS_WITH_CUDA
-            Tensor d = torch::empty({std::max<int64_t>(1, (H / pool) * (W / pool))}, x.options().dtype(torch::kFloat64));
+            Tensor scratch = torch::empty({rgs::enhance_scratch_cuda(H, W, int(pool))},
+                                          x.options().dtype(torch::kFloat64));
             rgs::enhance_loss_cuda<scalar_t>(x.data_ptr<scalar_t>(), s.data_ptr<scalar_t>(), H, W, int(pool),
                                              gain.data_ptr<scalar_t>(), knee, form_in, form_out, E.data_ptr<scalar_t>(),
-                                             exp_l1, scale_invariant, cells.data_ptr<scalar_t>(), d.data_ptr<double>(),
-                                             out.data_ptr<scalar_t>(), RGS_CUDA_STREAM(x));
+                                             exp_l1, scale_invariant, cells.data_ptr<scalar_t>(),
+                                             scratch.data_ptr<double>(), out.data_ptr<scalar_t>(), RGS_CUDA_STREAM(x));
 #else
             no_cuda();
 #endif

@@ -1,4 +1,4 @@
-"""L_enhance's two kernels on the GPU against the CPU's (rgs/enhance_loss.h), deterministic and graph-capturable (run
+"""L_enhance's kernels on the GPU against the CPU's (rgs/enhance_loss.h), deterministic and graph-capturable (run
 on a GPU machine; skipped cleanly where there is none)."""
 import pytest
 import torch
@@ -25,6 +25,18 @@ def test_cuda_matches_cpu(dtype, H, W, scale_invariant, exp_l1):
     # --use_fast_math's powf/expf
     tol = 1e-11 if dtype == torch.float64 else 2e-4
     torch.testing.assert_close(gpu.cpu(), cpu, rtol=tol, atol=tol * float(cpu.abs().max()))
+
+
+@pytest.mark.parametrize("pool,H,W", [(3, 97, 130), (5, 64, 81), (7, 50, 50), (260, 530, 600), (4, 3000, 4000)])
+def test_cuda_matches_cpu_any_pool_and_at_12_mp(pool, H, W):
+    """Cells of rows that do not fill a warp (pool 3, 5, 7), taller than a block (pool 260: a thread takes every
+    256th row) and a 12 MP view (750k cells, thousands of blocks in each pass)."""
+    x, s = scene(H, W, torch.float64)
+    k = torch.tensor([3.0, 4.5, 6.0], dtype=torch.float64)
+    E = torch.tensor([0.45], dtype=torch.float64)
+    cpu = kernels().enhance_loss(x, s, k, E, pool, 0.5, 0, 0, False, True)
+    gpu = kernels().enhance_loss(x.cuda(), s.cuda(), k.cuda(), E.cuda(), pool, 0.5, 0, 0, False, True)
+    torch.testing.assert_close(gpu.cpu(), cpu, rtol=1e-10, atol=1e-10 * float(cpu.abs().max()))
 
 
 def test_cuda_is_deterministic_and_captures_in_a_graph():

@@ -4,7 +4,7 @@ import math
 import pytest
 import torch
 
-from retinexgs.model.enhancement import EnhancementNet
+from retinexgs.model.enhancement import EnhancementNet, area_pool
 from retinexgs.model.illumination import IlluminationField, encoded_dim, positional_encoding
 from retinexgs.model.tone import tone_map
 from retinexgs.train.losses import exposure_loss
@@ -149,3 +149,23 @@ def test_enhancement_per_scene_gamma_is_one_learned_constant():
         opt.step()
     assert float(light(net, L, net(L)).mean().detach()) == pytest.approx(0.6, abs=0.01)
     assert all(p.grad is None for p in net.features.parameters())
+
+
+@pytest.mark.parametrize("shape,size", [((1, 3, 360, 640), (72, 128)), ((2, 3, 12, 8), (3, 2)),
+                                        ((1, 3, 375, 500), (96, 128)), ((1, 1, 10, 10), (10, 10))])
+@pytest.mark.parametrize("channels_last", [False, True])
+def test_area_pool_is_adaptive_avg_pool(shape, size, channels_last):
+    """The exact-multiple shortcut (a reduction over a view) and the fallback give adaptive_avg_pool2d's windows, on a
+    contiguous input and on the render's channels-last view, values and gradients."""
+    torch.manual_seed(0)
+    base = torch.rand(shape[0], shape[2], shape[3], shape[1], dtype=torch.float64) if channels_last else \
+        torch.rand(shape, dtype=torch.float64)
+    x = (base.permute(0, 3, 1, 2) if channels_last else base).requires_grad_(True)
+    got = area_pool(x, size)
+    ref = torch.nn.functional.adaptive_avg_pool2d(x, size)
+    assert got.shape == ref.shape
+    torch.testing.assert_close(got, ref, rtol=1e-12, atol=1e-12)
+    w = torch.rand_like(ref)
+    g_got, = torch.autograd.grad((got * w).sum(), x)
+    g_ref, = torch.autograd.grad((ref * w).sum(), x)
+    torch.testing.assert_close(g_got, g_ref, rtol=1e-12, atol=1e-12)

@@ -2,8 +2,6 @@
 // tested against. Pass 1 one OpenMP iteration a cell; pass 2 in one thread, in the cells' order (deterministic).
 #include <omp.h>
 
-#include <vector>
-
 #include "rgs/enhance_loss.h"
 #include "rgs/kernels.h"
 
@@ -24,14 +22,8 @@ void enhance_loss_cpu(const T* x, const T* s, int64_t H, int64_t W, int pool, co
     const int64_t n = nh * nw;
     const EnhanceScalars<double> sc = enhance_scalars(sums, H, W, n, nh * pool == H && nw * pool == W,
                                                       scale_invariant);
-    std::vector<double> d(size_t(n > 0 ? n : 1));
-    for (int64_t j = 0; j < n; ++j) d[j] = enhance_d(cells + ((j / nw) * cw + j % nw) * kEnhanceCellValues, pool, sc);
-    double acc[5] = {0};
-    for (int64_t j = 0; j < n; ++j) {
-        const int64_t jy = j / nw, jx = j % nw;
-        enhance_add_pair(cells + (jy * cw + jx) * kEnhanceCellValues, pool, d[j], enhance_Ad(d.data(), nh, nw, jy, jx),
-                         n, acc);
-    }
+    double acc[kEnhancePairSums] = {0};
+    for (int64_t j = 0; j < n; ++j) enhance_add_pair_at(cells, cw, pool, nh, nw, j / nw, j % nw, sc, acc);
     enhance_terms(sc, acc, n, double(E[0]), exp_l1, scale_invariant, out);
 }
 

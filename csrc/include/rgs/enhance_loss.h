@@ -13,7 +13,9 @@
 // depends on k_c alone, so dL/dk_c needs only the per-region sums of t_c = ∂y_c/∂k_c besides the values: pass 1 (one
 // thread a pool×pool cell) sums y_c, t_c and S's brightness per cell; pass 2 reduces the cells, forms d, A d and the
 // three terms with their 3×3 Jacobian. In torch the same is ~60 operators each way (the tone curve, pooling, means,
-// the normalisations, the pair energy).
+// the normalisations, the pair energy). A cell sums its rows in order (enhance_cell_row: one GPU thread a row), and a
+// cell's d is recomputed from its own sums wherever a neighbour needs it (no array of d: the GPU's pair pass is one
+// thread a cell over many blocks, each block's sums in a fixed order).
 #pragma once
 #include <cmath>
 #include <cstdint>
@@ -24,23 +26,25 @@
 namespace rgs {
 
 constexpr int kEnhanceCellValues = 7;  // per cell: Σ y_c (3), Σ t_c (3), Σ S's brightness (1)
-constexpr int kEnhanceSums = 10;       // pass 2's first reduction: Σ y_c, Σ t_c, Σ O, over whole cells Σ P and Σ O
+constexpr int kEnhanceSums = 9;        // the first reduction: Σ y_c, Σ t_c, Σ O, over whole cells Σ P and Σ O
+constexpr int kEnhancePairSums = 5;    // the second reduction (enhance_add_pair)
+constexpr int kEnhanceScalarValues = 9;  // EnhanceScalars stored: m (3), M (3), σ, σ_o, σ free (0 or 1)
 constexpr int kEnhanceOut = 12;        // (spa, exp, col) then d(term)/dk_c, term-major
 
-// Pass 1 for cell (cy, cx) of pool×pool pixels (a partial cell at the right or bottom border has fewer): x and s
-// are [H, W, 3] contiguous, gain [3]. Writes kEnhanceCellValues sums.
+// Row r of cell (cy, cx) of pool×pool pixels (a partial cell at the right or bottom border has fewer; a row past the
+// bottom is zero): x and s are [H, W, 3] contiguous, gain [3]. Writes kEnhanceCellValues sums over the row.
 template <typename T>
-RGS_HD void enhance_cell(const T* x, const T* s, int64_t H, int64_t W, int pool, int64_t cy, int64_t cx,
-                         const T* gain, T knee, int form_in, int form_out, T* out) {
+RGS_HD void enhance_cell_row(const T* x, const T* s, int64_t H, int64_t W, int pool, int64_t cy, int64_t cx, int r,
+                             const T* gain, T knee, int form_in, int form_out, T* out) {
     T v[3] = {T(0), T(0), T(0)}, t[3] = {T(0), T(0), T(0)}, o = T(0);
-    const int64_t y1 = (cy + 1) * pool < H ? (cy + 1) * pool : H, x1 = (cx + 1) * pool < W ? (cx + 1) * pool : W;
-    for (int64_t py = cy * pool; py < y1; ++py) {
+    const int64_t py = cy * pool + r;
+    if (r < pool && py < H) {
+        const int64_t x1 = (cx + 1) * pool < W ? (cx + 1) * pool : W;
         for (int64_t px = cx * pool; px < x1; ++px) {
             const int64_t i = (py * W + px) * 3;
             for (int c = 0; c < 3; ++c) {
-                T dx, dk;
-                v[c] += tone_curve(x[i + c], gain[c], knee, form_in, form_out);
-                tone_curve_grad(x[i + c], gain[c], knee, form_in, form_out, &dx, &dk);
+                T dk;
+                v[c] += tone_curve_value_dk(x[i + c], gain[c], knee, form_in, form_out, &dk);
                 t[c] += dk;
             }
             o += (s[i] + s[i + 1] + s[i + 2]) / T(3);
@@ -50,8 +54,20 @@ RGS_HD void enhance_cell(const T* x, const T* s, int64_t H, int64_t W, int pool,
     out[6] = o;
 }
 
+// Pass 1 for cell (cy, cx): its rows' sums added in order (as the GPU's threads of one cell are).
+template <typename T>
+RGS_HD void enhance_cell(const T* x, const T* s, int64_t H, int64_t W, int pool, int64_t cy, int64_t cx,
+                         const T* gain, T knee, int form_in, int form_out, T* out) {
+    for (int j = 0; j < kEnhanceCellValues; ++j) out[j] = T(0);
+    for (int r = 0; r < pool; ++r) {
+        T row[kEnhanceCellValues];
+        enhance_cell_row(x, s, H, W, pool, cy, cx, r, gain, knee, form_in, form_out, row);
+        for (int j = 0; j < kEnhanceCellValues; ++j) out[j] += row[j];
+    }
+}
+
 // The first reduction's share of one cell: sums[0..2] Σ y_c, [3..5] Σ t_c, [6] Σ O over every cell; [7] Σ P (the
-// cell's brightness mean) and [8] Σ O / pool² over the whole cells; [9] unused.
+// cell's brightness mean) and [8] Σ O / pool² over the whole cells.
 template <typename T, typename A>
 RGS_HD void enhance_add_cell(const T* cell, bool whole, int pool, A* sums) {
     for (int j = 0; j < 7; ++j) sums[j] += A(cell[j]);
@@ -88,25 +104,26 @@ RGS_HD EnhanceScalars<A> enhance_scalars(const A* sums, int64_t H, int64_t W, in
     return s;
 }
 
+template <typename A>
+RGS_HD void enhance_scalars_store(const EnhanceScalars<A>& s, A* out) {
+    for (int c = 0; c < 3; ++c) out[c] = s.m[c], out[3 + c] = s.M[c];
+    out[6] = s.sigma, out[7] = s.sigma_o, out[8] = s.sigma_free ? A(1) : A(0);
+}
+
+template <typename A>
+RGS_HD EnhanceScalars<A> enhance_scalars_load(const A* in) {
+    EnhanceScalars<A> s;
+    for (int c = 0; c < 3; ++c) s.m[c] = in[c], s.M[c] = in[3 + c];
+    s.sigma = in[6], s.sigma_o = in[7], s.sigma_free = in[8] != A(0);
+    return s;
+}
+
 // d_j of whole cell j (its pool×pool sums in `cell`).
 template <typename T, typename A>
 RGS_HD A enhance_d(const T* cell, int pool, const EnhanceScalars<A>& s) {
     const A area = A(pool) * A(pool);
     const A P = (A(cell[0]) + A(cell[1]) + A(cell[2])) / A(3) / area, O = A(cell[6]) / area;
     return P / s.sigma - O / s.sigma_o;
-}
-
-// (A d)_j of whole cell (jy, jx) of nh × nw (d zero outside).
-template <typename A>
-RGS_HD A enhance_Ad(const A* d, int64_t nh, int64_t nw, int64_t jy, int64_t jx) {
-    const int64_t j = jy * nw + jx;
-    A nbr = A(0);
-    int border = 0;
-    if (jy > 0) nbr += d[j - nw]; else ++border;
-    if (jy + 1 < nh) nbr += d[j + nw]; else ++border;
-    if (jx > 0) nbr += d[j - 1]; else ++border;
-    if (jx + 1 < nw) nbr += d[j + 1]; else ++border;
-    return A(8 - border) * d[j] - A(2) * nbr;
 }
 
 // The second reduction's share of whole cell j: acc[0] Σ d·Ad, [1] Σ G·P (G = 2 Ad / n, dL_spa/dd), [2..4]
@@ -118,6 +135,22 @@ RGS_HD void enhance_add_pair(const T* cell, int pool, A dj, A Adj, int64_t n_who
     acc[0] += dj * Adj;
     acc[1] += G * (A(cell[0]) + A(cell[1]) + A(cell[2])) / A(3) / area;
     for (int c = 0; c < 3; ++c) acc[2 + c] += G * A(cell[3 + c]) / area / A(3);
+}
+
+// enhance_add_pair for whole cell (jy, jx) of nh × nw (cells: [ch, cw] rows of kEnhanceCellValues), its d and
+// (A d)_j = (8 − border sides)·d_j − 2·(its 4 neighbours' sum) from its own and its neighbours' cell sums.
+template <typename T, typename A>
+RGS_HD void enhance_add_pair_at(const T* cells, int64_t cw, int pool, int64_t nh, int64_t nw, int64_t jy, int64_t jx,
+                                const EnhanceScalars<A>& s, A* acc) {
+    const T* cell = cells + (jy * cw + jx) * kEnhanceCellValues;
+    const A dj = enhance_d(cell, pool, s);
+    A nbr = A(0);
+    int border = 0;
+    if (jy > 0) nbr += enhance_d(cell - cw * kEnhanceCellValues, pool, s); else ++border;
+    if (jy + 1 < nh) nbr += enhance_d(cell + cw * kEnhanceCellValues, pool, s); else ++border;
+    if (jx > 0) nbr += enhance_d(cell - kEnhanceCellValues, pool, s); else ++border;
+    if (jx + 1 < nw) nbr += enhance_d(cell + kEnhanceCellValues, pool, s); else ++border;
+    enhance_add_pair(cell, pool, dj, A(8 - border) * dj - A(2) * nbr, nh * nw, acc);
 }
 
 // The three terms and their gradients in the gain from the reductions (out: kEnhanceOut values).

@@ -119,12 +119,13 @@ template <typename T>
 void tone_curve_backward_cuda(int64_t n, const T* x, const T* gain, int64_t C, int64_t inner, double knee,
                               int form_in, int form_out, const T* grad_out, T* grad_x, T* grad_k, void* stream);
 
-// Same as enhance_loss_cpu: pass 1 one thread a cell, pass 2 one block (a fixed order: deterministic); gain, E and
-// the scratch in device memory.
+// Same as enhance_loss_cpu, in four launches over many blocks (every sum in a fixed order: deterministic); gain, E
+// and the scratch in device memory, `scratch` enhance_scratch_cuda(H, W, pool) doubles.
+int64_t enhance_scratch_cuda(int64_t H, int64_t W, int pool);
 template <typename T>
 void enhance_loss_cuda(const T* x, const T* s, int64_t H, int64_t W, int pool, const T* gain, double knee,
                        int form_in, int form_out, const T* E, bool exp_l1, bool scale_invariant, T* cells,
-                       double* d, T* out, void* stream);
+                       double* scratch, T* out, void* stream);
 
 // Same as supervision_forward_cpu / supervision_backward_cpu: one thread per pixel; the forward's partials have
 // supervision_rows_cuda(H·W) rows, one a block. Gains, noise and confidence in device memory.

@@ -100,6 +100,17 @@ RGS_HD void tone_curve_grad(T x, T k, T knee, int form_in, int form_out, T* dx, 
     *dk = dv * lin;
 }
 
+// tone_curve's value, and dy/dk into *dk, from one evaluation of the chain (no dy/dx: the lin curve's derivative
+// and its pow are skipped).
+template <typename T>
+RGS_HD T tone_curve_value_dk(T x, T k, T knee, int form_in, int form_out, T* dk) {
+    T dshoulder, dsrgb;
+    const T lin = curve_to_linear(x, form_in, (T*)nullptr);
+    const T y = curve_to_srgb(curve_shoulder(k * lin, knee, &dshoulder), form_out, &dsrgb);
+    *dk = dsrgb * dshoulder * lin;
+    return y;
+}
+
 // Element i of a tensor whose gain is per channel: channel (i / inner) % C (C = 1: one gain).
 RGS_HD int64_t tone_curve_channel(int64_t i, int64_t C, int64_t inner) {
     return C == 1 ? 0 : (i / inner) % C;
