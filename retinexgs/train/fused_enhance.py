@@ -1,9 +1,10 @@
-"""L_enhance of the default configuration as two kernels, its gradient carried forward (issue 65).
+"""L_enhance of the default configuration as a few kernels, its gradient carried forward (issue 65).
 
 While ``loss.enhance_trains_scene`` is false R̂ and L̂ are detached in L_enhance's path, so the enhanced image
 S_enh = srgb(s(k · lin(R̂∘L̂))) varies only with the tone's gain k (3 numbers, set by the EnhancementNet's g), and
 L_spa, L_exp and L_col with it. ``csrc/include/rgs/enhance_loss.h`` computes the three terms and their 3×3 Jacobian in
-k in one pass over the image and one over its 4×4 regions; the autograd function here hands k its gradient from that
+k in one pass over the image and one over its 4×4 regions (on the GPU four launches over many blocks); the autograd
+function here hands k its gradient from that
 Jacobian, and torch takes it on to g and the EnhancementNet. In torch the same terms are ~60 operators each way
 (the tone curve, the pooling, the means and normalisations, the pair energy), about a sixth of a fox-dark step's
 kernels while the enhancement is on. The torch composition (:func:`retinexgs.train.losses.enhancement_loss` on
@@ -26,9 +27,9 @@ from retinexgs.train import losses
 __all__ = ["applies", "enhancement_terms", "enhance_loss"]
 
 POOL = 4  # L_spa's region size (losses.spatial_consistency_loss's default, as L_enhance calls it)
-# Views up to this many pixels only: the kernels' second pass is one block over the cells, which gained at fox-dark's
-# 360×640 (14,400 cells) but scales with them, unmeasured at the 12 MP scene's sizes (0.75–12 MP); larger views keep
-# the torch composition (experiments/notes/2026-11-30-fused-enhance.md).
+# Views up to this many pixels only: measured at fox-dark's and LOM's sizes; the kernels are tested at 12 MP, but
+# their time at the 12 MP scene's sizes (0.75–12 MP) against the torch composition larger views keep waits on
+# `bench bigraw` (experiments/notes/2026-11-30-fused-enhance.md, session 27).
 MAX_PIXELS = 262_144
 
 
