@@ -27,21 +27,16 @@ from retinexgs.train import losses
 __all__ = ["applies", "enhancement_terms", "enhance_loss"]
 
 POOL = 4  # L_spa's region size (losses.spatial_consistency_loss's default, as L_enhance calls it)
-# Views up to this many pixels only: measured at fox-dark's and LOM's sizes; the kernels are tested at 12 MP, but
-# their time at the 12 MP scene's sizes (0.75–12 MP) against the torch composition larger views keep waits on
-# `bench bigraw` (experiments/notes/2026-11-30-fused-enhance.md, session 27).
-MAX_PIXELS = 262_144
 
 
 def applies(model, c: Loss, R_img: Tensor) -> bool:
     """Whether :func:`enhancement_terms` computes L_enhance for ``model`` under loss section ``c`` on the render's R̂
     ``R_img`` [H,W,3]: a tone that is a gain on the curve (the exposure tone), L_exp on the whole image, L_spa in
-    Zero-DCE's form, R̂ and L̂ detached, on the device whose tone curve runs fused (the GPU), views of at most
-    :data:`MAX_PIXELS`."""
+    Zero-DCE's form, R̂ and L̂ detached, on the device whose tone curve runs fused (the GPU), at any view size (the
+    kernels took 0.71–0.78× the torch composition's time from 0.23 to 12 MP, experiments/enhance_loss_probe.py)."""
     return (fused_curve.runs_fused(R_img) and not c.enhance_trains_scene and model.tone.gain_curve
             and c.exp_on == "image" and c.exp_patch == 0 and c.exp_form in ("l2", "l1") and c.spa_form == "zero_dce"
             and R_img.dim() == 3 and R_img.shape[-1] == 3 and min(R_img.shape[:2]) >= POOL
-            and R_img.shape[0] * R_img.shape[1] <= MAX_PIXELS
             and R_img.dtype in (torch.float32, torch.float64))
 
 
