@@ -1,6 +1,7 @@
 """L_enhance through its kernels (retinexgs/train/fused_enhance.py) against the torch composition, forward + backward,
 at the 12 MP raw scene's training sizes: ms each and their ratio, one process, one GPU (issue 65: it lifted the
-kernels' bound of 0.26 MP, ``fused_enhance.MAX_PIXELS`` until session 27; experiments/notes/2026-11-30-fused-enhance.md).
+kernels' bound of 0.26 MP, ``fused_enhance.MAX_PIXELS`` until session 27;
+experiments/notes/2026-11-30-fused-enhance.md).
 
     python experiments/enhance_loss_probe.py [--sizes 360x640,750x1000,1500x2000,3000x4000] [--iters 20]
 
