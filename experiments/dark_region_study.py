@@ -83,6 +83,9 @@ def add(rows: Dict[str, List[List[float]]], name: str, img: torch.Tensor, truth:
 
 
 def show(title: str, rows: Dict[str, List[List[float]]]) -> None:
+    if not rows:
+        print(f"{title}: no view with a normal-light truth")
+        return
     n = len(next(iter(rows.values())))
     print(f"{title}: SSIM whole / dark / mid / bright third (the truth's grey), mean over {n} views")
     for name, vals in rows.items():
@@ -110,7 +113,7 @@ def main(argv: List[str]) -> int:
         add(test, "render", exposed_srgb(srgb_to_linear(out["S_rec"].clamp(0, 1)).float().cpu()), truth)
         density.append(region_density(model, view, truth))
     show(f"run {args.run} (step {step}), test views", test)
-    d = [sum(x[i] for x in density) / len(density) for i in range(6)]
+    d = [sum(x[i] for x in density) / max(len(density), 1) for i in range(6)]
     print(f"  Gaussians per 1000 px, dark / mid / bright: {d[0]:.1f} / {d[1]:.1f} / {d[2]:.1f}; median radius px "
           f"{d[3]:.1f} / {d[4]:.1f} / {d[5]:.1f}")
     spec = denoise_spec(list(scene.train), cfg, str(device))
