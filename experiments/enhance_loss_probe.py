@@ -56,7 +56,11 @@ def main() -> int:
     real_applies = fused_enhance.applies
     print(f"{'size':>11}  {'MP':>5}  {'kernels ms':>10}  {'torch ms':>9}  {'ratio':>6}  terms (kernels | torch)")
     for spec in args.sizes.split(","):
-        H, W = (int(v) for v in spec.split("x"))
+        try:
+            H, W = (int(v) for v in spec.split("x"))
+        except ValueError:
+            print(f"--sizes: {spec!r} is not HxW (e.g. 360x640)", file=sys.stderr)
+            return 2
         g = torch.Generator(device=dev).manual_seed(0)
         R = torch.rand((H, W, 3), device=dev, generator=g) * 0.8 + 0.1
         L = torch.rand((H, W, 3), device=dev, generator=g) * 0.05 + 0.01
