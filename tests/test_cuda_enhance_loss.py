@@ -21,8 +21,8 @@ def test_cuda_matches_cpu(dtype, H, W, scale_invariant, exp_l1):
     E = torch.tensor([0.45], dtype=dtype)
     cpu = kernels().enhance_loss(x, s, k, E, 4, 0.5, 0, 0, exp_l1, scale_invariant)
     gpu = kernels().enhance_loss(x.cuda(), s.cuda(), k.cuda(), E.cuda(), 4, 0.5, 0, 0, exp_l1, scale_invariant)
-    # the same sums in another order (per cell alike; the cells' reduction by a block); float32's curve in
-    # --use_fast_math's powf/expf
+    # the same sums in another order (per cell alike; the cells' and pairs' reductions by blocks); float32's curve
+    # in --use_fast_math's powf/expf
     tol = 1e-11 if dtype == torch.float64 else 2e-4
     torch.testing.assert_close(gpu.cpu(), cpu, rtol=tol, atol=tol * float(cpu.abs().max()))
 

@@ -4,8 +4,7 @@ While ``loss.enhance_trains_scene`` is false R̂ and L̂ are detached in L_enhan
 S_enh = srgb(s(k · lin(R̂∘L̂))) varies only with the tone's gain k (3 numbers, set by the EnhancementNet's g), and
 L_spa, L_exp and L_col with it. ``csrc/include/rgs/enhance_loss.h`` computes the three terms and their 3×3 Jacobian in
 k in one pass over the image and one over its 4×4 regions (on the GPU four launches over many blocks); the autograd
-function here hands k its gradient from that
-Jacobian, and torch takes it on to g and the EnhancementNet. In torch the same terms are ~60 operators each way
+function here hands k its gradient from that Jacobian, and torch takes it on to g and the EnhancementNet. In torch the same terms are ~60 operators each way
 (the tone curve, the pooling, the means and normalisations, the pair energy), about a sixth of a fox-dark step's
 kernels while the enhancement is on. The torch composition (:func:`retinexgs.train.losses.enhancement_loss` on
 :meth:`~retinexgs.model.retinex_model.RetinexGSModel.enhance`'s image) stays the reference the tests hold this to,

@@ -70,7 +70,7 @@ RGS_HD void enhance_cell(const T* x, const T* s, int64_t H, int64_t W, int pool,
 // cell's brightness mean) and [8] Σ O / pool² over the whole cells.
 template <typename T, typename A>
 RGS_HD void enhance_add_cell(const T* cell, bool whole, int pool, A* sums) {
-    for (int j = 0; j < 7; ++j) sums[j] += A(cell[j]);
+    for (int j = 0; j < kEnhanceCellValues; ++j) sums[j] += A(cell[j]);
     if (whole) {
         const A area = A(pool) * A(pool);
         sums[7] += (A(cell[0]) + A(cell[1]) + A(cell[2])) / A(3) / area;
