@@ -242,6 +242,32 @@ def test_graphs_are_off_on_the_cpu_and_by_the_switch(scene_dir, tmp_path):
     assert off.graphs is None
 
 
+def check_prior_late(scene_dir, tmp_path, device, emulate):
+    """loss.prior_late_scale: a graph captured before loss.prior_late_from, replayed after it, reads the priors'
+    new weights (the same values and gradients as the eager step), and the sum loses exactly that share of the
+    priors' terms."""
+    tr = make_trainer(scene_dir, tmp_path / "late", "default", device, emulate=emulate,
+                      extra=["loss.prior_late_scale=0.25", "loss.prior_late_from=8"])
+    early, late = 4, 8  # both with the enhancement on and at SH degree 1: the same render
+    assert not tr.schedule.prior_late_at(early) and tr.schedule.prior_late_at(late)
+    runs = {}
+    for step in (early, late, early):
+        eager = step_gradients(tr, 0, step, graphed=False)
+        graphed = step_gradients(tr, 0, step, graphed=True)
+        assert_same(eager, graphed, rtol=1e-4, atol_frac=1e-5)
+        runs[step] = eager[0]
+    c = tr.cfg.loss
+    e, la = runs[early], runs[late]
+    assert la["sup_r"] == pytest.approx(e["sup_r"]) and la["sup_l"] == pytest.approx(e["sup_l"])
+    drop = 0.75 * (c.w_r * e["sup_r"] + c.w_l * e["sup_l"])
+    assert drop > 1e-4 and la["total"] == pytest.approx(e["total"] - drop, rel=1e-5, abs=1e-7)
+    return tr
+
+
+def test_prior_late_scale_reaches_the_graphed_loss_on_cpu(scene_dir, tmp_path, one_thread):
+    check_prior_late(scene_dir, tmp_path, "cpu", emulate=True)
+
+
 # ---- CUDA: captured graphs ----------------------------------------------------------------------------------------
 
 @needs_cuda
@@ -254,6 +280,12 @@ def test_cuda_graphed_losses_match_eager(scene_dir, tmp_path, name):
     assert tr.channel_graphs.captures >= 1
     centers = [tv.camera.center.to(tv.center) for tv in tr.views]
     assert all(torch.equal(tv.center, c) for tv, c in zip(tr.views, centers)), "a view's cached centre changed"
+
+
+@needs_cuda
+def test_cuda_prior_late_scale_reaches_the_captured_graph(scene_dir, tmp_path):
+    tr = check_prior_late(scene_dir, tmp_path, "cuda", emulate=False)
+    assert not tr.graphs.failures and len(tr.graphs) == 1  # one capture, replayed across the phase change
 
 
 @needs_cuda

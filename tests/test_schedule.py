@@ -161,7 +161,7 @@ def test_the_check_catches_a_reset_on_the_last_step(small_scene, tmp_path, one_t
 
 def test_steps_unchanged_counts_to_the_next_densification_or_degree():
     s = Schedule(steps=2000, densify_start=100, densify_stop=1000, densify_every=20, reset_every=600,
-                 enhance_from=600, sh_degree=3, sh_degree_every=200)
+                 enhance_from=600, prior_late_from=1200, sh_degree=3, sh_degree_every=200)
 
     def brute(step):  # the steps from ``step`` rendering its degree and Gaussians, walked one by one
         n, degree = 0, s.sh_degree_at(step)

@@ -1,10 +1,10 @@
 """The training schedule in absolute steps, resolved from the config for the run's length.
 
 A schedule key (``density.start/stop/every/reset_opacity_every/last_event``, ``loss.enhance_from``,
-``model.sh_degree_every``) is either a decimal 0..1, a fraction of ``steps`` (the default: the schedule
-follows the run length, ``--set steps=3000`` compresses it), or an integer, an absolute step number. At
-``steps: 10000`` the default fractions give exactly the steps the schedule was tuned with (densify 500..5000
-every 100, opacity reset at 3000, enhancement losses from 3000, SH degree +1 every 1000).
+``loss.prior_late_from``, ``model.sh_degree_every``) is either a decimal 0..1, a fraction of ``steps`` (the
+default: the schedule follows the run length, ``--set steps=3000`` compresses it), or an integer, an absolute step
+number. At ``steps: 10000`` the default fractions give exactly the steps the schedule was tuned with (densify
+500..5000 every 100, opacity reset at 3000, enhancement losses from 3000, SH degree +1 every 1000).
 
 No density event (densify, prune, opacity reset) happens after ``density.stop`` or ``density.last_event``: a
 reset or a densification needs the rest of the run to recover from it.
@@ -45,6 +45,7 @@ class Schedule:
     densify_every: int
     reset_every: int        # opacity reset at multiples of this up to densify_stop; 0 = never
     enhance_from: int
+    prior_late_from: int    # the priors' weights scaled by loss.prior_late_scale from here on
     sh_degree: int
     sh_degree_every: int
 
@@ -60,6 +61,10 @@ class Schedule:
 
     def enhance_at(self, step: int) -> bool:
         return step >= self.enhance_from
+
+    def prior_late_at(self, step: int) -> bool:
+        """Whether the priors' weights are at their late scale at ``step``."""
+        return step >= self.prior_late_from
 
     def sh_degree_at(self, step: int) -> int:
         return min(self.sh_degree, step // self.sh_degree_every)
@@ -103,6 +108,7 @@ def build_schedule(cfg: Config) -> Schedule:
     return Schedule(steps=steps, densify_start=start, densify_stop=stop, densify_every=interval(d.every, steps),
                     reset_every=interval(d.reset_opacity_every, steps),
                     enhance_from=at_step(cfg.loss.enhance_from, steps),
+                    prior_late_from=at_step(cfg.loss.prior_late_from, steps),
                     sh_degree=int(cfg.model.sh_degree),
                     sh_degree_every=max(1, interval(cfg.model.sh_degree_every, steps)))
 

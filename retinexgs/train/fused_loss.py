@@ -14,7 +14,7 @@ beat the kernel's scalar loop there (forward + backward at 640×480, float32, 2 
 """
 from __future__ import annotations
 
-from typing import Dict, NamedTuple, Optional, Tuple
+from typing import Dict, NamedTuple, Optional, Tuple, Union
 
 import torch
 from torch import Tensor
@@ -116,13 +116,17 @@ def _sum_scales(H: int, W: int, noise: bool, dtype: torch.dtype, device: torch.d
     return cached_constant(("supervision_scales", H, W, noise, dtype, device), build)
 
 
-def _weights(weights: Tuple[float, float, float], dtype: torch.dtype, device: torch.device) -> Tensor:
-    """(w_r, w_l, w_s) as a [3] tensor (built once)."""
+def _weights(weights: Union[Tuple[float, float, float], Tensor], dtype: torch.dtype, device: torch.device
+             ) -> Tensor:
+    """(w_r, w_l, w_s) as a [3] tensor (floats: built once; a tensor, the objective's scheduled weights, as is)."""
+    if isinstance(weights, Tensor):
+        return weights.to(dtype)
     key = ("supervision_weights", tuple(float(w) for w in weights), dtype, device)
     return cached_constant(key, lambda: torch.tensor(key[1], dtype=dtype, device=device))
 
 
-def supervision_terms(image: Tensor, packed: Tensor, sup: Supervision, weights: Tuple[float, float, float],
+def supervision_terms(image: Tensor, packed: Tensor, sup: Supervision,
+                      weights: Union[Tuple[float, float, float], Tensor],
                       lambda_ssim: float, linear: Optional[LinearTarget] = None
                       ) -> Tuple[Tensor, Dict[str, Tensor]]:
     """(w_r·sup_r + w_l·sup_l + w_s·sup_rec, {"sup_r", "sup_l", "sup_rec", "tv"[, "depth"]}) of the render ``image``

@@ -257,7 +257,8 @@ def chroma_weighted(x: torch.Tensor, luma: float) -> torch.Tensor:
 
 
 def supervision_loss(R_hat: torch.Tensor, L_hat: torch.Tensor, R: torch.Tensor, L: torch.Tensor,
-                     S: torch.Tensor, w_r: float = 0.5, w_l: float = 0.5, w_s: float = 1.0,
+                     S: torch.Tensor, w_r: Union[float, torch.Tensor] = 0.5, w_l: Union[float, torch.Tensor] = 0.5,
+                     w_s: float = 1.0,
                      lambda_ssim: float = 0.2, rec_gain: Optional[torch.Tensor] = None,
                      rec_l1_exposed: bool = True, linear: Optional[LinearTarget] = None,
                      r_luma: float = 1.0) -> Tuple[torch.Tensor, Terms]:

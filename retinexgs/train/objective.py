@@ -11,7 +11,7 @@ The trainer builds one with :func:`build_objective` and only loops; the density 
 """
 from __future__ import annotations
 
-from typing import Callable, Dict, List, Optional, Tuple
+from typing import Callable, Dict, List, Optional, Tuple, Union
 
 import torch
 from torch import Tensor
@@ -203,6 +203,41 @@ class RetinexObjective(PlainObjective):
                  noise: NoiseSetUp, depth_prior: bool = False) -> None:
         super().__init__(cfg, model, schedule, strategy, noise, depth_prior)
         self.capture = noise.capture
+        # (w_r, w_l, w_s) on the device while loss.prior_late_scale is in use: the captured graphs read it, and
+        # :meth:`_prior_phase` rewrites it in place when the schedule reaches loss.prior_late_from.
+        self._sup_w: Optional[Tensor] = None
+        self._late: Optional[bool] = None
+
+    def _prior_phase(self, step: int, device: torch.device) -> None:
+        """Set the priors' weights for ``step`` (loss.prior_late_scale from loss.prior_late_from on); a device
+        write only when the phase changes, so a step never waits for the host."""
+        c = self.cfg.loss
+        if c.prior_late_scale == 1.0:
+            return
+        late = self.schedule.prior_late_at(step)
+        if self._sup_w is None:
+            self._sup_w = torch.tensor((c.w_r, c.w_l, c.w_s), dtype=torch.float32, device=device)
+        if late != self._late:
+            scale = c.prior_late_scale if late else 1.0
+            self._sup_w[0].fill_(c.w_r * scale)
+            self._sup_w[1].fill_(c.w_l * scale)
+            self._late = late
+
+    def loss(self, res: Dict[str, Tensor], tv: TrainView, step: int) -> Dict[str, Tensor]:
+        self._prior_phase(step, res["out"].image.device)
+        return super().loss(res, tv, step)
+
+    def backward_graphed(self, graphs: LossGraphs, res: Dict[str, Tensor], tv: TrainView, step: int,
+                         log_failures: Callable[[Dict], None]) -> Optional[Dict[str, Tensor]]:
+        self._prior_phase(step, res["out"].image.device)
+        return super().backward_graphed(graphs, res, tv, step, log_failures)
+
+    def _weights(self) -> Tuple[Union[float, Tensor], Union[float, Tensor], float]:
+        """(w_r, w_l, w_s) of this step: the config's, or the device's scheduled ones (:meth:`_prior_phase`)."""
+        c = self.cfg.loss
+        if self._sup_w is None:
+            return c.w_r, c.w_l, c.w_s
+        return self._sup_w[0], self._sup_w[1], c.w_s
 
     def target(self, tv: TrainView) -> Tensor:
         return tv.S
@@ -256,9 +291,8 @@ class RetinexObjective(PlainObjective):
         terms: Dict[str, Tensor] = {}
         l1_exposed = c.rec_domain == "exposed"
         if R is not None:
-            sup, sup_terms = losses.supervision_loss(R_hat, L_hat, to_bchw(R), to_bchw(L), S_b, c.w_r,
-                                                     c.w_l, c.w_s, c.lambda_ssim, gain, l1_exposed, linear,
-                                                     self._r_luma())
+            sup, sup_terms = losses.supervision_loss(R_hat, L_hat, to_bchw(R), to_bchw(L), S_b, *self._weights(),
+                                                     c.lambda_ssim, gain, l1_exposed, linear, self._r_luma())
             terms.update(sup_terms)
         else:  # no 2D priors: only the reconstruction is supervised
             terms["sup_rec"] = losses.reconstruction_loss(R_hat * L_hat, S_b, c.lambda_ssim, gain, l1_exposed,
@@ -281,7 +315,8 @@ class RetinexObjective(PlainObjective):
             sup = fused_loss.plan(gain, c.rec_domain == "exposed", linear, image, self._r_luma())
         if sup is None:
             return super().graphed_loss(image, packed, enhance)
-        total, terms = fused_loss.supervision_terms(image, packed, sup, (c.w_r, c.w_l, c.w_s), c.lambda_ssim, linear)
+        weights = (c.w_r, c.w_l, c.w_s) if self._sup_w is None else self._sup_w
+        total, terms = fused_loss.supervision_terms(image, packed, sup, weights, c.lambda_ssim, linear)
         depth = terms.pop("depth", None)
         total = total + c.w_tv * terms["tv"]
         if enhance:
