@@ -243,11 +243,14 @@ def test_graphs_are_off_on_the_cpu_and_by_the_switch(scene_dir, tmp_path):
 
 
 def check_prior_late(scene_dir, tmp_path, device, emulate):
-    """loss.prior_late_scale: a graph captured before loss.prior_late_from, replayed after it, reads the priors'
+    """loss.prior_late_views: a graph captured before loss.prior_late_from, replayed after it, reads the priors'
     new weights (the same values and gradients as the eager step), and the sum loses exactly that share of the
-    priors' terms."""
+    priors' terms: n0 a quarter of the scene's views a point, × 1/4."""
+    n = load_scene(scene_dir).views_per_point()
+    assert n is not None and n >= 1
     tr = make_trainer(scene_dir, tmp_path / "late", "default", device, emulate=emulate,
-                      extra=["loss.prior_late_scale=0.25", "loss.prior_late_from=8"])
+                      extra=[f"loss.prior_late_views={n / 4}", "loss.prior_late_from=8"])
+    assert tr.objective.prior_late_scale == pytest.approx(0.25)
     early, late = 4, 8  # both with the enhancement on and at SH degree 1: the same render
     assert not tr.schedule.prior_late_at(early) and tr.schedule.prior_late_at(late)
     runs = {}
@@ -262,6 +265,13 @@ def check_prior_late(scene_dir, tmp_path, device, emulate):
     drop = 0.75 * (c.w_r * e["sup_r"] + c.w_l * e["sup_l"])
     assert drop > 1e-4 and la["total"] == pytest.approx(e["total"] - drop, rel=1e-5, abs=1e-7)
     return tr
+
+
+def test_late_prior_scale_is_n0_over_the_views_a_point():
+    from retinexgs.train.objective import late_prior_scale
+    assert late_prior_scale(9, 36.0) == pytest.approx(0.25)
+    assert late_prior_scale(9, 9.0) == 1.0 and late_prior_scale(9, 4.0) == 1.0  # few views: the full weights
+    assert late_prior_scale(0, 36.0) == 1.0 and late_prior_scale(9, None) == 1.0  # off; no SfM points
 
 
 def test_prior_late_scale_reaches_the_graphed_loss_on_cpu(scene_dir, tmp_path, one_thread):

@@ -319,8 +319,8 @@ class Loss(Section):
     lambda_ssim: Num(ge=0, le=1)
     w_r: Num(ge=0)
     w_l: Num(ge=0)
-    prior_late_from: Step  # schedule: from this step on the priors' weights are scaled by prior_late_scale
-    prior_late_scale: Num(ge=0, le=1)
+    prior_late_from: Step  # schedule: from this step on the priors' weights fall with the views a point has
+    prior_late_views: Num(ge=0)  # n0: w_r, w_l × min(1, n0 / n), n training views a point; 0 = off
     w_s: Num(ge=0)
     w_tv: Num(ge=0)
     w_sh: Num(ge=0)

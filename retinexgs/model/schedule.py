@@ -45,7 +45,7 @@ class Schedule:
     densify_every: int
     reset_every: int        # opacity reset at multiples of this up to densify_stop; 0 = never
     enhance_from: int
-    prior_late_from: int    # the priors' weights scaled by loss.prior_late_scale from here on
+    prior_late_from: int    # the priors' weights scaled by loss.prior_late_views from here on
     sh_degree: int
     sh_degree_every: int
 

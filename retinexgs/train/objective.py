@@ -200,25 +200,26 @@ class RetinexObjective(PlainObjective):
     decomposed = True
 
     def __init__(self, cfg: Config, model: RetinexGSModel, schedule: Schedule, strategy: Strategy,
-                 noise: NoiseSetUp, depth_prior: bool = False) -> None:
+                 noise: NoiseSetUp, depth_prior: bool = False, prior_late_scale: float = 1.0) -> None:
         super().__init__(cfg, model, schedule, strategy, noise, depth_prior)
         self.capture = noise.capture
-        # (w_r, w_l, w_s) on the device while loss.prior_late_scale is in use: the captured graphs read it, and
+        # (w_r, w_l, w_s) on the device while the priors' late scale is in use: the captured graphs read it, and
         # :meth:`_prior_phase` rewrites it in place when the schedule reaches loss.prior_late_from.
+        self.prior_late_scale = float(prior_late_scale)
         self._sup_w: Optional[Tensor] = None
         self._late: Optional[bool] = None
 
     def _prior_phase(self, step: int, device: torch.device) -> None:
-        """Set the priors' weights for ``step`` (loss.prior_late_scale from loss.prior_late_from on); a device
-        write only when the phase changes, so a step never waits for the host."""
+        """Set the priors' weights for ``step`` (× :attr:`prior_late_scale` from loss.prior_late_from on); a
+        device write only when the phase changes, so a step never waits for the host."""
         c = self.cfg.loss
-        if c.prior_late_scale == 1.0:
+        if self.prior_late_scale == 1.0:
             return
         late = self.schedule.prior_late_at(step)
         if self._sup_w is None:
             self._sup_w = torch.tensor((c.w_r, c.w_l, c.w_s), dtype=torch.float32, device=device)
         if late != self._late:
-            scale = c.prior_late_scale if late else 1.0
+            scale = self.prior_late_scale if late else 1.0
             self._sup_w[0].fill_(c.w_r * scale)
             self._sup_w[1].fill_(c.w_l * scale)
             self._late = late
@@ -349,10 +350,31 @@ class RetinexObjective(PlainObjective):
         return terms
 
 
+def late_prior_scale(views: float, views_per_point: Optional[float]) -> float:
+    """The priors' weight share after ``loss.prior_late_from``: min(1, n0 / n) for n = ``views_per_point`` training
+    views a point and n0 = ``views`` (``loss.prior_late_views``; 0 = off). Why: each view's 2D prior carries the
+    single-view denoiser's bias (its blur, its colour), which the n views' copies share, while the n views' noise
+    averages out in the reconstruction; past n0 views the priors' total pull is held at n0 views' worth. 1 without
+    a count (no SfM points)."""
+    if not views or not views_per_point or views_per_point <= views:
+        return 1.0
+    return float(views) / float(views_per_point)
+
+
 def build_objective(cfg: Config, model: RetinexGSModel, schedule: Schedule, strategy: Strategy,
-                    noise: NoiseSetUp) -> PlainObjective:
+                    noise: NoiseSetUp, views_per_point: Optional[Callable[[], Optional[float]]] = None,
+                    log: Callable[[str], None] = lambda s: None) -> PlainObjective:
     """RetinexGS's objective for ``method: retinexgs``, the plain one for the 3DGS baselines. The depth prior is
-    RetinexGS's (the baselines stay as published)."""
+    RetinexGS's (the baselines stay as published). ``views_per_point``: the scene's
+    :meth:`retinexgs.data.Scene.views_per_point`, read where ``loss.prior_late_views`` is on."""
     if cfg.method == "retinexgs":
-        return RetinexObjective(cfg, model, schedule, strategy, noise, depth_prior=cfg.loss.w_depth > 0)
+        scale = 1.0
+        if cfg.loss.prior_late_views and views_per_point is not None:
+            n = views_per_point()
+            scale = late_prior_scale(cfg.loss.prior_late_views, n)
+            if scale < 1.0:
+                log(f"priors: w_r, w_l × {scale:.2f} from step {schedule.prior_late_from} ({n:g} training views see "
+                    f"a point; up to {cfg.loss.prior_late_views:g} keep the full weights)")
+        return RetinexObjective(cfg, model, schedule, strategy, noise, depth_prior=cfg.loss.w_depth > 0,
+                                prior_late_scale=scale)
     return PlainObjective(cfg, model, schedule, strategy, noise)

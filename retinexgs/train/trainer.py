@@ -136,7 +136,8 @@ class Trainer:
         # One Adam kernel for every group on the GPU (train/adam.py: torch's fused Adam launches once per group).
         self.optimizer = adam_for(self.device, groups, eps=1e-15)
         self.strategy = build_strategy(self.cfg.density, self.extent, self.schedule, self.cfg.seed)
-        self.objective = build_objective(self.cfg, self.model, self.schedule, self.strategy, self.noise)
+        self.objective = build_objective(self.cfg, self.model, self.schedule, self.strategy, self.noise,
+                                         self.scene.views_per_point, self.log)
         if state is not None:
             self.model.load_state_dict(state["model"])
             self.optimizer.load_state_dict(state["optimizer"])
