@@ -31,7 +31,7 @@ def _write(run, data: dict) -> None:
 
 
 def test_one_migration_a_format_step():
-    assert FORMAT == 7 and len(CONFIG_MIGRATIONS) == len(CHECKPOINT_MIGRATIONS) == FORMAT
+    assert FORMAT == 8 and len(CONFIG_MIGRATIONS) == len(CHECKPOINT_MIGRATIONS) == FORMAT
 
 
 def test_a_format_1_run_is_written_with_its_format_and_round_trips(tmp_path):
@@ -77,9 +77,9 @@ def test_a_format_0_run_gets_the_values_runs_had_before_the_keys(tmp_path):
 
 
 @pytest.mark.parametrize("fmt, expect", [
-    (8, "is in run format 8, newer than this retinexgs reads (format 7)"),
-    ("one", "format must be a whole number 0..7, got 'one'"),
-    (-1, "format must be a whole number 0..7, got -1"),
+    (9, "is in run format 9, newer than this retinexgs reads (format 8)"),
+    ("one", "format must be a whole number 0..8, got 'one'"),
+    (-1, "format must be a whole number 0..8, got -1"),
 ])
 def test_a_newer_or_malformed_run_format_is_refused_in_one_line(tmp_path, fmt, expect):
     write_run_config(tmp_path, load_config(), tmp_path)
@@ -180,3 +180,13 @@ def test_a_format_6_run_keeps_training_at_the_resolution_it_had():
     assert kept["train"]["resolution"] == [[0.2, 4]] and kept["train"]["resolution_min_pixels"] == 0
     today = load_config().train
     assert today.resolution == [(0.8, 4), (0.95, 2)] and today.resolution_min_pixels == 6_000_000
+
+
+def test_a_format_7_run_keeps_its_priors_weights_to_the_end():
+    """Runs before loss.prior_late_views kept w_r, w_l throughout; today's default lowers them late."""
+    from retinexgs.config.versions import migrate_config
+    old, filled = migrate_config({"format": 7, "steps": 50}, "old/config.yaml")
+    assert old["loss"]["prior_late_views"] == 0 and "loss.prior_late_views" in filled
+    kept, _ = migrate_config({"format": 7, "loss": {"prior_late_views": 4}}, "old/config.yaml")
+    assert kept["loss"]["prior_late_views"] == 4
+    assert load_config([]).loss.prior_late_views == 9

@@ -18,7 +18,7 @@ from typing import Any, Callable, Dict, List, Tuple
 from retinexgs.config.files import RawConfig, configs_dir, read_yaml
 from retinexgs.errors import UserError
 
-FORMAT = 7  # the format this code writes
+FORMAT = 8  # the format this code writes
 
 # Format 0 -> 1: the keys whose default changed after they were added. A run made before a key existed behaved as
 # the value here, not as today's default (which would re-render it differently). The tone form was the gamma on L̂
@@ -190,6 +190,16 @@ def config_6_to_7(cfg: RawConfig, filled: List[str]) -> RawConfig:
     return cfg
 
 
+# Format 7 -> 8 (issue 64): the priors kept their weights to the end of a run before loss.prior_late_views.
+ADDED_7_TO_8: Dict[str, Any] = {"loss.prior_late_views": 0}
+
+
+def config_7_to_8(cfg: RawConfig, filled: List[str]) -> RawConfig:
+    """Format 7 -> 8: the keys of :data:`ADDED_7_TO_8` the config lacks get the value older runs had."""
+    _set_missing(cfg, ADDED_7_TO_8, filled)
+    return cfg
+
+
 def checkpoint_0_to_1(state: Dict[str, Any]) -> Dict[str, Any]:
     """Format 0 -> 1: checkpoint fields older versions did not write: no training time recorded (0 s), no view
     order (a fresh shuffle), no strategy statistics, no record of the training views."""
@@ -217,11 +227,11 @@ def _checkpoint_same(state: Dict[str, Any]) -> Dict[str, Any]:
 # (tests/test_run_format.py checks it).
 CONFIG_MIGRATIONS: List[Callable[[RawConfig, List[str]], RawConfig]] = [config_0_to_1, config_1_to_2, config_2_to_3,
                                                                      config_3_to_4, config_4_to_5, config_5_to_6,
-                                                                     config_6_to_7]
+                                                                     config_6_to_7, config_7_to_8]
 CHECKPOINT_MIGRATIONS: List[Callable[[Dict[str, Any]], Dict[str, Any]]] = [checkpoint_0_to_1, _checkpoint_same,
                                                                           checkpoint_2_to_3, _checkpoint_same,
                                                                           _checkpoint_same, _checkpoint_same,
-                                                                          _checkpoint_same]
+                                                                          _checkpoint_same, _checkpoint_same]
 
 
 def format_of(data: Dict[str, Any], where: str) -> int:
