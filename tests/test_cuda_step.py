@@ -323,10 +323,14 @@ def test_cuda_graphed_training_matches_eager_training(scene_dir, tmp_path):
 
 
 @needs_cuda
-def test_cuda_step_has_no_host_sync_outside_checks(scene_dir, tmp_path):
+@pytest.mark.parametrize("late", [False, True])
+def test_cuda_step_has_no_host_sync_outside_checks(scene_dir, tmp_path, late):
     """torch's sync debug mode raises on a synchronising call: a non-check step may only read binning's pair
-    count, which the extension reads itself (not through torch), so torch sees no sync at all."""
-    tr = make_trainer(scene_dir, tmp_path / "sync", "default", "cuda")
+    count, which the extension reads itself (not through torch), so torch sees no sync at all. ``late``: the
+    priors' weights change phase inside the quiet steps (loss.prior_late_views, from step 8)."""
+    n = load_scene(scene_dir).views_per_point()
+    extra = [f"loss.prior_late_views={n / 4}", "loss.prior_late_from=8"] if late else []
+    tr = make_trainer(scene_dir, tmp_path / "sync", "default", "cuda", extra=extra)
     for step in range(1, 6):  # capture both graphs first (capture itself may sync)
         tr.train_step(step, tr.views[step % len(tr.views)], check=True)
     # Density and opacity-reset steps check by design (TINY's 20-step schedule resets opacities at step 6).
@@ -342,6 +346,9 @@ def test_cuda_step_has_no_host_sync_outside_checks(scene_dir, tmp_path):
         torch.cuda.set_sync_debug_mode("default")
     assert len(quiet) == 3 and quiet == list(range(quiet[0], quiet[0] + 3))  # consecutive: no step skipped
     assert tr.check_finite(quiet[-1])["total"] > 0
+    if late:  # the phase changed inside the quiet steps, and the late weights are in force
+        assert not tr.schedule.prior_late_at(quiet[0]) and tr.schedule.prior_late_at(quiet[-1])
+        assert float(tr.objective._sup_w[0]) == pytest.approx(0.25 * tr.cfg.loss.w_r)
 
 
 @needs_cuda

@@ -216,8 +216,8 @@ class RetinexObjective(PlainObjective):
         if self.prior_late_scale == 1.0:
             return
         late = self.schedule.prior_late_at(step)
-        if self._sup_w is None:
-            self._sup_w = torch.tensor((c.w_r, c.w_l, c.w_s), dtype=torch.float32, device=device)
+        if self._sup_w is None:  # filled on the device, not copied from the host: no sync
+            self._sup_w = torch.full((3,), c.w_s, dtype=torch.float32, device=device)
         if late != self._late:
             scale = self.prior_late_scale if late else 1.0
             self._sup_w[0].fill_(c.w_r * scale)
