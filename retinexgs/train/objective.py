@@ -1,9 +1,10 @@
 """A method's training objective (nerfstudio's ``Model.get_loss_dict`` is the model): every loss term of a step
 from the render and the training view, eagerly or through the captured CUDA graphs of the image losses.
 
-- :class:`RetinexObjective`: RetinexGS (the paper's §3.3 and §3.4): the 2D priors' supervision of R̂ and L̂, the
-  reconstruction R̂∘L̂ ≈ S (in linear light on a camera-raw scene), L_TV, L_SH, the depth prior and, from
-  ``loss.enhance_from``, the EnhancementNet's L_enhance;
+- :class:`RetinexObjective`: RetinexGS (the paper's §3.3 and §3.4): the 2D priors' supervision of R̂ and L̂ (from
+  ``loss.prior_late_from`` at :func:`late_prior_scale` of their weights), the reconstruction R̂∘L̂ ≈ S (in linear
+  light on a camera-raw scene), L_TV, L_SH, the depth prior and, from ``loss.enhance_from``, the EnhancementNet's
+  L_enhance;
 - :class:`PlainObjective`: the 3DGS baselines (``method`` 3dgs, pre, post): L1 + D-SSIM on the target.
 
 The trainer builds one with :func:`build_objective` and only loops; the density strategy's regulariser
