@@ -234,7 +234,7 @@ class RetinexObjective(PlainObjective):
         self._prior_phase(step, res["out"].image.device)
         return super().backward_graphed(graphs, res, tv, step, log_failures)
 
-    def _weights(self) -> Tuple[Union[float, Tensor], Union[float, Tensor], float]:
+    def _sup_weights(self) -> Tuple[Union[float, Tensor], Union[float, Tensor], float]:
         """(w_r, w_l, w_s) of this step: the config's, or the device's scheduled ones (:meth:`_prior_phase`)."""
         c = self.cfg.loss
         if self._sup_w is None:
@@ -293,7 +293,7 @@ class RetinexObjective(PlainObjective):
         terms: Dict[str, Tensor] = {}
         l1_exposed = c.rec_domain == "exposed"
         if R is not None:
-            sup, sup_terms = losses.supervision_loss(R_hat, L_hat, to_bchw(R), to_bchw(L), S_b, *self._weights(),
+            sup, sup_terms = losses.supervision_loss(R_hat, L_hat, to_bchw(R), to_bchw(L), S_b, *self._sup_weights(),
                                                      c.lambda_ssim, gain, l1_exposed, linear, self._r_luma())
             terms.update(sup_terms)
         else:  # no 2D priors: only the reconstruction is supervised
