@@ -39,7 +39,10 @@ def main(argv: List[str]) -> int:
     ap.add_argument("--full-well", type=float, default=1000.0)
     ap.add_argument("--read-noise", type=float, default=6.0)
     args = ap.parse_args(argv)
-    frames = json.loads((args.scene / "transforms_test.json").read_text())["frames"]
+    split = args.scene / "transforms_test.json"
+    if not split.is_file():
+        raise SystemExit(f"{args.scene} has no transforms_test.json (a scene with normal-light truths in high/)")
+    frames = json.loads(split.read_text())["frames"]
     scale = args.exposure * args.full_well
     rows = {"dark": [], "mid": [], "bright": []}
     for f in frames:

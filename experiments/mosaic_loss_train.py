@@ -37,6 +37,8 @@ from retinexgs.train import losses
 
 
 def first_raw(capture: Path) -> Path:
+    if not (capture / "low").is_dir():
+        raise SystemExit(f"{capture} has no low/ folder of DNGs (a raw ladder capture)")
     files = sorted(p for p in (capture / "low").iterdir() if p.suffix.lower() == ".dng")
     if not files:
         raise SystemExit(f"{capture}/low has no .dng files")
